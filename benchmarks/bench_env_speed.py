@@ -1,0 +1,161 @@
+"""Speed of the cooperative intersection environment against stock highway-env ``intersection-v0``.
+
+Measures simulated seconds per wall-clock second, both environments in the same process, with the
+graph observation built every policy step (15 Hz simulation, 5 Hz policy) and about 20 vehicles,
+against stock ``intersection-v0`` in its default configuration (1 Hz policy, about 10 vehicles)
+and with about 20 vehicles. Then the cost per policy step for 10, 20, 50 and 100 vehicles.
+Prints markdown tables with the machine and the command.
+
+Run: ``python benchmarks/bench_env_speed.py [--seconds 5]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import sys
+import time
+import warnings
+
+import gymnasium as gym
+import numpy as np
+
+import envs  # noqa: F401  (registers the environments)
+
+
+def _time_ours(seconds: float, spawn_probability: float, seed: int = 0) -> dict[str, float]:
+    env = gym.make(
+        "CoopIntersection4Way-v0", config={"spawn_probability": spawn_probability, "duration": 1e6}
+    )
+    env.reset(seed=seed)
+    zeros = np.zeros(env.action_space.shape, np.float32)
+    for _ in range(150):  # warm up to a steady traffic level
+        env.step(zeros)
+    steps, counts = 0, []
+    start = time.perf_counter()
+    while time.perf_counter() - start < seconds:
+        # Collisions are ignored here (constant speeds, no episode end): the traffic level stays
+        # steady, and collision checks run on more candidate pairs than a planner would leave.
+        info = env.step(zeros)[-1]
+        counts.append(info["num_vehicles"])
+        steps += 1
+    wall = time.perf_counter() - start
+    dt = 1.0 / env.unwrapped.config["policy_frequency"]
+    return {
+        "sim_per_wall": steps * dt / wall,
+        "steps_per_s": steps / wall,
+        "vehicles": float(np.mean(counts)),
+    }
+
+
+def _time_stock(seconds: float, config: dict, target: int = 0, seed: int = 0) -> dict[str, float]:
+    """Stock ``intersection-v0`` stepping IDLE; with ``target`` > 0 the road is topped up to about
+    that many vehicles between steps (its own spawner saturates near 12; top-up time not counted)."""
+    import highway_env  # noqa: F401
+
+    env = gym.make("intersection-v0", config=config)
+    env.reset(seed=seed)
+    base = env.unwrapped
+    rng = np.random.default_rng(seed)
+    pf = base.config["policy_frequency"]
+    steps, counts, wall = 0, [], 0.0
+    while wall < seconds:
+        for _ in range(10 if target else 0):
+            if len(base.road.vehicles) >= target:
+                break
+            base._spawn_vehicle(longitudinal=float(rng.uniform(0, 80)), spawn_probability=1.0)
+        start = time.perf_counter()
+        _, _, terminated, truncated, _ = env.step(1)  # IDLE
+        wall += time.perf_counter() - start
+        counts.append(len(base.road.vehicles))
+        steps += 1
+        if truncated or (terminated and not target):
+            env.reset()
+    return {
+        "sim_per_wall": steps / pf / wall,
+        "steps_per_s": steps / wall,
+        "vehicles": float(np.mean(counts)),
+    }
+
+
+def _time_fixed(n: int, seconds: float, seed: int = 0) -> dict[str, float]:
+    """Cost per policy step with ``n`` vehicles spread over all routes (no spawning, slow speeds
+    so that nobody leaves during the measurement)."""
+    env = gym.make(
+        "CoopIntersection4Way-v0",
+        config={
+            "spawn_probability": 0.0,
+            "initial_spawn_probability": 0.0,
+            "max_vehicles": 128,
+            "max_edges": 16384,
+            "duration": 1e6,
+        },
+    )
+    rng = np.random.default_rng(seed)
+    lay = None
+    zeros = np.zeros(128, np.float32)
+    steps = 0
+    wall = 0.0
+    while wall < seconds:
+        env.reset(seed=seed)
+        lay = env.unwrapped.layout
+        route = rng.integers(0, lay.num_routes, n)
+        arc = rng.uniform(3.0, lay.length[route] - 40.0)
+        env.unwrapped.place_vehicles(route, arc, rng.uniform(0.5, 2.0, n))
+        start = time.perf_counter()
+        for _ in range(50):
+            env.step(zeros)
+        wall += time.perf_counter() - start
+        steps += 50
+    return {"ms_per_step": 1e3 * wall / steps, "sim_per_wall": steps * 0.2 / wall}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seconds", type=float, default=5.0, help="wall time per measurement")
+    args = parser.parse_args(argv)
+    warnings.filterwarnings("ignore")
+    try:
+        import torch
+
+        torch.set_num_threads(1)
+    except ImportError:  # pragma: no cover
+        pass
+
+    ours = _time_ours(args.seconds, spawn_probability=0.06)
+    stock_default = _time_stock(args.seconds, {})
+    stock_20 = _time_stock(
+        args.seconds, {"initial_vehicle_count": 20, "spawn_probability": 0.0, "duration": 10_000}, target=20
+    )
+
+    print(f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} logical CPUs, "
+          f"Python {platform.python_version()}, NumPy {np.__version__}")  # fmt: skip
+    print(f"Command: python {' '.join(sys.argv)}\n")
+    header = ["environment", "policy Hz", "mean vehicles", "policy steps/s", "simulated s / wall s"]
+    header.append("ours / this")
+    print("| " + " | ".join(header) + " |")
+    print("|---|---|---|---|---|---|")
+    rows = [
+        ("CoopIntersection4Way-v0 (graph obs every step)", 5, ours),
+        ("highway-env intersection-v0, default config", 1, stock_default),
+        ("highway-env intersection-v0, topped up to ~20 vehicles", 1, stock_20),
+    ]
+    for name, hz, r in rows:
+        ratio = ours["sim_per_wall"] / r["sim_per_wall"]
+        cells = [name, str(hz), f"{r['vehicles']:.1f}", f"{r['steps_per_s']:.1f}", f"{r['sim_per_wall']:.1f}"]
+        print("| " + " | ".join(cells + [f"{ratio:.1f}"]) + " |")
+
+    print("\nCost growth (CoopIntersection4Way-v0, 15 Hz simulation, 5 Hz policy, graph observation):\n")
+    print("| vehicles | ms per policy step | simulated s / wall s | cost relative to 10 vehicles |")
+    print("|---|---|---|---|")
+    base = None
+    for n in (10, 20, 50, 100):
+        r = _time_fixed(n, max(args.seconds / 2, 1.0))
+        base = base or r["ms_per_step"]
+        print(f"| {n} | {r['ms_per_step']:.3f} | {r['sim_per_wall']:.1f} | {r['ms_per_step'] / base:.2f} |")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

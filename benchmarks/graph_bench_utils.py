@@ -1,0 +1,134 @@
+"""Shared pieces of the sb3_graph benchmarks: a paper-scale graph env, buffer filling, timing, tables."""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+from collections.abc import Callable
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch
+
+from sb3_graph import GraphSpace
+
+MAX_NODES, NODE_FEATURES, MAX_EDGES, NUM_RELATIONS = 64, 3, 1024, 2
+
+
+class PaperScaleGraphEnv(gym.Env):
+    """Random graphs at the paper's scale: ~20 vertices (15..25) and ~3 edges per vertex, in a
+    ``GraphSpace(max_nodes=64, max_edges=1024)``.
+
+    :param mean_nodes: mean vertex count
+    :param edges_per_node: edges per vertex
+    """
+
+    def __init__(self, mean_nodes: int = 20, edges_per_node: int = 3) -> None:
+        self.mean_nodes = mean_nodes
+        self.edges_per_node = edges_per_node
+        self.observation_space = GraphSpace(MAX_NODES, NODE_FEATURES, MAX_EDGES, NUM_RELATIONS)
+        self.action_space = gym.spaces.Box(-1.0, 1.0, (MAX_NODES,), np.float32)
+
+    def graph(self) -> dict[str, np.ndarray]:
+        rng = self.np_random
+        n = int(rng.integers(self.mean_nodes - 5, self.mean_nodes + 6))
+        e = self.edges_per_node * n
+        src = rng.integers(0, n, e)
+        dst = (src + rng.integers(1, n, e)) % n
+        x = rng.standard_normal((n, NODE_FEATURES)).astype(np.float32)
+        return self.observation_space.encode(x, np.stack([src, dst]), rng.integers(0, NUM_RELATIONS, e))
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
+        super().reset(seed=seed)
+        return self.graph(), {}
+
+    def step(self, action: np.ndarray) -> tuple[dict, float, bool, bool, dict]:
+        return self.graph(), float(self.np_random.standard_normal()), False, False, {}
+
+
+def fill(
+    buffers: list[Any],
+    env: PaperScaleGraphEnv,
+    count: int,
+    transform: Callable | None = None,
+    episode_length: int = 100,
+) -> None:
+    """Add ``count`` random transitions (n_envs=1) to every buffer, as SB3 does: the next observation
+    is the following observation, except at the end of each ``episode_length``-step episode.
+
+    :param transform: maps an observation to what a buffer stores (e.g. flattening for MlpPolicy)
+    """
+    env.reset(seed=0)
+    obs = env.graph()
+    for step in range(count):
+        next_obs = env.graph()
+        done = step % episode_length == episode_length - 1
+        action = env.np_random.uniform(-1, 1, (1, MAX_NODES)).astype(np.float32)
+        reward = np.array([env.np_random.standard_normal()])
+        for buffer in buffers:
+            o, n = (transform(obs), transform(next_obs)) if transform else (obs, next_obs)
+            if isinstance(o, dict):
+                o, n = {k: v[None] for k, v in o.items()}, {k: v[None] for k, v in n.items()}
+            else:
+                o, n = o[None], n[None]
+            buffer.add(o, n, action, reward, np.array([done]), [{}])
+        obs = env.graph() if done else next_obs
+
+
+def rate(function: Callable[[], Any], min_seconds: float = 1.0, repeats: int = 3) -> float:
+    """Calls per second of ``function``: best of ``repeats`` runs of at least ``min_seconds`` each
+    (best-of damps the noise of other processes on a shared machine)."""
+    function()  # warm-up
+    best = 0.0
+    for _ in range(repeats):
+        calls, start = 0, time.perf_counter()
+        while (elapsed := time.perf_counter() - start) < min_seconds:
+            function()
+            calls += 1
+        best = max(best, calls / elapsed)
+    return best
+
+
+def graph_td3_steps_per_second(threads: int, min_seconds: float = 1.5, fill_count: int = 2000) -> float:
+    """TD3 gradient steps per second (batch 256) with GraphPolicy + GraphReplayBuffer."""
+    from sb3_graph import TD3
+
+    previous = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        env = PaperScaleGraphEnv()
+        model = TD3("GraphPolicy", env, buffer_size=fill_count, batch_size=256, seed=0)
+        model.set_logger(_null_logger())
+        fill([model.replay_buffer], env, fill_count)
+        return rate(lambda: model.train(gradient_steps=2, batch_size=256), min_seconds) * 2
+    finally:
+        torch.set_num_threads(previous)
+
+
+def threads_table(min_seconds: float = 1.5) -> str:
+    """Markdown rows: graph learner steps/s with 1 and 2 torch threads."""
+    one = graph_td3_steps_per_second(1, min_seconds)
+    two = graph_td3_steps_per_second(2, min_seconds)
+    return markdown_table(
+        ["torch threads", "TD3 GraphPolicy gradient steps/s (batch 256)", "ratio vs 1 thread"],
+        [["1", f"{one:.1f}", "1.00"], ["2", f"{two:.1f}", f"{two / one:.2f}"]],
+    )
+
+
+def _null_logger():
+    from stable_baselines3.common.logger import configure
+
+    return configure(folder=None, format_strings=[])
+
+
+def markdown_table(header: list[str], rows: list[list[str]]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+    lines += ["| " + " | ".join(row) + " |" for row in rows]
+    return "\n".join(lines)
+
+
+def machine_line() -> str:
+    command = "python " + " ".join([os.path.relpath(sys.argv[0])] + sys.argv[1:])
+    return f"machine: nproc={os.cpu_count()}, torch {torch.__version__}; command: `{command}`"

@@ -1,0 +1,22 @@
+"""The cooperative intersection domain: layouts, simulation, traffic, graph observation, planners.
+
+Importing ``envs`` registers the gymnasium environments (their modules load only on ``gym.make``):
+
+- ``CoopIntersection4Way-v0``: the paper's synthetic four-way intersection,
+- ``CoopIntersection3Way-v0``: a T junction (major road, minor road merging),
+- ``CoopIntersectionInD-v0``: the inD four-way approximation (priority road, left-turn lanes).
+"""
+
+from __future__ import annotations
+
+from gymnasium.envs.registration import register, registry
+
+ENV_IDS = {
+    "CoopIntersection4Way-v0": "envs.intersection_env:CoopIntersection4WayEnv",
+    "CoopIntersection3Way-v0": "envs.intersection_env:CoopIntersection3WayEnv",
+    "CoopIntersectionInD-v0": "envs.intersection_env:CoopIntersectionInDEnv",
+}
+
+for _env_id, _entry_point in ENV_IDS.items():
+    if _env_id not in registry:
+        register(id=_env_id, entry_point=_entry_point)

@@ -1,0 +1,175 @@
+"""``sb3-graph evaluate``: compare planners on the same scenarios and write a report.
+
+Example (the paper's synthetic experiment)::
+
+    sb3-graph evaluate --env CoopIntersection4Way-v0 --planner pr --planner fifo \\
+        --planner runs/coop/best_model.zip --scenarios 100 --duration 100 --seed 0 --jobs 2 \\
+        --out reports/synthetic
+
+The report folder receives ``scenarios/`` (the generated scenario files, reusable with
+``--scenario-dir``), ``metrics.csv``, ``vehicles.csv``, ``summary.json``, ``report.md`` and the
+figures (see :mod:`envs.report`). An existing ``--out`` is refused, never overwritten; without
+``--out`` a fresh ``reports/synthetic-<date>-<time>`` folder is made.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import time
+from pathlib import Path
+
+from sb3_graph.cli import UserError
+
+DEFAULT_ENV = "CoopIntersection4Way-v0"
+DEFAULT_MODEL = Path("examples/pretrained/coop_4way/best_model.zip")
+DEFAULT_BASELINES = ("pr", "fifo")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--env", default=DEFAULT_ENV, help=f"environment id (default: {DEFAULT_ENV})")
+    parser.add_argument(
+        "--planner",
+        action="append",
+        default=None,
+        metavar="PLANNER",
+        help="repeatable: 'pr' (priority rules), 'fifo', or a saved model .zip; default: pr, fifo "
+        f"and {DEFAULT_MODEL} when that file exists",
+    )
+    parser.add_argument("--scenarios", type=int, default=100, help="scenarios to generate (default: 100)")
+    parser.add_argument(
+        "--duration", type=float, default=100.0, help="simulated seconds per run (default: 100)"
+    )
+    parser.add_argument(
+        "--seed", type=int, default=0, help="base seed of scenarios and environments (default: 0)"
+    )
+    parser.add_argument("--jobs", type=int, default=2, help="parallel worker processes (default: 2)")
+    parser.add_argument(
+        "--out",
+        default=None,
+        help="report folder, must not exist (default: a fresh reports/synthetic-<date>-<time>)",
+    )
+    parser.add_argument(
+        "--scenario-dir",
+        default=None,
+        help="read the scenario files (*.json) from this folder instead of generating --scenarios of them",
+    )
+    parser.add_argument("--env-kwargs", type=json.loads, default=None, help="JSON dict passed to gym.make")
+    parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+
+
+def _check(args: argparse.Namespace) -> list[tuple[str, str]]:
+    """Validate the arguments; return the ``(planner word, report name)`` pairs."""
+    from envs.planners import check_planner_spec, planner_name
+
+    if args.scenarios < 1:
+        raise UserError(f"--scenarios must be at least 1, got {args.scenarios}")
+    if not args.duration > 0:
+        raise UserError(f"--duration must be positive, got {args.duration}")
+    if args.jobs < 1:
+        raise UserError(f"--jobs must be at least 1, got {args.jobs}")
+    if args.env_kwargs is not None and not isinstance(args.env_kwargs, dict):
+        raise UserError("--env-kwargs must be a JSON object, e.g. '{\"duration\": 100}'")
+    words = args.planner
+    if not words:
+        words = list(DEFAULT_BASELINES) + ([str(DEFAULT_MODEL)] if DEFAULT_MODEL.is_file() else [])
+    planners: list[tuple[str, str]] = []
+    for word in words:
+        try:
+            key = check_planner_spec(word)
+        except ValueError as error:
+            raise UserError(f"--planner: {error}") from None
+        name = planner_name(key)
+        if name in [n for _, n in planners]:
+            raise UserError(f"--planner: {word!r} given twice (report name {name!r})")
+        planners.append((key, name))
+    if args.out is not None and Path(args.out).exists():
+        raise UserError(f"--out: {args.out!r} exists; choose a new folder (reports are never overwritten)")
+    import gymnasium as gym
+
+    import envs  # noqa: F401  (registers the environments)
+
+    if args.env not in gym.registry:
+        known = sorted(k for k in gym.registry if k.startswith("Coop"))
+        raise UserError(f"--env: unknown environment {args.env!r}; expected one of {known}")
+    if args.scenario_dir is not None and not Path(args.scenario_dir).is_dir():
+        raise UserError(f"--scenario-dir: {args.scenario_dir!r} is not a folder")
+    return planners
+
+
+def _out_folder(args: argparse.Namespace) -> Path:
+    """Create the report folder; an existing one is refused."""
+    if args.out is None:
+        stamp = time.strftime("%Y%m%d-%H%M%S")
+        out = Path("reports") / f"synthetic-{stamp}"
+        k = 1
+        while out.exists():
+            out = Path("reports") / f"synthetic-{stamp}-{k}"
+            k += 1
+    else:
+        out = Path(args.out)
+        if out.exists():
+            raise UserError(
+                f"--out: {str(out)!r} exists; choose a new folder (reports are never overwritten)"
+            )
+    out.mkdir(parents=True)
+    return out
+
+
+def run(args: argparse.Namespace) -> int:
+    from envs.evaluation import check_scenarios, evaluate, find_scenarios, generate_scenarios, layout_of
+    from envs.report import write_report
+
+    planners = _check(args)
+    try:
+        layout = layout_of(args.env, args.env_kwargs)
+    except (TypeError, ValueError) as error:
+        raise UserError(f"--env-kwargs: {error}") from None
+    if args.scenario_dir is not None:
+        try:
+            scenarios = find_scenarios(args.scenario_dir)
+            check_scenarios(scenarios, layout)
+        except ValueError as error:
+            raise UserError(f"--scenario-dir: {error}") from None
+    out = _out_folder(args)
+    tic = time.perf_counter()
+    if args.scenario_dir is None:
+        scenarios = generate_scenarios(out / "scenarios", args.scenarios, args.duration, args.seed, layout)
+        source = f"generated into {out / 'scenarios'} (seed {args.seed} + index)"
+    else:
+        source = f"read from {args.scenario_dir}"
+    runs, vehicles = evaluate(
+        planners,
+        scenarios,
+        args.env,
+        args.duration,
+        seed=args.seed,
+        jobs=args.jobs,
+        env_kwargs=args.env_kwargs,
+        progress=not args.no_progress,
+    )
+    wall = time.perf_counter() - tic
+    meta = {
+        "environment": args.env,
+        "planners": ", ".join(f"{name} ({word})" for word, name in planners),
+        "scenarios": f"{len(scenarios)}, {source}",
+        "duration per run": f"{args.duration:g} s",
+        "seed": args.seed,
+        "jobs": args.jobs,
+        "wall time": f"{wall:.1f} s",
+        "python": platform.python_version(),
+    }
+    summary = write_report(out, runs, vehicles, meta)
+    for name, s in summary.items():
+        f, sr = s["flow_rate"], s["stop_ratio"]
+        print(
+            f"{name:>10}: flow median {_fmt(f['median'])} veh/s, stops major {_fmt(sr['major'])}"
+            f" minor {_fmt(sr['minor'])}, collisions {_fmt(s['collision_rate'])} ({s['vehicles']} vehicles)"
+        )
+    print(f"report written to {out} ({wall:.1f} s)")
+    return 0
+
+
+def _fmt(value: float | None) -> str:
+    return "n/a" if value is None else f"{value:.3f}"

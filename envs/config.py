@@ -1,0 +1,141 @@
+"""Validation of the intersection environments' ``default_config()`` dictionaries.
+
+Every key of the configuration has a rule: its type and the values it allows. An unknown key, a
+wrong type or an impossible value raises a ``ValueError`` that names the key and what is allowed.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from envs.layouts import LAYOUT_NAMES
+from envs.rewards import REWARD_TERMS
+
+
+def _is_int(x: Any) -> bool:
+    return isinstance(x, int) and not isinstance(x, bool)
+
+
+def _is_number(x: Any) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+
+
+@dataclass(frozen=True)
+class Rule:
+    """How one configuration key is checked.
+
+    :param check: returns ``True`` for an allowed value
+    :param allowed: human-readable description of the allowed values
+    """
+
+    check: Callable[[Any], bool]
+    allowed: str
+
+
+def _int(minimum: int) -> Rule:
+    return Rule(lambda x: _is_int(x) and x >= minimum, f"an integer >= {minimum}")
+
+
+def _positive() -> Rule:
+    return Rule(lambda x: _is_number(x) and x > 0, "a number > 0")
+
+
+def _non_negative() -> Rule:
+    return Rule(lambda x: _is_number(x) and x >= 0, "a number >= 0")
+
+
+def _probability() -> Rule:
+    return Rule(lambda x: _is_number(x) and 0 <= x <= 1, "a number in [0, 1]")
+
+
+def _bool() -> Rule:
+    return Rule(lambda x: isinstance(x, bool), "true or false")
+
+
+def _range(lower: float, strict: bool) -> Rule:
+    def check(x: Any) -> bool:
+        return (
+            isinstance(x, (list, tuple))
+            and len(x) == 2
+            and all(_is_number(v) for v in x)
+            and x[0] >= lower
+            and (x[0] < x[1] if strict else x[0] <= x[1])
+        )
+
+    rel = "<" if strict else "<="
+    return Rule(check, f"a pair [low, high] of numbers with {lower} <= low {rel} high")
+
+
+def _weights(x: Any) -> bool:
+    return isinstance(x, dict) and set(x) <= set(REWARD_TERMS) and all(_is_number(v) for v in x.values())
+
+
+RULES: dict[str, Rule] = {
+    "layout": Rule(lambda x: x in LAYOUT_NAMES, f"one of {LAYOUT_NAMES}"),
+    "simulation_frequency": _int(1),
+    "policy_frequency": _int(1),
+    "duration": _positive(),
+    "max_vehicles": _int(1),
+    "max_edges": _int(0),
+    "spawn_probability": _probability(),
+    "initial_spawn_probability": _probability(),
+    "initial_speed_range": _range(0.0, strict=True),
+    "max_acceleration": _positive(),
+    "max_speed": _positive(),
+    "vehicle_length": _positive(),
+    "vehicle_width": _positive(),
+    "spawn_min_gap": _non_negative(),
+    "s_ref": _positive(),
+    "s_scale": _positive(),
+    "d_max": _positive(),
+    "proximity_threshold": _positive(),
+    "reward_weights": Rule(_weights, f"a dict mapping some of {REWARD_TERMS} to numbers"),
+    # Rendering (highway-env's viewer reads these).
+    "screen_width": _int(1),
+    "screen_height": _int(1),
+    "scaling": _positive(),
+    "centering_position": Rule(
+        lambda x: isinstance(x, (list, tuple)) and len(x) == 2 and all(_is_number(v) for v in x),
+        "a pair [x, y] of numbers (fractions of the screen)",
+    ),
+    "offscreen_rendering": Rule(lambda x: x is None or isinstance(x, bool), "null, true or false"),
+    "real_time_rendering": _bool(),
+    "render_agent": _bool(),
+    "show_trajectories": _bool(),
+}
+
+
+def validate_config(config: dict[str, Any], defaults: dict[str, Any]) -> dict[str, Any]:
+    """Merge ``config`` into ``defaults`` and check the result.
+
+    :param config: the user's settings (a subset of the keys of ``defaults``)
+    :param defaults: the environment's ``default_config()``
+    :return: a new, merged dictionary
+    :raises ValueError: naming the key and what is allowed, for an unknown key, a wrong type or an
+        impossible value (including ``simulation_frequency`` not a multiple of ``policy_frequency``)
+    """
+    if not isinstance(config, dict):
+        raise ValueError(f"config must be a dict, got {type(config).__name__}")
+    unknown = sorted(set(config) - set(defaults))
+    if unknown:
+        raise ValueError(f"unknown config key(s) {unknown}; allowed keys: {sorted(defaults)}")
+    merged = dict(defaults)
+    merged.update(config)
+    for key, value in merged.items():
+        rule = RULES.get(key)
+        if rule is not None and not rule.check(value):
+            raise ValueError(f"config key {key!r} must be {rule.allowed}, got {value!r}")
+    if merged["simulation_frequency"] % merged["policy_frequency"]:
+        raise ValueError(
+            f"config key 'simulation_frequency' must be a multiple of 'policy_frequency', got "
+            f"{merged['simulation_frequency']} and {merged['policy_frequency']}"
+        )
+    # Only the given weights change; the other terms keep their default weight.
+    weights = dict(defaults.get("reward_weights", {}))
+    weights.update(merged.get("reward_weights", {}))
+    merged["reward_weights"] = weights
+    merged["initial_speed_range"] = [float(v) for v in merged["initial_speed_range"]]
+    return merged

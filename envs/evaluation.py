@@ -1,0 +1,300 @@
+"""Run planners on scenario files, like for like, in parallel processes.
+
+One *job* is one planner on one scenario file: the environment is reset onto the scenario, and
+at every policy step the planner answers the scene the environment shows
+(``env.unwrapped.scene()``) with one acceleration per vehicle, which the environment turns into
+its action (``env.unwrapped.accelerations_to_action``). The step ``info`` events and the scenes
+go into a vehicle log (:class:`envs.metrics.VehicleLog`), reduced to one metrics row per job.
+
+Every planner meets exactly the same traffic: the scenario file fixes every vehicle's appearance
+time, route and initial speed, and the environment's own randomness is seeded per scenario.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import time
+from collections.abc import Sequence
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from envs.metrics import VehicleLog, run_metrics
+
+SCENARIO_SUFFIX = ".json"
+
+
+@dataclass(frozen=True)
+class Job:
+    """One planner on one scenario.
+
+    :param planner: planner word (``"pr"``, ``"fifo"`` or a model path)
+    :param name: the planner's report name
+    :param scenario: scenario file
+    :param index: index of the scenario (seeds the environment: ``seed + index``)
+    :param env_id: gymnasium id of the environment
+    :param duration: simulated seconds per run
+    :param seed: base seed
+    :param env_kwargs: keyword arguments of ``gym.make``
+    """
+
+    planner: str
+    name: str
+    scenario: str
+    index: int
+    env_id: str
+    duration: float
+    seed: int
+    env_kwargs: dict[str, Any] = field(default_factory=dict)
+
+
+# Per-process caches: a worker runs many jobs, build its envs and planners (model loads) once.
+_ENVS: dict[tuple[str, str], Any] = {}
+_PLANNERS: dict[str, Any] = {}
+
+
+def _worker_init() -> None:
+    """Pool initializer: one torch thread per process (the jobs are the parallelism)."""
+    try:
+        import torch
+
+        torch.set_num_threads(1)
+    except ImportError:  # torch is only needed by learned planners
+        pass
+
+
+def _env(env_id: str, env_kwargs: dict[str, Any]):
+    import gymnasium as gym
+
+    import envs  # noqa: F401  (registers the environments)
+
+    key = (env_id, repr(sorted(env_kwargs.items())))
+    if key not in _ENVS:
+        _ENVS[key] = gym.make(env_id, **env_kwargs)
+    return _ENVS[key]
+
+
+def _planner(spec: str):
+    from envs.planners import make_planner
+
+    if spec not in _PLANNERS:
+        _PLANNERS[spec] = make_planner(spec)
+    return _PLANNERS[spec]
+
+
+def run_episode(
+    env, planner, scenario: Any, duration: float, seed: int | None = None
+) -> tuple[pd.DataFrame, dict]:
+    """Run one planner through one scenario.
+
+    :param env: the environment (a gymnasium env whose ``unwrapped`` provides ``scene()`` and
+        ``accelerations_to_action(acc)``)
+    :param planner: a :class:`envs.planners.Planner`
+    :param scenario: the scenario object, passed as ``reset(options={"scenario": scenario})``
+    :param duration: simulated seconds to run (less if the environment ends the episode)
+    :param seed: seed of the environment's reset and of the planner
+    :return: ``(vehicle log, facts)`` with facts ``duration`` (simulated seconds actually run),
+        ``steps``, ``terminated`` (the environment ended the episode, e.g. on a collision)
+    """
+    base = env.unwrapped
+    _, info = env.reset(seed=seed, options={"scenario": scenario})
+    planner.reset(seed)
+    log = VehicleLog()
+    log.record(info)
+    scene = base.scene()
+    start = float(scene.time)
+    now = start
+    steps = 0
+    terminated = truncated = False
+    while now - start < duration - 1e-9 and not (terminated or truncated):
+        log.observe(scene)
+        acc = np.asarray(planner.act(scene), dtype=float)
+        _, _, terminated, truncated, info = env.step(base.accelerations_to_action(acc))
+        log.record(info)
+        steps += 1
+        scene = base.scene()
+        now = float(info.get("time", scene.time))
+    if not (terminated or truncated):
+        log.observe(scene)
+    facts = {"duration": now - start, "steps": steps, "terminated": bool(terminated)}
+    facts["waiting_at_end"] = int(info.get("waiting", 0)) if steps else 0
+    return log.frame(), facts
+
+
+def run_job(job: Job) -> tuple[dict[str, Any], pd.DataFrame]:
+    """Run one job (in whichever process calls it).
+
+    :param job: what to run
+    :return: ``(metrics row, vehicle log)``, both tagged with planner and scenario
+    """
+    from envs.traffic import Scenario
+
+    tic = time.perf_counter()
+    env = _env(job.env_id, job.env_kwargs)
+    planner = _planner(job.planner)
+    scenario = Scenario.load(job.scenario)
+    vehicles, facts = run_episode(env, planner, scenario, job.duration, seed=job.seed + job.index)
+    duration = facts["duration"] if facts["duration"] > 0 else job.duration
+    row: dict[str, Any] = {"planner": job.name, "run": job.index, "scenario": Path(job.scenario).name}
+    row.update(run_metrics(vehicles, duration))
+    row.update(
+        steps=facts["steps"],
+        terminated=facts["terminated"],
+        waiting_at_end=facts["waiting_at_end"],
+        wall_s=time.perf_counter() - tic,
+    )
+    vehicles.insert(0, "scenario", Path(job.scenario).name)
+    vehicles.insert(0, "planner", job.name)
+    return row, vehicles
+
+
+def generate_scenarios(folder: str | Path, count: int, duration: float, seed: int, layout: str) -> list[Path]:
+    """Generate ``count`` scenario files ``scenario_000.json``... into ``folder``.
+
+    Scenario ``i`` is drawn with seed ``seed + i``, so the same arguments give the same files.
+
+    :param folder: where to write them (created)
+    :param count: number of scenarios
+    :param duration: seconds of traffic in each
+    :param seed: base seed
+    :param layout: name of the intersection layout (see :func:`layout_of`)
+    :return: the files, in order
+    """
+    from envs.traffic import generate_scenario
+
+    if count < 1:
+        raise ValueError(f"count (--scenarios) must be at least 1, got {count}")
+    if duration <= 0:
+        raise ValueError(f"duration must be positive, got {duration}")
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    width = max(3, len(str(count - 1)))
+    paths = []
+    for i in range(count):
+        path = folder / f"scenario_{i:0{width}d}{SCENARIO_SUFFIX}"
+        if path.exists():
+            raise FileExistsError(f"{path} exists: scenario files are never overwritten")
+        generate_scenario(layout, duration, seed + i).save(path)
+        paths.append(path)
+    return paths
+
+
+def layout_of(env_id: str, env_kwargs: dict[str, Any] | None = None) -> str:
+    """The layout name an environment uses (what its scenarios must be drawn for).
+
+    :param env_id: gymnasium id
+    :param env_kwargs: keyword arguments of ``gym.make``
+    :return: e.g. ``"4way"``
+    """
+    env = _env(env_id, dict(env_kwargs or {}))
+    return str(env.unwrapped.config["layout"])
+
+
+def find_scenarios(folder: str | Path) -> list[Path]:
+    """The scenario files of a folder, sorted by name.
+
+    :param folder: folder written by :func:`generate_scenarios` (or by hand)
+    :return: the files
+    :raises ValueError: the folder does not exist or holds no scenario file
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise ValueError(f"scenario folder {str(folder)!r} does not exist")
+    paths = sorted(folder.glob(f"*{SCENARIO_SUFFIX}"))
+    if not paths:
+        raise ValueError(f"scenario folder {str(folder)!r} holds no *{SCENARIO_SUFFIX} scenario file")
+    return paths
+
+
+def check_scenarios(paths: Sequence[str | Path], layout: str) -> None:
+    """Read every scenario file and check that it is for ``layout``.
+
+    :param paths: scenario files
+    :param layout: the environment's layout name
+    :raises ValueError: an unreadable or invalid file, or one for another layout (naming the file)
+    """
+    from envs.traffic import Scenario
+
+    for path in paths:
+        scenario = Scenario.load(path)
+        if scenario.layout != layout:
+            raise ValueError(
+                f"{path}: scenario is for layout {scenario.layout!r}, the environment uses {layout!r}"
+            )
+
+
+def evaluate(
+    planners: Sequence[tuple[str, str]],
+    scenarios: Sequence[str | Path],
+    env_id: str,
+    duration: float,
+    seed: int = 0,
+    jobs: int = 1,
+    env_kwargs: dict[str, Any] | None = None,
+    progress: bool = True,
+) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """Run every planner on every scenario.
+
+    :param planners: ``(word, report name)`` pairs, e.g. ``[("pr", "PR"), ("fifo", "FIFO")]``
+    :param scenarios: scenario files
+    :param env_id: gymnasium id of the environment
+    :param duration: simulated seconds per run
+    :param seed: base seed (scenario ``i`` runs with ``seed + i``)
+    :param jobs: worker processes (1: run in this process)
+    :param env_kwargs: keyword arguments of ``gym.make``
+    :param progress: show a progress bar
+    :return: ``(runs, vehicles)``: one row per planner and run, one row per vehicle and run;
+        sorted by planner (given order) and scenario, whatever order the workers finished in
+    """
+    if jobs < 1:
+        raise ValueError(f"jobs must be at least 1, got {jobs}")
+    work = [
+        Job(word, name, str(path), i, env_id, float(duration), int(seed), dict(env_kwargs or {}))
+        for word, name in planners
+        for i, path in enumerate(scenarios)
+    ]
+    results: list[tuple[dict[str, Any], pd.DataFrame] | None] = [None] * len(work)
+    bar = _progress(len(work), progress)
+    try:
+        if jobs == 1:
+            _worker_init()
+            for k, job in enumerate(work):
+                results[k] = run_job(job)
+                bar.update(1)
+        else:
+            # spawn: workers start clean (no forked torch/matplotlib state), same on every OS
+            context = multiprocessing.get_context("spawn")
+            pool = ProcessPoolExecutor(
+                max_workers=min(jobs, len(work)), mp_context=context, initializer=_worker_init
+            )
+            try:
+                futures = {pool.submit(run_job, job): k for k, job in enumerate(work)}
+                for future in as_completed(futures):
+                    results[futures[future]] = future.result()
+                    bar.update(1)
+            except BaseException:
+                # a failed job or Ctrl-C: do not wait for the queued jobs
+                pool.shutdown(wait=False, cancel_futures=True)
+                raise
+            pool.shutdown()
+    finally:
+        bar.close()
+    runs = pd.DataFrame([r[0] for r in results if r is not None])
+    vehicles = pd.concat([r[1] for r in results if r is not None], ignore_index=True)
+    return runs, vehicles
+
+
+def _progress(total: int, enabled: bool):
+    from tqdm.auto import tqdm
+
+    return tqdm(
+        total=total,
+        desc="evaluate",
+        unit="run",
+        disable=not enabled or bool(os.environ.get("SB3_GRAPH_NO_PROGRESS")),
+    )

@@ -1,0 +1,591 @@
+"""Map recorded vehicle tracks onto the simulated intersection, from the tracks alone.
+
+The real site's map is not used: everything is derived from where vehicles enter and leave.
+
+1. Per track (one pandas ``groupby`` over all frames): first and last position, direction of
+   travel there, first speed, lowest speed, path length.
+2. Intersection centre: the point closest, in least squares, to the lines along which vehicles
+   enter and leave (every arm points at the centre), or given by the caller.
+3. Arms: the directions (angles around the centre) of the track ends outside ``inner_radius``
+   pile up in one bump per arm; the ``num_arms`` largest bumps of a smoothed circular
+   histogram are the arms, each refined to the circular mean of its ends.
+4. Each track gets an entry arm, an exit arm, and a maneuver from the signed turn angle between
+   the entry direction (inwards) and the exit direction (outwards): counter-clockwise is a left
+   turn in the inD frame (x east, y north), traffic keeps right.
+5. Major road: by default the pair of opposite arms carrying the most mapped tracks.
+6. Alignment: recorded arms are matched to a simulated layout's arms keeping the cyclic order
+   (so left stays left) and sending the major road to the layout's major road; each track gets
+   the layout route name ``"<entry arm>-><exit arm>"``.
+
+A track that cannot be mapped keeps its row, with ``mapped = False`` and the reason.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from envs.ind.loader import Recording
+from envs.scene import MAJOR, MANEUVERS, STOP_SPEED
+
+COMPASS: tuple[str, ...] = ("east", "north", "west", "south")  # counter-clockwise from +x
+
+# Reasons a track is not mapped (the ``reason`` column).
+REASON_NOT_MODELLED = "not modelled: "  # followed by the class
+REASON_NO_FRAMES = "no frames in the tracks file"
+REASON_PARKED = "parked (travels less than min_travel)"
+REASON_STARTS_INSIDE = "starts inside the intersection"
+REASON_ENDS_INSIDE = "ends inside the intersection"
+REASON_ENTRY_OFF_ARM = "enters away from every arm"
+REASON_EXIT_OFF_ARM = "leaves away from every arm"
+REASON_U_TURN = "u-turn (enters and leaves by the same arm)"
+REASON_LAYOUT = "maneuver changes in the layout"
+
+
+@dataclass(frozen=True)
+class MappingOptions:
+    """How tracks are mapped.
+
+    :param centre: intersection centre in the recordings' local frame [m]; ``None`` estimates it
+    :param num_arms: number of approach arms (4 for inD's four-way sites)
+    :param inner_radius: a track end closer than this to the centre is inside the intersection [m]
+    :param min_travel: a track travelling less than this in total is parked [m]
+    :param arm_tolerance_deg: a track end farther than this (angle around the centre) from every
+        arm belongs to no arm [deg]
+    :param major_arms: names of the two recorded arms of the major road (compass names, see
+        :attr:`MappedTracks.arms`); ``None``: the opposite pair carrying the most traffic
+    :param turn_threshold_deg: turns whose signed angle exceeds this are left (positive) or
+        right (negative) turns, the others straight [deg]
+    :param min_arm_separation_deg: smallest angle between two arms [deg]
+    """
+
+    centre: tuple[float, float] | None = None
+    num_arms: int = 4
+    inner_radius: float = 10.0
+    min_travel: float = 5.0
+    arm_tolerance_deg: float = 30.0
+    major_arms: tuple[str, str] | None = None
+    turn_threshold_deg: float = 45.0
+    min_arm_separation_deg: float = 45.0
+
+    def __post_init__(self) -> None:
+        if self.num_arms < 3:
+            raise ValueError(f"num_arms must be at least 3, got {self.num_arms}")
+        for name in (
+            "inner_radius",
+            "min_travel",
+            "arm_tolerance_deg",
+            "turn_threshold_deg",
+            "min_arm_separation_deg",
+        ):
+            value = getattr(self, name)
+            if not np.isfinite(value) or value <= 0:
+                raise ValueError(f"{name} must be a positive number, got {value!r}")
+        if self.centre is not None and (len(self.centre) != 2 or not np.all(np.isfinite(self.centre))):
+            raise ValueError(f"centre must be two finite numbers (x, y), got {self.centre!r}")
+        if self.major_arms is not None and len(set(self.major_arms)) != 2:
+            raise ValueError(f"major_arms must name two different arms, got {self.major_arms!r}")
+
+
+@dataclass(frozen=True)
+class LayoutArms:
+    """What the alignment needs to know about a simulated layout.
+
+    :param angles: arm name -> outward direction of the arm [rad], counter-clockwise from +x
+    :param major: the two arms of the layout's major (priority) road
+    """
+
+    angles: Mapping[str, float]
+    major: tuple[str, str]
+
+    def __post_init__(self) -> None:
+        if not set(self.major) <= set(self.angles) or len(set(self.major)) != 2:
+            raise ValueError(f"major must be two of the arms {sorted(self.angles)}, got {self.major!r}")
+
+
+# The simulated four-way when envs.layouts cannot say: compass arms, east-west priority road.
+DEFAULT_LAYOUT = LayoutArms(angles={n: k * np.pi / 2 for k, n in enumerate(COMPASS)}, major=("east", "west"))
+
+
+def layout_arms(layout: Any) -> LayoutArms:
+    """The alignment interface of a simulated layout (an :class:`envs.layouts.Layout`).
+
+    The layouts use highway-env's frame (``y`` south, arm angles ``atan2(y, x)`` there), inD a
+    right-handed frame with ``y`` north: the angles change sign, which keeps left turns left.
+
+    :param layout: an object with ``arm_angle`` (arm -> outward angle [rad], ``y`` south),
+        ``entry_arm`` and ``priority`` (per route) like :class:`envs.layouts.Layout`
+    :return: arms in the inD frame and the entry arms of the major-road routes
+    """
+    angles = {str(name): -float(angle) for name, angle in layout.arm_angle.items()}
+    major = sorted(
+        {str(arm) for arm, p in zip(layout.entry_arm, np.asarray(layout.priority)) if int(p) == MAJOR}
+    )
+    if len(major) != 2:
+        raise ValueError(
+            f"layout {getattr(layout, 'name', '?')!r}: expected a major road of two arms, got {major}"
+        )
+    return LayoutArms(angles=angles, major=(major[0], major[1]))
+
+
+@dataclass
+class MappedTracks:
+    """The mapping of every track of one or more recordings of one site.
+
+    :param tracks: one row per track (every class), columns ``recording``, ``track_id``, ``class``,
+        ``length`` and ``width`` (tracksMeta, [m]),
+        ``time`` (appearance time [s]: initialFrame / frameRate), ``speed`` (first speed [m/s]),
+        ``min_speed``, ``stopped`` (speed below ``STOP_SPEED`` in some frame), ``t_centre`` (time
+        of the frame closest to the centre [s]), ``t_last`` (last frame [s]), ``min_distance``
+        (closest approach to the centre [m]), ``entry_arm``,
+        ``exit_arm``, ``turn_deg`` (signed turn angle, left positive), ``maneuver``,
+        ``priority`` (``"major"``/``"minor"`` road of the entry arm), ``route`` (layout route name),
+        ``mapped`` (bool) and ``reason`` (why not, ``""`` when mapped)
+    :param arms: one row per recorded arm, indexed by its compass name: ``angle_deg`` (outward
+        direction), ``entries``, ``exits``, ``major`` (bool), ``layout_arm``
+    :param centre: the intersection centre used [m]
+    :param centre_estimated: whether the centre was estimated from the tracks
+    :param options: the options the mapping used
+    """
+
+    tracks: pd.DataFrame
+    arms: pd.DataFrame
+    centre: np.ndarray
+    centre_estimated: bool = True
+    options: MappingOptions = field(default_factory=MappingOptions)
+
+    @property
+    def mapped(self) -> pd.DataFrame:
+        """The rows of the tracks that are mapped."""
+        return self.tracks[self.tracks["mapped"]]
+
+    @property
+    def unmapped(self) -> pd.DataFrame:
+        """The rows of the tracks that are not mapped, with their reasons."""
+        return self.tracks[~self.tracks["mapped"]]
+
+    def reasons(self) -> pd.Series:
+        """Number of unmapped tracks per reason."""
+        return self.unmapped["reason"].value_counts().rename("tracks")
+
+
+def _wrap_deg(angle: np.ndarray | float) -> np.ndarray:
+    """Angles in degrees wrapped to ``(-180, 180]``."""
+    return 180.0 - np.mod(180.0 - np.asarray(angle, dtype=float), 360.0)
+
+
+def track_summary(tracks: pd.DataFrame) -> pd.DataFrame:
+    """First and last state, lowest speed and path length of each vehicle track.
+
+    :param tracks: per-frame rows (``recordingId``, ``trackId``, ``frame``, ``xCenter``,
+        ``yCenter``, ``heading``, ``xVelocity``, ``yVelocity``, ``speed``), sorted by track and frame
+    :return: one row per ``(recordingId, trackId)``: ``x0, y0, dx0, dy0`` (position and unit
+        direction of travel at the first frame), ``x1, y1, dx1, dy1`` (last frame), ``speed0``,
+        ``min_speed``, ``travel`` [m], ``last_frame``
+    """
+    keys = ["recordingId", "trackId"]
+    # Direction of travel: the velocity where the vehicle moves, else its heading.
+    speed = tracks["speed"].to_numpy()
+    moving = speed > 0.5
+    heading = np.deg2rad(tracks["heading"].to_numpy())
+    norm = np.maximum(speed, 1e-9)
+    dx = np.where(moving, tracks["xVelocity"].to_numpy() / norm, np.cos(heading))
+    dy = np.where(moving, tracks["yVelocity"].to_numpy() / norm, np.sin(heading))
+    same_track = tracks[keys].eq(tracks[keys].shift()).all(axis=1).to_numpy()
+    step = np.where(same_track, np.hypot(tracks["xCenter"].diff(), tracks["yCenter"].diff()), 0.0)
+    frame = tracks[keys].assign(
+        frame=tracks["frame"], x=tracks["xCenter"], y=tracks["yCenter"], dx=dx, dy=dy, speed=speed, step=step
+    )
+    grouped = frame.groupby(keys, sort=True)
+    first, last = grouped.first(), grouped.last()
+    return pd.DataFrame(
+        {
+            "x0": first["x"],
+            "y0": first["y"],
+            "dx0": first["dx"],
+            "dy0": first["dy"],
+            "x1": last["x"],
+            "y1": last["y"],
+            "dx1": last["dx"],
+            "dy1": last["dy"],
+            "speed0": first["speed"],
+            "min_speed": grouped["speed"].min(),
+            "travel": grouped["step"].sum(),
+            "last_frame": last["frame"],
+        }
+    )
+
+
+def estimate_centre(points: np.ndarray, directions: np.ndarray, iterations: int = 5) -> np.ndarray:
+    """The point closest to a set of lines, in iteratively reweighted least squares.
+
+    Line ``i`` passes through ``points[i]`` along ``directions[i]``; the point ``c`` minimises
+    ``sum_i w_i |(I - d_i d_i^T)(c - p_i)|^2`` with ``w_i = 1 / max(dist_i, 1 m)`` after the first
+    pass, so that the few lines that miss the centre (lane offsets, odd tracks) weigh little.
+
+    :param points: ``(n, 2)`` a point of each line [m]
+    :param directions: ``(n, 2)`` unit direction of each line
+    :param iterations: reweighting passes
+    :return: ``(2,)`` the centre
+    :raises ValueError: the lines are (nearly) parallel, so no single crossing point exists
+    """
+    d = directions / np.linalg.norm(directions, axis=1, keepdims=True)
+    projector = np.eye(2)[None] - d[:, :, None] * d[:, None, :]  # (n, 2, 2) removes the along-line part
+    weights = np.ones(len(points))
+    centre = np.zeros(2)
+    for _ in range(iterations):
+        a = np.einsum("n,nij->ij", weights, projector)
+        b = np.einsum("n,nij,nj->i", weights, projector, points)
+        if len(points) < 2 or np.linalg.cond(a) > 1e6:
+            raise ValueError(
+                "cannot estimate the intersection centre: the tracks run (nearly) parallel; "
+                "give it with centre=(x, y)"
+            )
+        centre = np.linalg.solve(a, b)
+        residual = np.linalg.norm(np.einsum("nij,nj->ni", projector, centre - points), axis=1)
+        weights = 1.0 / np.maximum(residual, 1.0)
+    return centre
+
+
+def find_arms(angles_deg: np.ndarray, num_arms: int, min_separation_deg: float = 45.0) -> np.ndarray:
+    """Directions of the approach arms from the angles (around the centre) of track ends.
+
+    A circular histogram with 1 degree bins is smoothed over +-10 degrees; the ``num_arms``
+    highest peaks at least ``min_separation_deg`` apart are the arms, each refined to the
+    circular mean of the angles nearest to it (and within ``min_separation_deg``). The separation
+    keeps the two lanes of one arm (entering and leaving, far apart in angle where the recorded
+    arm is short) from being taken for two arms.
+
+    :param angles_deg: ``(n,)`` angles of the track ends [deg]
+    :param num_arms: how many arms to find
+    :param min_separation_deg: smallest angle between two arms [deg]
+    :return: ``(num_arms,)`` arm directions in ``[0, 360)``, counter-clockwise order
+    :raises ValueError: fewer distinct arms than ``num_arms``
+    """
+    angles = np.mod(np.asarray(angles_deg, dtype=float), 360.0)
+    histogram = np.bincount(np.floor(angles).astype(int) % 360, minlength=360).astype(float)
+    kernel = np.exp(-0.5 * (np.arange(-10, 11) / 4.0) ** 2)
+    padded = np.concatenate([histogram[-10:], histogram, histogram[:10]])
+    density = np.convolve(padded, kernel, mode="valid")  # circular smoothing
+    bins = np.arange(360)
+    peaks = []
+    for _ in range(num_arms):
+        k = int(np.argmax(density))
+        if density[k] <= 0:
+            raise ValueError(
+                f"found only {len(peaks)} approach arms in the tracks, expected {num_arms}; "
+                "check inner_radius and centre"
+            )
+        peaks.append(k + 0.5)
+        density[np.abs(_wrap_deg(bins + 0.5 - peaks[-1])) < min_separation_deg] = 0.0
+    peaks = np.array(peaks)
+    off = np.abs(_wrap_deg(angles[:, None] - peaks[None, :]))  # (n, arms)
+    near = (off == off.min(axis=1, keepdims=True)) & (off < min_separation_deg)  # nearest peak only
+    rad = np.deg2rad(angles)[:, None]
+    refined = np.rad2deg(np.arctan2((near * np.sin(rad)).sum(0), (near * np.cos(rad)).sum(0)))
+    return np.sort(np.mod(refined, 360.0))
+
+
+def compass_names(arm_angles_deg: np.ndarray) -> list[str]:
+    """Name arms after the compass direction they point to (x east, y north), keeping their order.
+
+    Four arms get east, north, west, south rotated as a whole to fit best; other numbers of arms
+    get the nearest compass or half-compass name, made unique with a suffix.
+
+    :param arm_angles_deg: ``(k,)`` arm directions in counter-clockwise order [deg]
+    :return: a name per arm
+    """
+    angles = np.asarray(arm_angles_deg, dtype=float)
+    if len(angles) == 4:
+        cost = [np.abs(_wrap_deg(angles - 90.0 * ((np.arange(4) + r) % 4))).sum() for r in range(4)]
+        r = int(np.argmin(cost))
+        return [COMPASS[(k + r) % 4] for k in range(4)]
+    eight = ("east", "northeast", "north", "northwest", "west", "southwest", "south", "southeast")
+    names = [eight[int(np.round(a / 45.0)) % 8] for a in angles]
+    return [n if names.count(n) == 1 else f"{n}{names[:i].count(n) + 1}" for i, n in enumerate(names)]
+
+
+def align_arms(
+    recorded: Mapping[str, float], recorded_major: Sequence[str], layout: LayoutArms
+) -> dict[str, str]:
+    """Match recorded arms to layout arms, keeping the rotation sense and the major road.
+
+    Both sets of arms are put in counter-clockwise order; the candidates are the cyclic shifts
+    (never a mirror image, which would turn left turns into right turns) that send the recorded
+    major road onto the layout's major road. Of those, the one that rotates the arms least wins.
+
+    :param recorded: recorded arm name -> outward direction [deg]
+    :param recorded_major: the two recorded arms of the major road
+    :param layout: the layout's arms and major road
+    :return: recorded arm name -> layout arm name
+    :raises ValueError: different numbers of arms, or no shift matches the major roads
+    """
+    if len(recorded) != len(layout.angles):
+        raise ValueError(
+            f"the recording has {len(recorded)} arms but the layout has {len(layout.angles)}: "
+            f"{sorted(layout.angles)}"
+        )
+    rec_names = sorted(recorded, key=lambda n: np.mod(recorded[n], 360.0))
+    lay_names = sorted(layout.angles, key=lambda n: np.mod(np.rad2deg(layout.angles[n]), 360.0))
+    rec_angles = np.array([recorded[n] for n in rec_names])
+    lay_angles = np.rad2deg(np.array([layout.angles[n] for n in lay_names]))
+    n = len(rec_names)
+    best, best_cost = None, np.inf
+    for shift in range(n):
+        pairing = {rec_names[k]: lay_names[(k + shift) % n] for k in range(n)}
+        if {pairing[a] for a in recorded_major} != set(layout.major):
+            continue
+        rotation = _wrap_deg(lay_angles[(np.arange(n) + shift) % n] - rec_angles)
+        cost = float(np.abs(rotation).sum())
+        if cost < best_cost - 1e-9:
+            best, best_cost = pairing, cost
+    if best is None:
+        raise ValueError(
+            f"no rotation sends the recorded major road {tuple(recorded_major)} onto the layout's "
+            f"major road {layout.major}: the arms do not correspond"
+        )
+    return best
+
+
+def _maneuver(turn_deg: np.ndarray, threshold: float) -> np.ndarray:
+    return np.where(
+        turn_deg > threshold, MANEUVERS[0], np.where(turn_deg < -threshold, MANEUVERS[2], MANEUVERS[1])
+    )
+
+
+def map_recordings(
+    recordings: Sequence[Recording],
+    options: MappingOptions | None = None,
+    layout: LayoutArms | None = None,
+) -> MappedTracks:
+    """Map the tracks of recordings of one site to the simulated layout.
+
+    :param recordings: loaded recordings, all of one site (they share the local frame)
+    :param options: mapping options
+    :param layout: the simulated layout's arms (default :data:`DEFAULT_LAYOUT`)
+    :return: the mapping of every track
+    """
+    options = options or MappingOptions()
+    layout = layout or DEFAULT_LAYOUT
+    if not recordings:
+        raise ValueError("recordings: expected at least one recording")
+    if len({r.location_id for r in recordings}) > 1:
+        raise ValueError(
+            f"recordings of several sites cannot be mapped together: locationId "
+            f"{sorted({r.location_id for r in recordings})}"
+        )
+
+    # One row per track of every class: when it appears and what it is.
+    meta = pd.concat(
+        [
+            r.tracks_meta.assign(recording=r.recording_id, time=r.tracks_meta["initialFrame"] / r.frame_rate)
+            for r in recordings
+        ],
+        ignore_index=True,
+    )
+    table = pd.DataFrame(
+        {
+            "recording": meta["recording"].astype(int),
+            "track_id": meta["trackId"].astype(int),
+            "class": meta["class"],
+            "time": meta["time"].astype(float),
+            "is_vehicle": meta["is_vehicle"],
+            "length": meta["length"].astype(float) if "length" in meta else np.nan,
+            "width": meta["width"].astype(float) if "width" in meta else np.nan,
+        }
+    )
+    # Per recording, so that the frames of all recordings are never copied into one table.
+    summary = pd.concat([track_summary(r.tracks.assign(recordingId=r.recording_id)) for r in recordings])
+    summary = summary.rename_axis(["recording", "track_id"]).reset_index()
+    table = table.merge(summary, on=["recording", "track_id"], how="left")
+    table["speed"] = table.pop("speed0")
+    table["stopped"] = table["min_speed"] < STOP_SPEED
+
+    vehicle = table["is_vehicle"].to_numpy() & table["x0"].notna().to_numpy()
+    moving = vehicle & (table["travel"].to_numpy() >= options.min_travel)
+
+    if moving.sum() < 2:
+        raise ValueError(
+            f"only {int(moving.sum())} vehicle track(s) move at least min_travel={options.min_travel} m: "
+            "nothing to map"
+        )
+    # Centre: lines along which moving vehicles enter and leave.
+    if options.centre is None:
+        pts = np.vstack(
+            [table.loc[moving, ["x0", "y0"]].to_numpy(), table.loc[moving, ["x1", "y1"]].to_numpy()]
+        )
+        dirs = np.vstack(
+            [table.loc[moving, ["dx0", "dy0"]].to_numpy(), table.loc[moving, ["dx1", "dy1"]].to_numpy()]
+        )
+        centre = estimate_centre(pts, dirs)
+    else:
+        centre = np.asarray(options.centre, dtype=float)
+
+    r0 = np.hypot(table["x0"] - centre[0], table["y0"] - centre[1]).to_numpy()
+    r1 = np.hypot(table["x1"] - centre[0], table["y1"] - centre[1]).to_numpy()
+    a0 = np.rad2deg(np.arctan2(table["y0"] - centre[1], table["x0"] - centre[0])).to_numpy()
+    a1 = np.rad2deg(np.arctan2(table["y1"] - centre[1], table["x1"] - centre[0])).to_numpy()
+    # When each vehicle passes closest to the centre (one groupby over the frames of a recording).
+    passages = []
+    for r in recordings:
+        x, y = r.tracks["xCenter"].to_numpy(), r.tracks["yCenter"].to_numpy()
+        dist = pd.Series(np.hypot(x - centre[0], y - centre[1]))
+        closest = dist.groupby(r.tracks["trackId"].to_numpy()).idxmin().to_numpy()
+        passages.append(
+            pd.DataFrame(
+                {
+                    "recording": r.recording_id,
+                    "track_id": r.tracks["trackId"].to_numpy()[closest],
+                    "centre_frame": r.tracks["frame"].to_numpy()[closest],
+                    "min_distance": dist.to_numpy()[closest],
+                }
+            )
+        )
+    passage = pd.concat(passages, ignore_index=True)
+    table = table.merge(passage, on=["recording", "track_id"], how="left")
+    frame_rate = table["recording"].map({r.recording_id: r.frame_rate for r in recordings})
+    table["t_centre"] = table.pop("centre_frame") / frame_rate
+    table["t_last"] = table["last_frame"] / frame_rate
+    start_out = moving & (r0 >= options.inner_radius)
+    end_out = moving & (r1 >= options.inner_radius)
+    arm_angles = find_arms(
+        np.concatenate([a0[start_out], a1[end_out]]), options.num_arms, options.min_arm_separation_deg
+    )
+    names = np.array(compass_names(arm_angles))
+
+    def nearest_arm(angle: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        off = np.abs(_wrap_deg(angle[:, None] - arm_angles[None, :]))
+        off = np.nan_to_num(off, nan=np.inf)
+        k = off.argmin(axis=1)
+        return k, off[np.arange(len(k)), k] <= options.arm_tolerance_deg
+
+    k0, on0 = nearest_arm(a0)
+    k1, on1 = nearest_arm(a1)
+
+    # Reasons, the first that applies wins.
+    reason = np.full(len(table), "", dtype=object)
+    checks = [
+        (~table["is_vehicle"].to_numpy(), None),
+        (~vehicle, REASON_NO_FRAMES),
+        (vehicle & ~moving, REASON_PARKED),
+        (moving & ~start_out, REASON_STARTS_INSIDE),
+        (moving & ~end_out, REASON_ENDS_INSIDE),
+        (moving & ~on0, REASON_ENTRY_OFF_ARM),
+        (moving & ~on1, REASON_EXIT_OFF_ARM),
+        (moving & (k0 == k1), REASON_U_TURN),
+    ]
+    for mask, text in checks:
+        fill = mask & (reason == "")
+        if text is None:
+            reason[fill] = ("not modelled: " + table["class"].astype(str)).to_numpy()[fill]
+        else:
+            reason[fill] = text
+    ok = reason == ""
+
+    entry = np.where(ok, names[k0], "")
+    exit_ = np.where(ok, names[k1], "")
+    turn = np.where(ok, _wrap_deg(arm_angles[k1] - (arm_angles[k0] + 180.0)), np.nan)
+    maneuver = np.where(ok, _maneuver(turn, options.turn_threshold_deg), "")
+
+    # Major road: given, or the opposite pair of arms with the most mapped entries and exits.
+    entries = pd.Series(entry[ok]).value_counts().reindex(names, fill_value=0)
+    exits = pd.Series(exit_[ok]).value_counts().reindex(names, fill_value=0)
+    if options.major_arms is not None:
+        unknown = set(options.major_arms) - set(names)
+        if unknown:
+            raise ValueError(
+                f"major_arms: {sorted(unknown)} are not arms of this site; its arms are {list(names)}"
+            )
+        major = tuple(options.major_arms)
+    else:
+        if options.num_arms % 2:
+            raise ValueError(f"major_arms must be given for a site with {options.num_arms} arms")
+        half = options.num_arms // 2
+        traffic = (entries + exits).to_numpy()
+        pair = int(np.argmax([traffic[k] + traffic[k + half] for k in range(half)]))
+        major = (str(names[pair]), str(names[pair + half]))
+
+    pairing = align_arms(dict(zip(names, arm_angles)), major, layout)
+    layout_name = np.array([pairing[n] for n in names], dtype=object)  # per recorded arm
+    layout_deg = np.array([np.rad2deg(layout.angles[pairing[n]]) for n in names])
+    route = np.where(ok, pd.Series(layout_name[k0]).str.cat(layout_name[k1], sep="->").to_numpy(), "")
+    # The layout's own turn angles must give the same maneuvers (they do unless its arms are skewed).
+    layout_turn = _wrap_deg(layout_deg[k1] - layout_deg[k0] - 180.0)
+    changed = ok & (_maneuver(layout_turn, options.turn_threshold_deg) != maneuver)
+    reason[changed] = REASON_LAYOUT
+    ok = ok & ~changed
+
+    table = table.assign(
+        entry_arm=np.where(ok, entry, ""),
+        exit_arm=np.where(ok, exit_, ""),
+        turn_deg=np.where(ok, turn, np.nan),
+        maneuver=np.where(ok, maneuver, ""),
+        priority=np.where(ok, np.where(np.isin(entry, major), "major", "minor"), ""),
+        route=np.where(ok, route, ""),
+        mapped=ok,
+        reason=reason,
+    )
+    columns = [
+        "recording",
+        "track_id",
+        "class",
+        "length",
+        "width",
+        "time",
+        "speed",
+        "min_speed",
+        "stopped",
+        "t_centre",
+        "t_last",
+        "min_distance",
+        "entry_arm",
+        "exit_arm",
+        "turn_deg",
+        "maneuver",
+        "priority",
+        "route",
+        "mapped",
+        "reason",
+    ]
+    arms = pd.DataFrame(
+        {
+            "angle_deg": arm_angles,
+            "entries": entries.to_numpy(),
+            "exits": exits.to_numpy(),
+            "major": np.isin(names, major),
+            "layout_arm": [pairing[n] for n in names],
+        },
+        index=pd.Index(names, name="arm"),
+    )
+    return MappedTracks(table[columns], arms, centre, options.centre is None, options)
+
+
+def scenario_records(mapped: MappedTracks, recording: int | None = None) -> pd.DataFrame:
+    """The mapped vehicles as scenario rows for the simulated layout.
+
+    :param mapped: the mapping
+    :param recording: keep only this recording (``None``: all, times per recording)
+    :return: columns ``time`` (appearance [s]), ``route`` (layout route name), ``speed`` (initial
+        speed [m/s]), ``vehicle_id`` (the trackId), ``recording``, ``maneuver``, ``length`` and
+        ``width`` [m] (NaN where the recording does not give them), sorted by recording and time
+    """
+    rows = mapped.mapped
+    if recording is not None:
+        rows = rows[rows["recording"] == recording]
+    out = pd.DataFrame(
+        {
+            "time": rows["time"].to_numpy(float),
+            "route": rows["route"].to_numpy(str),
+            "speed": rows["speed"].to_numpy(float),
+            "vehicle_id": rows["track_id"].to_numpy(np.int64),
+            "recording": rows["recording"].to_numpy(np.int64),
+            "maneuver": rows["maneuver"].to_numpy(str),
+            "length": rows["length"].to_numpy(float),
+            "width": rows["width"].to_numpy(float),
+        }
+    )
+    return out.sort_values(["recording", "time", "vehicle_id"], kind="stable").reset_index(drop=True)

@@ -1,0 +1,399 @@
+"""The cooperative intersection environment: one planner commands every vehicle in the scene.
+
+A fast variant of highway-env's intersection (paper, section "Experiments"). It subclasses
+highway-env's :class:`~highway_env.envs.common.abstract.AbstractEnv` for its configuration habit
+(``default_config()`` merged with the user's dict) and its viewer, but overrides ``reset`` and
+``step`` entirely: the state lives in :class:`~envs.simulation.Simulation` arrays, and highway-env
+``Vehicle`` objects are made only to render.
+
+- Observation: :class:`sb3_graph.GraphSpace` (``max_vehicles`` vertices, 3 features ``[s, v, d]``,
+  ``max_edges`` edges, 2 relations: 0 same lane, 1 crossing), built by
+  :func:`envs.scene_graph.build_observation` from :meth:`CoopIntersectionEnv.scene`.
+- Action: ``Box(-1, 1, (max_vehicles,))``; slot ``i`` commands vehicle ``i`` (vertex ``i``) with
+  ``action * max_acceleration`` m/s^2; slots beyond the vehicles present are ignored.
+- Reward: :mod:`envs.rewards`; a collision ends the episode (``terminated``); the episode is
+  truncated after ``duration`` seconds (or the replayed scenario's duration).
+- ``info``: the keys documented in :mod:`envs.scene`.
+
+Traffic: random training spawns with ``spawn_probability`` per lane and step (see
+:meth:`CoopIntersectionEnv.set_spawn_probability` for a curriculum), or an exact replay of an
+evaluation scenario with ``reset(options={"scenario": scenario_or_path})``.
+
+Public helpers on ``env.unwrapped``: :meth:`~CoopIntersectionEnv.scene` (the current
+:class:`~envs.scene.Scene`), :meth:`~CoopIntersectionEnv.accelerations_to_action` (a planner's
+accelerations in m/s^2 -> padded action), :meth:`~CoopIntersectionEnv.set_spawn_probability`,
+:meth:`~CoopIntersectionEnv.place_vehicles` (hand-built situations), and the attributes
+``layout`` (:class:`~envs.layouts.Layout`) and ``sim`` (:class:`~envs.simulation.Simulation`).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+from highway_env.envs.common.abstract import AbstractEnv
+from highway_env.road.road import Road
+from highway_env.vehicle.graphics import VehicleGraphics
+from highway_env.vehicle.kinematics import Vehicle
+
+from envs.config import validate_config
+from envs.layouts import Layout, build_layout
+from envs.rewards import DEFAULT_PROXIMITY_THRESHOLD, DEFAULT_REWARD_WEIGHTS, reward_terms, weighted
+from envs.scene import MAJOR, MANEUVERS, Scene
+from envs.scene_graph import NODE_FEATURES, NUM_RELATIONS, build_observation, min_mahalanobis
+from envs.simulation import Simulation, StepEvents
+from envs.traffic import Scenario, ScenarioTraffic, TrainingTraffic
+from sb3_graph.spaces import GraphSpace
+
+_EMPTY_IDS = np.zeros(0, np.int64)
+
+
+class CoopIntersectionEnv(AbstractEnv):
+    """Centralized planning of all vehicles at an intersection (see the module docstring).
+
+    :param config: settings merged into :meth:`default_config` (validated; see :mod:`envs.config`)
+    :param render_mode: ``None``, ``"rgb_array"`` or ``"human"``
+    """
+
+    LAYOUT = "4way"
+    metadata = {"render_modes": ["human", "rgb_array"], "render_fps": 5}
+
+    def __init__(self, config: dict | None = None, render_mode: str | None = None) -> None:
+        self.metadata = dict(self.metadata)  # highway-env writes render_fps into it
+        self.sim: Simulation | None = None
+        self.layout: Layout | None = None
+        self.traffic: TrainingTraffic | ScenarioTraffic | None = None
+        self._scene: Scene | None = None
+        self._duration = 0.0
+        self._collided: set[int] = set()
+        super().__init__(config, render_mode)
+
+    @classmethod
+    def default_config(cls) -> dict:
+        """All settings with their defaults.
+
+        - ``layout``: ``"4way"``, ``"3way"`` or ``"inD"`` (see :func:`envs.layouts.build_layout`)
+        - ``simulation_frequency`` [Hz] 15, ``policy_frequency`` [Hz] 5 (a 0.2 s step)
+        - ``duration`` [s]: training episode length (a scenario brings its own)
+        - ``max_vehicles``: vertices/action slots; spawning waits while the scene is full
+        - ``max_edges``: edge slots of the observation
+        - ``spawn_probability``: training spawn probability per lane and step (paper: up to 0.05)
+        - ``initial_spawn_probability``: the same, for the spawn at reset (so episodes start busy)
+        - ``initial_speed_range``: initial speed as fractions of the lane limit (paper: 0.6-1.0)
+        - ``max_acceleration`` [m/s^2]: commands lie in ``[-max, max]`` (paper: 5)
+        - ``max_speed`` [m/s]: speed cap
+        - ``vehicle_length``, ``vehicle_width`` [m]: training vehicles
+        - ``spawn_min_gap`` [m]: bumper gap required at the spawn point (plus braking distance)
+        - ``s_ref`` [m]: common path length inside the intersection; ``s_scale``: factor on ``s``
+        - ``d_max``: clip of the inverse Mahalanobis distance feature
+        - ``proximity_threshold``: Mahalanobis distance where the proximity penalty starts
+        - ``reward_weights``: weights of the reward terms (paper's table)
+        - rendering: ``screen_width``, ``screen_height``, ``scaling``, ``centering_position``,
+          ``offscreen_rendering``, ``real_time_rendering``, ``render_agent``, ``show_trajectories``
+        """
+        return {
+            "layout": cls.LAYOUT,
+            "simulation_frequency": 15,
+            "policy_frequency": 5,
+            "duration": 60.0,
+            "max_vehicles": 64,
+            "max_edges": 1024,
+            "spawn_probability": 0.05,
+            "initial_spawn_probability": 1.0,
+            "initial_speed_range": [0.6, 1.0],
+            "max_acceleration": 5.0,
+            "max_speed": 20.0,
+            "vehicle_length": 5.0,
+            "vehicle_width": 2.0,
+            "spawn_min_gap": 5.0,
+            "s_ref": 25.0,
+            "s_scale": 1.0,
+            "d_max": 10.0,
+            "proximity_threshold": DEFAULT_PROXIMITY_THRESHOLD,
+            "reward_weights": dict(DEFAULT_REWARD_WEIGHTS),
+            "screen_width": 600,
+            "screen_height": 600,
+            "scaling": 3.0,
+            "centering_position": [0.5, 0.5],
+            "offscreen_rendering": None,
+            "real_time_rendering": False,
+            "render_agent": True,
+            "show_trajectories": False,
+        }
+
+    def configure(self, config: dict | None) -> None:
+        """Merge and validate settings; they take effect at the next ``reset``.
+
+        :param config: settings to change
+        :raises ValueError: naming the key and what is allowed
+        """
+        self.config = validate_config(dict(config or {}), self.config)
+        if self.config["offscreen_rendering"] is None:
+            self.config["offscreen_rendering"] = self.render_mode != "human"
+
+    def define_spaces(self) -> None:
+        """Graph observation space and one action slot per possible vehicle."""
+        self.observation_type = None
+        self.action_type = None
+        self.observation_space = GraphSpace(
+            max_nodes=self.config["max_vehicles"],
+            node_features=NODE_FEATURES,
+            max_edges=self.config["max_edges"],
+            num_relations=NUM_RELATIONS,
+        )
+        self.action_space = spaces.Box(-1.0, 1.0, (self.config["max_vehicles"],), np.float32)
+
+    # ------------------------------------------------------------------ gymnasium API
+    def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
+        """Start an episode.
+
+        :param seed: seeds the environment's random generator (training traffic)
+        :param options: ``{"scenario": Scenario | path}`` replays an evaluation scenario in this
+            episode (truncated at the scenario's duration; a later ``reset`` without it returns to
+            training traffic); ``{"config": {...}}`` reconfigures first
+        :return: observation and info (the keys of :mod:`envs.scene`, events of time 0)
+        """
+        gym.Env.reset(self, seed=seed)
+        options = dict(options or {})
+        unknown = set(options) - {"scenario", "config"}
+        if unknown:
+            raise ValueError(
+                f"reset options: unknown keys {sorted(unknown)}; allowed: ['config', 'scenario']"
+            )
+        if options.get("config"):
+            self.configure(options["config"])
+        self.update_metadata()
+        self.define_spaces()
+        cfg = self.config
+        self.layout = build_layout(cfg["layout"])
+        self.sim = Simulation(
+            self.layout,
+            simulation_frequency=cfg["simulation_frequency"],
+            policy_frequency=cfg["policy_frequency"],
+            max_speed=cfg["max_speed"],
+            max_acceleration=cfg["max_acceleration"],
+            s_ref=cfg["s_ref"],
+            max_vehicles=cfg["max_vehicles"],
+        )
+        scenario = options.get("scenario")
+        if scenario is not None:
+            if isinstance(scenario, (str, Path)):
+                scenario = Scenario.load(scenario)
+            if not isinstance(scenario, Scenario):
+                raise ValueError(
+                    f"reset options: 'scenario' must be a Scenario or a path, got {type(scenario).__name__}"
+                )
+            self.traffic = ScenarioTraffic(self.layout, scenario, min_gap=cfg["spawn_min_gap"])
+            self._duration = scenario.duration
+            entered = self.traffic.spawn(self.sim)
+        else:
+            self.traffic = TrainingTraffic(
+                self.layout,
+                spawn_probability=cfg["spawn_probability"],
+                speed_range=tuple(cfg["initial_speed_range"]),
+                length=cfg["vehicle_length"],
+                width=cfg["vehicle_width"],
+                min_gap=cfg["spawn_min_gap"],
+            )
+            self._duration = float(cfg["duration"])
+            entered = self.traffic.spawn(
+                self.sim, self.np_random, probability=cfg["initial_spawn_probability"]
+            )
+        self.time = 0.0
+        self.steps = 0
+        self.done = False
+        self.controlled_vehicles = []
+        self.road = None
+        self._collided = set()
+        self._scene = self.sim.scene()
+        obs = build_observation(
+            self._scene, self.observation_space, s_scale=cfg["s_scale"], d_max=cfg["d_max"]
+        )
+        zero_terms = dict.fromkeys(DEFAULT_REWARD_WEIGHTS, 0.0)
+        info = self._make_info(StepEvents(), entered, zero_terms)
+        if self.render_mode == "human":
+            self.render()
+        return obs, info
+
+    def step(self, action: np.ndarray) -> tuple[dict, float, bool, bool, dict]:
+        """Apply one commanded acceleration per vehicle for one policy period.
+
+        :param action: ``(max_vehicles,)`` values in ``[-1, 1]``; slot ``i`` -> vehicle ``i``
+        :return: observation, reward, terminated (collision), truncated (time up), info
+        """
+        if self.sim is None:
+            raise RuntimeError("call reset() before step()")
+        cfg = self.config
+        sim = self.sim
+        n = sim.num_vehicles
+        action = np.asarray(action, dtype=np.float64).reshape(-1)
+        if action.shape[0] != self.action_space.shape[0]:
+            raise ValueError(f"action must have shape {self.action_space.shape}, got {np.shape(action)}")
+        acc = np.clip(action[:n], -1.0, 1.0) * cfg["max_acceleration"]
+        events = sim.step(acc)
+        kept = events.kept
+        n_kept = int(kept.sum())  # survivors keep their order and lead the arrays
+        entered = self.traffic.spawn(sim, self.np_random)
+        self.time = sim.time
+        self.steps += 1
+        self._scene = scene = sim.scene()
+        dmin = min_mahalanobis(scene)
+        obs = build_observation(
+            scene, self.observation_space, s_scale=cfg["s_scale"], d_max=cfg["d_max"], min_distance=dmin
+        )
+        collision = events.collisions.shape[0] > 0
+        terms = reward_terms(
+            speed=scene.speed[:n_kept],
+            speed_limit=scene.speed_limit[:n_kept],
+            acceleration=acc[kept],
+            a_max=cfg["max_acceleration"],
+            min_distance=dmin[:n_kept],
+            collision=collision,
+            proximity_threshold=cfg["proximity_threshold"],
+        )
+        info = self._make_info(events, entered, terms)
+        self._collided = set(info["collided"].tolist())
+        reward = float(sum(info["reward_weighted"].values()))
+        terminated = bool(collision)
+        truncated = bool(self.time >= self._duration - 1e-9) and not terminated
+        if self.render_mode == "human":
+            self.render()
+        return obs, reward, terminated, truncated, info
+
+    def _make_info(self, events: StepEvents, entered: np.ndarray, terms: dict[str, float]) -> dict[str, Any]:
+        lay, sim = self.layout, self.sim
+        rows = range(sim.num_vehicles - len(entered), sim.num_vehicles)  # new vehicles are the last rows
+        vehicles = {
+            int(sim.vehicle_id[r]): {
+                "route": lay.route_names[sim.route[r]],
+                "priority": int(lay.priority[sim.route[r]]),
+                "maneuver": MANEUVERS[lay.maneuver[sim.route[r]]],
+                "time": float(sim.appearance_time[r]),
+            }
+            for r in rows  # only the vehicles that appeared in this step
+        }
+        return {
+            "reward_terms": terms,
+            "reward_weighted": weighted(terms, self.config["reward_weights"]),
+            "entered": np.asarray(entered, np.int64),
+            "crossed": events.crossed,
+            "removed": events.removed,
+            "stopped": events.stopped,
+            "collisions": events.collisions,
+            "vehicles": vehicles,
+            "time": float(sim.time),
+            "num_vehicles": sim.num_vehicles,
+            "waiting": int(self.traffic.waiting),
+            "collided": np.unique(events.collisions) if events.collisions.size else _EMPTY_IDS,
+        }
+
+    # ------------------------------------------------------------------ public helpers
+    def scene(self) -> Scene:
+        """The current snapshot of all vehicles (row ``i`` = vertex ``i`` = action slot ``i``)."""
+        if self._scene is None:
+            raise RuntimeError("call reset() first")
+        return self._scene
+
+    def accelerations_to_action(self, acc: np.ndarray) -> np.ndarray:
+        """Turn accelerations for the current vehicles into this environment's padded action.
+
+        :param acc: ``(n,)`` accelerations [m/s^2] for the ``n`` vehicles of :meth:`scene`
+        :return: ``(max_vehicles,)`` float32 action in ``[-1, 1]`` (zeros in padded slots)
+        """
+        acc = np.asarray(acc, dtype=np.float64).reshape(-1)
+        n = self.scene().num_vehicles
+        if acc.shape[0] != n:
+            raise ValueError(f"expected {n} accelerations (one per vehicle), got {acc.shape[0]}")
+        action = np.zeros(self.action_space.shape, np.float32)
+        action[:n] = np.clip(acc / self.config["max_acceleration"], -1.0, 1.0)
+        return action
+
+    def place_vehicles(
+        self,
+        routes: list[str] | np.ndarray,
+        arc: np.ndarray,
+        speed: np.ndarray,
+        vehicle_id: np.ndarray | None = None,
+        length: np.ndarray | float | None = None,
+        width: np.ndarray | float | None = None,
+    ) -> Scene:
+        """Put vehicles into the current episode by hand (tests, hand-built situations).
+
+        :param routes: route names (or route indices) of the new vehicles
+        :param arc: their centre positions along the routes [m from the route start]
+        :param speed: their speeds [m/s]
+        :param vehicle_id: their ids (default: ``1_000_000`` upwards, unused by traffic)
+        :param length: lengths [m] (default: ``vehicle_length``)
+        :param width: widths [m] (default: ``vehicle_width``)
+        :return: the new scene (the next observation of ``step`` is built from the new state)
+        """
+        if self.sim is None:
+            raise RuntimeError("call reset() first")
+        route = np.array(
+            [self.layout.route_id(r) if isinstance(r, str) else int(r) for r in routes], np.int64
+        )
+        if vehicle_id is None:
+            start = max(1_000_000, int(self.sim.vehicle_id.max(initial=-1)) + 1)
+            vehicle_id = np.arange(start, start + route.size)
+        self.sim.add(
+            route,
+            np.asarray(speed, float),
+            np.asarray(vehicle_id),
+            self.config["vehicle_length"] if length is None else length,
+            self.config["vehicle_width"] if width is None else width,
+            arc=np.asarray(arc, float),
+        )
+        self._scene = self.sim.scene()
+        return self._scene
+
+    def set_spawn_probability(self, probability: float) -> None:
+        """Change the training spawn probability per lane and step (a curriculum calls this).
+
+        :param probability: in ``[0, 1]``; applies from the next step on and to later episodes
+        """
+        self.configure({"spawn_probability": probability})
+        if isinstance(self.traffic, TrainingTraffic):
+            self.traffic.spawn_probability = float(probability)
+
+    # ------------------------------------------------------------------ rendering
+    def render(self) -> np.ndarray | None:
+        """Draw the road and the vehicles with highway-env's viewer (major-road vehicles blue,
+        minor-road vehicles yellow, vehicles in a collision red)."""
+        if self.sim is None:
+            return None
+        if self.road is None:
+            self.road = Road(network=self.layout.network, np_random=self.np_random, record_history=False)
+        scene = self.scene()
+        collided = self._collided
+        vehicles = []
+        for i in range(scene.num_vehicles):  # rendering only: highway-env vehicles one by one
+            v = Vehicle(None, scene.position[i], float(scene.heading[i]), float(scene.speed[i]))
+            v.LENGTH = float(scene.length[i])
+            v.WIDTH = float(scene.width[i]) if scene.width is not None else 2.0
+            v.color = VehicleGraphics.BLUE if scene.priority[i] == MAJOR else VehicleGraphics.YELLOW
+            if int(scene.vehicle_id[i]) in collided:
+                v.color = VehicleGraphics.RED
+            vehicles.append(v)
+        self.road.vehicles = vehicles
+        return super().render()
+
+
+class CoopIntersection4WayEnv(CoopIntersectionEnv):
+    """The paper's synthetic four-way intersection (major road west-east, minor road north-south)."""
+
+    LAYOUT = "4way"
+
+
+class CoopIntersection3WayEnv(CoopIntersectionEnv):
+    """A T junction: major road west-east, minor arm to the south (merging and crossing)."""
+
+    LAYOUT = "3way"
+
+
+class CoopIntersectionInDEnv(CoopIntersectionEnv):
+    """Approximation of the inD four-way: priority road west-east with isolated left-turn lanes."""
+
+    LAYOUT = "inD"

@@ -1,0 +1,504 @@
+"""Intersection layouts: highway-env road networks plus the per-route arrays the simulation reads.
+
+Every layout is a highway-env :class:`~highway_env.road.road.RoadNetwork` of
+:class:`~highway_env.road.lane.StraightLane` and :class:`~highway_env.road.lane.CircularLane`
+objects with right-hand traffic, lane priorities and speed limits. A *route* (``"<entry arm>-><exit
+arm>"``) is the sequence of lanes from an arm's outer end through the intersection to another arm's
+outer end. At build time every route is sampled into a polyline at a fixed spacing ``ds`` so that
+positions and headings of all vehicles come from one vectorized gather plus interpolation
+(:meth:`Layout.pose`), with no call into highway-env in the hot path.
+
+Coordinate frame: highway-env's, ``x`` east and ``y`` *south* (the viewer draws ``+y`` downwards).
+Arm ``"north"`` therefore lies towards ``-y``. :attr:`Layout.arm_angle` gives each arm's outward
+direction as ``atan2(y, x)`` in this frame (north ``-pi/2``, east ``0``, south ``pi/2``, west ``pi``).
+Data recorded in a right-handed frame with ``y`` north (inD) maps onto it by ``y -> -y`` and
+``heading -> -heading``.
+
+The intersection area of a route runs from the stop line (the end of its last incoming lane) to the
+start of its exit lane; :attr:`Layout.entry_arc` and :attr:`Layout.exit_arc` give both as arc lengths
+along the route.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import cache
+
+import numpy as np
+from highway_env.road.lane import AbstractLane, CircularLane, LineType, StraightLane
+from highway_env.road.road import RoadNetwork
+
+from envs.scene import LEFT, MAJOR, MINOR, RIGHT, STRAIGHT
+
+LAYOUT_NAMES = ("4way", "3way", "inD")
+ARM_ANGLES = {"east": 0.0, "south": np.pi / 2, "west": np.pi, "north": -np.pi / 2}
+
+LANE_WIDTH = AbstractLane.DEFAULT_WIDTH  # 4 m
+# Speed limits [m/s]: an urban approach, and lower limits where the path curves (lateral
+# acceleration v^2 / r of about 4-5 m/s^2 on the default radii).
+APPROACH_SPEED_LIMIT = 10.0
+LEFT_TURN_SPEED_LIMIT = 8.0
+RIGHT_TURN_SPEED_LIMIT = 6.0
+# Two routes conflict when their intersection parts come closer than this [m] (paths cross), or
+# when they share the exit lane (paths merge). A vehicle is 2 m wide: parallel lanes 4 m apart
+# stay apart, crossing paths reach 0.
+CONFLICT_DISTANCE = 2.5
+
+
+@dataclass(frozen=True)
+class ArmSpec:
+    """One arm of an intersection (build-time description).
+
+    :param name: ``"north"``, ``"east"``, ``"south"`` or ``"west"``
+    :param priority: ``MAJOR`` or ``MINOR``
+    :param stop_distance: distance of the stop line from the intersection centre [m]
+    :param access_length: length of the incoming and the exit road outside the intersection [m]
+    :param left_pocket: the left turn branches into its own lane before the stop line
+    """
+
+    name: str
+    priority: int
+    stop_distance: float
+    access_length: float
+    left_pocket: bool = False
+
+
+@dataclass(eq=False)
+class Layout:
+    """An intersection: its road network and the sampled geometry of every route.
+
+    Arrays indexed ``[route, sample]`` are padded by repeating each route's last sample.
+
+    :param name: layout name (one of :data:`LAYOUT_NAMES`)
+    :param network: the highway-env road network (used for rendering only)
+    :param route_names: ``(R,)`` names ``"<entry arm>-><exit arm>"``
+    :param route_lanes: lane indices ``(from, to, id)`` of each route, in driving order
+    :param maneuver: ``(R,)`` ``LEFT``, ``STRAIGHT`` or ``RIGHT``
+    :param priority: ``(R,)`` ``MAJOR``/``MINOR`` of the route's incoming road
+    :param entry_arc: ``(R,)`` arc length where the route enters the intersection area [m]
+    :param exit_arc: ``(R,)`` arc length where the route leaves the intersection area [m]
+    :param length: ``(R,)`` total route length [m]
+    :param conflicts: ``(R, R)`` bool, paths cross or merge inside the intersection
+    :param arm_angle: arm name -> outward direction [rad] in the layout frame
+    :param entry_arm: ``(R,)`` name of each route's entry arm
+    :param exit_arm: ``(R,)`` name of each route's exit arm
+    :param spawn_lanes: lane index of each spawn lane (the first lane of one or more routes)
+    :param route_spawn_lane: ``(R,)`` index into ``spawn_lanes`` of each route's first lane
+    :param spawn_priority: ``(S,)`` priority of each spawn lane
+    :param ds: sample spacing [m]
+    :param xy: ``(R, M, 2)`` sampled centre line
+    :param heading: ``(R, M)`` unwrapped heading along the centre line [rad]
+    :param speed_limit: ``(R, M)`` lane speed limit at each sample [m/s]
+    :param lanes: every lane index of the network, position = global lane id
+    :param route_lane_ids: ``(R, K)`` global lane ids along each route, padded with -1
+    :param route_lane_starts: ``(R, K)`` arc length where each of them starts, padded with ``inf``
+    :param lane_start: ``(R, Lg)`` arc length where global lane ``g`` starts on route ``r``;
+        ``nan`` where the lane is not on the route
+    :param touch_arc: ``(R,)`` arc length where the route leaves its spawn lane; before it, only
+        vehicles on the same lane can touch (collision checks use this)
+    """
+
+    name: str
+    network: RoadNetwork
+    route_names: tuple[str, ...]
+    route_lanes: tuple[tuple[tuple[str, str, int], ...], ...]
+    maneuver: np.ndarray
+    priority: np.ndarray
+    entry_arc: np.ndarray
+    exit_arc: np.ndarray
+    length: np.ndarray
+    conflicts: np.ndarray
+    arm_angle: dict[str, float]
+    entry_arm: tuple[str, ...]
+    exit_arm: tuple[str, ...]
+    spawn_lanes: tuple[tuple[str, str, int], ...]
+    route_spawn_lane: np.ndarray
+    spawn_priority: np.ndarray
+    ds: float
+    xy: np.ndarray
+    heading: np.ndarray
+    speed_limit: np.ndarray
+    lanes: tuple[tuple[str, str, int], ...]
+    route_lane_ids: np.ndarray
+    route_lane_starts: np.ndarray
+    lane_start: np.ndarray
+    touch_arc: np.ndarray
+    route_index: dict[str, int] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.route_index = {name: i for i, name in enumerate(self.route_names)}
+
+    @property
+    def num_routes(self) -> int:
+        return len(self.route_names)
+
+    @property
+    def arms(self) -> tuple[str, ...]:
+        return tuple(self.arm_angle)
+
+    def route_id(self, name: str) -> int:
+        """Index of a route by name.
+
+        :param name: ``"<entry arm>-><exit arm>"``
+        :raises ValueError: for a route this layout does not have
+        """
+        if name not in self.route_index:
+            raise ValueError(f"layout {self.name!r} has no route {name!r}; routes: {list(self.route_names)}")
+        return self.route_index[name]
+
+    def spawn_routes(self, spawn: int) -> np.ndarray:
+        """Routes that start on spawn lane ``spawn``."""
+        return np.flatnonzero(self.route_spawn_lane == spawn)
+
+    # ------------------------------------------------------------------ vectorized lookups
+    def pose(self, route: np.ndarray, arc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Positions and headings of points on routes (linear interpolation of the samples).
+
+        :param route: ``(n,)`` route indices
+        :param arc: ``(n,)`` arc lengths along the routes [m]
+        :return: ``(n, 2)`` positions and ``(n,)`` headings wrapped to ``(-pi, pi]``
+        """
+        last = self.xy.shape[1] - 1
+        u = np.minimum(np.maximum(arc / self.ds, 0.0), last)
+        i0 = np.minimum(u.astype(np.int64), last - 1)
+        f = u - i0
+        p0, p1 = self.xy[route, i0], self.xy[route, i0 + 1]
+        xy = p0 + (p1 - p0) * f[:, None]
+        h0 = self.heading[route, i0]
+        h = h0 + (self.heading[route, i0 + 1] - h0) * f
+        return xy, (h + np.pi) % (2 * np.pi) - np.pi
+
+    def limit_at(self, route: np.ndarray, arc: np.ndarray) -> np.ndarray:
+        """Lane speed limit at points on routes [m/s]."""
+        i = np.minimum(np.maximum((arc / self.ds).astype(np.int64), 0), self.speed_limit.shape[1] - 1)
+        return self.speed_limit[route, i]
+
+    def lane_at(self, route: np.ndarray, arc: np.ndarray) -> np.ndarray:
+        """Global lane id of points on routes (exact: compares with the lanes' start arcs)."""
+        k = (self.route_lane_starts[route] <= arc[:, None]).sum(axis=1) - 1
+        return self.route_lane_ids[route, np.maximum(k, 0)]
+
+
+# ---------------------------------------------------------------------- geometry helpers
+def _rot(angle: float) -> np.ndarray:
+    return np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
+
+
+def _right_of(direction: np.ndarray) -> np.ndarray:
+    # y points down on screen: rotating by +90 deg turns a heading to its right-hand side.
+    return _rot(np.pi / 2) @ direction
+
+
+def _connector(
+    start: np.ndarray, h_in: np.ndarray, end: np.ndarray, h_out: np.ndarray, speed_limit: float, priority: int
+) -> list[AbstractLane]:
+    """Lanes from ``start`` (heading ``h_in``) to ``end`` (heading ``h_out``).
+
+    Parallel headings: one straight lane (diagonal when the lateral offsets differ). Perpendicular
+    headings: a fillet, i.e. the largest circular arc tangent to both lines, with straight pieces
+    where one leg is longer than the other.
+    """
+    n = LineType.NONE
+    cross = h_in[0] * h_out[1] - h_in[1] * h_out[0]
+    if abs(cross) < 1e-6:
+        return [StraightLane(start, end, line_types=(n, n), priority=priority, speed_limit=speed_limit)]
+    # Corner: where the incoming line meets the outgoing line.
+    t, u = np.linalg.solve(np.stack([h_in, h_out], axis=1), end - start)
+    corner = start + t * h_in
+    radius = min(t, u)
+    p_arc0, p_arc1 = corner - radius * h_in, corner + radius * h_out
+    turn_right = cross > 0  # y down: positive cross product = clockwise on screen = right turn
+    normal = _right_of(h_in) if turn_right else -_right_of(h_in)
+    centre = p_arc0 + radius * normal
+    phi0 = float(np.arctan2(*(p_arc0 - centre)[::-1]))
+    phi1 = float(np.arctan2(*(p_arc1 - centre)[::-1]))
+    # highway-env CircularLane: clockwise=True means increasing angle (in the y-down frame).
+    dphi = (phi1 - phi0 + np.pi) % (2 * np.pi) - np.pi
+    lanes: list[AbstractLane] = []
+    if t - radius > 1e-6:
+        lanes.append(
+            StraightLane(start, p_arc0, line_types=(n, n), priority=priority, speed_limit=speed_limit)
+        )
+    lanes.append(
+        CircularLane(
+            centre,
+            radius,
+            phi0,
+            phi0 + dphi,
+            clockwise=dphi > 0,
+            line_types=(n, n),
+            priority=priority,
+            speed_limit=speed_limit,
+        )
+    )
+    if u - radius > 1e-6:
+        lanes.append(StraightLane(p_arc1, end, line_types=(n, n), priority=priority, speed_limit=speed_limit))
+    return lanes
+
+
+def _maneuver(h_in: np.ndarray, h_out: np.ndarray) -> int:
+    cross = h_in[0] * h_out[1] - h_in[1] * h_out[0]
+    dot = float(h_in @ h_out)
+    if dot > np.cos(np.radians(45)):
+        return STRAIGHT
+    return RIGHT if cross > 0 else LEFT
+
+
+# ---------------------------------------------------------------------- building
+def _build(name: str, arms: list[ArmSpec], ds: float) -> Layout:
+    net = RoadNetwork()
+    c, s, n = LineType.CONTINUOUS, LineType.STRIPED, LineType.NONE
+    w = LANE_WIDTH
+    incoming: dict[str, list[tuple[str, str, int]]] = {}  # arm -> shared upstream lanes
+    stops: dict[tuple[str, int], tuple[str, np.ndarray, np.ndarray, list]] = {}
+    exits: dict[str, tuple[str, np.ndarray, np.ndarray, tuple[str, str, int]]] = {}
+    arm_angle: dict[str, float] = {}
+    for arm in arms:
+        angle = ARM_ANGLES[arm.name]
+        arm_angle[arm.name] = float(angle)
+        out = np.array([np.cos(angle), np.sin(angle)])  # outward
+        h_in = -out
+        right_in = _right_of(h_in)
+        far = arm.stop_distance + arm.access_length
+        prio = 3 if arm.priority == MAJOR else 1
+        a = arm.name
+        if arm.left_pocket:
+            # Shared upstream lane, then the through lane moves one lane to the right while the
+            # left-turn pocket continues straight on: the left turn gets an isolated lane.
+            split = arm.stop_distance + 30.0
+            p_far = out * far + right_in * (w / 2)
+            p_split = out * split + right_in * (w / 2)
+            net.add_lane(
+                f"{a}_in",
+                f"{a}_split",
+                StraightLane(
+                    p_far, p_split, line_types=(s, c), priority=prio, speed_limit=APPROACH_SPEED_LIMIT
+                ),
+            )
+            p_stop = out * arm.stop_distance + right_in * (1.5 * w)
+            net.add_lane(
+                f"{a}_split",
+                f"{a}_stop",
+                StraightLane(
+                    p_split, p_stop, line_types=(n, c), priority=prio, speed_limit=APPROACH_SPEED_LIMIT
+                ),
+            )
+            p_lstop = out * arm.stop_distance + right_in * (w / 2)
+            net.add_lane(
+                f"{a}_split",
+                f"{a}_lstop",
+                StraightLane(
+                    p_split, p_lstop, line_types=(s, n), priority=prio, speed_limit=APPROACH_SPEED_LIMIT
+                ),
+            )
+            up = [(f"{a}_in", f"{a}_split", 0)]
+            stops[(a, STRAIGHT)] = (f"{a}_stop", p_stop, h_in, up + [(f"{a}_split", f"{a}_stop", 0)])
+            stops[(a, RIGHT)] = stops[(a, STRAIGHT)]
+            stops[(a, LEFT)] = (f"{a}_lstop", p_lstop, h_in, up + [(f"{a}_split", f"{a}_lstop", 0)])
+        else:
+            p_far = out * far + right_in * (w / 2)
+            p_stop = out * arm.stop_distance + right_in * (w / 2)
+            net.add_lane(
+                f"{a}_in",
+                f"{a}_stop",
+                StraightLane(
+                    p_far, p_stop, line_types=(s, c), priority=prio, speed_limit=APPROACH_SPEED_LIMIT
+                ),
+            )
+            for m in (LEFT, STRAIGHT, RIGHT):
+                stops[(a, m)] = (f"{a}_stop", p_stop, h_in, [(f"{a}_in", f"{a}_stop", 0)])
+        incoming[a] = []
+        # Exit lane: right-hand side of the outgoing direction.
+        right_out = _right_of(out)
+        p_exit = out * arm.stop_distance + right_out * (w / 2)
+        p_out = out * far + right_out * (w / 2)
+        net.add_lane(
+            f"{a}_exit",
+            f"{a}_out",
+            StraightLane(p_exit, p_out, line_types=(n, c), priority=prio, speed_limit=APPROACH_SPEED_LIMIT),
+        )
+        exits[a] = (f"{a}_exit", p_exit, out, (f"{a}_exit", f"{a}_out", 0))
+
+    routes: list[tuple[str, list[tuple[str, str, int]], int, int, str, str, float]] = []
+    for arm_in in arms:
+        for arm_out in arms:
+            if arm_in.name == arm_out.name:
+                continue
+            h_in = -np.array([np.cos(ARM_ANGLES[arm_in.name]), np.sin(ARM_ANGLES[arm_in.name])])
+            exit_node, p_exit, h_out, exit_lane = exits[arm_out.name]
+            m = _maneuver(h_in, h_out)
+            stop_node, p_stop, _, up_lanes = stops[(arm_in.name, m)]
+            limit = {LEFT: LEFT_TURN_SPEED_LIMIT, RIGHT: RIGHT_TURN_SPEED_LIMIT}.get(m, APPROACH_SPEED_LIMIT)
+            prio = 3 if arm_in.priority == MAJOR else 1
+            # Left turns yield to straight traffic: one priority level lower, as in highway-env.
+            lane_prio = prio - 1 if m == LEFT else prio
+            pieces = _connector(p_stop, h_in, p_exit, h_out, limit, lane_prio)
+            nodes = (
+                [stop_node]
+                + [f"{arm_in.name}>{arm_out.name}_{k}" for k in range(len(pieces) - 1)]
+                + [exit_node]
+            )
+            con_lanes = []
+            for k, lane in enumerate(pieces):
+                net.add_lane(nodes[k], nodes[k + 1], lane)
+                con_lanes.append((nodes[k], nodes[k + 1], len(net.graph[nodes[k]][nodes[k + 1]]) - 1))
+            lanes = list(up_lanes) + con_lanes + [exit_lane]
+            routes.append(
+                (
+                    f"{arm_in.name}->{arm_out.name}",
+                    lanes,
+                    m,
+                    arm_in.priority,
+                    arm_in.name,
+                    arm_out.name,
+                    len(up_lanes),
+                )
+            )
+
+    # Global lane table and per-route arc lengths.
+    all_lanes: list[tuple[str, str, int]] = []
+    for _, lanes, *_ in routes:
+        for li in lanes:
+            if li not in all_lanes:
+                all_lanes.append(li)
+    lane_id = {li: g for g, li in enumerate(all_lanes)}
+    num_r = len(routes)
+    k_max = max(len(r[1]) for r in routes)
+    route_lane_ids = -np.ones((num_r, k_max), np.int64)
+    route_lane_starts = np.full((num_r, k_max), np.inf)
+    lane_start = np.full((num_r, len(all_lanes)), np.nan)
+    lengths = np.zeros(num_r)
+    entry_arc = np.zeros(num_r)
+    exit_arc = np.zeros(num_r)
+    samples_xy, samples_h, samples_v = [], [], []
+    for r, (_, lanes, _, _, _, _, n_up) in enumerate(routes):
+        objs = [net.get_lane(li) for li in lanes]
+        starts = np.concatenate([[0.0], np.cumsum([lane.length for lane in objs])])
+        lengths[r] = starts[-1]
+        entry_arc[r] = starts[n_up]
+        exit_arc[r] = starts[-2]
+        for k, li in enumerate(lanes):
+            route_lane_ids[r, k] = lane_id[li]
+            route_lane_starts[r, k] = starts[k]
+            lane_start[r, lane_id[li]] = starts[k]
+        arcs = np.arange(0.0, lengths[r] + ds, ds)
+        arcs[-1] = min(arcs[-1], lengths[r])
+        k_of = np.clip(np.searchsorted(starts, arcs, side="right") - 1, 0, len(objs) - 1)
+        xy = np.array([objs[k].position(a - starts[k], 0.0) for a, k in zip(arcs, k_of)])
+        h = np.unwrap(np.array([objs[k].heading_at(a - starts[k]) for a, k in zip(arcs, k_of)]))
+        v = np.array([objs[k].speed_limit for k in k_of])
+        samples_xy.append(xy)
+        samples_h.append(h)
+        samples_v.append(v)
+    m_max = max(len(x) for x in samples_xy)
+
+    def pad(arrs: list[np.ndarray]) -> np.ndarray:
+        return np.stack([np.concatenate([x, np.repeat(x[-1:], m_max - len(x), axis=0)]) for x in arrs])
+
+    xy, heading, speed_limit = pad(samples_xy), pad(samples_h), pad(samples_v)
+
+    # Spawn lanes: distinct first lanes of the routes.
+    spawn_lanes: list[tuple[str, str, int]] = []
+    for _, lanes, *_ in routes:
+        if lanes[0] not in spawn_lanes:
+            spawn_lanes.append(lanes[0])
+    route_spawn = np.array([spawn_lanes.index(r[1][0]) for r in routes], np.int64)
+    priority = np.array([r[3] for r in routes], np.int64)
+    spawn_priority = np.array([priority[route_spawn == k][0] for k in range(len(spawn_lanes))], np.int64)
+
+    conflicts = _conflicts(routes, xy, entry_arc, exit_arc, ds)
+    return Layout(
+        name=name,
+        network=net,
+        route_names=tuple(r[0] for r in routes),
+        route_lanes=tuple(tuple(r[1]) for r in routes),
+        maneuver=np.array([r[2] for r in routes], np.int64),
+        priority=priority,
+        entry_arc=entry_arc,
+        exit_arc=exit_arc,
+        length=lengths,
+        conflicts=conflicts,
+        arm_angle=arm_angle,
+        entry_arm=tuple(r[4] for r in routes),
+        exit_arm=tuple(r[5] for r in routes),
+        spawn_lanes=tuple(spawn_lanes),
+        route_spawn_lane=route_spawn,
+        spawn_priority=spawn_priority,
+        ds=ds,
+        xy=xy,
+        heading=heading,
+        speed_limit=speed_limit,
+        lanes=tuple(all_lanes),
+        route_lane_ids=route_lane_ids,
+        route_lane_starts=route_lane_starts,
+        lane_start=lane_start,
+        touch_arc=route_lane_starts[:, 1].copy(),
+    )
+
+
+def _conflicts(
+    routes: list, xy: np.ndarray, entry_arc: np.ndarray, exit_arc: np.ndarray, ds: float
+) -> np.ndarray:
+    """``(R, R)`` conflict matrix from the sampled geometry (build time only).
+
+    Two routes conflict when they enter the intersection from different stop lines and either
+    leave it on the same exit lane (merge) or their intersection parts come closer than
+    :data:`CONFLICT_DISTANCE` (cross). Routes from the same stop line diverge and do not conflict.
+    """
+    num_r = len(routes)
+    stop_lane = [r[1][r[6] - 1] for r in routes]
+    exit_lane = [r[1][-1] for r in routes]
+    parts = []
+    for r in range(num_r):
+        i0, i1 = int(np.ceil(entry_arc[r] / ds)), int(np.floor(exit_arc[r] / ds)) + 1
+        parts.append(xy[r, i0:i1])
+    out = np.zeros((num_r, num_r), bool)
+    for a in range(num_r):
+        for b in range(a + 1, num_r):
+            if stop_lane[a] == stop_lane[b]:
+                continue
+            dmin = np.linalg.norm(parts[a][:, None] - parts[b][None], axis=-1).min()
+            out[a, b] = out[b, a] = exit_lane[a] == exit_lane[b] or dmin < CONFLICT_DISTANCE
+    return out
+
+
+@cache
+def build_layout(name: str, ds: float = 0.5) -> Layout:
+    """Build (once per process, then cached) one of the intersection layouts.
+
+    - ``"4way"``: the paper's synthetic four-way intersection; the west-east road is the major
+      (priority) road, the north-south road the minor one; one lane per direction.
+    - ``"3way"``: a T junction, major road west-east, minor arm to the south.
+    - ``"inD"``: an approximation of the inD four-way (Bendplatz / Frankenburg): priority road
+      west-east with an isolated left-turn lane on each major arm, minor road north-south.
+
+    The returned object is shared: treat it as read-only.
+
+    :param name: one of :data:`LAYOUT_NAMES`
+    :param ds: sample spacing of the route polylines [m]
+    :return: the layout
+    """
+    if name not in LAYOUT_NAMES:
+        raise ValueError(f"layout must be one of {LAYOUT_NAMES}, got {name!r}")
+    if not ds > 0:
+        raise ValueError(f"ds must be > 0, got {ds}")
+    stop = LANE_WIDTH + 5 + LANE_WIDTH / 2  # as highway-env's intersection: right-turn radius 9 m
+    access = 80.0
+    if name == "4way":
+        arms = [
+            ArmSpec(a, MAJOR if a in ("east", "west") else MINOR, stop, access)
+            for a in ("south", "west", "north", "east")
+        ]
+    elif name == "3way":
+        arms = [
+            ArmSpec(a, MAJOR if a in ("east", "west") else MINOR, stop, access)
+            for a in ("south", "west", "east")
+        ]
+    else:
+        arms = [
+            ArmSpec("south", MINOR, 14.0, access),
+            ArmSpec("west", MAJOR, 14.0, access, left_pocket=True),
+            ArmSpec("north", MINOR, 14.0, access),
+            ArmSpec("east", MAJOR, 14.0, access, left_pocket=True),
+        ]
+    return _build(name, arms, float(ds))

@@ -1,0 +1,40 @@
+"""The one face every planner shows: given the scene, one acceleration per vehicle."""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+
+import numpy as np
+
+from envs.scene import Scene
+
+
+class Planner(ABC):
+    """A behaviour planner for every vehicle in the scene at once.
+
+    The evaluation harness, the inD replay and an edge server call it the same way: ``reset``
+    once per episode, then ``act`` once per policy step.
+
+    :param name: the name shown in reports
+    """
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+
+    def reset(self, seed: int | None = None) -> None:
+        """Forget everything about the previous episode.
+
+        :param seed: seed for any randomness of the planner
+        """
+        return None
+
+    @abstractmethod
+    def act(self, scene: Scene) -> np.ndarray:
+        """Commanded longitudinal accelerations.
+
+        :param scene: the vehicles now
+        :return: ``(scene.num_vehicles,)`` float accelerations in ``[scene.a_min, scene.a_max]`` m/s^2
+        """
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(name={self.name!r})"

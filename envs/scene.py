@@ -1,0 +1,109 @@
+"""What a planner sees: a snapshot of every vehicle in the scene as arrays, one row per vehicle.
+
+Row ``i`` of every array, vertex ``i`` of the graph observation and action slot ``i`` are the
+same vehicle. The snapshot is built by the simulation once per policy step; planners must not
+modify it.
+
+Step ``info`` of the intersection environment (what the metrics read), all ids are
+``vehicle_id`` values:
+
+- ``"reward_terms"``: dict ``term -> unweighted value`` for velocity, action, idle, proximity,
+  collision; ``"reward_weighted"``: the same terms times their weights.
+- ``"entered"``: ids that appeared in the scene during the step.
+- ``"crossed"``: ids whose path coordinate ``s`` passed 0 (left the intersection area).
+- ``"removed"``: ids that left the scene (end of their route).
+- ``"stopped"``: ids whose speed was below ``STOP_SPEED`` at any simulation sub-step.
+- ``"collisions"``: ``(k, 2)`` int64 array of id pairs that collided during the step.
+- ``"vehicles"``: dict ``id -> {"route": str, "priority": int, "maneuver": str, "time": float}``
+  for the ids in ``"entered"``.
+- ``"time"``: simulated time in seconds at the end of the step.
+
+Added by the environment (all ids are ``vehicle_id`` values):
+
+- ``"num_vehicles"``: vehicles in the scene at the end of the step.
+- ``"waiting"``: scenario appearances whose time has come but whose spawn position is not free yet
+  (always 0 with training traffic).
+- ``"collided"``: ``(k,)`` int64 ids involved in ``"collisions"`` (distinct, sorted).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+# A vehicle whose speed falls below this has stopped (paper, "Synthetic Simulation").
+STOP_SPEED = 0.3
+
+MANEUVERS = ("left", "straight", "right")
+LEFT, STRAIGHT, RIGHT = range(3)
+MINOR, MAJOR = 0, 1
+PRIORITY_NAMES = ("minor", "major")
+
+
+@dataclass(frozen=True)
+class Scene:
+    """All vehicles at one instant.
+
+    :param time: simulated time [s]
+    :param dt: policy period [s]: how long the planner's accelerations are applied
+    :param vehicle_id: ``(n,)`` int64 unique id of each vehicle in this episode
+    :param route: ``(n,)`` int64 index into ``route_names``
+    :param s: ``(n,)`` path coordinate of the paper: 0 where the path leaves the intersection
+        area, ``-s_ref`` where it enters; lengths inside the intersection are scaled to ``s_ref``
+    :param position: ``(n, 2)`` centre position [m]
+    :param heading: ``(n,)`` heading [rad]
+    :param speed: ``(n,)`` speed [m/s], never negative
+    :param speed_limit: ``(n,)`` speed limit of the lane each vehicle is on [m/s]
+    :param dist_to_entry: ``(n,)`` metres along the path from the vehicle's front to the stop
+        line where the path enters the intersection area; negative once past it
+    :param dist_to_exit: ``(n,)`` metres along the path from the vehicle's rear to where the path
+        leaves the intersection area; negative once it has left
+    :param leader: ``(n,)`` int64 row of the nearest vehicle ahead on the same path, -1 if none
+    :param gap: ``(n,)`` bumper-to-bumper distance to the leader [m], ``inf`` if none
+    :param priority: ``(n,)`` int64 ``MAJOR`` or ``MINOR``: priority of the incoming road
+    :param maneuver: ``(n,)`` int64 ``LEFT``, ``STRAIGHT`` or ``RIGHT``
+    :param length: ``(n,)`` vehicle length [m]
+    :param route_names: name of each route, e.g. ``"south->north"``
+    :param conflicts: ``(R, R)`` bool: routes whose paths cross or merge inside the intersection
+    :param a_min: smallest commanded acceleration [m/s^2]
+    :param a_max: largest commanded acceleration [m/s^2]
+    :param width: ``(n,)`` vehicle width [m]; ``None`` means 2 m for every vehicle (added by the
+        environment engineer; optional so that hand-built scenes stay short)
+    :param s_ref: the common reference length of the paths inside the intersection [m]
+    :param arc: ``(n,)`` arc length of the vehicle centre along its route from the route's start [m];
+        ``None`` when unknown (hand-built scenes)
+    """
+
+    time: float
+    dt: float
+    vehicle_id: np.ndarray
+    route: np.ndarray
+    s: np.ndarray
+    position: np.ndarray
+    heading: np.ndarray
+    speed: np.ndarray
+    speed_limit: np.ndarray
+    dist_to_entry: np.ndarray
+    dist_to_exit: np.ndarray
+    leader: np.ndarray
+    gap: np.ndarray
+    priority: np.ndarray
+    maneuver: np.ndarray
+    length: np.ndarray
+    route_names: tuple[str, ...]
+    conflicts: np.ndarray
+    a_min: float = -5.0
+    a_max: float = 5.0
+    width: np.ndarray | None = None
+    s_ref: float = 25.0
+    arc: np.ndarray | None = None
+
+    @property
+    def num_vehicles(self) -> int:
+        return int(self.vehicle_id.shape[0])
+
+    @property
+    def approaching(self) -> np.ndarray:
+        """``(n,)`` bool: the vehicle has not yet left the intersection area."""
+        return self.dist_to_exit > 0

@@ -1,0 +1,455 @@
+"""Traffic: the training spawner and the evaluation scenarios (paper, section "Experiments").
+
+- Training (:class:`TrainingTraffic`): on every spawn lane with enough free space a vehicle
+  appears with probability ``p`` per policy step (a curriculum raises ``p`` until it saturates
+  at 5 %); the destination is uniform over the routes of that lane; the initial speed is uniform
+  in ``[60 %, 100 %]`` of the lane's speed limit.
+- Evaluation (:class:`Scenario`, :func:`generate_scenario`, :class:`ScenarioTraffic`): a table of
+  appearances (time, route, speed, id) generated per spawn lane with shifted-exponential
+  inter-arrival times, rate uniform in ``[0.2, 0.4]`` veh/s per major-road lane and half of it per
+  minor-road lane. In simulation an appearance waits while its spawn position is not free; at
+  most one vehicle appears per lane and policy step. Scenario files are JSON
+  (:meth:`Scenario.save`, :meth:`Scenario.load`) and replay exactly: the same planner actions give
+  the same trajectories.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from envs.layouts import LAYOUT_NAMES, Layout, build_layout
+from envs.simulation import Simulation
+
+SCENARIO_FORMAT = "sb3-graph-scenario"
+SCENARIO_VERSION = 1
+VEHICLE_FIELDS = ("id", "time", "route", "speed", "length", "width")
+
+
+@dataclass
+class Scenario:
+    """An evaluation scenario: who appears where and when.
+
+    :param layout: layout name (one of ``envs.layouts.LAYOUT_NAMES``)
+    :param duration: episode length [s]; the episode is truncated when it is reached
+    :param seed: seed the scenario was generated from (informative), or ``None``
+    :param vehicle_id: ``(k,)`` int64 unique ids
+    :param time: ``(k,)`` appearance times [s], not negative
+    :param route: route name of each vehicle, e.g. ``"south->north"``
+    :param speed: ``(k,)`` initial speeds [m/s], not negative
+    :param length: ``(k,)`` vehicle lengths [m]
+    :param width: ``(k,)`` vehicle widths [m]
+    :param meta: free-form information (e.g. the drawn rates), saved with the file
+    """
+
+    layout: str
+    duration: float
+    seed: int | None
+    vehicle_id: np.ndarray
+    time: np.ndarray
+    route: tuple[str, ...]
+    speed: np.ndarray
+    length: np.ndarray
+    width: np.ndarray
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.vehicle_id = np.asarray(self.vehicle_id, np.int64).reshape(-1)
+        self.time = np.asarray(self.time, float).reshape(-1)
+        self.route = tuple(str(r) for r in self.route)
+        self.speed = np.asarray(self.speed, float).reshape(-1)
+        self.length = np.asarray(self.length, float).reshape(-1)
+        self.width = np.asarray(self.width, float).reshape(-1)
+        self.duration = float(self.duration)
+        self.validate()
+
+    @property
+    def num_vehicles(self) -> int:
+        return int(self.vehicle_id.shape[0])
+
+    def validate(self, source: str = "scenario") -> None:
+        """Check every field; raise ``ValueError`` naming ``source`` and the field."""
+        if self.layout not in LAYOUT_NAMES:
+            raise ValueError(f"{source}: field 'layout' must be one of {LAYOUT_NAMES}, got {self.layout!r}")
+        if not (math.isfinite(self.duration) and self.duration > 0):
+            raise ValueError(
+                f"{source}: field 'duration' must be a positive number of seconds, got {self.duration}"
+            )
+        k = self.vehicle_id.shape[0]
+        for name in ("time", "speed", "length", "width"):
+            if getattr(self, name).shape[0] != k:
+                raise ValueError(
+                    f"{source}: field '{name}' has {getattr(self, name).shape[0]} entries, expected {k}"
+                )
+        if len(self.route) != k:
+            raise ValueError(f"{source}: field 'route' has {len(self.route)} entries, expected {k}")
+        if np.unique(self.vehicle_id).size != k:
+            raise ValueError(f"{source}: field 'id' must be unique per vehicle")
+        for name, lower, strict in (
+            ("time", 0.0, False),
+            ("speed", 0.0, False),
+            ("length", 0.0, True),
+            ("width", 0.0, True),
+        ):
+            values = getattr(self, name)
+            bad = ~np.isfinite(values) | ((values <= lower) if strict else (values < lower))
+            if bad.any():
+                i = int(np.flatnonzero(bad)[0])
+                rel = ">" if strict else ">="
+                raise ValueError(
+                    f"{source}: vehicles[{i}].{name} must be a finite number {rel} {lower}, got {values[i]}"
+                )
+        routes = set(build_layout(self.layout).route_names)
+        for i, r in enumerate(self.route):
+            if r not in routes:
+                raise ValueError(
+                    f"{source}: vehicles[{i}].route {r!r} is not a route of layout {self.layout!r}; "
+                    f"allowed: {sorted(routes)}"
+                )
+
+    # ------------------------------------------------------------------ files
+    def to_dict(self) -> dict[str, Any]:
+        """The JSON-ready content of a scenario file."""
+        vehicles = [
+            {
+                "id": int(i),
+                "time": float(t),
+                "route": r,
+                "speed": float(v),
+                "length": float(a),
+                "width": float(b),
+            }
+            for i, t, r, v, a, b in zip(
+                self.vehicle_id, self.time, self.route, self.speed, self.length, self.width
+            )
+        ]
+        return {
+            "format": SCENARIO_FORMAT,
+            "version": SCENARIO_VERSION,
+            "layout": self.layout,
+            "duration": self.duration,
+            "seed": self.seed,
+            "meta": self.meta,
+            "vehicles": vehicles,
+        }
+
+    def save(self, path: str | Path, overwrite: bool = False) -> Path:
+        """Write the scenario as JSON.
+
+        :param path: file to write
+        :param overwrite: replace an existing file (by default an existing file is an error)
+        :return: the path written
+        """
+        path = Path(path)
+        if path.exists() and not overwrite:
+            raise FileExistsError(f"{path} exists; pass overwrite=True to replace it")
+        path.write_text(json.dumps(self.to_dict(), indent=1))
+        return path
+
+    @classmethod
+    def from_dict(cls, data: Any, source: str = "scenario") -> Scenario:
+        """Build and validate a scenario from the content of a scenario file.
+
+        :param data: the parsed JSON
+        :param source: name used in error messages (the file)
+        :raises ValueError: naming ``source`` and the offending field
+        """
+        if not isinstance(data, dict):
+            raise ValueError(f"{source}: expected a JSON object at the top level, got {type(data).__name__}")
+        if data.get("format", SCENARIO_FORMAT) != SCENARIO_FORMAT:
+            raise ValueError(
+                f"{source}: field 'format' must be {SCENARIO_FORMAT!r}, got {data.get('format')!r}"
+            )
+        for key in ("layout", "duration", "vehicles"):
+            if key not in data:
+                raise ValueError(f"{source}: missing field {key!r}")
+        if not isinstance(data["layout"], str):
+            raise ValueError(f"{source}: field 'layout' must be a string, got {data['layout']!r}")
+        duration = data["duration"]
+        if isinstance(duration, bool) or not isinstance(duration, (int, float)):
+            raise ValueError(f"{source}: field 'duration' must be a number, got {duration!r}")
+        seed = data.get("seed")
+        if seed is not None and (isinstance(seed, bool) or not isinstance(seed, int)):
+            raise ValueError(f"{source}: field 'seed' must be an integer or null, got {seed!r}")
+        vehicles = data["vehicles"]
+        if not isinstance(vehicles, list):
+            raise ValueError(f"{source}: field 'vehicles' must be a list, got {type(vehicles).__name__}")
+        cols: dict[str, list] = {k: [] for k in VEHICLE_FIELDS}
+        for i, v in enumerate(vehicles):
+            if not isinstance(v, dict):
+                raise ValueError(f"{source}: vehicles[{i}] must be an object with fields {VEHICLE_FIELDS}")
+            for key in ("id", "time", "route", "speed"):
+                if key not in v:
+                    raise ValueError(f"{source}: vehicles[{i}] is missing field {key!r}")
+            unknown = set(v) - set(VEHICLE_FIELDS)
+            if unknown:
+                raise ValueError(
+                    f"{source}: vehicles[{i}] has unknown fields {sorted(unknown)}; allowed: {VEHICLE_FIELDS}"
+                )
+            if isinstance(v["id"], bool) or not isinstance(v["id"], int):
+                raise ValueError(f"{source}: vehicles[{i}].id must be an integer, got {v['id']!r}")
+            if not isinstance(v["route"], str):
+                raise ValueError(f"{source}: vehicles[{i}].route must be a string, got {v['route']!r}")
+            for key, default in (("time", None), ("speed", None), ("length", 5.0), ("width", 2.0)):
+                value = v.get(key, default)
+                if isinstance(value, bool) or not isinstance(value, (int, float)):
+                    raise ValueError(f"{source}: vehicles[{i}].{key} must be a number, got {value!r}")
+                cols[key].append(float(value))
+            cols["id"].append(v["id"])
+            cols["route"].append(v["route"])
+        meta = data.get("meta") or {}
+        if not isinstance(meta, dict):
+            raise ValueError(f"{source}: field 'meta' must be an object, got {type(meta).__name__}")
+        try:
+            return cls(
+                layout=data["layout"], duration=float(duration), seed=seed,
+                vehicle_id=np.asarray(cols["id"], np.int64), time=cols["time"], route=tuple(cols["route"]),
+                speed=cols["speed"], length=cols["length"], width=cols["width"], meta=meta,
+            )  # fmt: skip
+        except ValueError as err:
+            raise ValueError(str(err).replace("scenario:", f"{source}:", 1)) from None
+
+    @classmethod
+    def load(cls, path: str | Path) -> Scenario:
+        """Read and validate a JSON scenario file.
+
+        :param path: the file
+        :raises ValueError: for a missing, unreadable or invalid file, naming the file and the field
+        """
+        path = Path(path)
+        try:
+            text = path.read_text()
+        except OSError as err:
+            raise ValueError(f"{path}: cannot read scenario file ({err.strerror})") from None
+        try:
+            data = json.loads(text)
+        except json.JSONDecodeError as err:
+            raise ValueError(
+                f"{path}: not valid JSON ({err.msg} at line {err.lineno}, column {err.colno})"
+            ) from None
+        return cls.from_dict(data, source=str(path))
+
+
+def generate_scenario(
+    layout: Layout | str,
+    duration: float,
+    rng: np.random.Generator | int,
+    rate_range: tuple[float, float] = (0.2, 0.4),
+    minor_factor: float = 0.5,
+    min_headway: float = 1.0,
+    speed_range: tuple[float, float] = (0.6, 1.0),
+    length: float = 5.0,
+    width: float = 2.0,
+) -> Scenario:
+    """Draw an evaluation scenario.
+
+    One rate is drawn uniformly from ``rate_range`` [veh/s] for every major-road spawn lane; minor
+    lanes get ``minor_factor`` times it. Inter-arrival times on a lane are shifted-exponential,
+    ``min_headway + Exp(1 / rate - min_headway)``, so their mean is ``1 / rate`` and no two
+    appearances on a lane are closer than ``min_headway``. Destinations are uniform over the lane's
+    routes; speeds uniform in ``speed_range`` times the lane speed limit. Ids follow appearance time.
+
+    :param layout: a layout or its name
+    :param duration: scenario length [s]
+    :param rng: random generator, or an integer seed (then recorded in the scenario)
+    :param rate_range: ``(low, high)`` vehicle rate per major-road lane [veh/s]
+    :param minor_factor: rate factor for minor-road lanes
+    :param min_headway: the shift of the exponential distribution [s]
+    :param speed_range: initial speed as fractions of the lane speed limit
+    :param length: vehicle length [m]
+    :param width: vehicle width [m]
+    :return: the scenario
+    """
+    lay = build_layout(layout) if isinstance(layout, str) else layout
+    seed = None
+    if not isinstance(rng, np.random.Generator):
+        seed = int(rng)
+        rng = np.random.default_rng(seed)
+    lo, hi = (float(x) for x in rate_range)
+    if not (0 < lo <= hi):
+        raise ValueError(f"rate_range must satisfy 0 < low <= high, got {rate_range}")
+    if not 0 < minor_factor:
+        raise ValueError(f"minor_factor must be > 0, got {minor_factor}")
+    if not (min_headway >= 0 and hi * max(1.0, minor_factor) * min_headway < 1):
+        raise ValueError(
+            f"min_headway must be >= 0 and shorter than the mean headway 1/rate, got {min_headway}"
+        )
+    if not (0 <= speed_range[0] <= speed_range[1]):
+        raise ValueError(f"speed_range must satisfy 0 <= low <= high, got {speed_range}")
+    if not duration > 0:
+        raise ValueError(f"duration must be > 0, got {duration}")
+    base = float(rng.uniform(lo, hi))
+    times, routes, speeds = [], [], []
+    # A loop over the few spawn lanes (not the hot path); arrivals are drawn vectorized.
+    for k in range(len(lay.spawn_lanes)):
+        rate = base * (1.0 if lay.spawn_priority[k] == 1 else minor_factor)
+        count = int(duration * rate * 2 + 10)
+        gaps = min_headway + rng.exponential(1.0 / rate - min_headway, count)
+        gaps[0] = rng.exponential(1.0 / rate)  # the first arrival of a Poisson stream
+        t = np.cumsum(gaps)
+        t = t[t < duration]
+        candidates = lay.spawn_routes(k)
+        r = candidates[rng.integers(0, len(candidates), t.size)]
+        limit = lay.speed_limit[r, 0]
+        times.append(t)
+        routes.append(r)
+        speeds.append(rng.uniform(speed_range[0], speed_range[1], t.size) * limit)
+    t_all = np.concatenate(times)
+    order = np.argsort(t_all, kind="stable")
+    r_all = np.concatenate(routes)[order]
+    k_all = order.size
+    return Scenario(
+        layout=lay.name, duration=float(duration), seed=seed,
+        vehicle_id=np.arange(k_all), time=t_all[order], route=tuple(lay.route_names[i] for i in r_all),
+        speed=np.concatenate(speeds)[order], length=np.full(k_all, length), width=np.full(k_all, width),
+        meta={"rate_major": base, "rate_minor": base * minor_factor, "min_headway": min_headway},
+    )  # fmt: skip
+
+
+class TrainingTraffic:
+    """Random spawns for training.
+
+    :param layout: the intersection
+    :param spawn_probability: probability per spawn lane and policy step
+    :param speed_range: initial speed as fractions of the lane speed limit
+    :param length: vehicle length [m]
+    :param width: vehicle width [m]
+    :param min_gap: smallest bumper gap to the vehicle ahead at spawning [m]
+    """
+
+    def __init__(
+        self,
+        layout: Layout,
+        spawn_probability: float = 0.05,
+        speed_range: tuple[float, float] = (0.6, 1.0),
+        length: float = 5.0,
+        width: float = 2.0,
+        min_gap: float = 5.0,
+    ) -> None:
+        self.layout = layout
+        self.spawn_probability = float(spawn_probability)
+        self.speed_range = speed_range
+        self.length = float(length)
+        self.width = float(width)
+        self.min_gap = float(min_gap)
+        self.next_id = 0
+        # Routes grouped by spawn lane, for drawing one destination per lane in one gather.
+        num_lanes = len(layout.spawn_lanes)
+        self._counts = np.bincount(layout.route_spawn_lane, minlength=num_lanes)
+        self._first = np.concatenate([[0], np.cumsum(self._counts)[:-1]])
+        self._by_lane = np.argsort(layout.route_spawn_lane, kind="stable")
+
+    def reset(self) -> None:
+        self.next_id = 0
+
+    @property
+    def waiting(self) -> int:
+        return 0
+
+    def spawn(
+        self, sim: Simulation, rng: np.random.Generator, probability: float | None = None
+    ) -> np.ndarray:
+        """Let vehicles appear at the current time.
+
+        The same number of random draws is taken every call, so runs are reproducible.
+
+        :param sim: the simulation to add vehicles to
+        :param rng: random generator
+        :param probability: overrides ``spawn_probability`` for this call (e.g. 1 at reset)
+        :return: ids of the new vehicles
+        """
+        lay = self.layout
+        num_lanes = len(lay.spawn_lanes)
+        p = self.spawn_probability if probability is None else probability
+        draw = rng.random(num_lanes) < p
+        pick = rng.random(num_lanes)
+        frac = rng.uniform(self.speed_range[0], self.speed_range[1], num_lanes)
+        counts = self._counts
+        route = self._by_lane[self._first + np.minimum((pick * counts).astype(np.int64), counts - 1)]
+        speed = frac * lay.speed_limit[route, 0]
+        lanes = np.flatnonzero(draw)
+        if lanes.size == 0:
+            return np.zeros(0, np.int64)
+        free = sim.spawn_free(lanes, speed[lanes], np.full(lanes.size, self.length), self.min_gap)
+        lanes = lanes[free][: max(sim.max_vehicles - sim.num_vehicles, 0)]
+        ids = np.arange(self.next_id, self.next_id + lanes.size, dtype=np.int64)
+        self.next_id += lanes.size
+        if lanes.size:
+            sim.add(route[lanes], speed[lanes], ids, self.length, self.width)
+        return ids
+
+
+class ScenarioTraffic:
+    """Replays a :class:`Scenario`: appearances in time order per spawn lane, waiting while not free.
+
+    :param layout: the intersection (must match ``scenario.layout``)
+    :param scenario: the scenario
+    :param min_gap: smallest bumper gap to the vehicle ahead at spawning [m]
+    """
+
+    def __init__(self, layout: Layout, scenario: Scenario, min_gap: float = 5.0) -> None:
+        if scenario.layout != layout.name:
+            raise ValueError(
+                f"scenario is for layout {scenario.layout!r}, the environment uses {layout.name!r}"
+            )
+        self.layout = layout
+        self.scenario = scenario
+        self.min_gap = float(min_gap)
+        route = np.array([layout.route_id(r) for r in scenario.route], np.int64)
+        lane = layout.route_spawn_lane[route]
+        order = np.lexsort((scenario.vehicle_id, scenario.time, lane))  # by lane, then time, then id
+        self.route = route[order]
+        self.lane = lane[order]
+        self.time = scenario.time[order]
+        self.speed = scenario.speed[order]
+        self.length = scenario.length[order]
+        self.width = scenario.width[order]
+        self.vehicle_id = scenario.vehicle_id[order]
+        num_lanes = len(layout.spawn_lanes)
+        self.lane_begin = np.searchsorted(self.lane, np.arange(num_lanes))
+        self.lane_end = np.searchsorted(self.lane, np.arange(num_lanes), side="right")
+        self.reset()
+
+    def reset(self) -> None:
+        self.cursor = self.lane_begin.copy()
+        self.waiting = 0
+
+    def spawn(
+        self, sim: Simulation, rng: np.random.Generator | None = None, probability: float | None = None
+    ) -> np.ndarray:
+        """Let the due appearances that fit appear (at most one per lane); return their ids."""
+        del rng, probability  # replay is deterministic
+        has = self.cursor < self.lane_end
+        head = np.minimum(self.cursor, len(self.time) - 1) if len(self.time) else self.cursor
+        due = has & (self.time[head] <= sim.time + 1e-9) if len(self.time) else has
+        lanes = np.flatnonzero(due)
+        new_ids = np.zeros(0, np.int64)
+        if lanes.size:
+            rows = self.cursor[lanes]
+            free = sim.spawn_free(lanes, self.speed[rows], self.length[rows], self.min_gap)
+            rows = rows[free][: max(sim.max_vehicles - sim.num_vehicles, 0)]
+            if rows.size:
+                sim.add(
+                    self.route[rows],
+                    self.speed[rows],
+                    self.vehicle_id[rows],
+                    self.length[rows],
+                    self.width[rows],
+                )
+                self.cursor[self.lane[rows]] += 1
+                new_ids = self.vehicle_id[rows]
+        # Appearances whose time has come but that are still waiting for space.
+        # (A loop over the few spawn lanes; each lane's times are sorted.)
+        due_counts = np.array(
+            [
+                np.searchsorted(self.time[b:e], sim.time + 1e-9, side="right")
+                for b, e in zip(self.cursor, self.lane_end)
+            ]
+        )
+        self.waiting = int(due_counts.sum())
+        return new_ids

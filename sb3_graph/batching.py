@@ -1,0 +1,129 @@
+"""Ragged batches of graphs: the padded gym/SB3 layout becomes one disjoint graph by index arithmetic.
+
+Padding exists only at the gym/SB3 boundary. Inside the networks and the replay buffer, a batch of
+``B`` graphs is one big disjoint graph (:class:`GraphBatch`), the layout PyTorch Geometric uses:
+compute grows with the vertices really present, not with ``max_nodes``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from sb3_graph.spaces import EDGE_INDEX, EDGE_MASK, EDGE_TYPE, NODE_MASK, X
+
+
+class GraphBatch(NamedTuple):
+    """``num_graphs`` graphs as one disjoint graph.
+
+    :param x: ``(N, F)`` float vertex features of all graphs, graph after graph
+    :param edge_index: ``(2, E)`` long ``(source, target)`` rows indexing into ``x``
+    :param edge_type: ``(E,)`` long relation ids
+    :param batch: ``(N,)`` long id of each vertex's graph in ``[0, num_graphs)``
+    :param node_slot: ``(N,)`` long slot of each vertex in its padded graph (= its action slot)
+    :param num_graphs: number of graphs ``B`` (graphs may be empty)
+    :param max_nodes: size of the padded layout, the action dimension
+    """
+
+    x: Tensor
+    edge_index: Tensor
+    edge_type: Tensor
+    batch: Tensor
+    node_slot: Tensor
+    num_graphs: int
+    max_nodes: int
+
+    @property
+    def num_nodes(self) -> int:
+        return self.x.size(0)
+
+    @property
+    def num_edges(self) -> int:
+        return self.edge_index.size(1)
+
+    def to(self, device: torch.device | str) -> GraphBatch:
+        """The same batch with every tensor on ``device``."""
+        return self._replace(
+            x=self.x.to(device),
+            edge_index=self.edge_index.to(device),
+            edge_type=self.edge_type.to(device),
+            batch=self.batch.to(device),
+            node_slot=self.node_slot.to(device),
+        )
+
+
+def padded_to_batch(obs: Mapping[str, Tensor]) -> GraphBatch:
+    """Convert a padded batch of observations of a :class:`~sb3_graph.GraphSpace` to a
+    :class:`GraphBatch` with the masks' nonzero entries and a vertex-id lookup table: no loop over
+    samples.
+
+    SB3's preprocessing casts every entry to float; index entries are cast back to long here.
+    An unbatched observation (no leading batch dimension) is treated as a batch of one.
+
+    :param obs: dictionary with ``x`` ``(B, M, F)``, ``node_mask`` ``(B, M)``, ``edge_index``
+        ``(B, 2, E)``, ``edge_type`` ``(B, E)``, ``edge_mask`` ``(B, E)``
+    :return: the ragged batch
+    """
+    x = obs[X]
+    if x.dim() == 2:
+        obs = {key: value.unsqueeze(0) for key, value in obs.items()}
+        x = obs[X]
+    num_graphs, max_nodes = x.shape[:2]
+    # Only the real entries are touched after the masks: (graph, slot) pairs of vertices and edges.
+    node_graph, node_slot = obs[NODE_MASK].nonzero(as_tuple=True)
+    edge_graph, edge_slot = obs[EDGE_MASK].nonzero(as_tuple=True)
+    # Global id of each real vertex; edges read their endpoints' ids from it.
+    global_id = torch.zeros((num_graphs, max_nodes), dtype=torch.long, device=x.device)
+    global_id[node_graph, node_slot] = torch.arange(len(node_graph), device=x.device)
+    edge_index = obs[EDGE_INDEX]
+    src = global_id[edge_graph, edge_index[edge_graph, 0, edge_slot].long()]
+    dst = global_id[edge_graph, edge_index[edge_graph, 1, edge_slot].long()]
+    return GraphBatch(
+        x=x[node_graph, node_slot].float(),
+        edge_index=torch.stack((src, dst)),
+        edge_type=obs[EDGE_TYPE][edge_graph, edge_slot].long(),
+        batch=node_graph,
+        node_slot=node_slot,
+        num_graphs=int(num_graphs),
+        max_nodes=int(max_nodes),
+    )
+
+
+def as_graph_batch(obs: GraphBatch | Mapping[str, Tensor]) -> GraphBatch:
+    """Accept a :class:`GraphBatch` (from :class:`~sb3_graph.GraphReplayBuffer`) or a padded
+    dictionary of tensors (from SB3's ``predict`` or ``DictReplayBuffer``).
+
+    :param obs: the observation batch
+    :return: the ragged batch
+    """
+    if isinstance(obs, GraphBatch):
+        return obs
+    if isinstance(obs, Mapping):
+        return padded_to_batch(obs)
+    raise TypeError(f"expected a GraphBatch or a dict of padded tensors, got {type(obs).__name__}")
+
+
+def batch_to_padded(values: Tensor, graphs: GraphBatch, fill_value: float = 0.0) -> Tensor:
+    """Scatter per-vertex values back into the padded layout (differentiable).
+
+    :param values: ``(N,)`` or ``(N, K)`` per-vertex values
+    :param graphs: the batch the vertices belong to
+    :param fill_value: value of padded slots
+    :return: ``(B, max_nodes)`` or ``(B, max_nodes, K)``
+    """
+    out = values.new_full((graphs.num_graphs, graphs.max_nodes, *values.shape[1:]), fill_value)
+    return out.index_put((graphs.batch, graphs.node_slot), values)
+
+
+def gather_vertex_values(padded: Tensor, graphs: GraphBatch) -> Tensor:
+    """Read one value per real vertex from a padded ``(B, max_nodes, ...)`` tensor; padded slots
+    are never read.
+
+    :param padded: ``(B, max_nodes)`` or ``(B, max_nodes, K)`` values, e.g. actions
+    :param graphs: the batch
+    :return: ``(N,)`` or ``(N, K)`` values of the real vertices
+    """
+    return padded[graphs.batch, graphs.node_slot]

@@ -1,0 +1,117 @@
+"""Training callbacks that any graph environment can use (SB3 ``BaseCallback`` subclasses).
+
+Both are referenced from rl-zoo3 style YAML by dotted name, e.g.::
+
+    callback:
+      - sb3_graph.callbacks.LinearScheduleCallback:
+          method: set_spawn_probability
+          start: 0.01
+          end: 0.05
+          end_fraction: 0.5
+      - sb3_graph.callbacks.InfoLoggerCallback:
+          keys: [reward_terms]
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+from stable_baselines3.common.callbacks import BaseCallback
+
+
+class LinearScheduleCallback(BaseCallback):
+    """Raise (or lower) an environment parameter linearly with the training progress.
+
+    At every ``update_every`` steps the value is recomputed from ``model.num_timesteps`` and
+    passed to every training environment as ``env.<method>(value)`` through
+    ``VecEnv.env_method``; after ``end_fraction`` of the run it stays at ``end`` (the paper
+    raises the spawn probability until it saturates at 5 % per step). The value is logged as
+    ``curriculum/<method>``.
+
+    :param method: name of the environment method that takes the new value
+    :param start: value at step 0
+    :param end: value from ``end_fraction`` of the run on
+    :param end_fraction: share of the total timesteps after which ``end`` is reached, in (0, 1]
+    :param total_timesteps: the schedule's length; ``None`` takes the ``learn`` call's total
+    :param update_every: steps between two updates
+    :param verbose: verbosity level
+    """
+
+    def __init__(
+        self,
+        method: str,
+        start: float,
+        end: float,
+        end_fraction: float = 0.5,
+        total_timesteps: int | None = None,
+        update_every: int = 1000,
+        verbose: int = 0,
+    ) -> None:
+        super().__init__(verbose)
+        if not isinstance(method, str) or not method:
+            raise ValueError(f"LinearScheduleCallback: method must be a method name, got {method!r}")
+        if not 0.0 < end_fraction <= 1.0:
+            raise ValueError(f"LinearScheduleCallback: end_fraction must be in (0, 1], got {end_fraction}")
+        if update_every < 1:
+            raise ValueError(f"LinearScheduleCallback: update_every must be >= 1, got {update_every}")
+        self.method = method
+        self.start = float(start)
+        self.end = float(end)
+        self.end_fraction = float(end_fraction)
+        self.total_timesteps = total_timesteps
+        self.update_every = int(update_every)
+        self.value: float | None = None
+        self._last_update = -1
+
+    def value_at(self, step: int) -> float:
+        """The scheduled value after ``step`` environment steps."""
+        # model._total_timesteps is the absolute total of the current learn() call, resumes included
+        total = self.total_timesteps or getattr(self.model, "_total_timesteps", 0) or 1
+        progress = min(1.0, step / (self.end_fraction * total))
+        return self.start + progress * (self.end - self.start)
+
+    def _apply(self) -> None:
+        self.value = self.value_at(self.num_timesteps)
+        self.training_env.env_method(self.method, self.value)
+        self.logger.record(f"curriculum/{self.method}", self.value)
+        self._last_update = self.num_timesteps
+
+    def _on_training_start(self) -> None:
+        self._apply()
+
+    def _on_step(self) -> bool:
+        if self.num_timesteps - self._last_update >= self.update_every:
+            self._apply()
+        return True
+
+
+class InfoLoggerCallback(BaseCallback):
+    """Log the means of numeric entries that environments report in ``info``.
+
+    For each name in ``keys``, ``info[name]`` may be a number or a dictionary of numbers
+    (e.g. the reward terms); their means between two logger dumps are recorded as
+    ``info/<name>/<entry>`` (TensorBoard, CSV, stdout: wherever the logger writes).
+
+    :param keys: names of ``info`` entries to log
+    :param verbose: verbosity level
+    """
+
+    def __init__(self, keys: Sequence[str] = ("reward_terms",), verbose: int = 0) -> None:
+        super().__init__(verbose)
+        self.keys = [keys] if isinstance(keys, str) else list(keys)
+
+    def _record(self, name: str, value) -> None:
+        if isinstance(value, dict):
+            for entry, sub in value.items():
+                self._record(f"{name}/{entry}", sub)
+        elif np.isscalar(value) and np.isfinite(value):
+            # record_mean averages every value until the logger's next dump
+            self.logger.record_mean(f"info/{name}", float(value))
+
+    def _on_step(self) -> bool:
+        for info in self.locals.get("infos", []):
+            for key in self.keys:
+                if key in info:
+                    self._record(key, info[key])
+        return True

@@ -1,0 +1,245 @@
+"""``sb3-graph train``: run one rl-zoo3 style experiment into a run folder, resumable.
+
+A run folder holds::
+
+    config.yml          the experiment entry as resolved (file entry + command-line overrides)
+    run.json            seed, versions, command, steps, wall time, best validation reward
+    best_model.zip      the model with the best validation reward so far (paper: "Experiments")
+    evaluations.npz     every validation result (SB3 EvalCallback's log)
+    checkpoints/        model_<steps>_steps.zip and the latest replay buffer, for --resume
+    final_model.zip     the model at the end of training
+    tb/                 TensorBoard logs (reward terms, curriculum, losses)
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import importlib.util
+import json
+import platform
+import re
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from sb3_graph.cli import UserError
+
+CHECKPOINT_PATTERN = re.compile(r"model_(\d+)_steps\.zip$")
+VALIDATION_SEED_OFFSET = 10_000
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--config", required=True, help="rl-zoo3 style YAML file (one entry per env id)")
+    parser.add_argument("--env", required=True, help="environment id, the entry to read from --config")
+    parser.add_argument("--out", required=True, help="run folder; must not exist unless --resume")
+    parser.add_argument("--n-timesteps", type=int, default=None, help="override n_timesteps of the entry")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the training envs and the learner")
+    parser.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
+    parser.add_argument("--eval-freq", type=int, default=5000, help="steps between validations (paper: 5000)")
+    parser.add_argument("--eval-episodes", type=int, default=10, help="validation episodes (paper: 10)")
+    parser.add_argument("--checkpoint-freq", type=int, default=10_000, help="steps between checkpoints")
+    parser.add_argument(
+        "--gym-packages",
+        nargs="*",
+        default=["envs"],
+        help="modules to import so that they register their environments (default: envs)",
+    )
+    parser.add_argument("--env-kwargs", type=json.loads, default=None, help="JSON dict merged into env_kwargs")
+    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (see benchmarks/)")
+    parser.add_argument("--device", default="auto", help="torch device (auto, cpu, cuda)")
+    parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    parser.add_argument("--verbose", type=int, default=0, choices=(0, 1, 2))
+
+
+def _versions() -> dict[str, str]:
+    versions = {"python": platform.python_version()}
+    for name in ("sb3_graph", "stable_baselines3", "torch", "torch_geometric", "gymnasium", "highway_env", "numpy"):
+        try:
+            versions[name] = getattr(importlib.import_module(name), "__version__", "unknown")
+        except ImportError:
+            continue
+    return versions
+
+
+def latest_checkpoint(folder: Path) -> tuple[int, Path] | None:
+    """The checkpoint with the most steps in ``folder/checkpoints``, or ``None``."""
+    found = [
+        (int(match.group(1)), path)
+        for path in (folder / "checkpoints").glob("model_*_steps.zip")
+        if (match := CHECKPOINT_PATTERN.search(path.name))
+    ]
+    return max(found) if found else None
+
+
+def _make_checkpoint_callback(save_freq: int, folder: Path):
+    from stable_baselines3.common.callbacks import CheckpointCallback
+
+    class LatestBufferCheckpoint(CheckpointCallback):
+        """SB3's checkpoints, keeping only the newest replay buffer (each is as large as the buffer)."""
+
+        def _on_step(self) -> bool:
+            result = super()._on_step()
+            if self.n_calls % self.save_freq == 0:
+                newest = self._checkpoint_path("replay_buffer_", extension="pkl")
+                for old in Path(self.save_path).glob(f"{self.name_prefix}_replay_buffer_*_steps.pkl"):
+                    if str(old) != newest:
+                        old.unlink()
+            return result
+
+    return LatestBufferCheckpoint(save_freq, str(folder), name_prefix="model", save_replay_buffer=True)
+
+
+def _import_packages(names: list[str]) -> None:
+    for name in names:
+        try:
+            importlib.import_module(name)
+        except ImportError as error:
+            raise UserError(f"--gym-packages: cannot import {name!r}: {error}") from error
+
+
+def _make_env(env_id: str, n_envs: int, seed: int, env_kwargs: dict[str, Any]):
+    import gymnasium as gym
+    from stable_baselines3.common.env_util import make_vec_env
+
+    if env_id not in gym.registry:
+        raise UserError(f"--env: unknown environment id {env_id!r} (registered by --gym-packages?)")
+    try:
+        return make_vec_env(env_id, n_envs=n_envs, seed=seed, env_kwargs=env_kwargs)
+    except ValueError as error:  # the environment's own configuration check
+        raise UserError(f"env_kwargs: {error}") from error
+
+
+def run(args: argparse.Namespace) -> int:
+    import torch as th
+    from stable_baselines3.common.callbacks import CallbackList, EvalCallback
+
+    from sb3_graph.experiment import ExperimentError, build_algorithm_kwargs, build_callbacks, read_experiment
+    from sb3_graph.td3 import TD3
+
+    th.set_num_threads(max(1, args.threads))
+    out = Path(args.out)
+    config_path = out / "config.yml"
+    if args.resume:
+        if not config_path.is_file():
+            raise UserError(f"--resume: {str(out)!r} holds no run (no config.yml)")
+        entry = yaml.safe_load(config_path.read_text())
+        record = json.loads((out / "run.json").read_text())
+        seed = record["seed"]
+    else:
+        if out.exists() and any(out.iterdir()):
+            raise UserError(f"--out: {str(out)!r} already holds files; choose a new folder or pass --resume")
+        try:
+            entry = read_experiment(args.config, args.env)
+        except ExperimentError as error:
+            raise UserError(str(error)) from error
+        if args.n_timesteps is not None:
+            entry["n_timesteps"] = args.n_timesteps
+        if args.env_kwargs:
+            entry["env_kwargs"] = {**(entry.get("env_kwargs") or {}), **args.env_kwargs}
+        seed = args.seed
+        record = {
+            "env": args.env,
+            "config_file": str(args.config),
+            "seed": seed,
+            "command": " ".join(sys.argv),
+            "versions": _versions(),
+            "wall_time_s": 0.0,
+            "sessions": [],
+        }
+
+    _import_packages(args.gym_packages)
+    n_timesteps = int(float(entry["n_timesteps"]))
+    n_envs = int(entry.get("n_envs", 1))
+    env_kwargs = dict(entry.get("env_kwargs") or {})
+    train_env = _make_env(args.env, n_envs, seed, env_kwargs)
+    # Validation: built the same way, another seed (paper, "Experiments").
+    eval_env = _make_env(args.env, 1, seed + VALIDATION_SEED_OFFSET, env_kwargs)
+    try:
+        algo_kwargs = build_algorithm_kwargs(entry, int(np.prod(train_env.action_space.shape)))
+        user_callbacks = build_callbacks(entry)
+    except ExperimentError as error:
+        raise UserError(str(error)) from error
+
+    out.mkdir(parents=True, exist_ok=True)
+    if not args.resume:
+        config_path.write_text(yaml.safe_dump(entry, sort_keys=False))
+    tensorboard_log = str(out / "tb") if importlib.util.find_spec("tensorboard") else None
+
+    checkpoint = latest_checkpoint(out) if args.resume else None
+    if checkpoint is not None:
+        steps, path = checkpoint
+        model = TD3.load(path, env=train_env, device=args.device, tensorboard_log=tensorboard_log)
+        buffer_path = out / "checkpoints" / f"model_replay_buffer_{steps}_steps.pkl"
+        if buffer_path.is_file():
+            model.load_replay_buffer(buffer_path)
+    else:
+        if args.resume:
+            print(f"sb3-graph train: no checkpoint in {out}, starting the run again", file=sys.stderr)
+        policy = entry.get("policy", "GraphPolicy")
+        if isinstance(policy, str) and "." in policy:
+            from sb3_graph.experiment import resolve_object
+
+            policy = resolve_object(policy, "policy")
+        try:
+            model = TD3(
+                policy,
+                train_env,
+                seed=seed,
+                device=args.device,
+                verbose=args.verbose,
+                tensorboard_log=tensorboard_log,
+                **algo_kwargs,
+            )
+        except (TypeError, ValueError) as error:
+            raise UserError(f"hyperparameters of {args.env!r}: {error}") from error
+
+    eval_callback = EvalCallback(
+        eval_env,
+        n_eval_episodes=args.eval_episodes,
+        eval_freq=max(args.eval_freq // n_envs, 1),
+        best_model_save_path=str(out),
+        log_path=str(out),
+        deterministic=True,
+        verbose=args.verbose,
+    )
+    # A resumed run keeps its best model unless a validation beats it.
+    eval_callback.best_mean_reward = record.get("best_mean_reward", -np.inf)
+    checkpoint_callback = _make_checkpoint_callback(max(args.checkpoint_freq // n_envs, 1), out / "checkpoints")
+    callbacks = CallbackList([*user_callbacks, eval_callback, checkpoint_callback])
+
+    remaining = n_timesteps - model.num_timesteps
+    start = time.time()
+    interrupted = False
+    try:
+        if remaining > 0:
+            model.learn(
+                remaining,
+                callback=callbacks,
+                reset_num_timesteps=checkpoint is None,
+                progress_bar=not args.no_progress,
+                tb_log_name="TD3",
+            )
+    except KeyboardInterrupt:
+        interrupted = True
+        model.save(out / "checkpoints" / f"model_{model.num_timesteps}_steps.zip")
+        model.save_replay_buffer(out / "checkpoints" / f"model_replay_buffer_{model.num_timesteps}_steps.pkl")
+    finally:
+        elapsed = time.time() - start
+        record["wall_time_s"] = record.get("wall_time_s", 0.0) + elapsed
+        record["num_timesteps"] = int(model.num_timesteps)
+        record["best_mean_reward"] = float(eval_callback.best_mean_reward)
+        record["sessions"].append({"started": start, "wall_time_s": elapsed, "steps_until": int(model.num_timesteps)})
+        (out / "run.json").write_text(json.dumps(record, indent=2))
+        train_env.close()
+        eval_env.close()
+    if interrupted:
+        print(f"sb3-graph train: interrupted at step {model.num_timesteps}; continue with --resume", file=sys.stderr)
+        return 130
+    model.save(out / "final_model.zip")
+    print(f"sb3-graph train: {model.num_timesteps} steps in {record['wall_time_s']:.0f} s, run folder {out}")
+    return 0

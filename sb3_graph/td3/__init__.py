@@ -1,0 +1,5 @@
+"""TD3 with graph defaults: ``GraphReplayBuffer`` for graph spaces and the ``GraphPolicy`` alias."""
+
+from sb3_graph.td3.td3 import TD3
+
+__all__ = ["TD3"]

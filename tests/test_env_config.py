@@ -1,0 +1,65 @@
+"""Configuration: defaults, merging, and clear errors for bad settings."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import pytest
+
+import envs  # noqa: F401
+from envs.intersection_env import CoopIntersection3WayEnv, CoopIntersectionEnv
+
+
+def test_defaults_and_merge():
+    env = gym.make("CoopIntersection3Way-v0", config={"max_vehicles": 10, "reward_weights": {"idle": 0.5}})
+    cfg = env.unwrapped.config
+    assert cfg["layout"] == "3way" and cfg["max_vehicles"] == 10
+    assert cfg["reward_weights"] == {
+        "velocity": 0.03,
+        "action": 0.01,
+        "idle": 0.5,
+        "proximity": 0.2,
+        "collision": 1.0,
+    }
+    assert env.observation_space["x"].shape == (10, 3) and env.action_space.shape == (10,)
+    assert CoopIntersection3WayEnv.default_config()["policy_frequency"] == 5
+
+
+def test_configure_takes_effect_at_reset():
+    env = gym.make("CoopIntersection4Way-v0").unwrapped
+    env.configure({"max_vehicles": 5, "layout": "inD"})
+    obs, _ = env.reset(seed=0)
+    assert obs["x"].shape == (5, 3) and env.layout.name == "inD"
+
+
+@pytest.mark.parametrize(
+    "config, key",
+    [
+        ({"spawn_probabilty": 0.1}, "spawn_probabilty"),  # unknown (typo)
+        ({"spawn_probability": -0.1}, "spawn_probability"),  # negative rate
+        ({"spawn_probability": "high"}, "spawn_probability"),  # wrong type
+        ({"initial_speed_range": [1.0, 0.6]}, "initial_speed_range"),  # min >= max
+        ({"initial_speed_range": [0.6, 0.6]}, "initial_speed_range"),
+        ({"reward_weights": {"velocity": "big"}}, "reward_weights"),  # weight not a number
+        ({"reward_weights": {"speed": 1.0}}, "reward_weights"),  # unknown term
+        ({"max_vehicles": 0}, "max_vehicles"),
+        ({"max_vehicles": 2.5}, "max_vehicles"),
+        ({"max_acceleration": True}, "max_acceleration"),
+        ({"duration": float("nan")}, "duration"),
+        ({"layout": "roundabout"}, "layout"),
+        ({"policy_frequency": 4}, "simulation_frequency"),  # 15 is not a multiple of 4
+    ],
+)
+def test_bad_settings_raise_value_error_naming_the_key(config, key):
+    with pytest.raises(ValueError, match=key):
+        gym.make("CoopIntersection4Way-v0", config=config)
+    env = CoopIntersectionEnv()
+    with pytest.raises(ValueError, match=key):
+        env.configure(config)
+    assert env.config["max_vehicles"] == 64  # a rejected configure changes nothing
+
+
+def test_error_lists_what_is_allowed():
+    with pytest.raises(ValueError, match=r"a number in \[0, 1\]"):
+        CoopIntersectionEnv(config={"spawn_probability": 2})
+    with pytest.raises(ValueError, match="allowed keys"):
+        CoopIntersectionEnv(config={"colour": "red"})

@@ -1,0 +1,123 @@
+"""``sb3-graph evaluate`` end to end on a small run, and its refusals."""
+
+from __future__ import annotations
+
+import json
+
+import pandas as pd
+import pytest
+
+from envs.report import REPORT_FILES
+from sb3_graph.cli import main
+
+SMALL = ["--scenarios", "2", "--duration", "20", "--seed", "3", "--jobs", "1", "--no-progress"]
+
+
+def test_unknown_planner_is_a_clear_error(tmp_path, capsys):
+    out = tmp_path / "report"
+    assert main(["evaluate", "--planner", "random", "--out", str(out), *SMALL]) == 2
+    err = capsys.readouterr().err
+    assert "random" in err and "pr, fifo" in err and ".zip" in err
+    assert not out.exists()
+
+
+def test_missing_model_file_is_a_clear_error(tmp_path, capsys):
+    model = tmp_path / "nope.zip"
+    assert main(["evaluate", "--planner", str(model), "--out", str(tmp_path / "r"), *SMALL]) == 2
+    assert "nope.zip" in capsys.readouterr().err
+
+
+def test_existing_out_is_refused_and_untouched(tmp_path, capsys):
+    out = tmp_path / "report"
+    out.mkdir()
+    (out / "mine.txt").write_text("keep")
+    assert main(["evaluate", "--planner", "pr", "--out", str(out), *SMALL]) == 2
+    assert "exists" in capsys.readouterr().err
+    assert [p.name for p in out.iterdir()] == ["mine.txt"] and (out / "mine.txt").read_text() == "keep"
+
+
+def test_bad_numbers_are_refused(tmp_path, capsys):
+    for flag, value in (("--scenarios", "0"), ("--duration", "-1"), ("--jobs", "0")):
+        args = ["evaluate", "--out", str(tmp_path / "r"), *SMALL, flag, value]
+        assert main(args) == 2
+        assert flag in capsys.readouterr().err
+
+
+def test_small_run_writes_every_file_and_repeats(tmp_path):
+    out = tmp_path / "report"
+    assert main(["evaluate", "--planner", "pr", "--planner", "fifo", "--out", str(out), *SMALL]) == 0
+    for name in REPORT_FILES:
+        assert (out / name).is_file(), name
+    scenarios = sorted((out / "scenarios").iterdir())
+    assert len(scenarios) == 2
+    summary = json.loads((out / "summary.json").read_text())
+    assert list(summary) == ["PR", "FIFO"]
+    for entry in summary.values():
+        assert set(entry) == {"runs", "vehicles", "flow_rate", "stop_ratio", "collision_rate", "delay_s"}
+        assert entry["runs"] == 2 and entry["vehicles"] > 0
+        assert set(entry["flow_rate"]) == {"median", "q1", "q3", "mean"}
+        assert set(entry["stop_ratio"]) == {"all", "major", "minor", "left", "straight", "right"}
+        assert set(entry["delay_s"]) == {"median", "mean"}
+        assert entry["collision_rate"] == 0.0
+    metrics = pd.read_csv(out / "metrics.csv")
+    assert len(metrics) == 4 and set(metrics["planner"]) == {"PR", "FIFO"}
+
+    # Same scenario files, same seed: the same numbers (the run is deterministic), in a new folder.
+    again = tmp_path / "again"
+    args = ["evaluate", "--planner", "pr", "--planner", "fifo", "--out", str(again), *SMALL]
+    assert main([*args, "--scenario-dir", str(out / "scenarios")]) == 0
+    cols = ["planner", "scenario", "vehicles", "crossed", "stopped_all", "collided"]
+    pd.testing.assert_frame_equal(pd.read_csv(again / "metrics.csv")[cols], metrics[cols])
+    assert not (again / "scenarios").exists()
+
+
+@pytest.mark.slow
+def test_parallel_jobs_give_the_same_numbers(tmp_path):
+    args = ["evaluate", "--planner", "pr", "--planner", "fifo", *SMALL]
+    assert main([*args, "--out", str(tmp_path / "one")]) == 0
+    assert main([*args, "--jobs", "2", "--out", str(tmp_path / "two")]) == 0
+    one = pd.read_csv(tmp_path / "one" / "metrics.csv").drop(columns=["wall_s"])
+    two = pd.read_csv(tmp_path / "two" / "metrics.csv").drop(columns=["wall_s"])
+    pd.testing.assert_frame_equal(one, two)
+
+
+def test_saved_model_runs_as_a_planner(tmp_path):
+    """A saved (here untrained) sb3_graph TD3 model is a planner like the baselines."""
+    import gymnasium as gym
+    import torch
+
+    import envs  # noqa: F401
+    from sb3_graph import TD3, GraphPolicy
+
+    torch.set_num_threads(1)
+    model_path = tmp_path / "coop" / "best_model.zip"
+    model_path.parent.mkdir()
+    TD3(GraphPolicy, gym.make("CoopIntersection4Way-v0"), buffer_size=10, seed=0).save(model_path)
+    out = tmp_path / "report"
+    args = ["evaluate", "--planner", "fifo", "--planner", str(model_path), "--out", str(out)]
+    assert main([*args, "--scenarios", "1", "--duration", "10", "--jobs", "1", "--no-progress"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert list(summary) == ["FIFO", "RL:coop"] and summary["RL:coop"]["runs"] == 1
+
+
+def test_scenarios_of_another_layout_are_refused(tmp_path, capsys):
+    from envs.traffic import generate_scenario
+
+    folder = tmp_path / "scenarios"
+    folder.mkdir()
+    generate_scenario("3way", 10.0, 0).save(folder / "scenario_000.json")
+    args = [
+        "evaluate",
+        "--planner",
+        "pr",
+        "--scenario-dir",
+        str(folder),
+        "--out",
+        str(tmp_path / "r"),
+        *SMALL,
+    ]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert "scenario_000.json" in err and "3way" in err and "4way" in err
+    assert not (tmp_path / "r").exists()
+    assert main([*args[: -len(SMALL)], "--scenario-dir", str(tmp_path / "empty")]) == 2

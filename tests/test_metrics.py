@@ -1,0 +1,162 @@
+"""Metrics on hand-made vehicle logs and step infos with known stops, crossings and collisions."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from envs.metrics import VehicleLog, add_travel_times, run_metrics, summarize, vehicle_frame
+from envs.scene import MAJOR, MINOR, RIGHT, STRAIGHT, Scene
+
+
+def _vehicle(
+    vid,
+    priority,
+    maneuver,
+    crossed=np.nan,
+    stopped=False,
+    collided=False,
+    first_seen=0.0,
+    path_length=100.0,
+    speed_limit=10.0,
+):
+    return dict(
+        vehicle_id=vid,
+        route="r",
+        priority=priority,
+        maneuver=maneuver,
+        first_seen=first_seen,
+        path_length=path_length,
+        speed_limit=speed_limit,
+        crossed=crossed,
+        removed=np.nan,
+        stopped=stopped,
+        collided=collided,
+    )
+
+
+@pytest.fixture
+def log() -> pd.DataFrame:
+    return vehicle_frame(
+        [
+            _vehicle(1, "major", "straight", crossed=10.0),  # free flow: 100 m at 10 m/s in 10 s
+            _vehicle(2, "major", "left", crossed=16.0, stopped=True),  # 6 s delay
+            _vehicle(3, "minor", "right", crossed=14.0, stopped=True, first_seen=2.0),  # 2 s delay
+            _vehicle(4, "minor", "straight", stopped=True),  # still queued at the end
+            _vehicle(5, "minor", "left", collided=True),
+            _vehicle(6, "major", "straight", collided=True),
+        ]
+    )
+
+
+def test_run_metrics(log):
+    row = run_metrics(log, duration=20.0)
+    assert row["vehicles"] == 6 and row["crossed"] == 3
+    assert row["flow_rate"] == pytest.approx(3 / 20.0)
+    assert row["stop_ratio_all"] == pytest.approx(3 / 6)
+    assert row["stop_ratio_major"] == pytest.approx(1 / 3) and row["vehicles_major"] == 3
+    assert row["stop_ratio_minor"] == pytest.approx(2 / 3) and row["vehicles_minor"] == 3
+    assert row["stop_ratio_left"] == pytest.approx(1 / 2)
+    assert row["stop_ratio_right"] == pytest.approx(1.0) and row["vehicles_right"] == 1
+    assert row["stop_ratio_straight"] == pytest.approx(1 / 3)
+    assert row["collision_rate"] == pytest.approx(2 / 6) and row["collided"] == 2
+    assert row["delay_mean"] == pytest.approx((0 + 6 + 2) / 3)
+    assert row["delay_median"] == pytest.approx(2.0)
+    assert row["travel_time_mean"] == pytest.approx((10 + 16 + 12) / 3)
+    with pytest.raises(ValueError, match="duration"):
+        run_metrics(log, duration=0.0)
+
+
+def test_travel_times_only_for_crossed(log):
+    timed = add_travel_times(log)
+    assert timed["delay"].notna().sum() == 3
+    assert np.isnan(timed.loc[timed["vehicle_id"] == 4, "travel_time"]).all()
+
+
+def test_summarize_pools_vehicles_and_takes_flow_quantiles(log):
+    runs = pd.DataFrame({"planner": ["A", "A", "A", "B"], "flow_rate": [0.1, 0.2, 0.4, 0.3]})
+    vehicles = pd.concat([log.assign(planner="A"), log.iloc[:2].assign(planner="B")], ignore_index=True)
+    summary = summarize(runs, vehicles)
+    assert set(summary) == {"A", "B"}
+    a = summary["A"]
+    assert a["runs"] == 3 and a["vehicles"] == 6
+    assert a["flow_rate"]["median"] == pytest.approx(0.2)
+    assert a["flow_rate"]["q1"] == pytest.approx(0.15) and a["flow_rate"]["q3"] == pytest.approx(0.3)
+    assert a["flow_rate"]["mean"] == pytest.approx(0.7 / 3)
+    assert set(a["stop_ratio"]) == {"all", "major", "minor", "left", "straight", "right"}
+    assert a["collision_rate"] == pytest.approx(2 / 6)
+    assert a["delay_s"]["median"] == pytest.approx(2.0)
+    assert summary["B"]["stop_ratio"]["minor"] is None  # no minor vehicle: undefined, not 0
+
+
+def _scene(ids, speeds, time, dist_to_exit):
+    n = len(ids)
+    return Scene(
+        time=time,
+        dt=0.5,
+        vehicle_id=np.array(ids, dtype=np.int64),
+        route=np.zeros(n, dtype=np.int64),
+        s=np.zeros(n),
+        position=np.zeros((n, 2)),
+        heading=np.zeros(n),
+        speed=np.array(speeds, float),
+        speed_limit=np.full(n, 10.0),
+        dist_to_entry=np.array(dist_to_exit, float) - 20,
+        dist_to_exit=np.array(dist_to_exit, float),
+        leader=np.full(n, -1),
+        gap=np.full(n, np.inf),
+        priority=np.array([MAJOR, MINOR][:n]),
+        maneuver=np.array([STRAIGHT, RIGHT][:n]),
+        length=np.full(n, 5.0),
+        route_names=("south->north",),
+        conflicts=np.zeros((1, 1), bool),
+    )
+
+
+def test_vehicle_log_from_infos_and_scenes():
+    log = VehicleLog()
+    log.observe(_scene([7, 8], [10.0, 5.0], 0.0, [52.5, 80.0]))  # centre 50 m before the exit
+    log.record(
+        {
+            "time": 0.5,
+            "entered": [9],
+            "vehicles": {9: {"route": "west->east", "priority": MINOR, "maneuver": "left", "time": 0.3}},
+            "crossed": [],
+            "removed": [],
+            "stopped": [8],
+            "collisions": np.zeros((0, 2), np.int64),
+        }
+    )
+    log.observe(_scene([7, 8], [10.0, 0.1], 0.5, [47.5, 80.0]))
+    log.record(
+        {
+            "time": 5.0,
+            "entered": [],
+            "crossed": [7],
+            "removed": [],
+            "stopped": [],
+            "collisions": np.array([[8, 9]]),
+        }
+    )
+    log.record(
+        {
+            "time": 6.0,
+            "entered": [],
+            "crossed": [7],
+            "removed": [7],
+            "stopped": [],
+            "collisions": np.zeros((0, 2), np.int64),
+        }
+    )
+    frame = log.frame().set_index("vehicle_id")
+    assert list(frame.index) == [7, 8, 9]
+    assert frame.loc[7, "crossed"] == 5.0  # the first crossing counts
+    assert frame.loc[7, "removed"] == 6.0
+    assert frame.loc[7, "path_length"] == 50.0 and frame.loc[7, "priority"] == "major"
+    assert not frame.loc[7, "stopped"] and frame.loc[8, "stopped"]
+    assert frame.loc[9, "priority"] == "minor" and frame.loc[9, "maneuver"] == "left"
+    assert frame.loc[8, "collided"] and frame.loc[9, "collided"] and not frame.loc[7, "collided"]
+    row = run_metrics(log.frame(), duration=6.0)
+    assert row["crossed"] == 1 and row["collision_rate"] == pytest.approx(2 / 3)
+    assert row["delay_mean"] == pytest.approx(0.0)  # 50 m at 10 m/s, crossed after 5 s

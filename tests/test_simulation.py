@@ -1,0 +1,184 @@
+"""Vectorized simulation: kinematics, removal, events, leaders, collisions, scene snapshot."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from highway_env import utils as hw_utils
+from highway_env.vehicle.kinematics import Vehicle
+
+from envs.layouts import build_layout
+from envs.scene import STOP_SPEED
+from envs.simulation import Simulation, overlapping_pairs
+
+
+@pytest.fixture
+def sim():
+    return Simulation(build_layout("4way"), max_speed=20.0, max_acceleration=5.0)
+
+
+def test_constant_acceleration_is_integrated_exactly(sim):
+    r = sim.layout.route_id("south->north")
+    sim.add([r], [8.0], [7], arc=[10.0])
+    sim.step(np.array([2.0]))
+    dt = sim.dt
+    assert sim.speed[0] == pytest.approx(8.0 + 2.0 * dt)
+    assert sim.arc[0] == pytest.approx(10.0 + 8.0 * dt + 0.5 * 2.0 * dt**2)
+    assert sim.time == pytest.approx(dt)
+
+
+def test_commands_are_clipped_and_speed_stays_in_bounds(sim):
+    r = sim.layout.route_id("west->east")
+    sim.add([r, r], [1.0, 19.9], [0, 1], arc=[10.0, 60.0])
+    arcs = [sim.arc.copy()]
+    for _ in range(5):
+        sim.step(np.array([-100.0, 100.0]))
+        arcs.append(sim.arc.copy())
+    assert sim.speed[0] == 0.0 and sim.speed[1] == pytest.approx(20.0)
+    assert (np.diff(np.array(arcs), axis=0) >= 0).all()  # never backwards
+    # -100 is clipped to -5: from 1 m/s the vehicle stops within 1/5 s, after at most 0.1 m.
+    assert arcs[-1][0] - 10.0 <= 1.0**2 / (2 * 5.0) + 1e-9 + 0.5 * 1.0 / 15
+
+
+def test_stop_cross_and_remove_events(sim):
+    lay = sim.layout
+    r = lay.route_id("east->west")
+    sim.add([r, r, r], [0.2, 10.0, 10.0], [10, 11, 12], arc=[5.0, lay.exit_arc[r] - 0.5, lay.length[r] - 0.5])
+    events = sim.step(np.zeros(3))
+    assert events.stopped.tolist() == [10]
+    assert events.crossed.tolist() == [11]
+    assert events.removed.tolist() == [12]
+    assert sim.vehicle_id.tolist() == [10, 11]  # survivors keep their order
+    assert sim.speed[0] < STOP_SPEED
+
+
+def test_capacity_and_unique_ids(sim):
+    small = Simulation(sim.layout, max_vehicles=2)
+    small.add([0, 1], [5.0, 5.0], [0, 1])
+    with pytest.raises(ValueError, match="max_vehicles"):
+        small.add([2], [5.0], [2])
+    with pytest.raises(ValueError, match="unique"):
+        sim.add([0, 1], [1.0, 1.0], [3, 3])
+
+
+def test_leaders_on_shared_lanes(sim):
+    lay = sim.layout
+    sn, se, ew = lay.route_id("south->north"), lay.route_id("south->east"), lay.route_id("east->west")
+    ww = lay.route_id("north->west")  # merges with east->west onto the west exit lane
+    # rows: 0 south->north at 30; 1 south->east at 50 (same approach lane, ahead of 0);
+    # 2 east->west on the exit lane; 3 north->west inside its turn (behind 2 on the exit lane);
+    # 4 east->west approaching (its lanes differ from 3's until the exit lane).
+    sim.add(
+        [sn, se, ew, ww, ew],
+        [5.0] * 5,
+        [0, 1, 2, 3, 4],
+        arc=[30.0, 50.0, lay.exit_arc[ew] + 20.0, lay.exit_arc[ww] - 3.0, 40.0],
+    )
+    leader, gap = sim.leaders()
+    assert leader.tolist() == [1, -1, -1, 2, 2]
+    assert gap[0] == pytest.approx(50.0 - 30.0 - 5.0)
+    # The gap along the shared exit lane: both positions measured from the exit lane's start.
+    expected = (20.0 + 3.0) - 5.0
+    assert gap[3] == pytest.approx(expected)
+    assert np.isinf(gap[1]) and np.isinf(gap[2])
+
+
+def test_overlapping_pairs_match_highway_env_polygons():
+    rng = np.random.default_rng(1)
+    n = 40
+    pos = rng.uniform(0, 15, (n, 2))
+    heading = rng.uniform(-np.pi, np.pi, n)
+    length = rng.uniform(3, 6, n)
+    width = rng.uniform(1.5, 2.5, n)
+    pairs = {tuple(p) for p in overlapping_pairs(pos, heading, length, width).tolist()}
+    polys = []
+    for i in range(n):
+        v = Vehicle(None, pos[i], heading[i])
+        v.LENGTH, v.WIDTH = length[i], width[i]
+        polys.append(v.polygon())
+    expected = set()
+    for i in range(n):
+        for j in range(i + 1, n):
+            if hw_utils.are_polygons_intersecting(polys[i], polys[j], np.zeros(2), np.zeros(2))[0]:
+                expected.add((i, j))
+    assert expected and pairs == expected
+
+
+def test_collision_is_reported_with_ids(sim):
+    lay = sim.layout
+    sn, we = lay.route_id("south->north"), lay.route_id("west->east")
+    # Both at the centre of the intersection: the two straight paths cross there.
+    centre_sn = lay.entry_arc[sn] + (lay.exit_arc[sn] - lay.entry_arc[sn]) / 2
+    centre_we = lay.entry_arc[we] + (lay.exit_arc[we] - lay.entry_arc[we]) / 2
+    sim.add([sn, we], [0.0, 0.0], [21, 42], arc=[centre_sn, centre_we])
+    events = sim.step(np.zeros(2))
+    assert events.collisions.tolist() == [[21, 42]]
+
+
+def test_scene_fields(sim):
+    lay = sim.layout
+    r = lay.route_id("north->east")
+    sim.add(
+        [r, r], [4.0, 6.0], [5, 6], arc=[20.0, lay.entry_arc[r] + 1.0], length=[4.0, 5.0], width=[1.8, 2.0]
+    )
+    scene = sim.scene()
+    assert scene.num_vehicles == 2
+    np.testing.assert_allclose(scene.dist_to_entry, lay.entry_arc[r] - (sim.arc + sim.length / 2))
+    np.testing.assert_allclose(scene.dist_to_exit, lay.exit_arc[r] - (sim.arc - sim.length / 2))
+    assert scene.leader.tolist() == [1, -1]
+    assert scene.route_names == lay.route_names and scene.conflicts is lay.conflicts
+    assert scene.a_min == -5.0 and scene.a_max == 5.0
+    assert scene.approaching.all()
+    np.testing.assert_allclose(scene.width, [1.8, 2.0])
+    assert scene.speed_limit[0] == lay.speed_limit[r, 0] and scene.speed_limit[1] < scene.speed_limit[0]
+
+
+def test_spawn_free_accounts_for_braking(sim):
+    lay = sim.layout
+    r = lay.route_id("south->north")
+    k = lay.route_spawn_lane[r]
+    sim.add([r], [0.0], [0], arc=[5.0 + 2.5 + 6.0])  # rear 11 m from the lane start
+    # Newcomer 5 m long: bumper gap 6 m. At 0 m/s it fits with min_gap 5; at 10 m/s it needs 5 + 10 m.
+    assert sim.spawn_free(np.array([k]), np.array([0.0]), np.array([5.0]), 5.0).tolist() == [True]
+    assert sim.spawn_free(np.array([k]), np.array([10.0]), np.array([5.0]), 5.0).tolist() == [False]
+    other = (k + 1) % len(lay.spawn_lanes)
+    assert sim.spawn_free(np.array([other]), np.array([10.0]), np.array([5.0]), 5.0).tolist() == [True]
+
+
+def test_frequency_mismatch_is_an_error():
+    with pytest.raises(ValueError, match="multiple of"):
+        Simulation(build_layout("4way"), simulation_frequency=10, policy_frequency=3)
+
+
+@pytest.mark.parametrize("layout, seed", [("4way", 0), ("4way", 1), ("3way", 2), ("inD", 3), ("inD", 4)])
+def test_collision_checks_match_a_brute_force_check_after_every_substep(layout, seed):
+    """The candidate filtering and the 1-D check on shared lanes find exactly the pairs that the
+    full separating-axis test over all pairs finds after some sub-step."""
+    lay = build_layout(layout)
+    rng = np.random.default_rng(seed)
+    found = 0
+    for _ in range(100):
+        sim = Simulation(lay)
+        route = rng.integers(0, lay.num_routes, 40)
+        arc0 = rng.uniform(40, 105, 40)
+        # Start without overlaps (as in the environment, where a collision ends the episode).
+        pos, heading = lay.pose(route, arc0)
+        overlapping = np.unique(overlapping_pairs(pos, heading, np.full(40, 5.0), np.full(40, 2.0)))
+        keep = np.setdiff1d(np.arange(40), overlapping)
+        route, n = route[keep], keep.size
+        sim.add(route, rng.uniform(0, 12, n), np.arange(n), arc=arc0[keep])
+        acc = rng.uniform(-5, 5, n)
+        # Brute force: integrate sub-step by sub-step and test every pair.
+        arc, speed, h = sim.arc.copy(), sim.speed.copy(), 1 / sim.simulation_frequency
+        expected = set()
+        for _ in range(sim.substeps):
+            v_new = np.clip(speed + acc * h, 0, sim.max_speed)
+            arc, speed = arc + 0.5 * (speed + v_new) * h, v_new
+            pos, heading = lay.pose(route, arc)
+            expected |= {tuple(p) for p in overlapping_pairs(pos, heading, sim.length, sim.width).tolist()}
+        events = sim.step(acc)
+        got = {tuple(p) for p in events.collisions.tolist()}
+        np.testing.assert_allclose(sim.arc, arc, rtol=1e-12)
+        assert got == expected
+        found += len(got)
+    assert found >= 5  # the random cases do contain collisions
