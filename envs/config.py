@@ -14,6 +14,10 @@ from typing import Any
 from envs.layouts import LAYOUT_NAMES
 from envs.rewards import REWARD_TERMS
 
+# What a collision does: "terminate" ends the episode (training, as in the paper); "remove" takes
+# the vehicles involved out of the scene and goes on (evaluation: collision rate over a whole run).
+COLLISION_HANDLING = ("terminate", "remove")
+
 
 def _is_int(x: Any) -> bool:
     return isinstance(x, int) and not isinstance(x, bool)
@@ -93,6 +97,7 @@ RULES: dict[str, Rule] = {
     "d_max": _positive(),
     "proximity_threshold": _positive(),
     "reward_weights": Rule(_weights, f"a dict mapping some of {REWARD_TERMS} to numbers"),
+    "collision_handling": Rule(lambda x: x in COLLISION_HANDLING, f"one of {COLLISION_HANDLING}"),
     # Rendering (highway-env's viewer reads these).
     "screen_width": _int(1),
     "screen_height": _int(1),

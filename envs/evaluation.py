@@ -8,6 +8,12 @@ go into a vehicle log (:class:`envs.metrics.VehicleLog`), reduced to one metrics
 
 Every planner meets exactly the same traffic: the scenario file fixes every vehicle's appearance
 time, route and initial speed, and the environment's own randomness is seeded per scenario.
+
+A collision does not end an evaluation run: the harness makes its environments with
+``config={"collision_handling": "remove"}`` (unless ``env_kwargs`` sets that key), so the vehicles
+involved are counted as collided and leave the scene while the run goes on, and a planner that
+crashes is still measured over the whole duration (the paper's collision rate is a share of the
+vehicles over full runs).
 """
 
 from __future__ import annotations
@@ -55,6 +61,8 @@ class Job:
 
 # Per-process caches: a worker runs many jobs, build its envs and planners (model loads) once.
 _ENVS: dict[tuple[str, str], Any] = {}
+# What the harness's environments do on a collision (see the module docstring).
+EVALUATION_CONFIG = {"collision_handling": "remove"}
 _PLANNERS: dict[str, Any] = {}
 
 
@@ -68,6 +76,22 @@ def _worker_init() -> None:
         pass
 
 
+def evaluation_env_kwargs(env_kwargs: dict[str, Any] | None) -> dict[str, Any]:
+    """``gym.make`` keyword arguments of the harness: the user's, with :data:`EVALUATION_CONFIG`
+    merged under their ``config`` (a key the user sets wins).
+
+    :param env_kwargs: the user's keyword arguments (``--env-kwargs``)
+    :return: a new dictionary
+    :raises ValueError: ``config`` is given but is not a dict
+    """
+    kwargs = dict(env_kwargs or {})
+    config = kwargs.get("config") or {}
+    if not isinstance(config, dict):
+        raise ValueError(f"env_kwargs: 'config' must be a dict, got {type(config).__name__}")
+    kwargs["config"] = {**EVALUATION_CONFIG, **config}
+    return kwargs
+
+
 def _env(env_id: str, env_kwargs: dict[str, Any]):
     import gymnasium as gym
 
@@ -75,7 +99,7 @@ def _env(env_id: str, env_kwargs: dict[str, Any]):
 
     key = (env_id, repr(sorted(env_kwargs.items())))
     if key not in _ENVS:
-        _ENVS[key] = gym.make(env_id, **env_kwargs)
+        _ENVS[key] = gym.make(env_id, **evaluation_env_kwargs(env_kwargs))
     return _ENVS[key]
 
 
@@ -99,7 +123,8 @@ def run_episode(
     :param duration: simulated seconds to run (less if the environment ends the episode)
     :param seed: seed of the environment's reset and of the planner
     :return: ``(vehicle log, facts)`` with facts ``duration`` (simulated seconds actually run),
-        ``steps``, ``terminated`` (the environment ended the episode, e.g. on a collision)
+        ``steps``, ``terminated`` (the environment ended the episode, e.g. on a collision with
+        ``collision_handling="terminate"``; the harness's own environments go on instead)
     """
     base = env.unwrapped
     _, info = env.reset(seed=seed, options={"scenario": scenario})

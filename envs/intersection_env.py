@@ -11,8 +11,14 @@ highway-env's :class:`~highway_env.envs.common.abstract.AbstractEnv` for its con
   :func:`envs.scene_graph.build_observation` from :meth:`CoopIntersectionEnv.scene`.
 - Action: ``Box(-1, 1, (max_vehicles,))``; slot ``i`` commands vehicle ``i`` (vertex ``i``) with
   ``action * max_acceleration`` m/s^2; slots beyond the vehicles present are ignored.
-- Reward: :mod:`envs.rewards`; a collision ends the episode (``terminated``); the episode is
-  truncated after ``duration`` seconds (or the replayed scenario's duration).
+- Reward: :mod:`envs.rewards`; the episode is truncated after ``duration`` seconds (or the
+  replayed scenario's duration).
+- Collisions (``collision_handling``): ``"terminate"`` (default, training, as in the paper) ends
+  the episode (``terminated``) with the vehicles where they collided; ``"remove"`` (evaluation:
+  :mod:`envs.evaluation` uses it) reports the pair once in ``info["collisions"]`` and
+  ``info["collided"]``, takes both vehicles out of the scene at the end of the step (their ids are
+  also in ``info["removed"]``) and goes on, so a run's flow and collision rate cover its whole
+  duration. The collision reward term applies in both cases.
 - ``info``: the keys documented in :mod:`envs.scene`.
 
 Traffic: random training spawns with ``spawn_probability`` per lane and step (see
@@ -43,7 +49,7 @@ from envs.config import validate_config
 from envs.layouts import Layout, build_layout
 from envs.rewards import DEFAULT_PROXIMITY_THRESHOLD, DEFAULT_REWARD_WEIGHTS, reward_terms, weighted
 from envs.scene import MAJOR, MANEUVERS, Scene
-from envs.scene_graph import NODE_FEATURES, NUM_RELATIONS, build_observation, min_mahalanobis
+from envs.scene_graph import DEFAULT_S_SCALE, NODE_FEATURES, NUM_RELATIONS, build_observation, min_mahalanobis
 from envs.simulation import Simulation, StepEvents
 from envs.traffic import Scenario, ScenarioTraffic, TrainingTraffic
 from sb3_graph.spaces import GraphSpace
@@ -88,9 +94,12 @@ class CoopIntersectionEnv(AbstractEnv):
         - ``vehicle_length``, ``vehicle_width`` [m]: training vehicles
         - ``spawn_min_gap`` [m]: bumper gap required at the spawn point (plus braking distance)
         - ``s_ref`` [m]: common path length inside the intersection; ``s_scale``: factor on ``s``
+          (default 0.04: units of 25 m)
         - ``d_max``: clip of the inverse Mahalanobis distance feature
         - ``proximity_threshold``: Mahalanobis distance where the proximity penalty starts
         - ``reward_weights``: weights of the reward terms (paper's table)
+        - ``collision_handling``: ``"terminate"`` (a collision ends the episode) or ``"remove"``
+          (the vehicles involved leave the scene and the episode goes on)
         - rendering: ``screen_width``, ``screen_height``, ``scaling``, ``centering_position``,
           ``offscreen_rendering``, ``real_time_rendering``, ``render_agent``, ``show_trajectories``
         """
@@ -110,10 +119,11 @@ class CoopIntersectionEnv(AbstractEnv):
             "vehicle_width": 2.0,
             "spawn_min_gap": 5.0,
             "s_ref": 25.0,
-            "s_scale": 1.0,
+            "s_scale": DEFAULT_S_SCALE,
             "d_max": 10.0,
             "proximity_threshold": DEFAULT_PROXIMITY_THRESHOLD,
             "reward_weights": dict(DEFAULT_REWARD_WEIGHTS),
+            "collision_handling": "terminate",
             "screen_width": 600,
             "screen_height": 600,
             "scaling": 3.0,
@@ -222,7 +232,8 @@ class CoopIntersectionEnv(AbstractEnv):
         """Apply one commanded acceleration per vehicle for one policy period.
 
         :param action: ``(max_vehicles,)`` values in ``[-1, 1]``; slot ``i`` -> vehicle ``i``
-        :return: observation, reward, terminated (collision), truncated (time up), info
+        :return: observation, reward, terminated (a collision, unless ``collision_handling`` is
+            ``"remove"``), truncated (time up), info
         """
         if self.sim is None:
             raise RuntimeError("call reset() before step()")
@@ -233,7 +244,8 @@ class CoopIntersectionEnv(AbstractEnv):
         if action.shape[0] != self.action_space.shape[0]:
             raise ValueError(f"action must have shape {self.action_space.shape}, got {np.shape(action)}")
         acc = np.clip(action[:n], -1.0, 1.0) * cfg["max_acceleration"]
-        events = sim.step(acc)
+        remove = cfg["collision_handling"] == "remove"
+        events = sim.step(acc, remove_collided=remove)
         kept = events.kept
         n_kept = int(kept.sum())  # survivors keep their order and lead the arrays
         entered = self.traffic.spawn(sim, self.np_random)
@@ -257,7 +269,7 @@ class CoopIntersectionEnv(AbstractEnv):
         info = self._make_info(events, entered, terms)
         self._collided = set(info["collided"].tolist())
         reward = float(sum(info["reward_weighted"].values()))
-        terminated = bool(collision)
+        terminated = bool(collision) and not remove
         truncated = bool(self.time >= self._duration - 1e-9) and not terminated
         if self.render_mode == "human":
             self.render()

@@ -5,7 +5,8 @@ action slot ``i``). Features (paper, "Input Representation"):
 
 - ``s``: path coordinate [m] (``Scene.s``): 0 where the path leaves the intersection area,
   ``-s_ref`` where it enters (default ``s_ref`` = 25 m), with the part inside the intersection
-  scaled to ``s_ref``; multiplied by ``s_scale`` (default 1: metres, as in the paper),
+  scaled to ``s_ref``; multiplied by ``s_scale`` (default ``DEFAULT_S_SCALE`` = 1/25 m: ``s`` in
+  units of the default ``s_ref``, so all three features are of order 1 for the network),
 - ``v``: speed over the speed limit of the current lane,
 - ``d``: inverse of the smallest Mahalanobis distance (paper eq. 2, ``l`` = 5 m, ``w`` = 2 m,
   covariance rotated by the vehicle's own heading) to any other vehicle, clipped to
@@ -30,6 +31,8 @@ import numpy as np
 from envs.scene import Scene
 from sb3_graph.spaces import GraphSpace
 
+# s in units of the default s_ref (25 m): the GNN's inputs stay of order 1.
+DEFAULT_S_SCALE = 0.04
 SAME_LANE, CROSSING = 0, 1
 NUM_RELATIONS = 2
 NODE_FEATURES = 3
@@ -72,7 +75,7 @@ def min_mahalanobis(scene: Scene) -> np.ndarray:
 
 
 def node_features(
-    scene: Scene, s_scale: float = 1.0, d_max: float = 10.0, min_distance: np.ndarray | None = None
+    scene: Scene, s_scale: float = DEFAULT_S_SCALE, d_max: float = 10.0, min_distance: np.ndarray | None = None
 ) -> np.ndarray:
     """``(n, 3)`` float32 vertex features ``[s, v, d]`` (see the module docstring).
 
@@ -122,7 +125,7 @@ def edges(scene: Scene, max_edges: int | None = None) -> tuple[np.ndarray, np.nd
 def build_observation(
     scene: Scene,
     space: GraphSpace,
-    s_scale: float = 1.0,
+    s_scale: float = DEFAULT_S_SCALE,
     d_max: float = 10.0,
     min_distance: np.ndarray | None = None,
 ) -> dict[str, np.ndarray]:

@@ -37,7 +37,8 @@ class StepEvents:
 
     :param stopped: ids whose speed was below ``STOP_SPEED`` after any sub-step
     :param crossed: ids whose centre passed the intersection exit (``s`` passed 0)
-    :param removed: ids that reached the end of their route and left the scene
+    :param removed: ids that left the scene: they reached the end of their route, or collided
+        in a step run with ``remove_collided``
     :param collisions: ``(k, 2)`` id pairs whose bodies overlapped after any sub-step
     :param kept: ``(n,)`` bool over the rows before the step: the vehicle is still in the scene
     """
@@ -178,7 +179,7 @@ class Simulation:
         return gap >= min_gap + brake
 
     # ------------------------------------------------------------------ dynamics
-    def step(self, acceleration: np.ndarray) -> StepEvents:
+    def step(self, acceleration: np.ndarray, remove_collided: bool = False) -> StepEvents:
         """Apply the commanded accelerations for one policy period.
 
         Collisions are checked after every sub-step, on the candidate pairs found once per policy
@@ -186,6 +187,9 @@ class Simulation:
         farthest each can travel during the period.
 
         :param acceleration: ``(n,)`` commanded accelerations [m/s^2], row ``i`` = vehicle ``i``
+        :param remove_collided: take the vehicles of this step's collisions out of the scene too
+            (they appear in ``removed`` as well as in ``collisions``), so that an evaluation run
+            goes on; otherwise they stay where they are
         :return: the events of the step; finished vehicles are already removed
         """
         n = self.num_vehicles
@@ -266,6 +270,8 @@ class Simulation:
             stopped=self.vehicle_id[stopped], crossed=self.vehicle_id[crossed], collisions=collisions
         )
         done = self.arc >= self.layout.length[self.route]
+        if remove_collided and collisions.size:
+            done |= np.isin(self.vehicle_id, collisions)
         events.kept = ~done
         events.removed = self.vehicle_id[done]
         if done.any():

@@ -7,8 +7,9 @@ compute grows with the vertices really present, not with ``max_nodes``.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from typing import NamedTuple
+from collections import OrderedDict
+from collections.abc import Callable, Mapping
+from typing import Any, NamedTuple
 
 import torch
 from torch import Tensor
@@ -127,3 +128,51 @@ def gather_vertex_values(padded: Tensor, graphs: GraphBatch) -> Tensor:
     :return: ``(N,)`` or ``(N, K)`` values of the real vertices
     """
     return padded[graphs.batch, graphs.node_slot]
+
+
+class DerivedIndexCache:
+    """Small LRU cache of index tensors derived from a batch's index tensors (e.g. a layer's
+    aggregation layout), keyed by the identity and version of the tensors they derive from.
+
+    One TD3 gradient step feeds the same sampled batch to several networks (critic, actor,
+    ``q1_forward``; target actor and target critics): each derived index is then computed once
+    per batch instead of once per forward. An entry holds references to its source tensors, so
+    their ids cannot be reused while it lives, and their version counters invalidate it after an
+    in-place change. Inference-mode tensors (no version counter) are never cached.
+
+    :param size: number of entries kept (least recently used first out)
+    """
+
+    def __init__(self, size: int = 16) -> None:
+        self.size = size
+        self._entries: OrderedDict[tuple, tuple[tuple[Tensor, ...], Any]] = OrderedDict()
+
+    def get(self, sources: tuple[Tensor, ...], extra: tuple, compute: Callable[[], Any]) -> Any:
+        """The value derived from ``sources`` (and the hashable ``extra``), computed on a miss.
+
+        :param sources: the tensors the value is derived from
+        :param extra: other hashable inputs of ``compute``
+        :param compute: computes the value
+        :return: the cached or new value
+        """
+        if any(t.is_inference() for t in sources):
+            return compute()
+        key = (tuple((id(t), t._version) for t in sources), extra)
+        entry = self._entries.get(key)
+        if entry is not None and all(a is b for a, b in zip(entry[0], sources)):
+            self._entries.move_to_end(key)
+            return entry[1]
+        value = compute()
+        self._entries[key] = (sources, value)
+        self._entries.move_to_end(key)
+        while len(self._entries) > self.size:
+            self._entries.popitem(last=False)
+        return value
+
+    def clear(self) -> None:
+        """Drop every entry."""
+        self._entries.clear()
+
+
+#: Process-wide cache used by the graph layers and policies.
+derived_indices = DerivedIndexCache()

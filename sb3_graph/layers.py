@@ -3,12 +3,151 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
+from typing import Any, NamedTuple
 
 import torch
 from torch import Tensor, nn
 from torch_geometric.nn import MessagePassing
 
+from sb3_graph.batching import derived_indices
+
 AGGREGATIONS = ("max", "mean", "sum")
+
+
+class SegmentMax(torch.autograd.Function):
+    r"""``out[s] = max_{e : target[e] = s} values[source[e]]`` per channel, 0 for an empty segment.
+
+    The same function and gradient as PyG's ``scatter(values[source], target, reduce="max")``
+    (``torch.scatter_reduce(..., "amax", include_self=False)``), including the even split of the
+    gradient among tied maxima, with a cheaper backward: one equality mask, one gather of the
+    output gradient and one ``index_add``; the tie count is computed only when a tie exists.
+
+    Inputs of :meth:`forward`: ``values`` ``(V, C)``, ``source`` ``(E,)`` long rows of ``values``
+    (``None``: ``values`` are the messages themselves, ``E = V``), ``target`` ``(E,)`` long
+    segment ids, ``num_segments`` ``S`` and ``num_nonempty``, the number of distinct targets.
+    Output: ``(S, C)``.
+    """
+
+    @staticmethod
+    def forward(  # type: ignore[override]
+        ctx: Any, values: Tensor, source: Tensor | None, target: Tensor, num_segments: int, num_nonempty: int
+    ) -> Tensor:
+        messages = values if source is None else values.index_select(0, source)
+        out = values.new_zeros(num_segments, values.size(1))
+        out.scatter_reduce_(0, target.unsqueeze(-1).expand_as(messages), messages, "amax", include_self=False)
+        ctx.save_for_backward(messages, out, source, target)
+        ctx.num_values, ctx.num_nonempty = values.size(0), num_nonempty
+        return out
+
+    @staticmethod
+    def backward(ctx: Any, grad_out: Tensor) -> tuple[Tensor | None, None, None, None, None]:  # type: ignore[override]
+        messages, out, source, target = ctx.saved_tensors
+        if not ctx.needs_input_grad[0]:
+            return None, None, None, None, None
+        is_max = messages == out.index_select(0, target)
+        grad_messages = grad_out.index_select(0, target).mul_(is_max)
+        # Each non-empty (segment, channel) has at least one maximum: more winners mean ties.
+        if int(is_max.sum()) != ctx.num_nonempty * messages.size(1):
+            winners = torch.zeros_like(out).index_add_(0, target, is_max.to(out.dtype))
+            grad_messages.div_(winners.index_select(0, target).clamp_(min=1))
+        if source is None:
+            return grad_messages, None, None, None, None
+        grad_values = grad_messages.new_zeros(ctx.num_values, grad_messages.size(1))
+        return grad_values.index_add_(0, source, grad_messages), None, None, None, None
+
+
+def segment_max(values: Tensor, source: Tensor | None, target: Tensor, num_segments: int, num_nonempty: int) -> Tensor:
+    """Functional form of :class:`SegmentMax`.
+
+    :param values: ``(V, C)`` rows
+    :param source: ``(E,)`` rows of ``values`` to reduce, or ``None`` for all rows in order
+    :param target: ``(E,)`` segment of each reduced row
+    :param num_segments: number of segments ``S``
+    :param num_nonempty: number of distinct values in ``target``
+    :return: ``(S, C)`` maxima, 0 for empty segments
+    """
+    return SegmentMax.apply(values, source, target, num_segments, num_nonempty)
+
+
+class RelationalLayout(NamedTuple):
+    """Aggregation indices of a batch for :func:`relational_conv` (derived once per batch).
+
+    ``K`` stacked copies of the graph (e.g. twin critics) are laid out as ``K`` disjoint graphs.
+
+    :param source: ``(E',)`` row ``(k * N + j) * stride + r`` of the transformed features read by
+        each edge ``j -> i`` of relation ``r`` in copy ``k``
+    :param target: ``(E',)`` segment ``(k * N + i) * R + r`` it is aggregated into
+    :param counts: ``(K * N * R,)`` edges per segment (mean only; else ``None``)
+    :param num_nonempty: number of non-empty segments
+    """
+
+    source: Tensor
+    target: Tensor
+    counts: Tensor | None
+    num_nonempty: int
+
+
+def _base_layout(
+    edge_index: Tensor, edge_type: Tensor, num_nodes: int, num_relations: int, stride: int, aggr: str
+) -> RelationalLayout:
+    edge_type = edge_type.long()
+    source = edge_index[0] * stride + edge_type
+    target = edge_index[1] * num_relations + edge_type
+    counts = None
+    if aggr == "max":
+        # A repeated edge repeats a message and cannot change a maximum (its gradient is split
+        # among the copies, which all read the same row): keep one. Sorting also groups targets.
+        rows = num_nodes * stride
+        key = torch.unique(target * rows + source)
+        target, source = key // rows, key % rows
+        num_nonempty = int(torch.count_nonzero(target[1:] != target[:-1])) + 1 if len(key) else 0
+    else:
+        counts = torch.bincount(target, minlength=num_nodes * num_relations)
+        num_nonempty = int(torch.count_nonzero(counts))
+    return RelationalLayout(source, target, counts, num_nonempty)
+
+
+def relational_layout(
+    edge_index: Tensor,
+    edge_type: Tensor,
+    num_nodes: int,
+    num_relations: int,
+    stride: int,
+    aggr: str = "max",
+    copies: int = 1,
+) -> RelationalLayout:
+    """Aggregation indices of :func:`relational_conv`, cached per batch (see
+    :class:`~sb3_graph.batching.DerivedIndexCache`).
+
+    :param edge_index: ``(2, E)`` long ``(source, target)`` rows
+    :param edge_type: ``(E,)`` relation ids
+    :param num_nodes: number of vertices ``N``
+    :param num_relations: number of relations ``R``
+    :param stride: rows of transformed features per vertex (``R``, or ``R + 1`` with the root term)
+    :param aggr: ``max``, ``mean`` or ``sum``
+    :param copies: number ``K`` of stacked networks
+    :return: the layout
+    """
+    extra = (num_nodes, num_relations, stride, aggr)
+
+    def base() -> RelationalLayout:
+        return _base_layout(edge_index, edge_type, num_nodes, num_relations, stride, aggr)
+
+    layout = derived_indices.get((edge_index, edge_type), ("relational", *extra, 1), base)
+    if copies == 1:
+        return layout
+
+    def stacked() -> RelationalLayout:
+        k = torch.arange(copies, device=edge_index.device).unsqueeze(-1)
+        return RelationalLayout(
+            source=(layout.source + k * (num_nodes * stride)).view(-1),
+            target=(layout.target + k * (num_nodes * num_relations)).view(-1),
+            counts=None if layout.counts is None else layout.counts.repeat(copies),
+            num_nonempty=layout.num_nonempty * copies,
+        )
+
+    return derived_indices.get((edge_index, edge_type), ("relational", *extra, copies), stacked)
 
 
 class RelationalMaxConv(MessagePassing):
@@ -26,8 +165,10 @@ class RelationalMaxConv(MessagePassing):
     which computes :math:`\mathbf{W}_r \max_j \mathbf{x}_j`, the maximum is taken after the
     relation weight is applied. No activation is applied (PyG style): the model applies it.
 
-    All relation transforms are one matmul to ``(N, R * out_channels)``; each edge then reads the
-    row of its own relation and PyG aggregates over the combined index ``target * R + relation``.
+    The relation transforms and the root transform are one matmul to ``(N, (R + 1) * out)``; each
+    edge then reads the row of its own relation and the messages are reduced into ``N * R``
+    segments ``target * R + relation`` (:func:`relational_conv`, which also runs several
+    convolutions of the same shape at once, e.g. twin critics).
 
     :param in_channels: size of each input vertex feature
     :param out_channels: size of each output vertex feature
@@ -82,19 +223,7 @@ class RelationalMaxConv(MessagePassing):
         :param edge_type: ``(E,)`` long relation ids in ``[0, num_relations)``
         :return: ``(N, out_channels)`` vertex features
         """
-        n, r, out = x.size(0), self.num_relations, self.out_channels
-        # (N, R * out) viewed as N * R rows: row j * R + r holds W_r x_j.
-        transformed = (x @ self.weight.permute(1, 0, 2).reshape(self.in_channels, r * out)).view(n * r, out)
-        edge_type = edge_type.long()
-        relational_index = torch.stack((edge_index[0] * r + edge_type, edge_index[1] * r + edge_type))
-        # Aggregating into N * R slots keeps the relations apart; empty slots stay 0.
-        aggregated = self.propagate(relational_index, x=transformed, size=(n * r, n * r))
-        result = aggregated.view(n, r, out).sum(dim=1)
-        if self.root is not None:
-            result = result + self.root(x)
-        if self.bias is not None:
-            result = result + self.bias
-        return result
+        return relational_conv([self], x.unsqueeze(0), edge_index, edge_type)[0]
 
     def message(self, x_j: Tensor) -> Tensor:
         return x_j
@@ -104,3 +233,42 @@ class RelationalMaxConv(MessagePassing):
             f"{self.__class__.__name__}({self.in_channels}, {self.out_channels}, "
             f"num_relations={self.num_relations}, aggr={self.aggr!r})"
         )
+
+
+def relational_conv(
+    convs: Sequence[RelationalMaxConv], x: Tensor, edge_index: Tensor, edge_type: Tensor
+) -> Tensor:
+    """Apply ``K`` convolutions of the same shape, each to its own input, on one graph batch: one
+    batched matmul and one aggregation for all of them (the ``K`` copies are ``K`` disjoint graphs).
+
+    :param convs: ``K`` convolutions with equal channels, relations, aggregation, root and bias
+    :param x: ``(K, N, in_channels)`` input of each convolution
+    :param edge_index: ``(2, E)`` long ``(source, target)`` rows
+    :param edge_type: ``(E,)`` relation ids
+    :return: ``(K, N, out_channels)``
+    """
+    first = convs[0]
+    copies, num_nodes = x.size(0), x.size(1)
+    r, out, has_root = first.num_relations, first.out_channels, first.root is not None
+    stride = r + 1 if has_root else r
+    # (K, in, R * out [+ out]): relation blocks, then the root block; the bias joins the root block.
+    weight = torch.stack([c.weight for c in convs]).permute(0, 2, 1, 3).reshape(copies, -1, r * out)
+    bias = torch.stack([c.bias for c in convs]).unsqueeze(1) if first.bias is not None else None
+    if has_root:
+        weight = torch.cat((weight, torch.stack([c.root.weight for c in convs]).transpose(1, 2)), dim=2)
+        if bias is not None:
+            bias = torch.cat((bias.new_zeros(copies, 1, r * out), bias), dim=2)
+    transformed = torch.bmm(x, weight) if bias is None or not has_root else torch.baddbmm(bias, x, weight)
+    rows = transformed.view(copies * num_nodes * stride, out)
+    layout = relational_layout(edge_index, edge_type, num_nodes, r, stride, first.aggr, copies)
+    segments = copies * num_nodes * r
+    if first.aggr == "max":
+        aggregated = segment_max(rows, layout.source, layout.target, segments, layout.num_nonempty)
+    else:
+        aggregated = rows.new_zeros(segments, out).index_add(0, layout.target, rows.index_select(0, layout.source))
+        if first.aggr == "mean":
+            aggregated = aggregated / layout.counts.clamp(min=1).unsqueeze(-1).to(aggregated.dtype)
+    result = aggregated.view(copies, num_nodes, r, out).sum(dim=2)
+    if has_root:
+        return result + transformed.view(copies, num_nodes, stride, out)[:, :, r]
+    return result if bias is None else result + bias

@@ -22,6 +22,7 @@ def test_defaults_and_merge():
     }
     assert env.observation_space["x"].shape == (10, 3) and env.action_space.shape == (10,)
     assert CoopIntersection3WayEnv.default_config()["policy_frequency"] == 5
+    assert cfg["collision_handling"] == "terminate"  # training: a collision ends the episode
 
 
 def test_configure_takes_effect_at_reset():
@@ -47,6 +48,8 @@ def test_configure_takes_effect_at_reset():
         ({"duration": float("nan")}, "duration"),
         ({"layout": "roundabout"}, "layout"),
         ({"policy_frequency": 4}, "simulation_frequency"),  # 15 is not a multiple of 4
+        ({"collision_handling": "ignore"}, "collision_handling"),
+        ({"collision_handling": None}, "collision_handling"),
     ],
 )
 def test_bad_settings_raise_value_error_naming_the_key(config, key):

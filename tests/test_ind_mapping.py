@@ -192,7 +192,10 @@ def test_options_are_validated():
 def test_recordings_of_one_site_are_mapped_together_with_their_own_times(tmp_path):
     a = _write(tmp_path, 7, SITE, seed=0, num=16)
     b = _write(tmp_path, 8, SITE, seed=5, num=16)
-    mapped = m.map_recordings(load_recordings(tmp_path, [7, 8]))
+    recordings = load_recordings(tmp_path, [7, 8])
+    # Without the arrival timing, vehicles appear at their recorded appearance times.
+    mapped = m.map_recordings(recordings, m.MappingOptions(arrival_timing=False))
+    assert mapped.tracks["t_entry"].isna().all()
     assert sorted(mapped.tracks["recording"].unique()) == [7, 8]
     records = m.scenario_records(mapped)
     assert list(records.columns[:4]) == ["time", "route", "speed", "vehicle_id"]
@@ -206,6 +209,11 @@ def test_recordings_of_one_site_are_mapped_together_with_their_own_times(tmp_pat
         )
     assert records["route"].str.fullmatch(r"(east|north|west|south)->(east|north|west|south)").all()
     assert len(m.scenario_records(mapped, recording=8)) == (b.expected["reason"] == "").sum()
+    # With it (the default), every recording is timed from its own frames: same vehicles, other times.
+    timed = m.scenario_records(m.map_recordings(recordings))
+    assert (timed.groupby("recording").size() == records.groupby("recording").size()).all()
+    merged = timed.merge(records, on=["recording", "vehicle_id"], suffixes=("", "_raw"))
+    assert len(merged) == len(records) and (merged["time"] != merged["time_raw"]).any()
 
 
 def test_routes_and_maneuvers_agree_with_the_simulated_ind_layout(site_a, tmp_path):

@@ -202,3 +202,33 @@ def test_human_rendering_runs_headless(monkeypatch):
         and len(env.unwrapped.road.vehicles) == env.unwrapped.scene().num_vehicles
     )
     env.close()
+
+
+@pytest.mark.parametrize("handling", ["terminate", "remove"])
+def test_collision_handling(handling):
+    """A hand-built crash at the centre of the 4-way next to a bystander on the major road: under
+    "terminate" the episode ends with the pair in place; under "remove" the pair is reported once,
+    leaves the scene, and the episode goes on with the bystander."""
+    config = {"spawn_probability": 0.0, "initial_spawn_probability": 0.0, "collision_handling": handling}
+    env = gym.make("CoopIntersection4Way-v0", config=config)
+    env.reset(seed=0)
+    base = env.unwrapped
+    lay = base.layout
+    sn, we, ew = (lay.route_id(r) for r in ("south->north", "west->east", "east->west"))
+    mid = (lay.entry_arc + lay.exit_arc) / 2
+    base.place_vehicles([sn, we, ew], [mid[sn], mid[we], 20.0], [3.0, 3.0, 8.0], [4, 9, 7])
+    _, reward, terminated, truncated, info = env.step(base.accelerations_to_action(np.zeros(3)))
+    assert info["collisions"].tolist() == [[4, 9]] and info["collided"].tolist() == [4, 9]
+    assert info["reward_weighted"]["collision"] == -1.0 and reward < 0
+    ids = base.scene().vehicle_id.tolist()
+    if handling == "terminate":
+        assert terminated and not truncated
+        assert sorted(ids) == [4, 7, 9]
+        return
+    assert not terminated and not truncated
+    assert ids == [7] and info["num_vehicles"] == 1
+    assert sorted(info["removed"].tolist()) == [4, 9]
+    for _ in range(20):  # the run goes on without reporting the pair again
+        _, _, terminated, truncated, info = env.step(base.accelerations_to_action(np.zeros(1)))
+        assert not terminated and info["collisions"].size == 0 and info["collided"].size == 0
+    assert base.scene().vehicle_id.tolist() == [7] and base.sim.time == pytest.approx(21 * base.sim.dt)

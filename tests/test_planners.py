@@ -257,3 +257,10 @@ def test_gnn_planner_scales_the_model_action(monkeypatch, tmp_path):
     acc = planner.act(scene)
     np.testing.assert_allclose(acc, [2.5, -5.0, 1.0])
     assert seen == {"deterministic": True, "space": "graph-space-of-the-model"}
+
+
+def test_rank_by_uses_the_first_key_most():
+    from envs.planners.yielding import rank_by
+
+    np.testing.assert_array_equal(rank_by(np.array([1, 0, 1]), np.array([5, 9, 2])), [2, 0, 1])
+    np.testing.assert_array_equal(rank_by(np.array([3.0, 1.0, 2.0])), [2, 0, 1])

@@ -7,7 +7,15 @@ import pytest
 
 from envs.layouts import LAYOUT_NAMES, build_layout
 from envs.scene import Scene
-from envs.scene_graph import CROSSING, SAME_LANE, build_observation, edges, mahalanobis_matrix, node_features
+from envs.scene_graph import (
+    CROSSING,
+    DEFAULT_S_SCALE,
+    SAME_LANE,
+    build_observation,
+    edges,
+    mahalanobis_matrix,
+    node_features,
+)
 from envs.simulation import Simulation
 from sb3_graph.spaces import GraphSpace
 
@@ -116,7 +124,7 @@ def test_v_is_speed_over_lane_limit_and_observation_fits_space():
     x, edge_index, edge_type = space.decode(obs)
     np.testing.assert_allclose(x[:, 1], scene.speed / scene.speed_limit, rtol=1e-6)
     assert x[0, 1] == pytest.approx(3.0 / 6.0)  # right-turn lane limit 6 m/s
-    np.testing.assert_allclose(x[:, 0], scene.s, rtol=1e-6)
+    np.testing.assert_allclose(x[:, 0], scene.s * DEFAULT_S_SCALE, rtol=1e-6)
     assert _edge_set(edge_index, edge_type) == {(0, 1, SAME_LANE)}
 
 

@@ -182,3 +182,33 @@ def test_collision_checks_match_a_brute_force_check_after_every_substep(layout, 
         assert got == expected
         found += len(got)
     assert found >= 5  # the random cases do contain collisions
+
+
+@pytest.mark.parametrize(
+    "leader_arc, is_leader",
+    [(50.0, True), (58.0, True), (75.0, False)],
+)
+def test_left_turner_entering_its_pocket_stays_the_leader_of_through_traffic(leader_arc, is_leader):
+    """inD: the through lane leaves the left-turn pocket at a shallow angle, so a left-turner that has
+    just taken the pocket still blocks the through lane (regression: the car behind lost its leader
+    and rear-ended it). Once its rear is well past the split (here 22 m, over 2.9 m apart
+    sideways), it no longer does."""
+    lay = build_layout("inD")
+    es, ew = lay.route_id("east->south"), lay.route_id("east->west")
+    follower_arc = leader_arc - 5.5
+    sim = Simulation(lay)
+    sim.add([es, ew], [0.0, 8.0], [0, 1], arc=[leader_arc, follower_arc])
+    leader, gap = sim.leaders()
+    assert leader.tolist() == [-1, 0 if is_leader else -1]
+    if is_leader:
+        assert gap[1] == pytest.approx(0.5)
+        # Brute force: the follower's front reaches the leader's rear on its own path within 0.5 m,
+        # and the two centre lines there are less than a vehicle width apart.
+        rear = leader_arc - 2.5
+        p_leader, _ = lay.pose(np.array([es]), np.array([rear]))
+        p_follower, _ = lay.pose(np.array([ew]), np.array([rear]))
+        assert np.hypot(*(p_leader - p_follower)[0]) < 2.0
+        events = sim.step(np.array([0.0, 0.0]))  # at 8 m/s without braking it hits the leader
+        assert events.collisions.tolist() == [[0, 1]]
+    else:
+        assert np.isinf(gap[1])

@@ -105,6 +105,29 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="largest angle between a track end and its arm [deg] (default: 30)",
     )
     mapping.add_argument(
+        "--arrival-timing",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="time each simulated appearance so that the vehicle, at its recorded initial speed (clipped to "
+        "the lane's limit), reaches the stop line when the recorded one entered the intersection: the "
+        "recorded tracks begin at the edge of the camera's view, a different distance out on every arm, "
+        "the simulated ones at the start of the approach lane (default: on; --no-arrival-timing: "
+        "appear at the recorded appearance time)",
+    )
+    mapping.add_argument(
+        "--entry-radius",
+        type=float,
+        default=None,
+        help="a recorded vehicle enters the intersection when its centre first comes this close to the "
+        "centre [m] (default: the simulated layout's stop-line distance for its route, about 14 m)",
+    )
+    mapping.add_argument(
+        "--min-timing-speed",
+        type=float,
+        default=3.0,
+        help="slower recorded initial speeds count as this for the arrival timing [m/s] (default: 3)",
+    )
+    mapping.add_argument(
         "--speed-source",
         choices=("norm", "lon"),
         default="norm",
@@ -175,6 +198,9 @@ def load_and_map(args: argparse.Namespace):
             inner_radius=args.inner_radius,
             min_travel=args.min_travel,
             arm_tolerance_deg=args.arm_tolerance,
+            arrival_timing=args.arrival_timing,
+            entry_radius=args.entry_radius,
+            min_timing_speed=args.min_timing_speed,
         )
     except ValueError as error:
         raise UserError(f"mapping option: {error}") from None
@@ -261,7 +287,7 @@ def write_scenarios(mapped, recordings: Sequence, folder: Path, layout: str = DE
     """One scenario file per recording: the mapped vehicles at their recorded times.
 
     Vehicle size comes from tracksMeta; where it is missing or zero the scenario's defaults
-    (5 m x 2 m) apply.
+    (5 m x 2 m) apply. Appearance times are the mapping's ``spawn_time`` (see ``--arrival-timing``).
 
     :param mapped: the mapping
     :param recordings: the recordings
@@ -269,15 +295,15 @@ def write_scenarios(mapped, recordings: Sequence, folder: Path, layout: str = DE
     :param layout: layout name of the scenarios
     :return: the files, in recording order
     """
-    from envs.ind.mapping import scenario_records
+    from envs.ind.mapping import DEFAULT_VEHICLE_LENGTH, DEFAULT_VEHICLE_WIDTH, scenario_records
     from envs.traffic import Scenario
 
     folder.mkdir(parents=True, exist_ok=False)
     paths = []
     for recording in recordings:
         records = scenario_records(mapped, recording.recording_id)
-        length = records["length"].where(records["length"] > 0, 5.0).fillna(5.0)
-        width = records["width"].where(records["width"] > 0, 2.0).fillna(2.0)
+        length = records["length"].where(records["length"] > 0, DEFAULT_VEHICLE_LENGTH)
+        width = records["width"].where(records["width"] > 0, DEFAULT_VEHICLE_WIDTH)
         scenario = Scenario(
             layout=layout,
             duration=recording.duration,

@@ -16,6 +16,14 @@ The real site's map is not used: everything is derived from where vehicles enter
 6. Alignment: recorded arms are matched to a simulated layout's arms keeping the cyclic order
    (so left stays left) and sending the major road to the layout's major road; each track gets
    the layout route name ``"<entry arm>-><exit arm>"``.
+7. Arrival timing (``MappingOptions.arrival_timing``, on by default): the recorded tracks begin
+   at the edge of the drone's view, a different distance from the centre on every arm, while
+   simulated vehicles appear at the start of the layout's approach lane. Each simulated
+   appearance is therefore timed so that the vehicle, driving at its recorded initial speed
+   (clipped to the lane's limit), reaches the stop line when the recorded vehicle entered the
+   intersection area (first frame within the stop-line distance of the centre; if the track never
+   comes that close, its closest approach to the centre minus the layout's travel from the stop
+   line to that point), never before time 0.
 
 A track that cannot be mapped keeps its row, with ``mapped = False`` and the reason.
 """
@@ -45,6 +53,10 @@ REASON_EXIT_OFF_ARM = "leaves away from every arm"
 REASON_U_TURN = "u-turn (enters and leaves by the same arm)"
 REASON_LAYOUT = "maneuver changes in the layout"
 
+# Size of a simulated vehicle where tracksMeta gives none [m] (the scenario defaults).
+DEFAULT_VEHICLE_LENGTH = 5.0
+DEFAULT_VEHICLE_WIDTH = 2.0
+
 
 @dataclass(frozen=True)
 class MappingOptions:
@@ -61,6 +73,15 @@ class MappingOptions:
     :param turn_threshold_deg: turns whose signed angle exceeds this are left (positive) or
         right (negative) turns, the others straight [deg]
     :param min_arm_separation_deg: smallest angle between two arms [deg]
+    :param arrival_timing: time each simulated appearance so that the vehicle reaches the stop
+        line when the recorded one entered the intersection area (see the module docstring);
+        ``False``: appear at the recorded appearance time (``initialFrame / frameRate``)
+    :param entry_radius: a recorded vehicle enters the intersection area when its centre first
+        comes this close to the centre [m]; ``None``: the simulated layout's distance from its
+        centre to the stop line of the vehicle's route
+    :param min_timing_speed: recorded initial speeds below this count as this for the timing
+        [m/s]: a vehicle recorded standing at the edge of the view is not assumed to crawl the
+        whole approach
     """
 
     centre: tuple[float, float] | None = None
@@ -71,6 +92,9 @@ class MappingOptions:
     major_arms: tuple[str, str] | None = None
     turn_threshold_deg: float = 45.0
     min_arm_separation_deg: float = 45.0
+    arrival_timing: bool = True
+    entry_radius: float | None = None
+    min_timing_speed: float = 3.0
 
     def __post_init__(self) -> None:
         if self.num_arms < 3:
@@ -81,6 +105,7 @@ class MappingOptions:
             "arm_tolerance_deg",
             "turn_threshold_deg",
             "min_arm_separation_deg",
+            "min_timing_speed",
         ):
             value = getattr(self, name)
             if not np.isfinite(value) or value <= 0:
@@ -89,6 +114,10 @@ class MappingOptions:
             raise ValueError(f"centre must be two finite numbers (x, y), got {self.centre!r}")
         if self.major_arms is not None and len(set(self.major_arms)) != 2:
             raise ValueError(f"major_arms must name two different arms, got {self.major_arms!r}")
+        if self.entry_radius is not None and not (np.isfinite(self.entry_radius) and self.entry_radius > 0):
+            raise ValueError(f"entry_radius must be a positive number or None, got {self.entry_radius!r}")
+        if not isinstance(self.arrival_timing, (bool, np.bool_)):
+            raise ValueError(f"arrival_timing must be True or False, got {self.arrival_timing!r}")
 
 
 @dataclass(frozen=True)
@@ -97,10 +126,17 @@ class LayoutArms:
 
     :param angles: arm name -> outward direction of the arm [rad], counter-clockwise from +x
     :param major: the two arms of the layout's major (priority) road
+    :param routes: route geometry for the arrival timing, indexed by route name
+        (``"<entry arm>-><exit arm>"``): ``entry_arc`` (arc length from the route's start to its
+        stop line [m]), ``speed_limit`` (at the route's start [m/s]), ``entry_radius`` (distance
+        of the stop line's lane centre from the layout's centre [m]) and ``inside`` (arc length
+        from the stop line to the route's closest approach to the centre [m]); ``None`` when
+        unknown (then ``arrival_timing`` cannot be used)
     """
 
     angles: Mapping[str, float]
     major: tuple[str, str]
+    routes: pd.DataFrame | None = field(default=None, compare=False)
 
     def __post_init__(self) -> None:
         if not set(self.major) <= set(self.angles) or len(set(self.major)) != 2:
@@ -117,9 +153,11 @@ def layout_arms(layout: Any) -> LayoutArms:
     The layouts use highway-env's frame (``y`` south, arm angles ``atan2(y, x)`` there), inD a
     right-handed frame with ``y`` north: the angles change sign, which keeps left turns left.
 
-    :param layout: an object with ``arm_angle`` (arm -> outward angle [rad], ``y`` south),
-        ``entry_arm`` and ``priority`` (per route) like :class:`envs.layouts.Layout`
-    :return: arms in the inD frame and the entry arms of the major-road routes
+    :param layout: an :class:`envs.layouts.Layout` (centred on the origin); the arms need
+        ``arm_angle`` (arm -> outward angle [rad], ``y`` south), ``entry_arm`` and ``priority``
+        (per route); the route geometry of the arrival timing is read when the layout has
+        ``route_names``, ``entry_arc``, ``exit_arc``, ``xy``, ``ds`` and ``speed_limit``
+    :return: arms in the inD frame, the entry arms of the major-road routes and the route geometry
     """
     angles = {str(name): -float(angle) for name, angle in layout.arm_angle.items()}
     major = sorted(
@@ -129,7 +167,31 @@ def layout_arms(layout: Any) -> LayoutArms:
         raise ValueError(
             f"layout {getattr(layout, 'name', '?')!r}: expected a major road of two arms, got {major}"
         )
-    return LayoutArms(angles=angles, major=(major[0], major[1]))
+    routes = None
+    if all(hasattr(layout, a) for a in ("route_names", "entry_arc", "exit_arc", "xy", "ds", "speed_limit")):
+        routes = _route_geometry(layout)
+    return LayoutArms(angles=angles, major=(major[0], major[1]), routes=routes)
+
+
+def _route_geometry(layout: Any) -> pd.DataFrame:
+    """The per-route table of :attr:`LayoutArms.routes` from a layout's sampled centre lines."""
+    entry, exit_ = np.asarray(layout.entry_arc, float), np.asarray(layout.exit_arc, float)
+    xy = np.asarray(layout.xy, float)  # (R, M, 2), the layout's centre at the origin
+    arc = np.arange(xy.shape[1]) * float(layout.ds)
+    radius = np.hypot(xy[..., 0], xy[..., 1])
+    within = (arc[None, :] >= entry[:, None]) & (arc[None, :] <= exit_[:, None])
+    closest = np.where(within, radius, np.inf).argmin(axis=1)
+    rows = np.arange(len(entry))
+    at_entry = np.minimum(np.round(entry / layout.ds).astype(np.int64), xy.shape[1] - 1)
+    return pd.DataFrame(
+        {
+            "entry_arc": entry,
+            "speed_limit": np.asarray(layout.speed_limit, float)[:, 0],
+            "entry_radius": radius[rows, at_entry],
+            "inside": np.maximum(arc[closest] - entry, 0.0),
+        },
+        index=pd.Index(list(layout.route_names), name="route"),
+    )
 
 
 @dataclass
@@ -141,7 +203,9 @@ class MappedTracks:
         ``time`` (appearance time [s]: initialFrame / frameRate), ``speed`` (first speed [m/s]),
         ``min_speed``, ``stopped`` (speed below ``STOP_SPEED`` in some frame), ``t_centre`` (time
         of the frame closest to the centre [s]), ``t_last`` (last frame [s]), ``min_distance``
-        (closest approach to the centre [m]), ``entry_arm``,
+        (closest approach to the centre [m]), ``t_entry`` (when it entered the intersection
+        area [s], NaN without arrival timing), ``spawn_time`` (when it appears in simulation [s]:
+        timed by the arrival timing, else ``time``), ``entry_arm``,
         ``exit_arm``, ``turn_deg`` (signed turn angle, left positive), ``maneuver``,
         ``priority`` (``"major"``/``"minor"`` road of the entry arm), ``route`` (layout route name),
         ``mapped`` (bool) and ``reason`` (why not, ``""`` when mapped)
@@ -366,11 +430,22 @@ def map_recordings(
 
     :param recordings: loaded recordings, all of one site (they share the local frame)
     :param options: mapping options
-    :param layout: the simulated layout's arms (default :data:`DEFAULT_LAYOUT`)
+    :param layout: the simulated layout's arms and route geometry (default: those of the
+        ``"inD"`` layout of :mod:`envs.layouts`, the one the replay runs on)
     :return: the mapping of every track
+    :raises ValueError: recordings of several sites, nothing to map, or ``arrival_timing`` with a
+        layout that has no route geometry
     """
     options = options or MappingOptions()
-    layout = layout or DEFAULT_LAYOUT
+    if layout is None:
+        from envs.layouts import build_layout
+
+        layout = layout_arms(build_layout("inD"))
+    if options.arrival_timing and layout.routes is None:
+        raise ValueError(
+            "arrival_timing needs the layout's route geometry (LayoutArms.routes, e.g. from "
+            "layout_arms(build_layout('inD'))); pass such a layout or set arrival_timing=False"
+        )
     if not recordings:
         raise ValueError("recordings: expected at least one recording")
     if len({r.location_id for r in recordings}) > 1:
@@ -519,6 +594,31 @@ def map_recordings(
     reason[changed] = REASON_LAYOUT
     ok = ok & ~changed
 
+    # Arrival timing: when each simulated vehicle must appear (vectorized over tracks).
+    route = np.where(ok, route, "")
+    if options.arrival_timing:
+        geometry = layout.routes.reindex(route)  # NaN rows where not mapped
+        if options.entry_radius is None:
+            radius = geometry["entry_radius"].to_numpy()
+        else:
+            radius = np.where(ok, options.entry_radius, np.nan)
+        entered = _entry_times(recordings, table, centre, radius)
+        # Recorded initial speed, clipped to the lane's limit; slow starts count as the floor.
+        limit = geometry["speed_limit"].to_numpy()
+        speed = np.maximum(np.minimum(table["speed"].to_numpy(float), limit), options.min_timing_speed)
+        # Never that close to the centre: closest approach minus the layout's travel to it.
+        fallback = table["t_centre"].to_numpy(float) - geometry["inside"].to_numpy() / speed
+        t_entry = np.where(ok, np.where(np.isnan(entered), fallback, entered), np.nan)
+        length = table["length"].to_numpy(float)
+        length = np.where(length > 0, length, DEFAULT_VEHICLE_LENGTH)  # NaN > 0 is False
+        # The simulated centre starts half a length into the route and drives to the stop line.
+        travel = geometry["entry_arc"].to_numpy() - length / 2
+        table["t_entry"] = t_entry
+        table["spawn_time"] = np.where(ok, np.maximum(t_entry - travel / speed, 0.0), np.nan)
+    else:
+        table["t_entry"] = np.nan
+        table["spawn_time"] = np.where(ok, table["time"].to_numpy(float), np.nan)
+
     table = table.assign(
         entry_arm=np.where(ok, entry, ""),
         exit_arm=np.where(ok, exit_, ""),
@@ -542,6 +642,8 @@ def map_recordings(
         "t_centre",
         "t_last",
         "min_distance",
+        "t_entry",
+        "spawn_time",
         "entry_arm",
         "exit_arm",
         "turn_deg",
@@ -564,12 +666,40 @@ def map_recordings(
     return MappedTracks(table[columns], arms, centre, options.centre is None, options)
 
 
+def _entry_times(
+    recordings: Sequence[Recording], table: pd.DataFrame, centre: np.ndarray, radius: np.ndarray
+) -> np.ndarray:
+    """When each track's centre first came within ``radius`` of the centre [s], NaN if never.
+
+    :param recordings: the recordings (their per-frame tables)
+    :param table: one row per track with ``recording`` and ``track_id``
+    :param centre: ``(2,)`` intersection centre [m]
+    :param radius: per row of ``table``, NaN to skip the track [m]
+    :return: per row of ``table``
+    """
+    found = []
+    for r in recordings:  # one vectorized pass over the frames of each recording
+        rows = (table["recording"] == r.recording_id).to_numpy()
+        per_track = pd.Series(radius[rows], index=table["track_id"].to_numpy()[rows])
+        track = r.tracks["trackId"].to_numpy()
+        limit = per_track.reindex(track).to_numpy()
+        x, y = r.tracks["xCenter"].to_numpy(), r.tracks["yCenter"].to_numpy()
+        near = np.hypot(x - centre[0], y - centre[1]) < limit  # False where the limit is NaN
+        first = pd.Series(r.tracks["frame"].to_numpy()[near]).groupby(track[near]).min()
+        found.append(
+            pd.DataFrame({"recording": r.recording_id, "track_id": first.index, "t": first.to_numpy() / r.frame_rate})
+        )
+    times = pd.concat(found, ignore_index=True)
+    return table[["recording", "track_id"]].merge(times, on=["recording", "track_id"], how="left")["t"].to_numpy()
+
+
 def scenario_records(mapped: MappedTracks, recording: int | None = None) -> pd.DataFrame:
     """The mapped vehicles as scenario rows for the simulated layout.
 
     :param mapped: the mapping
     :param recording: keep only this recording (``None``: all, times per recording)
-    :return: columns ``time`` (appearance [s]), ``route`` (layout route name), ``speed`` (initial
+    :return: columns ``time`` (appearance in simulation [s]: ``spawn_time``, see
+        :class:`MappingOptions` ``arrival_timing``), ``route`` (layout route name), ``speed`` (initial
         speed [m/s]), ``vehicle_id`` (the trackId), ``recording``, ``maneuver``, ``length`` and
         ``width`` [m] (NaN where the recording does not give them), sorted by recording and time
     """
@@ -578,7 +708,7 @@ def scenario_records(mapped: MappedTracks, recording: int | None = None) -> pd.D
         rows = rows[rows["recording"] == recording]
     out = pd.DataFrame(
         {
-            "time": rows["time"].to_numpy(float),
+            "time": rows["spawn_time"].to_numpy(float),
             "route": rows["route"].to_numpy(str),
             "speed": rows["speed"].to_numpy(float),
             "vehicle_id": rows["track_id"].to_numpy(np.int64),

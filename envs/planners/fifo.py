@@ -12,31 +12,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from envs.planners.base import Planner
-from envs.planners.idm import (
-    DEFAULT_IDM,
-    CrossingParams,
-    IDMParams,
-    accelerations_with_stops,
-    blocked_by_rank,
-)
+from envs.planners.idm import DEFAULT_IDM, CrossingParams, IDMParams
+from envs.planners.yielding import YieldingPlanner, rank_by
 from envs.scene import Scene
 
 
-def fifo_rank(dist_to_entry: np.ndarray, vehicle_id: np.ndarray) -> np.ndarray:
-    """Rank by distance to the stop line (closest first), ties by id.
-
-    :param dist_to_entry: ``(n,)`` metres to the stop line
-    :param vehicle_id: ``(n,)`` tie-break
-    :return: ``(n,)`` int64 rank, lower first
-    """
-    order = np.lexsort((vehicle_id, dist_to_entry))
-    rank = np.empty(len(order), dtype=np.int64)
-    rank[order] = np.arange(len(order))
-    return rank
-
-
-class FIFOPlanner(Planner):
+class FIFOPlanner(YieldingPlanner):
     """FIFO over groups of conflicting paths, IDM car following.
 
     :param name: the name shown in reports
@@ -47,15 +28,8 @@ class FIFOPlanner(Planner):
     def __init__(
         self, name: str = "FIFO", idm: IDMParams = DEFAULT_IDM, crossing: CrossingParams | None = None
     ) -> None:
-        super().__init__(name)
-        self.idm = idm
-        self.crossing = crossing if crossing is not None else CrossingParams()
+        super().__init__(name, idm, crossing)
 
-    def blocked(self, scene: Scene) -> np.ndarray:
-        """``(n,)`` bool: vehicles that must wait at their stop point now."""
-        return blocked_by_rank(scene, fifo_rank(scene.dist_to_entry, scene.vehicle_id), self.crossing)
-
-    def act(self, scene: Scene) -> np.ndarray:
-        if scene.num_vehicles == 0:
-            return np.zeros(0)
-        return accelerations_with_stops(scene, self.blocked(scene), self.crossing, self.idm)
+    def rank(self, scene: Scene) -> np.ndarray:
+        """Closest to the stop line first, ties by id."""
+        return rank_by(scene.dist_to_entry, scene.vehicle_id)

@@ -25,15 +25,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from envs.planners.base import Planner
-from envs.planners.idm import (
-    DEFAULT_IDM,
-    CrossingParams,
-    IDMParams,
-    accelerations_with_stops,
-    blocked_by_rank,
-    crossing_times,
-)
+from envs.planners.idm import DEFAULT_IDM, CrossingParams, IDMParams, crossing_times
+from envs.planners.yielding import YieldingPlanner, rank_by
 from envs.scene import LEFT, MAJOR, Scene
 
 
@@ -47,21 +40,7 @@ def maneuver_priority(priority: np.ndarray, maneuver: np.ndarray) -> np.ndarray:
     return np.where(priority == MAJOR, 0, 2) + (maneuver == LEFT).astype(np.int64)
 
 
-def precedence_rank(klass: np.ndarray, arrival: np.ndarray, vehicle_id: np.ndarray) -> np.ndarray:
-    """Dense rank by ``(klass, arrival, vehicle_id)``, lower first.
-
-    :param klass: ``(n,)`` primary key
-    :param arrival: ``(n,)`` secondary key
-    :param vehicle_id: ``(n,)`` final tie-break
-    :return: ``(n,)`` int64 rank
-    """
-    order = np.lexsort((vehicle_id, arrival, klass))
-    rank = np.empty(len(order), dtype=np.int64)
-    rank[order] = np.arange(len(order))
-    return rank
-
-
-class PriorityRulesPlanner(Planner):
+class PriorityRulesPlanner(YieldingPlanner):
     """Static priority rules with maneuver-inferred priorities and a stop point.
 
     :param name: the name shown in reports
@@ -72,17 +51,9 @@ class PriorityRulesPlanner(Planner):
     def __init__(
         self, name: str = "PR", idm: IDMParams = DEFAULT_IDM, crossing: CrossingParams | None = None
     ) -> None:
-        super().__init__(name)
-        self.idm = idm
-        self.crossing = crossing if crossing is not None else CrossingParams()
+        super().__init__(name, idm, crossing)
 
-    def blocked(self, scene: Scene) -> np.ndarray:
-        """``(n,)`` bool: vehicles that must wait at their stop point now."""
+    def rank(self, scene: Scene) -> np.ndarray:
+        """Maneuver-inferred precedence class, then the earliest possible arrival, then id."""
         arrival = crossing_times(scene, self.crossing)[0]
-        rank = precedence_rank(maneuver_priority(scene.priority, scene.maneuver), arrival, scene.vehicle_id)
-        return blocked_by_rank(scene, rank, self.crossing)
-
-    def act(self, scene: Scene) -> np.ndarray:
-        if scene.num_vehicles == 0:
-            return np.zeros(0)
-        return accelerations_with_stops(scene, self.blocked(scene), self.crossing, self.idm)
+        return rank_by(maneuver_priority(scene.priority, scene.maneuver), arrival, scene.vehicle_id)

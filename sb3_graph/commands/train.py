@@ -50,10 +50,29 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="modules to import so that they register their environments (default: envs)",
     )
     parser.add_argument("--env-kwargs", type=json.loads, default=None, help="JSON dict merged into env_kwargs")
+    parser.add_argument(
+        "--hyperparams",
+        "-params",
+        nargs="+",
+        default=[],
+        metavar="KEY:VALUE",
+        help="override entries of the experiment, as rl-zoo3 (values are read as YAML)",
+    )
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (see benchmarks/)")
     parser.add_argument("--device", default="auto", help="torch device (auto, cpu, cuda)")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     parser.add_argument("--verbose", type=int, default=0, choices=(0, 1, 2))
+
+
+def parse_overrides(items: list[str]) -> dict[str, Any]:
+    """``["batch_size:64", "gamma:0.9"]`` -> ``{"batch_size": 64, "gamma": 0.9}`` (values as YAML)."""
+    overrides = {}
+    for item in items:
+        key, sep, value = item.partition(":")
+        if not sep or not key:
+            raise UserError(f"--hyperparams: expected KEY:VALUE, got {item!r}")
+        overrides[key] = yaml.safe_load(value)
+    return overrides
 
 
 def _versions() -> dict[str, str]:
@@ -76,19 +95,37 @@ def latest_checkpoint(folder: Path) -> tuple[int, Path] | None:
     return max(found) if found else None
 
 
+def save_checkpoint(model, folder: Path) -> None:
+    """Save the model and its replay buffer as ``model_<steps>_steps``; drop older replay buffers."""
+    folder.mkdir(parents=True, exist_ok=True)
+    steps = model.num_timesteps
+    model.save(folder / f"model_{steps}_steps.zip")
+    newest = folder / f"model_replay_buffer_{steps}_steps.pkl"
+    model.save_replay_buffer(newest)
+    _drop_old_buffers(folder, keep=newest)
+
+
+def _drop_old_buffers(folder: Path, keep: Path) -> None:
+    # Each replay buffer file is as large as the buffer: keep the newest only.
+    for old in folder.glob("model_replay_buffer_*_steps.pkl"):
+        if old != keep:
+            old.unlink()
+
+
 def _make_checkpoint_callback(save_freq: int, folder: Path):
     from stable_baselines3.common.callbacks import CheckpointCallback
 
     class LatestBufferCheckpoint(CheckpointCallback):
-        """SB3's checkpoints, keeping only the newest replay buffer (each is as large as the buffer)."""
+        """SB3's periodic checkpoints, keeping only the newest replay buffer.
+
+        SB3 calls callbacks before it stores the step's transition, so a periodic checkpoint's
+        buffer lacks the last transition; the checkpoint written when training stops is complete.
+        """
 
         def _on_step(self) -> bool:
             result = super()._on_step()
             if self.n_calls % self.save_freq == 0:
-                newest = self._checkpoint_path("replay_buffer_", extension="pkl")
-                for old in Path(self.save_path).glob(f"{self.name_prefix}_replay_buffer_*_steps.pkl"):
-                    if str(old) != newest:
-                        old.unlink()
+                _drop_old_buffers(folder, keep=Path(self._checkpoint_path("replay_buffer_", extension="pkl")))
             return result
 
     return LatestBufferCheckpoint(save_freq, str(folder), name_prefix="model", save_replay_buffer=True)
@@ -130,6 +167,9 @@ def run(args: argparse.Namespace) -> int:
         entry = yaml.safe_load(config_path.read_text())
         record = json.loads((out / "run.json").read_text())
         seed = record["seed"]
+        if args.n_timesteps is not None:  # extend (or shorten) a run; recorded in config.yml
+            entry["n_timesteps"] = args.n_timesteps
+            config_path.write_text(yaml.safe_dump(entry, sort_keys=False))
     else:
         if out.exists() and any(out.iterdir()):
             raise UserError(f"--out: {str(out)!r} already holds files; choose a new folder or pass --resume")
@@ -137,6 +177,7 @@ def run(args: argparse.Namespace) -> int:
             entry = read_experiment(args.config, args.env)
         except ExperimentError as error:
             raise UserError(str(error)) from error
+        entry.update(parse_overrides(args.hyperparams))
         if args.n_timesteps is not None:
             entry["n_timesteps"] = args.n_timesteps
         if args.env_kwargs:
@@ -226,9 +267,8 @@ def run(args: argparse.Namespace) -> int:
             )
     except KeyboardInterrupt:
         interrupted = True
-        model.save(out / "checkpoints" / f"model_{model.num_timesteps}_steps.zip")
-        model.save_replay_buffer(out / "checkpoints" / f"model_replay_buffer_{model.num_timesteps}_steps.pkl")
     finally:
+        save_checkpoint(model, out / "checkpoints")
         elapsed = time.time() - start
         record["wall_time_s"] = record.get("wall_time_s", 0.0) + elapsed
         record["num_timesteps"] = int(model.num_timesteps)

@@ -1,0 +1,335 @@
+"""``sb3-graph tune``: tune reward weights (and TD3 settings) with Optuna, on one machine or many.
+
+Every invocation adds ``--n-trials`` trials to the study named ``--study-name`` in ``--storage``
+(created on first use): re-running the command resumes the study, and workers on other machines
+that run the same command against the same PostgreSQL server or journal file join it.
+``--jobs N`` starts N worker processes on this machine, sharing the trials of this invocation.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing
+import sys
+from pathlib import Path
+from typing import Any
+
+from sb3_graph.cli import UserError
+
+DEFAULT_STORAGE = "sqlite:///studies/{study}.db"
+# Environment ids with a domain plug-in in this repository: prefix -> (evaluator, env preset).
+DOMAIN_DEFAULTS = {
+    "CoopIntersection": ("envs.tuning:evaluate_model", "envs.tuning:tuning_env_kwargs"),
+    "GraphMaxNeighbour": ("sb3_graph.tuning.toy:evaluate_max_neighbour", "none"),
+}
+# Study user attributes written when the study is created, checked when it is resumed.
+CHECKED_ATTRS = ("objective", "env")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``sb3-graph tune``."""
+    parser.add_argument("--config", required=True, help="rl-zoo3 style YAML file (one entry per env id)")
+    parser.add_argument("--env", required=True, help="environment id, the entry to read from --config")
+    parser.add_argument("--study-name", required=True, help="Optuna study (created on first use, then resumed)")
+    parser.add_argument(
+        "--storage",
+        default=None,
+        help="sqlite:///PATH.db (default sqlite:///studies/<study-name>.db), "
+        "postgresql://USER:PASSWORD@HOST:PORT/DB or journal://PATH (shared by many workers)",
+    )
+    parser.add_argument("--n-trials", type=int, default=10, help="trials this invocation adds to the study")
+    parser.add_argument("--timesteps", type=int, default=None, help="training steps per trial (default: entry)")
+    parser.add_argument("--objective", default="flow", help="flow (max flow rate, collision constraint) or pareto")
+    parser.add_argument("--tune-algo", action="store_true", help="also tune TD3 settings (learning rate, batch...)")
+    parser.add_argument("--jobs", type=int, default=1, help="worker processes on this machine")
+    parser.add_argument(
+        "--weights", nargs="*", default=None, metavar="TERM", help="reward terms to tune (default all)"
+    )
+    parser.add_argument("--weight-spread", type=float, default=10.0, help="log range factor each way around Table I")
+    parser.add_argument("--max-collision-rate", type=float, default=0.02, help="constraint of the flow objective")
+    parser.add_argument("--evaluations", type=int, default=3, help="evaluations per trial (flow: pruning points)")
+    parser.add_argument("--eval-episodes", type=int, default=3, help="validation episodes per evaluation")
+    parser.add_argument("--eval-seed", type=int, default=10_000, help="seed of the validation episodes")
+    parser.add_argument("--evaluator", default=None, help="metric plug-in module:function (default per env id)")
+    parser.add_argument(
+        "--env-preset",
+        default=None,
+        help="module:attribute, a dict or function giving the reduced env kwargs, or none "
+        "(default for CoopIntersection*: envs.tuning:tuning_env_kwargs, the 'tuning' preset)",
+    )
+    parser.add_argument("--env-kwargs", type=json.loads, default=None, help="JSON dict merged over the preset")
+    parser.add_argument("--pruner", choices=("median", "none"), default="median", help="pruner of the flow objective")
+    parser.add_argument("--population-size", type=int, default=10, help="NSGA-II population (pareto)")
+    parser.add_argument("--seed", type=int, default=0, help="base training seed (trial k uses seed + k)")
+    parser.add_argument("--sampler-seed", type=int, default=None, help="sampler seed (worker i uses seed + i)")
+    parser.add_argument("--heartbeat", type=int, default=60, help="seconds between heartbeats (database storages)")
+    parser.add_argument("--max-retry", type=int, default=0, help="retries of a trial whose worker died")
+    parser.add_argument("--save-models", default=None, help="folder for each trial's final model")
+    parser.add_argument("--gym-packages", nargs="*", default=None, help="modules that register the env")
+    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads per worker")
+    parser.add_argument("--device", default="cpu", help="torch device")
+
+
+def _domain_default(env_id: str, index: int) -> str | None:
+    for prefix, values in DOMAIN_DEFAULTS.items():
+        if env_id.startswith(prefix):
+            return values[index]
+    return None
+
+
+def _gym_packages(args: argparse.Namespace) -> list[str]:
+    if args.gym_packages is not None:
+        return list(args.gym_packages)
+    return ["envs"] if args.env.startswith("CoopIntersection") else ["sb3_graph.toy_envs"]
+
+
+def _preset(args: argparse.Namespace) -> dict[str, Any]:
+    import importlib
+
+    spec = args.env_preset or _domain_default(args.env, 1) or "none"
+    if spec == "none":
+        return {}
+    module_name, _, attribute = spec.partition(":")
+    try:
+        value = getattr(importlib.import_module(module_name), attribute)
+    except (ImportError, AttributeError, ValueError) as error:
+        raise UserError(f"--env-preset: cannot import {spec!r} (form module:attribute or none): {error}") from error
+    value = value() if callable(value) else value
+    if not isinstance(value, dict):
+        raise UserError(f"--env-preset: {spec!r} must give a dict of env kwargs, got {type(value).__name__}")
+    return value
+
+
+def _merge(base: dict[str, Any], update: dict[str, Any]) -> dict[str, Any]:
+    """Merge env kwargs, one level deep into ``config`` (highway-env's configuration dict)."""
+    merged = dict(base)
+    for key, value in update.items():
+        if isinstance(value, dict) and isinstance(merged.get(key), dict):
+            merged[key] = {**merged[key], **value}
+        else:
+            merged[key] = value
+    return merged
+
+
+def prepare(args: argparse.Namespace):
+    """Check the options, read the entry, probe the env: everything a worker needs, or a UserError.
+
+    :return: ``(settings, study attributes)``
+    """
+    import importlib
+
+    import gymnasium as gym
+
+    from sb3_graph.experiment import ExperimentError, read_experiment
+    from sb3_graph.tuning.objectives import make_objective
+    from sb3_graph.tuning.runner import TrialSettings, resolve_callable
+    from sb3_graph.tuning.search_space import WEIGHTS_KEY, weights_in
+
+    for name in ("n_trials", "jobs", "evaluations", "eval_episodes", "population_size", "heartbeat", "threads"):
+        if getattr(args, name) < 1:
+            raise UserError(f"--{name.replace('_', '-')} must be at least 1, got {getattr(args, name)}")
+    if args.max_retry < 0:
+        raise UserError(f"--max-retry must be >= 0, got {args.max_retry}")
+    try:
+        objective = make_objective(args.objective, args.max_collision_rate)
+    except ValueError as error:
+        raise UserError(f"--objective/--max-collision-rate: {error}") from error
+    try:
+        entry = read_experiment(args.config, args.env)
+    except ExperimentError as error:
+        raise UserError(str(error)) from error
+    timesteps = int(float(args.timesteps if args.timesteps is not None else entry["n_timesteps"]))
+    if timesteps < 1:
+        raise UserError(f"--timesteps must be at least 1, got {timesteps}")
+    learning_starts = int(entry.get("learning_starts", 100))
+    if learning_starts >= timesteps:
+        raise UserError(
+            f"--timesteps {timesteps} <= learning_starts {learning_starts} of the entry: no gradient step would run"
+        )
+    if args.evaluations > 1 and timesteps // args.evaluations < 1:
+        raise UserError(f"--evaluations {args.evaluations} exceeds --timesteps {timesteps}")
+    for name in _gym_packages(args):
+        try:
+            importlib.import_module(name)
+        except ImportError as error:
+            raise UserError(f"--gym-packages: cannot import {name!r}: {error}") from error
+    if args.env not in gym.registry:
+        raise UserError(f"--env: unknown environment id {args.env!r} (registered by --gym-packages?)")
+    evaluator_spec = args.evaluator or _domain_default(args.env, 0)
+    if evaluator_spec is None:
+        raise UserError(f"--evaluator is required for {args.env!r} (form module:function)")
+    try:
+        resolve_callable(evaluator_spec)
+    except ValueError as error:
+        raise UserError(str(error)) from error
+
+    original_env_kwargs = dict(entry.get("env_kwargs") or {})
+    env_kwargs = _merge(_merge(original_env_kwargs, _preset(args)), dict(args.env_kwargs or {}))
+    try:
+        probe = gym.make(args.env, **env_kwargs)
+    except (TypeError, ValueError) as error:
+        raise UserError(f"env kwargs of {args.env!r}: {error}") from error
+    config = getattr(probe.unwrapped, "config", None)
+    probe.close()
+    defaults = dict(config.get(WEIGHTS_KEY[1]) or {}) if isinstance(config, dict) else {}
+    defaults.update(weights_in(env_kwargs))
+    if args.weights is not None:
+        unknown = sorted(set(args.weights) - set(defaults))
+        if unknown:
+            raise UserError(f"--weights: unknown reward terms {unknown}; allowed: {sorted(defaults)}")
+        defaults = {term: defaults[term] for term in args.weights}
+    if not defaults and not args.tune_algo:
+        raise UserError(
+            f"nothing to tune: {args.env!r} has no config['reward_weights'] (or --weights is empty) "
+            "and --tune-algo is off"
+        )
+    study_entry = {**entry, "env_kwargs": env_kwargs}
+    settings = TrialSettings(
+        env_id=args.env,
+        entry=study_entry,
+        timesteps=timesteps,
+        objective=objective,
+        evaluator=evaluator_spec,  # resolved in each worker
+        weight_defaults=defaults,
+        weight_spread=args.weight_spread,
+        tune_algo=args.tune_algo,
+        evaluations=args.evaluations,
+        eval_episodes=args.eval_episodes,
+        eval_seed=args.eval_seed,
+        seed=args.seed,
+        device=args.device,
+        save_models=Path(args.save_models) if args.save_models else None,
+    )
+    attrs = {
+        "objective": objective.name,
+        "env": args.env,
+        "config_file": str(args.config),
+        # the entry as in the file (full env): the report's YAML puts the best parameters into it
+        "entry": json.loads(json.dumps(entry, default=str)),
+        "tuning_env_kwargs": json.loads(json.dumps(env_kwargs, default=str)),
+        "metrics": list(objective.metrics),
+        "max_collision_rate": objective.max_collision_rate,
+        "evaluator": evaluator_spec,
+        "timesteps": timesteps,
+    }
+    return settings, attrs
+
+
+def storage_url(args: argparse.Namespace) -> str:
+    """``--storage``, or the default SQLite file of the study."""
+    return args.storage or DEFAULT_STORAGE.format(study=args.study_name)
+
+
+def open_storage(args: argparse.Namespace):
+    from sb3_graph.tuning.storage import make_storage
+
+    try:
+        return make_storage(storage_url(args), heartbeat_interval=args.heartbeat, max_retry=args.max_retry)
+    except ValueError as error:
+        raise UserError(f"--storage: {error}") from error
+
+
+def create_or_load(args: argparse.Namespace, settings, attrs: dict[str, Any], storage, worker: int = 0):
+    """Create the study, or load it and check that it was made for the same objective and env."""
+    import optuna
+
+    seed = None if args.sampler_seed is None else args.sampler_seed + worker
+    objective = settings.objective
+    study = optuna.create_study(
+        study_name=args.study_name,
+        storage=storage,
+        load_if_exists=True,
+        directions=list(objective.directions),
+        sampler=objective.sampler(seed=seed, population_size=args.population_size),
+        pruner=objective.pruner(enabled=args.pruner == "median"),
+    )
+    existing = study.user_attrs
+    for key in CHECKED_ATTRS:
+        if key in existing and existing[key] != attrs[key]:
+            raise UserError(
+                f"study {args.study_name!r} was created with {key} {existing[key]!r}, not {attrs[key]!r}: "
+                "choose another --study-name"
+            )
+    if [d.name.lower() for d in study.directions] != list(objective.directions):
+        raise UserError(f"study {args.study_name!r} has other directions than objective {objective.name!r}")
+    for key, value in attrs.items():
+        if key not in existing:
+            study.set_user_attr(key, value)
+    return study
+
+
+def work(args: argparse.Namespace, n_trials: int, worker: int = 0) -> int:
+    """One worker: open the study and run ``n_trials`` trials (also the body of each ``--jobs`` process).
+
+    :return: the number of trials this worker ran
+    """
+    import optuna
+    import torch as th
+
+    from sb3_graph.tuning.runner import resolve_callable, run_trial
+
+    th.set_num_threads(max(1, args.threads))
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    settings, attrs = prepare(args)
+    settings.evaluator = resolve_callable(settings.evaluator)
+    study = create_or_load(args, settings, attrs, open_storage(args), worker)
+    ran = []
+
+    def record(study: optuna.Study, trial: optuna.trial.FrozenTrial) -> None:
+        ran.append(trial.number)
+        reason = trial.user_attrs.get("reason", "")
+        values = trial.values if trial.values is not None else ""
+        print(f"[worker {worker}] trial {trial.number} {trial.state.name} {values} {reason}".rstrip(), flush=True)
+
+    # catch: a trial that raises is recorded FAIL (reason in its user attributes) and the study goes on
+    study.optimize(
+        lambda trial: run_trial(trial, settings), n_trials=n_trials, catch=(Exception,), callbacks=[record]
+    )
+    return len(ran)
+
+
+def _work_process(args: argparse.Namespace, n_trials: int, worker: int) -> None:
+    try:
+        work(args, n_trials, worker)
+    except UserError as error:
+        print(f"sb3-graph tune (worker {worker}): error: {error}", file=sys.stderr)
+        sys.exit(2)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the command (see the module docstring)."""
+    import optuna
+
+    from sb3_graph.tuning.storage import redact
+
+    settings, attrs = prepare(args)
+    storage = open_storage(args)
+    study = create_or_load(args, settings, attrs, storage)  # once, before any worker starts
+    before = len(study.get_trials(deepcopy=False))
+    if args.jobs == 1:
+        work(args, args.n_trials)
+    else:
+        # spawn: fresh interpreters (no forked torch threads or database connections)
+        context = multiprocessing.get_context("spawn")
+        shares = [args.n_trials // args.jobs + (i < args.n_trials % args.jobs) for i in range(args.jobs)]
+        processes = [
+            context.Process(target=_work_process, args=(args, share, i), name=f"tune-worker-{i}")
+            for i, share in enumerate(shares)
+            if share
+        ]
+        for process in processes:
+            process.start()
+        for process in processes:
+            process.join()
+        if any(process.exitcode for process in processes):
+            print("sb3-graph tune: a worker process failed (see its messages above)", file=sys.stderr)
+            return 1
+    trials = study.get_trials(deepcopy=False)
+    states = {state.name: sum(t.state == state for t in trials) for state in optuna.trial.TrialState}
+    summary = ", ".join(f"{count} {name.lower()}" for name, count in states.items() if count)
+    print(
+        f"sb3-graph tune: study {args.study_name!r} in {redact(storage_url(args))}: {len(trials)} trials "
+        f"({len(trials) - before} new; {summary})"
+    )
+    return 0

@@ -1,0 +1,231 @@
+"""The report of a study: best parameters as a zoo YAML entry, a table of trials, figures (PNG).
+
+Files written by :func:`write_report` into the output folder:
+
+- ``best_params.yml``: a ready rl-zoo3 entry (``{env_id: entry}``): the study's experiment entry as
+  read from ``--config`` (the full environment, not the tuning preset) with the best trial's
+  weights in ``env_kwargs.config.reward_weights`` and its TD3 settings. Best: for ``flow`` the
+  feasible trial (collision rate within the limit) with the highest flow rate; for ``pareto`` the
+  Pareto-front trial with the highest flow rate among those within the collision limit (else the
+  one with the lowest collision rate).
+- ``trials.csv`` and ``trials.md``: one row per trial (state, values, parameters, metrics, reason).
+- ``pareto_front.csv`` (pareto): the trials of the front.
+- ``optimization_history.png``, ``param_importances.png`` (PED-ANOVA, Optuna's default),
+  ``intermediate_values.png`` (flow), ``pareto_front.png`` (pareto: the 3-objective front;
+  flow: flow rate against collision rate with the limit), made with ``optuna.visualization.matplotlib``.
+- ``report.md``: a summary that links all of the above and says why a figure is missing.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import optuna
+import pandas as pd
+import yaml
+from optuna.trial import FrozenTrial, TrialState
+
+from sb3_graph.tuning.objectives import COLLISION, FLOW
+from sb3_graph.tuning.search_space import entry_with_params
+
+METRIC_COLUMNS = ("flow_rate", "collision_rate", "stop_ratio", "stop_ratio_major", "stop_ratio_minor", "delay_mean")
+FIGURES = ("optimization_history", "param_importances", "intermediate_values", "pareto_front")
+
+
+def _metrics(study: optuna.Study) -> list[str]:
+    names = study.user_attrs.get("metrics")
+    if names and len(names) == len(study.directions):
+        return list(names)
+    return ["value"] if len(study.directions) == 1 else [f"value_{i}" for i in range(len(study.directions))]
+
+
+def trials_table(study: optuna.Study) -> pd.DataFrame:
+    """One row per trial: number, state, objective values, parameters, metrics, reason, worker, duration.
+
+    :param study: the study
+    :return: the table (objective columns are named ``objective:<metric>``)
+    """
+    names = _metrics(study)
+    rows = []
+    for trial in study.get_trials(deepcopy=False):
+        row: dict[str, Any] = {"number": trial.number, "state": trial.state.name}
+        values = trial.values or [math.nan] * len(names)
+        row.update({f"objective:{name}": value for name, value in zip(names, values)})
+        row.update(trial.params)
+        row.update({name: trial.user_attrs.get(name, math.nan) for name in METRIC_COLUMNS})
+        constraints = trial.system_attrs.get("constraints") or [
+            value for key, value in trial.system_attrs.items() if key.startswith("constraints:")
+        ]
+        row["feasible"] = bool(constraints) and all(c <= 0 for c in constraints) if constraints else None
+        row["reason"] = trial.user_attrs.get("reason", "")
+        row["worker"] = trial.user_attrs.get("worker", "")
+        row["duration_s"] = trial.duration.total_seconds() if trial.duration is not None else math.nan
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def best_trial(study: optuna.Study) -> FrozenTrial | None:
+    """The trial whose parameters the report recommends (see the module docstring), or ``None``."""
+    if len(study.directions) == 1:
+        try:
+            return study.best_trial
+        except ValueError:  # no complete (feasible) trial
+            return None
+    front = study.best_trials
+    if not front:
+        return None
+    names = _metrics(study)
+    if FLOW not in names or COLLISION not in names:
+        return front[0]
+    flow, collision = names.index(FLOW), names.index(COLLISION)
+    limit = float(study.user_attrs.get("max_collision_rate", 0.0))
+    feasible = [t for t in front if t.values[collision] <= limit]
+    if feasible:
+        return max(feasible, key=lambda t: t.values[flow])
+    return min(front, key=lambda t: (t.values[collision], -t.values[flow]))
+
+
+def best_entry(study: optuna.Study, trial: FrozenTrial) -> dict[str, Any]:
+    """``{env_id: entry}`` with the trial's parameters in the study's experiment entry."""
+    entry = dict(study.user_attrs.get("entry") or {})
+    env_id = study.user_attrs.get("env", "ENV_ID")
+    return {env_id: entry_with_params(entry, trial.params)}
+
+
+def markdown_table(frame: pd.DataFrame, digits: int = 4) -> str:
+    """A GitHub markdown table (no ``tabulate`` dependency)."""
+
+    def cell(value: Any) -> str:
+        if isinstance(value, float):
+            return "" if math.isnan(value) else f"{value:.{digits}g}"
+        return str(value).replace("|", "\\|").replace("\n", " ")
+
+    lines = ["| " + " | ".join(map(str, frame.columns)) + " |", "|" + "---|" * len(frame.columns)]
+    lines += ["| " + " | ".join(cell(v) for v in row) + " |" for row in frame.itertuples(index=False)]
+    return "\n".join(lines) + "\n"
+
+
+def _save(ax: Any, path: Path) -> None:
+    import matplotlib.pyplot as plt
+
+    figure = ax.figure if hasattr(ax, "figure") else np.ravel(ax)[0].figure
+    figure.set_size_inches(8, 5.5)
+    figure.tight_layout()
+    figure.savefig(path, dpi=110)
+    plt.close(figure)
+
+
+def write_figures(study: optuna.Study, out: Path) -> dict[str, str]:
+    """Write the PNG figures; returns ``name -> file name or the reason it is missing``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from optuna.visualization import matplotlib as ovm
+
+    names = _metrics(study)
+    single = len(study.directions) == 1
+    complete = [t for t in study.get_trials(deepcopy=False) if t.state == TrialState.COMPLETE]
+    target = None if single else (lambda t: t.values[0])
+    target_name = names[0]
+    plots = {
+        "optimization_history": lambda: ovm.plot_optimization_history(study, target=target, target_name=target_name),
+        "param_importances": lambda: ovm.plot_param_importances(study, target=target, target_name=target_name),
+    }
+    if single:
+        plots["intermediate_values"] = lambda: ovm.plot_intermediate_values(study)
+        plots["pareto_front"] = lambda: _flow_collision(study)
+    else:
+        plots["pareto_front"] = lambda: ovm.plot_pareto_front(study, target_names=names)
+    results: dict[str, str] = {}
+    for name, plot in plots.items():
+        if name == "param_importances" and len(complete) < 2:
+            results[name] = "needs at least 2 complete trials"
+            continue
+        if not complete and name != "intermediate_values":
+            results[name] = "no complete trial"
+            continue
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")  # Optuna marks its matplotlib plots experimental
+                ax = plot()
+            _save(ax, out / f"{name}.png")
+            results[name] = f"{name}.png"
+        except (ValueError, RuntimeError, ZeroDivisionError) as error:  # e.g. parameters without variance
+            results[name] = f"not drawn: {error}"
+    return results
+
+
+def _flow_collision(study: optuna.Study):
+    """Flow rate against collision rate of the complete trials, with the constraint (flow objective)."""
+    import matplotlib.pyplot as plt
+
+    table = trials_table(study)
+    done = table[table["state"] == "COMPLETE"]
+    limit = float(study.user_attrs.get("max_collision_rate", 0.0))
+    _, ax = plt.subplots()
+    feasible = done[done[COLLISION] <= limit]
+    ax.scatter(done[COLLISION], done[FLOW], c="tab:gray", label="infeasible")
+    ax.scatter(feasible[COLLISION], feasible[FLOW], c="tab:blue", label="feasible")
+    for row in done.itertuples():
+        ax.annotate(str(row.number), (getattr(row, COLLISION), getattr(row, FLOW)), fontsize=7)
+    ax.axvline(limit, color="tab:red", linestyle="--", label=f"max collision rate {limit:g}")
+    ax.set_xlabel("collision rate")
+    ax.set_ylabel("flow rate [veh/s]")
+    ax.set_title("Trials: flow rate vs collision rate")
+    ax.legend()
+    return ax
+
+
+def write_report(study: optuna.Study, out: str | Path) -> list[Path]:
+    """Write every report file of the study into ``out`` (created).
+
+    :param study: the study
+    :param out: output folder
+    :return: the files written
+    """
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    written = []
+    table = trials_table(study)
+    table.to_csv(out / "trials.csv", index=False)
+    (out / "trials.md").write_text(markdown_table(table) if len(table) else "no trials\n")
+    written += [out / "trials.csv", out / "trials.md"]
+    best = best_trial(study)
+    if best is not None:
+        path = out / "best_params.yml"
+        header = (
+            f"# sb3-graph tune-report: study {study.study_name!r}, trial {best.number} "
+            f"(values {best.values}); paste into the zoo config\n"
+        )
+        path.write_text(header + yaml.safe_dump(best_entry(study, best), sort_keys=False))
+        written.append(path)
+    if len(study.directions) > 1 and len(table):
+        front = {t.number for t in study.best_trials}
+        path = out / "pareto_front.csv"
+        table[table["number"].isin(front)].to_csv(path, index=False)
+        written.append(path)
+    figures = write_figures(study, out)
+    written += [out / f for f in figures.values() if f.endswith(".png")]
+    lines = [
+        f"# Study `{study.study_name}`",
+        "",
+        f"- objective: {study.user_attrs.get('objective', '?')} ({', '.join(_metrics(study))}; "
+        f"directions {[d.name.lower() for d in study.directions]})",
+        f"- environment: {study.user_attrs.get('env', '?')}, {study.user_attrs.get('timesteps', '?')} steps per trial",
+        f"- trials: {len(table)} ("
+        + ", ".join(f"{n} {s.lower()}" for s, n in table["state"].value_counts().items())
+        + ")" if len(table) else "- trials: 0",
+        f"- best trial: {best.number} {best.params}" if best is not None else "- best trial: none (no feasible trial)",
+        "",
+        "## Figures",
+        "",
+    ]
+    lines += [f"- {name}: ![{name}]({f})" if f.endswith(".png") else f"- {name}: {f}" for name, f in figures.items()]
+    lines += ["", "## Trials", "", "See `trials.csv`; `best_params.yml` holds the ready zoo entry.", ""]
+    (out / "report.md").write_text("\n".join(lines))
+    written.append(out / "report.md")
+    return written

@@ -1,0 +1,118 @@
+"""Storage URLs -> Optuna storages: one machine (SQLite) or many workers (PostgreSQL, journal file).
+
+Accepted forms (:data:`ACCEPTED_FORMS`):
+
+- ``sqlite:///relative/path.db`` or ``sqlite:////absolute/path.db``: an embedded database file,
+  nothing to start; its folder is created. Suits the worker processes of one machine.
+- ``postgresql://user:password@host:port/database`` (also ``postgresql+psycopg2://``): a shared
+  server, for workers on many machines (needs the ``psycopg2-binary`` package:
+  ``pip install "sb3-graph[postgres]"``).
+- ``journal://PATH``: an Optuna journal file (``JournalStorage`` + ``JournalFileBackend``) on a
+  shared disk; everything after ``journal://`` is the path, so ``journal:///mnt/shared/study.log``
+  is absolute and ``journal://studies/study.log`` relative. Its folder is created.
+
+Both database forms record a heartbeat of every running trial: the trial of a worker that was
+killed is marked ``FAIL`` once its heartbeat is older than the grace period, the next time any
+worker asks for a trial, so the study goes on (optionally the failed trial is retried with the same
+parameters). A journal file has no heartbeat: the trial of a killed worker stays ``RUNNING``
+(``sb3-graph tune-report`` shows it) and is ignored by the samplers' statistics.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import re
+import warnings
+from pathlib import Path
+
+import optuna
+from optuna.storages import BaseStorage, JournalStorage, RDBStorage, RetryFailedTrialCallback
+from optuna.storages.journal import JournalFileBackend, JournalFileOpenLock
+
+ACCEPTED_FORMS = (
+    "sqlite:///PATH.db",
+    "postgresql://USER:PASSWORD@HOST:PORT/DATABASE",
+    "journal://PATH (journal:///ABSOLUTE/PATH.log)",
+)
+DEFAULT_HEARTBEAT_S = 60
+# SQLite: wait for a lock held by another worker process instead of failing at once.
+SQLITE_TIMEOUT_S = 60.0
+
+
+class StorageURLError(ValueError):
+    """A storage URL that is none of the accepted forms."""
+
+
+def storage_kind(url: str) -> str:
+    """Which kind of storage a URL names.
+
+    :param url: storage URL
+    :return: ``"sqlite"``, ``"postgresql"`` or ``"journal"``
+    :raises StorageURLError: any other form, naming the accepted ones
+    """
+    if not isinstance(url, str) or not url.strip():
+        raise StorageURLError(f"storage URL must be a non-empty string; accepted forms: {', '.join(ACCEPTED_FORMS)}")
+    if url.startswith("sqlite:///") and len(url) > len("sqlite:///"):
+        return "sqlite"
+    if re.match(r"^postgres(ql)?(\+\w+)?://[^/]+/\w", url):
+        return "postgresql"
+    if url.startswith("journal://") and len(url) > len("journal://"):
+        return "journal"
+    raise StorageURLError(f"storage URL {redact(url)!r} is not supported; accepted forms: {', '.join(ACCEPTED_FORMS)}")
+
+
+def redact(url: str) -> str:
+    """The URL with its password replaced by ``***`` (for messages and logs)."""
+    return re.sub(r"(://[^:/@]+:)[^@]*@", r"\1***@", str(url))
+
+
+def sqlite_path(url: str) -> Path:
+    """The database file of an ``sqlite:///`` URL."""
+    return Path(url[len("sqlite:///") :])
+
+
+def make_storage(
+    url: str,
+    heartbeat_interval: int = DEFAULT_HEARTBEAT_S,
+    grace_period: int | None = None,
+    max_retry: int = 0,
+) -> BaseStorage:
+    """Open (and create if needed) the Optuna storage a URL names.
+
+    :param url: one of :data:`ACCEPTED_FORMS`
+    :param heartbeat_interval: seconds between heartbeats of a running trial (database storages)
+    :param grace_period: seconds without heartbeat after which a running trial is failed
+        (default: twice the interval)
+    :param max_retry: how often a trial failed that way is retried with the same parameters (0: none)
+    :return: the storage
+    :raises StorageURLError: an unsupported URL, or PostgreSQL without its driver
+    """
+    kind = storage_kind(url)
+    if heartbeat_interval < 1:
+        raise ValueError(f"heartbeat_interval must be a positive number of seconds, got {heartbeat_interval}")
+    if kind == "journal":
+        path = Path(url[len("journal://") :])
+        path.parent.mkdir(parents=True, exist_ok=True)
+        # The open()-based lock works on file systems without symlinks (and on most NFS setups).
+        return JournalStorage(JournalFileBackend(str(path), lock_obj=JournalFileOpenLock(str(path))))
+    callback = RetryFailedTrialCallback(max_retry=max_retry) if max_retry > 0 else None
+    if kind == "sqlite":
+        sqlite_path(url).parent.mkdir(parents=True, exist_ok=True)
+        engine_kwargs = {"connect_args": {"timeout": SQLITE_TIMEOUT_S}}
+    else:
+        if importlib.util.find_spec("psycopg2") is None and "+" not in url.split("://")[0]:
+            raise StorageURLError(
+                'PostgreSQL storage needs the psycopg2 driver: pip install "sb3-graph[postgres]" (psycopg2-binary)'
+            )
+        if url.startswith("postgres://"):  # SQLAlchemy only knows the long scheme name
+            url = "postgresql://" + url[len("postgres://") :]
+        engine_kwargs = {"pool_pre_ping": True}
+    with warnings.catch_warnings():  # heartbeats are "experimental" in Optuna, but documented and used here
+        warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+        return RDBStorage(
+            url,
+            engine_kwargs=engine_kwargs,
+            heartbeat_interval=int(heartbeat_interval),
+            grace_period=grace_period,
+            heartbeat_stale_trial_callback=callback,
+        )

@@ -1,0 +1,113 @@
+"""`sb3-graph train` and rl-zoo3 on zoo_configs/td3.yml: tiny runs that write models which load and act."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from stable_baselines3.common.env_util import make_vec_env
+
+import envs  # noqa: F401 - registers the environments
+from sb3_graph import TD3
+from sb3_graph.callbacks import LinearScheduleCallback
+from sb3_graph.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
+CONFIG = ROOT / "zoo_configs" / "td3.yml"
+ENV_ID = "CoopIntersection4Way-v0"
+TINY = ["--hyperparams", "learning_starts:64", "batch_size:16", "buffer_size:1000"]
+SHORT_EPISODES = ["--env-kwargs", json.dumps({"config": {"duration": 8.0}})]
+
+
+def train(out, *extra):
+    return main(
+        ["train", "--config", str(CONFIG), "--env", ENV_ID, "--out", str(out), "--eval-freq", "100",
+         "--eval-episodes", "1", "--checkpoint-freq", "100", "--no-progress", *extra]
+    )
+
+
+def acts(model_path):
+    model = TD3.load(model_path)
+    env = gym.make(ENV_ID)
+    obs, _ = env.reset(seed=3)
+    action, _ = model.predict(obs, deterministic=True)
+    n = int(obs["node_mask"].sum())
+    assert n > 0 and np.isfinite(action).all() and np.all(np.abs(action) <= 1)
+    assert np.all(action[n:] == 0)  # padded slots stay 0
+    env.step(action)
+    return model
+
+
+def test_tiny_run_writes_loadable_models_and_resumes(tmp_path):
+    out = tmp_path / "run"
+    assert train(out, "--n-timesteps", "200", *TINY, *SHORT_EPISODES) == 0
+    for name in ("config.yml", "run.json", "best_model.zip", "final_model.zip", "evaluations.npz"):
+        assert (out / name).is_file(), name
+    assert acts(out / "final_model.zip").num_timesteps == 200
+    record = json.loads((out / "run.json").read_text())
+    assert record["num_timesteps"] == 200 and record["env"] == ENV_ID and "torch" in record["versions"]
+    assert (out / "checkpoints" / "model_replay_buffer_200_steps.pkl").is_file()
+
+    # --resume continues the step count from the last checkpoint, with its replay buffer
+    assert train(out, "--resume", "--n-timesteps", "300") == 0
+    model = acts(out / "final_model.zip")
+    assert model.num_timesteps == 300
+    record = json.loads((out / "run.json").read_text())
+    assert [s["steps_until"] for s in record["sessions"]] == [200, 300]
+    buffers = sorted((out / "checkpoints").glob("model_replay_buffer_*_steps.pkl"))
+    assert [b.name for b in buffers] == ["model_replay_buffer_300_steps.pkl"]  # only the newest kept
+    model.load_replay_buffer(buffers[0])
+    assert model.replay_buffer.size() == 300  # 200 from the first session, 100 from the resumed one
+
+
+def test_existing_run_folder_is_refused_and_untouched(tmp_path, capsys):
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "keep.txt").write_text("mine")
+    assert train(out, "--n-timesteps", "10") == 2
+    assert "already holds files" in capsys.readouterr().err
+    assert (out / "keep.txt").read_text() == "mine" and len(list(out.iterdir())) == 1
+
+
+@pytest.mark.parametrize(
+    "extra, message",
+    [
+        (["--env", "NoSuchEnv-v0"], "no entry for env 'NoSuchEnv-v0'"),
+        (["--hyperparams", "batch_size"], "expected KEY:VALUE"),
+        (["--hyperparams", "noise_type:pink"], "noise_type must be one of"),
+    ],
+)
+def test_user_errors_are_one_line(tmp_path, capsys, extra, message):
+    assert train(tmp_path / "run", "--n-timesteps", "10", *extra) == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err
+
+
+def test_curriculum_raises_spawn_probability():
+    env = make_vec_env(ENV_ID, n_envs=1, seed=0, env_kwargs={"config": {"duration": 8.0}})
+    model = TD3("GraphPolicy", env, learning_starts=1000, buffer_size=1000, seed=0)
+    callback = LinearScheduleCallback("set_spawn_probability", start=0.01, end=0.05, end_fraction=0.5,
+                                      update_every=10)
+    model.learn(100, callback=callback)
+    assert env.get_attr("config")[0]["spawn_probability"] == pytest.approx(0.05)
+    assert callback.value == pytest.approx(0.05)
+    model.learn(100, callback=LinearScheduleCallback("set_spawn_probability", 0.01, 0.05, update_every=1000))
+    assert env.get_attr("config")[0]["spawn_probability"] == pytest.approx(0.01)  # applied at training start
+
+
+def test_rl_zoo3_runs_the_same_experiment_file(tmp_path):
+    pytest.importorskip("rl_zoo3")
+    command = [
+        sys.executable, "-m", "rl_zoo3.train", "--algo", "td3", "--env", ENV_ID, "--gym-packages", "envs",
+        "-conf", str(CONFIG), "-n", "120", "-params", "learning_starts:64", "batch_size:16", "buffer_size:1000",
+        "--eval-freq", "-1", "-f", str(tmp_path), "--seed", "1", "--env-kwargs", "config:{'duration':8.0}",
+    ]
+    result = subprocess.run(command, capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert result.returncode == 0, result.stderr[-2000:]
+    saved = list(tmp_path.glob(f"td3/{ENV_ID}_*/{ENV_ID}.zip"))
+    assert len(saved) == 1
+    model = acts(saved[0])
+    assert type(model.replay_buffer).__name__ == "GraphReplayBuffer" or model.replay_buffer is None
