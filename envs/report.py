@@ -36,8 +36,9 @@ NOTES = (
     "- Delay and travel time: vehicles that crossed during the run only, from their first appearance to "
     "leaving the intersection area; delay = travel time - (distance / approach speed limit). Vehicles "
     "still queued at the end are not in it, so a planner that starves one road can show a low delay.",
-    "- A collision ends the episode (the environment terminates): the run's flow rate is then taken over "
-    "the simulated time until the collision (`terminated` in `metrics.csv`).",
+    "- Collisions: the vehicles involved are counted and removed, and the run goes on to its end "
+    "(`collision_handling=\"remove\"`); only a run made with `\"terminate\"` ends early, and its flow rate "
+    "is then taken over the simulated time until the collision (`terminated` in `metrics.csv`).",
 )
 FIGURES = ("flow_rate.png", "stops_by_priority.png", "stops_by_maneuver.png")
 REPORT_FILES = ("metrics.csv", "vehicles.csv", "summary.json", "report.md") + FIGURES

@@ -11,7 +11,8 @@ Step ``info`` of the intersection environment (what the metrics read), all ids a
   collision; ``"reward_weighted"``: the same terms times their weights.
 - ``"entered"``: ids that appeared in the scene during the step.
 - ``"crossed"``: ids whose path coordinate ``s`` passed 0 (left the intersection area).
-- ``"removed"``: ids that left the scene (end of their route).
+- ``"removed"``: ids that left the scene (end of their route, or collided under
+  ``collision_handling="remove"``).
 - ``"stopped"``: ids whose speed was below ``STOP_SPEED`` at any simulation sub-step.
 - ``"collisions"``: ``(k, 2)`` int64 array of id pairs that collided during the step.
 - ``"vehicles"``: dict ``id -> {"route": str, "priority": int, "maneuver": str, "time": float}``

@@ -4,18 +4,20 @@
 reward weights by a grid search "on a reduced variant of the simulation environment resembling the
 key behavior, while being much less computationally demanding". This preset is that variant:
 
-============================  ===========  ==========  ===============================================
-setting                       full         tuning      why
-============================  ===========  ==========  ===============================================
-``duration`` [s]              60           20          3x more episodes (resets) per step budget
-``max_vehicles``              64           16          smaller graphs, padded arrays and replay batches
-``max_edges``                 1024         192         (a busy 4-way holds about 9-15 vehicles at 5 %)
-``spawn_probability``         curriculum   0.05        the saturated density from the first step
-============================  ===========  ==========  ===============================================
+=====================  ====  ======  ======================================================
+setting                full  tuning  why
+=====================  ====  ======  ======================================================
+``duration`` [s]       60    20      3x more episodes (resets, fresh traffic) per step budget
+``max_vehicles``       64    16      4x smaller graphs, padded arrays and replay batches; a
+                                     busy 4-way holds 8 vehicles on average (at most 15 seen)
+``max_edges``          1024  192     edges seen in such scenes: median 21, at most 105
+=====================  ====  ======  ======================================================
 
 Kept unchanged, because they are the key interactions the weights trade off: the layout (major
-and minor roads, same-lane following and crossing conflicts, priorities), vehicle dynamics and
-limits, the observation features, the reward terms and the collision ending of an episode.
+and minor roads, same-lane following and crossing conflicts, priorities), the traffic density
+(spawn probability, and the experiment entry's curriculum, which each trial runs over its own
+shorter budget), vehicle dynamics and limits, the observation features, the reward terms and the
+collision ending of an episode.
 The environment id and layout come from the study (``--env``), so the preset applies to every
 ``CoopIntersection*`` id.
 
@@ -43,12 +45,7 @@ from envs.planners.gnn import GNNPlanner
 from envs.traffic import Scenario, generate_scenario
 
 PRESET_NAME = "tuning"
-TUNING_PRESET: dict[str, Any] = {
-    "duration": 20.0,
-    "max_vehicles": 16,
-    "max_edges": 192,
-    "spawn_probability": 0.05,
-}
+TUNING_PRESET: dict[str, Any] = {"duration": 20.0, "max_vehicles": 16, "max_edges": 192}
 # Validation scenarios: long enough for vehicles spawned at the start to cross (about 10-15 s).
 EVAL_DURATION_S = 40.0
 

@@ -97,13 +97,19 @@ def as_graph_batch(obs: GraphBatch | Mapping[str, Tensor]) -> GraphBatch:
     """Accept a :class:`GraphBatch` (from :class:`~sb3_graph.GraphReplayBuffer`) or a padded
     dictionary of tensors (from SB3's ``predict`` or ``DictReplayBuffer``).
 
+    A padded batch is converted once while its tensors live unchanged (see
+    :class:`DerivedIndexCache`).
+
     :param obs: the observation batch
     :return: the ragged batch
     """
     if isinstance(obs, GraphBatch):
         return obs
     if isinstance(obs, Mapping):
-        return padded_to_batch(obs)
+        # TD3 feeds the same padded batch to several networks: convert it once (and so also share
+        # the layers' derived indices, which are cached per GraphBatch tensors).
+        tensors = tuple(obs[key] for key in (X, NODE_MASK, EDGE_INDEX, EDGE_TYPE, EDGE_MASK))
+        return derived_indices.get(tensors, ("padded_to_batch",), lambda: padded_to_batch(obs))
     raise TypeError(f"expected a GraphBatch or a dict of padded tensors, got {type(obs).__name__}")
 
 
@@ -143,7 +149,7 @@ class DerivedIndexCache:
     :param size: number of entries kept (least recently used first out)
     """
 
-    def __init__(self, size: int = 16) -> None:
+    def __init__(self, size: int = 8) -> None:
         self.size = size
         self._entries: OrderedDict[tuple, tuple[tuple[Tensor, ...], Any]] = OrderedDict()
 

@@ -5,7 +5,13 @@ import torch
 from torch_geometric.data import Batch, Data
 
 from sb3_graph import GraphSpace
-from sb3_graph.batching import as_graph_batch, batch_to_padded, gather_vertex_values, padded_to_batch
+from sb3_graph.batching import (
+    DerivedIndexCache,
+    as_graph_batch,
+    batch_to_padded,
+    gather_vertex_values,
+    padded_to_batch,
+)
 
 torch.set_num_threads(1)
 
@@ -73,3 +79,36 @@ def test_scatter_and_gather_round_trip():
     padded.sum().backward()
     torch.testing.assert_close(values.grad, torch.ones_like(values))
     assert batch_to_padded(torch.randn(batch.num_nodes, 3), batch).shape == (8, 5, 3)
+
+
+def test_derived_index_cache():
+    cache = DerivedIndexCache(size=2)
+    a, b = torch.arange(5), torch.arange(5)
+    calls = []
+
+    def compute(tag):
+        calls.append(tag)
+        return tag
+
+    assert cache.get((a,), ("x",), lambda: compute(1)) == 1
+    assert cache.get((a,), ("x",), lambda: compute(2)) == 1  # hit: same tensor, same key
+    assert cache.get((b,), ("x",), lambda: compute(3)) == 3  # equal values, another tensor: miss
+    assert cache.get((a,), ("y",), lambda: compute(4)) == 4  # other key: miss
+    a.add_(1)  # in-place change bumps the version: miss
+    assert cache.get((a,), ("y",), lambda: compute(5)) == 5
+    assert calls == [1, 3, 4, 5] and len(cache._entries) == 2  # least recently used evicted
+    with torch.inference_mode():
+        c = torch.arange(3)
+    assert cache.get((c,), ("x",), lambda: compute(6)) == 6
+    assert cache.get((c,), ("x",), lambda: compute(7)) == 7  # inference tensors are never cached
+
+
+def test_padded_batch_is_converted_once():
+    space = GraphSpace(max_nodes=6, node_features=2, max_edges=10, num_relations=2, seed=0)
+    obs = stack(sample_batch(space, 4))
+    first = as_graph_batch(obs)
+    assert as_graph_batch(dict(obs)) is first  # same tensors
+    obs["x"].mul_(2.0)  # changed in place: converted again
+    second = as_graph_batch(obs)
+    assert second is not first
+    torch.testing.assert_close(second.x, padded_to_batch(obs).x)

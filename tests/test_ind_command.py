@@ -198,3 +198,25 @@ def test_replay_end_to_end(tmp_path, capsys, monkeypatch):
     routes = logged.groupby("planner")["route"].apply(lambda r: sorted(r))
     assert routes["FIFO"] == routes["inD"]
     assert (out / "scenarios" / "recording_07.json").is_file()
+
+
+def test_arrival_timing_switch_and_help(data, tmp_path, capsys):
+    folder, _ = data
+    with pytest.raises(SystemExit) as exit_:
+        main(["ind", "--help"])
+    assert exit_.value.code == 0
+    text = " ".join(capsys.readouterr().out.split())
+    assert "--arrival-timing, --no-arrival-timing" in text and "stop line" in text and "--entry-radius" in text
+    tracks = {}
+    for flag in ("--arrival-timing", "--no-arrival-timing"):
+        out = tmp_path / flag
+        argv = ["ind", "--data", str(folder), "--recordings", "07", "--dataset-only", flag, "--out", str(out)]
+        assert main(argv) == 0, capsys.readouterr().err
+        tracks[flag] = pd.read_csv(out / "tracks.csv").query("mapped")
+    raw, timed = tracks["--no-arrival-timing"], tracks["--arrival-timing"]
+    np.testing.assert_allclose(raw["spawn_time"], raw["time"])
+    assert raw["t_entry"].isna().all() and timed["t_entry"].notna().all()
+    # Recorded arms (45 m) are shorter than the simulated approach: vehicles appear earlier, never before 0.
+    assert (timed["spawn_time"] <= timed["time"]).all() and (timed["spawn_time"] < timed["time"]).any()
+    assert (timed["spawn_time"] >= 0).all()
+    assert (timed["t_entry"] > timed["time"]).all()

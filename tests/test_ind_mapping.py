@@ -265,3 +265,84 @@ def test_too_few_moving_vehicles_is_an_error(tmp_path):
     )
     with pytest.raises(ValueError, match="nothing to map"):
         m.map_recordings([load_recording(tmp_path, 7)])
+
+
+# Arms seen out to very different distances, as at the real site (east, north, west, south).
+UNEVEN = SyntheticSite(centre=(40.0, -25.0), rotation_deg=8.0, arm_lengths=(75.0, 22.0, 55.0, 30.0))
+
+
+def _uneven(tmp_path, vehicles=None):
+    vehicles = vehicles or default_vehicles(seed=4, num=30)
+    written = make_recording(7, [SyntheticVehicle(v.entry, v.exit, v.time, v.speed) for v in vehicles], UNEVEN)
+    write_recording(tmp_path, written)  # no stops: every vehicle keeps its speed up to the stop line
+    return written, load_recording(tmp_path, 7)
+
+
+def test_arrival_timing_reaches_the_stop_line_when_the_recorded_vehicle_entered(tmp_path):
+    from envs.layouts import build_layout
+
+    written, recording = _uneven(tmp_path)
+    routes = m.layout_arms(build_layout("inD")).routes
+    # The true centre (an estimate is off by up to a metre), so that the reference below is exact.
+    table = m.map_recordings([recording], m.MappingOptions(centre=UNEVEN.centre)).mapped.set_index("track_id")
+    expected = written.expected.loc[table.index]
+    geometry = routes.loc[table["route"]]
+    radius = geometry["entry_radius"].to_numpy()
+    # Reference from the synthetic geometry: a vehicle at constant speed on its incoming lane (lane_offset
+    # beside the arm's axis) comes within `radius` of the centre after arm length - sqrt(r^2 - offset^2).
+    arm_length = np.array([UNEVEN.length_of(a) for a in expected["entry"]])
+    to_entry = arm_length - np.sqrt(radius**2 - UNEVEN.lane_offset**2)
+    t_entry = expected["time"].to_numpy() + to_entry / expected["speed"].to_numpy()
+    np.testing.assert_allclose(table["t_entry"], t_entry, atol=0.1)  # frames 0.04 s, path points 0.25 m
+    # A simulated vehicle appears with its rear at the route's start and drives at the recorded speed
+    # clipped to the limit: its centre reaches the stop line at the recorded entry time (or later when
+    # that would need an appearance before time 0).
+    speed = np.clip(table["speed"].to_numpy(), 3.0, geometry["speed_limit"].to_numpy())
+    arrival = table["spawn_time"] + (geometry["entry_arc"].to_numpy() - table["length"].to_numpy() / 2) / speed
+    positive = table["spawn_time"] > 0
+    np.testing.assert_allclose(arrival[positive], table.loc[positive, "t_entry"], atol=1e-9)
+    assert (table["spawn_time"] >= 0).all() and (arrival[~positive] >= table.loc[~positive, "t_entry"]).all()
+    # Appearing at the recorded appearance time instead would shift arrivals by arm: the short north arm's
+    # vehicles would arrive several seconds late, the long east arm's much less.
+    late = pd.Series(
+        (table["time"] + (arrival - table["spawn_time"]) - table["t_entry"]).to_numpy(), index=table["entry_arm"]
+    )
+    by_arm = late.groupby(level=0).mean()
+    assert by_arm["north"] - by_arm["east"] > 3.0
+
+
+def test_arrival_timing_is_never_before_time_zero_and_falls_back_to_the_centre(tmp_path):
+    from envs.layouts import build_layout
+
+    vehicles = [
+        SyntheticVehicle("north", "south", 0.5, 8.0),  # short arm: would have to appear before 0
+        SyntheticVehicle("east", "west", 10.0, 8.0),
+        SyntheticVehicle("west", "north", 15.0, 7.0),
+        SyntheticVehicle("south", "east", 25.0, 9.0),
+        SyntheticVehicle("west", "east", 40.0, 0.5),  # crawls in: timed with min_timing_speed
+    ]
+    written, recording = _uneven(tmp_path, vehicles)
+    table = m.map_recordings([recording]).mapped.set_index("track_id")
+    assert table.loc[0, "spawn_time"] == 0.0 and (table["spawn_time"].iloc[1:] > 0).all()
+    routes = m.layout_arms(build_layout("inD"))
+    floor = m.MappingOptions().min_timing_speed
+    travel = routes.routes.loc[table.loc[4, "route"], "entry_arc"] - table.loc[4, "length"] / 2
+    assert table.loc[4, "spawn_time"] == pytest.approx(table.loc[4, "t_entry"] - travel / floor)
+    # A radius no track comes within: closest approach minus the layout's travel from stop line to it.
+    tight = m.map_recordings([recording], m.MappingOptions(entry_radius=0.5)).mapped.set_index("track_id")
+    assert (tight["min_distance"] >= 0.5).all()
+    inside = routes.routes.loc[tight["route"], "inside"].to_numpy()
+    speed = np.clip(tight["speed"].to_numpy(), floor, 10.0)
+    np.testing.assert_allclose(tight["t_entry"], tight["t_centre"] - inside / speed)
+
+
+def test_arrival_timing_options_and_errors(tmp_path):
+    _, recording = _uneven(tmp_path)
+    with pytest.raises(ValueError, match="entry_radius"):
+        m.MappingOptions(entry_radius=-2.0)
+    with pytest.raises(ValueError, match="min_timing_speed"):
+        m.MappingOptions(min_timing_speed=0.0)
+    with pytest.raises(ValueError, match="arrival_timing"):
+        m.map_recordings([recording], layout=m.DEFAULT_LAYOUT)  # no route geometry to time with
+    raw = m.map_recordings([recording], m.MappingOptions(arrival_timing=False), m.DEFAULT_LAYOUT).mapped
+    np.testing.assert_array_equal(raw["spawn_time"], raw["time"])

@@ -3,8 +3,9 @@
 import pytest
 import torch
 from torch_geometric.nn import RGCNConv
+from torch_geometric.utils import scatter
 
-from sb3_graph.layers import RelationalMaxConv
+from sb3_graph.layers import RelationalMaxConv, relational_conv, relational_layout, segment_max
 
 torch.set_num_threads(1)
 
@@ -96,3 +97,106 @@ def test_bad_arguments():
         RelationalMaxConv(2, 2, 1, aggr="min")
     with pytest.raises(ValueError, match="num_relations"):
         RelationalMaxConv(2, 2, 0)
+
+
+def pyg_reference_conv(conv: RelationalMaxConv, x, edge_index, edge_type) -> torch.Tensor:
+    """The layer as first written with PyG's scatter: one matmul, messages x W_r per edge, reduced
+    into N * R slots ``target * R + relation`` (autograd through ``scatter_reduce``)."""
+    n, r, out = x.size(0), conv.num_relations, conv.out_channels
+    transformed = (x @ conv.weight.permute(1, 0, 2).reshape(conv.in_channels, r * out)).view(n * r, out)
+    messages = transformed[edge_index[0] * r + edge_type]
+    aggregated = scatter(messages, edge_index[1] * r + edge_type, dim=0, dim_size=n * r, reduce=conv.aggr)
+    result = aggregated.view(n, r, out).sum(dim=1)
+    if conv.root is not None:
+        result = result + conv.root(x)
+    return result if conv.bias is None else result + conv.bias
+
+
+def tie_graph(n=40, e=200, relations=3, features=6, seed=0):
+    """Random graph with repeated edges and two identical vertices sending to the same target
+    (exact ties in the maximum), and isolated vertices."""
+    x, edge_index, edge_type = random_graph(n, e, relations, features, seed)
+    x[5] = x[7]
+    keep = (edge_index[1] != 9) | (edge_type != 1)  # 5 and 7 are the only relation-1 senders to 9
+    edge_index, edge_type = edge_index[:, keep], edge_type[keep]
+    edge_index = torch.cat((edge_index, edge_index[:, :40], torch.tensor([[5, 7], [9, 9]])), dim=1)
+    edge_type = torch.cat((edge_type, edge_type[:40], torch.tensor([1, 1])))
+    return x, edge_index, edge_type
+
+
+def outputs_and_gradients(conv, forward, x, edge_index, edge_type, grad):
+    conv.zero_grad()
+    x = x.clone().requires_grad_(True)
+    out = forward(conv, x, edge_index, edge_type)
+    out.backward(grad)
+    return [out.detach(), x.grad] + [p.grad.clone() for p in conv.parameters()]
+
+
+@pytest.mark.parametrize("aggr", ["max", "mean", "sum"])
+@pytest.mark.parametrize("root_weight,bias", [(True, True), (False, True), (True, False), (False, False)])
+def test_matches_pyg_reference_with_gradients(aggr, root_weight, bias):
+    # The fused aggregation (custom backward, deduplicated edges, cached layout) computes the same
+    # function and the same gradients as PyG's scatter, ties split evenly included.
+    torch.manual_seed(0)
+    conv = RelationalMaxConv(6, 5, num_relations=3, aggr=aggr, root_weight=root_weight, bias=bias)
+    x, edge_index, edge_type = tie_graph()
+    grad = torch.randn(x.size(0), 5)
+    ours = outputs_and_gradients(conv, lambda c, *a: c(*a), x, edge_index, edge_type, grad)
+    reference = outputs_and_gradients(conv, pyg_reference_conv, x, edge_index, edge_type, grad)
+    for a, b in zip(ours, reference, strict=True):
+        torch.testing.assert_close(a, b)
+
+
+def test_segment_max_matches_scatter_max():
+    g = torch.Generator().manual_seed(0)
+    values = torch.randn(30, 4, generator=g)
+    values[3] = values[4]  # tied maxima where both land in one segment
+    # Gathered rows: segment 13 reads the two equal rows, segment 14 one row twice; 12, 15 empty.
+    source = torch.cat((torch.randint(0, 30, (50,), generator=g), torch.tensor([3, 4, 8, 8])))
+    target = torch.cat((torch.randint(0, 12, (50,), generator=g), torch.tensor([13, 13, 14, 14])))
+    # All rows in order: rows 3 and 4 alone in segment 13.
+    in_order = torch.randint(0, 12, (30,), generator=g)
+    in_order[3] = in_order[4] = 13
+    grad = torch.randn(16, 4, generator=g)
+    for src, tgt in ((source, target), (None, in_order)):
+        v1, v2 = values.clone().requires_grad_(True), values.clone().requires_grad_(True)
+        ours = segment_max(v1, src, tgt, 16, len(torch.unique(tgt)))
+        reference = scatter(v2 if src is None else v2[src], tgt, dim=0, dim_size=16, reduce="max")
+        torch.testing.assert_close(ours, reference)
+        assert torch.all(ours[[12, 15]] == 0)
+        ours.backward(grad)
+        reference.backward(grad)
+        torch.testing.assert_close(v1.grad, v2.grad)
+    torch.testing.assert_close(v1.grad[3], grad[13] / 2)  # the tie is split evenly
+
+
+@pytest.mark.parametrize("aggr", ["max", "mean"])
+def test_stacked_convolutions_equal_separate_ones(aggr):
+    torch.manual_seed(0)
+    convs = [RelationalMaxConv(6, 5, num_relations=3, aggr=aggr) for _ in range(3)]
+    x, edge_index, edge_type = tie_graph()
+    inputs = torch.randn(3, x.size(0), 6, requires_grad=True)
+    stacked = relational_conv(convs, inputs, edge_index, edge_type)
+    separate = torch.stack([conv(inputs[k], edge_index, edge_type) for k, conv in enumerate(convs)])
+    torch.testing.assert_close(stacked, separate)
+    grad = torch.randn_like(stacked)
+    stacked_grads = torch.autograd.grad(stacked, [inputs, *convs[1].parameters()], grad)
+    separate_grads = torch.autograd.grad(separate, [inputs, *convs[1].parameters()], grad)
+    for a, b in zip(stacked_grads, separate_grads, strict=True):
+        torch.testing.assert_close(a, b)
+    with pytest.raises(ValueError, match="K, N"):
+        relational_conv(convs, x, edge_index, edge_type)
+
+
+def test_layout_is_derived_once_per_batch():
+    x, edge_index, edge_type = tie_graph()
+    first = relational_layout(edge_index, edge_type, x.size(0), 3, stride=4)
+    assert relational_layout(edge_index, edge_type, x.size(0), 3, stride=4) is first
+    # Repeated edges are dropped for the maximum; targets are sorted.
+    assert len(first.source) < edge_index.size(1)
+    assert torch.all(first.target[1:] >= first.target[:-1])
+    assert first.num_nonempty == len(torch.unique(edge_index[1] * 3 + edge_type))
+    # An equal but distinct tensor, or an in-place change, gives a fresh layout.
+    assert relational_layout(edge_index.clone(), edge_type, x.size(0), 3, stride=4) is not first
+    edge_index[0, 0] = (edge_index[0, 0] + 1) % x.size(0)
+    assert relational_layout(edge_index, edge_type, x.size(0), 3, stride=4) is not first

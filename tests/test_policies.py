@@ -5,9 +5,11 @@ import pytest
 import torch
 from gymnasium import spaces
 from stable_baselines3.common.utils import obs_as_tensor
+from torch_geometric.nn import global_max_pool
 
 from sb3_graph import GraphPolicy, GraphSpace
-from sb3_graph.batching import padded_to_batch
+from sb3_graph.batching import gather_vertex_values, padded_to_batch
+from sb3_graph.policies import stacked_q_forward
 
 torch.set_num_threads(1)
 
@@ -134,3 +136,33 @@ def test_options_and_errors():
         GraphPolicy(SPACE, spaces.Box(-1, 1, (5,), np.float32), lambda _: 1e-3)
     with pytest.raises(ValueError, match="observation_space"):
         GraphPolicy(spaces.Box(-1, 1, (6,)), ACTIONS, lambda _: 1e-3)
+
+
+def test_critic_matches_reference_composition_and_stacked_forward():
+    # Each critic = head(PyG max pool(trunk(x ++ action))); the stacked pass over all critics gives
+    # the same values and gradients; q1_forward is the first critic alone.
+    policy = make_policy(n_critics=3)
+    graphs = [SPACE.encode(*graph(n=n, seed=n)) for n in (5, 2, 4)]
+    graphs.append(SPACE.encode(np.zeros((0, 3), np.float32)))  # an empty graph pools to 0
+    obs = as_tensors(*graphs)
+    batch = padded_to_batch(obs)
+    actions = (torch.rand(4, 6) * 2 - 1).requires_grad_(True)
+    critic = policy.critic
+    q_values = critic(obs, actions)
+    vertex_actions = gather_vertex_values(actions, batch)
+    x = torch.cat((batch.x, vertex_actions.unsqueeze(-1)), dim=-1)
+    reference = [
+        q.head(global_max_pool(q.trunk(x, batch.edge_index, batch.edge_type), batch.batch, batch.num_graphs))
+        for q in critic.q_networks
+    ]
+    stacked = stacked_q_forward(critic.q_networks, batch, vertex_actions)
+    assert len(q_values) == 3
+    for k in range(3):
+        torch.testing.assert_close(q_values[k], reference[k])
+        torch.testing.assert_close(stacked[k], reference[k])
+    torch.testing.assert_close(critic.q1_forward(obs, actions), q_values[0])
+    parameters = [actions, *critic.parameters()]
+    grads = torch.autograd.grad(sum(q.sum() for q in q_values), parameters)
+    stacked_grads = torch.autograd.grad(stacked.sum(), parameters)
+    for a, b in zip(grads, stacked_grads, strict=True):
+        torch.testing.assert_close(a, b)

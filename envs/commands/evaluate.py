@@ -10,6 +10,10 @@ The report folder receives ``scenarios/`` (the generated scenario files, reusabl
 ``--scenario-dir``), ``metrics.csv``, ``vehicles.csv``, ``summary.json``, ``report.md`` and the
 figures (see :mod:`envs.report`). An existing ``--out`` is refused, never overwritten; without
 ``--out`` a fresh ``reports/synthetic-<date>-<time>`` folder is made.
+
+A collision does not end a run: the vehicles involved are counted as collided and leave the
+scene, and the run goes on for its whole duration (``--env-kwargs '{"config":
+{"collision_handling": "terminate"}}'`` ends it instead, as in training).
 """
 
 from __future__ import annotations
@@ -55,7 +59,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="read the scenario files (*.json) from this folder instead of generating --scenarios of them",
     )
-    parser.add_argument("--env-kwargs", type=json.loads, default=None, help="JSON dict passed to gym.make")
+    parser.add_argument(
+        "--env-kwargs",
+        type=json.loads,
+        default=None,
+        help="JSON dict passed to gym.make; its 'config' defaults to collision_handling 'remove' (a crash "
+        "removes the vehicles involved and the run goes on)",
+    )
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
 
 

@@ -8,8 +8,10 @@ Example (Bendplatz, the paper's comparison)::
 Steps: load the recordings (vehicles only; pedestrians and bicycles are counted as not
 modelled), map every vehicle track to an entry and exit arm, a maneuver and a route of the
 ``CoopIntersectionInD-v0`` layout (:mod:`envs.ind.mapping`), measure the recorded drivers' stops
-(:mod:`envs.ind.dataset_metrics`), write one scenario file per recording and run every planner on
-it with the evaluation harness (:mod:`envs.evaluation`). The report folder holds the files of
+(:mod:`envs.ind.dataset_metrics`), write one scenario file per recording (each vehicle timed to
+reach the stop line when the recorded one entered the intersection, ``--arrival-timing``) and
+run every planner on it with the evaluation harness (:mod:`envs.evaluation`; a collision removes
+the vehicles involved and the run goes on). The report folder holds the files of
 ``sb3-graph evaluate`` (``metrics.csv``, ``vehicles.csv``, ``summary.json``, ``report.md``, the
 figures) with the dataset ``inD`` as the first column, plus ``tracks.csv`` (every track, mapped
 or not, with the reason), ``arms.csv``, ``classes.csv``, ``dataset_stops.csv`` and

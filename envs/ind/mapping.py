@@ -598,6 +598,9 @@ def map_recordings(
     route = np.where(ok, route, "")
     if options.arrival_timing:
         geometry = layout.routes.reindex(route)  # NaN rows where not mapped
+        missing = sorted(set(route[ok & geometry["entry_arc"].isna().to_numpy()]))
+        if missing:
+            raise ValueError(f"arrival_timing: the layout's route geometry has no routes {missing}")
         if options.entry_radius is None:
             radius = geometry["entry_radius"].to_numpy()
         else:

@@ -43,9 +43,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--objective", default="flow", help="flow (max flow rate, collision constraint) or pareto")
     parser.add_argument("--tune-algo", action="store_true", help="also tune TD3 settings (learning rate, batch...)")
     parser.add_argument("--jobs", type=int, default=1, help="worker processes on this machine")
-    parser.add_argument(
-        "--weights", nargs="*", default=None, metavar="TERM", help="reward terms to tune (default all)"
-    )
+    parser.add_argument("--weights", nargs="*", default=None, metavar="TERM", help="reward terms to tune (default all)")
     parser.add_argument("--weight-spread", type=float, default=10.0, help="log range factor each way around Table I")
     parser.add_argument("--max-collision-rate", type=float, default=0.02, help="constraint of the flow objective")
     parser.add_argument("--evaluations", type=int, default=3, help="evaluations per trial (flow: pruning points)")
@@ -129,6 +127,8 @@ def prepare(args: argparse.Namespace):
     for name in ("n_trials", "jobs", "evaluations", "eval_episodes", "population_size", "heartbeat", "threads"):
         if getattr(args, name) < 1:
             raise UserError(f"--{name.replace('_', '-')} must be at least 1, got {getattr(args, name)}")
+    if not args.weight_spread > 1:
+        raise UserError(f"--weight-spread must be > 1 (a factor each way), got {args.weight_spread}")
     if args.max_retry < 0:
         raise UserError(f"--max-retry must be >= 0, got {args.max_retry}")
     try:
@@ -283,9 +283,7 @@ def work(args: argparse.Namespace, n_trials: int, worker: int = 0) -> int:
         print(f"[worker {worker}] trial {trial.number} {trial.state.name} {values} {reason}".rstrip(), flush=True)
 
     # catch: a trial that raises is recorded FAIL (reason in its user attributes) and the study goes on
-    study.optimize(
-        lambda trial: run_trial(trial, settings), n_trials=n_trials, catch=(Exception,), callbacks=[record]
-    )
+    study.optimize(lambda trial: run_trial(trial, settings), n_trials=n_trials, catch=(Exception,), callbacks=[record])
     return len(ran)
 
 
@@ -303,6 +301,7 @@ def run(args: argparse.Namespace) -> int:
 
     from sb3_graph.tuning.storage import redact
 
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
     settings, attrs = prepare(args)
     storage = open_storage(args)
     study = create_or_load(args, settings, attrs, storage)  # once, before any worker starts

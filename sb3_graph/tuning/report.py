@@ -6,8 +6,8 @@ Files written by :func:`write_report` into the output folder:
   read from ``--config`` (the full environment, not the tuning preset) with the best trial's
   weights in ``env_kwargs.config.reward_weights`` and its TD3 settings. Best: for ``flow`` the
   feasible trial (collision rate within the limit) with the highest flow rate; for ``pareto`` the
-  Pareto-front trial with the highest flow rate among those within the collision limit (else the
-  one with the lowest collision rate).
+  Pareto-front trial with the highest flow rate among those within the collision limit. When no
+  trial meets the limit, the one with the lowest collision rate, with a warning in the file.
 - ``trials.csv`` and ``trials.md``: one row per trial (state, values, parameters, metrics, reason).
 - ``pareto_front.csv`` (pareto): the trials of the front.
 - ``optimization_history.png``, ``param_importances.png`` (PED-ANOVA, Optuna's default),
@@ -68,25 +68,35 @@ def trials_table(study: optuna.Study) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def best_trial(study: optuna.Study) -> FrozenTrial | None:
-    """The trial whose parameters the report recommends (see the module docstring), or ``None``."""
+def best_trial(study: optuna.Study) -> tuple[FrozenTrial | None, bool]:
+    """The trial whose parameters the report recommends (see the module docstring).
+
+    :param study: the study
+    :return: ``(trial, feasible)``; when no complete trial meets the collision limit, the complete
+        trial with the lowest collision rate (then the highest flow rate) and ``False``;
+        ``(None, False)`` without complete trials
+    """
+    complete = [t for t in study.get_trials(deepcopy=False) if t.state == TrialState.COMPLETE]
+    if not complete:
+        return None, False
+    limit = float(study.user_attrs.get("max_collision_rate", 0.0))
+
+    def collision(t: FrozenTrial) -> float:
+        return float(t.user_attrs.get(COLLISION, math.inf))
+
+    def flow(t: FrozenTrial) -> float:
+        return float(t.user_attrs.get(FLOW, -math.inf))
+
     if len(study.directions) == 1:
         try:
-            return study.best_trial
-        except ValueError:  # no complete (feasible) trial
-            return None
+            return study.best_trial, True
+        except ValueError:  # no feasible trial
+            return min(complete, key=lambda t: (collision(t), -flow(t))), False
     front = study.best_trials
-    if not front:
-        return None
-    names = _metrics(study)
-    if FLOW not in names or COLLISION not in names:
-        return front[0]
-    flow, collision = names.index(FLOW), names.index(COLLISION)
-    limit = float(study.user_attrs.get("max_collision_rate", 0.0))
-    feasible = [t for t in front if t.values[collision] <= limit]
+    feasible = [t for t in front if collision(t) <= limit]
     if feasible:
-        return max(feasible, key=lambda t: t.values[flow])
-    return min(front, key=lambda t: (t.values[collision], -t.values[flow]))
+        return max(feasible, key=flow), True
+    return min(front, key=lambda t: (collision(t), -flow(t))), False
 
 
 def best_entry(study: optuna.Study, trial: FrozenTrial) -> dict[str, Any]:
@@ -194,13 +204,18 @@ def write_report(study: optuna.Study, out: str | Path) -> list[Path]:
     table.to_csv(out / "trials.csv", index=False)
     (out / "trials.md").write_text(markdown_table(table) if len(table) else "no trials\n")
     written += [out / "trials.csv", out / "trials.md"]
-    best = best_trial(study)
+    best, feasible = best_trial(study)
+    limit = study.user_attrs.get("max_collision_rate", "?")
     if best is not None:
         path = out / "best_params.yml"
         header = (
             f"# sb3-graph tune-report: study {study.study_name!r}, trial {best.number} "
             f"(values {best.values}); paste into the zoo config\n"
         )
+        if not feasible:
+            header += (
+                f"# WARNING: no trial met the collision-rate limit {limit}; this one has the lowest collision rate\n"
+            )
         path.write_text(header + yaml.safe_dump(best_entry(study, best), sort_keys=False))
         written.append(path)
     if len(study.directions) > 1 and len(table):
@@ -210,16 +225,18 @@ def write_report(study: optuna.Study, out: str | Path) -> list[Path]:
         written.append(path)
     figures = write_figures(study, out)
     written += [out / f for f in figures.values() if f.endswith(".png")]
+    counts = ", ".join(f"{n} {s.lower()}" for s, n in table["state"].value_counts().items()) if len(table) else ""
     lines = [
         f"# Study `{study.study_name}`",
         "",
         f"- objective: {study.user_attrs.get('objective', '?')} ({', '.join(_metrics(study))}; "
         f"directions {[d.name.lower() for d in study.directions]})",
         f"- environment: {study.user_attrs.get('env', '?')}, {study.user_attrs.get('timesteps', '?')} steps per trial",
-        f"- trials: {len(table)} ("
-        + ", ".join(f"{n} {s.lower()}" for s, n in table["state"].value_counts().items())
-        + ")" if len(table) else "- trials: 0",
-        f"- best trial: {best.number} {best.params}" if best is not None else "- best trial: none (no feasible trial)",
+        f"- trials: {len(table)} ({counts})",
+        f"- best trial: {best.number} {best.params}" if best is not None else "- best trial: none (no complete trial)",
+        ""
+        if feasible or best is None
+        else f"  (no trial met the collision-rate limit {limit}: lowest collision rate shown)",
         "",
         "## Figures",
         "",

@@ -32,7 +32,7 @@ def run(args: argparse.Namespace) -> int:
     if kind == "sqlite" and not sqlite_path(url).is_file():  # do not create an empty database
         raise UserError(f"--storage: database file {str(sqlite_path(url))!r} does not exist")
     if kind == "journal" and not Path(url[len("journal://") :]).is_file():
-        raise UserError(f"--storage: journal file {url[len('journal://'):]!r} does not exist")
+        raise UserError(f"--storage: journal file {url[len('journal://') :]!r} does not exist")
     out = Path(args.out)
     if out.exists() and any(out.iterdir()) and not args.overwrite:
         raise UserError(f"--out: {str(out)!r} already holds files; choose a new folder or pass --overwrite")

@@ -8,7 +8,7 @@ study, not per trial), so trials are compared like for like.
 Outcomes (the reason is the user attribute ``reason``; the study always continues):
 
 - ``COMPLETE``: the metrics are stored as user attributes (one per metric);
-- ``PRUNED``: the median pruner stopped a poor trial at an intermediate evaluation, or training
+- ``PRUNED``: the pruner (median) stopped a poor trial at an intermediate evaluation, or training
   diverged (non-finite network parameters or metrics: a poor configuration that the TPE sampler
   should learn to avoid, which it does for pruned trials but not for failed ones);
 - ``FAIL``: the trial raised an exception (its type and message are stored).
@@ -117,19 +117,24 @@ class TrialEvalCallback(BaseCallback):
     :param trial: the Optuna trial
     :param objective: gives the reported value and whether to report at all
     :param eval_every: steps between evaluations
+    :param total: the training length (the final evaluation is the caller's)
     """
 
-    def __init__(self, evaluate: Callable, trial: optuna.Trial, objective: Objective, eval_every: int) -> None:
+    def __init__(
+        self, evaluate: Callable, trial: optuna.Trial, objective: Objective, eval_every: int, total: int
+    ) -> None:
         super().__init__()
         self.evaluate = evaluate
         self.trial = trial
         self.objective = objective
         self.eval_every = max(int(eval_every), 1)
+        self.total = int(total)
         self.pruned_at: int | None = None
+        self.last_value: float | None = None
         self.diverged: str | None = None
 
     def _on_step(self) -> bool:
-        if self.num_timesteps % self.eval_every:
+        if self.num_timesteps % self.eval_every or self.num_timesteps >= self.total:
             return True
         if not _finite_parameters(self.model):
             self.diverged = f"non-finite network parameters at step {self.num_timesteps}"
@@ -139,7 +144,8 @@ class TrialEvalCallback(BaseCallback):
         if problem:
             self.diverged = f"{problem} at step {self.num_timesteps}"
             return False
-        self.trial.report(float(self.objective.values(metrics)), self.num_timesteps)
+        self.last_value = float(self.objective.values(metrics))
+        self.trial.report(self.last_value, self.num_timesteps)
         if self.trial.should_prune():
             self.pruned_at = self.num_timesteps
             return False
@@ -204,7 +210,7 @@ def _run(trial: optuna.Trial, settings: TrialSettings) -> float | tuple[float, .
         monitor = None
         if settings.objective.prunable and settings.evaluations > 1:
             every = settings.timesteps // settings.evaluations
-            monitor = TrialEvalCallback(evaluate, trial, settings.objective, every)
+            monitor = TrialEvalCallback(evaluate, trial, settings.objective, every, settings.timesteps)
             callbacks.append(monitor)
         tic = time.perf_counter()
         model.learn(settings.timesteps, callback=CallbackList(callbacks), progress_bar=False)
@@ -212,7 +218,9 @@ def _run(trial: optuna.Trial, settings: TrialSettings) -> float | tuple[float, .
         if monitor is not None and monitor.diverged:
             raise TrialDiverged(monitor.diverged)
         if monitor is not None and monitor.pruned_at is not None:
-            trial.set_user_attr(REASON, f"pruned by the median pruner at step {monitor.pruned_at}")
+            trial.set_user_attr(
+                REASON, f"pruned at step {monitor.pruned_at} (intermediate value {monitor.last_value:.4g})"
+            )
             raise optuna.TrialPruned(f"step {monitor.pruned_at}")
         if not _finite_parameters(model):
             raise TrialDiverged(f"non-finite network parameters at step {model.num_timesteps}")
@@ -229,6 +237,8 @@ def _run(trial: optuna.Trial, settings: TrialSettings) -> float | tuple[float, .
     problem = check_metrics(metrics, settings.objective)
     if problem:
         raise TrialDiverged(problem)
+    if settings.objective.prunable:  # the last point of the learning curve that the pruner compares
+        trial.report(float(settings.objective.values(metrics)), settings.timesteps)
     constraint = settings.objective.constraint(metrics)
     if constraint is not None:
         trial.set_constraint("collision_rate", constraint)

@@ -22,11 +22,13 @@ from __future__ import annotations
 
 import importlib.util
 import re
+import time
 import warnings
 from pathlib import Path
 
 import optuna
-from optuna.storages import BaseStorage, JournalStorage, RDBStorage, RetryFailedTrialCallback
+import sqlalchemy.exc
+from optuna.storages import BaseStorage, JournalStorage, RDBStorage, RetryHeartbeatStaleTrialCallback
 from optuna.storages.journal import JournalFileBackend, JournalFileOpenLock
 
 ACCEPTED_FORMS = (
@@ -42,6 +44,9 @@ SQLITE_TIMEOUT_S = 60.0
 class StorageURLError(ValueError):
     """A storage URL that is none of the accepted forms."""
 
+
+# Attempts after a lost race to create the schema of a fresh database.
+SCHEMA_RACE_RETRIES = 5
 
 def storage_kind(url: str) -> str:
     """Which kind of storage a URL names.
@@ -95,24 +100,51 @@ def make_storage(
         path.parent.mkdir(parents=True, exist_ok=True)
         # The open()-based lock works on file systems without symlinks (and on most NFS setups).
         return JournalStorage(JournalFileBackend(str(path), lock_obj=JournalFileOpenLock(str(path))))
-    callback = RetryFailedTrialCallback(max_retry=max_retry) if max_retry > 0 else None
+    callback = None
+    if max_retry > 0:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+            callback = RetryHeartbeatStaleTrialCallback(max_retry=max_retry)
     if kind == "sqlite":
         sqlite_path(url).parent.mkdir(parents=True, exist_ok=True)
         engine_kwargs = {"connect_args": {"timeout": SQLITE_TIMEOUT_S}}
     else:
-        if importlib.util.find_spec("psycopg2") is None and "+" not in url.split("://")[0]:
-            raise StorageURLError(
-                'PostgreSQL storage needs the psycopg2 driver: pip install "sb3-graph[postgres]" (psycopg2-binary)'
-            )
-        if url.startswith("postgres://"):  # SQLAlchemy only knows the long scheme name
-            url = "postgresql://" + url[len("postgres://") :]
+        url = postgres_driver_url(url)
         engine_kwargs = {"pool_pre_ping": True}
     with warnings.catch_warnings():  # heartbeats are "experimental" in Optuna, but documented and used here
         warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
-        return RDBStorage(
-            url,
-            engine_kwargs=engine_kwargs,
-            heartbeat_interval=int(heartbeat_interval),
-            grace_period=grace_period,
-            heartbeat_stale_trial_callback=callback,
-        )
+        for attempt in range(SCHEMA_RACE_RETRIES + 1):
+            try:
+                return RDBStorage(
+                    url,
+                    engine_kwargs=engine_kwargs,
+                    heartbeat_interval=int(heartbeat_interval),
+                    grace_period=grace_period,
+                    heartbeat_stale_trial_callback=callback,
+                )
+            except (sqlalchemy.exc.IntegrityError, sqlalchemy.exc.ProgrammingError):
+                # Workers that start together on a fresh database race to create Optuna's tables;
+                # the loser sees a duplicate type or table and succeeds once the winner is done.
+                if attempt == SCHEMA_RACE_RETRIES:
+                    raise
+                time.sleep(0.5 * (attempt + 1))
+            except sqlalchemy.exc.SQLAlchemyError as error:  # unreachable server, bad password, missing database
+                first = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+                raise StorageURLError(f"cannot open storage {redact(url)!r}: {first}") from error
+    raise AssertionError("unreachable")
+
+
+def postgres_driver_url(url: str) -> str:
+    """A PostgreSQL URL with an installed driver named (SQLAlchemy 2.1 assumes psycopg 3 otherwise).
+
+    :param url: ``postgres[ql][+driver]://...``
+    :return: ``postgresql+psycopg2://...`` or ``postgresql+psycopg://...`` (a named driver is kept)
+    :raises StorageURLError: neither driver is installed
+    """
+    scheme, rest = url.split("://", 1)
+    if "+" in scheme:
+        return f"postgresql+{scheme.split('+', 1)[1]}://{rest}"
+    for driver in ("psycopg2", "psycopg"):
+        if importlib.util.find_spec(driver) is not None:
+            return f"postgresql+{driver}://{rest}"
+    raise StorageURLError('PostgreSQL storage needs a driver: pip install "sb3-graph[postgres]" (psycopg2-binary)')

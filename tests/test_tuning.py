@@ -1,0 +1,295 @@
+"""``sb3-graph tune`` / ``tune-report``: search space, objectives, trials, failures, report, resume."""
+
+import math
+
+import numpy as np
+import optuna
+import pandas as pd
+import pytest
+import torch as th
+import yaml
+from optuna.trial import TrialState
+
+from sb3_graph.cli import main
+from sb3_graph.tuning.objectives import COLLISION, FLOW, STOP, check_metrics, make_objective
+from sb3_graph.tuning.runner import TrialSettings, resolve_callable, run_trial
+from sb3_graph.tuning.search_space import (
+    ALGO_SPACE,
+    entry_with_params,
+    sample_algo,
+    sample_reward_weights,
+    split_params,
+)
+from sb3_graph.tuning.toy import evaluate_max_neighbour
+
+th.set_num_threads(1)
+optuna.logging.set_verbosity(optuna.logging.WARNING)
+TABLE_I = {"velocity": 0.03, "action": 0.01, "idle": 0.01, "proximity": 0.2, "collision": 1.0}
+TINY = {
+    "n_timesteps": 300,
+    "policy": "GraphPolicy",
+    "learning_starts": 50,
+    "batch_size": 16,
+    "buffer_size": 1000,
+    "train_freq": 4,
+    "policy_kwargs": "dict(encoder_dim=8, conv_dims=[8])",
+}
+INTERSECTION = "CoopIntersection4Way-v0"
+TOY = "GraphMaxNeighbour-v0"
+
+
+@pytest.fixture
+def config(tmp_path):
+    path = tmp_path / "td3.yml"
+    entry = {**TINY, "env_kwargs": {"config": {"duration": 30.0}}}
+    path.write_text(yaml.safe_dump({INTERSECTION: entry, TOY: dict(TINY)}))
+    return path
+
+
+def tune(config, study, *extra):
+    return main(["tune", "--config", str(config), "--study-name", study, *extra])
+
+
+# ---------------------------------------------------------------- search space and objectives
+def test_weights_are_sampled_on_log_scales_around_their_defaults():
+    study = optuna.create_study()
+    for _ in range(20):
+        trial = study.ask()
+        weights = sample_reward_weights(trial, {**TABLE_I, "off": 0.0}, spread=10.0)
+        assert set(weights) == set(TABLE_I)  # a zero weight has no log scale: not tuned
+        for term, value in weights.items():
+            assert TABLE_I[term] / 10 <= value <= TABLE_I[term] * 10
+            assert trial.distributions[f"weight.{term}"].log
+        study.tell(trial, 0.0)
+    with pytest.raises(ValueError, match="spread"):
+        sample_reward_weights(study.ask(), TABLE_I, spread=1.0)
+
+
+def test_algo_settings_are_entry_keys():
+    trial = optuna.create_study().ask()
+    values = sample_algo(trial)
+    assert set(values) == set(ALGO_SPACE)
+    assert all(f"algo.{key}" in trial.params for key in values)
+
+
+def test_params_go_into_the_entry_without_changing_it():
+    entry = {"n_timesteps": 10, "env_kwargs": {"config": {"duration": 60.0, "reward_weights": {"idle": 0.5}}}}
+    params = {"weight.velocity": 0.1, "algo.learning_rate": 0.002, "algo.noise_std": 0.3}
+    new = entry_with_params(entry, params)
+    assert new["env_kwargs"]["config"] == {"duration": 60.0, "reward_weights": {"idle": 0.5, "velocity": 0.1}}
+    assert new["learning_rate"] == 0.002 and new["noise_std"] == 0.3 and new["noise_type"] == "normal"
+    assert entry["env_kwargs"]["config"]["reward_weights"] == {"idle": 0.5}
+    assert split_params(params) == ({"velocity": 0.1}, {"learning_rate": 0.002, "noise_std": 0.3})
+    with pytest.raises(ValueError, match="'lr'"):
+        split_params({"lr": 0.1})
+
+
+def test_objectives():
+    metrics = {FLOW: 0.5, COLLISION: 0.05, STOP: 0.2}
+    flow = make_objective("flow", max_collision_rate=0.02)
+    assert flow.values(metrics) == 0.5 and flow.prunable
+    assert flow.constraint(metrics) == pytest.approx(0.03)  # > 0: infeasible
+    assert isinstance(flow.pruner(), optuna.pruners.MedianPruner)
+    pareto = make_objective("pareto")
+    assert pareto.values(metrics) == (0.5, 0.05, 0.2)
+    assert pareto.directions == ("maximize", "minimize", "minimize")
+    assert not pareto.prunable and isinstance(pareto.pruner(), optuna.pruners.NopPruner)
+    assert isinstance(pareto.sampler(), optuna.samplers.NSGAIISampler)
+    assert pareto.constraint(metrics) is None
+    with pytest.raises(ValueError, match="objective must be one of"):
+        make_objective("fast")
+    with pytest.raises(ValueError, match="max_collision_rate"):
+        make_objective("flow", max_collision_rate=2.0)
+    assert "no ['stop_ratio']" in check_metrics({FLOW: 1.0, COLLISION: 0.0}, pareto)
+    assert "non-finite" in check_metrics({FLOW: math.nan, COLLISION: 0.0}, flow)
+    assert check_metrics(metrics, pareto) is None
+
+
+def test_resolve_callable():
+    assert resolve_callable("sb3_graph.tuning.toy:evaluate_max_neighbour") is evaluate_max_neighbour
+    with pytest.raises(ValueError, match="module:function"):
+        resolve_callable("sb3_graph.tuning.toy.evaluate_max_neighbour")
+    with pytest.raises(ValueError, match="cannot import"):
+        resolve_callable("sb3_graph.tuning.toy:missing")
+
+
+# ---------------------------------------------------------------- the intersection domain's pieces
+def test_tuning_preset_and_evaluator_give_task_metrics():
+    import gymnasium as gym
+
+    import envs  # noqa: F401
+    from envs.tuning import PRESET_NAME, evaluate_model, tuning_env_kwargs
+    from sb3_graph import TD3
+
+    kwargs = tuning_env_kwargs()
+    env = gym.make(INTERSECTION, **kwargs)
+    full = env.unwrapped.default_config()
+    config = env.unwrapped.config
+    assert PRESET_NAME == "tuning"
+    assert config["duration"] < full["duration"] and config["max_vehicles"] < full["max_vehicles"]
+    assert config["layout"] == full["layout"] and config["reward_weights"] == full["reward_weights"]
+    model = TD3("GraphPolicy", env, policy_kwargs={"encoder_dim": 8, "conv_dims": [8]}, seed=0)
+    first = evaluate_model(model, INTERSECTION, kwargs, episodes=2, seed=3, duration=20.0)
+    again = evaluate_model(model, INTERSECTION, kwargs, episodes=2, seed=3, duration=20.0)
+    assert first == pytest.approx(again, nan_ok=True)  # the same validation episodes for every trial
+    assert first["vehicles"] > 0 and first[FLOW] >= 0
+    assert 0 <= first[COLLISION] <= 1 and 0 <= first[STOP] <= 1
+    # changing the reward weights does not change the task metrics of the same model
+    heavy = {"config": {**kwargs["config"], "reward_weights": {"collision": 100.0}}}
+    assert evaluate_model(model, INTERSECTION, heavy, episodes=2, seed=3, duration=20.0) == pytest.approx(
+        first, nan_ok=True
+    )
+
+
+# ---------------------------------------------------------------- whole studies
+def test_tiny_study_on_sqlite_completes_reports_and_resumes(config, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    args = ["--env", INTERSECTION, "--n-trials", "2", "--timesteps", "300", "--evaluations", "2",
+            "--eval-episodes", "2", "--max-collision-rate", "1.0", "--sampler-seed", "0"]  # fmt: skip
+    assert tune(config, "weights", *args) == 0
+    storage = "sqlite:///studies/weights.db"  # the default storage of the study
+    study = optuna.load_study(study_name="weights", storage=storage)
+    trials = study.get_trials()
+    assert [t.state for t in trials] == [TrialState.COMPLETE] * 2
+    for trial in trials:
+        assert {f"weight.{term}" for term in TABLE_I} == set(trial.params)
+        for metric in (FLOW, COLLISION, STOP):
+            assert np.isfinite(trial.user_attrs[metric])
+        assert trial.value == trial.user_attrs[FLOW]  # the task metric, not the training reward
+        assert trial.intermediate_values == {150: pytest.approx(trial.intermediate_values[150]), 300: trial.value}
+        assert trial.user_attrs["timesteps"] == 300
+    assert study.user_attrs["entry"]["env_kwargs"] == {"config": {"duration": 30.0}}  # the full env, not the preset
+
+    out = tmp_path / "report"
+    assert main(["tune-report", "--study-name", "weights", "--storage", storage, "--out", str(out)]) == 0
+    for name in ("best_params.yml", "trials.csv", "trials.md", "report.md", "optimization_history.png",
+                 "param_importances.png", "pareto_front.png"):  # fmt: skip
+        assert (out / name).is_file() and (out / name).stat().st_size > 0, name
+    best = yaml.safe_load((out / "best_params.yml").read_text())[INTERSECTION]
+    weights = best["env_kwargs"]["config"]["reward_weights"]
+    assert weights == {term: study.best_trial.params[f"weight.{term}"] for term in TABLE_I}
+    assert best["env_kwargs"]["config"]["duration"] == 30.0 and best["n_timesteps"] == TINY["n_timesteps"]
+    assert len(pd.read_csv(out / "trials.csv")) == 2
+    # a report never replaces files silently
+    assert main(["tune-report", "--study-name", "weights", "--storage", storage, "--out", str(out)]) == 2
+
+    # re-running the command resumes the study: the trials grow, the old ones are kept as they were
+    assert tune(config, "weights", *args[:2], "--n-trials", "1", *args[4:]) == 0
+    resumed = optuna.load_study(study_name="weights", storage=storage).get_trials()
+    assert len(resumed) == 3 and resumed[2].state == TrialState.COMPLETE
+    for old, new in zip(trials, resumed):
+        assert (old.number, old.params, old.values, old.user_attrs) == (new.number, new.params, new.values,
+                                                                        new.user_attrs)  # fmt: skip
+
+
+def test_pareto_study_reports_its_front(config, tmp_path):
+    storage = f"sqlite:///{tmp_path}/p.db"
+    assert tune(config, "front", "--env", TOY, "--storage", storage, "--objective", "pareto", "--tune-algo",
+                "--n-trials", "2", "--timesteps", "100", "--eval-episodes", "1") == 0  # fmt: skip
+    study = optuna.load_study(study_name="front", storage=storage)
+    assert len(study.directions) == 3 and len(study.trials) == 2
+    assert all(len(t.values) == 3 and not t.intermediate_values for t in study.trials)  # no pruning
+    out = tmp_path / "report"
+    assert main(["tune-report", "--study-name", "front", "--storage", storage, "--out", str(out)]) == 0
+    assert (out / "pareto_front.png").is_file() and (out / "best_params.yml").is_file()
+    front = pd.read_csv(out / "pareto_front.csv")
+    assert set(front["number"]) == {t.number for t in study.best_trials}
+
+
+def toy_settings(evaluator, objective="flow", evaluations=1):
+    return TrialSettings(
+        env_id=TOY,
+        entry={**TINY, "n_timesteps": 100},
+        timesteps=100,
+        objective=make_objective(objective, max_collision_rate=1.0),
+        evaluator=evaluator,
+        tune_algo=True,
+        evaluations=evaluations,
+        eval_episodes=1,
+    )
+
+
+def test_failing_and_diverging_trials_do_not_stop_the_study():
+    import sb3_graph.toy_envs  # noqa: F401
+
+    calls = []
+
+    def flaky(model, **kwargs):
+        calls.append(1)
+        if len(calls) == 1:
+            raise RuntimeError("simulator crashed")
+        if len(calls) == 2:
+            return {FLOW: math.nan, COLLISION: 0.0, STOP: 0.0}
+        return evaluate_max_neighbour(model, **kwargs)
+
+    study = optuna.create_study(direction="maximize")
+    study.optimize(lambda t: run_trial(t, toy_settings(flaky)), n_trials=3, catch=(Exception,))
+    failed, diverged, good = study.trials
+    assert failed.state == TrialState.FAIL
+    assert failed.user_attrs["reason"] == "RuntimeError: simulator crashed"
+    assert "simulator crashed" in failed.user_attrs["traceback"]
+    assert diverged.state == TrialState.PRUNED and diverged.user_attrs["reason"].startswith("diverged")
+    assert good.state == TrialState.COMPLETE and FLOW in good.user_attrs
+
+
+def test_intermediate_values_let_the_pruner_stop_a_trial():
+    import sb3_graph.toy_envs  # noqa: F401
+
+    study = optuna.create_study(direction="maximize", pruner=optuna.pruners.ThresholdPruner(lower=10.0))
+    study.optimize(lambda t: run_trial(t, toy_settings(evaluate_max_neighbour, evaluations=4)), n_trials=1)
+    trial = study.trials[0]
+    assert trial.state == TrialState.PRUNED
+    assert list(trial.intermediate_values) == [25]  # stopped at the first evaluation, not trained to the end
+    assert trial.user_attrs["reason"].startswith("pruned at step 25")
+
+
+def test_user_errors_are_one_line_exit_2(config, tmp_path, capsys):
+    db = f"sqlite:///{tmp_path}/e.db"
+    base = ["--env", TOY, "--storage", db, "--tune-algo", "--timesteps", "100", "--n-trials", "1"]
+    cases = [
+        (["--objective", "fast"], "objective must be one of"),
+        (["--storage", "mysql://u@h/db"], "accepted forms"),
+        (["--timesteps", "50"], "learning_starts"),
+        (["--evaluator", "nocolon"], "module:function"),
+        (["--weight-spread", "1"], "--weight-spread must be > 1"),
+        (["--env", "Nope-v0"], "no entry for env 'Nope-v0'"),
+    ]
+    for extra, message in cases:
+        assert tune(config, "e", *base, *extra) == 2
+        assert message in capsys.readouterr().err
+    assert main(["tune", "--config", str(config), "--env", TOY, "--study-name", "e", "--storage", db]) == 2
+    assert "nothing to tune" in capsys.readouterr().err  # the toy env has no reward weights
+    # a study made for one objective is not resumed with another
+    assert tune(config, "e", *base, "--eval-episodes", "1") == 0
+    assert tune(config, "e", *base, "--objective", "pareto") == 2
+    assert "created with objective 'flow'" in capsys.readouterr().err
+    assert main(["tune-report", "--study-name", "other", "--storage", db, "--out", str(tmp_path / "r")]) == 2
+    assert "no study 'other'" in capsys.readouterr().err
+
+
+def test_best_trial_prefers_feasible_trials_then_the_safest():
+    from sb3_graph.tuning.report import best_trial
+
+    study = optuna.create_study(direction="maximize")
+    study.set_user_attr("max_collision_rate", 0.02)
+    distribution = {"weight.velocity": optuna.distributions.FloatDistribution(0.003, 0.3, log=True)}
+
+    def add(flow, collision):
+        study.add_trial(
+            optuna.trial.create_trial(
+                value=flow,
+                params={"weight.velocity": 0.03},
+                distributions=distribution,
+                user_attrs={FLOW: flow, COLLISION: collision},
+                system_attrs={"constraints:collision_rate": collision - 0.02},
+            )
+        )
+
+    add(1.0, 0.3)
+    add(0.5, 0.1)
+    trial, feasible = best_trial(study)
+    assert (trial.number, feasible) == (1, False)  # none feasible: the lowest collision rate
+    add(0.2, 0.0)
+    add(0.1, 0.0)
+    trial, feasible = best_trial(study)
+    assert (trial.number, feasible) == (2, True)  # the best flow among the feasible ones
