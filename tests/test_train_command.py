@@ -1,8 +1,10 @@
 """`sb3-graph train` and rl-zoo3 on zoo_configs/td3.yml: tiny runs that write models which load and act."""
 
 import json
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import gymnasium as gym
@@ -111,3 +113,28 @@ def test_rl_zoo3_runs_the_same_experiment_file(tmp_path):
     assert len(saved) == 1
     model = acts(saved[0])
     assert type(model.replay_buffer).__name__ == "GraphReplayBuffer" or model.replay_buffer is None
+
+
+def test_sigterm_saves_a_checkpoint_that_resumes(tmp_path):
+    out = tmp_path / "run"
+    command = [
+        sys.executable, "-m", "sb3_graph.cli", "train", "--config", str(CONFIG), "--env", ENV_ID, "--out", str(out),
+        "--n-timesteps", "100000", "--eval-freq", "100000", "--checkpoint-freq", "100000", "--no-progress", *TINY,
+        *SHORT_EPISODES,
+    ]
+    process = subprocess.Popen(command, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    record = out / "run.json"
+    for _ in range(600):  # the record is written before training starts
+        if record.is_file():
+            break
+        time.sleep(0.1)
+    time.sleep(3.0)
+    process.send_signal(signal.SIGTERM)
+    _, err = process.communicate(timeout=120)
+    assert process.returncode == 130 and "continue with --resume" in err
+    steps = json.loads(record.read_text())["num_timesteps"]
+    assert 0 < steps < 100000
+    assert (out / "checkpoints" / f"model_{steps}_steps.zip").is_file()
+    assert (out / "checkpoints" / f"model_replay_buffer_{steps}_steps.pkl").is_file()
+    assert train(out, "--resume", "--n-timesteps", str(steps + 20)) == 0
+    assert TD3.load(out / "final_model.zip").num_timesteps == steps + 20

@@ -19,6 +19,7 @@ import importlib.util
 import json
 import platform
 import re
+import signal
 import sys
 import time
 from pathlib import Path
@@ -83,6 +84,27 @@ def _versions() -> dict[str, str]:
         except ImportError:
             continue
     return versions
+
+
+def _new_record(args: argparse.Namespace, seed: int) -> dict[str, Any]:
+    return {
+        "env": args.env,
+        "config_file": str(args.config),
+        "seed": seed,
+        "command": " ".join(sys.argv),
+        "versions": _versions(),
+        "wall_time_s": 0.0,
+        "sessions": [],
+    }
+
+
+def _interrupt_on_sigterm() -> None:
+    # A scheduler's SIGTERM (and a background job, which ignores SIGINT) ends training like Ctrl-C:
+    # with a complete checkpoint and the run record written.
+    def handler(signum, frame):
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, handler)
 
 
 def latest_checkpoint(folder: Path) -> tuple[int, Path] | None:
@@ -165,7 +187,12 @@ def run(args: argparse.Namespace) -> int:
         if not config_path.is_file():
             raise UserError(f"--resume: {str(out)!r} holds no run (no config.yml)")
         entry = yaml.safe_load(config_path.read_text())
-        record = json.loads((out / "run.json").read_text())
+        record_path = out / "run.json"
+        if record_path.is_file():
+            record = json.loads(record_path.read_text())
+        else:  # a run killed before it wrote its record: start one, say so
+            print(f"sb3-graph train: {record_path} is missing; recording seed {args.seed}", file=sys.stderr)
+            record = _new_record(args, args.seed)
         seed = record["seed"]
         if args.n_timesteps is not None:  # extend (or shorten) a run; recorded in config.yml
             entry["n_timesteps"] = args.n_timesteps
@@ -183,15 +210,7 @@ def run(args: argparse.Namespace) -> int:
         if args.env_kwargs:
             entry["env_kwargs"] = {**(entry.get("env_kwargs") or {}), **args.env_kwargs}
         seed = args.seed
-        record = {
-            "env": args.env,
-            "config_file": str(args.config),
-            "seed": seed,
-            "command": " ".join(sys.argv),
-            "versions": _versions(),
-            "wall_time_s": 0.0,
-            "sessions": [],
-        }
+        record = _new_record(args, seed)
 
     _import_packages(args.gym_packages)
     n_timesteps = int(float(entry["n_timesteps"]))
@@ -209,6 +228,7 @@ def run(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     if not args.resume:
         config_path.write_text(yaml.safe_dump(entry, sort_keys=False))
+    (out / "run.json").write_text(json.dumps(record, indent=2))
     tensorboard_log = str(out / "tb") if importlib.util.find_spec("tensorboard") else None
 
     checkpoint = latest_checkpoint(out) if args.resume else None
@@ -254,6 +274,7 @@ def run(args: argparse.Namespace) -> int:
     callbacks = CallbackList([*user_callbacks, eval_callback, checkpoint_callback])
 
     remaining = n_timesteps - model.num_timesteps
+    _interrupt_on_sigterm()
     start = time.time()
     interrupted = False
     try:
