@@ -27,7 +27,8 @@ from pathlib import Path
 from sb3_graph.cli import UserError
 
 DEFAULT_ENV = "CoopIntersection4Way-v0"
-DEFAULT_MODEL = Path("examples/pretrained/coop_4way/best_model.zip")
+# The GNN planner shipped with the package (trained by `sb3-graph train`, see its README.md).
+DEFAULT_MODEL = Path(__file__).resolve().parents[1] / "pretrained" / "coop_4way" / "best_model.zip"
 DEFAULT_BASELINES = ("pr", "fifo")
 
 
@@ -39,7 +40,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         metavar="PLANNER",
         help="repeatable: 'pr' (priority rules), 'fifo', or a saved model .zip; default: pr, fifo "
-        f"and {DEFAULT_MODEL} when that file exists",
+        "and the GNN planner shipped in envs/pretrained/coop_4way/best_model.zip",
     )
     parser.add_argument("--scenarios", type=int, default=100, help="scenarios to generate (default: 100)")
     parser.add_argument(
