@@ -89,9 +89,10 @@ class LinearScheduleCallback(BaseCallback):
 class InfoLoggerCallback(BaseCallback):
     """Log the means of numeric entries that environments report in ``info``.
 
-    For each name in ``keys``, ``info[name]`` may be a number or a dictionary of numbers
-    (e.g. the reward terms); their means between two logger dumps are recorded as
-    ``info/<name>/<entry>`` (TensorBoard, CSV, stdout: wherever the logger writes).
+    For each name in ``keys``, ``info[name]`` may be a number, a dictionary of numbers (e.g. the
+    reward terms) or a list of events (e.g. the ids of vehicles that crossed the intersection in
+    the step, logged as ``<name>_count``); their means per step between two logger dumps are
+    recorded as ``info/<name>/<entry>`` (TensorBoard, CSV, stdout: wherever the logger writes).
 
     :param keys: names of ``info`` entries to log
     :param verbose: verbosity level
@@ -105,6 +106,9 @@ class InfoLoggerCallback(BaseCallback):
         if isinstance(value, dict):
             for entry, sub in value.items():
                 self._record(f"{name}/{entry}", sub)
+        elif isinstance(value, (list, tuple, np.ndarray)):
+            # an event list (e.g. ids of vehicles that crossed this step): log how many
+            self.logger.record_mean(f"info/{name}_count", float(len(value)))
         elif np.isscalar(value) and np.isfinite(value):
             # record_mean averages every value until the logger's next dump
             self.logger.record_mean(f"info/{name}", float(value))

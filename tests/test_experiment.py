@@ -96,3 +96,27 @@ def test_linear_schedule_values():
     assert callback.value_at(250) == pytest.approx(0.03)
     assert callback.value_at(500) == pytest.approx(0.05)
     assert callback.value_at(900) == pytest.approx(0.05)
+
+
+def test_info_logger_records_means_of_terms_and_event_counts():
+    from stable_baselines3.common.logger import Logger
+
+    callback = InfoLoggerCallback(keys=["reward_terms", "crossed", "num_vehicles"])
+    logger = Logger(folder=None, output_formats=[])
+
+    class Model:
+        pass
+
+    model = Model()
+    model.logger = logger
+    callback.model = model
+    steps = [
+        {"reward_terms": {"velocity": 1.0}, "crossed": np.array([3, 4]), "num_vehicles": 4},
+        {"reward_terms": {"velocity": 0.0}, "crossed": np.array([], dtype=int), "num_vehicles": float("nan")},
+    ]
+    for info in steps:
+        callback.locals = {"infos": [info]}
+        callback._on_step()
+    assert logger.name_to_value["info/reward_terms/velocity"] == pytest.approx(0.5)
+    assert logger.name_to_value["info/crossed_count"] == pytest.approx(1.0)
+    assert logger.name_to_value["info/num_vehicles"] == pytest.approx(4.0)  # NaN skipped
