@@ -32,9 +32,10 @@ class MaxNeighbourEnv(gym.Env):
     :param num_relations: edge types (relation 0 carries the signal), at least 1
     :param node_features: features per vertex, at least 1 (feature 0 carries the signal)
     :param episode_length: steps per episode
+    :param render_mode: ``None`` or ``"rgb_array"`` (SB3's ``make_vec_env`` asks for the latter)
     """
 
-    metadata: dict[str, Any] = {"render_modes": []}
+    metadata: dict[str, Any] = {"render_modes": ["rgb_array"], "render_fps": 4}
 
     def __init__(
         self,
@@ -44,7 +45,14 @@ class MaxNeighbourEnv(gym.Env):
         num_relations: int = 2,
         node_features: int = 3,
         episode_length: int = 8,
+        render_mode: str | None = None,
     ) -> None:
+        if render_mode not in (None, *self.metadata["render_modes"]):
+            raise ValueError(
+                f"MaxNeighbourEnv: render_mode must be one of {[None, *self.metadata['render_modes']]}, "
+                f"got {render_mode!r}"
+            )
+        self.render_mode = render_mode
         if not 0 <= min_nodes <= max_nodes:
             raise ValueError(
                 f"MaxNeighbourEnv: min_nodes must lie in [0, max_nodes={max_nodes}], got {min_nodes}"
@@ -94,6 +102,21 @@ class MaxNeighbourEnv(gym.Env):
         self._steps += 1
         self._obs = self._new_graph()
         return self._obs, reward, False, self._steps >= self.episode_length, info
+
+    def render(self) -> np.ndarray | None:
+        """One 8-pixel row per vertex slot: its first feature (left half) and its target (right half)
+        as grey levels from -1 (black) to 1 (white); padded slots are red."""
+        if self.render_mode != "rgb_array":
+            return None
+        slots = self.observation_space.max_nodes
+        n = len(self._target)
+        grey = np.zeros((slots, 2), np.float32)
+        if n:
+            grey[:n, 0] = self._obs["x"][:n, 0]
+            grey[:n, 1] = self._target
+        image = np.repeat(((grey + 1.0) * 127.5).astype(np.uint8)[..., None], 3, axis=2)
+        image[n:] = (255, 0, 0)
+        return np.repeat(np.repeat(image, 8, axis=0), 32, axis=1)
 
 
 MAX_NEIGHBOUR_ID = "GraphMaxNeighbour-v0"

@@ -36,6 +36,20 @@ def test_toy_env_rewards_perfect_actions():
         MaxNeighbourEnv(max_nodes=3, min_nodes=4)
 
 
+def test_toy_env_renders_features_and_targets():
+    env = MaxNeighbourEnv(max_nodes=4, min_nodes=2, render_mode="rgb_array")
+    env.reset(seed=1)
+    n = len(env._target)
+    image = env.render()
+    assert image.shape == (32, 64, 3) and image.dtype == np.uint8
+    expected = np.round((env._target + 1) * 127.5)
+    np.testing.assert_allclose(image[::8, 40, 0][:n], expected, atol=1)
+    assert (image[8 * n :, :, 1] == 0).all() and (image[8 * n :, :, 0] == 255).all()
+    assert MaxNeighbourEnv().render() is None
+    with pytest.raises(ValueError, match="render_mode must be one of"):
+        MaxNeighbourEnv(render_mode="human")
+
+
 @pytest.mark.parametrize("vec_env_class", [DummyVecEnv, SubprocVecEnv])
 def test_two_envs(vec_env_class):
     env = vec_env_class([lambda: MaxNeighbourEnv(episode_length=5)] * 2)
