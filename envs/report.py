@@ -48,7 +48,8 @@ def _pct(value: float | None) -> str:
     return "n/a" if value is None or not np.isfinite(value) else f"{100 * value:.1f} %"
 
 
-def _num(value: float | None, digits: int = 3) -> str:
+def format_number(value: float | None, digits: int = 3) -> str:
+    """``value`` with ``digits`` decimals, ``"n/a"`` for a missing or non-finite value."""
     return "n/a" if value is None or not np.isfinite(value) else f"{value:.{digits}f}"
 
 
@@ -77,8 +78,8 @@ def markdown_report(
             runs.loc[runs["planner"] == name, "waiting_at_end"].mean() if "waiting_at_end" in runs else np.nan
         )
         lines.append(
-            f"| {name} | {s['runs']} | {_num(f['median'])} | {_num(f['q1'])} | {_num(f['q3'])} "
-            f"| {_num(f['mean'])} | {_num(jam, 1)} |"
+            f"| {name} | {s['runs']} | {format_number(f['median'])} | {format_number(f['q1'])} "
+            f"| {format_number(f['q3'])} | {format_number(f['mean'])} | {format_number(jam, 1)} |"
         )
     groups = ("all",) + PRIORITIES + tuple(MANEUVERS)
     lines += ["", "## Stop ratio (vehicles whose speed fell below 0.3 m/s), stopped / vehicles", ""]
@@ -97,8 +98,8 @@ def markdown_report(
     for name, s in summary.items():
         d = s["delay_s"]
         lines.append(
-            f"| {name} | {s['vehicles']} | {_pct(s['collision_rate'])} | {_num(d['median'], 2)} "
-            f"| {_num(d['mean'], 2)} |"
+            f"| {name} | {s['vehicles']} | {_pct(s['collision_rate'])} | {format_number(d['median'], 2)} "
+            f"| {format_number(d['mean'], 2)} |"
         )
     lines += ["", "Figures: " + ", ".join(f"![{f}]({f})" for f in FIGURES), ""]
     lines += ["## How to read these numbers", "", *NOTES, ""]

@@ -130,7 +130,7 @@ def _out_folder(args: argparse.Namespace) -> Path:
 
 def run(args: argparse.Namespace) -> int:
     from envs.evaluation import check_scenarios, evaluate, find_scenarios, generate_scenarios, layout_of
-    from envs.report import write_report
+    from envs.report import format_number, write_report
 
     planners = _check(args)
     try:
@@ -175,12 +175,10 @@ def run(args: argparse.Namespace) -> int:
     for name, s in summary.items():
         f, sr = s["flow_rate"], s["stop_ratio"]
         print(
-            f"{name:>10}: flow median {_fmt(f['median'])} veh/s, stops major {_fmt(sr['major'])}"
-            f" minor {_fmt(sr['minor'])}, collisions {_fmt(s['collision_rate'])} ({s['vehicles']} vehicles)"
+            f"{name:>10}: flow median {format_number(f['median'])} veh/s,"
+            f" stops major {format_number(sr['major'])} minor {format_number(sr['minor'])},"
+            f" collisions {format_number(s['collision_rate'])} ({s['vehicles']} vehicles)"
         )
     print(f"report written to {out} ({wall:.1f} s)")
     return 0
 
-
-def _fmt(value: float | None) -> str:
-    return "n/a" if value is None else f"{value:.3f}"

@@ -442,7 +442,7 @@ def run(args: argparse.Namespace) -> int:
         runs = runs.sort_values(["planner", "run"], key=lambda c: c.map(order) if c.name == "planner" else c)
         runs = runs.reset_index(drop=True)
 
-    from envs.report import markdown_report, write_report
+    from envs.report import format_number, markdown_report, write_report
 
     wall = time.perf_counter() - tic
     meta = {
@@ -467,13 +467,10 @@ def run(args: argparse.Namespace) -> int:
     for name, s in summary.items():
         sr = s["stop_ratio"]
         print(
-            f"{name:>10}: {s['vehicles']} vehicles, stops left {_fmt(sr['left'])} "
-            f"straight {_fmt(sr['straight'])} right {_fmt(sr['right'])}, "
-            f"collisions {_fmt(s['collision_rate'])}"
+            f"{name:>10}: {s['vehicles']} vehicles, stops left {format_number(sr['left'])} "
+            f"straight {format_number(sr['straight'])} right {format_number(sr['right'])}, "
+            f"collisions {format_number(s['collision_rate'])}"
         )
     print(f"report written to {out} ({time.perf_counter() - tic:.1f} s)")
     return 0
 
-
-def _fmt(value: float | None) -> str:
-    return "n/a" if value is None else f"{value:.3f}"

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from envs.planners.idm import DEFAULT_IDM, CrossingParams, IDMParams
 from envs.planners.yielding import YieldingPlanner, rank_by
 from envs.scene import Scene
 
@@ -25,10 +24,7 @@ class FIFOPlanner(YieldingPlanner):
     :param crossing: timing rules of the admission logic
     """
 
-    def __init__(
-        self, name: str = "FIFO", idm: IDMParams = DEFAULT_IDM, crossing: CrossingParams | None = None
-    ) -> None:
-        super().__init__(name, idm, crossing)
+    default_name = "FIFO"
 
     def rank(self, scene: Scene) -> np.ndarray:
         """Closest to the stop line first, ties by id."""

@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from envs.planners.idm import DEFAULT_IDM, CrossingParams, IDMParams, crossing_times
+from envs.planners.idm import crossing_times
 from envs.planners.yielding import YieldingPlanner, rank_by
 from envs.scene import LEFT, MAJOR, Scene
 
@@ -48,10 +48,7 @@ class PriorityRulesPlanner(YieldingPlanner):
     :param crossing: timing rules of the yielding logic
     """
 
-    def __init__(
-        self, name: str = "PR", idm: IDMParams = DEFAULT_IDM, crossing: CrossingParams | None = None
-    ) -> None:
-        super().__init__(name, idm, crossing)
+    default_name = "PR"
 
     def rank(self, scene: Scene) -> np.ndarray:
         """Maneuver-inferred precedence class, then the earliest possible arrival, then id."""

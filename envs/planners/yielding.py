@@ -36,13 +36,17 @@ class YieldingPlanner(Planner):
     about to take the intersection (:func:`envs.planners.idm.blocked_by_rank`); otherwise it
     follows its leader with IDM.
 
-    :param name: the name shown in reports
+    :param name: the name shown in reports (default: the class's ``default_name``)
     :param idm: IDM constants (default: highway-env's)
     :param crossing: timing rules of the yielding logic
     """
 
-    def __init__(self, name: str, idm: IDMParams = DEFAULT_IDM, crossing: CrossingParams | None = None) -> None:
-        super().__init__(name)
+    default_name: str = "yielding"
+
+    def __init__(
+        self, name: str | None = None, idm: IDMParams = DEFAULT_IDM, crossing: CrossingParams | None = None
+    ) -> None:
+        super().__init__(name if name is not None else self.default_name)
         self.idm = idm
         self.crossing = crossing if crossing is not None else CrossingParams()
 
