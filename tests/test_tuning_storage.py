@@ -74,8 +74,9 @@ def test_unreachable_server_is_a_clear_error():
 
 @pytest.mark.filterwarnings("ignore:Heartbeat of storage")  # the dead trial is made with study.ask
 @pytest.mark.parametrize("max_retry", [0, 1])
-def test_heartbeat_fails_the_trial_of_a_killed_worker(tmp_path, max_retry):
-    url = f"sqlite:///{tmp_path}/hb.db"
+@pytest.mark.parametrize("form", ["sqlite:///{}/hb.db", "journal://{}/hb.log"])
+def test_heartbeat_fails_the_trial_of_a_killed_worker(tmp_path, form, max_retry):
+    url = form.format(tmp_path)
     storage = make_storage(url, heartbeat_interval=1, grace_period=1, max_retry=max_retry)
     study = optuna.create_study(study_name="hb", storage=storage)
     # A worker that died mid-trial: the trial is RUNNING and its last heartbeat grows old.
@@ -89,3 +90,19 @@ def test_heartbeat_fails_the_trial_of_a_killed_worker(tmp_path, max_retry):
     if max_retry:  # the failed trial was retried with its parameters
         retried = [t for t in study.get_trials() if t.system_attrs.get("failed_trial") == dead.number]
         assert len(retried) == 1 and retried[0].params["x"] == dead.params["x"]
+
+
+@pytest.mark.filterwarnings("ignore:Heartbeat of storage")  # the live trial is made with study.ask
+def test_journal_heartbeat_keeps_a_live_trial_running(tmp_path):
+    storage = make_storage(f"journal://{tmp_path}/live.log", heartbeat_interval=1, grace_period=2)
+    study = optuna.create_study(study_name="live", storage=storage)
+    live = study.ask()
+    for _ in range(3):  # a worker that is still alive keeps beating
+        time.sleep(0.8)
+        storage.record_heartbeat(live._trial_id)
+    assert storage._get_stale_trial_ids(study._study_id) == []
+    time.sleep(2.5)
+    assert storage._get_stale_trial_ids(study._study_id) == [live._trial_id]
+    # Another process that opens the same journal sees the same heartbeats.
+    other = make_storage(f"journal://{tmp_path}/live.log", heartbeat_interval=1, grace_period=2)
+    assert other._get_stale_trial_ids(study._study_id) == [live._trial_id]

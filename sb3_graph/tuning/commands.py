@@ -61,7 +61,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--population-size", type=int, default=10, help="NSGA-II population (pareto)")
     parser.add_argument("--seed", type=int, default=0, help="base training seed (trial k uses seed + k)")
     parser.add_argument("--sampler-seed", type=int, default=None, help="sampler seed (worker i uses seed + i)")
-    parser.add_argument("--heartbeat", type=int, default=60, help="seconds between heartbeats (database storages)")
+    parser.add_argument(
+        "--heartbeat", type=int, default=60, help="seconds between heartbeats; a trial silent for two is failed"
+    )
     parser.add_argument("--max-retry", type=int, default=0, help="retries of a trial whose worker died")
     parser.add_argument("--save-models", default=None, help="folder for each trial's final model")
     parser.add_argument("--gym-packages", nargs="*", default=None, help="modules that register the env")

@@ -11,11 +11,11 @@ Accepted forms (:data:`ACCEPTED_FORMS`):
   shared disk; everything after ``journal://`` is the path, so ``journal:///mnt/shared/study.log``
   is absolute and ``journal://studies/study.log`` relative. Its folder is created.
 
-Both database forms record a heartbeat of every running trial: the trial of a worker that was
-killed is marked ``FAIL`` once its heartbeat is older than the grace period, the next time any
-worker asks for a trial, so the study goes on (optionally the failed trial is retried with the same
-parameters). A journal file has no heartbeat: the trial of a killed worker stays ``RUNNING``
-(``sb3-graph tune-report`` shows it) and is ignored by the samplers' statistics.
+Every form records a heartbeat of each running trial: the trial of a worker that was killed is
+marked ``FAIL`` once its heartbeat is older than the grace period, the next time any worker asks
+for a trial, so the study goes on (optionally the failed trial is retried with the same
+parameters). The databases use Optuna's own heartbeat table; Optuna's journal storage has none, so
+:class:`HeartbeatJournalStorage` keeps the heartbeat as a trial system attribute in the journal.
 """
 
 from __future__ import annotations
@@ -24,12 +24,15 @@ import importlib.util
 import re
 import time
 import warnings
+from collections.abc import Callable
 from pathlib import Path
 
 import optuna
 import sqlalchemy.exc
 from optuna.storages import BaseStorage, JournalStorage, RDBStorage, RetryHeartbeatStaleTrialCallback
-from optuna.storages.journal import JournalFileBackend, JournalFileOpenLock
+from optuna.storages._heartbeat import BaseHeartbeat
+from optuna.storages.journal import BaseJournalBackend, JournalFileBackend, JournalFileOpenLock
+from optuna.trial import FrozenTrial, TrialState
 
 ACCEPTED_FORMS = (
     "sqlite:///PATH.db",
@@ -47,6 +50,53 @@ class StorageURLError(ValueError):
 
 # Attempts after a lost race to create the schema of a fresh database.
 SCHEMA_RACE_RETRIES = 5
+# Trial system attribute holding the time (Unix seconds) of a journal trial's last heartbeat.
+JOURNAL_HEARTBEAT_ATTR = "sb3_graph:heartbeat"
+
+
+class HeartbeatJournalStorage(JournalStorage, BaseHeartbeat):
+    """Optuna's ``JournalStorage`` with the heartbeat that Optuna gives only to ``RDBStorage``.
+
+    A running trial's heartbeat is a system attribute (:data:`JOURNAL_HEARTBEAT_ATTR`) rewritten
+    every ``heartbeat_interval`` seconds; Optuna fails a running trial whose heartbeat (or, before
+    the first one, its start) is older than ``grace_period`` before it starts the next trial.
+
+    :param backend: the journal backend (e.g. a ``JournalFileBackend``)
+    :param heartbeat_interval: seconds between heartbeats
+    :param grace_period: seconds without heartbeat after which a running trial counts as dead
+    :param heartbeat_stale_trial_callback: called with each trial failed that way
+    """
+
+    def __init__(
+        self,
+        backend: BaseJournalBackend,
+        heartbeat_interval: int,
+        grace_period: int,
+        heartbeat_stale_trial_callback: Callable[[optuna.Study, FrozenTrial], None] | None = None,
+    ) -> None:
+        super().__init__(backend)
+        self._heartbeat_interval = heartbeat_interval
+        self._grace_period = grace_period
+        self._stale_trial_callback = heartbeat_stale_trial_callback
+
+    def record_heartbeat(self, trial_id: int) -> None:
+        self.set_trial_system_attr(trial_id, JOURNAL_HEARTBEAT_ATTR, time.time())
+
+    def _get_stale_trial_ids(self, study_id: int) -> list[int]:
+        now = time.time()
+        running = self.get_all_trials(study_id, deepcopy=False, states=(TrialState.RUNNING,))
+        return [
+            t._trial_id
+            for t in running
+            if now - t.system_attrs.get(JOURNAL_HEARTBEAT_ATTR, t.datetime_start.timestamp()) > self._grace_period
+        ]
+
+    def get_heartbeat_interval(self) -> int:
+        return self._heartbeat_interval
+
+    def get_heartbeat_stale_trial_callback(self) -> Callable[[optuna.Study, FrozenTrial], None] | None:
+        return self._stale_trial_callback
+
 
 def storage_kind(url: str) -> str:
     """Which kind of storage a URL names.
@@ -85,7 +135,7 @@ def make_storage(
     """Open (and create if needed) the Optuna storage a URL names.
 
     :param url: one of :data:`ACCEPTED_FORMS`
-    :param heartbeat_interval: seconds between heartbeats of a running trial (database storages)
+    :param heartbeat_interval: seconds between heartbeats of a running trial
     :param grace_period: seconds without heartbeat after which a running trial is failed
         (default: twice the interval)
     :param max_retry: how often a trial failed that way is retried with the same parameters (0: none)
@@ -95,16 +145,18 @@ def make_storage(
     kind = storage_kind(url)
     if heartbeat_interval < 1:
         raise ValueError(f"heartbeat_interval must be a positive number of seconds, got {heartbeat_interval}")
-    if kind == "journal":
-        path = Path(url[len("journal://") :])
-        path.parent.mkdir(parents=True, exist_ok=True)
-        # The open()-based lock works on file systems without symlinks (and on most NFS setups).
-        return JournalStorage(JournalFileBackend(str(path), lock_obj=JournalFileOpenLock(str(path))))
     callback = None
     if max_retry > 0:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
             callback = RetryHeartbeatStaleTrialCallback(max_retry=max_retry)
+    if kind == "journal":
+        path = Path(url[len("journal://") :])
+        path.parent.mkdir(parents=True, exist_ok=True)
+        # The open()-based lock works on file systems without symlinks (and on most NFS setups).
+        backend = JournalFileBackend(str(path), lock_obj=JournalFileOpenLock(str(path)))
+        grace = grace_period if grace_period is not None else 2 * int(heartbeat_interval)
+        return HeartbeatJournalStorage(backend, int(heartbeat_interval), grace, callback)
     if kind == "sqlite":
         sqlite_path(url).parent.mkdir(parents=True, exist_ok=True)
         engine_kwargs = {"connect_args": {"timeout": SQLITE_TIMEOUT_S}}
