@@ -121,3 +121,17 @@ def test_scenarios_of_another_layout_are_refused(tmp_path, capsys):
     assert "scenario_000.json" in err and "3way" in err and "4way" in err
     assert not (tmp_path / "r").exists()
     assert main([*args[: -len(SMALL)], "--scenario-dir", str(tmp_path / "empty")]) == 2
+
+
+def test_default_planners_are_the_baselines_and_the_shipped_model():
+    from envs.commands.evaluate import DEFAULT_MODEL, checked_planners
+    from sb3_graph.cli import UserError
+
+    planners = checked_planners(None)
+    assert [name for _, name in planners][:2] == ["PR", "FIFO"]
+    assert planners[2][0] == str(DEFAULT_MODEL)  # sb3-graph ind uses the same defaults
+    assert [name for _, name in checked_planners(None, reserved=("inD",))] == [name for _, name in planners]
+    with pytest.raises(UserError, match="given twice"):
+        checked_planners(["fifo", "fifo"])
+    with pytest.raises(UserError, match="reserved"):
+        checked_planners(["fifo"], reserved=("FIFO",))

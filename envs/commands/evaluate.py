@@ -22,6 +22,7 @@ import argparse
 import json
 import platform
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 from sb3_graph.cli import UserError
@@ -72,7 +73,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _check(args: argparse.Namespace) -> list[tuple[str, str]]:
     """Validate the arguments; return the ``(planner word, report name)`` pairs."""
-    from envs.planners import check_planner_spec, planner_name
 
     if args.scenarios < 1:
         raise UserError(f"--scenarios must be at least 1, got {args.scenarios}")
@@ -82,19 +82,7 @@ def _check(args: argparse.Namespace) -> list[tuple[str, str]]:
         raise UserError(f"--jobs must be at least 1, got {args.jobs}")
     if args.env_kwargs is not None and not isinstance(args.env_kwargs, dict):
         raise UserError("--env-kwargs must be a JSON object, e.g. '{\"duration\": 100}'")
-    words = args.planner
-    if not words:
-        words = list(DEFAULT_BASELINES) + ([str(DEFAULT_MODEL)] if DEFAULT_MODEL.is_file() else [])
-    planners: list[tuple[str, str]] = []
-    for word in words:
-        try:
-            key = check_planner_spec(word)
-        except ValueError as error:
-            raise UserError(f"--planner: {error}") from None
-        name = planner_name(key)
-        if name in [n for _, n in planners]:
-            raise UserError(f"--planner: {word!r} given twice (report name {name!r})")
-        planners.append((key, name))
+    planners = checked_planners(args.planner)
     if args.out is not None and Path(args.out).exists():
         raise UserError(f"--out: {args.out!r} exists; choose a new folder (reports are never overwritten)")
     import gymnasium as gym
@@ -182,3 +170,26 @@ def run(args: argparse.Namespace) -> int:
     print(f"report written to {out} ({wall:.1f} s)")
     return 0
 
+
+def checked_planners(words: Sequence[str] | None, reserved: Sequence[str] = ()) -> list[tuple[str, str]]:
+    """The ``--planner`` words as ``(planner spec, report name)`` pairs, validated.
+
+    :param words: the words given; ``None`` or empty: PR, FIFO and the shipped GNN planner
+    :param reserved: report names that a planner must not take (e.g. ``"inD"`` for the recorded drivers)
+    :raises UserError: an unknown planner, a missing model file, or two planners with one report name
+    """
+    from envs.planners import check_planner_spec, planner_name
+
+    if not words:
+        words = list(DEFAULT_BASELINES) + ([str(DEFAULT_MODEL)] if DEFAULT_MODEL.is_file() else [])
+    planners: list[tuple[str, str]] = []
+    for word in words:
+        try:
+            key = check_planner_spec(word)
+        except ValueError as error:
+            raise UserError(f"--planner: {error}") from None
+        name = planner_name(key)
+        if name in [n for _, n in planners] or name in reserved:
+            raise UserError(f"--planner: {word!r} given twice or named like a reserved column (report name {name!r})")
+        planners.append((key, name))
+    return planners

@@ -35,7 +35,6 @@ from sb3_graph.cli import UserError
 
 DEFAULT_ENV = "CoopIntersectionInD-v0"
 DEFAULT_LAYOUT = "inD"
-DEFAULT_BASELINES = ("pr", "fifo")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -59,7 +58,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="append",
         default=None,
         metavar="PLANNER",
-        help="repeatable: 'pr', 'fifo', or a saved model .zip (default: pr and fifo)",
+        help="repeatable: 'pr', 'fifo', or a saved model .zip (default: pr, fifo and the shipped GNN planner)",
     )
     parser.add_argument(
         "--dataset-only", action="store_true", help="only map and measure the recorded drivers"
@@ -139,22 +138,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _planners(args: argparse.Namespace) -> list[tuple[str, str]]:
-    """``(planner word, report name)`` pairs, validated."""
-    from envs.planners import check_planner_spec, planner_name
+    """``(planner word, report name)`` pairs, validated; the recorded drivers are the column "inD"."""
+    from envs.commands.evaluate import checked_planners
 
-    planners: list[tuple[str, str]] = []
-    for word in args.planner or DEFAULT_BASELINES:
-        try:
-            key = check_planner_spec(word)
-        except ValueError as error:
-            raise UserError(f"--planner: {error}") from None
-        name = planner_name(key)
-        if name in [n for _, n in planners] or name == "inD":
-            raise UserError(
-                f"--planner: {word!r} given twice or named like the dataset (report name {name!r})"
-            )
-        planners.append((key, name))
-    return planners
+    return checked_planners(args.planner, reserved=("inD",))
 
 
 def _out_folder(out: str | None) -> Path:
