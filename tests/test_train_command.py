@@ -52,6 +52,7 @@ def test_tiny_run_writes_loadable_models_and_resumes(tmp_path):
     record = json.loads((out / "run.json").read_text())
     assert record["num_timesteps"] == 200 and record["env"] == ENV_ID and "torch" in record["versions"]
     assert (out / "checkpoints" / "model_replay_buffer_200_steps.pkl").is_file()
+    assert (out / "checkpoints" / "model_100_steps.zip").is_file()  # periodic checkpoint
 
     # --resume continues the step count from the last checkpoint, with its replay buffer
     assert train(out, "--resume", "--n-timesteps", "300") == 0
@@ -80,12 +81,24 @@ def test_existing_run_folder_is_refused_and_untouched(tmp_path, capsys):
         (["--env", "NoSuchEnv-v0"], "no entry for env 'NoSuchEnv-v0'"),
         (["--hyperparams", "batch_size"], "expected KEY:VALUE"),
         (["--hyperparams", "noise_type:pink"], "noise_type must be one of"),
+        (["--checkpoint-freq", "0"], "--checkpoint-freq must be at least 1, got 0"),
     ],
 )
 def test_user_errors_are_one_line(tmp_path, capsys, extra, message):
     assert train(tmp_path / "run", "--n-timesteps", "10", *extra) == 2
     err = capsys.readouterr().err
     assert message in err and "Traceback" not in err
+
+
+def test_periodic_checkpoint_holds_every_transition(tmp_path):
+    from sb3_graph.commands.train import _make_checkpoint_callback
+
+    env = make_vec_env(ENV_ID, n_envs=1, seed=0, env_kwargs={"config": {"duration": 8.0}})
+    model = TD3("GraphPolicy", env, learning_starts=1000, buffer_size=1000, seed=0)
+    model.learn(120, callback=_make_checkpoint_callback(50, tmp_path))
+    assert sorted(p.name for p in tmp_path.glob("model_*_steps.zip")) == ["model_100_steps.zip", "model_50_steps.zip"]
+    model.load_replay_buffer(tmp_path / "model_replay_buffer_100_steps.pkl")
+    assert model.replay_buffer.size() == 100  # the transition of step 100 is in
 
 
 def test_curriculum_raises_spawn_probability():

@@ -135,22 +135,27 @@ def _drop_old_buffers(folder: Path, keep: Path) -> None:
 
 
 def _make_checkpoint_callback(save_freq: int, folder: Path):
-    from stable_baselines3.common.callbacks import CheckpointCallback
+    from stable_baselines3.common.callbacks import BaseCallback
 
-    class LatestBufferCheckpoint(CheckpointCallback):
-        """SB3's periodic checkpoints, keeping only the newest replay buffer.
+    class CompleteCheckpoint(BaseCallback):
+        """:func:`save_checkpoint` every ``save_freq`` environment steps, with the complete replay buffer.
 
-        SB3 calls callbacks before it stores the step's transition, so a periodic checkpoint's
-        buffer lacks the last transition; the checkpoint written when training stops is complete.
+        SB3's ``CheckpointCallback`` saves in ``on_step``, which SB3 calls before it stores the
+        step's transition, so its buffer would lack the newest one; ``on_rollout_end`` comes after.
         """
 
-        def _on_step(self) -> bool:
-            result = super()._on_step()
-            if self.n_calls % self.save_freq == 0:
-                _drop_old_buffers(folder, keep=Path(self._checkpoint_path("replay_buffer_", extension="pkl")))
-            return result
+        def _on_training_start(self) -> None:
+            self.next_save = (self.num_timesteps // save_freq + 1) * save_freq
 
-    return LatestBufferCheckpoint(save_freq, str(folder), name_prefix="model", save_replay_buffer=True)
+        def _on_step(self) -> bool:
+            return True
+
+        def _on_rollout_end(self) -> None:
+            if self.num_timesteps >= self.next_save:
+                save_checkpoint(self.model, folder)
+                self.next_save = (self.num_timesteps // save_freq + 1) * save_freq
+
+    return CompleteCheckpoint()
 
 
 def _import_packages(names: list[str]) -> None:
@@ -180,7 +185,10 @@ def run(args: argparse.Namespace) -> int:
     from sb3_graph.experiment import ExperimentError, build_algorithm_kwargs, build_callbacks, read_experiment
     from sb3_graph.td3 import TD3
 
-    th.set_num_threads(max(1, args.threads))
+    for flag in ("eval_freq", "eval_episodes", "checkpoint_freq", "threads"):
+        if getattr(args, flag) < 1:
+            raise UserError(f"--{flag.replace('_', '-')} must be at least 1, got {getattr(args, flag)}")
+    th.set_num_threads(args.threads)
     out = Path(args.out)
     config_path = out / "config.yml"
     if args.resume:
@@ -270,7 +278,7 @@ def run(args: argparse.Namespace) -> int:
     )
     # A resumed run keeps its best model unless a validation beats it.
     eval_callback.best_mean_reward = record.get("best_mean_reward", -np.inf)
-    checkpoint_callback = _make_checkpoint_callback(max(args.checkpoint_freq // n_envs, 1), out / "checkpoints")
+    checkpoint_callback = _make_checkpoint_callback(args.checkpoint_freq, out / "checkpoints")
     callbacks = CallbackList([*user_callbacks, eval_callback, checkpoint_callback])
 
     remaining = n_timesteps - model.num_timesteps
