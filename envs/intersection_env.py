@@ -90,7 +90,12 @@ class CoopIntersectionEnv(AbstractEnv):
         - ``initial_spawn_probability``: the same, for the spawn at reset (so episodes start busy)
         - ``initial_speed_range``: initial speed as fractions of the lane limit (paper: 0.6-1.0)
         - ``max_acceleration`` [m/s^2]: commands lie in ``[-max, max]`` (paper: 5)
-        - ``max_speed`` [m/s]: speed cap
+        - ``max_speed`` [m/s]: speed cap above every lane limit
+        - ``lateral_acceleration`` [m/s^2]: largest lateral acceleration on curved lanes; sets their
+          speed limits ``sqrt(a_lat / kappa)`` (the road's 10 m/s on straight lanes)
+        - ``governor_deceleration`` [m/s^2]: the speed governor, applied after any planner, slows a
+          vehicle down at this rate for a lower limit ahead, so that no vehicle exceeds its lane limit
+        - ``collision_resolution`` [m]: largest distance a body moves between two collision checks
         - ``vehicle_length``, ``vehicle_width`` [m]: training vehicles
         - ``spawn_min_gap`` [m]: bumper gap required at the spawn point (plus braking distance)
         - ``s_ref`` [m]: common path length inside the intersection; ``s_scale``: factor on ``s``
@@ -115,6 +120,9 @@ class CoopIntersectionEnv(AbstractEnv):
             "initial_speed_range": [0.6, 1.0],
             "max_acceleration": 5.0,
             "max_speed": 20.0,
+            "lateral_acceleration": 3.0,
+            "governor_deceleration": 3.0,
+            "collision_resolution": 0.1,
             "vehicle_length": 5.0,
             "vehicle_width": 2.0,
             "spawn_min_gap": 5.0,
@@ -178,7 +186,7 @@ class CoopIntersectionEnv(AbstractEnv):
         self.update_metadata()
         self.define_spaces()
         cfg = self.config
-        self.layout = build_layout(cfg["layout"])
+        self.layout = build_layout(cfg["layout"], lateral_acceleration=float(cfg["lateral_acceleration"]))
         self.sim = Simulation(
             self.layout,
             simulation_frequency=cfg["simulation_frequency"],
@@ -187,6 +195,8 @@ class CoopIntersectionEnv(AbstractEnv):
             max_acceleration=cfg["max_acceleration"],
             s_ref=cfg["s_ref"],
             max_vehicles=cfg["max_vehicles"],
+            governor_deceleration=cfg["governor_deceleration"],
+            collision_resolution=cfg["collision_resolution"],
         )
         scenario = options.get("scenario")
         if scenario is not None:
@@ -294,6 +304,7 @@ class CoopIntersectionEnv(AbstractEnv):
             "crossed": events.crossed,
             "removed": events.removed,
             "stopped": events.stopped,
+            "governed": events.governed,
             "collisions": events.collisions,
             "vehicles": vehicles,
             "time": float(sim.time),

@@ -34,11 +34,13 @@ LAYOUT_NAMES = ("4way", "3way", "inD")
 ARM_ANGLES = {"east": 0.0, "south": np.pi / 2, "west": np.pi, "north": -np.pi / 2}
 
 LANE_WIDTH = AbstractLane.DEFAULT_WIDTH  # 4 m
-# Speed limits [m/s]: an urban approach, and lower limits where the path curves (lateral
-# acceleration v^2 / r of about 4-5 m/s^2 on the default radii).
+# The road's speed limit [m/s] (urban); on curved lanes the limit is lower, from the curvature:
+# ``v_max = sqrt(a_lat_max / kappa)`` with the largest lateral acceleration below.
 APPROACH_SPEED_LIMIT = 10.0
-LEFT_TURN_SPEED_LIMIT = 8.0
-RIGHT_TURN_SPEED_LIMIT = 6.0
+# Largest lateral acceleration on curved lanes [m/s^2]: a comfortable value for urban turns
+# (drivers keep below about 3-4 m/s^2). On the default radii: right turn (9 m) 5.2 m/s, left turn
+# (13 m) 6.2 m/s.
+DEFAULT_LATERAL_ACCELERATION = 3.0
 # Two routes conflict when their intersection parts come closer than this [m] (paths cross), or
 # when they share the exit lane (paths merge). A vehicle is 2 m wide: parallel lanes 4 m apart
 # stay apart, crossing paths reach 0.
@@ -96,6 +98,12 @@ class Layout:
         ``nan`` where the lane is not on the route
     :param touch_arc: ``(R,)`` arc length where the route leaves its spawn lane; before it, only
         vehicles on the same lane can touch (collision checks use this)
+    :param zone_start: ``(R, R)`` arc length on route ``r`` (row) where its conflict zone with
+        route ``q`` (column) starts [m]; ``nan`` where they do not conflict. A vehicle's body
+        ``[arc - length / 2, arc + length / 2]`` occupies the zone while it overlaps
+        ``[zone_start, zone_end]``
+    :param zone_end: ``(R, R)`` where that zone ends [m]
+    :param lateral_acceleration: largest lateral acceleration that set the curved lanes' limits [m/s^2]
     """
 
     name: str
@@ -123,10 +131,46 @@ class Layout:
     route_lane_starts: np.ndarray
     lane_start: np.ndarray
     touch_arc: np.ndarray
+    zone_start: np.ndarray
+    zone_end: np.ndarray
+    lateral_acceleration: float = DEFAULT_LATERAL_ACCELERATION
     route_index: dict[str, int] = field(default_factory=dict)
+    _envelopes: dict[float, np.ndarray] = field(default_factory=dict, repr=False)
 
     def __post_init__(self) -> None:
         self.route_index = {name: i for i, name in enumerate(self.route_names)}
+
+    def speed_envelope(self, deceleration: float) -> np.ndarray:
+        """``(R, M)`` highest speed at each sample from which every lower limit ahead can still be
+        met braking at ``deceleration``: ``min_{k' >= k} sqrt(limit[k']^2 + 2 b (k' - k) ds)``.
+
+        Computed once per deceleration (a backward pass over the samples, vectorized over routes).
+
+        :param deceleration: braking deceleration ``b`` [m/s^2], positive
+        :return: the envelope [m/s] (never above the limit itself)
+        """
+        key = float(deceleration)
+        if key not in self._envelopes:
+            env = self.speed_limit.copy()
+            step = 2.0 * key * self.ds
+            for k in range(env.shape[1] - 2, -1, -1):
+                env[:, k] = np.minimum(env[:, k], np.sqrt(env[:, k + 1] ** 2 + step))
+            self._envelopes[key] = env
+        return self._envelopes[key]
+
+    def envelope_at(self, route: np.ndarray, arc: np.ndarray, deceleration: float) -> np.ndarray:
+        """:meth:`speed_envelope` at points on routes [m/s], never above :meth:`limit_at` there.
+
+        The squared speed is interpolated linearly between samples: on a braking stretch it falls
+        at exactly ``2 b`` per metre, so following the envelope takes deceleration ``b``.
+        """
+        env = self.speed_envelope(deceleration)
+        last = env.shape[1] - 1
+        u = np.minimum(np.maximum(arc / self.ds, 0.0), last)
+        i0 = np.minimum(u.astype(np.int64), last - 1)
+        f = u - i0
+        sq0, sq1 = env[route, i0] ** 2, env[route, i0 + 1] ** 2
+        return np.minimum(np.sqrt(sq0 + (sq1 - sq0) * f), self.limit_at(route, arc))
 
     @property
     def num_routes(self) -> int:
@@ -245,7 +289,7 @@ def _maneuver(h_in: np.ndarray, h_out: np.ndarray) -> int:
 
 
 # ---------------------------------------------------------------------- building
-def _build(name: str, arms: list[ArmSpec], ds: float) -> Layout:
+def _build(name: str, arms: list[ArmSpec], ds: float, lateral_acceleration: float) -> Layout:
     net = RoadNetwork()
     c, s, n = LineType.CONTINUOUS, LineType.STRIPED, LineType.NONE
     w = LANE_WIDTH
@@ -328,7 +372,7 @@ def _build(name: str, arms: list[ArmSpec], ds: float) -> Layout:
             exit_node, p_exit, h_out, exit_lane = exits[arm_out.name]
             m = _maneuver(h_in, h_out)
             stop_node, p_stop, _, up_lanes = stops[(arm_in.name, m)]
-            limit = {LEFT: LEFT_TURN_SPEED_LIMIT, RIGHT: RIGHT_TURN_SPEED_LIMIT}.get(m, APPROACH_SPEED_LIMIT)
+            limit = APPROACH_SPEED_LIMIT  # curved pieces: lowered by the curvature (_sample_limits)
             prio = 3 if arm_in.priority == MAJOR else 1
             # Left turns yield to straight traffic: one priority level lower, as in highway-env.
             lane_prio = prio - 1 if m == LEFT else prio
@@ -386,7 +430,7 @@ def _build(name: str, arms: list[ArmSpec], ds: float) -> Layout:
         k_of = np.clip(np.searchsorted(starts, arcs, side="right") - 1, 0, len(objs) - 1)
         xy = np.array([objs[k].position(a - starts[k], 0.0) for a, k in zip(arcs, k_of)])
         h = np.unwrap(np.array([objs[k].heading_at(a - starts[k]) for a, k in zip(arcs, k_of)]))
-        v = np.array([objs[k].speed_limit for k in k_of])
+        v = np.array([_lane_limit(objs[k], lateral_acceleration) for k in k_of])
         samples_xy.append(xy)
         samples_h.append(h)
         samples_v.append(v)
@@ -406,7 +450,7 @@ def _build(name: str, arms: list[ArmSpec], ds: float) -> Layout:
     priority = np.array([r[3] for r in routes], np.int64)
     spawn_priority = np.array([priority[route_spawn == k][0] for k in range(len(spawn_lanes))], np.int64)
 
-    conflicts = _conflicts(routes, xy, entry_arc, exit_arc, ds)
+    conflicts, zone_start, zone_end = _conflicts(routes, xy, entry_arc, exit_arc, ds)
     return Layout(
         name=name,
         network=net,
@@ -433,37 +477,66 @@ def _build(name: str, arms: list[ArmSpec], ds: float) -> Layout:
         route_lane_starts=route_lane_starts,
         lane_start=lane_start,
         touch_arc=route_lane_starts[:, 1].copy(),
+        zone_start=zone_start,
+        zone_end=zone_end,
+        lateral_acceleration=lateral_acceleration,
     )
+
+
+def _lane_limit(lane: AbstractLane, lateral_acceleration: float) -> float:
+    """The road's limit, lowered on a circular lane to ``sqrt(a_lat_max * radius)``."""
+    if isinstance(lane, CircularLane):
+        return float(min(lane.speed_limit, np.sqrt(lateral_acceleration * lane.radius)))
+    return float(lane.speed_limit)
 
 
 def _conflicts(
     routes: list, xy: np.ndarray, entry_arc: np.ndarray, exit_arc: np.ndarray, ds: float
-) -> np.ndarray:
-    """``(R, R)`` conflict matrix from the sampled geometry (build time only).
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Conflict matrix and conflict zones from the sampled geometry (build time only).
 
     Two routes conflict when they enter the intersection from different stop lines and either
     leave it on the same exit lane (merge) or their intersection parts come closer than
     :data:`CONFLICT_DISTANCE` (cross). Routes from the same stop line diverge and do not conflict.
+
+    The conflict zone of route ``a`` with route ``b`` is the stretch of ``a``'s centre line, inside
+    the intersection, that comes closer than :data:`CONFLICT_DISTANCE` to ``b``'s (for a merge: from
+    there to ``a``'s intersection exit, where car following takes over).
+
+    :return: ``(R, R)`` bool conflicts, ``(R, R)`` zone start and ``(R, R)`` zone end arcs on the
+        row's route [m] (``nan`` where the routes do not conflict)
     """
     num_r = len(routes)
     stop_lane = [r[1][r[6] - 1] for r in routes]
     exit_lane = [r[1][-1] for r in routes]
-    parts = []
+    parts, offsets = [], []
     for r in range(num_r):
         i0, i1 = int(np.ceil(entry_arc[r] / ds)), int(np.floor(exit_arc[r] / ds)) + 1
         parts.append(xy[r, i0:i1])
+        offsets.append(i0)
     out = np.zeros((num_r, num_r), bool)
+    start = np.full((num_r, num_r), np.nan)
+    end = np.full((num_r, num_r), np.nan)
     for a in range(num_r):
         for b in range(a + 1, num_r):
             if stop_lane[a] == stop_lane[b]:
                 continue
-            dmin = np.linalg.norm(parts[a][:, None] - parts[b][None], axis=-1).min()
-            out[a, b] = out[b, a] = exit_lane[a] == exit_lane[b] or dmin < CONFLICT_DISTANCE
-    return out
+            dist = np.linalg.norm(parts[a][:, None] - parts[b][None], axis=-1)
+            merge = exit_lane[a] == exit_lane[b]
+            if not (merge or dist.min() < CONFLICT_DISTANCE):
+                continue
+            out[a, b] = out[b, a] = True
+            for r, d in ((a, dist.min(axis=1)), (b, dist.min(axis=0))):
+                near = np.flatnonzero(d < CONFLICT_DISTANCE)
+                if near.size == 0:  # a merge whose paths only meet on the exit lane
+                    near = np.array([d.size - 1])
+                start[r, b if r == a else a] = (offsets[r] + near[0]) * ds
+                end[r, b if r == a else a] = exit_arc[r] if merge else (offsets[r] + near[-1]) * ds
+    return out, start, end
 
 
 @cache
-def build_layout(name: str, ds: float = 0.5) -> Layout:
+def build_layout(name: str, ds: float = 0.5, lateral_acceleration: float = DEFAULT_LATERAL_ACCELERATION) -> Layout:
     """Build (once per process, then cached) one of the intersection layouts.
 
     - ``"4way"``: the paper's synthetic four-way intersection; the west-east road is the major
@@ -476,12 +549,16 @@ def build_layout(name: str, ds: float = 0.5) -> Layout:
 
     :param name: one of :data:`LAYOUT_NAMES`
     :param ds: sample spacing of the route polylines [m]
+    :param lateral_acceleration: largest lateral acceleration on curved lanes [m/s^2]; sets their
+        speed limits (``sqrt(a_lat * radius)``, at most the road's limit)
     :return: the layout
     """
     if name not in LAYOUT_NAMES:
         raise ValueError(f"layout must be one of {LAYOUT_NAMES}, got {name!r}")
     if not ds > 0:
         raise ValueError(f"ds must be > 0, got {ds}")
+    if not lateral_acceleration > 0:
+        raise ValueError(f"lateral_acceleration must be > 0, got {lateral_acceleration}")
     stop = LANE_WIDTH + 5 + LANE_WIDTH / 2  # as highway-env's intersection: right-turn radius 9 m
     access = 80.0
     if name == "4way":
@@ -501,4 +578,4 @@ def build_layout(name: str, ds: float = 0.5) -> Layout:
             ArmSpec("north", MINOR, 14.0, access),
             ArmSpec("east", MAJOR, 14.0, access, left_pocket=True),
         ]
-    return _build(name, arms, float(ds))
+    return _build(name, arms, float(ds), float(lateral_acceleration))

@@ -14,6 +14,8 @@ Step ``info`` of the intersection environment (what the metrics read), all ids a
 - ``"removed"``: ids that left the scene (end of their route, or collided under
   ``collision_handling="remove"``).
 - ``"stopped"``: ids whose speed was below ``STOP_SPEED`` at any simulation sub-step.
+- ``"governed"``: ids whose speed the speed governor lowered below what the planner commanded
+  (the lane limit, or braking for a lower limit ahead).
 - ``"collisions"``: ``(k, 2)`` int64 array of id pairs that collided during the step.
 - ``"vehicles"``: dict ``id -> {"route": str, "priority": int, "maneuver": str, "time": float}``
   for the ids in ``"entered"``.
@@ -30,6 +32,7 @@ Added by the environment (all ids are ``vehicle_id`` values):
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -74,6 +77,8 @@ class Scene:
     :param s_ref: the common reference length of the paths inside the intersection [m]
     :param arc: ``(n,)`` arc length of the vehicle centre along its route from the route's start [m];
         ``None`` when unknown (hand-built scenes)
+    :param layout: the intersection (:class:`envs.layouts.Layout`: route geometry, speed-limit
+        profiles, conflict zones); ``None`` when unknown (hand-built scenes)
     """
 
     time: float
@@ -99,6 +104,7 @@ class Scene:
     width: np.ndarray | None = None
     s_ref: float = 25.0
     arc: np.ndarray | None = None
+    layout: Any = None
 
     @property
     def num_vehicles(self) -> int:

@@ -9,6 +9,12 @@ with 5 % probability per time step and evaluates at 0.2-0.4 veh/s per lane, whic
 step). Speed stays in ``[0, max_speed]``: vehicles never drive backwards. A vehicle is removed when
 its centre reaches the end of its route.
 
+Physics parity: the same limits hold for every planner, applied after its command. A speed
+governor keeps each vehicle at or below the braking envelope of its lane limits (the road's limit
+on straight lanes, ``sqrt(a_lat_max / kappa)`` on curved ones), slowing it down for a lower limit
+ahead at ``governor_deceleration``; the collision check runs at a resolution fine enough to see
+brief corner contacts.
+
 Everything per step is vectorized over vehicles and vehicle pairs: positions come from one gather
 into the layout's sampled routes, leaders from an ``(n, n)`` table of positions on each other's
 route, collisions from a separating-axis test over candidate pairs.
@@ -41,6 +47,7 @@ class StepEvents:
         in a step run with ``remove_collided``
     :param collisions: ``(k, 2)`` id pairs whose bodies overlapped after any sub-step
     :param kept: ``(n,)`` bool over the rows before the step: the vehicle is still in the scene
+    :param governed: ids whose speed the governor lowered below what the planner commanded
     """
 
     stopped: np.ndarray = field(default_factory=lambda: np.zeros(0, _INT))
@@ -48,6 +55,7 @@ class StepEvents:
     removed: np.ndarray = field(default_factory=lambda: np.zeros(0, _INT))
     collisions: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), _INT))
     kept: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    governed: np.ndarray = field(default_factory=lambda: np.zeros(0, _INT))
 
 
 class Simulation:
@@ -60,6 +68,9 @@ class Simulation:
     :param max_acceleration: commands are clipped to ``[-max_acceleration, max_acceleration]`` [m/s^2]
     :param s_ref: common reference length of the paths inside the intersection [m]
     :param max_vehicles: capacity; :meth:`add` refuses vehicles beyond it
+    :param governor_deceleration: deceleration with which the speed governor slows vehicles down
+        for a lower limit ahead [m/s^2]
+    :param collision_resolution: largest distance a body moves between two collision checks [m]
     """
 
     def __init__(
@@ -71,6 +82,8 @@ class Simulation:
         max_acceleration: float = 5.0,
         s_ref: float = 25.0,
         max_vehicles: int = 64,
+        governor_deceleration: float = 3.0,
+        collision_resolution: float = 0.1,
     ) -> None:
         if simulation_frequency % policy_frequency:
             raise ValueError(
@@ -85,6 +98,8 @@ class Simulation:
         self.max_acceleration = float(max_acceleration)
         self.s_ref = float(s_ref)
         self.max_vehicles = int(max_vehicles)
+        self.governor_deceleration = float(governor_deceleration)
+        self.collision_resolution = float(collision_resolution)
         self.reset()
 
     # ------------------------------------------------------------------ state
@@ -99,6 +114,9 @@ class Simulation:
         self.vehicle_id = np.zeros(0, _INT)
         self.appearance_time = np.zeros(0)
         self._cache: dict[str, tuple[tuple[np.ndarray, ...], Any]] = {}
+        # Speeds and arcs at the sub-step boundaries of the last step, rows as before it
+        # (diagnostics and tests: the trajectory the collision check saw).
+        self.last_trajectory: tuple[np.ndarray, np.ndarray] = (np.zeros((1, 0)), np.zeros((1, 0)))
 
     @property
     def num_vehicles(self) -> int:
@@ -182,9 +200,16 @@ class Simulation:
     def step(self, acceleration: np.ndarray, remove_collided: bool = False) -> StepEvents:
         """Apply the commanded accelerations for one policy period.
 
-        Collisions are checked after every sub-step, on the candidate pairs found once per policy
-        step: pairs whose centres are closer than the sum of their half diagonals plus the
-        farthest each can travel during the period.
+        Each sub-step, the speed governor caps the speed at the braking envelope of the lane
+        limits (:meth:`envs.layouts.Layout.speed_envelope` for ``governor_deceleration``): whatever
+        a planner commands, no vehicle exceeds the limit of the lane it is on, and it slows down
+        for a lower limit ahead within that deceleration.
+
+        Collisions are checked on the candidate pairs found once per policy step (pairs whose
+        centres are closer than the sum of their half diagonals plus the farthest each can travel
+        during the period), at times fine enough that no vehicle moves more than
+        ``collision_resolution`` metres between two checks (the trajectory between sub-steps is the
+        constant acceleration that joins their speeds).
 
         :param acceleration: ``(n,)`` commanded accelerations [m/s^2], row ``i`` = vehicle ``i``
         :param remove_collided: take the vehicles of this step's collisions out of the scene too
@@ -195,88 +220,131 @@ class Simulation:
         n = self.num_vehicles
         a_max = self.max_acceleration
         acc = np.minimum(np.maximum(np.asarray(acceleration, float).reshape(n), -a_max), a_max)
-        h = 1.0 / self.simulation_frequency
         period = self.dt
         exit_arc = self.layout.exit_arc[self.route]
         before_exit = self.arc < exit_arc
-        cand_i = cand_j = rows = follower = leader = gap0 = None
-        if n > 1:
-            # On the spawn lanes and exit lanes, lanes are straight and lanes of different paths
-            # are parallel a lane width apart or far apart: there, only a leader and its follower
-            # can touch, when their gap along the path closes (a 1-D check). The separating-axis
-            # test runs on the close pairs of which at least one is (or may get within the period)
-            # past its spawn lane and not yet past the intersection exit.
-            lay = self.layout
-            travel = np.minimum(self.speed * period + 0.5 * a_max * period**2, self.max_speed * period)
-            margin = travel + 1.0
-            in_area = (self.arc + self.length / 2 >= lay.touch_arc[self.route] - margin) & (
-                self.arc - self.length / 2 <= lay.exit_arc[self.route] + margin
-            )
-            leader, gap0 = self.leaders()
-            follower = np.flatnonzero((leader >= 0) & ~in_area)
-            leader = leader[follower]
-            keep = ~in_area[leader]
-            follower, leader = follower[keep], leader[keep]
-            position, _ = self.pose()
-            reach = 0.5 * np.hypot(self.length, self.width) + travel
-            delta = position[:, None, :] - position[None, :, :]
-            close = (delta**2).sum(axis=-1) <= (reach[:, None] + reach[None, :]) ** 2
-            close &= in_area[:, None] | in_area[None, :]
-            cand_i, cand_j = np.nonzero(np.triu(close, 1))
-            if cand_i.size:
-                involved = np.zeros(n, bool)
-                involved[cand_i] = True
-                involved[cand_j] = True
-                rows = np.flatnonzero(involved)
-        # All sub-steps at once: with a constant command, clipping the speed after k sub-steps
-        # equals clipping after every sub-step (the speed moves monotonically).
-        k = np.arange(1, self.substeps + 1)[:, None]  # (S, 1)
-        v = np.minimum(np.maximum(self.speed + acc * (k * h), 0.0), self.max_speed)  # (S, n)
-        v_prev = np.concatenate([self.speed[None], v[:-1]])
-        # Exact for constant acceleration; trapezoidal in the sub-step where 0 or the cap is hit.
-        arcs = self.arc + np.cumsum(0.5 * (v_prev + v) * h, axis=0)  # (S, n)
-        stopped = (v < STOP_SPEED).any(axis=0)
-        hits: list[np.ndarray] = []
-        if follower is not None and follower.size:
-            moved = arcs - self.arc
-            bump = (gap0[follower] + moved[:, leader] - moved[:, follower] < 0).any(axis=0)
-            if bump.any():
-                hits.append(np.sort(np.stack([follower[bump], leader[bump]], axis=1), axis=1))
-        if rows is not None:
-            m = rows.size
-            pos, hd = self.layout.pose(np.tile(self.route[rows], self.substeps), arcs[:, rows].ravel())
-            slot = np.zeros(n, _INT)
-            slot[rows] = np.arange(m)
-            # Pairs of every sub-step as rows into the stacked poses (sub-step s at offset s * m).
-            off = (np.arange(self.substeps) * m)[:, None]
-            si, sj = (slot[cand_i] + off).ravel(), (slot[cand_j] + off).ravel()
-            length, width = (
-                np.tile(self.length[rows], self.substeps),
-                np.tile(self.width[rows], self.substeps),
-            )
-            overlap = _sat_overlap(pos, hd, length, width, si, sj).reshape(self.substeps, -1).any(axis=0)
-            if overlap.any():
-                hits.append(np.stack([cand_i[overlap], cand_j[overlap]], axis=1))
-        self.arc = arcs[-1]
-        self.speed = v[-1]
+        candidates = self._collision_candidates() if n > 1 else None
+        speed, arc, governed = self._integrate(acc)
+        stopped = (speed[1:] < STOP_SPEED).any(axis=0)
+        collisions = self._collisions_along(speed, arc, *candidates) if candidates else np.zeros((0, 2), _INT)
+        self.last_trajectory = (speed, arc)
+        self.arc = arc[-1]
+        self.speed = speed[-1]
         self.time += period
         crossed = before_exit & (self.arc >= exit_arc)
-        if hits:
-            pairs = np.unique(np.concatenate(hits), axis=0)
-            collisions = self.vehicle_id[pairs]
-        else:
-            collisions = np.zeros((0, 2), _INT)
         events = StepEvents(
-            stopped=self.vehicle_id[stopped], crossed=self.vehicle_id[crossed], collisions=collisions
+            stopped=self.vehicle_id[stopped],
+            crossed=self.vehicle_id[crossed],
+            collisions=self.vehicle_id[collisions] if collisions.size else collisions,
+            governed=self.vehicle_id[governed],
         )
         done = self.arc >= self.layout.length[self.route]
         if remove_collided and collisions.size:
-            done |= np.isin(self.vehicle_id, collisions)
+            done[collisions.ravel()] = True
         events.kept = ~done
         events.removed = self.vehicle_id[done]
         if done.any():
             self._keep(~done)
         return events
+
+    def _integrate(self, acc: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Speeds and arcs at the sub-step boundaries under the governor.
+
+        :return: ``(S + 1, n)`` speeds, ``(S + 1, n)`` arcs (row 0: now) and ``(n,)`` bool: the
+            governor lowered the vehicle's speed in some sub-step
+        """
+        h = 1.0 / self.simulation_frequency
+        lay, route, b = self.layout, self.route, self.governor_deceleration
+        speed = np.empty((self.substeps + 1, self.num_vehicles))
+        arc = np.empty_like(speed)
+        speed[0], arc[0] = self.speed, self.arc
+        governed = np.zeros(self.num_vehicles, bool)
+        for k in range(self.substeps):  # a loop over time (3 sub-steps), vectorized over vehicles
+            v = np.minimum(np.maximum(speed[k] + acc * h, 0.0), self.max_speed)
+            x = arc[k] + 0.5 * (speed[k] + v) * h
+            cap = np.minimum(lay.envelope_at(route, arc[k], b), lay.envelope_at(route, x, b))
+            over = v > cap
+            governed |= over
+            speed[k + 1] = np.where(over, cap, v)
+            arc[k + 1] = arc[k] + 0.5 * (speed[k] + speed[k + 1]) * h
+        return speed, arc, governed
+
+    def _collision_candidates(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+        """Pairs that may touch during the coming policy period.
+
+        On the spawn lanes and exit lanes, lanes are straight and lanes of different paths are
+        parallel a lane width apart or far apart: there, only a leader and its follower can touch,
+        when their gap along the path closes (a 1-D check). The separating-axis test runs on the
+        close pairs of which at least one is (or may get within the period) past its spawn lane
+        and not yet past the intersection exit.
+
+        :return: ``(follower, leader, gap)`` rows and bumper gaps for the 1-D check and
+            ``(cand_i, cand_j)`` rows for the separating-axis test, or ``None`` if there are none
+        """
+        lay, period, a_max = self.layout, self.dt, self.max_acceleration
+        travel = np.minimum(self.speed * period + 0.5 * a_max * period**2, self.max_speed * period)
+        margin = travel + 1.0
+        in_area = (self.arc + self.length / 2 >= lay.touch_arc[self.route] - margin) & (
+            self.arc - self.length / 2 <= lay.exit_arc[self.route] + margin
+        )
+        leader, gap = self.leaders()
+        follower = np.flatnonzero((leader >= 0) & ~in_area)
+        leader = leader[follower]
+        keep = ~in_area[leader]
+        follower, leader = follower[keep], leader[keep]
+        position, _ = self.pose()
+        reach = 0.5 * np.hypot(self.length, self.width) + travel
+        delta = position[:, None, :] - position[None, :, :]
+        close = (delta**2).sum(axis=-1) <= (reach[:, None] + reach[None, :]) ** 2
+        close &= in_area[:, None] | in_area[None, :]
+        cand_i, cand_j = np.nonzero(np.triu(close, 1))
+        if follower.size == 0 and cand_i.size == 0:
+            return None
+        return follower, leader, gap[follower], cand_i, cand_j
+
+    def _collisions_along(
+        self,
+        speed: np.ndarray,
+        arc: np.ndarray,
+        follower: np.ndarray,
+        leader: np.ndarray,
+        gap: np.ndarray,
+        cand_i: np.ndarray,
+        cand_j: np.ndarray,
+    ) -> np.ndarray:
+        """Row pairs ``i < j`` that touch at some check time along the sub-step trajectory.
+
+        :return: ``(k, 2)`` int64 rows (of the state before the step)
+        """
+        h = 1.0 / self.simulation_frequency
+        steps = np.diff(arc, axis=0)  # (S, n)
+        # A body's corners sweep up to ~1.5x its centre's travel on the tightest curves (9 m radius).
+        fastest = steps.max(initial=0.0)
+        k = max(1, int(np.ceil(3.0 * fastest / self.collision_resolution)))
+        t = (np.arange(1, k + 1) / k * h)[None, :, None]  # (1, K, 1)
+        accel = (np.diff(speed, axis=0) / h)[:, None, :]  # (S, 1, n): constant within a sub-step
+        fine = (arc[:-1, None, :] + speed[:-1, None, :] * t + 0.5 * accel * t**2).reshape(-1, arc.shape[1])
+        hits: list[np.ndarray] = []
+        if follower.size:
+            moved = fine - self.arc
+            bump = (gap + moved[:, leader] - moved[:, follower] < 0).any(axis=0)
+            if bump.any():
+                hits.append(np.sort(np.stack([follower[bump], leader[bump]], axis=1), axis=1))
+        if cand_i.size:
+            rows = np.union1d(cand_i, cand_j)
+            m, times = rows.size, fine.shape[0]
+            pos, hd = self.layout.pose(np.tile(self.route[rows], times), fine[:, rows].ravel())
+            slot = np.zeros(self.num_vehicles, _INT)
+            slot[rows] = np.arange(m)
+            off = (np.arange(times) * m)[:, None]  # check time s at offset s * m
+            si, sj = (slot[cand_i] + off).ravel(), (slot[cand_j] + off).ravel()
+            length, width = np.tile(self.length[rows], times), np.tile(self.width[rows], times)
+            overlap = _sat_overlap(pos, hd, length, width, si, sj).reshape(times, -1).any(axis=0)
+            if overlap.any():
+                hits.append(np.stack([cand_i[overlap], cand_j[overlap]], axis=1))
+        if not hits:
+            return np.zeros((0, 2), _INT)
+        return np.unique(np.concatenate(hits), axis=0)
 
     # ------------------------------------------------------------------ geometry
     def pose(self) -> tuple[np.ndarray, np.ndarray]:
@@ -385,6 +453,7 @@ class Simulation:
             width=self.width.copy(),
             s_ref=self.s_ref,
             arc=self.arc.copy(),
+            layout=lay,
         )
 
 
