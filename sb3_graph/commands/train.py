@@ -59,6 +59,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="KEY:VALUE",
         help="override entries of the experiment, as rl-zoo3 (values are read as YAML)",
     )
+    parser.add_argument(
+        "--init-weights",
+        default=None,
+        help="start from the network weights of a saved model .zip (fine-tuning; read as tensors only, "
+        "the architecture must match); recorded in run.json",
+    )
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (see benchmarks/)")
     parser.add_argument("--device", default="auto", help="torch device (auto, cpu, cuda)")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
@@ -156,6 +162,16 @@ def _make_checkpoint_callback(save_freq: int, folder: Path):
                 self.next_save = (self.num_timesteps // save_freq + 1) * save_freq
 
     return CompleteCheckpoint()
+
+
+def _load_weights(model, path: str) -> None:
+    # SB3's set_parameters reads only the zip's .pth files, with torch.load(weights_only=True).
+    if not Path(path).is_file():
+        raise UserError(f"--init-weights: no such file {path!r}")
+    try:
+        model.set_parameters(path, exact_match=True, device=model.device)
+    except Exception as error:  # a zip of another architecture, or not a model at all
+        raise UserError(f"--init-weights: cannot load the weights of {path!r}: {error}") from error
 
 
 def _import_packages(names: list[str]) -> None:
@@ -266,6 +282,9 @@ def run(args: argparse.Namespace) -> int:
             )
         except (TypeError, ValueError) as error:
             raise UserError(f"hyperparameters of {args.env!r}: {error}") from error
+        if args.init_weights:
+            _load_weights(model, args.init_weights)
+            record["init_weights"] = str(args.init_weights)
 
     eval_callback = EvalCallback(
         eval_env,
