@@ -123,7 +123,7 @@ def test_v_is_speed_over_lane_limit_and_observation_fits_space():
     assert space.contains(obs)
     x, edge_index, edge_type = space.decode(obs)
     np.testing.assert_allclose(x[:, 1], scene.speed / scene.speed_limit, rtol=1e-6)
-    assert x[0, 1] == pytest.approx(3.0 / 6.0)  # right-turn lane limit 6 m/s
+    assert x[0, 1] == pytest.approx(3.0 / np.sqrt(3.0 * 9.0))  # right turn: radius 9 m at 3 m/s^2 lateral
     np.testing.assert_allclose(x[:, 0], scene.s * DEFAULT_S_SCALE, rtol=1e-6)
     assert _edge_set(edge_index, edge_type) == {(0, 1, SAME_LANE)}
 
