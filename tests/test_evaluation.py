@@ -15,7 +15,10 @@ from envs.planners import FIFOPlanner, PriorityRulesPlanner
 from envs.report import FIGURES, REPORT_FILES, write_report
 from envs.scene import MAJOR, MINOR, STRAIGHT, Scene
 
-SUMMARY_KEYS = {"runs", "vehicles", "flow_rate", "stop_ratio", "collision_rate", "delay_s"}
+SUMMARY_KEYS = {
+    "runs", "vehicles", "vehicles_scheduled", "not_spawned", "flow_rate", "offered_flow", "stop_ratio",
+    "collision_rate", "delay_s", "speed_limit_violations",
+}  # fmt: skip
 
 
 class CrossingStub:
