@@ -164,7 +164,7 @@ def run_job(job: Job) -> tuple[dict[str, Any], pd.DataFrame]:
     """Run one job (in whichever process calls it).
 
     :param job: what to run
-    :return: ``(metrics row, vehicle log)``, both tagged with planner and scenario
+    :return: ``(metrics row, vehicle log)``, both tagged with planner, run and scenario
     """
     from envs.traffic import Scenario
 
@@ -184,6 +184,7 @@ def run_job(job: Job) -> tuple[dict[str, Any], pd.DataFrame]:
         wall_s=time.perf_counter() - tic,
     )
     vehicles.insert(0, "scenario", Path(job.scenario).name)
+    vehicles.insert(0, "run", job.index)
     vehicles.insert(0, "planner", job.name)
     return row, vehicles
 

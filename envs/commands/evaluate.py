@@ -34,6 +34,21 @@ DEFAULT_BASELINES = ("pr", "fifo")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    add_run_arguments(parser, scenarios=100, out="reports/synthetic-<date>-<time>")
+    parser.add_argument(
+        "--scenario-dir",
+        default=None,
+        help="read the scenario files (*.json) from this folder instead of generating --scenarios of them",
+    )
+
+
+def add_run_arguments(parser: argparse.ArgumentParser, scenarios: int, out: str) -> None:
+    """The arguments ``evaluate`` shares with ``sweep``.
+
+    :param parser: the command's parser
+    :param scenarios: default of ``--scenarios``
+    :param out: the default report folder, as shown in the help
+    """
     parser.add_argument("--env", default=DEFAULT_ENV, help=f"environment id (default: {DEFAULT_ENV})")
     parser.add_argument(
         "--planner",
@@ -43,7 +58,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="repeatable: 'pr' (priority rules), 'fifo', or a saved model .zip; default: pr, fifo "
         "and the GNN planner shipped in envs/pretrained/coop_4way/best_model.zip",
     )
-    parser.add_argument("--scenarios", type=int, default=100, help="scenarios to generate (default: 100)")
+    parser.add_argument(
+        "--scenarios", type=int, default=scenarios, help=f"scenarios to generate (default: {scenarios})"
+    )
     parser.add_argument(
         "--duration", type=float, default=100.0, help="simulated seconds per run (default: 100)"
     )
@@ -54,12 +71,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--out",
         default=None,
-        help="report folder, must not exist (default: a fresh reports/synthetic-<date>-<time>)",
-    )
-    parser.add_argument(
-        "--scenario-dir",
-        default=None,
-        help="read the scenario files (*.json) from this folder instead of generating --scenarios of them",
+        help=f"report folder, must not exist (default: a fresh {out})",
     )
     parser.add_argument(
         "--env-kwargs",
@@ -92,19 +104,19 @@ def _check(args: argparse.Namespace) -> list[tuple[str, str]]:
     if args.env not in gym.registry:
         known = sorted(k for k in gym.registry if k.startswith("Coop"))
         raise UserError(f"--env: unknown environment {args.env!r}; expected one of {known}")
-    if args.scenario_dir is not None and not Path(args.scenario_dir).is_dir():
+    if getattr(args, "scenario_dir", None) is not None and not Path(args.scenario_dir).is_dir():
         raise UserError(f"--scenario-dir: {args.scenario_dir!r} is not a folder")
     return planners
 
 
-def _out_folder(args: argparse.Namespace) -> Path:
-    """Create the report folder; an existing one is refused."""
+def _out_folder(args: argparse.Namespace, prefix: str = "synthetic") -> Path:
+    """Create the report folder (default ``reports/<prefix>-<date>-<time>``); an existing one is refused."""
     if args.out is None:
         stamp = time.strftime("%Y%m%d-%H%M%S")
-        out = Path("reports") / f"synthetic-{stamp}"
+        out = Path("reports") / f"{prefix}-{stamp}"
         k = 1
         while out.exists():
-            out = Path("reports") / f"synthetic-{stamp}-{k}"
+            out = Path("reports") / f"{prefix}-{stamp}-{k}"
             k += 1
     else:
         out = Path(args.out)
