@@ -129,7 +129,7 @@ def _out_folder(args: argparse.Namespace, prefix: str = "synthetic") -> Path:
 
 
 def run(args: argparse.Namespace) -> int:
-    from envs.evaluation import check_scenarios, evaluate, find_scenarios, generate_scenarios, layout_of
+    from envs.evaluation import check_scenarios, find_scenarios, generate_scenarios, layout_of
     from envs.report import format_number, write_report
 
     planners = _check(args)
@@ -150,16 +150,7 @@ def run(args: argparse.Namespace) -> int:
         source = f"generated into {out / 'scenarios'} (seed {args.seed} + index)"
     else:
         source = f"read from {args.scenario_dir}"
-    runs, vehicles = evaluate(
-        planners,
-        scenarios,
-        args.env,
-        args.duration,
-        seed=args.seed,
-        jobs=args.jobs,
-        env_kwargs=args.env_kwargs,
-        progress=not args.no_progress,
-    )
+    runs, vehicles = run_harness(args, planners, scenarios)
     wall = time.perf_counter() - tic
     meta = {
         "environment": args.env,
@@ -177,10 +168,34 @@ def run(args: argparse.Namespace) -> int:
         print(
             f"{name:>10}: flow median {format_number(f['median'])} veh/s,"
             f" stops major {format_number(sr['major'])} minor {format_number(sr['minor'])},"
-            f" collisions {format_number(s['collision_rate'])} ({s['vehicles']} vehicles)"
+            f" collisions {format_number(s['collision_rate'])}, delay mean {format_number(s['delay_s']['mean'], 2)} s,"
+            f" {s['speed_limit_violations']} speed-limit violations ({s['vehicles']} scheduled vehicles,"
+            f" {s['not_spawned']} never appeared)"
         )
     print(f"report written to {out} ({wall:.1f} s)")
     return 0
+
+
+def run_harness(args: argparse.Namespace, planners: Sequence[tuple[str, str]], scenarios: Sequence[Path]):
+    """Every planner on every scenario with the command's settings (:func:`envs.evaluation.evaluate`).
+
+    :param args: the parsed ``evaluate``/``sweep`` arguments
+    :param planners: ``(planner spec, report name)`` pairs
+    :param scenarios: scenario files
+    :return: ``(runs, vehicles)``
+    """
+    from envs.evaluation import evaluate
+
+    return evaluate(
+        planners,
+        scenarios,
+        args.env,
+        args.duration,
+        seed=args.seed,
+        jobs=args.jobs,
+        env_kwargs=args.env_kwargs,
+        progress=not args.no_progress,
+    )
 
 
 def checked_planners(words: Sequence[str] | None, reserved: Sequence[str] = ()) -> list[tuple[str, str]]:

@@ -23,7 +23,7 @@ import platform
 import time
 from collections.abc import Sequence
 
-from envs.commands.evaluate import _check, _out_folder, add_run_arguments
+from envs.commands.evaluate import _check, _out_folder, add_run_arguments, run_harness
 from sb3_graph.cli import UserError
 
 DEFAULT_DEMAND = (0.05, 0.1, 0.2, 0.3, 0.4)
@@ -60,7 +60,7 @@ def checked_demand(values: Sequence[float]) -> list[float]:
 
 def run(args: argparse.Namespace) -> int:
     from envs.comparison import paired_differences
-    from envs.evaluation import evaluate, generate_scenarios, layout_of
+    from envs.evaluation import generate_scenarios, layout_of
     from envs.report import write_report
     from envs.sweep import capacities, level_folder, write_sweep
 
@@ -79,16 +79,7 @@ def run(args: argparse.Namespace) -> int:
             out / level_folder(level) / "scenarios", args.scenarios, args.duration, args.seed, layout, demand=level
         )
     ]
-    runs, vehicles = evaluate(
-        planners,
-        scenarios,
-        args.env,
-        args.duration,
-        seed=args.seed,
-        jobs=args.jobs,
-        env_kwargs=args.env_kwargs,
-        progress=not args.no_progress,
-    )
+    runs, vehicles = run_harness(args, planners, scenarios)
     wall = time.perf_counter() - tic
     meta = {
         "environment": args.env,
