@@ -3,8 +3,9 @@
 Every planner runs the same scenarios, so the comparison is paired: per scenario, the planner's
 metric minus the baseline's on that scenario. The *strongest baseline* is the non-learned planner
 (``baseline`` column of ``metrics.csv``: its spec is a built-in word, not a model file) with the
-highest median flow rate. The 95 % interval of the mean difference is a percentile bootstrap over
-scenarios (resampled with replacement, :data:`RESAMPLES` times, seeded so a report repeats).
+highest median flow rate (on a tie, the lower mean delay). The 95 % interval of the mean
+difference is a percentile bootstrap over scenarios (resampled with replacement,
+:data:`RESAMPLES` times, seeded so a report repeats).
 """
 
 from __future__ import annotations
@@ -20,9 +21,12 @@ CONFIDENCE = 0.95
 
 
 def strongest_baseline(runs: pd.DataFrame) -> str | None:
-    """The non-learned planner with the highest median flow rate (first one on ties).
+    """The non-learned planner with the highest median flow rate.
 
-    :param runs: ``metrics.csv`` rows with ``planner``, ``flow_rate`` and ``baseline`` columns
+    Below every baseline's capacity the flows tie (each serves the whole demand): a tie goes to the
+    lower mean delay, then to the planner listed first.
+
+    :param runs: ``metrics.csv`` rows with ``planner``, ``flow_rate``, ``delay_mean`` and ``baseline`` columns
     :return: its report name, or ``None`` when no run is marked as a baseline
     """
     if "baseline" not in runs or runs.empty:
@@ -30,8 +34,9 @@ def strongest_baseline(runs: pd.DataFrame) -> str | None:
     base = runs[runs["baseline"].astype(bool)]
     if base.empty:
         return None
-    median = base.groupby("planner", sort=False)["flow_rate"].median()
-    return str(median.idxmax())
+    groups = base.groupby("planner", sort=False)
+    rank = pd.DataFrame({"flow": groups["flow_rate"].median(), "delay": -groups["delay_mean"].mean()})
+    return str(rank.fillna(-np.inf).sort_values(["flow", "delay"], ascending=False, kind="stable").index[0])
 
 
 def bootstrap_interval(

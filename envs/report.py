@@ -46,8 +46,8 @@ NOTES = (
     "rounding; travel time: crossed vehicles, from the scheduled appearance to the crossing.",
     f"- Speed-limit violations: vehicle-steps faster than the lane limit by more than {SPEED_TOLERANCE} m/s.",
     "- Paired differences: per scenario, planner minus the strongest baseline (the non-learned planner with "
-    f"the highest median flow); mean over scenarios with a {100 * CONFIDENCE:.0f} % percentile bootstrap "
-    "interval over scenarios.",
+    "the highest median flow, on a tie the lower mean delay); mean over scenarios with a "
+    f"{100 * CONFIDENCE:.0f} % percentile bootstrap interval over scenarios.",
     "- Collisions: the vehicles involved are counted and removed, and the run goes on to its end "
     "(`collision_handling=\"remove\"`); only a run made with `\"terminate\"` ends early, and its flow rate "
     "is then taken over the simulated time until the collision (`terminated` in `metrics.csv`).",

@@ -60,3 +60,10 @@ def test_bootstrap_interval_is_vectorized_over_columns():
     bounds = bootstrap_interval(d, np.random.default_rng(0), resamples=2000)
     assert bounds.shape == (2, 2)
     assert bounds[0, 0] < 4.5 < bounds[1, 0] and (bounds[:, 1] == 2.0).all()
+
+
+def test_a_flow_tie_goes_to_the_baseline_with_less_delay():
+    runs = _runs({"PR": [0.3, 0.3], "FIFO": [0.3, 0.3]}, {"PR": True, "FIFO": True})
+    runs.loc[runs["planner"] == "FIFO", "delay_mean"] = 1.0  # PR: 7 s
+    assert strongest_baseline(runs) == "FIFO"
+    assert strongest_baseline(runs.assign(delay_mean=np.nan)) == "PR"  # no delay known: the first listed
