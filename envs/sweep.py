@@ -86,6 +86,17 @@ def capacities(table: pd.DataFrame, fraction: float = SERVED_FRACTION) -> dict[s
     return out
 
 
+def capacity_text(capacity: float | None, top: float) -> str:
+    """A capacity for people: ``"0.2"``, ``">= 0.4"`` (every level served), ``"below the lowest level"``.
+
+    :param capacity: a :func:`capacities` value
+    :param top: the highest demand level of the sweep
+    """
+    if capacity is None:
+        return "below the lowest level"
+    return f">= {capacity:g}" if capacity >= top else f"{capacity:g}"
+
+
 def sweep_figure(table: pd.DataFrame, capacity: Mapping[str, float | None], path: Path) -> None:
     """Flow, mean delay and stop ratio against demand, one line per planner, capacities marked.
 
@@ -102,7 +113,7 @@ def sweep_figure(table: pd.DataFrame, capacity: Mapping[str, float | None], path
         rows = rows.sort_values("demand")
         color = colors[k % len(colors)]
         cap = capacity.get(str(planner))
-        label = f"{planner} (capacity {'< lowest level' if cap is None else f'{cap:g}'})"
+        label = f"{planner} (capacity {capacity_text(cap, table['demand'].max())})"
         for ax, (column, _) in zip(axes, panels):
             ax.plot(rows["demand"], rows[column].astype(float), "o-", color=color, label=label)
             if cap is not None:
@@ -141,8 +152,7 @@ def sweep_markdown(
     lines += ["of the offered flow; saturation flow: the highest flow it reaches in the sweep.", ""]
     lines += ["| planner | capacity [veh/s per major lane] | saturation flow [veh/s] |", "|---|---:|---:|"]
     for planner, rows in table.groupby("planner", sort=False):
-        cap = capacity.get(str(planner))
-        text = "below the lowest level" if cap is None else (f">= {cap:g}" if cap == top else f"{cap:g}")
+        text = capacity_text(capacity.get(str(planner)), top)
         lines.append(f"| {planner} | {text} | {format_number(rows['flow_rate'].astype(float).max())} |")
     lines += ["", "## Every level", "", "![sweep](sweep.png)", ""]
     columns = [*SWEEP_COLUMNS, "offered_flow"]

@@ -9,7 +9,7 @@ import pandas as pd
 import pytest
 
 from envs.report import REPORT_FILES
-from envs.sweep import capacities
+from envs.sweep import capacities, capacity_text
 from sb3_graph.cli import main
 
 TINY = ["--scenarios", "1", "--duration", "10", "--seed", "2", "--jobs", "1", "--no-progress"]
@@ -76,3 +76,4 @@ def test_capacity_is_the_last_level_before_flow_falls_short_of_the_offered_flow(
     # A serves 0.1 and 0.2 (0.58 >= 0.9 * 0.6), not 0.3 (and 0.4 after a shortfall does not count);
     # B serves every level; C falls short at the lowest one
     assert capacities(table) == {"A": 0.2, "B": 0.4, "C": None}
+    assert [capacity_text(c, 0.4) for c in (0.2, 0.4, None)] == ["0.2", ">= 0.4", "below the lowest level"]

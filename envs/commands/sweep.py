@@ -62,7 +62,7 @@ def run(args: argparse.Namespace) -> int:
     from envs.comparison import paired_differences
     from envs.evaluation import generate_scenarios, layout_of
     from envs.report import write_report
-    from envs.sweep import capacities, level_folder, write_sweep
+    from envs.sweep import capacities, capacity_text, level_folder, write_sweep
 
     demand = checked_demand(args.demand)
     planners = _check(args)
@@ -104,8 +104,8 @@ def run(args: argparse.Namespace) -> int:
         levels.append((level, summary, paired_differences(level_runs)))
     table = write_sweep(out, levels, meta)
     for planner, cap in capacities(table).items():
-        text = "below the lowest level" if cap is None else f"{cap:g} veh/s per major-road lane"
-        top = table.loc[table["planner"] == planner, "flow_rate"].max()
-        print(f"{planner:>10}: capacity {text}, highest flow {top:.3f} veh/s")
+        flow = table.loc[table["planner"] == planner, "flow_rate"].max()
+        text = capacity_text(cap, demand[-1]) + ("" if cap is None else " veh/s per major-road lane")
+        print(f"{planner:>10}: capacity {text}, highest flow {flow:.3f} veh/s")
     print(f"sweep written to {out} ({wall:.1f} s)")
     return 0
