@@ -93,6 +93,7 @@ class VehicleLog:
     def __init__(self, layout: Layout | None = None) -> None:
         self.layout = layout
         self._rows: dict[int, dict[str, Any]] = {}
+        self._seen = np.zeros(0, np.int64)  # ids already registered from a scene
         # Per scene: ids, centre arc lengths, speeding flags (reduced in frame(), not per vehicle).
         self._trace: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         self._stopped: list[np.ndarray] = []
@@ -119,12 +120,9 @@ class VehicleLog:
         if not self._trace:
             self._bounds = (float(scene.a_max), float(-scene.a_min))
         arc = scene.arc if scene.arc is not None else np.full(len(ids), np.nan)
-        new = [
-            k
-            for k, vid in enumerate(ids.tolist())
-            if vid not in self._rows or self._rows[vid]["route_index"] < 0 or np.isnan(self._rows[vid]["first_seen"])
-        ]
-        for k in new:  # once per vehicle, not per step
+        new = np.flatnonzero(~np.isin(ids, self._seen))
+        self._seen = np.concatenate([self._seen, ids[new]])
+        for k in new.tolist():  # once per vehicle, not per step
             row = self._row(int(ids[k]))
             row.update(
                 route=scene.route_names[int(scene.route[k])],
@@ -298,6 +296,22 @@ def add_travel_times(vehicles: pd.DataFrame) -> pd.DataFrame:
     return out
 
 
+def schedule_counts(vehicles: pd.DataFrame) -> dict[str, int]:
+    """``vehicles_scheduled`` (rows with a scheduled time) and ``not_spawned`` (rows that never appeared).
+
+    :param vehicles: a vehicle log
+    """
+    return {
+        "vehicles_scheduled": int(_column(vehicles, "scheduled").notna().sum()),
+        "not_spawned": int((~_column(vehicles, "spawned", True).astype(bool)).sum()),
+    }
+
+
+def violations(vehicles: pd.DataFrame) -> int:
+    """Speed-limit violations of a vehicle log [vehicle-steps]."""
+    return int(_column(vehicles, "speed_violations", 0).sum())
+
+
 def offered_count(vehicles: pd.DataFrame, duration: float) -> float:
     """Scheduled vehicles that would cross within ``duration`` in free flow (NaN without references).
 
@@ -346,8 +360,7 @@ def run_metrics(vehicles: pd.DataFrame, duration: float) -> dict[str, float | in
     row: dict[str, float | int] = {
         "duration_s": float(duration),
         "vehicles": len(vehicles),
-        "vehicles_scheduled": int(_column(vehicles, "scheduled").notna().sum()),
-        "not_spawned": int((~_column(vehicles, "spawned", True).astype(bool)).sum()),
+        **schedule_counts(vehicles),
         "crossed": crossed,
         "flow_rate": crossed / duration,
         "offered_flow": offered_count(vehicles, duration) / duration,
@@ -364,7 +377,7 @@ def run_metrics(vehicles: pd.DataFrame, duration: float) -> dict[str, float | in
     row["delay_median"] = float(delays.median()) if len(delays) else float("nan")
     travel = timed["travel_time"].dropna()
     row["travel_time_mean"] = float(travel.mean()) if len(travel) else float("nan")
-    row["speed_limit_violations"] = int(_column(vehicles, "speed_violations", 0).sum())
+    row["speed_limit_violations"] = violations(vehicles)
     return row
 
 
@@ -391,8 +404,7 @@ def summarize(runs: pd.DataFrame, vehicles: pd.DataFrame) -> dict[str, dict[str,
         summary[str(planner)] = {
             "runs": len(r),
             "vehicles": len(v),
-            "vehicles_scheduled": int(_column(v, "scheduled").notna().sum()),
-            "not_spawned": int((~_column(v, "spawned", True).astype(bool)).sum()),
+            **schedule_counts(v),
             "flow_rate": {
                 "median": _finite(flow.median()),
                 "q1": _finite(flow.quantile(0.25)),
@@ -406,7 +418,7 @@ def summarize(runs: pd.DataFrame, vehicles: pd.DataFrame) -> dict[str, dict[str,
                 "median": _finite(delays.median()) if len(delays) else None,
                 "mean": _finite(delays.mean()) if len(delays) else None,
             },
-            "speed_limit_violations": int(_column(v, "speed_violations", 0).sum()),
+            "speed_limit_violations": violations(v),
         }
     return summary
 
