@@ -42,12 +42,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def add_run_arguments(parser: argparse.ArgumentParser, scenarios: int, out: str) -> None:
+def add_run_arguments(parser: argparse.ArgumentParser, scenarios: int, out: str, per: str = "") -> None:
     """The arguments ``evaluate`` shares with ``sweep``.
 
     :param parser: the command's parser
     :param scenarios: default of ``--scenarios``
     :param out: the default report folder, as shown in the help
+    :param per: what ``--scenarios`` counts per, in its help (e.g. ``" per demand level"``)
     """
     parser.add_argument("--env", default=DEFAULT_ENV, help=f"environment id (default: {DEFAULT_ENV})")
     parser.add_argument(
@@ -59,7 +60,7 @@ def add_run_arguments(parser: argparse.ArgumentParser, scenarios: int, out: str)
         "and the GNN planner shipped in envs/pretrained/coop_4way/best_model.zip",
     )
     parser.add_argument(
-        "--scenarios", type=int, default=scenarios, help=f"scenarios to generate (default: {scenarios})"
+        "--scenarios", type=int, default=scenarios, help=f"scenarios to generate{per} (default: {scenarios})"
     )
     parser.add_argument(
         "--duration", type=float, default=100.0, help="simulated seconds per run (default: 100)"

@@ -30,7 +30,7 @@ DEFAULT_DEMAND = (0.05, 0.1, 0.2, 0.3, 0.4)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    add_run_arguments(parser, scenarios=20, out="reports/sweep-<date>-<time>")
+    add_run_arguments(parser, scenarios=20, out="reports/sweep-<date>-<time>", per=" per demand level")
     parser.add_argument(
         "--demand",
         type=float,
