@@ -122,14 +122,15 @@ def run_episode(
     :param scenario: the scenario object, passed as ``reset(options={"scenario": scenario})``
     :param duration: simulated seconds to run (less if the environment ends the episode)
     :param seed: seed of the environment's reset and of the planner
-    :return: ``(vehicle log, facts)`` with facts ``duration`` (simulated seconds actually run),
+    :return: ``(vehicle log, facts)``: the log holds every vehicle scheduled within the run (see
+        :mod:`envs.metrics`); facts ``duration`` (simulated seconds actually run),
         ``steps``, ``terminated`` (the environment ended the episode, e.g. on a collision with
         ``collision_handling="terminate"``; the harness's own environments go on instead)
     """
     base = env.unwrapped
     _, info = env.reset(seed=seed, options={"scenario": scenario})
     planner.reset(seed)
-    log = VehicleLog()
+    log = VehicleLog(layout=getattr(base, "layout", None))
     log.record(info)
     scene = base.scene()
     start = float(scene.time)
@@ -144,18 +145,26 @@ def run_episode(
         steps += 1
         scene = base.scene()
         now = float(info.get("time", scene.time))
-    if not (terminated or truncated):
-        log.observe(scene)
+    log.finish(scene)
     facts = {"duration": now - start, "steps": steps, "terminated": bool(terminated)}
     facts["waiting_at_end"] = int(info.get("waiting", 0)) if steps else 0
-    return log.frame(), facts
+    return log.frame(schedule=_schedule(scenario), end=now), facts
+
+
+def _schedule(scenario: Any):
+    """The :class:`envs.traffic.Scenario` behind a ``reset`` option (``None`` for none)."""
+    from envs.traffic import Scenario
+
+    if isinstance(scenario, (str, Path)):
+        return Scenario.load(scenario)
+    return scenario if isinstance(scenario, Scenario) else None
 
 
 def run_job(job: Job) -> tuple[dict[str, Any], pd.DataFrame]:
     """Run one job (in whichever process calls it).
 
     :param job: what to run
-    :return: ``(metrics row, vehicle log)``, both tagged with planner and scenario
+    :return: ``(metrics row, vehicle log)``, both tagged with planner, run and scenario
     """
     from envs.traffic import Scenario
 
@@ -168,17 +177,28 @@ def run_job(job: Job) -> tuple[dict[str, Any], pd.DataFrame]:
     row: dict[str, Any] = {"planner": job.name, "run": job.index, "scenario": Path(job.scenario).name}
     row.update(run_metrics(vehicles, duration))
     row.update(
+        baseline=is_baseline(job.planner),
         steps=facts["steps"],
         terminated=facts["terminated"],
         waiting_at_end=facts["waiting_at_end"],
         wall_s=time.perf_counter() - tic,
     )
     vehicles.insert(0, "scenario", Path(job.scenario).name)
+    vehicles.insert(0, "run", job.index)
     vehicles.insert(0, "planner", job.name)
     return row, vehicles
 
 
-def generate_scenarios(folder: str | Path, count: int, duration: float, seed: int, layout: str) -> list[Path]:
+def is_baseline(spec: str) -> bool:
+    """Whether a planner spec is a built-in (non-learned) planner word rather than a model file."""
+    from envs.planners import BASELINES
+
+    return str(spec).strip().lower() in BASELINES
+
+
+def generate_scenarios(
+    folder: str | Path, count: int, duration: float, seed: int, layout: str, demand: float | None = None
+) -> list[Path]:
     """Generate ``count`` scenario files ``scenario_000.json``... into ``folder``.
 
     Scenario ``i`` is drawn with seed ``seed + i``, so the same arguments give the same files.
@@ -188,9 +208,11 @@ def generate_scenarios(folder: str | Path, count: int, duration: float, seed: in
     :param duration: seconds of traffic in each
     :param seed: base seed
     :param layout: name of the intersection layout (see :func:`layout_of`)
+    :param demand: arrival rate per major-road lane [veh/s] (minor lanes get half); default: a
+        rate drawn per scenario from the paper's range (:func:`envs.traffic.generate_scenario`)
     :return: the files, in order
     """
-    from envs.traffic import generate_scenario
+    from envs.traffic import demand_scenario, generate_scenario
 
     if count < 1:
         raise ValueError(f"count (--scenarios) must be at least 1, got {count}")
@@ -204,7 +226,10 @@ def generate_scenarios(folder: str | Path, count: int, duration: float, seed: in
         path = folder / f"scenario_{i:0{width}d}{SCENARIO_SUFFIX}"
         if path.exists():
             raise FileExistsError(f"{path} exists: scenario files are never overwritten")
-        generate_scenario(layout, duration, seed + i).save(path)
+        if demand is None:
+            generate_scenario(layout, duration, seed + i).save(path)
+        else:
+            demand_scenario(layout, duration, seed + i, demand).save(path)
         paths.append(path)
     return paths
 

@@ -1,80 +1,128 @@
 """Traffic metrics of a run: flow rate, stop ratios, collision rate, delay and travel time.
 
 A run's vehicles are collected into a *vehicle log* (one row per vehicle, :data:`VEHICLE_COLUMNS`)
-from the environment's step ``info`` (see :mod:`envs.scene`) and the scenes the planner saw.
+from the environment's step ``info`` (see :mod:`envs.scene`), the scenes the planner saw and the
+scenario's schedule.
 
-Which vehicles count (the same rule for every planner):
+Which vehicles count: **every scheduled vehicle**, the same set for every planner. A vehicle of
+the scenario whose scheduled appearance time falls within the run is in the log even if it never
+entered the scene (its lane was jammed back to the spawn point; ``spawned`` is False): it counts
+in every denominator, as stopped, with the delay it has accumulated (below). So a planner cannot
+look better by keeping vehicles out of the scene.
 
-- **stop ratio** and **collision rate**: every vehicle that was in the scene at some point of
-  the run, including those still approaching when the run ends (a queue that never cleared is
-  exactly what the stop ratio must show);
-- **flow rate**: vehicles that crossed the intersection (left its area, ``info["crossed"]``)
-  during the run, divided by the simulated duration of the run;
-- **travel time** and **delay**: vehicles that crossed during the run. Travel time runs from the
-  first scene the vehicle appears in to the step in which its centre left the intersection
-  area; its free-flow time is the distance its centre drove in that interval at the speed limit
-  of the lane it was first seen on. Delay = travel time - free-flow time.
+- **stop ratio** and **collision rate**: over all scheduled vehicles (including those still
+  approaching, or still waiting to appear, when the run ends);
+- **flow rate** (the paper's): vehicles of that set that crossed the intersection (their centre
+  left its area, ``info["crossed"]``) during the run, divided by the simulated duration.
+  ``offered_flow`` is the flow a perfect planner could reach on the same scenario: the scheduled
+  vehicles that would cross before the end of the run in free flow, per simulated second;
+- **delay**: from the *scheduled* appearance time (not the first appearance), against the
+  free-flow time of :mod:`envs.free_flow` (lane speed limits along the route, the environment's
+  acceleration bounds, from the scheduled initial speed at the spawn point). For a vehicle that
+  crossed: ``crossed - scheduled - free_flow``. A vehicle that had not crossed when its record
+  ended (end of the run, or removal after a collision: ``censored``) gets the delay it has
+  accumulated so far, ``censored - scheduled - free_flow_covered``, where ``free_flow_covered``
+  is the free-flow time of the distance it did cover (0 for a vehicle that never appeared, whose
+  delay is then the time from its scheduled appearance to the end of the run). That is a lower
+  bound of the delay it will have when it crosses, so saturated planners are, if anything,
+  flattered; never rewarded for a queue.
+- **travel time**: vehicles that crossed, from the scheduled appearance to the crossing.
+- **speed-limit violations**: vehicle-steps (scenes the planner answered) in which a vehicle
+  drove faster than its lane's limit by more than :data:`SPEED_TOLERANCE`.
+
+The environment appears vehicles and reports crossings at policy steps (0.2 s by default), so a
+delay includes up to one step of appearance and one of crossing quantization, the same for
+every planner. Logs without a schedule or a layout (hand-built scenes, recorded drivers) fall
+back to the first appearance and to ``path_length / speed_limit`` for the free-flow time, and
+have delays for crossed vehicles only.
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pandas as pd
 
-from envs.scene import MANEUVERS, PRIORITY_NAMES, Scene
+from envs.scene import MANEUVERS, PRIORITY_NAMES, STOP_SPEED, Scene
+
+if TYPE_CHECKING:
+    from envs.layouts import Layout
+    from envs.traffic import Scenario
 
 VEHICLE_COLUMNS = (
     "vehicle_id",
     "route",
     "priority",
     "maneuver",
+    "scheduled",
+    "spawned",
     "first_seen",
     "path_length",
     "speed_limit",
     "crossed",
     "removed",
+    "censored",
+    "free_flow",
+    "free_flow_covered",
     "stopped",
     "collided",
+    "speed_violations",
 )
 PRIORITIES = ("major", "minor")
 STOP_GROUPS = ("all",) + PRIORITIES + tuple(MANEUVERS)
+# A vehicle faster than its lane's limit by more than this [m/s] violates it (issue 11).
+SPEED_TOLERANCE = 0.1
+_FLOAT_COLUMNS = (
+    "scheduled", "first_seen", "path_length", "speed_limit", "crossed", "removed", "censored",
+    "free_flow", "free_flow_covered",
+)  # fmt: skip
 
 
 class VehicleLog:
     """Collects one run's per-vehicle facts, step by step.
 
-    Call :meth:`observe` with every scene the planner sees and :meth:`record` with every step
-    ``info``; :meth:`frame` returns the vehicle log.
+    Call :meth:`observe` with every scene the planner sees, :meth:`record` with every step
+    ``info`` and :meth:`finish` with the last scene; :meth:`frame` returns the vehicle log.
+
+    :param layout: the intersection (needed for free-flow times and unspawned vehicles; without
+        it the log falls back as described in the module docstring)
     """
 
-    def __init__(self) -> None:
+    def __init__(self, layout: Layout | None = None) -> None:
+        self.layout = layout
         self._rows: dict[int, dict[str, Any]] = {}
+        self._seen = np.zeros(0, np.int64)  # ids already registered from a scene
+        # Per scene: ids, centre arc lengths, speeding flags (reduced in frame(), not per vehicle).
+        self._trace: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+        self._stopped: list[np.ndarray] = []
+        self._bounds = (5.0, 5.0)  # acceleration, deceleration of the free-flow reference
 
     def _row(self, vid: int) -> dict[str, Any]:
         row = self._rows.get(vid)
         if row is None:
             row = dict.fromkeys(VEHICLE_COLUMNS, np.nan)
-            row.update(vehicle_id=vid, route="", priority="", maneuver="", stopped=False, collided=False)
+            row.update(
+                vehicle_id=vid, route="", priority="", maneuver="", spawned=True, stopped=False, collided=False,
+                speed_violations=0, route_index=-1, start_arc=np.nan, start_speed=np.nan,
+            )  # fmt: skip
             self._rows[vid] = row
         return row
 
-    def observe(self, scene: Scene) -> None:
+    def observe(self, scene: Scene, count: bool = True) -> None:
         """Register the vehicles of a scene (their static facts are taken the first time).
 
         :param scene: the vehicles now
+        :param count: count stops and speed-limit violations in this scene (a scene the planner answers)
         """
         ids = scene.vehicle_id
-        new = [
-            k
-            for k, vid in enumerate(ids.tolist())
-            if vid not in self._rows
-            or self._rows[vid]["route"] == ""
-            or np.isnan(self._rows[vid]["first_seen"])
-        ]
-        for k in new:  # once per vehicle, not per step
+        if not self._trace:
+            self._bounds = (float(scene.a_max), float(-scene.a_min))
+        arc = scene.arc if scene.arc is not None else np.full(len(ids), np.nan)
+        new = np.flatnonzero(~np.isin(ids, self._seen))
+        self._seen = np.concatenate([self._seen, ids[new]])
+        for k in new.tolist():  # once per vehicle, not per step
             row = self._row(int(ids[k]))
             row.update(
                 route=scene.route_names[int(scene.route[k])],
@@ -84,11 +132,22 @@ class VehicleLog:
                 # the centre crosses the exit (info "crossed"); dist_to_exit is from the rear
                 path_length=float(max(scene.dist_to_exit[k] - 0.5 * scene.length[k], 0.0)),
                 speed_limit=float(scene.speed_limit[k]),
+                route_index=int(scene.route[k]),
+                start_arc=float(arc[k]),
+                start_speed=float(scene.speed[k]),
             )
-        if len(ids):
-            stopped_now = scene.speed < _stop_speed()
-            for vid in ids[stopped_now].tolist():
-                self._rows[int(vid)]["stopped"] = True
+        speeding = np.zeros(len(ids), bool)
+        if count and len(ids):
+            self._stopped.append(ids[scene.speed < STOP_SPEED])
+            speeding = scene.speed > scene.speed_limit + SPEED_TOLERANCE
+        self._trace.append((ids.copy(), np.asarray(arc, float).copy(), speeding))
+
+    def finish(self, scene: Scene) -> None:
+        """Register the last scene of the run: positions and new vehicles, no stops or violations.
+
+        :param scene: the vehicles at the end of the run
+        """
+        self.observe(scene, count=False)
 
     def record(self, info: Mapping[str, Any]) -> None:
         """Register the events of one environment step.
@@ -117,15 +176,82 @@ class VehicleLog:
         for vid in collisions.tolist():
             self._row(int(vid))["collided"] = True
 
-    def frame(self) -> pd.DataFrame:
-        """The vehicle log: one row per vehicle, columns :data:`VEHICLE_COLUMNS`."""
-        return vehicle_frame(self._rows.values())
+    def frame(self, schedule: Scenario | None = None, end: float | None = None) -> pd.DataFrame:
+        """The vehicle log: one row per vehicle, columns :data:`VEHICLE_COLUMNS`.
 
+        :param schedule: the scenario the run replayed: adds the scheduled times, and a row for
+            every vehicle scheduled up to ``end`` that never appeared
+        :param end: simulated time at which the run ended [s] (censors the vehicles that did not cross)
+        :return: the vehicle log
+        """
+        rows = pd.DataFrame(list(self._rows.values()))
+        if rows.empty:
+            rows = pd.DataFrame(columns=[*VEHICLE_COLUMNS, "route_index", "start_arc", "start_speed"])
+        rows = rows.astype({"route_index": np.int64, "start_arc": float, "start_speed": float})
+        ids = rows["vehicle_id"].to_numpy(np.int64)
+        rows["end_arc"] = np.nan
+        if self._trace:
+            seen = np.concatenate([t[0] for t in self._trace])
+            arcs = np.concatenate([t[1] for t in self._trace])
+            speeding = np.concatenate([t[2] for t in self._trace])
+            stopped = np.concatenate(self._stopped) if self._stopped else np.zeros(0, np.int64)
+            rows["stopped"] = rows["stopped"].astype(bool) | np.isin(ids, stopped)
+            fast, counts = np.unique(seen[speeding], return_counts=True)
+            rows["speed_violations"] = pd.Series(counts, index=fast).reindex(ids, fill_value=0).to_numpy()
+            last, where = np.unique(seen[::-1], return_index=True)  # the last scene of each vehicle
+            rows["end_arc"] = pd.Series(arcs[::-1][where], index=last).reindex(ids).to_numpy()
+        if schedule is not None and end is not None and self.layout is not None:
+            rows = self._add_schedule(rows, schedule, float(end))
+        return self._reference(rows, end)
 
-def _stop_speed() -> float:
-    from envs.scene import STOP_SPEED
+    def _add_schedule(self, rows: pd.DataFrame, schedule: Scenario, end: float) -> pd.DataFrame:
+        """Scheduled times for every row, and rows for the vehicles due by ``end`` that never appeared."""
+        lay = self.layout
+        times = pd.Series(schedule.time, index=schedule.vehicle_id)
+        rows["scheduled"] = rows["vehicle_id"].map(times).astype(float)
+        missing = (schedule.time <= end + 1e-9) & ~np.isin(schedule.vehicle_id, rows["vehicle_id"].to_numpy())
+        if not missing.any():
+            return rows
+        names, inverse = np.unique(np.asarray(schedule.route)[missing], return_inverse=True)
+        route = np.array([lay.route_id(n) for n in names], np.int64)[inverse]  # a loop over route names
+        start = schedule.length[missing] / 2  # where the simulation places a new vehicle's centre
+        waiting = pd.DataFrame(
+            {
+                "vehicle_id": schedule.vehicle_id[missing],
+                "route": np.asarray(lay.route_names, dtype=object)[route],
+                "priority": np.asarray(PRIORITY_NAMES, dtype=object)[lay.priority[route]],
+                "maneuver": np.asarray(MANEUVERS, dtype=object)[lay.maneuver[route]],
+                "scheduled": schedule.time[missing],
+                "spawned": False,
+                "stopped": True,  # it stands at (behind) the spawn point
+                "collided": False,
+                "speed_violations": 0,
+                "route_index": route,
+                "start_arc": start,
+                "start_speed": schedule.speed[missing],
+                "end_arc": start,
+            }
+        )
+        return pd.concat([rows, waiting], ignore_index=True)
 
-    return STOP_SPEED
+    def _reference(self, rows: pd.DataFrame, end: float | None) -> pd.DataFrame:
+        """Add ``censored``, ``free_flow`` and ``free_flow_covered``; return the vehicle log."""
+        not_crossed = rows["crossed"].isna()
+        if end is not None:
+            rows["censored"] = np.where(not_crossed, rows["removed"].fillna(float(end)), np.nan)
+        known = (rows["route_index"] >= 0) & rows["start_arc"].notna() & rows["start_speed"].notna()
+        if self.layout is not None and known.any():
+            from envs.free_flow import free_flow_table, time_at
+
+            lay, sub = self.layout, rows[known]
+            route = sub["route_index"].to_numpy(np.int64)
+            start = sub["start_arc"].to_numpy(float)
+            table = free_flow_table(lay, route, start, sub["start_speed"].to_numpy(float), *self._bounds)
+            to_exit = time_at(table, lay.exit_arc[route] - start, lay.ds)
+            covered = time_at(table, sub["end_arc"].to_numpy(float) - start, lay.ds)
+            rows.loc[known, "free_flow"] = to_exit
+            rows.loc[known, "free_flow_covered"] = np.where(sub["crossed"].notna(), to_exit, covered)
+        return vehicle_frame(rows.to_dict("records"))
 
 
 def vehicle_frame(rows: Iterable[Mapping[str, Any]]) -> pd.DataFrame:
@@ -135,27 +261,68 @@ def vehicle_frame(rows: Iterable[Mapping[str, Any]]) -> pd.DataFrame:
     :return: the vehicle log with proper dtypes
     """
     frame = pd.DataFrame(list(rows), columns=list(VEHICLE_COLUMNS))
-    for column in ("first_seen", "path_length", "speed_limit", "crossed", "removed"):
+    for column in _FLOAT_COLUMNS:
         frame[column] = frame[column].astype(float)
     for column in ("stopped", "collided"):
         frame[column] = frame[column].fillna(False).astype(bool)
+    frame["spawned"] = frame["spawned"].fillna(True).astype(bool)
+    frame["speed_violations"] = frame["speed_violations"].fillna(0).astype(np.int64)
     frame["vehicle_id"] = frame["vehicle_id"].astype(np.int64)
     return frame
 
 
+def _column(vehicles: pd.DataFrame, name: str, default: Any = np.nan) -> pd.Series:
+    """A column of a vehicle log, or ``default`` for logs written before it existed."""
+    if name in vehicles:
+        return vehicles[name]
+    return pd.Series(default, index=vehicles.index)
+
+
 def add_travel_times(vehicles: pd.DataFrame) -> pd.DataFrame:
-    """Add ``travel_time`` and ``delay`` columns [s] (NaN for vehicles that did not cross).
+    """Add ``travel_time`` (crossed vehicles) and ``delay`` (every vehicle with a reference) [s].
 
     :param vehicles: a vehicle log
-    :return: a copy with the two columns
+    :return: a copy with the two columns (definitions in the module docstring)
     """
     out = vehicles.copy()
-    crossed = out["crossed"].notna() & out["first_seen"].notna()
-    travel = np.where(crossed, out["crossed"] - out["first_seen"], np.nan)
-    free = out["path_length"] / out["speed_limit"].where(out["speed_limit"] > 0)
-    out["travel_time"] = travel
-    out["delay"] = np.where(crossed, travel - free, np.nan)
+    start = _column(out, "scheduled").astype(float).fillna(out["first_seen"])
+    crossed = out["crossed"].notna()
+    fallback = out["path_length"] / out["speed_limit"].where(out["speed_limit"] > 0)
+    free = _column(out, "free_flow").astype(float).fillna(fallback)
+    covered = np.where(crossed, free, _column(out, "free_flow_covered").astype(float))
+    finish = out["crossed"].fillna(_column(out, "censored").astype(float))
+    out["travel_time"] = np.where(crossed, out["crossed"] - start, np.nan)
+    out["delay"] = finish - start - covered
     return out
+
+
+def schedule_counts(vehicles: pd.DataFrame) -> dict[str, int]:
+    """``vehicles_scheduled`` (rows with a scheduled time) and ``not_spawned`` (rows that never appeared).
+
+    :param vehicles: a vehicle log
+    """
+    return {
+        "vehicles_scheduled": int(_column(vehicles, "scheduled").notna().sum()),
+        "not_spawned": int((~_column(vehicles, "spawned", True).astype(bool)).sum()),
+    }
+
+
+def violations(vehicles: pd.DataFrame) -> int:
+    """Speed-limit violations of a vehicle log [vehicle-steps]."""
+    return int(_column(vehicles, "speed_violations", 0).sum())
+
+
+def offered_count(vehicles: pd.DataFrame, duration: float) -> float:
+    """Scheduled vehicles that would cross within ``duration`` in free flow (NaN without references).
+
+    :param vehicles: a vehicle log of one run that started at time 0
+    :param duration: simulated duration of the run [s]
+    """
+    free = _column(vehicles, "free_flow").astype(float)
+    if free.isna().all():
+        return float("nan")
+    start = _column(vehicles, "scheduled").astype(float).fillna(vehicles["first_seen"])
+    return float(((start + free) <= duration + 1e-9).sum())
 
 
 def stop_counts(vehicles: pd.DataFrame) -> dict[str, tuple[int, int]]:
@@ -181,9 +348,10 @@ def run_metrics(vehicles: pd.DataFrame, duration: float) -> dict[str, float | in
 
     :param vehicles: the run's vehicle log
     :param duration: simulated duration of the run [s]
-    :return: ``duration_s, vehicles, crossed, flow_rate`` [veh/s], ``stop_ratio_<group>`` and
-        ``vehicles_<group>`` for every group of :data:`STOP_GROUPS`, ``collided``,
-        ``collision_rate``, ``delay_mean``, ``delay_median``, ``travel_time_mean`` [s]
+    :return: ``duration_s, vehicles, vehicles_scheduled, not_spawned, crossed, flow_rate`` [veh/s],
+        ``offered_flow`` [veh/s], ``stop_ratio_<group>`` and ``vehicles_<group>`` for every group of
+        :data:`STOP_GROUPS`, ``collided``, ``collision_rate``, ``delay_mean``, ``delay_median``,
+        ``travel_time_mean`` [s], ``speed_limit_violations`` [vehicle-steps]
     """
     if duration <= 0:
         raise ValueError(f"duration must be positive, got {duration}")
@@ -192,8 +360,10 @@ def run_metrics(vehicles: pd.DataFrame, duration: float) -> dict[str, float | in
     row: dict[str, float | int] = {
         "duration_s": float(duration),
         "vehicles": len(vehicles),
+        **schedule_counts(vehicles),
         "crossed": crossed,
         "flow_rate": crossed / duration,
+        "offered_flow": offered_count(vehicles, duration) / duration,
     }
     for group, (total, stopped) in stop_counts(vehicles).items():
         row[f"vehicles_{group}"] = total
@@ -207,6 +377,7 @@ def run_metrics(vehicles: pd.DataFrame, duration: float) -> dict[str, float | in
     row["delay_median"] = float(delays.median()) if len(delays) else float("nan")
     travel = timed["travel_time"].dropna()
     row["travel_time_mean"] = float(travel.mean()) if len(travel) else float("nan")
+    row["speed_limit_violations"] = violations(vehicles)
     return row
 
 
@@ -218,9 +389,10 @@ def summarize(runs: pd.DataFrame, vehicles: pd.DataFrame) -> dict[str, dict[str,
 
     :param runs: ``metrics.csv`` rows with a ``planner`` column
     :param vehicles: all vehicle logs with a ``planner`` column
-    :return: ``planner -> {"runs", "vehicles", "flow_rate": {median, q1, q3, mean},
-        "stop_ratio": {all, major, minor, left, straight, right}, "collision_rate",
-        "delay_s": {median, mean}}``
+    :return: ``planner -> {"runs", "vehicles", "vehicles_scheduled", "not_spawned",
+        "flow_rate": {median, q1, q3, mean}, "offered_flow" (mean over runs), "stop_ratio": {all, major,
+        minor, left, straight, right}, "collision_rate", "delay_s": {median, mean},
+        "speed_limit_violations"}``
     """
     summary: dict[str, dict[str, Any]] = {}
     for planner in pd.unique(runs["planner"]):
@@ -232,18 +404,21 @@ def summarize(runs: pd.DataFrame, vehicles: pd.DataFrame) -> dict[str, dict[str,
         summary[str(planner)] = {
             "runs": len(r),
             "vehicles": len(v),
+            **schedule_counts(v),
             "flow_rate": {
                 "median": _finite(flow.median()),
                 "q1": _finite(flow.quantile(0.25)),
                 "q3": _finite(flow.quantile(0.75)),
                 "mean": _finite(flow.mean()),
             },
+            "offered_flow": _finite(_column(r, "offered_flow").astype(float).mean()),
             "stop_ratio": {group: _finite(_ratio(s, t)) for group, (t, s) in counts.items()},
             "collision_rate": _finite(_ratio(int(v["collided"].sum()), len(v))) if len(v) else 0.0,
             "delay_s": {
                 "median": _finite(delays.median()) if len(delays) else None,
                 "mean": _finite(delays.mean()) if len(delays) else None,
             },
+            "speed_limit_violations": violations(v),
         }
     return summary
 

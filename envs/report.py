@@ -8,7 +8,9 @@ Files written into the report folder:
 - ``report.md``: the tables;
 - ``flow_rate.png``: flow-rate distribution per planner (box plot, paper Fig. "flow rate");
 - ``stops_by_priority.png``: vehicles from the major and minor road and the share that stopped;
-- ``stops_by_maneuver.png``: the same by maneuver.
+- ``stops_by_maneuver.png``: the same by maneuver;
+- ``paired.csv``: per-scenario differences of every planner against the strongest baseline, with
+  bootstrap 95 % intervals (:mod:`envs.comparison`; no rows when no planner is a baseline).
 """
 
 from __future__ import annotations
@@ -25,23 +27,33 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
-from envs.metrics import PRIORITIES, stop_counts, summarize  # noqa: E402
+from envs.comparison import CONFIDENCE, PAIRED_METRICS, paired_differences  # noqa: E402
+from envs.metrics import PRIORITIES, SPEED_TOLERANCE, stop_counts, summarize  # noqa: E402
 from envs.scene import MANEUVERS  # noqa: E402
 
 NOTES = (
-    "- Vehicles counted: every vehicle that appeared in the scene during the run (stop ratio, collision "
-    "rate). Scenario vehicles that could not appear because their lane was jammed back to the spawn "
-    "point are not counted; `metrics.csv` reports them per run as `waiting_at_end`.",
-    "- Flow rate: vehicles whose centre left the intersection area during the run, per simulated second.",
-    "- Delay and travel time: vehicles that crossed during the run only, from their first appearance to "
-    "leaving the intersection area; delay = travel time - (distance / approach speed limit). Vehicles "
-    "still queued at the end are not in it, so a planner that starves one road can show a low delay.",
+    "- Vehicles counted: every vehicle the scenario schedules within the run, the same set for every "
+    "planner (`vehicles_scheduled`). A vehicle that could not appear because its lane was jammed back to "
+    "the spawn point (`not spawned`) counts as stopped, with the delay from its scheduled appearance to "
+    "the end of the run.",
+    "- Flow rate: scheduled vehicles whose centre left the intersection area during the run, per simulated "
+    "second. Offered flow: the scheduled vehicles that would have crossed within the run in free flow, per "
+    "second (what a perfect planner reaches).",
+    "- Delay: from the scheduled appearance, against the free-flow time along the route (lane and curve "
+    "speed limits, the environment's acceleration bounds, from the scheduled initial speed). A vehicle still "
+    "on its way at the end (or removed after a collision) gets the delay accumulated so far, a lower bound. "
+    "Appearances and crossings happen at policy steps, so a delay includes up to two steps (0.4 s) of "
+    "rounding; travel time: crossed vehicles, from the scheduled appearance to the crossing.",
+    f"- Speed-limit violations: vehicle-steps faster than the lane limit by more than {SPEED_TOLERANCE} m/s.",
+    "- Paired differences: per scenario, planner minus the strongest baseline (the non-learned planner with "
+    "the highest median flow, on a tie the lower mean delay); mean over scenarios with a "
+    f"{100 * CONFIDENCE:.0f} % percentile bootstrap interval over scenarios.",
     "- Collisions: the vehicles involved are counted and removed, and the run goes on to its end "
     "(`collision_handling=\"remove\"`); only a run made with `\"terminate\"` ends early, and its flow rate "
     "is then taken over the simulated time until the collision (`terminated` in `metrics.csv`).",
 )
 FIGURES = ("flow_rate.png", "stops_by_priority.png", "stops_by_maneuver.png")
-REPORT_FILES = ("metrics.csv", "vehicles.csv", "summary.json", "report.md") + FIGURES
+REPORT_FILES = ("metrics.csv", "vehicles.csv", "summary.json", "report.md", "paired.csv") + FIGURES
 
 
 def _pct(value: float | None) -> str:
@@ -58,6 +70,7 @@ def markdown_report(
     runs: pd.DataFrame,
     vehicles: pd.DataFrame,
     meta: Mapping[str, Any],
+    paired: pd.DataFrame | None = None,
 ) -> str:
     """The Markdown report: settings, flow rate, stops, collisions and delay tables, reading notes.
 
@@ -65,21 +78,21 @@ def markdown_report(
     :param runs: ``metrics.csv`` rows
     :param vehicles: all vehicle logs with a ``planner`` column
     :param meta: settings of the evaluation (env, scenarios, duration, seed, ...), shown as a list
+    :param paired: :func:`envs.comparison.paired_differences` output (a section when not empty)
     :return: Markdown text
     """
     lines = ["# Planner evaluation", ""]
     lines += [f"- {key}: {value}" for key, value in meta.items()]
     lines += ["", "## Flow rate [veh/s]", ""]
-    lines += ["| planner | runs | median | q1 | q3 | mean | not spawned (jam), mean per run |"]
-    lines += ["|---|---:|---:|---:|---:|---:|---:|"]
+    lines += ["| planner | runs | median | q1 | q3 | mean | offered (mean) | not spawned (jam), mean per run |"]
+    lines += ["|---|---:|---:|---:|---:|---:|---:|---:|"]
     for name, s in summary.items():
         f = s["flow_rate"]
-        jam = (
-            runs.loc[runs["planner"] == name, "waiting_at_end"].mean() if "waiting_at_end" in runs else np.nan
-        )
+        jam = s.get("not_spawned", 0) / s["runs"] if s["runs"] else np.nan
         lines.append(
             f"| {name} | {s['runs']} | {format_number(f['median'])} | {format_number(f['q1'])} "
-            f"| {format_number(f['q3'])} | {format_number(f['mean'])} | {format_number(jam, 1)} |"
+            f"| {format_number(f['q3'])} | {format_number(f['mean'])} | {format_number(s.get('offered_flow'))} "
+            f"| {format_number(jam, 1)} |"
         )
     groups = ("all",) + PRIORITIES + tuple(MANEUVERS)
     lines += ["", "## Stop ratio (vehicles whose speed fell below 0.3 m/s), stopped / vehicles", ""]
@@ -88,22 +101,46 @@ def markdown_report(
         counts = stop_counts(vehicles[vehicles["planner"] == name])
         cells = [f"{_pct(s['stop_ratio'][g])} ({counts[g][1]}/{counts[g][0]})" for g in groups]
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
-    lines += [
-        "",
-        "## Collisions and delay",
-        "",
-        "| planner | vehicles | collision rate | delay median [s] | delay mean [s] |",
-    ]
-    lines.append("|---|---:|---:|---:|---:|")
+    lines += ["", "## Collisions, delay and speed limits", ""]
+    lines.append(
+        "| planner | vehicles (scheduled) | collision rate | delay median [s] | delay mean [s] "
+        "| speed-limit violations [vehicle-steps] |"
+    )
+    lines.append("|---|---:|---:|---:|---:|---:|")
     for name, s in summary.items():
         d = s["delay_s"]
         lines.append(
-            f"| {name} | {s['vehicles']} | {_pct(s['collision_rate'])} | {format_number(d['median'], 2)} "
-            f"| {format_number(d['mean'], 2)} |"
+            f"| {name} | {s['vehicles']} ({s.get('vehicles_scheduled', 'n/a')}) | {_pct(s['collision_rate'])} "
+            f"| {format_number(d['median'], 2)} | {format_number(d['mean'], 2)} "
+            f"| {s.get('speed_limit_violations', 'n/a')} |"
         )
+    if paired is not None and not paired.empty:
+        lines += _paired_section(paired)
     lines += ["", "Figures: " + ", ".join(f"![{f}]({f})" for f in FIGURES), ""]
     lines += ["## How to read these numbers", "", *NOTES, ""]
     return "\n".join(lines)
+
+
+def _paired_section(paired: pd.DataFrame) -> list[str]:
+    """Markdown table of the paired differences (one row per planner, one column per metric)."""
+    baseline = paired["baseline"].iloc[0]
+    level = f"{100 * CONFIDENCE:.0f} %"
+    lines = ["", f"## Against the strongest baseline ({baseline}): per-scenario differences", ""]
+    lines.append(f"Mean of (planner - {baseline}) over paired scenarios, [{level} bootstrap interval].")
+    lines += ["", "| planner | scenarios | " + " | ".join(f"Δ {label}" for label in PAIRED_METRICS.values()) + " |"]
+    lines.append("|---|---:|" + "---:|" * len(PAIRED_METRICS))
+    for planner, rows in paired.groupby("planner", sort=False):
+        by_metric = rows.set_index("metric")
+        cells = []
+        for metric in PAIRED_METRICS:
+            r = by_metric.loc[metric]
+            digits = 2 if metric == "delay_mean" else 3
+            cells.append(
+                f"{format_number(r['mean_difference'], digits)} "
+                f"[{format_number(r['ci_low'], digits)}, {format_number(r['ci_high'], digits)}]"
+            )
+        lines.append(f"| {planner} | {int(rows['pairs'].max())} | " + " | ".join(cells) + " |")
+    return lines
 
 
 def flow_rate_figure(runs: pd.DataFrame, planners: Sequence[str], path: Path) -> None:
@@ -175,10 +212,12 @@ def write_report(
     out = Path(out)
     planners = list(pd.unique(runs["planner"]))
     summary = summarize(runs, vehicles)
+    paired = paired_differences(runs)
     runs.to_csv(out / "metrics.csv", index=False)
     vehicles.to_csv(out / "vehicles.csv", index=False)
+    paired.to_csv(out / "paired.csv", index=False)
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
-    (out / "report.md").write_text(markdown_report(summary, runs, vehicles, meta))
+    (out / "report.md").write_text(markdown_report(summary, runs, vehicles, meta, paired))
     flow_rate_figure(runs, planners, out / FIGURES[0])
     stop_figure(vehicles, planners, "priority", PRIORITIES, out / FIGURES[1])
     stop_figure(vehicles, planners, "maneuver", MANEUVERS, out / FIGURES[2])

@@ -7,8 +7,9 @@
 - Evaluation (:class:`Scenario`, :func:`generate_scenario`, :class:`ScenarioTraffic`): a table of
   appearances (time, route, speed, id) generated per spawn lane with shifted-exponential
   inter-arrival times, rate uniform in ``[0.2, 0.4]`` veh/s per major-road lane and half of it per
-  minor-road lane. In simulation an appearance waits while its spawn position is not free; at
-  most one vehicle appears per lane and policy step. Scenario files are JSON
+  minor-road lane (:func:`demand_scenario` fixes the rate instead, for the demand sweep). In
+  simulation an appearance waits while its spawn position is not free; at most one vehicle
+  appears per lane and policy step. Scenario files are JSON
   (:meth:`Scenario.save`, :meth:`Scenario.load`) and replay exactly: the same planner actions give
   the same trajectories.
 """
@@ -309,6 +310,27 @@ def generate_scenario(
         speed=np.concatenate(speeds)[order], length=np.full(k_all, length), width=np.full(k_all, width),
         meta={"rate_major": base, "rate_minor": base * minor_factor, "min_headway": min_headway},
     )  # fmt: skip
+
+
+def demand_scenario(layout: Layout | str, duration: float, rng: np.random.Generator | int, demand: float) -> Scenario:
+    """Draw an evaluation scenario at a fixed demand (the demand sweep's generator).
+
+    :func:`generate_scenario` with the rate fixed to ``demand`` per major-road lane and half of it
+    per minor-road lane (as in the paper): Poisson arrivals with the minimum headway, the same
+    destinations and initial speeds.
+
+    :param layout: a layout or its name
+    :param duration: scenario length [s]
+    :param rng: random generator, or an integer seed
+    :param demand: arrivals per second and major-road lane, in ``(0, 1)`` (the 1 s minimum headway)
+    :return: the scenario; ``meta["demand"]`` records ``demand``
+    """
+    demand = float(demand)
+    if not 0 < demand < 1:
+        raise ValueError(f"demand must be in (0, 1) veh/s per major-road lane (1 s minimum headway), got {demand}")
+    scenario = generate_scenario(layout, duration, rng, rate_range=(demand, demand))
+    scenario.meta["demand"] = demand
+    return scenario
 
 
 class TrainingTraffic:

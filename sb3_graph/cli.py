@@ -15,6 +15,7 @@ from collections.abc import Sequence
 # command -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
     "evaluate": ("envs.commands.evaluate", "compare planners on the same scenarios and write a report"),
+    "sweep": ("envs.commands.sweep", "compare planners across traffic demand levels, with their capacity"),
     "train": ("sb3_graph.commands.train", "train a planner from an rl-zoo3 style YAML experiment"),
     "tune": ("sb3_graph.tuning.commands", "tune reward weights and TD3 settings with Optuna"),
     "tune-report": ("sb3_graph.tuning.report_command", "write the report of an Optuna study"),

@@ -10,6 +10,10 @@ import pytest
 from envs.report import REPORT_FILES
 from sb3_graph.cli import main
 
+SUMMARY_KEYS = {
+    "runs", "vehicles", "vehicles_scheduled", "not_spawned", "flow_rate", "offered_flow", "stop_ratio",
+    "collision_rate", "delay_s", "speed_limit_violations",
+}  # fmt: skip
 SMALL = ["--scenarios", "2", "--duration", "20", "--seed", "3", "--jobs", "1", "--no-progress"]
 
 
@@ -53,14 +57,21 @@ def test_small_run_writes_every_file_and_repeats(tmp_path):
     summary = json.loads((out / "summary.json").read_text())
     assert list(summary) == ["PR", "FIFO"]
     for entry in summary.values():
-        assert set(entry) == {"runs", "vehicles", "flow_rate", "stop_ratio", "collision_rate", "delay_s"}
+        assert set(entry) == SUMMARY_KEYS
         assert entry["runs"] == 2 and entry["vehicles"] > 0
         assert set(entry["flow_rate"]) == {"median", "q1", "q3", "mean"}
         assert set(entry["stop_ratio"]) == {"all", "major", "minor", "left", "straight", "right"}
         assert set(entry["delay_s"]) == {"median", "mean"}
         assert entry["collision_rate"] == 0.0
+    # both planners are measured on the same scheduled vehicles, including any that never appeared
+    assert summary["PR"]["vehicles_scheduled"] == summary["FIFO"]["vehicles_scheduled"]
+    for entry in summary.values():
+        assert entry["vehicles"] == entry["vehicles_scheduled"] >= entry["not_spawned"]
     metrics = pd.read_csv(out / "metrics.csv")
     assert len(metrics) == 4 and set(metrics["planner"]) == {"PR", "FIFO"}
+    assert metrics["baseline"].all()
+    paired = pd.read_csv(out / "paired.csv")  # the other baseline against the one with the higher median flow
+    assert len(paired) == 3 and paired["pairs"].eq(2).all() and paired["planner"].nunique() == 1
 
     # Same scenario files, same seed: the same numbers (the run is deterministic), in a new folder.
     again = tmp_path / "again"

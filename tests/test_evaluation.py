@@ -10,12 +10,15 @@ import pandas as pd
 import pytest
 
 from envs.evaluation import run_episode
-from envs.metrics import run_metrics
+from envs.metrics import add_travel_times, run_metrics
 from envs.planners import FIFOPlanner, PriorityRulesPlanner
 from envs.report import FIGURES, REPORT_FILES, write_report
 from envs.scene import MAJOR, MINOR, STRAIGHT, Scene
 
-SUMMARY_KEYS = {"runs", "vehicles", "flow_rate", "stop_ratio", "collision_rate", "delay_s"}
+SUMMARY_KEYS = {
+    "runs", "vehicles", "vehicles_scheduled", "not_spawned", "flow_rate", "offered_flow", "stop_ratio",
+    "collision_rate", "delay_s", "speed_limit_violations",
+}  # fmt: skip
 
 
 class CrossingStub:
@@ -246,3 +249,35 @@ def test_baselines_collision_free_on_ind_and_3way(env_id, layout, name):
         assert not facts["terminated"] and not vehicles["collided"].any(), (seed, facts)
         crossed += int(vehicles["crossed"].notna().sum())
     assert crossed >= 20  # traffic did flow through the intersection
+
+
+def test_every_scheduled_vehicle_counts_even_if_it_never_appeared():
+    """A planner that stops everybody jams the lanes back to the spawn points: the vehicles that
+    could not appear are still in the log (stopped, delayed from their scheduled time to the end),
+    so both planners are measured on the same scheduled set."""
+    from envs import evaluation
+    from envs.traffic import demand_scenario
+
+    class Stopper(PriorityRulesPlanner):
+        def act(self, scene):
+            return np.full(scene.num_vehicles, -5.0)
+
+    env = evaluation._env("CoopIntersection4Way-v0", {})
+    scenario = demand_scenario("4way", 20.0, 0, 0.4)
+    scheduled = int((scenario.time <= 20.0 + 1e-9).sum())
+    rows = {}
+    for planner in (Stopper(), PriorityRulesPlanner()):
+        vehicles, facts = run_episode(env, planner, scenario, 20.0, seed=0)
+        row = run_metrics(vehicles, facts["duration"])
+        rows[type(planner).__name__] = row
+        assert row["vehicles"] == row["vehicles_scheduled"] == scheduled
+        assert row["not_spawned"] == facts["waiting_at_end"]
+        waiting = add_travel_times(vehicles[~vehicles["spawned"]])
+        assert waiting["stopped"].all() and waiting["crossed"].isna().all()
+        np.testing.assert_allclose(waiting["delay"], facts["duration"] - waiting["scheduled"])
+        late = add_travel_times(vehicles[vehicles["crossed"].notna()])
+        # delay counts the wait for a free spawn point (minus at most a few tenths from speeding in turns)
+        assert (late["delay"] >= late["first_seen"] - late["scheduled"] - 0.5).all()
+    stopper, pr = rows["Stopper"], rows["PriorityRulesPlanner"]
+    assert stopper["not_spawned"] > pr["not_spawned"] >= 0 and stopper["crossed"] == 0
+    assert stopper["stop_ratio_all"] == 1.0 and stopper["delay_mean"] > pr["delay_mean"]

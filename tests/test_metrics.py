@@ -160,3 +160,37 @@ def test_vehicle_log_from_infos_and_scenes():
     row = run_metrics(log.frame(), duration=6.0)
     assert row["crossed"] == 1 and row["collision_rate"] == pytest.approx(2 / 3)
     assert row["delay_mean"] == pytest.approx(0.0)  # 50 m at 10 m/s, crossed after 5 s
+
+
+def test_delay_from_the_scheduled_time_and_unspawned_vehicles_count():
+    log = vehicle_frame(
+        [
+            # appeared 2 s late (spawn blocked), then drove in free flow: the 2 s are its delay
+            dict(_vehicle(1, "major", "straight", crossed=13.0, first_seen=3.0), scheduled=1.0, free_flow=10.0),
+            # never appeared: stopped, delay from its scheduled appearance to the end of the run
+            dict(_vehicle(2, "minor", "left", first_seen=np.nan, stopped=True), scheduled=15.0, spawned=False,
+                 censored=20.0, free_flow=10.0, free_flow_covered=0.0),
+            # still on its way at the end: the delay so far, against the free-flow time of what it covered
+            dict(_vehicle(3, "major", "left", first_seen=10.0), scheduled=10.0, censored=20.0, free_flow=10.0,
+                 free_flow_covered=4.0),
+        ]
+    )  # fmt: skip
+    timed = add_travel_times(log).set_index("vehicle_id")
+    assert timed.loc[1, "delay"] == pytest.approx(2.0) and timed.loc[1, "travel_time"] == pytest.approx(12.0)
+    assert timed.loc[2, "delay"] == pytest.approx(5.0) and np.isnan(timed.loc[2, "travel_time"])
+    assert timed.loc[3, "delay"] == pytest.approx(6.0)
+    row = run_metrics(log, duration=20.0)
+    assert row["vehicles"] == row["vehicles_scheduled"] == 3 and row["not_spawned"] == 1
+    assert row["stop_ratio_all"] == pytest.approx(1 / 3) and row["stop_ratio_minor"] == pytest.approx(1.0)
+    assert row["delay_mean"] == pytest.approx((2 + 5 + 6) / 3)
+    assert row["flow_rate"] == pytest.approx(1 / 20) and row["offered_flow"] == pytest.approx(2 / 20)
+
+
+def test_speed_limit_violations_per_vehicle_step():
+    log = VehicleLog()
+    for time, speeds in ((0.0, [10.05, 10.2]), (0.5, [10.11, 12.0]), (1.0, [9.0, 10.3])):
+        log.observe(_scene([7, 8], speeds, time, [52.5, 80.0]))  # limit 10 m/s
+    log.finish(_scene([7, 8], [15.0, 15.0], 1.5, [40.0, 70.0]))  # no planner step follows: not counted
+    frame = log.frame().set_index("vehicle_id")
+    assert frame.loc[7, "speed_violations"] == 1 and frame.loc[8, "speed_violations"] == 3
+    assert run_metrics(log.frame(), duration=1.5)["speed_limit_violations"] == 4

@@ -34,6 +34,22 @@ DEFAULT_BASELINES = ("pr", "fifo")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    add_run_arguments(parser, scenarios=100, out="reports/synthetic-<date>-<time>")
+    parser.add_argument(
+        "--scenario-dir",
+        default=None,
+        help="read the scenario files (*.json) from this folder instead of generating --scenarios of them",
+    )
+
+
+def add_run_arguments(parser: argparse.ArgumentParser, scenarios: int, out: str, per: str = "") -> None:
+    """The arguments ``evaluate`` shares with ``sweep``.
+
+    :param parser: the command's parser
+    :param scenarios: default of ``--scenarios``
+    :param out: the default report folder, as shown in the help
+    :param per: what ``--scenarios`` counts per, in its help (e.g. ``" per demand level"``)
+    """
     parser.add_argument("--env", default=DEFAULT_ENV, help=f"environment id (default: {DEFAULT_ENV})")
     parser.add_argument(
         "--planner",
@@ -43,7 +59,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="repeatable: 'pr' (priority rules), 'fifo', or a saved model .zip; default: pr, fifo "
         "and the GNN planner shipped in envs/pretrained/coop_4way/best_model.zip",
     )
-    parser.add_argument("--scenarios", type=int, default=100, help="scenarios to generate (default: 100)")
+    parser.add_argument(
+        "--scenarios", type=int, default=scenarios, help=f"scenarios to generate{per} (default: {scenarios})"
+    )
     parser.add_argument(
         "--duration", type=float, default=100.0, help="simulated seconds per run (default: 100)"
     )
@@ -54,12 +72,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--out",
         default=None,
-        help="report folder, must not exist (default: a fresh reports/synthetic-<date>-<time>)",
-    )
-    parser.add_argument(
-        "--scenario-dir",
-        default=None,
-        help="read the scenario files (*.json) from this folder instead of generating --scenarios of them",
+        help=f"report folder, must not exist (default: a fresh {out})",
     )
     parser.add_argument(
         "--env-kwargs",
@@ -92,19 +105,19 @@ def _check(args: argparse.Namespace) -> list[tuple[str, str]]:
     if args.env not in gym.registry:
         known = sorted(k for k in gym.registry if k.startswith("Coop"))
         raise UserError(f"--env: unknown environment {args.env!r}; expected one of {known}")
-    if args.scenario_dir is not None and not Path(args.scenario_dir).is_dir():
+    if getattr(args, "scenario_dir", None) is not None and not Path(args.scenario_dir).is_dir():
         raise UserError(f"--scenario-dir: {args.scenario_dir!r} is not a folder")
     return planners
 
 
-def _out_folder(args: argparse.Namespace) -> Path:
-    """Create the report folder; an existing one is refused."""
+def _out_folder(args: argparse.Namespace, prefix: str = "synthetic") -> Path:
+    """Create the report folder (default ``reports/<prefix>-<date>-<time>``); an existing one is refused."""
     if args.out is None:
         stamp = time.strftime("%Y%m%d-%H%M%S")
-        out = Path("reports") / f"synthetic-{stamp}"
+        out = Path("reports") / f"{prefix}-{stamp}"
         k = 1
         while out.exists():
-            out = Path("reports") / f"synthetic-{stamp}-{k}"
+            out = Path("reports") / f"{prefix}-{stamp}-{k}"
             k += 1
     else:
         out = Path(args.out)
@@ -117,7 +130,7 @@ def _out_folder(args: argparse.Namespace) -> Path:
 
 
 def run(args: argparse.Namespace) -> int:
-    from envs.evaluation import check_scenarios, evaluate, find_scenarios, generate_scenarios, layout_of
+    from envs.evaluation import check_scenarios, find_scenarios, generate_scenarios, layout_of
     from envs.report import format_number, write_report
 
     planners = _check(args)
@@ -138,16 +151,7 @@ def run(args: argparse.Namespace) -> int:
         source = f"generated into {out / 'scenarios'} (seed {args.seed} + index)"
     else:
         source = f"read from {args.scenario_dir}"
-    runs, vehicles = evaluate(
-        planners,
-        scenarios,
-        args.env,
-        args.duration,
-        seed=args.seed,
-        jobs=args.jobs,
-        env_kwargs=args.env_kwargs,
-        progress=not args.no_progress,
-    )
+    runs, vehicles = run_harness(args, planners, scenarios)
     wall = time.perf_counter() - tic
     meta = {
         "environment": args.env,
@@ -165,10 +169,34 @@ def run(args: argparse.Namespace) -> int:
         print(
             f"{name:>10}: flow median {format_number(f['median'])} veh/s,"
             f" stops major {format_number(sr['major'])} minor {format_number(sr['minor'])},"
-            f" collisions {format_number(s['collision_rate'])} ({s['vehicles']} vehicles)"
+            f" collisions {format_number(s['collision_rate'])}, delay mean {format_number(s['delay_s']['mean'], 2)} s,"
+            f" {s['speed_limit_violations']} speed-limit violations ({s['vehicles']} scheduled vehicles,"
+            f" {s['not_spawned']} never appeared)"
         )
     print(f"report written to {out} ({wall:.1f} s)")
     return 0
+
+
+def run_harness(args: argparse.Namespace, planners: Sequence[tuple[str, str]], scenarios: Sequence[Path]):
+    """Every planner on every scenario with the command's settings (:func:`envs.evaluation.evaluate`).
+
+    :param args: the parsed ``evaluate``/``sweep`` arguments
+    :param planners: ``(planner spec, report name)`` pairs
+    :param scenarios: scenario files
+    :return: ``(runs, vehicles)``
+    """
+    from envs.evaluation import evaluate
+
+    return evaluate(
+        planners,
+        scenarios,
+        args.env,
+        args.duration,
+        seed=args.seed,
+        jobs=args.jobs,
+        env_kwargs=args.env_kwargs,
+        progress=not args.no_progress,
+    )
 
 
 def checked_planners(words: Sequence[str] | None, reserved: Sequence[str] = ()) -> list[tuple[str, str]]:

@@ -1,0 +1,111 @@
+"""``sb3-graph sweep``: planners against traffic demand, with each planner's capacity.
+
+Example::
+
+    sb3-graph sweep --env CoopIntersection4Way-v0 --planner aim --planner fifo \\
+        --planner envs/pretrained/coop_4way/best_model.zip --demand 0.05 0.1 0.2 0.3 0.4 \\
+        --scenarios 20 --duration 100 --seed 0 --jobs 2 --out reports/sweep
+
+``--demand`` is the arrival rate per major-road lane [veh/s]; minor-road lanes get half of it (as
+in the paper). For each level, ``--scenarios`` scenario files are drawn into
+``<out>/demand_<level>/scenarios`` (scenario ``i`` of every level with seed ``seed + i``), and every
+planner runs on all of them in one pool of ``--jobs`` workers with one progress bar (the harness of
+``evaluate``). The folder receives ``sweep.csv`` (one row per planner and level, columns of
+:data:`envs.sweep.SWEEP_COLUMNS`), ``sweep.png``, ``sweep.md`` (capacities, the table, the paired
+differences against the strongest baseline of each level) and, per level, the full ``evaluate``
+report in ``demand_<level>/``. An existing ``--out`` is refused, never overwritten.
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import time
+from collections.abc import Sequence
+
+from envs.commands.evaluate import _check, _out_folder, add_run_arguments, run_harness
+from sb3_graph.cli import UserError
+
+DEFAULT_DEMAND = (0.05, 0.1, 0.2, 0.3, 0.4)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    add_run_arguments(parser, scenarios=20, out="reports/sweep-<date>-<time>", per=" per demand level")
+    parser.add_argument(
+        "--demand",
+        type=float,
+        nargs="+",
+        default=list(DEFAULT_DEMAND),
+        metavar="RATE",
+        help="arrival rates per major-road lane [veh/s], each in (0, 1); minor-road lanes get half "
+        f"(default: {' '.join(f'{d:g}' for d in DEFAULT_DEMAND)})",
+    )
+
+
+def checked_demand(values: Sequence[float]) -> list[float]:
+    """The ``--demand`` levels, sorted.
+
+    :param values: the levels given
+    :raises UserError: a level outside (0, 1) veh/s, or one given twice
+    """
+    for value in values:
+        if not 0 < value < 1:
+            raise UserError(
+                f"--demand: each level must be in (0, 1) veh/s per major-road lane (1 s minimum headway), got {value:g}"
+            )
+    if len(set(values)) != len(values):
+        raise UserError(f"--demand: a level is given twice in {' '.join(f'{v:g}' for v in values)}")
+    return sorted(float(v) for v in values)
+
+
+def run(args: argparse.Namespace) -> int:
+    from envs.comparison import paired_differences
+    from envs.evaluation import generate_scenarios, layout_of
+    from envs.report import write_report
+    from envs.sweep import capacities, capacity_text, level_folder, write_sweep
+
+    demand = checked_demand(args.demand)
+    planners = _check(args)
+    try:
+        layout = layout_of(args.env, args.env_kwargs)
+    except (TypeError, ValueError) as error:
+        raise UserError(f"--env-kwargs: {error}") from None
+    out = _out_folder(args, prefix="sweep")
+    tic = time.perf_counter()
+    scenarios = [
+        path
+        for level in demand
+        for path in generate_scenarios(
+            out / level_folder(level) / "scenarios", args.scenarios, args.duration, args.seed, layout, demand=level
+        )
+    ]
+    runs, vehicles = run_harness(args, planners, scenarios)
+    wall = time.perf_counter() - tic
+    meta = {
+        "environment": args.env,
+        "planners": ", ".join(f"{name} ({word})" for word, name in planners),
+        "demand levels": ", ".join(f"{d:g}" for d in demand) + " veh/s per major-road lane (minor: half)",
+        "scenarios per level": f"{args.scenarios} (scenario i: seed {args.seed} + i)",
+        "duration per run": f"{args.duration:g} s",
+        "jobs": args.jobs,
+        "wall time": f"{wall:.1f} s",
+        "python": platform.python_version(),
+    }
+    levels = []
+    for k, level in enumerate(demand):
+        # evaluate() numbered the runs over all levels: level k holds runs k*N .. (k+1)*N - 1
+        first = k * args.scenarios
+        mine = runs["run"].between(first, first + args.scenarios - 1)
+        level_runs = runs[mine].assign(run=runs.loc[mine, "run"] - first)
+        taken = vehicles["run"].between(first, first + args.scenarios - 1)
+        level_vehicles = vehicles[taken].assign(run=vehicles.loc[taken, "run"] - first)
+        level_meta = {**meta, "demand": f"{level:g} veh/s per major-road lane (minor: half)"}
+        summary = write_report(out / level_folder(level), level_runs, level_vehicles, level_meta)
+        levels.append((level, summary, paired_differences(level_runs)))
+    table = write_sweep(out, levels, meta)
+    for planner, cap in capacities(table).items():
+        flow = table.loc[table["planner"] == planner, "flow_rate"].max()
+        text = capacity_text(cap, demand[-1]) + ("" if cap is None else " veh/s per major-road lane")
+        print(f"{planner:>10}: capacity {text}, highest flow {flow:.3f} veh/s")
+    print(f"sweep written to {out} ({wall:.1f} s)")
+    return 0

@@ -1,0 +1,202 @@
+"""Demand sweep: planners against the arrival rate, each planner's capacity, and the figure.
+
+The sweep runs every planner on scenarios drawn at several demand levels (arrivals per second and
+major-road lane; minor-road lanes get half: :func:`envs.traffic.demand_scenario`) with the
+evaluation harness, and reduces each level's ``summary.json`` (:func:`envs.metrics.summarize`)
+to one row per planner and level (:data:`SWEEP_COLUMNS`):
+
+- ``flow_rate``: mean over the level's runs [veh/s];
+- ``delay_mean_s``, ``stop_ratio``, ``collision_rate``: pooled over every scheduled vehicle;
+- ``speed_limit_violations``: vehicle-steps above the lane limit, summed over the runs.
+
+**Capacity** of a planner: the highest demand level up to which (at that level and every lower
+one) its flow still serves at least :data:`SERVED_FRACTION` of the offered flow, i.e. of the
+scheduled vehicles that would have crossed within the run in free flow (``offered_flow``). It is
+``None`` when even the lowest level is not served, and the highest level when every level is (the
+capacity is then at least that). The highest flow a planner reaches over the sweep is its
+saturation flow, shown beside it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import pandas as pd  # noqa: E402
+
+SWEEP_COLUMNS = (
+    "planner",
+    "demand",
+    "flow_rate",
+    "delay_mean_s",
+    "stop_ratio",
+    "collision_rate",
+    "speed_limit_violations",
+)
+SERVED_FRACTION = 0.9
+SWEEP_FILES = ("sweep.csv", "sweep.png", "sweep.md")
+
+
+def level_folder(demand: float) -> str:
+    """Name of a demand level's subfolder, e.g. ``demand_0.05``."""
+    return f"demand_{demand:g}"
+
+
+def sweep_rows(demand: float, summary: Mapping[str, Mapping[str, Any]]) -> list[dict[str, Any]]:
+    """The ``sweep.csv`` rows of one demand level (plus ``offered_flow``, used for the capacity).
+
+    :param demand: the level [veh/s per major-road lane]
+    :param summary: that level's :func:`envs.metrics.summarize` output
+    :return: one row per planner
+    """
+    return [
+        {
+            "planner": name,
+            "demand": float(demand),
+            "flow_rate": s["flow_rate"]["mean"],
+            "delay_mean_s": s["delay_s"]["mean"],
+            "stop_ratio": s["stop_ratio"]["all"],
+            "collision_rate": s["collision_rate"],
+            "speed_limit_violations": s["speed_limit_violations"],
+            "offered_flow": s["offered_flow"],
+        }
+        for name, s in summary.items()
+    ]
+
+
+def capacities(table: pd.DataFrame, fraction: float = SERVED_FRACTION) -> dict[str, float | None]:
+    """Each planner's capacity (definition in the module docstring).
+
+    :param table: sweep rows with ``planner``, ``demand``, ``flow_rate`` and ``offered_flow``
+    :param fraction: share of the offered flow that must be served
+    :return: ``planner -> demand level`` (``None``: not even the lowest level is served)
+    """
+    out: dict[str, float | None] = {}
+    for planner, rows in table.groupby("planner", sort=False):
+        rows = rows.sort_values("demand")
+        served = (rows["flow_rate"] >= fraction * rows["offered_flow"]).to_numpy()
+        first_short = int(np.argmin(served)) if not served.all() else len(served)
+        out[str(planner)] = float(rows["demand"].iloc[first_short - 1]) if first_short else None
+    return out
+
+
+def capacity_text(capacity: float | None, top: float) -> str:
+    """A capacity for people: ``"0.2"``, ``">= 0.4"`` (every level served), ``"below the lowest level"``.
+
+    :param capacity: a :func:`capacities` value
+    :param top: the highest demand level of the sweep
+    """
+    if capacity is None:
+        return "below the lowest level"
+    return f">= {capacity:g}" if capacity >= top else f"{capacity:g}"
+
+
+def sweep_figure(table: pd.DataFrame, capacity: Mapping[str, float | None], path: Path) -> None:
+    """Flow, mean delay and stop ratio against demand, one line per planner, capacities marked.
+
+    :param table: sweep rows (with ``offered_flow``)
+    :param capacity: :func:`capacities` output
+    :param path: PNG file to write
+    """
+    panels = (("flow_rate", "flow [veh/s]"), ("delay_mean_s", "mean delay [s]"), ("stop_ratio", "stop ratio"))
+    fig, axes = plt.subplots(1, 3, figsize=(12, 3.6))
+    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    offered = table.groupby("demand")["offered_flow"].mean()
+    axes[0].plot(offered.index, offered.to_numpy(float), "k--", lw=1, label="offered (free flow)")
+    for k, (planner, rows) in enumerate(table.groupby("planner", sort=False)):
+        rows = rows.sort_values("demand")
+        color = colors[k % len(colors)]
+        cap = capacity.get(str(planner))
+        label = f"{planner} (capacity {capacity_text(cap, table['demand'].max())})"
+        for ax, (column, _) in zip(axes, panels):
+            ax.plot(rows["demand"], rows[column].astype(float), "o-", color=color, label=label)
+            if cap is not None:
+                ax.axvline(cap, color=color, ls=":", lw=1)
+        if cap is not None:
+            at = rows[rows["demand"] == cap]
+            axes[0].plot(at["demand"], at["flow_rate"].astype(float), "*", ms=14, color=color, mec="k")
+    for ax, (_, label) in zip(axes, panels):
+        ax.set_xlabel("demand [veh/s per major-road lane]")
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+    axes[0].set_title(f"★ / dotted: capacity (flow >= {100 * SERVED_FRACTION:.0f} % of offered)", fontsize=8)
+    axes[0].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=150)
+    plt.close(fig)
+
+
+def sweep_markdown(
+    table: pd.DataFrame, capacity: Mapping[str, float | None], paired: pd.DataFrame, meta: Mapping[str, Any]
+) -> str:
+    """``sweep.md``: settings, capacities, the sweep table and the paired differences per level.
+
+    :param table: sweep rows (with ``offered_flow``)
+    :param capacity: :func:`capacities` output
+    :param paired: every level's :func:`envs.comparison.paired_differences` with a ``demand`` column
+    :param meta: settings shown as a list
+    :return: Markdown text
+    """
+    from envs.comparison import PAIRED_METRICS
+    from envs.report import format_number
+
+    top = table["demand"].max()
+    lines = ["# Demand sweep", "", *(f"- {key}: {value}" for key, value in meta.items()), ""]
+    lines += ["## Capacity", "", f"Highest demand level up to which a planner serves >= {100 * SERVED_FRACTION:.0f} %"]
+    lines += ["of the offered flow; saturation flow: the highest flow it reaches in the sweep.", ""]
+    lines += ["| planner | capacity [veh/s per major lane] | saturation flow [veh/s] |", "|---|---:|---:|"]
+    for planner, rows in table.groupby("planner", sort=False):
+        text = capacity_text(capacity.get(str(planner)), top)
+        lines.append(f"| {planner} | {text} | {format_number(rows['flow_rate'].astype(float).max())} |")
+    lines += ["", "## Every level", "", "![sweep](sweep.png)", ""]
+    columns = [*SWEEP_COLUMNS, "offered_flow"]
+    lines += ["| " + " | ".join(columns) + " |", "|---|" + "---:|" * (len(columns) - 1)]
+    for _, row in table.iterrows():
+        cells = [str(row["planner"]), f"{row['demand']:g}"] + [format_number(row[c]) for c in columns[2:]]
+        cells[columns.index("speed_limit_violations")] = f"{row['speed_limit_violations']:.0f}"
+        lines.append("| " + " | ".join(cells) + " |")
+    if not paired.empty:
+        lines += ["", "## Against the strongest baseline of each level (mean per-scenario difference, 95 % CI)", ""]
+        labels = list(PAIRED_METRICS.values())
+        lines += ["| demand | planner | baseline | " + " | ".join(f"Δ {x}" for x in labels) + " |"]
+        lines.append("|---:|---|---|" + "---:|" * len(labels))
+        for (demand, planner), rows in paired.groupby(["demand", "planner"], sort=False):
+            by = rows.set_index("metric")
+            cells = [
+                f"{format_number(by.loc[m, 'mean_difference'])} "
+                f"[{format_number(by.loc[m, 'ci_low'])}, {format_number(by.loc[m, 'ci_high'])}]"
+                for m in PAIRED_METRICS
+            ]
+            lines.append(f"| {demand:g} | {planner} | {rows['baseline'].iloc[0]} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def write_sweep(
+    out: str | Path,
+    levels: Sequence[tuple[float, Mapping[str, Mapping[str, Any]], pd.DataFrame]],
+    meta: Mapping[str, Any],
+) -> pd.DataFrame:
+    """Write :data:`SWEEP_FILES` into ``out``.
+
+    :param out: the sweep folder (exists)
+    :param levels: per demand level: ``(demand, summary, paired differences)``
+    :param meta: settings shown at the top of ``sweep.md``
+    :return: the sweep table (``sweep.csv`` plus ``offered_flow``)
+    """
+    out = Path(out)
+    table = pd.DataFrame([row for demand, summary, _ in levels for row in sweep_rows(demand, summary)])
+    numbers = [c for c in table.columns if c != "planner"]
+    table[numbers] = table[numbers].apply(pd.to_numeric)  # JSON's None -> NaN
+    paired = [p.assign(demand=d) for d, _, p in levels if not p.empty]
+    paired = pd.concat(paired, ignore_index=True) if paired else pd.DataFrame(columns=["demand", "planner"])
+    capacity = capacities(table)
+    table[list(SWEEP_COLUMNS)].to_csv(out / "sweep.csv", index=False)
+    sweep_figure(table, capacity, out / "sweep.png")
+    (out / "sweep.md").write_text(sweep_markdown(table, capacity, paired, meta))
+    return table
