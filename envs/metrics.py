@@ -69,6 +69,8 @@ VEHICLE_COLUMNS = (
     "stopped",
     "collided",
     "speed_violations",
+    "steps",
+    "governed_steps",
 )
 PRIORITIES = ("major", "minor")
 STOP_GROUPS = ("all",) + PRIORITIES + tuple(MANEUVERS)
@@ -97,6 +99,8 @@ class VehicleLog:
         # Per scene: ids, centre arc lengths, speeding flags (reduced in frame(), not per vehicle).
         self._trace: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         self._stopped: list[np.ndarray] = []
+        self._counted: list[np.ndarray] = []  # ids of each scene the planner answered
+        self._governed: list[np.ndarray] = []  # ids the speed governor held back, per step
         self._bounds = (5.0, 5.0)  # acceleration, deceleration of the free-flow reference
 
     def _row(self, vid: int) -> dict[str, Any]:
@@ -105,7 +109,7 @@ class VehicleLog:
             row = dict.fromkeys(VEHICLE_COLUMNS, np.nan)
             row.update(
                 vehicle_id=vid, route="", priority="", maneuver="", spawned=True, stopped=False, collided=False,
-                speed_violations=0, route_index=-1, start_arc=np.nan, start_speed=np.nan,
+                speed_violations=0, steps=0, governed_steps=0, route_index=-1, start_arc=np.nan, start_speed=np.nan,
             )  # fmt: skip
             self._rows[vid] = row
         return row
@@ -139,6 +143,7 @@ class VehicleLog:
         speeding = np.zeros(len(ids), bool)
         if count and len(ids):
             self._stopped.append(ids[scene.speed < STOP_SPEED])
+            self._counted.append(ids.copy())
             speeding = scene.speed > scene.speed_limit + SPEED_TOLERANCE
         self._trace.append((ids.copy(), np.asarray(arc, float).copy(), speeding))
 
@@ -172,6 +177,7 @@ class VehicleLog:
             self._row(int(vid))["removed"] = time
         for vid in info.get("stopped", ()):
             self._row(int(vid))["stopped"] = True
+        self._governed.append(np.asarray(info.get("governed", ()), np.int64).reshape(-1))
         collisions = np.asarray(info.get("collisions", np.zeros((0, 2))), dtype=np.int64).reshape(-1)
         for vid in collisions.tolist():
             self._row(int(vid))["collided"] = True
@@ -198,6 +204,9 @@ class VehicleLog:
             rows["stopped"] = rows["stopped"].astype(bool) | np.isin(ids, stopped)
             fast, counts = np.unique(seen[speeding], return_counts=True)
             rows["speed_violations"] = pd.Series(counts, index=fast).reindex(ids, fill_value=0).to_numpy()
+            for column, parts in (("steps", self._counted), ("governed_steps", self._governed)):
+                found, counts = np.unique(np.concatenate(parts) if parts else np.zeros(0, np.int64), return_counts=True)
+                rows[column] = pd.Series(counts, index=found).reindex(ids, fill_value=0).to_numpy()
             last, where = np.unique(seen[::-1], return_index=True)  # the last scene of each vehicle
             rows["end_arc"] = pd.Series(arcs[::-1][where], index=last).reindex(ids).to_numpy()
         if schedule is not None and end is not None and self.layout is not None:
@@ -226,6 +235,8 @@ class VehicleLog:
                 "stopped": True,  # it stands at (behind) the spawn point
                 "collided": False,
                 "speed_violations": 0,
+                "steps": 0,
+                "governed_steps": 0,
                 "route_index": route,
                 "start_arc": start,
                 "start_speed": schedule.speed[missing],
@@ -266,7 +277,8 @@ def vehicle_frame(rows: Iterable[Mapping[str, Any]]) -> pd.DataFrame:
     for column in ("stopped", "collided"):
         frame[column] = frame[column].fillna(False).astype(bool)
     frame["spawned"] = frame["spawned"].fillna(True).astype(bool)
-    frame["speed_violations"] = frame["speed_violations"].fillna(0).astype(np.int64)
+    for column in ("speed_violations", "steps", "governed_steps"):
+        frame[column] = frame[column].fillna(0).astype(np.int64)
     frame["vehicle_id"] = frame["vehicle_id"].astype(np.int64)
     return frame
 
@@ -312,6 +324,13 @@ def violations(vehicles: pd.DataFrame) -> int:
     return int(_column(vehicles, "speed_violations", 0).sum())
 
 
+def governor_share(vehicles: pd.DataFrame) -> float:
+    """Share of the vehicle-steps in which the speed governor held a vehicle below its command
+    (NaN without counted steps): how much a planner leans on the physics to keep the limits."""
+    steps = int(_column(vehicles, "steps", 0).sum())
+    return float(_column(vehicles, "governed_steps", 0).sum() / steps) if steps else float("nan")
+
+
 def offered_count(vehicles: pd.DataFrame, duration: float) -> float:
     """Scheduled vehicles that would cross within ``duration`` in free flow (NaN without references).
 
@@ -351,7 +370,7 @@ def run_metrics(vehicles: pd.DataFrame, duration: float) -> dict[str, float | in
     :return: ``duration_s, vehicles, vehicles_scheduled, not_spawned, crossed, flow_rate`` [veh/s],
         ``offered_flow`` [veh/s], ``stop_ratio_<group>`` and ``vehicles_<group>`` for every group of
         :data:`STOP_GROUPS`, ``collided``, ``collision_rate``, ``delay_mean``, ``delay_median``,
-        ``travel_time_mean`` [s], ``speed_limit_violations`` [vehicle-steps]
+        ``travel_time_mean`` [s], ``speed_limit_violations`` [vehicle-steps], ``governor_share``
     """
     if duration <= 0:
         raise ValueError(f"duration must be positive, got {duration}")
@@ -378,6 +397,7 @@ def run_metrics(vehicles: pd.DataFrame, duration: float) -> dict[str, float | in
     travel = timed["travel_time"].dropna()
     row["travel_time_mean"] = float(travel.mean()) if len(travel) else float("nan")
     row["speed_limit_violations"] = violations(vehicles)
+    row["governor_share"] = governor_share(vehicles)
     return row
 
 
@@ -392,7 +412,7 @@ def summarize(runs: pd.DataFrame, vehicles: pd.DataFrame) -> dict[str, dict[str,
     :return: ``planner -> {"runs", "vehicles", "vehicles_scheduled", "not_spawned",
         "flow_rate": {median, q1, q3, mean}, "offered_flow" (mean over runs), "stop_ratio": {all, major,
         minor, left, straight, right}, "collision_rate", "delay_s": {median, mean},
-        "speed_limit_violations"}``
+        "speed_limit_violations", "governor_share"}``
     """
     summary: dict[str, dict[str, Any]] = {}
     for planner in pd.unique(runs["planner"]):
@@ -419,6 +439,7 @@ def summarize(runs: pd.DataFrame, vehicles: pd.DataFrame) -> dict[str, dict[str,
                 "mean": _finite(delays.mean()) if len(delays) else None,
             },
             "speed_limit_violations": violations(v),
+            "governor_share": _finite(governor_share(v)),
         }
     return summary
 

@@ -44,7 +44,9 @@ NOTES = (
     "on its way at the end (or removed after a collision) gets the delay accumulated so far, a lower bound. "
     "Appearances and crossings happen at policy steps, so a delay includes up to two steps (0.4 s) of "
     "rounding; travel time: crossed vehicles, from the scheduled appearance to the crossing.",
-    f"- Speed-limit violations: vehicle-steps faster than the lane limit by more than {SPEED_TOLERANCE} m/s.",
+    f"- Speed-limit violations: vehicle-steps faster than the lane limit by more than {SPEED_TOLERANCE} m/s. "
+    "The simulation's speed governor prevents them for every planner; *governor held back* is the share of "
+    "vehicle-steps in which it had to lower a planner's command (to the lane limit, or braking for a turn).",
     "- Paired differences: per scenario, planner minus the strongest baseline (the non-learned planner with "
     "the highest median flow, on a tie the lower mean delay); mean over scenarios with a "
     f"{100 * CONFIDENCE:.0f} % percentile bootstrap interval over scenarios.",
@@ -104,15 +106,15 @@ def markdown_report(
     lines += ["", "## Collisions, delay and speed limits", ""]
     lines.append(
         "| planner | vehicles (scheduled) | collision rate | delay median [s] | delay mean [s] "
-        "| speed-limit violations [vehicle-steps] |"
+        "| speed-limit violations [vehicle-steps] | governor held back [vehicle-steps] |"
     )
-    lines.append("|---|---:|---:|---:|---:|---:|")
+    lines.append("|---|---:|---:|---:|---:|---:|---:|")
     for name, s in summary.items():
         d = s["delay_s"]
         lines.append(
             f"| {name} | {s['vehicles']} ({s.get('vehicles_scheduled', 'n/a')}) | {_pct(s['collision_rate'])} "
             f"| {format_number(d['median'], 2)} | {format_number(d['mean'], 2)} "
-            f"| {s.get('speed_limit_violations', 'n/a')} |"
+            f"| {s.get('speed_limit_violations', 'n/a')} | {_pct(s.get('governor_share'))} |"
         )
     if paired is not None and not paired.empty:
         lines += _paired_section(paired)

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import gymnasium as gym
 import numpy as np
 import pandas as pd
 import pytest
 
-from envs.metrics import VehicleLog, add_travel_times, run_metrics, summarize, vehicle_frame
+import envs  # noqa: F401  (registers the environments)
+from envs.metrics import VehicleLog, add_travel_times, governor_share, run_metrics, summarize, vehicle_frame
 from envs.scene import MAJOR, MINOR, RIGHT, STRAIGHT, Scene
 
 
@@ -194,3 +196,22 @@ def test_speed_limit_violations_per_vehicle_step():
     frame = log.frame().set_index("vehicle_id")
     assert frame.loc[7, "speed_violations"] == 1 and frame.loc[8, "speed_violations"] == 3
     assert run_metrics(log.frame(), duration=1.5)["speed_limit_violations"] == 4
+
+
+def test_governor_share_counts_held_back_vehicle_steps():
+    env = gym.make("CoopIntersection4Way-v0", config={"spawn_probability": 0.0, "initial_spawn_probability": 0.0})
+    env.reset(seed=0)
+    base = env.unwrapped
+    lay = base.layout
+    r = lay.route_id("south->east")  # a right turn: 5.2 m/s in the curve
+    base.place_vehicles([r, lay.route_id("west->east")], [lay.entry_arc[r] - 3.0, 20.0], [9.0, 2.0], [0, 1])
+    log = VehicleLog(lay)
+    for _ in range(3):
+        log.observe(base.scene())
+        _, _, _, _, info = env.step(np.ones(env.action_space.shape, np.float32))  # full throttle
+        log.record(info)
+    frame = log.frame()
+    steps = frame.set_index("vehicle_id")
+    # The turning vehicle is held back every step; the slow straight one accelerates freely.
+    assert steps.loc[0, "governed_steps"] == 3 and steps.loc[1, "governed_steps"] == 0
+    assert governor_share(frame) == pytest.approx(3 / 6)
