@@ -9,11 +9,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from envs.planners.aim import AIMPlanner
 from envs.planners.base import Planner
 from envs.planners.fifo import FIFOPlanner
 from envs.planners.priority_rules import PriorityRulesPlanner
 
-BASELINES: dict[str, type[Planner]] = {"pr": PriorityRulesPlanner, "fifo": FIFOPlanner}
+BASELINES: dict[str, type[Planner]] = {"pr": PriorityRulesPlanner, "fifo": FIFOPlanner, "aim": AIMPlanner}
 
 
 def check_planner_spec(spec: str) -> str:
@@ -70,6 +71,7 @@ def planner_name(spec: str) -> str:
 
 
 __all__ = [
+    "AIMPlanner",
     "BASELINES",
     "FIFOPlanner",
     "Planner",
