@@ -224,7 +224,13 @@ def crossing_times(
     return arrival, np.where(approaching, clearing, 0.0), inside, committed
 
 
-def blocked_by_rank(scene: Scene, rank: np.ndarray, params: CrossingParams, passes: int = 4) -> np.ndarray:
+def blocked_by_rank(
+    scene: Scene,
+    rank: np.ndarray,
+    params: CrossingParams,
+    passes: int = 4,
+    times: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None,
+) -> np.ndarray:
     """Which vehicles must wait at their stop point, given a precedence ``rank`` (lower goes first).
 
     Vehicle ``i`` (before its stop line, still able to stop) waits if some vehicle ``j`` on a
@@ -246,12 +252,14 @@ def blocked_by_rank(scene: Scene, rank: np.ndarray, params: CrossingParams, pass
     :param rank: ``(n,)`` precedence, lower first; ties must be broken by the caller
     :param params: timing rules
     :param passes: how often the waiting of leaders is fed back into the arrivals
+    :param times: ``(arrival, clearing, inside, committed)`` as :func:`crossing_times` returns
+        them (default: computed by it)
     :return: ``(n,)`` bool, True where the vehicle must stop at its stop point
     """
     n = scene.num_vehicles
     if n == 0:
         return np.zeros(0, dtype=bool)
-    arrival, clearing, inside, committed = crossing_times(scene, params)
+    arrival, clearing, inside, committed = crossing_times(scene, params) if times is None else times
     arrival = leader_chain_max(arrival, scene.leader, 0.0)
     conflicts = np.asarray(scene.conflicts, dtype=bool).copy()
     np.fill_diagonal(conflicts, False)  # same route: plain car following

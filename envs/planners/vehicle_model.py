@@ -16,6 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from envs.layouts import Layout
+from envs.planners.idm import CrossingParams, leader_chain_max, travel_time
 
 _INNER_LIMITS: dict[int, np.ndarray] = {}
 
@@ -69,3 +70,32 @@ def earliest_arrival(
     cruise = np.maximum(d - d_acc - d_dec, 0.0)
     time = (peak - v) / accel + (peak - w) / decel + cruise / np.maximum(peak, 1e-6)
     return np.where(d > 0, time, 0.0), np.where(d > 0, w, v), peak
+
+
+def model_crossing_times(
+    scene, params: CrossingParams, governor_deceleration: float = 3.0
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`envs.planners.idm.crossing_times` from the vehicle model instead of fixed rules.
+
+    The arrival is the earliest one under the lane limits (accelerating at ``arrival_accel``,
+    braking for a turn's limit at the governor's deceleration); the clearing adds the time the
+    rear needs to leave the intersection area from the line at ``clear_accel``, up to the lowest
+    limit inside; a follower clears ``follow_offset`` seconds after its leader at the earliest.
+
+    :param scene: the vehicles now (with its layout)
+    :param params: timing rules
+    :param governor_deceleration: the simulation's governor deceleration [m/s^2]
+    :return: ``(arrival, clearing, inside, committed)`` as ``crossing_times`` returns them
+    """
+    v, dist = scene.speed, scene.dist_to_entry
+    approaching = scene.dist_to_exit > 0
+    inside = approaching & (dist <= 0)
+    stopping = v**2 / (2.0 * params.commit_dec) + v * scene.dt
+    committed = inside | (approaching & (dist <= stopping))
+    v_line = line_speed(scene, governor_deceleration)
+    v_road = np.maximum(scene.speed_limit, v)
+    arrival, w, _ = earliest_arrival(dist, v, v_line, v_road, params.arrival_accel, governor_deceleration)
+    crossing = scene.dist_to_exit - np.maximum(dist, 0.0)  # front from the line (or from now) to rear out
+    clearing = arrival + travel_time(crossing, w, inner_limit(scene.layout)[scene.route], params.clear_accel)
+    clearing = leader_chain_max(clearing, scene.leader, params.follow_offset)
+    return arrival, np.where(approaching, clearing, 0.0), inside, committed
