@@ -224,6 +224,10 @@ class AIMPlanner(Planner):
         w3, vin3 = speed_at_line[:, :, None], v_in[:, None, None]
         enter = arrival[:, :, None] + travel_time(d_in, w3, vin3, a)
         leave = arrival[:, :, None] + travel_time(d_out, w3, vin3, a)
+        # Nobody passes its leader: the front gets that far only once the leader has moved on.
+        bound = self.leader_bound(scene, ref)
+        enter = np.maximum(enter, bound(d_in[:, 0, :])[:, None, :])
+        leave = np.maximum(leave, bound(d_out[:, 0, :])[:, None, :])
         last = np.where(zone[:, None, :], leave, -np.inf).max(axis=2)
         score = np.where(np.isfinite(last), last, arrival) + np.where(kind == 2, p.stop_penalty, 0.0)[None, :]
 
@@ -269,6 +273,28 @@ class AIMPlanner(Planner):
             order=order,
         )
 
+    def leader_bound(self, scene: Scene, ref: np.ndarray):
+        """Lower bound on when a vehicle's front can be ``d`` metres past ``ref``: its leader's rear
+        must first be the jam distance beyond that point, and the leader accelerates at most at
+        ``accel`` up to the road's limit.
+
+        :param scene: the vehicles now
+        :param ref: ``(n,)`` arc the distances are measured from
+        :return: a function of ``(n, k)`` distances giving ``(n, k)`` times [s from now]
+        """
+        leader = np.maximum(scene.leader, 0)
+        has = scene.leader >= 0
+        front = scene.arc + scene.length / 2
+        ahead = ref - front + self.idm.jam_distance - np.where(has, scene.gap, 0.0)
+        v_lead = scene.speed[leader][:, None]
+        limit = np.maximum(scene.speed_limit[leader], scene.speed[leader])[:, None]
+
+        def bound(d: np.ndarray) -> np.ndarray:
+            move = np.maximum(d + ahead[:, None], 0.0)
+            return np.where(has[:, None], travel_time(move, v_lead, limit, self.params.accel), 0.0)
+
+        return bound
+
     # ------------------------------------------------------------------ control
     def act(self, scene: Scene) -> np.ndarray:
         n = scene.num_vehicles
@@ -294,6 +320,36 @@ class AIMPlanner(Planner):
         leader = scene.leader
         leader_speed = np.where(leader >= 0, scene.speed[np.maximum(leader, 0)], 0.0)
         follow = idm_acceleration(v, np.full(n, 1e3), scene.gap, leader_speed, dt, idm)
+        chosen_leave = plan.leave[rows, plan.choice]  # (n, R)
+        chosen_enter = plan.enter[rows, plan.choice]
+        guard = zone_guard(scene, chosen_enter[:, scene.route], chosen_leave[:, scene.route].T, self.idm)
         # Past the intersection: plain IDM.
-        acc = np.where(scene.dist_to_exit > 0, np.minimum(planned, follow), follow_leaders(scene, self.idm))
+        acc = np.where(
+            scene.dist_to_exit > 0, np.minimum(np.minimum(planned, follow), guard), follow_leaders(scene, self.idm)
+        )
         return np.clip(acc, scene.a_min, scene.a_max)
+
+
+def zone_guard(scene: Scene, enter: np.ndarray, until: np.ndarray, idm: IDMParams = DEFAULT_IDM) -> np.ndarray:
+    """Safety net under the plans: do not drive into a conflict zone another vehicle's body still occupies.
+
+    Vehicle ``i`` treats the start of its zone with ``j`` as a standing obstacle (IDM, stopping at
+    the zone's start) while ``j``'s body is in ``j``'s zone with ``i`` and ``i``'s plan enters its own
+    zone before ``j`` is expected to have left. Consistent plans never trigger it; it matters when a
+    plan slips, e.g. a vehicle held up in a merge by a queue on its exit lane. All pairs at once.
+
+    :param scene: the vehicles now (with its layout)
+    :param enter: ``(n, n)`` time ``i`` plans to enter its zone with ``j`` [s from now]
+    :param until: ``(n, n)`` time ``j`` is expected to have left its zone with ``i`` [s from now]
+    :param idm: IDM constants
+    :return: ``(n,)`` accelerations (IDM's ``acc_max`` where nothing is in the way)
+    """
+    lay, route = scene.layout, scene.route
+    front, rear = scene.arc + scene.length / 2, scene.arc - scene.length / 2
+    start, end = lay.zone_start[route[:, None], route[None, :]], lay.zone_end[route[:, None], route[None, :]]
+    occupies = (front[:, None] >= start) & (rear[:, None] <= end)  # (j, i): j's body in its zone with i
+    to_zone = start - front[:, None]  # (i, j): metres from i's front to its zone with j
+    blocking = occupies.T & (to_zone > 0) & ~(enter >= until) & (scene.dist_to_exit > 0)[:, None]
+    gap = np.where(blocking, to_zone, np.inf).min(axis=1)
+    obstacle = np.where(np.isfinite(gap), gap + idm.jam_distance, np.inf)  # IDM keeps s0: stop at the start
+    return idm_acceleration(scene.speed, np.full(scene.num_vehicles, 1e3), obstacle, np.zeros_like(gap), scene.dt, idm)
