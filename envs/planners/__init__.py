@@ -1,19 +1,27 @@
 """Planners: one acceleration per vehicle for a given scene (see :class:`Planner`).
 
 ``make_planner(spec)`` builds one from a command-line word: ``"pr"`` (static priority rules),
-``"fifo"`` (first in, first out per group of conflicting paths) or the path of a saved SB3
-model ``.zip`` (the learned GNN planner).
+``"fifo"`` (first in, first out per group of conflicting paths), ``"aim"`` (reservations per
+conflict zone), ``"signal"`` (an actuated traffic signal) or the path of a saved SB3 model ``.zip``
+(the learned GNN planner).
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 
+from envs.planners.aim import AIMPlanner
 from envs.planners.base import Planner
 from envs.planners.fifo import FIFOPlanner
 from envs.planners.priority_rules import PriorityRulesPlanner
+from envs.planners.signal import SignalPlanner
 
-BASELINES: dict[str, type[Planner]] = {"pr": PriorityRulesPlanner, "fifo": FIFOPlanner}
+BASELINES: dict[str, type[Planner]] = {
+    "pr": PriorityRulesPlanner,
+    "fifo": FIFOPlanner,
+    "aim": AIMPlanner,
+    "signal": SignalPlanner,
+}
 
 
 def check_planner_spec(spec: str) -> str:
@@ -70,10 +78,12 @@ def planner_name(spec: str) -> str:
 
 
 __all__ = [
+    "AIMPlanner",
     "BASELINES",
     "FIFOPlanner",
     "Planner",
     "PriorityRulesPlanner",
+    "SignalPlanner",
     "check_planner_spec",
     "make_planner",
     "planner_name",

@@ -4,28 +4,54 @@ Vehicles are ordered by their distance to the intersection (closest first). A ve
 when no earlier vehicle on a *conflicting* path holds or is about to take the intersection
 (see :func:`envs.planners.idm.blocked_by_rank`); vehicles on paths that do not conflict go at
 the same time, so the order is strict only within groups of conflicting paths, not over the
-whole intersection. Otherwise it waits at the stop point (a standing virtual obstacle before
-its stop line). Car following is IDM.
+whole intersection. Otherwise it waits at the stop point (its line). Car following is IDM.
+
+The times a vehicle arrives at and clears the intersection come from the vehicle model
+(:func:`envs.planners.vehicle_model.model_crossing_times`: lane limits, the governor's braking,
+the acceleration of the crossing), with small margins tuned under a zero-collision constraint
+(``docs/baselines.md``) instead of fixed rules of thumb.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from envs.planners.idm import DEFAULT_IDM, CrossingParams, IDMParams, blocked_by_rank
+from envs.planners.vehicle_model import model_crossing_times
 from envs.planners.yielding import YieldingPlanner, rank_by
 from envs.scene import Scene
 
+# Tuned (docs/baselines.md): seconds of margin and the clearing acceleration of IDM's crossings.
+FIFO_CROSSING = CrossingParams(clear_accel=2.5, gap_margin=0.5, hold_margin=0.3, follow_offset=0.3)
+
 
 class FIFOPlanner(YieldingPlanner):
-    """FIFO over groups of conflicting paths, IDM car following.
+    """FIFO over groups of conflicting paths, IDM car following, vehicle-model occupancy times.
 
     :param name: the name shown in reports
     :param idm: IDM constants (default: highway-env's)
-    :param crossing: timing rules of the admission logic
+    :param crossing: timing rules of the admission logic (default: :data:`FIFO_CROSSING`)
+    :param governor_deceleration: the simulation's governor deceleration [m/s^2]
     """
 
     default_name = "FIFO"
 
+    def __init__(
+        self,
+        name: str | None = None,
+        idm: IDMParams = DEFAULT_IDM,
+        crossing: CrossingParams | None = None,
+        governor_deceleration: float = 3.0,
+    ) -> None:
+        super().__init__(name, idm, crossing if crossing is not None else FIFO_CROSSING)
+        self.governor_deceleration = governor_deceleration
+
     def rank(self, scene: Scene) -> np.ndarray:
         """Closest to the stop line first, ties by id."""
         return rank_by(scene.dist_to_entry, scene.vehicle_id)
+
+    def blocked(self, scene: Scene) -> np.ndarray:
+        if scene.layout is None:  # hand-built scene without geometry: the fixed rules
+            return super().blocked(scene)
+        times = model_crossing_times(scene, self.crossing, self.governor_deceleration)
+        return blocked_by_rank(scene, self.rank(scene), self.crossing, times=times)

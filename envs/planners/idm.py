@@ -125,18 +125,28 @@ def follow_leaders(scene: Scene, params: IDMParams = DEFAULT_IDM) -> np.ndarray:
     return idm_acceleration(scene.speed, scene.speed_limit, scene.gap, leader_speed, scene.dt, params)
 
 
-def stop_line_acceleration(scene: Scene, margin: float = 1.0, params: IDMParams = DEFAULT_IDM) -> np.ndarray:
-    """IDM acceleration towards a virtual standing obstacle ``margin`` metres before each stop line.
+def stop_line_acceleration(
+    scene: Scene, margin: float = 0.0, params: IDMParams = DEFAULT_IDM, settle: float = 0.5
+) -> np.ndarray:
+    """IDM acceleration towards a stop point ``margin`` metres before each stop line.
 
-    This is the paper's third tweak (yield at a stop point in front of the intersection).
+    This is the paper's third tweak (yield at a stop point in front of the intersection), with its
+    first (a target speed of zero): the stop point is a standing virtual obstacle placed the jam
+    distance :math:`s_0` *beyond* it, so that IDM, which keeps :math:`s_0` to a standing obstacle,
+    brings the front bumper to rest at the stop point rather than :math:`s_0` before it; within
+    ``settle`` metres of the stop point the target speed is zero, so the vehicle settles there and
+    stays at rest instead of creeping on.
 
     :param scene: the vehicles now
-    :param margin: metres between the stopped front bumper and the stop line
+    :param margin: metres between the stopped front bumper and the stop line (0: at the line)
     :param params: IDM constants
+    :param settle: metres before the stop point from which the target speed is zero
     :return: ``(n,)`` accelerations (meaningless for vehicles already past their stop line)
     """
-    gap = np.maximum(scene.dist_to_entry - margin, 0.0)
-    return idm_acceleration(scene.speed, scene.speed_limit, gap, np.zeros_like(gap), scene.dt, params)
+    to_stop = scene.dist_to_entry - margin
+    gap = np.maximum(to_stop, 0.0) + params.jam_distance
+    target = np.where(to_stop <= settle, 0.0, scene.speed_limit)
+    return idm_acceleration(scene.speed, target, gap, np.zeros_like(gap), scene.dt, params)
 
 
 def leader_chain_max(values: np.ndarray, leader: np.ndarray, offset: float) -> np.ndarray:
@@ -178,7 +188,8 @@ class CrossingParams:
         vehicle's arrival required to go
     :param commit_dec: a vehicle that would need more than this deceleration to stop before its
         stop line cannot stop any more: it goes, and others treat it as in the intersection [m/s^2]
-    :param stop_margin: metres between a vehicle stopped at the stop point and the stop line
+    :param stop_margin: metres between a vehicle stopped at the stop point and the stop line (0: the
+        front bumper stops at the line)
     :param follow_offset: seconds a follower needs after its leader has cleared
     """
 
@@ -187,7 +198,7 @@ class CrossingParams:
     gap_margin: float = 1.0
     hold_margin: float = 0.5
     commit_dec: float = 4.0
-    stop_margin: float = 1.0
+    stop_margin: float = 0.0
     follow_offset: float = 0.5
 
 
@@ -213,7 +224,13 @@ def crossing_times(
     return arrival, np.where(approaching, clearing, 0.0), inside, committed
 
 
-def blocked_by_rank(scene: Scene, rank: np.ndarray, params: CrossingParams, passes: int = 4) -> np.ndarray:
+def blocked_by_rank(
+    scene: Scene,
+    rank: np.ndarray,
+    params: CrossingParams,
+    passes: int = 4,
+    times: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None,
+) -> np.ndarray:
     """Which vehicles must wait at their stop point, given a precedence ``rank`` (lower goes first).
 
     Vehicle ``i`` (before its stop line, still able to stop) waits if some vehicle ``j`` on a
@@ -235,12 +252,14 @@ def blocked_by_rank(scene: Scene, rank: np.ndarray, params: CrossingParams, pass
     :param rank: ``(n,)`` precedence, lower first; ties must be broken by the caller
     :param params: timing rules
     :param passes: how often the waiting of leaders is fed back into the arrivals
+    :param times: ``(arrival, clearing, inside, committed)`` as :func:`crossing_times` returns
+        them (default: computed by it)
     :return: ``(n,)`` bool, True where the vehicle must stop at its stop point
     """
     n = scene.num_vehicles
     if n == 0:
         return np.zeros(0, dtype=bool)
-    arrival, clearing, inside, committed = crossing_times(scene, params)
+    arrival, clearing, inside, committed = crossing_times(scene, params) if times is None else times
     arrival = leader_chain_max(arrival, scene.leader, 0.0)
     conflicts = np.asarray(scene.conflicts, dtype=bool).copy()
     np.fill_diagonal(conflicts, False)  # same route: plain car following

@@ -3,11 +3,13 @@
 highway-env's driver model (IDM car following plus yielding at intersections) with the paper's
 three tweaks:
 
-1. a target speed of zero is handled correctly (:func:`envs.planners.idm.idm_acceleration`);
+1. a target speed of zero is handled correctly (:func:`envs.planners.idm.idm_acceleration`): a
+   vehicle that yields gets target speed zero at its stop point and stays at rest there;
 2. precedence comes from each vehicle's *intended maneuver* on its incoming road, not from the
    priority of the lane it is on right now;
-3. a vehicle that yields does so at a stop point in front of the intersection, modelled as a
-   standing virtual obstacle ``stop_margin`` metres before its stop line.
+3. a vehicle that yields does so at a stop point in front of the intersection: its front bumper
+   comes to rest ``stop_margin`` metres before its stop line (default 0: at the line), see
+   :func:`envs.planners.idm.stop_line_acceleration`.
 
 Precedence order (lower goes first), ties broken by the earliest possible arrival, then by id:
 

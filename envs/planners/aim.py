@@ -1,0 +1,355 @@
+"""Reservation per conflict zone in the spirit of Dresner & Stone's AIM (autonomous intersection management).
+
+Every route pair that crosses or merges has a conflict zone on each of the two routes
+(:attr:`envs.layouts.Layout.zone_start`, :attr:`~envs.layouts.Layout.zone_end`). A vehicle's body
+occupies a zone from the moment its front bumper reaches the zone's start until its rear bumper
+leaves the zone's end. Each policy step the planner re-plans every vehicle that has not left the
+intersection:
+
+1. **Candidate plans** from the vehicle model (:mod:`envs.planners.vehicle_model`), each a
+   time-parametrised speed profile to the stop line followed by the crossing at ``accel`` up to
+   the lowest limit inside the intersection:
+
+   - the earliest arrival (accelerate, cruise at the road's limit, brake for the line's limit);
+   - *slowed approaches*: change speed to a cruise speed ``u`` (a grid in steps of
+     ``speed_step``), cruise, and accelerate again in time to reach the line as fast as the
+     remaining distance allows; a slower ``u`` arrives later, mostly without stopping;
+   - *stops*: come to rest at the line and start from rest at a later time (steps of
+     ``wait_step`` up to ``wait_horizon``).
+
+   Each candidate gives, for every zone on the vehicle's path, the time window its body occupies
+   it.
+2. **Order**: first in, first out by the earliest possible arrival at the line, fixed when the
+   vehicle is first seen (a follower never before its leader). Vehicles that can no longer stop
+   before their line (braking harder than ``commit_decel``) or are inside keep their
+   reservations: they come first.
+3. **Reservations**: each vehicle takes its best candidate (the one that leaves its last zone
+   soonest; a stop costs ``stop_penalty`` seconds) whose windows keep ``buffer`` seconds from the
+   windows of every earlier vehicle in the zones they share, and that arrives ``follow_headway``
+   seconds after its leader. The order is a chain of dependencies, so the reservations are settled
+   by a few vectorized passes (at most ``passes``), each one ``(n, candidates, n)`` array algebra.
+4. **Control**: each vehicle follows the first phase of its plan (accelerate, change speed
+   towards ``u`` or stop at the line), capped by IDM car following.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from envs.planners.base import Planner
+from envs.planners.idm import (
+    DEFAULT_IDM,
+    IDMParams,
+    follow_leaders,
+    idm_acceleration,
+    leader_chain_max,
+    stop_line_acceleration,
+    travel_time,
+)
+from envs.planners.vehicle_model import earliest_arrival, inner_limit, line_speed
+from envs.scene import Scene
+
+
+@dataclass(frozen=True)
+class AIMParams:
+    """Free parameters of :class:`AIMPlanner` (defaults: tuned, see ``docs/baselines.md``).
+
+    :param accel: acceleration planned and commanded when crossing or speeding up [m/s^2]
+    :param decel: deceleration planned and commanded to slow an approach or stop [m/s^2]
+    :param commit_decel: a vehicle that would need more than this to stop before its line cannot
+        stop any more: it keeps its place at the front of the order [m/s^2]
+    :param buffer: seconds kept between one vehicle's window in a zone and another's
+    :param follow_headway: seconds between a leader's and its follower's arrival at the line
+    :param stop_penalty: seconds a plan that stops at the line counts as slower than it is
+    :param speed_step: spacing of the cruise speeds of slowed approaches [m/s]
+    :param wait_step: spacing of the start times of plans that stop [s]
+    :param wait_horizon: latest start time of a plan that stops, after coming to rest [s]
+    :param passes: most passes to settle the reservations
+    :param governor_deceleration: the simulation's governor deceleration [m/s^2]
+    """
+
+    accel: float = 3.0
+    decel: float = 2.5
+    commit_decel: float = 4.5
+    buffer: float = 0.3
+    follow_headway: float = 1.0
+    stop_penalty: float = 1.0
+    speed_step: float = 0.5
+    wait_step: float = 0.4
+    wait_horizon: float = 12.0
+    passes: int = 12
+    governor_deceleration: float = 3.0
+
+
+@dataclass(frozen=True)
+class Reservations:
+    """The plans of one step, row ``i`` = vehicle ``i``.
+
+    :param choice: ``(n,)`` index of the chosen candidate
+    :param kind: ``(C,)`` ``0`` earliest, ``1`` slowed approach, ``2`` stop, per candidate
+    :param cruise: ``(C,)`` cruise speed of each slowed approach [m/s] (``nan`` otherwise)
+    :param arrival: ``(n, C)`` time the front reaches the line (0 inside) [s from now]
+    :param line_speed: ``(n, C)`` speed at the line [m/s]
+    :param enter: ``(n, C, R)`` time the body enters its zone with route ``q`` [s from now]
+    :param leave: ``(n, C, R)`` time it has left it
+    :param zone: ``(n, R)`` bool: the vehicle still has to pass its zone with route ``q``
+    :param start: ``(n, C)`` time a stopping plan starts from rest (``nan`` for the others) [s from now]
+    :param rest: ``(n,)`` earliest time the vehicle can be at rest at its line [s from now]
+    :param committed: ``(n,)`` bool: inside, or unable to stop before its line
+    :param order: ``(n,)`` rank in the order of reservation (0 first)
+    """
+
+    choice: np.ndarray
+    kind: np.ndarray
+    cruise: np.ndarray
+    arrival: np.ndarray
+    line_speed: np.ndarray
+    enter: np.ndarray
+    leave: np.ndarray
+    zone: np.ndarray
+    start: np.ndarray
+    rest: np.ndarray
+    committed: np.ndarray
+    order: np.ndarray
+
+    def window(self, q: int | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(n,)`` chosen enter and leave times in the zone with route(s) ``q`` (``nan`` if none)."""
+        rows = np.arange(self.choice.shape[0])
+        enter = self.enter[rows, self.choice, q]
+        leave = self.leave[rows, self.choice, q]
+        valid = self.zone[rows, q]
+        return np.where(valid, enter, np.nan), np.where(valid, leave, np.nan)
+
+
+class AIMPlanner(Planner):
+    """Reservations per conflict zone, FIFO by arrival, with approach speeds adapted to the slot.
+
+    :param name: the name shown in reports
+    :param params: free parameters
+    :param idm: IDM constants of car following (its ``acc_max`` is replaced by ``params.accel``)
+    """
+
+    # A stopped vehicle this close to its line [m] is at its stop point (IDM settles within ~0.5 m).
+    stop_reach = 1.0
+    # ... and at rest below this speed [m/s].
+    rest_speed = 0.5
+
+    def __init__(self, name: str = "AIM", params: AIMParams | None = None, idm: IDMParams = DEFAULT_IDM) -> None:
+        super().__init__(name)
+        self.params = params if params is not None else AIMParams()
+        self.idm = idm
+        self.reset()
+
+    def reset(self, seed: int | None = None) -> None:
+        self._ids = np.zeros(0, np.int64)
+        self._keys = np.zeros(0)
+
+    # ------------------------------------------------------------------ order
+    def arrival_keys(self, scene: Scene, earliest: np.ndarray) -> np.ndarray:
+        """FIFO keys: absolute earliest arrival at the line when first seen, never before the leader's.
+
+        :param scene: the vehicles now
+        :param earliest: ``(n,)`` earliest arrival from now [s]
+        :return: ``(n,)`` keys (also remembered for the next steps)
+        """
+        ids = scene.vehicle_id
+        keys = scene.time + np.asarray(earliest, float)
+        if self._ids.size:
+            pos = np.minimum(np.searchsorted(self._ids, ids), self._ids.size - 1)
+            keys = np.where(self._ids[pos] == ids, self._keys[pos], keys)
+        keys = leader_chain_max(keys, scene.leader, 1e-3)
+        order = np.argsort(ids)
+        self._ids, self._keys = ids[order], keys[order]
+        return keys
+
+    # ------------------------------------------------------------------ planning
+    def reserve(self, scene: Scene) -> Reservations:
+        """Candidate plans, the order, and the reservations of every vehicle (see the module docstring)."""
+        p = self.params
+        lay = scene.layout
+        n, route, v, L = scene.num_vehicles, scene.route, scene.speed, scene.length
+        dist = scene.dist_to_entry
+        approaching = scene.dist_to_exit > 0
+        before = approaching & (dist > 0)
+        inside = approaching & ~before
+        a, b, b_gov = p.accel, p.decel, p.governor_deceleration
+        v_line = line_speed(scene, b_gov)
+        v_road = np.maximum(scene.speed_limit, v)
+        v_in = inner_limit(lay)[route]
+
+        # Candidate 0: the earliest arrival.
+        t0, w0, _ = earliest_arrival(dist, v, v_line, v_road, a, b_gov)
+        # Slowed approaches: v -> u, cruise at u, u -> w at the line.
+        u = np.arange(1, int(np.floor(v_road.max(initial=0.0) / p.speed_step)) + 1) * p.speed_step
+        U, V, D, WL = u[None, :], v[:, None], dist[:, None], v_line[:, None]
+        rate1 = np.where(U > V, a, b)
+        d1 = np.abs(V**2 - U**2) / (2.0 * rate1)
+        rest = D - d1
+        w = np.where(U <= WL, np.minimum(WL, np.sqrt(U**2 + 2.0 * a * np.maximum(rest, 0.0))), WL)
+        rate3 = np.where(w >= U, a, b_gov)
+        d3 = np.abs(w**2 - U**2) / (2.0 * rate3)
+        d2 = rest - d3
+        cruise_ok = before[:, None] & (rest >= 0) & (d2 >= -1e-6) & (U <= v_road[:, None] + 1e-9)
+        t_cruise = np.abs(V - U) / rate1 + np.maximum(d2, 0.0) / U + np.abs(w - U) / rate3
+        # Stops: come to rest at the line, start from rest later.
+        can_stop = before & (v**2 <= 2.0 * p.commit_decel * np.maximum(dist, 0.0))
+        stop_dec = np.maximum(b, v**2 / (2.0 * np.maximum(dist, 1e-3)))
+        at_stop = before & (dist <= self.stop_reach) & (v <= self.rest_speed)
+        t_rest = np.where(at_stop, 0.0, earliest_arrival(dist, v, np.zeros(n), v_road, a, stop_dec)[0])
+        waits = np.arange(int(np.floor(p.wait_horizon / p.wait_step)) + 1) * p.wait_step
+        start = np.maximum(t_rest[:, None], waits[None, :])  # from rest at the stop point, from now
+        creep = np.where(at_stop, dist, 0.0)[:, None]  # what is left to the line from there
+        t_stop = start + np.sqrt(2.0 * creep / a)
+        w_stop = np.sqrt(2.0 * a * creep) + 0.0 * start
+
+        arrival = np.concatenate([t0[:, None], t_cruise, t_stop], axis=1)  # (n, C)
+        speed_at_line = np.concatenate([w0[:, None], w, w_stop], axis=1)
+        feasible = np.concatenate(
+            [np.ones((n, 1), bool), cruise_ok, np.broadcast_to(can_stop[:, None], t_stop.shape)], axis=1
+        )
+        kind = np.concatenate([[0], np.ones(u.size, np.int64), np.full(waits.size, 2)])
+        cruise = np.concatenate([[np.nan], u, np.full(waits.size, np.nan)])
+        arrival = np.where(inside[:, None], 0.0, arrival)
+        speed_at_line = np.where(inside[:, None], v[:, None], speed_at_line)
+        committed = inside | (before & ~can_stop)
+
+        # Zone windows of every candidate, measured from the line (from the front once inside).
+        ref = np.where(inside, scene.arc + L / 2, lay.entry_arc[route])
+        z_start, z_end = lay.zone_start[route], lay.zone_end[route]  # (n, R)
+        zone = approaching[:, None] & np.isfinite(z_start) & (z_end + L[:, None] - ref[:, None] > 0)
+        d_in = np.where(zone, np.maximum(z_start - ref[:, None], 0.0), 0.0)[:, None, :]
+        d_out = np.where(zone, z_end + L[:, None] - ref[:, None], 0.0)[:, None, :]
+        w3, vin3 = speed_at_line[:, :, None], v_in[:, None, None]
+        enter = arrival[:, :, None] + travel_time(d_in, w3, vin3, a)
+        leave = arrival[:, :, None] + travel_time(d_out, w3, vin3, a)
+        # Nobody passes its leader: the front gets that far only once the leader has moved on.
+        bound = self.leader_bound(scene, ref)
+        enter = np.maximum(enter, bound(d_in[:, 0, :])[:, None, :])
+        leave = np.maximum(leave, bound(d_out[:, 0, :])[:, None, :])
+        last = np.where(zone[:, None, :], leave, -np.inf).max(axis=2)
+        score = np.where(np.isfinite(last), last, arrival) + np.where(kind == 2, p.stop_penalty, 0.0)[None, :]
+
+        # Order: committed first, then FIFO by the remembered arrival keys.
+        keys = self.arrival_keys(scene, t0)
+        order = np.empty(n, np.int64)
+        order[np.lexsort((scene.vehicle_id, keys, ~committed))] = np.arange(n)
+        pair = lay.conflicts[route[:, None], route[None, :]] & zone[:, route] & zone[:, route].T
+        pair &= order[None, :] < order[:, None]  # (i, j): j reserves before i
+        np.fill_diagonal(pair, False)
+        enter_ij, leave_ij = enter[:, :, route], leave[:, :, route]  # (i, c, j): i's window in zone (r_i, r_j)
+        leader = scene.leader
+        follows = (leader >= 0) & before & before[np.maximum(leader, 0)]  # both still before the line
+        # Without a clash-free plan: wait longest if it can stop, else arrive as late as it can.
+        latest_go = np.where(feasible & (kind != 2)[None, :], arrival, -np.inf).argmax(axis=1)
+        fallback = np.where(can_stop, arrival.shape[1] - 1, latest_go)
+        rows = np.arange(n)
+        choice = np.zeros(n, np.int64)
+        for _ in range(p.passes):
+            chosen_enter, chosen_leave = enter[rows, choice], leave[rows, choice]  # (n, R)
+            enter_j, leave_j = chosen_enter[:, route].T, chosen_leave[:, route].T  # (i, j): j's window with r_i
+            overlap = (enter_ij < leave_j[:, None, :] + p.buffer) & (enter_j[:, None, :] < leave_ij + p.buffer)
+            clash = (overlap & pair[:, None, :]).any(axis=2)
+            lead_arrival = arrival[rows, choice][np.maximum(leader, 0)] + p.follow_headway
+            ok = feasible & ~clash & (~follows[:, None] | (arrival >= lead_arrival[:, None]))
+            best = np.where(ok, score, np.inf).argmin(axis=1)
+            new = np.where(ok.any(axis=1), best, fallback)
+            if np.array_equal(new, choice):
+                break
+            choice = new
+        return Reservations(
+            choice=choice,
+            kind=kind,
+            cruise=cruise,
+            arrival=arrival,
+            line_speed=speed_at_line,
+            enter=enter,
+            leave=leave,
+            zone=zone,
+            start=np.concatenate([np.full((n, 1 + u.size), np.nan), start], axis=1),
+            rest=t_rest,
+            committed=committed,
+            order=order,
+        )
+
+    def leader_bound(self, scene: Scene, ref: np.ndarray):
+        """Lower bound on when a vehicle's front can be ``d`` metres past ``ref``: its leader's rear
+        must first be the jam distance beyond that point, and the leader accelerates at most at
+        ``accel`` up to the road's limit.
+
+        :param scene: the vehicles now
+        :param ref: ``(n,)`` arc the distances are measured from
+        :return: a function of ``(n, k)`` distances giving ``(n, k)`` times [s from now]
+        """
+        leader = np.maximum(scene.leader, 0)
+        has = scene.leader >= 0
+        front = scene.arc + scene.length / 2
+        ahead = ref - front + self.idm.jam_distance - np.where(has, scene.gap, 0.0)
+        v_lead = scene.speed[leader][:, None]
+        limit = np.maximum(scene.speed_limit[leader], scene.speed[leader])[:, None]
+
+        def bound(d: np.ndarray) -> np.ndarray:
+            move = np.maximum(d + ahead[:, None], 0.0)
+            return np.where(has[:, None], travel_time(move, v_lead, limit, self.params.accel), 0.0)
+
+        return bound
+
+    # ------------------------------------------------------------------ control
+    def act(self, scene: Scene) -> np.ndarray:
+        n = scene.num_vehicles
+        if n == 0:
+            return np.zeros(0)
+        p = self.params
+        plan = self.reserve(scene)
+        rows = np.arange(n)
+        kind, u = plan.kind[plan.choice], plan.cruise[plan.choice]
+        v, dist, dt = scene.speed, scene.dist_to_entry, scene.dt
+        before = (scene.dist_to_exit > 0) & (dist > 0)
+        # Slowed approach: towards u, and accelerate again in time to reach w at the line.
+        w = plan.line_speed[rows, plan.choice]
+        speed_up = (w > v) & (dist <= (w**2 - v**2) / (2.0 * p.accel) + v * dt)
+        towards_u = np.clip((np.nan_to_num(u) - v) / dt, -p.decel, p.accel)
+        slowed = np.where(speed_up, p.accel, towards_u)
+        # Stop: at the line, until the start time has come (no wait left once at the stop point).
+        at_line = (plan.rest <= 0.0) & (plan.start[rows, plan.choice] <= 1e-9)
+        stop = np.where(at_line, p.accel, stop_line_acceleration(scene, 0.0, self.idm))
+        planned = np.select([~before | (kind == 0), kind == 1], [p.accel, slowed], stop)
+        # Car following: IDM's interaction term (the lane limits are the governor's job).
+        idm = replace(self.idm, acc_max=p.accel)
+        leader = scene.leader
+        leader_speed = np.where(leader >= 0, scene.speed[np.maximum(leader, 0)], 0.0)
+        follow = idm_acceleration(v, np.full(n, 1e3), scene.gap, leader_speed, dt, idm)
+        chosen_leave = plan.leave[rows, plan.choice]  # (n, R)
+        chosen_enter = plan.enter[rows, plan.choice]
+        guard = zone_guard(scene, chosen_enter[:, scene.route], chosen_leave[:, scene.route].T, self.idm)
+        # Past the intersection: plain IDM.
+        acc = np.where(
+            scene.dist_to_exit > 0, np.minimum(np.minimum(planned, follow), guard), follow_leaders(scene, self.idm)
+        )
+        return np.clip(acc, scene.a_min, scene.a_max)
+
+
+def zone_guard(scene: Scene, enter: np.ndarray, until: np.ndarray, idm: IDMParams = DEFAULT_IDM) -> np.ndarray:
+    """Safety net under the plans: do not drive into a conflict zone another vehicle's body still occupies.
+
+    Vehicle ``i`` treats the start of its zone with ``j`` as a standing obstacle (IDM, stopping at
+    the zone's start) while ``j``'s body is in ``j``'s zone with ``i`` and ``i``'s plan enters its own
+    zone before ``j`` is expected to have left. Consistent plans never trigger it; it matters when a
+    plan slips, e.g. a vehicle held up in a merge by a queue on its exit lane. All pairs at once.
+
+    :param scene: the vehicles now (with its layout)
+    :param enter: ``(n, n)`` time ``i`` plans to enter its zone with ``j`` [s from now]
+    :param until: ``(n, n)`` time ``j`` is expected to have left its zone with ``i`` [s from now]
+    :param idm: IDM constants
+    :return: ``(n,)`` accelerations (IDM's ``acc_max`` where nothing is in the way)
+    """
+    lay, route = scene.layout, scene.route
+    front, rear = scene.arc + scene.length / 2, scene.arc - scene.length / 2
+    start, end = lay.zone_start[route[:, None], route[None, :]], lay.zone_end[route[:, None], route[None, :]]
+    occupies = (front[:, None] >= start) & (rear[:, None] <= end)  # (j, i): j's body in its zone with i
+    to_zone = start - front[:, None]  # (i, j): metres from i's front to its zone with j
+    blocking = occupies.T & (to_zone > 0) & ~(enter >= until) & (scene.dist_to_exit > 0)[:, None]
+    gap = np.where(blocking, to_zone, np.inf).min(axis=1)
+    obstacle = np.where(np.isfinite(gap), gap + idm.jam_distance, np.inf)  # IDM keeps s0: stop at the start
+    return idm_acceleration(scene.speed, np.full(scene.num_vehicles, 1e3), obstacle, np.zeros_like(gap), scene.dt, idm)
