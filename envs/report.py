@@ -101,6 +101,11 @@ def markdown_report(
             f"| {name} | {s['vehicles']} | {_pct(s['collision_rate'])} | {format_number(d['median'], 2)} "
             f"| {format_number(d['mean'], 2)} |"
         )
+    shielded = [(name, s["shield_interventions"]) for name, s in summary.items() if "shield_interventions" in s]
+    if shielded:
+        lines += ["", "## Safety shield: commands replaced, share of vehicle-steps", ""]
+        lines += ["| planner | interventions |", "|---|---:|"]
+        lines += [f"| {name} | {_pct(rate)} |" for name, rate in shielded]
     lines += ["", "Figures: " + ", ".join(f"![{f}]({f})" for f in FIGURES), ""]
     lines += ["## How to read these numbers", "", *NOTES, ""]
     return "\n".join(lines)
@@ -161,6 +166,22 @@ def stop_figure(
     plt.close(fig)
 
 
+def add_shield_interventions(summary: dict, runs: pd.DataFrame) -> None:
+    """Add ``shield_interventions`` (share of vehicle-steps whose command the shield replaced, over
+    all runs) to the summary of every shielded planner (in place).
+
+    :param summary: :func:`envs.metrics.summarize` output
+    :param runs: ``metrics.csv`` rows; shielded runs carry ``shield_interventions`` and ``shield_vehicle_steps``
+    """
+    if "shield_interventions" not in runs:
+        return
+    for name, s in summary.items():
+        rows = runs[(runs["planner"] == name) & runs["shield_vehicle_steps"].notna()]
+        steps = float(rows["shield_vehicle_steps"].sum())
+        if len(rows):
+            s["shield_interventions"] = float(rows["shield_interventions"].sum()) / steps if steps else None
+
+
 def write_report(
     out: str | Path, runs: pd.DataFrame, vehicles: pd.DataFrame, meta: Mapping[str, Any]
 ) -> dict:
@@ -175,6 +196,7 @@ def write_report(
     out = Path(out)
     planners = list(pd.unique(runs["planner"]))
     summary = summarize(runs, vehicles)
+    add_shield_interventions(summary, runs)
     runs.to_csv(out / "metrics.csv", index=False)
     vehicles.to_csv(out / "vehicles.csv", index=False)
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")

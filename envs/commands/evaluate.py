@@ -40,9 +40,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="append",
         default=None,
         metavar="PLANNER",
-        help="repeatable: 'pr' (priority rules), 'fifo', or a saved model .zip; default: pr, fifo "
-        "and the GNN planner shipped in envs/pretrained/coop_4way/best_model.zip",
+        help="repeatable: 'pr' (priority rules), 'fifo', a saved model .zip, or a Planner class "
+        "(path/to/file.py:ClassName or package.module:ClassName); '+shield' after any of them wraps it in the "
+        "safety shield; default: pr, fifo and the GNN planner shipped in envs/pretrained/coop_4way/best_model.zip, "
+        "without and with the shield",
     )
+    add_shield_argument(parser)
     parser.add_argument("--scenarios", type=int, default=100, help="scenarios to generate (default: 100)")
     parser.add_argument(
         "--duration", type=float, default=100.0, help="simulated seconds per run (default: 100)"
@@ -82,7 +85,7 @@ def _check(args: argparse.Namespace) -> list[tuple[str, str]]:
         raise UserError(f"--jobs must be at least 1, got {args.jobs}")
     if args.env_kwargs is not None and not isinstance(args.env_kwargs, dict):
         raise UserError("--env-kwargs must be a JSON object, e.g. '{\"duration\": 100}'")
-    planners = checked_planners(args.planner)
+    planners = checked_planners(args.planner, shield=args.shield)
     if args.out is not None and Path(args.out).exists():
         raise UserError(f"--out: {args.out!r} exists; choose a new folder (reports are never overwritten)")
     import gymnasium as gym
@@ -171,24 +174,41 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def checked_planners(words: Sequence[str] | None, reserved: Sequence[str] = ()) -> list[tuple[str, str]]:
+def add_shield_argument(parser: argparse.ArgumentParser) -> None:
+    """The ``--shield`` flag (shared by the commands that run planners)."""
+    parser.add_argument(
+        "--shield",
+        action="store_true",
+        help="wrap every planner of the run in the safety shield (reported as '<name>+shield', with its "
+        "intervention rate in summary.json)",
+    )
+
+
+def checked_planners(
+    words: Sequence[str] | None, reserved: Sequence[str] = (), shield: bool = False
+) -> list[tuple[str, str]]:
     """The ``--planner`` words as ``(planner spec, report name)`` pairs, validated.
 
-    :param words: the words given; ``None`` or empty: PR, FIFO and the shipped GNN planner
+    :param words: the words given; ``None`` or empty: PR, FIFO and the shipped GNN planner without and
+        with the shield
     :param reserved: report names that a planner must not take (e.g. ``"inD"`` for the recorded drivers)
+    :param shield: wrap every planner in the safety shield (``--shield``)
     :raises UserError: an unknown planner, a missing model file, or two planners with one report name
     """
-    from envs.planners import check_planner_spec, planner_name
+    from envs.planners import SHIELD_SUFFIX, check_planner_spec, planner_name
 
     if not words:
-        words = list(DEFAULT_BASELINES) + ([str(DEFAULT_MODEL)] if DEFAULT_MODEL.is_file() else [])
+        model = [str(DEFAULT_MODEL), str(DEFAULT_MODEL) + SHIELD_SUFFIX] if DEFAULT_MODEL.is_file() else []
+        words = list(DEFAULT_BASELINES) + model
     planners: list[tuple[str, str]] = []
     for word in words:
         try:
             key = check_planner_spec(word)
+            if shield and not key.endswith(SHIELD_SUFFIX):
+                key += SHIELD_SUFFIX
+            name = planner_name(key)
         except ValueError as error:
             raise UserError(f"--planner: {error}") from None
-        name = planner_name(key)
         if name in [n for _, n in planners] or name in reserved:
             raise UserError(f"--planner: {word!r} given twice or named like a reserved column (report name {name!r})")
         planners.append((key, name))
