@@ -249,9 +249,7 @@ class Shield(Planner):
             np.minimum.at(acc, f, np.where(ok, acc[f], -a_max))
         return np.where(go, acc, -a_max)
 
-    def _leaders_now(
-        self, plan: _Plan, arc: np.ndarray, go: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _leaders_now(self, plan: _Plan, arc: np.ndarray, go: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(follower, ahead, bumper gap)`` of every same-path pair, and of every pair on merging paths
         whose vehicle ahead (along the common exit lane) proceeds (``go``) or has reached the merge."""
         f, ahead = plan.follow[:, 0], plan.follow[:, 1]
@@ -284,7 +282,7 @@ class Shield(Planner):
         steps = max(1, int(np.ceil(self.horizon / dt - 1e-9)))
         arcs, speeds = [plan.arc[None]], [plan.speed[None]]
         arc, speed, acc = plan.arc, plan.speed, command
-        for k in range(steps):
+        for _ in range(steps):
             v, x, _ = integrate(
                 scene.layout,
                 plan.route,
