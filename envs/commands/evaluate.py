@@ -6,6 +6,14 @@ Example (the paper's synthetic experiment)::
         --planner runs/coop/best_model.zip --scenarios 100 --duration 100 --seed 0 --jobs 2 \\
         --out reports/synthetic
 
+Any class implementing :class:`envs.planners.Planner` runs as ``--planner path/to/file.py:ClassName``
+or ``--planner package.module:ClassName``; ``--shield`` wraps every planner of the run in the
+safety shield (:mod:`envs.planners.shield`, reported as ``<name>+shield``, its share of overridden
+vehicle-steps as ``shield_interventions`` in ``summary.json``), e.g. the shield's stress test::
+
+    sb3-graph evaluate --planner envs/planners/adversarial.py:FullThrottle \
+        --planner envs.planners.adversarial:RandomAccel --shield --scenarios 20 --duration 100
+
 The report folder receives ``scenarios/`` (the generated scenario files, reusable with
 ``--scenario-dir``), ``metrics.csv``, ``vehicles.csv``, ``summary.json``, ``report.md`` and the
 figures (see :mod:`envs.report`). An existing ``--out`` is refused, never overwritten; without
