@@ -168,7 +168,11 @@ def run_job(job: Job) -> tuple[dict[str, Any], pd.DataFrame]:
     row: dict[str, Any] = {"planner": job.name, "run": job.index, "scenario": Path(job.scenario).name}
     row.update(run_metrics(vehicles, duration))
     if hasattr(planner, "interventions"):  # a shielded planner: its counters of this run
-        row.update(shield_interventions=planner.interventions, shield_vehicle_steps=planner.vehicle_steps)
+        row.update(
+            shield_interventions=planner.interventions,
+            shield_vehicle_steps=planner.vehicle_steps,
+            shield_unresolved=getattr(planner, "unresolved", 0),
+        )
     row.update(
         steps=facts["steps"],
         terminated=facts["terminated"],

@@ -27,7 +27,11 @@ responsibility-sensitive safety gap (it can always stop behind a leader braking 
 Because the plan accepted at one step contains the fallback from the next state, the all-fallback
 plan passed the check one step earlier: the shield always has a safe answer (recursive
 feasibility), and once the prediction reaches a state where everyone stands or has left, the
-fallback keeps it that way.
+fallback keeps it that way. This holds as long as the relations between vehicles stay as predicted:
+new vehicles appear far upstream with a braking gap (the simulation's spawn check), and the
+leaders the fallback follows are those of the scene plus merges along the common exit lane. Should
+the fallback still fail, every vehicle brakes at ``a_max`` and the step is counted in
+:attr:`Shield.unresolved`.
 
 Vectorized over vehicles and pairs; the only loops run over the horizon's time steps and over the
 few rounds of overrides.
@@ -168,8 +172,8 @@ class Shield(Planner):
             if not blamed.any():  # a conflict no single proposal explains: take the whole fallback
                 blamed = deviates & ~overridden
             if not blamed.any():
-                # Neither the fallback nor braking passes (the layout's leader relations changed
-                # under the fallback): everyone brakes, the plan whose safety needs no prediction.
+                # The fallback itself fails (the leader relations it follows changed since the
+                # last step, or the scene started unsafe): everyone brakes. Counted in `unresolved`.
                 self.unresolved += 1
                 command = np.full(n, float(scene.a_min))
                 overridden = np.abs(acc - command) > 1e-9
@@ -267,12 +271,8 @@ class Shield(Planner):
         return f, ahead, gap
 
     # ------------------------------------------------------------------ prediction and check
-    def predict(
-        self, scene: Scene, plan: _Plan, command: np.ndarray, brake: bool = False
-    ) -> tuple[np.ndarray, np.ndarray]:
+    def predict(self, scene: Scene, plan: _Plan, command: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Arcs at every simulation sub-step: ``command`` for one period, then the fallback.
-
-        :param brake: follow ``command`` by everyone braking at ``a_max`` instead of the fallback
 
         :return: ``(T + 1, n)`` arcs (row 0: now) and ``(T + 1, n)`` speeds
         """
@@ -297,11 +297,6 @@ class Shield(Planner):
             arcs.append(x[1:])
             speeds.append(v[1:])
             arc, speed = x[-1], v[-1]
-            if brake:
-                if (speed <= _STANDING).all():
-                    break
-                acc = np.full(arc.shape, float(scene.a_min))
-                continue
             if self._settled(plan, arc, speed, scene.a_max).all():
                 break  # everyone stands before its zones or has left them: the fallback keeps it so
             acc = self._fallback(scene, plan, arc, speed)
@@ -311,22 +306,16 @@ class Shield(Planner):
         standing = (speed <= _STANDING) & ~self.committed(plan, arc, speed, a_max)
         return standing | (arc > plan.hull_end)
 
-    def _blame(
-        self, scene: Scene, plan: _Plan, command: np.ndarray, free: np.ndarray | None, brake: bool = False
-    ) -> np.ndarray | None:
+    def _blame(self, scene: Scene, plan: _Plan, command: np.ndarray, free: np.ndarray) -> np.ndarray | None:
         """Vehicles to override so that the plan gets through, ``None`` if it passes as it is.
 
         A conflict is blamed on a vehicle whose command still differs from the fallback
         (``free``); when both of a pair's do, on the one that comes second: the follower, or the
         later to enter the zone.
 
-        :param brake: check ``command`` followed by everyone braking (see :meth:`predict`): a plan
-            that passes this way is safe without the fallback, since braking stays possible
         :return: ``(n,)`` bool (all ``False``: conflicts that no free vehicle explains), or ``None``
         """
-        arc, speed = self.predict(scene, plan, command, brake)
-        if free is None:
-            free = np.zeros(scene.num_vehicles, bool)
+        arc, speed = self.predict(scene, plan, command)
         later = arc[1:]
         blamed = np.zeros(scene.num_vehicles, bool)
         found = False
@@ -363,11 +352,8 @@ class Shield(Planner):
                 rows = np.arange(len(back))
                 pairs = plan.merge[bad]
                 _blame_pairs(blamed, free, pairs[rows, back], pairs[rows, 1 - back])
-        # At the end, everyone stands before its zones or has cleared them (or, braking, stands).
-        if brake:
-            stuck = speed[-1] > _STANDING
-        else:
-            stuck = ~self._settled(plan, arc[-1], speed[-1], scene.a_max)
+        # At the end, everyone stands before its zones or has cleared them.
+        stuck = ~self._settled(plan, arc[-1], speed[-1], scene.a_max)
         if stuck.any():
             found = True
             blamed |= stuck & free
