@@ -176,6 +176,12 @@ def run_job(job: Job) -> tuple[dict[str, Any], pd.DataFrame]:
     duration = facts["duration"] if facts["duration"] > 0 else job.duration
     row: dict[str, Any] = {"planner": job.name, "run": job.index, "scenario": Path(job.scenario).name}
     row.update(run_metrics(vehicles, duration))
+    if hasattr(planner, "interventions"):  # a shielded planner: its counters of this run
+        row.update(
+            shield_interventions=planner.interventions,
+            shield_vehicle_steps=planner.vehicle_steps,
+            shield_unresolved=getattr(planner, "unresolved", 0),
+        )
     row.update(
         baseline=is_baseline(job.planner),
         steps=facts["steps"],

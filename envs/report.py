@@ -118,6 +118,11 @@ def markdown_report(
         )
     if paired is not None and not paired.empty:
         lines += _paired_section(paired)
+    shielded = [(name, s["shield_interventions"]) for name, s in summary.items() if "shield_interventions" in s]
+    if shielded:
+        lines += ["", "## Safety shield: commands replaced, share of vehicle-steps", ""]
+        lines += ["| planner | interventions |", "|---|---:|"]
+        lines += [f"| {name} | {_pct(rate)} |" for name, rate in shielded]
     lines += ["", "Figures: " + ", ".join(f"![{f}]({f})" for f in FIGURES), ""]
     lines += ["## How to read these numbers", "", *NOTES, ""]
     return "\n".join(lines)
@@ -200,6 +205,22 @@ def stop_figure(
     plt.close(fig)
 
 
+def add_shield_interventions(summary: dict, runs: pd.DataFrame) -> None:
+    """Add ``shield_interventions`` (share of vehicle-steps whose command the shield replaced, over
+    all runs) to the summary of every shielded planner (in place).
+
+    :param summary: :func:`envs.metrics.summarize` output
+    :param runs: ``metrics.csv`` rows; shielded runs carry ``shield_interventions`` and ``shield_vehicle_steps``
+    """
+    if "shield_interventions" not in runs:
+        return
+    for name, s in summary.items():
+        rows = runs[(runs["planner"] == name) & runs["shield_vehicle_steps"].notna()]
+        steps = float(rows["shield_vehicle_steps"].sum())
+        if len(rows):
+            s["shield_interventions"] = float(rows["shield_interventions"].sum()) / steps if steps else None
+
+
 def write_report(
     out: str | Path, runs: pd.DataFrame, vehicles: pd.DataFrame, meta: Mapping[str, Any]
 ) -> dict:
@@ -215,6 +236,7 @@ def write_report(
     planners = list(pd.unique(runs["planner"]))
     summary = summarize(runs, vehicles)
     paired = paired_differences(runs)
+    add_shield_interventions(summary, runs)
     runs.to_csv(out / "metrics.csv", index=False)
     vehicles.to_csv(out / "vehicles.csv", index=False)
     paired.to_csv(out / "paired.csv", index=False)

@@ -248,26 +248,22 @@ class Simulation:
         return events
 
     def _integrate(self, acc: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Speeds and arcs at the sub-step boundaries under the governor.
+        """Speeds and arcs at the sub-step boundaries under the governor (:func:`integrate`).
 
         :return: ``(S + 1, n)`` speeds, ``(S + 1, n)`` arcs (row 0: now) and ``(n,)`` bool: the
             governor lowered the vehicle's speed in some sub-step
         """
-        h = 1.0 / self.simulation_frequency
-        lay, route, b = self.layout, self.route, self.governor_deceleration
-        speed = np.empty((self.substeps + 1, self.num_vehicles))
-        arc = np.empty_like(speed)
-        speed[0], arc[0] = self.speed, self.arc
-        governed = np.zeros(self.num_vehicles, bool)
-        for k in range(self.substeps):  # a loop over time (3 sub-steps), vectorized over vehicles
-            v = np.minimum(np.maximum(speed[k] + acc * h, 0.0), self.max_speed)
-            x = arc[k] + 0.5 * (speed[k] + v) * h
-            cap = np.minimum(lay.envelope_at(route, arc[k], b), lay.envelope_at(route, x, b))
-            over = v > cap
-            governed |= over
-            speed[k + 1] = np.where(over, cap, v)
-            arc[k + 1] = arc[k] + 0.5 * (speed[k] + speed[k + 1]) * h
-        return speed, arc, governed
+        return integrate(
+            self.layout,
+            self.route,
+            self.arc,
+            self.speed,
+            acc,
+            self.substeps,
+            1.0 / self.simulation_frequency,
+            self.max_speed,
+            self.governor_deceleration,
+        )
 
     def _collision_candidates(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
         """Pairs that may touch during the coming policy period.
@@ -455,6 +451,51 @@ class Simulation:
             arc=self.arc.copy(),
             layout=lay,
         )
+
+
+def integrate(
+    layout: Layout,
+    route: np.ndarray,
+    arc: np.ndarray,
+    speed: np.ndarray,
+    acc: np.ndarray,
+    substeps: int,
+    h: float,
+    max_speed: float,
+    governor_deceleration: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The vehicle model over one policy period: accelerations held for ``substeps`` sub-steps of
+    ``h`` seconds, speed kept in ``[0, max_speed]`` and under the governor's envelope.
+
+    A pure function, so that a planner-side check (:class:`envs.planners.shield.Shield`) predicts
+    with exactly the simulation's model.
+
+    :param layout: the intersection
+    :param route: ``(n,)`` route indices
+    :param arc: ``(n,)`` centre arcs now [m]
+    :param speed: ``(n,)`` speeds now [m/s]
+    :param acc: ``(n,)`` accelerations, already clipped to the bounds [m/s^2]
+    :param substeps: sub-steps per policy period
+    :param h: sub-step length [s]
+    :param max_speed: speed cap [m/s]
+    :param governor_deceleration: the governor's braking deceleration [m/s^2]
+    :return: ``(S + 1, n)`` speeds, ``(S + 1, n)`` arcs (row 0: now) and ``(n,)`` bool: the
+        governor lowered the vehicle's speed in some sub-step
+    """
+    b = governor_deceleration
+    v_all = np.empty((substeps + 1, route.shape[0]))
+    x_all = np.empty_like(v_all)
+    v_all[0], x_all[0] = speed, arc
+    governed = np.zeros(route.shape[0], bool)
+    for k in range(substeps):  # a loop over time (3 sub-steps), vectorized over vehicles
+        v = np.minimum(np.maximum(v_all[k] + acc * h, 0.0), max_speed)
+        x = x_all[k] + 0.5 * (v_all[k] + v) * h
+        cap = np.minimum(layout.envelope_at(route, x_all[k], b), layout.envelope_at(route, x, b))
+        over = v > cap
+        governed |= over
+        v_all[k + 1] = np.where(over, cap, v)
+        x_all[k + 1] = x_all[k] + 0.5 * (v_all[k] + v_all[k + 1]) * h
+    return v_all, x_all, governed
 
 
 def overlapping_pairs(

@@ -6,6 +6,14 @@ Example (the paper's synthetic experiment)::
         --planner runs/coop/best_model.zip --scenarios 100 --duration 100 --seed 0 --jobs 2 \\
         --out reports/synthetic
 
+Any class implementing :class:`envs.planners.Planner` runs as ``--planner path/to/file.py:ClassName``
+or ``--planner package.module:ClassName``; ``--shield`` wraps every planner of the run in the
+safety shield (:mod:`envs.planners.shield`, reported as ``<name>+shield``, its share of overridden
+vehicle-steps as ``shield_interventions`` in ``summary.json``), e.g. the shield's stress test::
+
+    sb3-graph evaluate --planner envs/planners/adversarial.py:FullThrottle \
+        --planner envs.planners.adversarial:RandomAccel --shield --scenarios 20 --duration 100
+
 The report folder receives ``scenarios/`` (the generated scenario files, reusable with
 ``--scenario-dir``), ``metrics.csv``, ``vehicles.csv``, ``summary.json``, ``report.md`` and the
 figures (see :mod:`envs.report`). An existing ``--out`` is refused, never overwritten; without
@@ -30,7 +38,7 @@ from sb3_graph.cli import UserError
 DEFAULT_ENV = "CoopIntersection4Way-v0"
 # The GNN planner shipped with the package (trained by `sb3-graph train`, see its README.md).
 DEFAULT_MODEL = Path(__file__).resolve().parents[1] / "pretrained" / "coop_4way" / "best_model.zip"
-DEFAULT_BASELINES = ("pr", "fifo")
+DEFAULT_BASELINES = ("pr", "fifo", "aim", "signal")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -56,9 +64,12 @@ def add_run_arguments(parser: argparse.ArgumentParser, scenarios: int, out: str,
         action="append",
         default=None,
         metavar="PLANNER",
-        help="repeatable: 'pr' (priority rules), 'fifo', or a saved model .zip; default: pr, fifo "
-        "and the GNN planner shipped in envs/pretrained/coop_4way/best_model.zip",
+        help="repeatable: 'pr' (priority rules), 'fifo', 'aim', 'signal', a saved model .zip, or a Planner class "
+        "(path/to/file.py:ClassName or package.module:ClassName); '+shield' after any of them wraps it in the "
+        "safety shield; default: pr, fifo, aim, signal and the GNN planner shipped in "
+        "envs/pretrained/coop_4way/best_model.zip, without and with the shield",
     )
+    add_shield_argument(parser)
     parser.add_argument(
         "--scenarios", type=int, default=scenarios, help=f"scenarios to generate{per} (default: {scenarios})"
     )
@@ -95,7 +106,7 @@ def _check(args: argparse.Namespace) -> list[tuple[str, str]]:
         raise UserError(f"--jobs must be at least 1, got {args.jobs}")
     if args.env_kwargs is not None and not isinstance(args.env_kwargs, dict):
         raise UserError("--env-kwargs must be a JSON object, e.g. '{\"duration\": 100}'")
-    planners = checked_planners(args.planner)
+    planners = checked_planners(args.planner, shield=args.shield)
     if args.out is not None and Path(args.out).exists():
         raise UserError(f"--out: {args.out!r} exists; choose a new folder (reports are never overwritten)")
     import gymnasium as gym
@@ -199,24 +210,41 @@ def run_harness(args: argparse.Namespace, planners: Sequence[tuple[str, str]], s
     )
 
 
-def checked_planners(words: Sequence[str] | None, reserved: Sequence[str] = ()) -> list[tuple[str, str]]:
+def add_shield_argument(parser: argparse.ArgumentParser) -> None:
+    """The ``--shield`` flag (shared by the commands that run planners)."""
+    parser.add_argument(
+        "--shield",
+        action="store_true",
+        help="wrap every planner of the run in the safety shield (reported as '<name>+shield', with its "
+        "intervention rate in summary.json)",
+    )
+
+
+def checked_planners(
+    words: Sequence[str] | None, reserved: Sequence[str] = (), shield: bool = False
+) -> list[tuple[str, str]]:
     """The ``--planner`` words as ``(planner spec, report name)`` pairs, validated.
 
-    :param words: the words given; ``None`` or empty: PR, FIFO and the shipped GNN planner
+    :param words: the words given; ``None`` or empty: PR, FIFO and the shipped GNN planner without and
+        with the shield
     :param reserved: report names that a planner must not take (e.g. ``"inD"`` for the recorded drivers)
+    :param shield: wrap every planner in the safety shield (``--shield``)
     :raises UserError: an unknown planner, a missing model file, or two planners with one report name
     """
-    from envs.planners import check_planner_spec, planner_name
+    from envs.planners import SHIELD_SUFFIX, check_planner_spec, planner_name
 
     if not words:
-        words = list(DEFAULT_BASELINES) + ([str(DEFAULT_MODEL)] if DEFAULT_MODEL.is_file() else [])
+        model = [str(DEFAULT_MODEL), str(DEFAULT_MODEL) + SHIELD_SUFFIX] if DEFAULT_MODEL.is_file() else []
+        words = list(DEFAULT_BASELINES) + model
     planners: list[tuple[str, str]] = []
     for word in words:
         try:
             key = check_planner_spec(word)
+            if shield and not key.endswith(SHIELD_SUFFIX):
+                key += SHIELD_SUFFIX
+            name = planner_name(key)
         except ValueError as error:
             raise UserError(f"--planner: {error}") from None
-        name = planner_name(key)
         if name in [n for _, n in planners] or name in reserved:
             raise UserError(f"--planner: {word!r} given twice or named like a reserved column (report name {name!r})")
         planners.append((key, name))

@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from envs.commands.evaluate import add_shield_argument
 from sb3_graph.cli import UserError
 
 DEFAULT_ENV = "CoopIntersectionInD-v0"
@@ -58,8 +59,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="append",
         default=None,
         metavar="PLANNER",
-        help="repeatable: 'pr', 'fifo', or a saved model .zip (default: pr, fifo and the shipped GNN planner)",
+        help="repeatable: 'pr', 'fifo', a saved model .zip, or a Planner class (path/to/file.py:ClassName or "
+        "package.module:ClassName), '+shield' after any of them for the shielded planner (default: pr, fifo "
+        "and the shipped GNN planner without and with the shield)",
     )
+    add_shield_argument(parser)
     parser.add_argument(
         "--dataset-only", action="store_true", help="only map and measure the recorded drivers"
     )
@@ -141,7 +145,7 @@ def _planners(args: argparse.Namespace) -> list[tuple[str, str]]:
     """``(planner word, report name)`` pairs, validated; the recorded drivers are the column "inD"."""
     from envs.commands.evaluate import checked_planners
 
-    return checked_planners(args.planner, reserved=("inD",))
+    return checked_planners(args.planner, reserved=("inD",), shield=args.shield)
 
 
 def _out_folder(out: str | None) -> Path:

@@ -2,8 +2,10 @@
 
 ``make_planner(spec)`` builds one from a command-line word: ``"pr"`` (static priority rules),
 ``"fifo"`` (first in, first out per group of conflicting paths), ``"aim"`` (reservations per
-conflict zone), ``"signal"`` (an actuated traffic signal) or the path of a saved SB3 model ``.zip``
-(the learned GNN planner).
+conflict zone), ``"signal"`` (an actuated traffic signal), the path of a saved SB3 model ``.zip``
+(the learned GNN planner), or a user class ``path/to/file.py:ClassName`` /
+``package.module:ClassName`` (:mod:`envs.planners.loading`). The suffix ``+shield`` wraps any of
+them in the safety shield (:class:`envs.planners.shield.Shield`).
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ from pathlib import Path
 from envs.planners.aim import AIMPlanner
 from envs.planners.base import Planner
 from envs.planners.fifo import FIFOPlanner
+from envs.planners.loading import class_planner_name, is_class_spec, load_planner_class, make_class_planner
 from envs.planners.priority_rules import PriorityRulesPlanner
 from envs.planners.signal import SignalPlanner
 
@@ -22,18 +25,27 @@ BASELINES: dict[str, type[Planner]] = {
     "aim": AIMPlanner,
     "signal": SignalPlanner,
 }
+# A planner word ending in this is the planner wrapped in the safety shield.
+SHIELD_SUFFIX = "+shield"
 
 
 def check_planner_spec(spec: str) -> str:
     """Validate a planner word without building it (cheap: no model is loaded).
 
-    :param spec: ``"pr"``, ``"fifo"`` or the path of a readable ``.zip`` model file
-    :return: the normalised spec (lower-case baseline name, or the path as given)
+    :param spec: ``"pr"``, ``"fifo"``, the path of a readable ``.zip`` model file or a class spec
+        (``file.py:Class``, ``package.module:Class``, imported to check it), each optionally
+        followed by ``+shield``
+    :return: the normalised spec (lower-case baseline name, or the path or class spec as given)
     :raises ValueError: anything else, with the accepted values in the message
     """
     key = str(spec).strip()
+    if key.endswith(SHIELD_SUFFIX):
+        return check_planner_spec(key[: -len(SHIELD_SUFFIX)]) + SHIELD_SUFFIX
     if key.lower() in BASELINES:
         return key.lower()
+    if is_class_spec(key):
+        load_planner_class(key)
+        return key
     path = Path(key)
     if path.suffix == ".zip" and path.is_file():
         try:
@@ -44,20 +56,27 @@ def check_planner_spec(spec: str) -> str:
         return key
     raise ValueError(
         f"planner {spec!r} is neither a baseline ({', '.join(BASELINES)}) "
-        "nor a readable saved model file (path to a .zip written by model.save)"
+        "nor a readable saved model file (path to a .zip written by model.save) "
+        "nor a class (path/to/file.py:ClassName or package.module:ClassName)"
     )
 
 
 def make_planner(spec: str) -> Planner:
     """Build a planner from its command-line word.
 
-    :param spec: ``"pr"``, ``"fifo"`` or the path of a saved SB3 model ``.zip``
+    :param spec: see :func:`check_planner_spec`
     :return: the planner
     :raises ValueError: unknown word or unreadable model file
     """
     key = check_planner_spec(spec)
+    if key.endswith(SHIELD_SUFFIX):
+        from envs.planners.shield import Shield
+
+        return Shield(make_planner(key[: -len(SHIELD_SUFFIX)]))
     if key in BASELINES:
         return BASELINES[key]()
+    if is_class_spec(key):
+        return make_class_planner(key)
     from envs.planners.gnn import GNNPlanner
 
     return GNNPlanner(key)
@@ -67,11 +86,16 @@ def planner_name(spec: str) -> str:
     """Report name of a planner word, without building it.
 
     :param spec: a valid planner word (see :func:`check_planner_spec`)
-    :return: ``"PR"``, ``"FIFO"`` or ``"RL:<name>"``
+    :return: ``"PR"``, ``"FIFO"``, ``"RL:<name>"`` or a class planner's ``name``; ``+shield`` appended
+        for a shielded one
     """
     key = check_planner_spec(spec)
+    if key.endswith(SHIELD_SUFFIX):
+        return planner_name(key[: -len(SHIELD_SUFFIX)]) + SHIELD_SUFFIX
     if key in BASELINES:
         return key.upper()
+    if is_class_spec(key):
+        return class_planner_name(key)
     from envs.planners.gnn import model_name
 
     return model_name(Path(key))
@@ -83,6 +107,7 @@ __all__ = [
     "FIFOPlanner",
     "Planner",
     "PriorityRulesPlanner",
+    "SHIELD_SUFFIX",
     "SignalPlanner",
     "check_planner_spec",
     "make_planner",

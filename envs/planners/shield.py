@@ -1,0 +1,412 @@
+"""A safety shield: any planner's accelerations, checked and overridden where needed before they are applied.
+
+The paper leaves the learned planner's rare collisions to a check it does not build ("the
+cooperative maneuver will only be advertised to the connected vehicles, if it fulfills sanity
+checks like being collision-free"). :class:`Shield` is that check, placed where the paper puts it:
+between a planner (on an edge server) and the vehicles. It knows only the scene and the layout,
+so it wraps every planner on every layout.
+
+How it decides, every policy step:
+
+1. The planner proposes one acceleration per vehicle.
+2. The proposal is applied for one period, then every vehicle follows the *fallback* for the rest
+   of the horizon, all predicted with the simulation's own vehicle model
+   (:func:`envs.simulation.integrate`: sub-steps, the ±a_max clip, the speed governor).
+3. The prediction must be free of conflicts: every follower keeps a gap to the vehicles ahead on
+   its path; two vehicles on crossing paths never occupy their conflict zone at the same time;
+   two vehicles on merging paths stay a vehicle length apart once they merge. At the end, every
+   vehicle has either cleared the intersection or stands still before the zones it does not own.
+4. A vehicle whose proposal causes a conflict gets the fallback's command instead (an
+   *intervention*); the check repeats until the plan passes.
+
+The fallback is a feedback law of the state alone: a vehicle that can still stop before the first
+conflict zone on its route brakes at ``a_max`` (local planning: it stops before zones it does not
+own); a vehicle that cannot (it is committed, it owns its zone) or that has cleared the
+intersection proceeds at ``proceed_acceleration``, following the vehicles ahead of it with a
+responsibility-sensitive safety gap (it can always stop behind a leader braking at ``a_max``).
+Because the plan accepted at one step contains the fallback from the next state, the all-fallback
+plan passed the check one step earlier: the shield always has a safe answer (recursive
+feasibility), and once the prediction reaches a state where everyone stands or has left, the
+fallback keeps it that way. This holds as long as the relations between vehicles stay as predicted:
+new vehicles appear far upstream with a braking gap (the simulation's spawn check), and the
+leaders the fallback follows are those of the scene plus merges along the common exit lane. Should
+the fallback still fail, every vehicle brakes at ``a_max`` and the step is counted in
+:attr:`Shield.unresolved`.
+
+Vectorized over vehicles and pairs; the only loops run over the horizon's time steps and over the
+few rounds of overrides.
+"""
+
+from __future__ import annotations
+
+import weakref
+from dataclasses import dataclass
+
+import numpy as np
+
+from envs.planners.base import Planner
+from envs.scene import Scene
+from envs.simulation import integrate
+
+_INT = np.int64
+# A vehicle counts as standing below this speed [m/s] (speeds are clipped to exactly 0 when braking).
+_STANDING = 1e-6
+# Slack on "can stop before the zone" [m]: the simulation's trapezoid integration overshoots the
+# exact stopping distance by at most ``a_max * h^2 / 8`` (4 mm at 15 Hz).
+_STOP_SLACK = 0.05
+
+
+@dataclass
+class _Plan:
+    """What the check of one scene needs: vehicle rows, their zones and the pairs to check."""
+
+    route: np.ndarray
+    arc: np.ndarray
+    speed: np.ndarray
+    hull_start: np.ndarray  # centre arc from which the body may touch a conflict zone (padded) [m]
+    hull_end: np.ndarray  # centre arc past which the body has left every zone (padded) [m]
+    follow: np.ndarray  # (k, 2) rows (follower, vehicle ahead on the same path)
+    follow_gap: np.ndarray  # (k,) bumper gaps now [m]
+    cross: np.ndarray  # (c, 2) rows on crossing routes
+    cross_lo: np.ndarray  # (c, 2) occupancy interval of each body's centre arc in the pair's zone
+    cross_hi: np.ndarray
+    merge: np.ndarray  # (g, 2) rows on merging routes
+    merge_lo: np.ndarray  # (g, 2) centre arc from which each has reached the merge zone
+    merge_exit: np.ndarray  # (g, 2) exit arcs: arc - exit is a common coordinate after the merge
+    merge_sep: np.ndarray  # (g,) smallest centre distance after the merge [m]
+
+
+class Shield(Planner):
+    """Wraps a planner so that its commands stay collision-free (see the module docstring).
+
+    The vehicle-model constants must be the simulation's (the defaults are the environment's);
+    ``dt`` and ``a_max`` come from each scene.
+
+    :param planner: the planner whose proposals are checked
+    :param horizon: longest prediction [s]; the prediction stops earlier once every vehicle
+        stands before its zones or has left the intersection
+    :param zone_margin: padding of every conflict zone on both ends [m]; at least the distance a
+        vehicle moves in one simulation sub-step, so that checks at sub-step times see every overlap
+    :param gap_margin: bumper gap the fallback keeps to a leader that brakes at ``a_max`` [m]; a
+        prediction fails where a gap falls below half of it (a vehicle turning off a shared lane
+        swings its rear corner up to ~0.5 m closer than the distance along the path shows)
+    :param merge_margin: extra distance between two vehicles on merging paths, over their half lengths [m]
+    :param proceed_acceleration: acceleration of the fallback for committed and cleared vehicles [m/s^2]
+    :param simulation_frequency: integration rate of the simulation [Hz]
+    :param max_speed: the simulation's speed cap [m/s]
+    :param governor_deceleration: the simulation's speed governor [m/s^2]
+    :param name: report name (default: ``<planner name>+shield``)
+    """
+
+    def __init__(
+        self,
+        planner: Planner,
+        horizon: float = 8.0,
+        zone_margin: float = 1.5,
+        gap_margin: float = 2.0,
+        merge_margin: float = 2.0,
+        proceed_acceleration: float = 3.0,
+        simulation_frequency: int = 15,
+        max_speed: float = 20.0,
+        governor_deceleration: float = 3.0,
+        name: str | None = None,
+    ) -> None:
+        super().__init__(name or f"{planner.name}+shield")
+        self.planner = planner
+        self.horizon = float(horizon)
+        self.zone_margin = float(zone_margin)
+        self.gap_margin = float(gap_margin)
+        self.merge_margin = float(merge_margin)
+        self.proceed_acceleration = float(proceed_acceleration)
+        self.simulation_frequency = int(simulation_frequency)
+        self.max_speed = float(max_speed)
+        self.governor_deceleration = float(governor_deceleration)
+        self.interventions = 0
+        self.vehicle_steps = 0
+        self.unresolved = 0
+        self.last_overridden = np.zeros(0, bool)
+
+    # ------------------------------------------------------------------ planner face
+    def reset(self, seed: int | None = None) -> None:
+        """Reset the wrapped planner and the intervention counters."""
+        self.planner.reset(seed)
+        self.interventions = 0
+        self.vehicle_steps = 0
+        self.unresolved = 0
+
+    @property
+    def intervention_rate(self) -> float:
+        """Share of vehicle-steps whose command the shield replaced since the last reset (``nan`` if none)."""
+        return self.interventions / self.vehicle_steps if self.vehicle_steps else float("nan")
+
+    def act(self, scene: Scene) -> np.ndarray:
+        proposal = np.asarray(self.planner.act(scene), dtype=float).reshape(scene.num_vehicles)
+        return self.check(scene, proposal)
+
+    def check(self, scene: Scene, proposal: np.ndarray) -> np.ndarray:
+        """The safe version of a proposal: ``proposal`` where it passes, the fallback where it does not.
+
+        Records the overridden vehicles in :attr:`last_overridden` and the counters.
+
+        :param scene: the vehicles now (must carry ``layout`` and ``arc``)
+        :param proposal: ``(n,)`` proposed accelerations [m/s^2]
+        :return: ``(n,)`` accelerations to apply
+        """
+        n = scene.num_vehicles
+        acc = np.clip(np.asarray(proposal, dtype=float).reshape(n), scene.a_min, scene.a_max)
+        self.last_overridden = np.zeros(n, bool)
+        if n == 0:
+            return acc
+        if scene.layout is None or scene.arc is None:
+            raise ValueError("the shield needs the scene's layout and arcs (scenes built by the simulation have them)")
+        plan = self._plan(scene)
+        fallback = self._fallback(scene, plan, plan.arc, plan.speed)
+        deviates = np.abs(acc - fallback) > 1e-9
+        overridden = np.zeros(n, bool)
+        command = acc
+        for _ in range(n + 1):
+            command = np.where(overridden, fallback, acc)
+            blamed = self._blame(scene, plan, command, deviates & ~overridden)
+            if blamed is None:
+                break
+            if not blamed.any():  # a conflict no single proposal explains: take the whole fallback
+                blamed = deviates & ~overridden
+            if not blamed.any():
+                # The fallback itself fails (the leader relations it follows changed since the
+                # last step, or the scene started unsafe): everyone brakes. Counted in `unresolved`.
+                self.unresolved += 1
+                command = np.full(n, float(scene.a_min))
+                overridden = np.abs(acc - command) > 1e-9
+                break
+            overridden |= blamed
+        self.last_overridden = overridden
+        self.interventions += int(overridden.sum())
+        self.vehicle_steps += n
+        return command
+
+    # ------------------------------------------------------------------ scene -> plan
+    def _plan(self, scene: Scene) -> _Plan:
+        lay, route, length = scene.layout, scene.route, scene.length
+        m = self.zone_margin
+        zs, ze = lay.zone_start[route], lay.zone_end[route]  # (n, R)
+        with np.errstate(invalid="ignore"):
+            first = np.where(np.isnan(zs), np.inf, zs).min(axis=1)
+            last = np.where(np.isnan(ze), -np.inf, ze).max(axis=1)
+        hull_start = first - m - length / 2
+        hull_end = last + m + length / 2
+        # Same path: the leader and the leader's leader (a leader that turns off a shared lane
+        # uncovers the next one).
+        lead = scene.leader
+        rows = np.flatnonzero(lead >= 0)
+        second = rows[lead[lead[rows]] >= 0]
+        follow = np.concatenate(
+            [np.stack([rows, lead[rows]], axis=1), np.stack([second, lead[lead[second]]], axis=1)]
+        ).astype(_INT)
+        follow_gap = np.concatenate(
+            [scene.gap[rows], scene.gap[second] + length[lead[second]] + scene.gap[lead[second]]]
+        )
+        # Conflicting routes: crossing pairs by zone occupancy, merging pairs by a common coordinate.
+        merging = _merging_routes(lay)
+        i, j = np.nonzero(np.triu(lay.conflicts[route[:, None], route[None, :]], 1))
+        is_merge = merging[route[i], route[j]]
+        pairs = np.stack([i, j], axis=1).astype(_INT)
+        cross, merge = pairs[~is_merge], pairs[is_merge]
+        r, q = route[cross[:, 0]], route[cross[:, 1]]
+        half = length[cross] / 2
+        cross_lo = np.stack([lay.zone_start[r, q], lay.zone_start[q, r]], axis=1) - m - half
+        cross_hi = np.stack([lay.zone_end[r, q], lay.zone_end[q, r]], axis=1) + m + half
+        r, q = route[merge[:, 0]], route[merge[:, 1]]
+        merge_lo = np.stack([lay.zone_start[r, q], lay.zone_start[q, r]], axis=1) - m - length[merge] / 2
+        merge_exit = lay.exit_arc[route[merge]].reshape(-1, 2)
+        merge_sep = length[merge].sum(axis=1) / 2 + self.merge_margin
+        return _Plan(
+            route=route,
+            arc=np.asarray(scene.arc, float),
+            speed=np.asarray(scene.speed, float),
+            hull_start=hull_start,
+            hull_end=hull_end,
+            follow=follow,
+            follow_gap=follow_gap,
+            cross=cross,
+            cross_lo=cross_lo.reshape(-1, 2),
+            cross_hi=cross_hi.reshape(-1, 2),
+            merge=merge,
+            merge_lo=merge_lo.reshape(-1, 2),
+            merge_exit=merge_exit,
+            merge_sep=merge_sep,
+        )
+
+    # ------------------------------------------------------------------ the fallback
+    def committed(self, plan: _Plan, arc: np.ndarray, speed: np.ndarray, a_max: float) -> np.ndarray:
+        """``(n,)`` bool: the vehicle can no longer stop before its first zone, or has cleared them all."""
+        cannot_stop = arc + speed**2 / (2 * a_max) + _STOP_SLACK > plan.hull_start
+        return cannot_stop | (arc > plan.hull_end)
+
+    def _fallback(self, scene: Scene, plan: _Plan, arc: np.ndarray, speed: np.ndarray) -> np.ndarray:
+        """The fallback's accelerations in a state: brake, or proceed while keeping a safe gap."""
+        a_max, dt = float(scene.a_max), float(scene.dt)
+        acc = np.full(arc.shape, min(self.proceed_acceleration, a_max))
+        go = self.committed(plan, arc, speed, a_max)
+        f, ahead, gap = self._leaders_now(plan, arc, go)
+        if f.size:
+            ok = _safe_gap_after(gap, speed[f], speed[ahead], acc[f], a_max, dt, self.gap_margin)
+            np.minimum.at(acc, f, np.where(ok, acc[f], -a_max))
+        return np.where(go, acc, -a_max)
+
+    def _leaders_now(self, plan: _Plan, arc: np.ndarray, go: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(follower, ahead, bumper gap)`` of every same-path pair, and of every pair on merging paths
+        whose vehicle ahead (along the common exit lane) proceeds (``go``) or has reached the merge."""
+        f, ahead = plan.follow[:, 0], plan.follow[:, 1]
+        gap = plan.follow_gap + (arc[ahead] - plan.arc[ahead]) - (arc[f] - plan.arc[f])
+        if plan.merge.size:
+            e = arc[plan.merge] - plan.merge_exit
+            reached = arc[plan.merge] > plan.merge_lo
+            back = (e[:, 0] >= e[:, 1]).astype(_INT)  # column of the vehicle behind
+            rows = np.arange(len(plan.merge))
+            active = reached[rows, 1 - back] | go[plan.merge[rows, 1 - back]]
+            mf, ma = plan.merge[rows, back][active], plan.merge[rows, 1 - back][active]
+            # kept at gap_margin by the fallback: half a gap margin more than the check's distance
+            mgap = (np.abs(e[:, 0] - e[:, 1]) - plan.merge_sep + 0.5 * self.gap_margin)[active]
+            f, ahead, gap = np.concatenate([f, mf]), np.concatenate([ahead, ma]), np.concatenate([gap, mgap])
+        return f, ahead, gap
+
+    # ------------------------------------------------------------------ prediction and check
+    def predict(self, scene: Scene, plan: _Plan, command: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Arcs at every simulation sub-step: ``command`` for one period, then the fallback.
+
+        :return: ``(T + 1, n)`` arcs (row 0: now) and ``(T + 1, n)`` speeds
+        """
+        dt = float(scene.dt)
+        substeps = max(1, int(round(self.simulation_frequency * dt)))
+        h = dt / substeps
+        steps = max(1, int(np.ceil(self.horizon / dt - 1e-9)))
+        arcs, speeds = [plan.arc[None]], [plan.speed[None]]
+        arc, speed, acc = plan.arc, plan.speed, command
+        for _ in range(steps):
+            v, x, _ = integrate(
+                scene.layout,
+                plan.route,
+                arc,
+                speed,
+                acc,
+                substeps,
+                h,
+                self.max_speed,
+                self.governor_deceleration,
+            )
+            arcs.append(x[1:])
+            speeds.append(v[1:])
+            arc, speed = x[-1], v[-1]
+            if self._settled(plan, arc, speed, scene.a_max).all():
+                break  # everyone stands before its zones or has left them: the fallback keeps it so
+            acc = self._fallback(scene, plan, arc, speed)
+        return np.concatenate(arcs), np.concatenate(speeds)
+
+    def _settled(self, plan: _Plan, arc: np.ndarray, speed: np.ndarray, a_max: float) -> np.ndarray:
+        standing = (speed <= _STANDING) & ~self.committed(plan, arc, speed, a_max)
+        return standing | (arc > plan.hull_end)
+
+    def _blame(self, scene: Scene, plan: _Plan, command: np.ndarray, free: np.ndarray) -> np.ndarray | None:
+        """Vehicles to override so that the plan gets through, ``None`` if it passes as it is.
+
+        A conflict is blamed on a vehicle whose command still differs from the fallback
+        (``free``); when both of a pair's do, on the one that comes second: the follower, or the
+        later to enter the zone.
+
+        :return: ``(n,)`` bool (all ``False``: conflicts that no free vehicle explains), or ``None``
+        """
+        arc, speed = self.predict(scene, plan, command)
+        later = arc[1:]
+        blamed = np.zeros(scene.num_vehicles, bool)
+        found = False
+        # Same path and merged: the gap to the vehicle ahead must stay open.
+        f, ahead = plan.follow[:, 0], plan.follow[:, 1]
+        if f.size:
+            gap = plan.follow_gap + (later[:, ahead] - plan.arc[ahead]) - (later[:, f] - plan.arc[f])
+            floor = np.minimum(0.5 * self.gap_margin, plan.follow_gap - 1e-6)  # a short gap may not shrink
+            bad = (gap < floor).any(axis=0)
+            if bad.any():
+                found = True
+                _blame_pairs(blamed, free, f[bad], ahead[bad])
+        if plan.cross.size:
+            x = later[:, plan.cross]  # (T, c, 2)
+            inside = (x > plan.cross_lo) & (x < plan.cross_hi)
+            both = inside.all(axis=2)
+            bad = both.any(axis=0)
+            if bad.any():
+                found = True
+                first = np.where(inside.any(axis=0), inside.argmax(axis=0), inside.shape[0])[bad]  # (b, 2)
+                second = (first[:, 1] > first[:, 0]).astype(_INT)
+                rows = np.arange(len(first))
+                pairs = plan.cross[bad]
+                _blame_pairs(blamed, free, pairs[rows, second], pairs[rows, 1 - second])
+        if plan.merge.size:
+            x = later[:, plan.merge]
+            reached = (x > plan.merge_lo).all(axis=2)
+            e = x - plan.merge_exit
+            bad = (reached & (np.abs(e[..., 0] - e[..., 1]) < plan.merge_sep)).any(axis=0)
+            if bad.any():
+                found = True
+                e0 = plan.arc[plan.merge[bad]] - plan.merge_exit[bad]
+                back = (e0[:, 0] >= e0[:, 1]).astype(_INT)
+                rows = np.arange(len(back))
+                pairs = plan.merge[bad]
+                _blame_pairs(blamed, free, pairs[rows, back], pairs[rows, 1 - back])
+        # At the end, everyone stands before its zones or has cleared them.
+        stuck = ~self._settled(plan, arc[-1], speed[-1], scene.a_max)
+        if stuck.any():
+            found = True
+            blamed |= stuck & free
+            # A committed vehicle stuck behind a vehicle ahead: that one's command is to blame.
+            fl, ah, _ = self._leaders_now(plan, arc[-1], self.committed(plan, arc[-1], speed[-1], scene.a_max))
+            culprit = ah[stuck[fl] & ~free[fl] & free[ah]]
+            blamed[culprit] = True
+        return blamed if found else None
+
+
+def _blame_pairs(blamed: np.ndarray, free: np.ndarray, second: np.ndarray, first: np.ndarray) -> None:
+    """Mark, per conflicting pair, the free one; ``second`` if both are free (in place)."""
+    pick = np.where(free[second], second, first)
+    blamed[pick[free[pick]]] = True
+
+
+def _safe_gap_after(
+    gap: np.ndarray,
+    v_follower: np.ndarray,
+    v_ahead: np.ndarray,
+    acc: np.ndarray,
+    a_max: float,
+    dt: float,
+    margin: float,
+) -> np.ndarray:
+    """Whether after ``dt`` at ``acc`` the follower can still stop behind a vehicle that brakes at ``a_max`` now.
+
+    Responsibility-sensitive safety with equal braking: the gap left once both have stopped,
+    ``gap - max(0, v_f^2 - v_a^2) / (2 a_max)``, must stay above ``margin`` (the speed cap and the
+    governor only lower the follower's speed, which makes the test conservative).
+    """
+    travel_f, v_f = _travel(v_follower, acc, dt)
+    travel_a, v_a = _travel(v_ahead, np.full_like(v_ahead, -a_max), dt)
+    after = gap + travel_a - travel_f
+    return after - np.maximum(v_f**2 - v_a**2, 0.0) / (2 * a_max) >= margin
+
+
+def _travel(speed: np.ndarray, acc: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """Distance and end speed after ``dt`` at constant ``acc``, stopping at 0."""
+    end = speed + acc * dt
+    stops = end < 0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        to_stop = speed**2 / (2 * np.maximum(-acc, 1e-12))
+    return np.where(stops, to_stop, 0.5 * (speed + end) * dt), np.maximum(end, 0.0)
+
+
+_MERGING: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def _merging_routes(layout) -> np.ndarray:
+    """``(R, R)`` bool: conflicting routes that end on the same exit lane (merge rather than cross)."""
+    if layout not in _MERGING:
+        ids = layout.route_lane_ids
+        last = ids[np.arange(ids.shape[0]), (ids >= 0).sum(axis=1) - 1]
+        _MERGING[layout] = layout.conflicts & (last[:, None] == last[None, :])
+    return _MERGING[layout]
