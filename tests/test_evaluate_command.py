@@ -139,9 +139,9 @@ def test_default_planners_are_the_baselines_and_the_shipped_model():
     from sb3_graph.cli import UserError
 
     planners = checked_planners(None)
-    assert [name for _, name in planners][:2] == ["PR", "FIFO"]
-    assert planners[2][0] == str(DEFAULT_MODEL)  # sb3-graph ind uses the same defaults
-    assert planners[3] == (str(DEFAULT_MODEL) + "+shield", planners[2][1] + "+shield")  # and shielded
+    assert [name for _, name in planners][:4] == ["PR", "FIFO", "AIM", "SIGNAL"]
+    assert planners[4][0] == str(DEFAULT_MODEL)  # sb3-graph ind uses the same defaults
+    assert planners[5] == (str(DEFAULT_MODEL) + "+shield", planners[4][1] + "+shield")  # and shielded
     assert [name for _, name in checked_planners(["pr"], shield=True)] == ["PR+shield"]
     assert [name for _, name in checked_planners(None, reserved=("inD",))] == [name for _, name in planners]
     with pytest.raises(UserError, match="given twice"):
