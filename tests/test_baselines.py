@@ -75,25 +75,29 @@ def test_aim_non_conflicting_paths_go_together():
 
 
 def test_aim_conflicting_vehicle_slows_down_instead_of_stopping():
-    """Two crossing vehicles due at the same time: the later one slows early, enters its zone only
-    after the other's body has left the other's zone, and never stops."""
+    """Two crossing vehicles due at their conflict zones at the same time: one goes unhindered, the
+    other slows early, enters its zone only after the first one's body has left the first one's
+    zone, and never stops."""
     env = empty_env()
     base = env.unwrapped
     lay = base.layout
-    first, second = lay.route_id("west->east"), lay.route_id("south->north")
-    base.place_vehicles([first, second], arc=[35.0, 30.0], speed=[8.0, 8.0])
+    routes = np.array([lay.route_id("west->east"), lay.route_id("south->north")])
+    to_zone = 30.0  # both fronts this far from their conflict zone with the other
+    starts = np.array([lay.zone_start[routes[0], routes[1]], lay.zone_start[routes[1], routes[0]]])
+    length = base.config["vehicle_length"]
+    base.place_vehicles(routes, arc=starts - to_zone - length / 2, speed=[8.0, 8.0])
     trace = []
     drive(env, AIMPlanner(), 60, lambda scene: trace.append((scene.arc.copy(), scene.speed.copy())))
     arcs = np.array([a for a, _ in trace if a.size == 2])
-    speeds = np.array([s for a, s in trace if a.size == 2])
-    length = env.unwrapped.config["vehicle_length"]
-    in_first = np.array([body_in_zone(lay, first, second, a[0], length) for a in arcs])
-    in_second = np.array([body_in_zone(lay, second, first, a[1], length) for a in arcs])
-    assert in_first.any() and in_second.any()
-    assert np.flatnonzero(in_first).max() < np.flatnonzero(in_second).min()  # one after the other
-    assert speeds[:, 1].min() < 8.0 - 0.5  # the second one adapted its speed ...
-    assert speeds[:, 1].min() > 2.0  # ... and kept moving
-    assert speeds[:, 0].min() >= 8.0 - 1e-6  # the first one was not held up
+    speeds = np.array([v for a, v in trace if a.size == 2])
+    inside = np.array([[body_in_zone(lay, routes[k], routes[1 - k], a[k], length) for k in (0, 1)] for a in arcs])
+    assert inside.any(axis=0).all()
+    first = int(np.argmin([np.flatnonzero(inside[:, k]).min() for k in (0, 1)]))
+    second = 1 - first
+    assert np.flatnonzero(inside[:, first]).max() < np.flatnonzero(inside[:, second]).min()  # one after the other
+    assert speeds[:, second].min() < 8.0 - 1.0  # the second one adapted its speed ...
+    assert speeds[:, second].min() > 2.0  # ... and kept moving
+    assert speeds[:, first].min() >= 8.0 - 1e-6  # the first one was not held up
 
 
 def run_controller(controller, times, detected, waiting):

@@ -70,12 +70,12 @@ class AIMParams:
     :param governor_deceleration: the simulation's governor deceleration [m/s^2]
     """
 
-    accel: float = 3.0
-    decel: float = 2.5
-    commit_decel: float = 4.5
-    buffer: float = 0.3
-    follow_headway: float = 1.0
-    stop_penalty: float = 1.0
+    accel: float = 3.09
+    decel: float = 2.27
+    commit_decel: float = 4.62
+    buffer: float = 0.04
+    follow_headway: float = 1.33
+    stop_penalty: float = 1.9
     speed_step: float = 0.5
     wait_step: float = 0.4
     wait_horizon: float = 12.0

@@ -44,12 +44,12 @@ class SignalParams:
     :param stop_decel: a vehicle stops for yellow when it can with at most this deceleration [m/s^2]
     """
 
-    min_green: float = 5.0
-    max_green: float = 30.0
-    gap: float = 2.0
-    yellow: float = 3.0
-    all_red: float = 1.5
-    detector_length: float = 25.0
+    min_green: float = 6.5
+    max_green: float = 36.0
+    gap: float = 3.4
+    yellow: float = 3.1
+    all_red: float = 2.5
+    detector_length: float = 36.0
     stop_decel: float = 3.0
 
 
