@@ -27,9 +27,9 @@ class Fixed(Planner):
         return np.array([self.by_id.get(int(i), scene.a_max) for i in scene.vehicle_id], float)
 
 
-def _sim(vehicles: list[tuple[str, float, float]]) -> Simulation:
-    """A 4-way simulation holding ``(route name, centre arc, speed)`` vehicles, ids 0, 1, ..."""
-    sim = Simulation(build_layout("4way"))
+def _sim(vehicles: list[tuple[str, float, float]], layout: str = "4way") -> Simulation:
+    """A simulation holding ``(route name, centre arc, speed)`` vehicles, ids 0, 1, ..."""
+    sim = Simulation(build_layout(layout))
     for k, (route, arc, speed) in enumerate(vehicles):
         sim.add(np.array([sim.layout.route_id(route)]), np.array([speed]), np.array([k]), arc=np.array([arc]))
     return sim
@@ -78,6 +78,18 @@ def test_a_colliding_plan_is_overridden_for_exactly_the_vehicle_that_must_yield(
     assert overridden == must_yield
     assert shield.interventions > 0 and shield.vehicle_steps > shield.interventions
     assert 0 < shield.intervention_rate < 1
+
+
+def test_three_vehicles_waiting_for_each_other_do_not_deadlock():
+    # T junction: each of the three stands just before its first zone and conflicts with both others.
+    sim = _sim([("west->east", 81.2, 0.0), ("east->south", 82.3, 0.0), ("south->west", 80.2, 0.0)], "3way")
+    shield = Shield(FullThrottle())
+    start = sim.arc.copy()
+    collided, overridden = _run(sim, shield, steps=10)
+    assert not collided
+    assert 0 < len(overridden) < 3  # someone yields, someone goes
+    moved = sim.num_vehicles < 3 or (sim.arc - start[: sim.num_vehicles] > 5.0).any()
+    assert moved
 
 
 def test_a_safe_plan_passes_untouched_and_the_counters_reset():

@@ -74,6 +74,7 @@ class _Plan:
     merge_lo: np.ndarray  # (g, 2) centre arc from which each has reached the merge zone
     merge_exit: np.ndarray  # (g, 2) exit arcs: arc - exit is a common coordinate after the merge
     merge_sep: np.ndarray  # (g,) smallest centre distance after the merge [m]
+    rank: np.ndarray  # (n,) who goes first when two would enter a zone at once: farthest in, then lowest id
 
 
 class Shield(Planner):
@@ -219,6 +220,11 @@ class Shield(Planner):
         merge_lo = np.stack([lay.zone_start[r, q], lay.zone_start[q, r]], axis=1) - m - length[merge] / 2
         merge_exit = lay.exit_arc[route[merge]].reshape(-1, 2)
         merge_sep = length[merge].sum(axis=1) / 2 + self.merge_margin
+        # A total order, so that a cycle of simultaneous entries (three queues facing each other)
+        # always lets its first vehicle go.
+        order = np.lexsort((scene.vehicle_id, hull_start - np.asarray(scene.arc, float)))
+        rank = np.empty(len(order), _INT)
+        rank[order] = np.arange(len(order))
         return _Plan(
             route=route,
             arc=np.asarray(scene.arc, float),
@@ -234,6 +240,7 @@ class Shield(Planner):
             merge_lo=merge_lo.reshape(-1, 2),
             merge_exit=merge_exit,
             merge_sep=merge_sep,
+            rank=rank,
         )
 
     # ------------------------------------------------------------------ the fallback
@@ -335,10 +342,14 @@ class Shield(Planner):
             bad = both.any(axis=0)
             if bad.any():
                 found = True
-                first = np.where(inside.any(axis=0), inside.argmax(axis=0), inside.shape[0])[bad]  # (b, 2)
-                second = (first[:, 1] > first[:, 0]).astype(_INT)
-                rows = np.arange(len(first))
+                # Who comes second: the later to enter the intersection's zones (one time per
+                # vehicle, so that the order is total and a cycle of conflicts leaves one to go).
+                entered = later > plan.hull_start
+                t_in = np.where(entered.any(axis=0), entered.argmax(axis=0), len(later))
+                key = t_in * (len(plan.rank) + 1) + plan.rank
                 pairs = plan.cross[bad]
+                second = (key[pairs[:, 1]] > key[pairs[:, 0]]).astype(_INT)
+                rows = np.arange(len(pairs))
                 _blame_pairs(blamed, free, pairs[rows, second], pairs[rows, 1 - second])
         if plan.merge.size:
             x = later[:, plan.merge]
