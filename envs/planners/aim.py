@@ -165,21 +165,23 @@ class AIMPlanner(Planner):
         return keys
 
     # ------------------------------------------------------------------ planning
-    def reserve(self, scene: Scene) -> Reservations:
-        """Candidate plans, the order, and the reservations of every vehicle (see the module docstring)."""
+    def candidates(self, scene: Scene) -> dict[str, np.ndarray]:
+        """Candidate plans of every vehicle: time and speed at the line (see the module docstring).
+
+        :param scene: the vehicles now
+        :return: ``arrival``, ``line_speed``, ``feasible`` ``(n, C)``; ``kind``, ``cruise`` ``(C,)``;
+            ``start`` ``(n, C)`` (stops: start from rest); ``rest``, ``earliest``, ``can_stop``,
+            ``committed`` ``(n,)``
+        """
         p = self.params
-        lay = scene.layout
-        n, route, v, L = scene.num_vehicles, scene.route, scene.speed, scene.length
-        dist = scene.dist_to_entry
+        n, v, dist = scene.num_vehicles, scene.speed, scene.dist_to_entry
         approaching = scene.dist_to_exit > 0
         before = approaching & (dist > 0)
         inside = approaching & ~before
         a, b, b_gov = p.accel, p.decel, p.governor_deceleration
         v_line = line_speed(scene, b_gov)
         v_road = np.maximum(scene.speed_limit, v)
-        v_in = inner_limit(lay)[route]
-
-        # Candidate 0: the earliest arrival.
+        # The earliest arrival.
         t0, w0, _ = earliest_arrival(dist, v, v_line, v_road, a, b_gov)
         # Slowed approaches: v -> u, cruise at u, u -> w at the line.
         u = np.arange(1, int(np.floor(v_road.max(initial=0.0) / p.speed_step)) + 1) * p.speed_step
@@ -202,18 +204,38 @@ class AIMPlanner(Planner):
         start = np.maximum(t_rest[:, None], waits[None, :])  # from rest at the stop point, from now
         creep = np.where(at_stop, dist, 0.0)[:, None]  # what is left to the line from there
         t_stop = start + np.sqrt(2.0 * creep / a)
-        w_stop = np.sqrt(2.0 * a * creep) + 0.0 * start
+        w_stop = np.broadcast_to(np.sqrt(2.0 * a * creep), start.shape)
 
         arrival = np.concatenate([t0[:, None], t_cruise, t_stop], axis=1)  # (n, C)
         speed_at_line = np.concatenate([w0[:, None], w, w_stop], axis=1)
-        feasible = np.concatenate(
-            [np.ones((n, 1), bool), cruise_ok, np.broadcast_to(can_stop[:, None], t_stop.shape)], axis=1
-        )
-        kind = np.concatenate([[0], np.ones(u.size, np.int64), np.full(waits.size, 2)])
-        cruise = np.concatenate([[np.nan], u, np.full(waits.size, np.nan)])
-        arrival = np.where(inside[:, None], 0.0, arrival)
-        speed_at_line = np.where(inside[:, None], v[:, None], speed_at_line)
-        committed = inside | (before & ~can_stop)
+        return {
+            "arrival": np.where(inside[:, None], 0.0, arrival),
+            "line_speed": np.where(inside[:, None], v[:, None], speed_at_line),
+            "feasible": np.concatenate(
+                [np.ones((n, 1), bool), cruise_ok, np.broadcast_to(can_stop[:, None], t_stop.shape)], axis=1
+            ),
+            "kind": np.concatenate([[0], np.ones(u.size, np.int64), np.full(waits.size, 2)]),
+            "cruise": np.concatenate([[np.nan], u, np.full(waits.size, np.nan)]),
+            "start": np.concatenate([np.full((n, 1 + u.size), np.nan), start], axis=1),
+            "rest": t_rest,
+            "earliest": t0,
+            "can_stop": can_stop,
+            "committed": inside | (before & ~can_stop),
+        }
+
+    def reserve(self, scene: Scene) -> Reservations:
+        """Candidate plans, the order, and the reservations of every vehicle (see the module docstring)."""
+        p = self.params
+        lay = scene.layout
+        n, route, L = scene.num_vehicles, scene.route, scene.length
+        approaching = scene.dist_to_exit > 0
+        before = approaching & (scene.dist_to_entry > 0)
+        inside = approaching & ~before
+        cand = self.candidates(scene)
+        arrival, speed_at_line, feasible = cand["arrival"], cand["line_speed"], cand["feasible"]
+        kind, committed, can_stop = cand["kind"], cand["committed"], cand["can_stop"]
+        a = p.accel
+        v_in = inner_limit(lay)[route]
 
         # Zone windows of every candidate, measured from the line (from the front once inside).
         ref = np.where(inside, scene.arc + L / 2, lay.entry_arc[route])
@@ -232,7 +254,7 @@ class AIMPlanner(Planner):
         score = np.where(np.isfinite(last), last, arrival) + np.where(kind == 2, p.stop_penalty, 0.0)[None, :]
 
         # Order: committed first, then FIFO by the remembered arrival keys.
-        keys = self.arrival_keys(scene, t0)
+        keys = self.arrival_keys(scene, cand["earliest"])
         order = np.empty(n, np.int64)
         order[np.lexsort((scene.vehicle_id, keys, ~committed))] = np.arange(n)
         pair = lay.conflicts[route[:, None], route[None, :]] & zone[:, route] & zone[:, route].T
@@ -261,14 +283,14 @@ class AIMPlanner(Planner):
         return Reservations(
             choice=choice,
             kind=kind,
-            cruise=cruise,
+            cruise=cand["cruise"],
             arrival=arrival,
             line_speed=speed_at_line,
             enter=enter,
             leave=leave,
             zone=zone,
-            start=np.concatenate([np.full((n, 1 + u.size), np.nan), start], axis=1),
-            rest=t_rest,
+            start=cand["start"],
+            rest=cand["rest"],
             committed=committed,
             order=order,
         )

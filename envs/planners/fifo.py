@@ -52,7 +52,7 @@ class FIFOPlanner(YieldingPlanner):
         return rank_by(scene.dist_to_entry, scene.vehicle_id)
 
     def blocked(self, scene: Scene) -> np.ndarray:
-        if scene.layout is None:  # hand-built scene without geometry: the fixed rules
-            return super().blocked(scene)
+        if scene.layout is None:  # hand-built scene without geometry: the rules of thumb
+            return blocked_by_rank(scene, self.rank(scene), CrossingParams())
         times = model_crossing_times(scene, self.crossing, self.governor_deceleration)
         return blocked_by_rank(scene, self.rank(scene), self.crossing, times=times)
