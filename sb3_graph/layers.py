@@ -116,14 +116,15 @@ class _RelationalMax(torch.autograd.Function):
     def backward(ctx: Any, grad_out: Tensor) -> tuple[Tensor | None, None, None, None, None]:  # type: ignore[override]
         messages, maxima = ctx.saved_tensors
         layout, (num_vertices, num_relations, stride) = ctx.layout, ctx.shape
-        # The channel count, not -1: a batch without vertices has 0 elements to infer it from.
-        grad_out = grad_out.reshape(num_vertices, messages.size(1))
+        # Explicit channel counts, never -1: a batch without vertices has 0 elements to infer them from.
+        channels = messages.size(1)
+        grad_out = grad_out.reshape(num_vertices, channels)
         # d out_i / d maxima_(i, r) = 1 for every relation r: read the gradient of vertex i.
         grad = grad_out.index_select(0, layout.target_vertex)
         grad = _max_gradient(messages, maxima, layout.target, grad, layout.num_nonempty)
-        grad_rows = grad.new_zeros(num_vertices * stride, grad.size(1))
+        grad_rows = grad.new_zeros(num_vertices * stride, channels)
         if stride > num_relations:
-            grad_rows.view(num_vertices, stride, -1)[:, num_relations] = grad_out
+            grad_rows.view(num_vertices, stride, channels)[:, num_relations] = grad_out
         grad = grad.index_select(0, layout.source_order)
         return grad_rows.index_add_(0, layout.sorted_source, grad), None, None, None, None
 

@@ -247,3 +247,24 @@ def test_episodes_store_next_observations_once(buffer_size, n_envs):
     stream.add_to([ours, clone, reference], 23)
     assert_same_samples(ours, reference)
     assert_same_samples(clone, reference)
+
+
+def test_edges_at_padded_slots_or_unknown_relations_are_rejected():
+    buffer = GraphReplayBuffer(10, SPACE, ACTIONS, device="cpu", n_envs=2)
+    good = SPACE.encode(np.zeros((3, 2)), np.array([[0, 1], [1, 2]]), np.array([0, 2]))
+    g = {k: np.stack([v, v]) for k, v in good.items()}
+    args = (np.zeros((2, MAX_NODES)), np.zeros(2), np.zeros(2), [{}, {}])
+    buffer.add(g, g, *args)
+    bad = {k: v.copy() for k, v in g.items()}
+    bad["edge_index"][1, 1, 1] = 5  # env 1: its second edge points at padded slot 5
+    with pytest.raises(ValueError, match=r"padded vertex slot .*\(3 real vertices\)"):
+        buffer.add(g, bad, *args)
+    bad = {k: v.copy() for k, v in g.items()}
+    bad["edge_type"][0, 0] = 3  # relation 3 of 3
+    with pytest.raises(ValueError, match=r"num_relations=3"):
+        buffer.add(bad, g, *args)
+    # Padded edge slots are never read: anything may sit there.
+    padded = {k: v.copy() for k, v in g.items()}
+    padded["edge_index"][:, :, 2:] = 6
+    padded["edge_type"][:, 2:] = 9
+    buffer.add(padded, padded, *args)
