@@ -99,7 +99,9 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(1)
     limits = dict(max_nodes=8, max_edges=8)
-    env = make_vec_env(NearestLeaderEnv, n_envs=4, seed=args.seed, wrapper_class=GraphObservation, wrapper_kwargs=limits)
+    env = make_vec_env(
+        NearestLeaderEnv, n_envs=4, seed=args.seed, wrapper_class=GraphObservation, wrapper_kwargs=limits
+    )
     model = PPO("GraphPolicy", env, n_steps=128, batch_size=128, learning_rate=1e-3, gamma=0.0, seed=args.seed)
     test_env = GraphObservation(NearestLeaderEnv(), **limits)
     print(f"random policy: mean error per vehicle {mean_error(None, test_env):.3f}")

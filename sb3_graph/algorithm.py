@@ -1,8 +1,9 @@
 """What the ``sb3_graph`` algorithm aliases (``sb3_graph.TD3``, ``SAC``, ``PPO``...) add to SB3's classes.
 
-- Graph buffers by default: :class:`~sb3_graph.GraphReplayBuffer` (off-policy) or
-  :class:`~sb3_graph.GraphRolloutBuffer` (on-policy) when the observation space is a
-  :class:`~sb3_graph.GraphSpace` and no buffer class is given.
+- Graph buffers by default: :class:`~sb3_graph.GraphReplayBuffer` (off-policy, with the
+  algorithm's ``n_steps`` for n-step returns) or :class:`~sb3_graph.GraphRolloutBuffer`
+  (on-policy) when the observation space is a :class:`~sb3_graph.GraphSpace` and no buffer class
+  is given.
 - A ``VecNormalize`` that normalizes graph observations is refused at construction and at
   ``set_env`` (:func:`check_vec_normalize`), not deep inside training.
 - For the maximum-entropy algorithms (SAC, TQC, CrossQ), an entropy target that scales with the
@@ -68,13 +69,26 @@ class GraphAlgorithmMixin:
         check_vec_normalize(self._vec_normalize_env, self.observation_space)  # type: ignore[attr-defined]
         attribute = self.buffer_class_attribute
         if getattr(self, attribute, None) is None and isinstance(self.observation_space, GraphSpace):  # type: ignore[attr-defined]
-            if attribute == "replay_buffer_class" and getattr(self, "n_steps", 1) > 1:
-                raise ValueError(
-                    f"{type(self).__name__}: n_steps={self.n_steps} (n-step returns) is not supported by "  # type: ignore[attr-defined]
-                    "GraphReplayBuffer; use n_steps=1"
-                )
             setattr(self, attribute, self.graph_buffer_class)
-        super()._setup_model()  # type: ignore[misc]
+            if attribute == "replay_buffer_class" and self.n_steps > 1:  # type: ignore[attr-defined]
+                # n-step returns: the graph buffer computes them as SB3's NStepReplayBuffer does.
+                self.replay_buffer_kwargs = {  # type: ignore[attr-defined]
+                    **self.replay_buffer_kwargs,  # type: ignore[attr-defined]
+                    "n_steps": self.n_steps,  # type: ignore[attr-defined]
+                    "gamma": self.gamma,  # type: ignore[attr-defined]
+                }
+        if attribute != "replay_buffer_class" or self.n_steps == 1:  # type: ignore[attr-defined]
+            super()._setup_model()  # type: ignore[misc]
+            return
+        # SB3 warns that n_steps is ignored whenever a buffer class is set; here the buffer's own
+        # n_steps is the algorithm's, so the warning would be wrong. Otherwise SB3's warning stands.
+        n_steps, takes_it = self.n_steps, self.replay_buffer_kwargs.get("n_steps") == self.n_steps  # type: ignore[attr-defined]
+        if takes_it:
+            self.n_steps = 1
+        try:
+            super()._setup_model()  # type: ignore[misc]
+        finally:
+            self.n_steps = n_steps
 
     def set_env(self, env: Any, force_reset: bool = True) -> None:
         super().set_env(env, force_reset)  # type: ignore[misc]

@@ -265,10 +265,19 @@ class GraphReplayBuffer(ReplayBuffer):
     :param optimize_memory_usage: not supported (must be False)
     :param handle_timeout_termination: treat ``TimeLimit.truncated`` ends as non-terminal
     :param initial_capacity: initial vertex/edge rows per pool (pools grow geometrically)
+    :param n_steps: n-step returns when > 1, exactly as SB3's ``NStepReplayBuffer``: the reward is
+        the discounted sum over up to ``n_steps`` transitions of the same episode, the next
+        observation and ``done`` those of the last of them, and ``discounts`` is ``gamma ** k`` for
+        the ``k`` transitions summed (the algorithm bootstraps with it). The algorithm aliases set it
+        from their ``n_steps`` argument.
+    :param gamma: discount factor of the n-step returns
     """
 
     observation_space: spaces.Dict
-    edge_features = 0  # default for buffers pickled before edge features existed
+    # Defaults for buffers pickled before these options existed.
+    edge_features = 0
+    n_steps = 1
+    gamma = 0.99
 
     def __init__(
         self,
@@ -280,7 +289,11 @@ class GraphReplayBuffer(ReplayBuffer):
         optimize_memory_usage: bool = False,
         handle_timeout_termination: bool = True,
         initial_capacity: int = 4096,
+        n_steps: int = 1,
+        gamma: float = 0.99,
     ) -> None:
+        if int(n_steps) < 1:
+            raise ValueError(f"GraphReplayBuffer: n_steps must be >= 1, got {n_steps}")
         if optimize_memory_usage:
             raise ValueError(
                 "GraphReplayBuffer: optimize_memory_usage=True is not supported (it already stores only real "
@@ -300,6 +313,8 @@ class GraphReplayBuffer(ReplayBuffer):
         self.num_relations = num_relations
         self.edge_features = edge_features
         self.initial_capacity = initial_capacity
+        self.n_steps = int(n_steps)
+        self.gamma = float(gamma)
         self.rewards = np.zeros((self.buffer_size, self.n_envs), dtype=np.float32)
         self.dones = np.zeros((self.buffer_size, self.n_envs), dtype=np.float32)
         self.timeouts = np.zeros((self.buffer_size, self.n_envs), dtype=np.float32)
@@ -499,25 +514,56 @@ class GraphReplayBuffer(ReplayBuffer):
         observations, (node_idx, batch, node_slot) = self._graph_batch(
             (self.obs_nodes, self.obs_nodes), (self.obs_edges, self.obs_edges), batch_inds, env_indices
         )
+        if self.n_steps > 1:
+            last, rewards, discounts = self._n_step_returns(batch_inds, env_indices, env)
+        else:
+            last, discounts = batch_inds, None
+            rewards = self._normalize_reward(self.rewards[batch_inds, env_indices].reshape(-1, 1), env)
         next_observations, _ = self._graph_batch(
             (self.next_obs_nodes, self.obs_nodes),
             (self.next_obs_edges, self.obs_edges),
-            batch_inds,
+            last,
             env_indices,
-            successor=self.next_is_successor[batch_inds, env_indices],
+            successor=self.next_is_successor[last, env_indices],
         )
         actions = np.zeros((len(batch_inds), self.max_nodes), dtype=np.float32)
         actions[batch, node_slot] = self.obs_nodes.arrays["action"][node_idx]
-        dones = self.dones[batch_inds, env_indices] * (1 - self.timeouts[batch_inds, env_indices])
-        rewards = self._normalize_reward(self.rewards[batch_inds, env_indices].reshape(-1, 1), env)
+        dones = self.dones[last, env_indices] * (1 - self.timeouts[last, env_indices])
         return ReplayBufferSamples(
             observations=observations,  # type: ignore[arg-type]
             actions=self.to_torch(actions),
             next_observations=next_observations,  # type: ignore[arg-type]
             dones=self.to_torch(dones.reshape(-1, 1)),
             rewards=self.to_torch(rewards),
-            discounts=None,
+            discounts=None if discounts is None else self.to_torch(discounts),
         )
+
+    def _n_step_returns(
+        self, batch_inds: np.ndarray, env_indices: np.ndarray, env: VecNormalize | None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """SB3's ``NStepReplayBuffer`` arithmetic: the ring row of the last transition summed,
+        ``(B, 1)`` n-step returns and ``(B, 1)`` bootstrap discounts."""
+        # The newest transition counts as truncated (unless done), so that no window runs past it
+        # into overwritten or empty rows.
+        newest = self.pos - 1
+        original = self.timeouts[newest].copy()
+        self.timeouts[newest] = np.logical_or(original, np.logical_not(self.dones[newest]))
+        try:
+            steps = np.arange(self.n_steps)
+            rows = (batch_inds[:, None] + steps) % self.buffer_size
+            columns = env_indices[:, None]
+            rewards = self._normalize_reward(self.rewards[rows, columns], env)
+            ends = np.logical_or(self.dones[rows, columns], self.timeouts[rows, columns])
+            end = np.where(ends.any(axis=1), ends.argmax(axis=1), self.n_steps - 1)
+            mask = steps[None] <= end[:, None]
+            returns = (rewards * self.gamma ** steps.astype(np.float32) * mask).sum(axis=1, keepdims=True)
+            discounts = (self.gamma ** mask.sum(axis=1, keepdims=True)).astype(np.float32)
+            # The caller reads done * (1 - timeout) of `last` after the change is undone: the same
+            # value (the changed flag only ever marks a transition that is not done).
+            last = (batch_inds + end) % self.buffer_size
+        finally:
+            self.timeouts[newest] = original
+        return last, returns.astype(np.float32), discounts
 
 
 def gather_graph_batch(

@@ -255,9 +255,7 @@ def stacked_q_forward(q_networks: Sequence[GraphQNetwork], graphs: GraphBatch, v
     """
     copies, num_graphs = len(q_networks), graphs.num_graphs
     x = torch.cat((graphs.x, vertex_actions.unsqueeze(-1).to(graphs.x.dtype)), dim=-1)
-    h = stacked_trunk_forward(
-        [q.trunk for q in q_networks], x, graphs.edge_index, graphs.edge_type, graphs.edge_attr
-    )
+    h = stacked_trunk_forward([q.trunk for q in q_networks], x, graphs.edge_index, graphs.edge_type, graphs.edge_attr)
     h = h.view(copies * h.size(1), h.size(2))
     pooled = pool_graphs(h, graphs, q_networks[0].pooling, copies).view(copies, num_graphs, -1)
     weight = torch.stack([q.head.weight for q in q_networks]).transpose(1, 2)

@@ -46,8 +46,14 @@ ON_POLICY = ("PPO", "A2C")
 def tiny(name: str, **extra):
     alias, _, _, kwargs = ALGOS[name]
     policy_kwargs = dict(SMALL, n_quantiles=5) if name == "TQC" else dict(SMALL)
-    return alias("GraphPolicy", extra.pop("env", None) or MaxNeighbourEnv(min_nodes=0), seed=0,
-                 policy_kwargs=policy_kwargs, **kwargs, **extra)
+    return alias(
+        "GraphPolicy",
+        extra.pop("env", None) or MaxNeighbourEnv(min_nodes=0),
+        seed=0,
+        policy_kwargs=policy_kwargs,
+        **kwargs,
+        **extra,
+    )
 
 
 @pytest.mark.parametrize("name", ALGOS)
@@ -142,9 +148,7 @@ def transitions(count: int, seed: int = 0):
         a[n:] = rng.uniform(-1, 1, a[n:].shape)
         return o, a
 
-    return [
-        ((o, no, a, r), (*garbage(o, a)[:1], garbage(no, a)[0], garbage(o, a)[1], r)) for o, no, a, r in out
-    ]
+    return [((o, no, a, r), (*garbage(o, a)[:1], garbage(no, a)[0], garbage(o, a)[1], r)) for o, no, a, r in out]
 
 
 def batch(obs_list):
@@ -157,8 +161,14 @@ def trained_parameters(name: str, data):
         model = tiny(name, env=MaxNeighbourEnv(min_nodes=0), rollout_buffer_class=DictRolloutBuffer)
         buffer = model.rollout_buffer
         for step, (o, _, a, r) in enumerate(data[: buffer.buffer_size]):
-            buffer.add(batch([o]), a[None], np.array([r]), np.array([step == 0]), torch.tensor([[0.1 * step]]),
-                       torch.tensor([-0.5 * step]))
+            buffer.add(
+                batch([o]),
+                a[None],
+                np.array([r]),
+                np.array([step == 0]),
+                torch.tensor([[0.1 * step]]),
+                torch.tensor([-0.5 * step]),
+            )
         buffer.compute_returns_and_advantage(torch.tensor([[0.0]]), np.array([False]))
         model.set_logger(configure(None, []))
         torch.manual_seed(1)
@@ -210,7 +220,10 @@ def test_crossq_joint_batch_is_a_disjoint_union():
     model.learn(20)
     samples = model.replay_buffer.sample(4)
     joint = torch.cat([samples.observations, samples.next_observations], dim=0)
-    assert joint.num_graphs == 8 and joint.num_nodes == samples.observations.num_nodes + samples.next_observations.num_nodes
+    assert (
+        joint.num_graphs == 8
+        and joint.num_nodes == samples.observations.num_nodes + samples.next_observations.num_nodes
+    )
     actions = torch.cat([samples.actions, samples.actions])
     critic = model.policy.critic
     critic.set_bn_training_mode(False)
@@ -236,12 +249,19 @@ def test_sac_entropy_target_is_minus_one_per_real_vertex():
     assert stock.target_entropy == -8.0
 
 
-def test_errors_name_the_problem():
-    with pytest.raises(ValueError, match="n_steps=3"):
-        tiny("TD3", n_steps=3)
+def test_n_steps_go_to_the_graph_buffer_without_a_warning():
     with warnings.catch_warnings():
-        warnings.simplefilter("error")  # no warning about a buffer class the user never passed
-        tiny("SAC", n_steps=1)
+        warnings.simplefilter("error")  # SB3 would warn about a buffer class the user never passed
+        model = tiny("TD3", n_steps=3, gamma=0.9)
+    assert isinstance(model.replay_buffer, GraphReplayBuffer)
+    assert (model.replay_buffer.n_steps, model.replay_buffer.gamma) == (3, 0.9)
+    model.learn(30)
+    assert model.replay_buffer.sample(8).discounts is not None
+    with pytest.warns(UserWarning, match="n_steps=3"):  # an explicit class without n_steps: SB3's warning stands
+        tiny("SAC", n_steps=3, replay_buffer_class=GraphReplayBuffer)
+
+
+def test_errors_name_the_problem():
     with pytest.raises(ValueError, match="gSDE"):
         tiny("SAC", use_sde=True)
     env = MaxNeighbourEnv()
@@ -270,3 +290,14 @@ def test_normalized_masks_are_refused_at_the_policy():
     obs["node_mask"] = obs["node_mask"] * 0.7
     with pytest.raises(ValueError, match="VecNormalize"):
         policy.actor(obs)
+
+
+@pytest.mark.parametrize("name", ["TD3", "SAC", "TQC", "CrossQ", "PPO"])
+def test_policy_alone_saves_and_loads(name, tmp_path):
+    model = tiny(name)
+    policy = model.policy
+    policy.save(tmp_path / "policy.pt")
+    loaded = type(policy).load(tmp_path / "policy.pt")
+    assert loaded.graph_kwargs == policy.graph_kwargs
+    obs, _ = MaxNeighbourEnv(min_nodes=3).reset(seed=1)
+    np.testing.assert_allclose(loaded.predict(obs, deterministic=True)[0], policy.predict(obs, deterministic=True)[0])

@@ -43,7 +43,9 @@ def test_squashed_log_prob_equals_sb3_per_graph():
         if n == 0:
             assert log_prob[b] == 0  # an empty graph has probability 1
             continue
-        dist = SquashedDiagGaussianDistribution(n).proba_distribution(mean[start : start + n], log_std[start : start + n])
+        dist = SquashedDiagGaussianDistribution(n).proba_distribution(
+            mean[start : start + n], log_std[start : start + n]
+        )
         # SB3's formula over the n real vertices (gaussian actions recovered by atanh).
         expected = dist.log_prob(actions[b, :n].unsqueeze(0), torch.atanh(actions[b, :n]).unsqueeze(0))
         torch.testing.assert_close(log_prob[b], expected[0], rtol=1e-4, atol=1e-4)

@@ -47,8 +47,10 @@ def test_padded_to_batch_carries_edge_features_like_pyg():
     graphs = [SPACE.sample() for _ in range(10)]
     batch = padded_to_batch(obs_as_tensor({k: np.stack([g[k] for g in graphs]) for k in graphs[0]}, "cpu"))
     reference = Batch.from_data_list(
-        [Data(x=torch.as_tensor(x), edge_index=torch.as_tensor(ei), edge_attr=torch.as_tensor(ea))
-         for x, ei, _, ea in (SPACE.decode(g) for g in graphs)]
+        [
+            Data(x=torch.as_tensor(x), edge_index=torch.as_tensor(ei), edge_attr=torch.as_tensor(ea))
+            for x, ei, _, ea in (SPACE.decode(g) for g in graphs)
+        ]
     )
     torch.testing.assert_close(batch.edge_index, reference.edge_index)
     torch.testing.assert_close(batch.edge_attr, reference.edge_attr)
@@ -114,8 +116,15 @@ class EdgeFeatureEnv(MaxNeighbourEnv):
         super().__init__(**kwargs)
         base = self.observation_space
         self.observation_space = GraphSpace(
-            base.max_nodes, base.node_features, base.max_edges, base.num_relations, low=-1.0, high=1.0,
-            edge_features=2, edge_low=-1.0, edge_high=1.0,
+            base.max_nodes,
+            base.node_features,
+            base.max_edges,
+            base.num_relations,
+            low=-1.0,
+            high=1.0,
+            edge_features=2,
+            edge_low=-1.0,
+            edge_high=1.0,
         )
 
     def _new_graph(self):

@@ -233,9 +233,8 @@ def edge_reference(conv: RelationalMaxConv, x, edge_index, edge_type, edge_attr,
             if not chosen.any():
                 continue
             messages = x[edge_index[0][chosen]] @ conv.weight[r] + edge_attr[chosen] @ conv.edge_weight[r]
-            out[i] += {"max": lambda m: m.max(dim=0).values, "mean": lambda m: m.mean(dim=0), "sum": lambda m: m.sum(0)}[
-                reduce
-            ](messages)
+            reducers = {"max": lambda m: m.max(dim=0).values, "mean": lambda m: m.mean(0), "sum": lambda m: m.sum(0)}
+            out[i] += reducers[reduce](messages)
     return out
 
 

@@ -17,7 +17,7 @@ ACTIONS = spaces.Box(-1.0, 1.0, (7,), np.float32)
 
 def fill(buffers, n_steps: int, n_envs: int, seed: int = 0) -> None:
     rng = np.random.default_rng(seed)
-    for step in range(n_steps):
+    for _ in range(n_steps):
         graphs = [SPACE.sample() for _ in range(n_envs)]
         obs = {k: np.stack([g[k] for g in graphs]) for k in graphs[0]}
         action = rng.standard_normal((n_envs, 7)).astype(np.float32)

@@ -100,9 +100,16 @@ def test_too_many_vertices_or_edges_and_wrong_spaces_name_the_limit():
 def test_sb3_trains_on_a_wrapped_graph_env():
     from examples.gymnasium_graph_env import NearestLeaderEnv
 
-    env = make_vec_env(NearestLeaderEnv, n_envs=2, wrapper_class=GraphObservation,
-                       wrapper_kwargs=dict(max_nodes=8, max_edges=16), seed=0)
-    model = PPO("GraphPolicy", env, n_steps=16, batch_size=16, seed=0, policy_kwargs=dict(encoder_dim=16, conv_dims=[16]))
+    env = make_vec_env(
+        NearestLeaderEnv,
+        n_envs=2,
+        wrapper_class=GraphObservation,
+        wrapper_kwargs=dict(max_nodes=8, max_edges=16),
+        seed=0,
+    )
+    model = PPO(
+        "GraphPolicy", env, n_steps=16, batch_size=16, seed=0, policy_kwargs=dict(encoder_dim=16, conv_dims=[16])
+    )
     model.learn(64)
     actions, _ = model.predict(env.reset(), deterministic=True)
     assert actions.shape == (2, 8)

@@ -165,7 +165,9 @@ class GraphActorCriticPolicy(BasePolicy):
         log_prob = sum_per_graph(gaussian_log_prob(actions, mean, log_std), graphs)
         return batch_to_padded(actions, graphs), self._values(graphs, h), log_prob
 
-    def evaluate_actions(self, obs: GraphBatch | Mapping[str, Tensor], actions: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    def evaluate_actions(
+        self, obs: GraphBatch | Mapping[str, Tensor], actions: Tensor
+    ) -> tuple[Tensor, Tensor, Tensor]:
         """Values, log-probabilities and entropies of given actions (PPO's and A2C's losses).
 
         :param obs: a :class:`GraphBatch` or a padded dictionary of tensors
@@ -195,4 +197,3 @@ class GraphActorCriticPolicy(BasePolicy):
     def get_std(self) -> Tensor:
         """The standard deviation shared by every vertex's Gaussian."""
         return torch.exp(self.log_std)
-

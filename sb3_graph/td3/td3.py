@@ -18,7 +18,7 @@ class TD3(GraphAlgorithmMixin, SB3TD3):
     - ``"GraphPolicy"`` is a policy alias (:class:`~sb3_graph.GraphPolicy`), next to SB3's aliases;
     - when the observation space is a :class:`~sb3_graph.GraphSpace` and no
       ``replay_buffer_class`` is given, transitions go to :class:`~sb3_graph.GraphReplayBuffer`,
-      which stores only real vertices and edges (``n_steps > 1`` is refused there);
+      which stores only real vertices and edges (and computes n-step returns for ``n_steps > 1``);
     - a ``VecNormalize`` that would normalize the graph observation is refused.
 
     Every argument is SB3's :class:`stable_baselines3.TD3` argument; see its documentation.
