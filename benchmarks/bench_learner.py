@@ -1,10 +1,14 @@
-"""Learner speed: TD3 gradient steps per second with GraphPolicy vs MlpPolicy.
+"""Learner speed: gradient steps per second of every algorithm with its graph policy vs ``MlpPolicy``.
 
-Same data for both: random paper-scale graphs (~20 vertices, ~60 edges) in a
-``GraphSpace(max_nodes=64, max_edges=1024)``; the MLP sees the padded observation flattened
-(4,352 inputs) with hidden layers [64, 64]; the graph networks use hidden size 64 (defaults).
-Batch 256. Target: the graph learner within 5x of the MLP learner. Also times the graph
-learner with 1 and 2 torch threads; ``--profile`` adds the graph learner's operator breakdown
+Same data for both learners of an algorithm: random paper-scale graphs (~20 vertices, ~60 edges)
+in a ``GraphSpace(max_nodes=64, max_edges=1024)``; the MLP sees the padded observation flattened
+(4,352 inputs) with hidden layers [64, 64] (CrossQ's too, instead of its default [256, 256] /
+[1024, 1024]; TQC's 25 quantiles per critic for both); the graph networks use hidden size 64
+(defaults). Batch 256 for the off-policy algorithms, from a replay buffer of 2,000 transitions.
+PPO: one epoch over a rollout of 2,048 transitions in minibatches of 256 (a "step" is one
+minibatch update). The graph learners use the graph buffers (ragged storage); the MLP learners
+SB3's buffers. Target (TD3): the graph learner within 5x of the MLP learner. Also times the TD3
+graph learner with 1 and 2 torch threads; ``--profile`` adds its operator breakdown
 (torch.profiler, self CPU time of 10 gradient steps).
 """
 
@@ -16,6 +20,7 @@ import numpy as np
 import stable_baselines3
 import torch
 from graph_bench_utils import (
+    MAX_NODES,
     PaperScaleGraphEnv,
     _null_logger,
     fill,
@@ -27,14 +32,57 @@ from graph_bench_utils import (
 from gymnasium.spaces.utils import flatten, flatten_space
 from gymnasium.wrappers import FlattenObservation
 
+import sb3_graph
 from sb3_graph import TD3, GraphPolicy
 
 FILL = 2000
+ROLLOUT = 2048
+BATCH = 256
+OFF_POLICY = ("TD3", "DDPG", "SAC", "TQC", "CrossQ")
+ON_POLICY = ("PPO",)
 
 
 def steps_per_second(model, min_seconds: float) -> float:
     model.set_logger(_null_logger())
-    return rate(lambda: model.train(gradient_steps=2, batch_size=256), min_seconds) * 2
+    if hasattr(model, "rollout_buffer"):  # one epoch over the rollout: ROLLOUT / BATCH updates
+        return rate(model.train, min_seconds) * (ROLLOUT // BATCH)
+    return rate(lambda: model.train(gradient_steps=2, batch_size=BATCH), min_seconds) * 2
+
+
+def fill_rollout(buffer, env: PaperScaleGraphEnv, transform=None) -> None:
+    """A full rollout of random graphs, actions (0 in padded slots), values and log-probabilities."""
+    env.reset(seed=0)
+    rng = np.random.default_rng(0)
+    for step in range(buffer.buffer_size):
+        obs = env.graph()
+        action = rng.standard_normal((1, MAX_NODES)).astype(np.float32) * obs["node_mask"]
+        stored = transform(obs)[None] if transform else {k: v[None] for k, v in obs.items()}
+        buffer.add(
+            stored, action, rng.standard_normal(1), np.array([step % 100 == 0]), torch.randn(1, 1), torch.randn(1)
+        )
+    buffer.compute_returns_and_advantage(torch.zeros(1, 1), np.array([False]))
+
+
+def make_learners(name: str, env: PaperScaleGraphEnv) -> tuple:
+    """The graph learner and the MlpPolicy learner of one algorithm, their buffers filled with the
+    same transitions."""
+    graph_class = getattr(sb3_graph, name)
+    stock = getattr(stable_baselines3, name, None) or getattr(__import__("sb3_contrib"), name)
+    flat_env = FlattenObservation(env)
+    space = env.observation_space
+    transform = lambda o: flatten(space, o).astype(np.float32)  # noqa: E731
+    if name in ON_POLICY:
+        kwargs = dict(n_steps=ROLLOUT, batch_size=BATCH, n_epochs=1, seed=0)
+        graph = graph_class("GraphPolicy", env, **kwargs)
+        mlp = stock("MlpPolicy", flat_env, policy_kwargs=dict(net_arch=[64, 64]), **kwargs)
+        fill_rollout(graph.rollout_buffer, env)
+        fill_rollout(mlp.rollout_buffer, env, transform)
+        return graph, mlp
+    graph = graph_class("GraphPolicy", env, buffer_size=FILL, batch_size=BATCH, seed=0)
+    mlp = stock("MlpPolicy", flat_env, buffer_size=FILL, seed=0, policy_kwargs=dict(net_arch=[64, 64]))
+    fill([graph.replay_buffer], env, FILL)
+    fill([mlp.replay_buffer], env, FILL, transform=transform)
+    return graph, mlp
 
 
 def profile_table(model, steps: int = 10, rows: int = 12) -> str:
@@ -57,39 +105,47 @@ def profile_table(model, steps: int = 10, rows: int = 12) -> str:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--seconds", type=float, default=2.0, help="minimum seconds per timing run")
+    parser.add_argument("--algos", nargs="+", default=[*OFF_POLICY, *ON_POLICY], help="algorithms to time")
     parser.add_argument("--skip-threads", action="store_true", help="skip the 1 vs 2 threads timing")
-    parser.add_argument("--profile", action="store_true", help="print the graph learner's operator breakdown")
+    parser.add_argument("--profile", action="store_true", help="print the TD3 graph learner's operator breakdown")
     args = parser.parse_args()
     torch.set_num_threads(1)
     env = PaperScaleGraphEnv()
-    results = {}
-
-    graph = TD3("GraphPolicy", env, buffer_size=FILL, batch_size=256, seed=0)
-    fill([graph.replay_buffer], env, FILL)
-    results["TD3 GraphPolicy + GraphReplayBuffer"] = steps_per_second(graph, args.seconds)
-
-    graph_dict = stable_baselines3.TD3(GraphPolicy, env, buffer_size=FILL, seed=0)
-    fill([graph_dict.replay_buffer], env, FILL)
-    results["SB3 TD3 GraphPolicy + DictReplayBuffer"] = steps_per_second(graph_dict, args.seconds)
-
-    flat_env = FlattenObservation(env)
-    mlp = stable_baselines3.TD3("MlpPolicy", flat_env, buffer_size=FILL, seed=0, policy_kwargs=dict(net_arch=[64, 64]))
-    space = env.observation_space
-    fill([mlp.replay_buffer], env, FILL, transform=lambda o: flatten(space, o).astype(np.float32))
-    results[f"TD3 MlpPolicy [64, 64] on flattened padded obs ({flatten_space(space).shape[0]} inputs)"] = (
-        steps_per_second(mlp, args.seconds)
-    )
-
-    reference = list(results.values())[-1]
-    rows = [[name, f"{value:.1f}", f"{reference / value:.1f}"] for name, value in results.items()]
-    print("## Learner speed (batch 256, ~20 vertices / ~60 edges, hidden 64, 1 torch thread)\n")
+    rows = []
+    for name in args.algos:
+        graph, mlp = make_learners(name, env)
+        graph_rate = steps_per_second(graph, args.seconds)
+        mlp_rate = steps_per_second(mlp, args.seconds)
+        rows.append([name, f"{graph_rate:.1f}", f"{mlp_rate:.1f}", f"{mlp_rate / graph_rate:.1f}"])
+        print(f"{name}: graph {graph_rate:.1f}, MLP {mlp_rate:.1f} steps/s", flush=True)
+    if "TD3" in args.algos:
+        graph_dict = stable_baselines3.TD3(GraphPolicy, env, buffer_size=FILL, seed=0)
+        fill([graph_dict.replay_buffer], env, FILL)
+        rows.append(
+            [
+                "TD3, graph policy with SB3's padded DictReplayBuffer",
+                f"{steps_per_second(graph_dict, args.seconds):.1f}",
+                "",
+                "",
+            ]
+        )
+    inputs = flatten_space(env.observation_space).shape[0]
+    print(f"\n## Learner speed (batch {BATCH}, ~20 vertices / ~60 edges, hidden 64, 1 torch thread)\n")
     print(machine_line() + "\n")
-    print(markdown_table(["learner", "gradient steps/s", "x slower than MLP"], rows))
+    header = [
+        "algorithm",
+        "graph policy, steps/s",
+        f"MlpPolicy [64, 64] on {inputs} inputs, steps/s",
+        "x slower than MLP",
+    ]
+    print(markdown_table(header, rows))
     if not args.skip_threads:
         print("\n" + threads_table(args.seconds))
     if args.profile:
-        print("\n## Graph learner profile (1 torch thread, top operators by self CPU time)\n")
+        print("\n## TD3 graph learner profile (1 torch thread, top operators by self CPU time)\n")
         torch.set_num_threads(1)
+        graph = TD3("GraphPolicy", env, buffer_size=FILL, batch_size=BATCH, seed=0)
+        fill([graph.replay_buffer], env, FILL)
         print(profile_table(graph))
 
 

@@ -13,6 +13,7 @@ from typing import Any
 
 from envs.layouts import LAYOUT_NAMES
 from envs.rewards import REWARD_TERMS
+from envs.scene_graph import EDGE_FEATURES
 
 # What a collision does: "terminate" ends the episode (training, as in the paper); "remove" takes
 # the vehicles involved out of the scene and goes on (evaluation: collision rate over a whole run).
@@ -84,6 +85,10 @@ RULES: dict[str, Rule] = {
     "duration": _positive(),
     "max_vehicles": _int(1),
     "max_edges": _int(0),
+    "edge_features": Rule(
+        lambda x: isinstance(x, (list, tuple)) and set(x) <= set(EDGE_FEATURES) and len(set(x)) == len(x),
+        f"a list of distinct names from {list(EDGE_FEATURES)}",
+    ),
     "spawn_probability": _probability(),
     "initial_spawn_probability": _probability(),
     "initial_speed_range": _range(0.0, strict=True),

@@ -86,6 +86,8 @@ class CoopIntersectionEnv(AbstractEnv):
         - ``duration`` [s]: training episode length (a scenario brings its own)
         - ``max_vehicles``: vertices/action slots; spawning waits while the scene is full
         - ``max_edges``: edge slots of the observation
+        - ``edge_features``: edge features of the observation, any of ``["distance", "bearing"]``
+          (default none; see :mod:`envs.scene_graph`)
         - ``spawn_probability``: training spawn probability per lane and step (paper: up to 0.05)
         - ``initial_spawn_probability``: the same, for the spawn at reset (so episodes start busy)
         - ``initial_speed_range``: initial speed as fractions of the lane limit (paper: 0.6-1.0)
@@ -115,6 +117,7 @@ class CoopIntersectionEnv(AbstractEnv):
             "duration": 60.0,
             "max_vehicles": 64,
             "max_edges": 1024,
+            "edge_features": [],
             "spawn_probability": 0.05,
             "initial_spawn_probability": 1.0,
             "initial_speed_range": [0.6, 1.0],
@@ -161,6 +164,7 @@ class CoopIntersectionEnv(AbstractEnv):
             node_features=NODE_FEATURES,
             max_edges=self.config["max_edges"],
             num_relations=NUM_RELATIONS,
+            edge_features=len(self.config["edge_features"]),
         )
         self.action_space = spaces.Box(-1.0, 1.0, (self.config["max_vehicles"],), np.float32)
 
@@ -230,7 +234,11 @@ class CoopIntersectionEnv(AbstractEnv):
         self._collided = set()
         self._scene = self.sim.scene()
         obs = build_observation(
-            self._scene, self.observation_space, s_scale=cfg["s_scale"], d_max=cfg["d_max"]
+            self._scene,
+            self.observation_space,
+            s_scale=cfg["s_scale"],
+            d_max=cfg["d_max"],
+            edge_feature_names=cfg["edge_features"],
         )
         zero_terms = dict.fromkeys(DEFAULT_REWARD_WEIGHTS, 0.0)
         info = self._make_info(StepEvents(), entered, zero_terms)
@@ -264,7 +272,12 @@ class CoopIntersectionEnv(AbstractEnv):
         self._scene = scene = sim.scene()
         dmin = min_mahalanobis(scene)
         obs = build_observation(
-            scene, self.observation_space, s_scale=cfg["s_scale"], d_max=cfg["d_max"], min_distance=dmin
+            scene,
+            self.observation_space,
+            s_scale=cfg["s_scale"],
+            d_max=cfg["d_max"],
+            min_distance=dmin,
+            edge_feature_names=cfg["edge_features"],
         )
         collision = events.collisions.shape[0] > 0
         terms = reward_terms(

@@ -22,6 +22,13 @@ Edges (relation ids):
 
 When the edges outnumber the space's ``max_edges``, all same-lane edges are kept first and then the
 crossing edges between the closest vehicle pairs.
+
+Optional edge features (config ``edge_features``, any of :data:`EDGE_FEATURES`, in the order given),
+for edge ``j -> i`` (message from ``j`` to ``i``):
+
+- ``"distance"``: ``|p_j - p_i|`` [m] times ``s_scale`` (units of 25 m by default, like ``s``),
+- ``"bearing"``: direction of ``p_j`` seen from vehicle ``i``, relative to ``i``'s heading, in
+  ``[-1, 1]`` (radians / pi: 0 straight ahead, +-1 behind, positive to the left).
 """
 
 from __future__ import annotations
@@ -34,6 +41,7 @@ from sb3_graph.spaces import GraphSpace
 # s in units of the default s_ref (25 m): the GNN's inputs stay of order 1.
 DEFAULT_S_SCALE = 0.04
 SAME_LANE, CROSSING = 0, 1
+EDGE_FEATURES = ("distance", "bearing")
 NUM_RELATIONS = 2
 NODE_FEATURES = 3
 MAHALANOBIS_LENGTH = 5.0
@@ -122,22 +130,58 @@ def edges(scene: Scene, max_edges: int | None = None) -> tuple[np.ndarray, np.nd
     return edge_index, edge_type
 
 
+def edge_features(
+    scene: Scene, edge_index: np.ndarray, names: tuple[str, ...] | list[str], s_scale: float = DEFAULT_S_SCALE
+) -> np.ndarray:
+    """``(e, len(names))`` float32 features of the edges ``(source, target)`` (see the module docstring).
+
+    :param scene: the vehicles
+    :param edge_index: ``(2, e)`` edges
+    :param names: features among :data:`EDGE_FEATURES`, in the order wanted
+    :param s_scale: factor applied to ``distance``
+    """
+    src, dst = edge_index
+    delta = scene.position[src] - scene.position[dst]  # from the receiving vehicle to the sender
+    columns = []
+    for name in names:
+        if name == "distance":
+            columns.append(np.hypot(delta[:, 0], delta[:, 1]) * s_scale)
+        elif name == "bearing":
+            c, s = np.cos(scene.heading[dst]), np.sin(scene.heading[dst])
+            lon = delta[:, 0] * c + delta[:, 1] * s
+            lat = -delta[:, 0] * s + delta[:, 1] * c
+            columns.append(np.arctan2(lat, lon) / np.pi)
+        else:
+            raise ValueError(f"edge feature {name!r} is unknown; choose from {EDGE_FEATURES}")
+    return np.stack(columns, axis=1).astype(np.float32) if columns else np.zeros((len(src), 0), np.float32)
+
+
 def build_observation(
     scene: Scene,
     space: GraphSpace,
     s_scale: float = DEFAULT_S_SCALE,
     d_max: float = 10.0,
     min_distance: np.ndarray | None = None,
+    edge_feature_names: tuple[str, ...] | list[str] = (),
 ) -> dict[str, np.ndarray]:
     """Turn any scene into the padded graph observation of ``space`` (what the environment returns).
 
     :param scene: the vehicles (at most ``space.max_nodes``)
-    :param space: a ``GraphSpace`` with 3 node features and 2 relations
-    :param s_scale: factor applied to the ``s`` feature
+    :param space: a ``GraphSpace`` with 3 node features, 2 relations and ``len(edge_feature_names)``
+        edge features
+    :param s_scale: factor applied to the ``s`` feature (and to the ``distance`` edge feature)
     :param d_max: upper clip of the ``d`` feature
     :param min_distance: precomputed :func:`min_mahalanobis`, optional
+    :param edge_feature_names: edge features among :data:`EDGE_FEATURES` (config ``edge_features``)
     :return: the observation dictionary
+    :raises ValueError: when the names do not match the space's number of edge features
     """
+    if len(edge_feature_names) != space.edge_features:
+        raise ValueError(
+            f"build_observation: the space has {space.edge_features} edge features, got names "
+            f"{list(edge_feature_names)} (config 'edge_features')"
+        )
     x = node_features(scene, s_scale=s_scale, d_max=d_max, min_distance=min_distance)
     edge_index, edge_type = edges(scene, max_edges=space.max_edges)
-    return space.encode(x, edge_index, edge_type)
+    edge_attr = edge_features(scene, edge_index, edge_feature_names, s_scale) if edge_feature_names else None
+    return space.encode(x, edge_index, edge_type, edge_attr)

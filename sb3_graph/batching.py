@@ -14,11 +14,15 @@ from typing import Any, NamedTuple
 import torch
 from torch import Tensor
 
-from sb3_graph.spaces import EDGE_INDEX, EDGE_MASK, EDGE_TYPE, NODE_MASK, X
+from sb3_graph.spaces import EDGE_ATTR, EDGE_INDEX, EDGE_MASK, EDGE_TYPE, NODE_MASK, X
 
 
 class GraphBatch(NamedTuple):
     """``num_graphs`` graphs as one disjoint graph.
+
+    ``torch.cat([a, b])`` of two batches is their disjoint union (graphs of ``a``, then those of
+    ``b``), so SB3 code that concatenates observation batches (e.g. CrossQ's joint forward pass of
+    observations and next observations) works on graph batches unchanged.
 
     :param x: ``(N, F)`` float vertex features of all graphs, graph after graph
     :param edge_index: ``(2, E)`` long ``(source, target)`` rows indexing into ``x``
@@ -27,6 +31,7 @@ class GraphBatch(NamedTuple):
     :param node_slot: ``(N,)`` long slot of each vertex in its padded graph (= its action slot)
     :param num_graphs: number of graphs ``B`` (graphs may be empty)
     :param max_nodes: size of the padded layout, the action dimension
+    :param edge_attr: ``(E, D)`` float edge features, or ``None`` for a space without them
     """
 
     x: Tensor
@@ -36,6 +41,7 @@ class GraphBatch(NamedTuple):
     node_slot: Tensor
     num_graphs: int
     max_nodes: int
+    edge_attr: Tensor | None = None
 
     @property
     def num_nodes(self) -> int:
@@ -53,7 +59,49 @@ class GraphBatch(NamedTuple):
             edge_type=self.edge_type.to(device),
             batch=self.batch.to(device),
             node_slot=self.node_slot.to(device),
+            edge_attr=None if self.edge_attr is None else self.edge_attr.to(device),
         )
+
+    @classmethod
+    def __torch_function__(cls, func: Any, types: Any, args: tuple = (), kwargs: dict | None = None) -> Any:
+        # Only torch.cat along dim 0 is defined for graph batches: their disjoint union.
+        kwargs = kwargs or {}
+        if func is torch.cat:
+            tensors = args[0] if args else kwargs.get("tensors")
+            dim = args[1] if len(args) > 1 else kwargs.get("dim", 0)
+            if dim == 0 and tensors and all(isinstance(t, GraphBatch) for t in tensors):
+                return concat_graph_batches(list(tensors))
+        return NotImplemented
+
+
+def concat_graph_batches(batches: list[GraphBatch]) -> GraphBatch:
+    """Disjoint union of graph batches: the graphs of ``batches[0]``, then those of ``batches[1]``...
+
+    :param batches: batches with the same ``max_nodes`` and all with or all without edge features
+    :return: one batch of ``sum(b.num_graphs)`` graphs
+    """
+    if len({b.max_nodes for b in batches}) != 1:
+        raise ValueError(f"concat_graph_batches: max_nodes differ: {[b.max_nodes for b in batches]}")
+    with_attr = [b.edge_attr is not None for b in batches]
+    if any(with_attr) and not all(with_attr):
+        raise ValueError("concat_graph_batches: some batches have edge features and some do not")
+    node_offset, graph_offset = 0, 0
+    edge_index, batch = [], []
+    for b in batches:
+        edge_index.append(b.edge_index + node_offset)
+        batch.append(b.batch + graph_offset)
+        node_offset += b.num_nodes
+        graph_offset += b.num_graphs
+    return GraphBatch(
+        x=torch.cat([b.x for b in batches]),
+        edge_index=torch.cat(edge_index, dim=1),
+        edge_type=torch.cat([b.edge_type for b in batches]),
+        batch=torch.cat(batch),
+        node_slot=torch.cat([b.node_slot for b in batches]),
+        num_graphs=graph_offset,
+        max_nodes=batches[0].max_nodes,
+        edge_attr=torch.cat([b.edge_attr for b in batches]) if all(with_attr) else None,
+    )
 
 
 def padded_to_batch(obs: Mapping[str, Tensor]) -> GraphBatch:
@@ -65,32 +113,72 @@ def padded_to_batch(obs: Mapping[str, Tensor]) -> GraphBatch:
     An unbatched observation (no leading batch dimension) is treated as a batch of one.
 
     :param obs: dictionary with ``x`` ``(B, M, F)``, ``node_mask`` ``(B, M)``, ``edge_index``
-        ``(B, 2, E)``, ``edge_type`` ``(B, E)``, ``edge_mask`` ``(B, E)``
+        ``(B, 2, E)``, ``edge_type`` ``(B, E)``, ``edge_mask`` ``(B, E)`` and, with edge features,
+        ``edge_attr`` ``(B, E, D)``
     :return: the ragged batch
+    :raises ValueError: when a mask holds values other than 0 and 1, or a real edge points at a
+        padded slot, outside the graph or has a negative relation id (it would otherwise be wired
+        silently into another vertex or graph)
     """
     x = obs[X]
     if x.dim() == 2:
         obs = {key: value.unsqueeze(0) for key, value in obs.items()}
         x = obs[X]
     num_graphs, max_nodes = x.shape[:2]
+    node_mask, edge_mask = obs[NODE_MASK], obs[EDGE_MASK]
+    _check_masks(node_mask, edge_mask)
     # Only the real entries are touched after the masks: (graph, slot) pairs of vertices and edges.
-    node_graph, node_slot = obs[NODE_MASK].nonzero(as_tuple=True)
-    edge_graph, edge_slot = obs[EDGE_MASK].nonzero(as_tuple=True)
+    node_graph, node_slot = node_mask.nonzero(as_tuple=True)
+    edge_graph, edge_slot = edge_mask.nonzero(as_tuple=True)
     # Global id of each real vertex; edges read their endpoints' ids from it.
     global_id = torch.zeros((num_graphs, max_nodes), dtype=torch.long, device=x.device)
     global_id[node_graph, node_slot] = torch.arange(len(node_graph), device=x.device)
     edge_index = obs[EDGE_INDEX]
-    src = global_id[edge_graph, edge_index[edge_graph, 0, edge_slot].long()]
-    dst = global_id[edge_graph, edge_index[edge_graph, 1, edge_slot].long()]
+    src_slot = edge_index[edge_graph, 0, edge_slot].long()
+    dst_slot = edge_index[edge_graph, 1, edge_slot].long()
+    edge_type = obs[EDGE_TYPE][edge_graph, edge_slot].long()
+    _check_edges(node_mask, edge_graph, src_slot, dst_slot, edge_type)
+    edge_attr = obs.get(EDGE_ATTR)
     return GraphBatch(
         x=x[node_graph, node_slot].float(),
-        edge_index=torch.stack((src, dst)),
-        edge_type=obs[EDGE_TYPE][edge_graph, edge_slot].long(),
+        edge_index=torch.stack((global_id[edge_graph, src_slot], global_id[edge_graph, dst_slot])),
+        edge_type=edge_type,
         batch=node_graph,
         node_slot=node_slot,
         num_graphs=int(num_graphs),
         max_nodes=int(max_nodes),
+        edge_attr=None if edge_attr is None else edge_attr[edge_graph, edge_slot].float(),
     )
+
+
+def _check_masks(node_mask: Tensor, edge_mask: Tensor) -> None:
+    for name, mask in ((NODE_MASK, node_mask), (EDGE_MASK, edge_mask)):
+        if bool(((mask != 0) & (mask != 1)).any()):
+            raise ValueError(
+                f"sb3_graph: {name} holds values other than 0 and 1; was the graph observation normalized "
+                "(VecNormalize(norm_obs=True) cannot be used with a GraphSpace)?"
+            )
+
+
+def _check_edges(node_mask: Tensor, graph: Tensor, src: Tensor, dst: Tensor, edge_type: Tensor) -> None:
+    """Every real edge joins two real vertices of its own graph and has a relation id >= 0."""
+    if not len(graph):
+        return
+    max_nodes = node_mask.size(1)
+    outside = (src < 0) | (src >= max_nodes) | (dst < 0) | (dst >= max_nodes)
+    if bool(outside.any()):
+        raise ValueError(
+            f"sb3_graph: edge_index holds slots outside [0, max_nodes={max_nodes}) in real edges"
+        )
+    padded = (node_mask[graph, src] == 0) | (node_mask[graph, dst] == 0)
+    if bool(padded.any()):
+        k = int(padded.nonzero()[0, 0])
+        raise ValueError(
+            f"sb3_graph: a real edge points at a padded vertex slot (graph {int(graph[k])}: "
+            f"{int(src[k])} -> {int(dst[k])}); edges must join real vertices (node_mask 1)"
+        )
+    if bool((edge_type < 0).any()):
+        raise ValueError("sb3_graph: edge_type holds negative relation ids in real edges")
 
 
 def as_graph_batch(obs: GraphBatch | Mapping[str, Tensor]) -> GraphBatch:
@@ -108,7 +196,8 @@ def as_graph_batch(obs: GraphBatch | Mapping[str, Tensor]) -> GraphBatch:
     if isinstance(obs, Mapping):
         # TD3 feeds the same padded batch to several networks: convert it once (and so also share
         # the layers' derived indices, which are cached per GraphBatch tensors).
-        tensors = tuple(obs[key] for key in (X, NODE_MASK, EDGE_INDEX, EDGE_TYPE, EDGE_MASK))
+        keys = (X, NODE_MASK, EDGE_INDEX, EDGE_TYPE, EDGE_MASK) + ((EDGE_ATTR,) if EDGE_ATTR in obs else ())
+        tensors = tuple(obs[key] for key in keys)
         return derived_indices.get(tensors, ("padded_to_batch",), lambda: padded_to_batch(obs))
     raise TypeError(f"expected a GraphBatch or a dict of padded tensors, got {type(obs).__name__}")
 

@@ -1,4 +1,4 @@
-"""A replay buffer that stores only the real vertices and edges of each graph observation.
+"""Replay and rollout buffers that store only the real vertices and edges of each graph observation.
 
 SB3's ``DictReplayBuffer`` stores every observation at its padded size (``max_nodes`` vertices,
 ``max_edges`` edges), ~28 kB per transition for ``max_nodes=64, max_edges=1024``. Here each
@@ -14,6 +14,12 @@ after the ring wraps, new rows reuse the space of the overwritten ones and nothi
 While the ring fills, a pool grows geometrically (compacting the live rows into the new array);
 when the ring first wraps, it shrinks to the live rows plus a small slack; it grows again only if
 the graphs grow.
+
+:class:`GraphRolloutBuffer` (PPO, A2C) keeps each step's real rows and joins them once per rollout;
+minibatches are sets of graphs, each batch one disjoint graph.
+
+Both buffers check what they store (vectorized): real vertices in the leading slots, every real edge
+between real vertices of its own graph, relation ids in ``[0, num_relations)``.
 """
 
 from __future__ import annotations
@@ -24,13 +30,13 @@ from typing import Any
 import numpy as np
 import torch
 from gymnasium import spaces
-from stable_baselines3.common.buffers import ReplayBuffer
-from stable_baselines3.common.type_aliases import ReplayBufferSamples
+from stable_baselines3.common.buffers import BaseBuffer, ReplayBuffer, RolloutBuffer
+from stable_baselines3.common.type_aliases import ReplayBufferSamples, RolloutBufferSamples
 from stable_baselines3.common.vec_env import VecNormalize
 
+from sb3_graph.algorithm import check_vec_normalize
 from sb3_graph.batching import GraphBatch
-from sb3_graph.policies import graph_dims
-from sb3_graph.spaces import EDGE_INDEX, EDGE_MASK, EDGE_TYPE, NODE_MASK, X
+from sb3_graph.spaces import EDGE_ATTR, EDGE_INDEX, EDGE_MASK, EDGE_TYPE, NODE_MASK, X, edge_dims, graph_dims
 
 
 def _exclusive_cumsum(counts: np.ndarray) -> np.ndarray:
@@ -51,6 +57,55 @@ def _segment_indices(starts: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray
         total, dtype=np.int64
     )
     return indices, offsets
+
+
+def split_graphs(
+    obs: dict[str, np.ndarray], n_envs: int, max_nodes: int, node_features: int, num_relations: int, owner: str
+) -> tuple[dict, np.ndarray, dict, np.ndarray, np.ndarray]:
+    """Real vertex rows and edge rows of ``n_envs`` padded observations, checked (vectorized).
+
+    :param obs: padded observations with leading dimension ``n_envs``
+    :param n_envs: number of graphs
+    :param max_nodes: vertex slots per graph
+    :param node_features: features per vertex
+    :param num_relations: number of relations
+    :param owner: class name for the error messages
+    :return: vertex rows ``{"x"}``, vertex counts, edge rows ``{"src", "dst", "type"[, "attr"]}``
+        (local vertex ids), edge counts and the ``(n_envs, max_nodes)`` boolean vertex mask
+    :raises ValueError: when real vertices do not lead the slots, or a real edge points at a padded
+        slot or names a relation outside ``[0, num_relations)``
+    """
+    node_mask = np.asarray(obs[NODE_MASK]).reshape(n_envs, max_nodes).astype(bool)
+    node_counts = node_mask.sum(axis=1)
+    # Canonical layout (real vertices first) makes a vertex's slot its rank among real ones.
+    if not np.array_equal(node_mask, np.arange(max_nodes) < node_counts[:, None]):
+        raise ValueError(f"{owner}: node_mask must put real vertices in the leading slots")
+    edge_mask = np.asarray(obs[EDGE_MASK]).reshape(n_envs, -1).astype(bool)
+    edge_index = np.asarray(obs[EDGE_INDEX]).reshape(n_envs, 2, -1)
+    x = np.asarray(obs[X], dtype=np.float32).reshape(n_envs, max_nodes, node_features)
+    edges = {
+        "src": edge_index[:, 0][edge_mask],
+        "dst": edge_index[:, 1][edge_mask],
+        "type": np.asarray(obs[EDGE_TYPE]).reshape(n_envs, -1)[edge_mask],
+    }
+    if len(edges["src"]):
+        limit = np.repeat(node_counts, edge_mask.sum(axis=1))
+        bad = (edges["src"] < 0) | (edges["src"] >= limit) | (edges["dst"] < 0) | (edges["dst"] >= limit)
+        if bad.any():
+            k = int(np.flatnonzero(bad)[0])
+            raise ValueError(
+                f"{owner}: a real edge ({int(edges['src'][k])} -> {int(edges['dst'][k])}) points at a padded "
+                f"vertex slot or outside the graph ({int(limit[k])} real vertices); edges must join real vertices"
+            )
+        if edges["type"].min() < 0 or edges["type"].max() >= num_relations:
+            raise ValueError(
+                f"{owner}: edge_type holds relation ids in [{edges['type'].min()}, {edges['type'].max()}], "
+                f"outside [0, num_relations={num_relations})"
+            )
+    if EDGE_ATTR in obs:
+        attr = np.asarray(obs[EDGE_ATTR], dtype=np.float32)
+        edges["attr"] = attr.reshape(n_envs, -1, attr.shape[-1])[edge_mask]
+    return {"x": x[node_mask]}, node_counts, edges, edge_mask.sum(axis=1), node_mask
 
 
 class _RingPool:
@@ -210,9 +265,19 @@ class GraphReplayBuffer(ReplayBuffer):
     :param optimize_memory_usage: not supported (must be False)
     :param handle_timeout_termination: treat ``TimeLimit.truncated`` ends as non-terminal
     :param initial_capacity: initial vertex/edge rows per pool (pools grow geometrically)
+    :param n_steps: n-step returns when > 1, exactly as SB3's ``NStepReplayBuffer``: the reward is
+        the discounted sum over up to ``n_steps`` transitions of the same episode, the next
+        observation and ``done`` those of the last of them, and ``discounts`` is ``gamma ** k`` for
+        the ``k`` transitions summed (the algorithm bootstraps with it). The algorithm aliases set it
+        from their ``n_steps`` argument.
+    :param gamma: discount factor of the n-step returns
     """
 
     observation_space: spaces.Dict
+    # Defaults for buffers pickled before these options existed.
+    edge_features = 0
+    n_steps = 1
+    gamma = 0.99
 
     def __init__(
         self,
@@ -224,13 +289,18 @@ class GraphReplayBuffer(ReplayBuffer):
         optimize_memory_usage: bool = False,
         handle_timeout_termination: bool = True,
         initial_capacity: int = 4096,
+        n_steps: int = 1,
+        gamma: float = 0.99,
     ) -> None:
+        if int(n_steps) < 1:
+            raise ValueError(f"GraphReplayBuffer: n_steps must be >= 1, got {n_steps}")
         if optimize_memory_usage:
             raise ValueError(
                 "GraphReplayBuffer: optimize_memory_usage=True is not supported (it already stores only real "
                 "vertices and edges); use optimize_memory_usage=False"
             )
         max_nodes, node_features, num_relations = graph_dims(observation_space, action_space)
+        edge_features = edge_dims(observation_space)
         # Skip ReplayBuffer.__init__: it would allocate padded arrays.
         super(ReplayBuffer, self).__init__(
             buffer_size, observation_space, action_space, device, n_envs=n_envs
@@ -241,7 +311,10 @@ class GraphReplayBuffer(ReplayBuffer):
         self.max_nodes = max_nodes
         self.node_features = node_features
         self.num_relations = num_relations
+        self.edge_features = edge_features
         self.initial_capacity = initial_capacity
+        self.n_steps = int(n_steps)
+        self.gamma = float(gamma)
         self.rewards = np.zeros((self.buffer_size, self.n_envs), dtype=np.float32)
         self.dones = np.zeros((self.buffer_size, self.n_envs), dtype=np.float32)
         self.timeouts = np.zeros((self.buffer_size, self.n_envs), dtype=np.float32)
@@ -254,6 +327,8 @@ class GraphReplayBuffer(ReplayBuffer):
         node_fields = {"x": ((self.node_features,), np.float32)}
         # Endpoints as two 1-D fields: 1-D gathers are faster than gathers of 2-column rows.
         edge_fields = {"src": ((), index_dtype), "dst": ((), index_dtype), "type": ((), type_dtype)}
+        if self.edge_features:
+            edge_fields["attr"] = ((self.edge_features,), np.float32)
         size, n_envs, cap = self.buffer_size, self.n_envs, self.initial_capacity
         self.obs_nodes = _RingPool(size, n_envs, {**node_fields, "action": ((), np.float32)}, cap)
         self.next_obs_nodes = _RingPool(size, n_envs, node_fields, cap)
@@ -280,21 +355,9 @@ class GraphReplayBuffer(ReplayBuffer):
 
     def _split(self, obs: dict[str, np.ndarray]) -> tuple[dict, np.ndarray, dict, np.ndarray, np.ndarray]:
         """Real vertex rows and edge rows of ``n_envs`` padded observations."""
-        node_mask = np.asarray(obs[NODE_MASK]).reshape(self.n_envs, self.max_nodes).astype(bool)
-        node_counts = node_mask.sum(axis=1)
-        # Canonical layout (real vertices first) makes a vertex's slot its rank among real ones.
-        if not np.array_equal(node_mask, np.arange(self.max_nodes) < node_counts[:, None]):
-            raise ValueError("GraphReplayBuffer: node_mask must put real vertices in the leading slots")
-        edge_mask = np.asarray(obs[EDGE_MASK]).reshape(self.n_envs, -1).astype(bool)
-        edge_index = np.asarray(obs[EDGE_INDEX]).reshape(self.n_envs, 2, -1)
-        x = np.asarray(obs[X], dtype=np.float32).reshape(self.n_envs, self.max_nodes, self.node_features)
-        nodes = {"x": x[node_mask]}
-        edges = {
-            "src": edge_index[:, 0][edge_mask],
-            "dst": edge_index[:, 1][edge_mask],
-            "type": np.asarray(obs[EDGE_TYPE]).reshape(self.n_envs, -1)[edge_mask],
-        }
-        return nodes, node_counts, edges, edge_mask.sum(axis=1), node_mask
+        return split_graphs(
+            obs, self.n_envs, self.max_nodes, self.node_features, self.num_relations, "GraphReplayBuffer"
+        )
 
     def add(  # type: ignore[override]
         self,
@@ -357,7 +420,7 @@ class GraphReplayBuffer(ReplayBuffer):
                 next_nodes.arrays["x"][ns : ns + nc], nodes["x"][no : no + nc]
             ) and all(
                 np.array_equal(next_edges.arrays[name][es : es + ec], edges[name][eo : eo + ec])
-                for name in ("src", "dst", "type")
+                for name in next_edges.fields
             )
         if same.any():
             next_nodes.shrink(previous, ~same)
@@ -426,6 +489,9 @@ class GraphReplayBuffer(ReplayBuffer):
         )
         edge_index = local + np.repeat(node_offsets, counts[1])
         device = self.device
+        edge_attr = None
+        if self.edge_features:
+            edge_attr = torch.as_tensor(self._take(edges, "attr", edge_idx, edge_alt), device=device)
         graphs = GraphBatch(
             x=torch.as_tensor(self._take(nodes, "x", node_idx, node_alt), device=device),
             edge_index=torch.as_tensor(edge_index, device=device),
@@ -436,37 +502,257 @@ class GraphReplayBuffer(ReplayBuffer):
             node_slot=torch.as_tensor(node_slot, device=device),
             num_graphs=num_graphs,
             max_nodes=self.max_nodes,
+            edge_attr=edge_attr,
         )
         return graphs, (node_idx, batch, node_slot)
 
     def _get_samples(  # type: ignore[override]
         self, batch_inds: np.ndarray, env: VecNormalize | None = None
     ) -> ReplayBufferSamples:
-        if env is not None and getattr(env, "norm_obs", False):
-            raise ValueError(
-                "GraphReplayBuffer: VecNormalize(norm_obs=True) would normalize vertex ids; "
-                "use norm_obs=False"
-            )
+        check_vec_normalize(env, self.observation_space)
         env_indices = np.random.randint(0, high=self.n_envs, size=(len(batch_inds),))  # noqa: NPY002
         observations, (node_idx, batch, node_slot) = self._graph_batch(
             (self.obs_nodes, self.obs_nodes), (self.obs_edges, self.obs_edges), batch_inds, env_indices
         )
+        if self.n_steps > 1:
+            last, rewards, discounts = self._n_step_returns(batch_inds, env_indices, env)
+        else:
+            last, discounts = batch_inds, None
+            rewards = self._normalize_reward(self.rewards[batch_inds, env_indices].reshape(-1, 1), env)
         next_observations, _ = self._graph_batch(
             (self.next_obs_nodes, self.obs_nodes),
             (self.next_obs_edges, self.obs_edges),
-            batch_inds,
+            last,
             env_indices,
-            successor=self.next_is_successor[batch_inds, env_indices],
+            successor=self.next_is_successor[last, env_indices],
         )
         actions = np.zeros((len(batch_inds), self.max_nodes), dtype=np.float32)
         actions[batch, node_slot] = self.obs_nodes.arrays["action"][node_idx]
-        dones = self.dones[batch_inds, env_indices] * (1 - self.timeouts[batch_inds, env_indices])
-        rewards = self._normalize_reward(self.rewards[batch_inds, env_indices].reshape(-1, 1), env)
+        dones = self.dones[last, env_indices] * (1 - self.timeouts[last, env_indices])
         return ReplayBufferSamples(
             observations=observations,  # type: ignore[arg-type]
             actions=self.to_torch(actions),
             next_observations=next_observations,  # type: ignore[arg-type]
             dones=self.to_torch(dones.reshape(-1, 1)),
             rewards=self.to_torch(rewards),
-            discounts=None,
+            discounts=None if discounts is None else self.to_torch(discounts),
+        )
+
+    def _n_step_returns(
+        self, batch_inds: np.ndarray, env_indices: np.ndarray, env: VecNormalize | None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """SB3's ``NStepReplayBuffer`` arithmetic: the ring row of the last transition summed,
+        ``(B, 1)`` n-step returns and ``(B, 1)`` bootstrap discounts."""
+        # The newest transition counts as truncated (unless done), so that no window runs past it
+        # into overwritten or empty rows.
+        newest = self.pos - 1
+        original = self.timeouts[newest].copy()
+        self.timeouts[newest] = np.logical_or(original, np.logical_not(self.dones[newest]))
+        try:
+            steps = np.arange(self.n_steps)
+            rows = (batch_inds[:, None] + steps) % self.buffer_size
+            columns = env_indices[:, None]
+            rewards = self._normalize_reward(self.rewards[rows, columns], env)
+            ends = np.logical_or(self.dones[rows, columns], self.timeouts[rows, columns])
+            end = np.where(ends.any(axis=1), ends.argmax(axis=1), self.n_steps - 1)
+            mask = steps[None] <= end[:, None]
+            returns = (rewards * self.gamma ** steps.astype(np.float32) * mask).sum(axis=1, keepdims=True)
+            discounts = (self.gamma ** mask.sum(axis=1, keepdims=True)).astype(np.float32)
+            # The caller reads done * (1 - timeout) of `last` after the change is undone: the same
+            # value (the changed flag only ever marks a transition that is not done).
+            last = (batch_inds + end) % self.buffer_size
+        finally:
+            self.timeouts[newest] = original
+        return last, returns.astype(np.float32), discounts
+
+
+def gather_graph_batch(
+    nodes: dict[str, np.ndarray],
+    edges: dict[str, np.ndarray],
+    node_starts: np.ndarray,
+    node_counts: np.ndarray,
+    edge_starts: np.ndarray,
+    edge_counts: np.ndarray,
+    max_nodes: int,
+    device: torch.device | str,
+) -> tuple[GraphBatch, np.ndarray, np.ndarray, np.ndarray]:
+    """One disjoint graph of graphs stored as row segments of flat pools (no loop over graphs).
+
+    :param nodes: vertex pool, ``{"x": (rows, F), ...}``
+    :param edges: edge pool, ``{"src", "dst", "type"[, "attr"]}`` with local vertex ids
+    :param node_starts: ``(B,)`` first vertex row of each graph
+    :param node_counts: ``(B,)`` vertex rows of each graph
+    :param edge_starts: ``(B,)`` first edge row of each graph
+    :param edge_counts: ``(B,)`` edge rows of each graph
+    :param max_nodes: vertex slots of the padded layout
+    :param device: device of the tensors
+    :return: the batch, and the vertex rows read, each vertex's graph and its slot (numpy)
+    """
+    node_counts = node_counts.astype(np.int64, copy=False)
+    edge_counts = edge_counts.astype(np.int64, copy=False)
+    node_idx, node_offsets = _segment_indices(node_starts, node_counts)
+    edge_idx, _ = _segment_indices(edge_starts, edge_counts)
+    batch = np.repeat(np.arange(len(node_starts)), node_counts)
+    node_slot = np.arange(len(node_idx)) - node_offsets[batch]
+    first_vertex = np.repeat(node_offsets, edge_counts)
+    edge_index = np.stack([edges["src"][edge_idx], edges["dst"][edge_idx]]).astype(np.int64) + first_vertex
+    graphs = GraphBatch(
+        x=torch.as_tensor(nodes["x"][node_idx], device=device),
+        edge_index=torch.as_tensor(edge_index, device=device),
+        edge_type=torch.as_tensor(edges["type"][edge_idx].astype(np.int64), device=device),
+        batch=torch.as_tensor(batch, device=device),
+        node_slot=torch.as_tensor(node_slot, device=device),
+        num_graphs=len(node_starts),
+        max_nodes=max_nodes,
+        edge_attr=torch.as_tensor(edges["attr"][edge_idx], device=device) if "attr" in edges else None,
+    )
+    return graphs, node_idx, batch, node_slot
+
+
+class GraphRolloutBuffer(RolloutBuffer):
+    """A rollout buffer (PPO, A2C) for :class:`~sb3_graph.GraphSpace` observations that stores only
+    real vertices and edges.
+
+    Each step's graphs are split into their real vertex rows (with each vertex's action) and edge
+    rows; :meth:`get` joins them once per rollout into flat pools and yields minibatches of
+    ``batch_size`` *graphs* (transitions), each as one disjoint :class:`~sb3_graph.batching.GraphBatch`
+    built by index arithmetic, with padded ``(batch_size, max_nodes)`` actions (0 in padded
+    slots). Returns, advantages (GAE) and the minibatch order are SB3's: under the same numpy seed
+    the minibatches hold the same transitions as SB3's ``DictRolloutBuffer`` (advantage
+    normalization, per minibatch, is the algorithm's, as in SB3).
+
+    :param buffer_size: steps per environment in one rollout (``n_steps``)
+    :param observation_space: a :class:`~sb3_graph.GraphSpace`
+    :param action_space: ``Box`` of shape ``(max_nodes,)``
+    :param device: PyTorch device of the sampled tensors
+    :param gae_lambda: GAE's lambda
+    :param gamma: discount factor
+    :param n_envs: number of parallel environments
+    """
+
+    def __init__(
+        self,
+        buffer_size: int,
+        observation_space: spaces.Dict,
+        action_space: spaces.Box,
+        device: torch.device | str = "auto",
+        gae_lambda: float = 1,
+        gamma: float = 0.99,
+        n_envs: int = 1,
+    ) -> None:
+        self.max_nodes, self.node_features, self.num_relations = graph_dims(observation_space, action_space)
+        self.edge_features = edge_dims(observation_space)
+        super().__init__(buffer_size, observation_space, action_space, device, gae_lambda, gamma, n_envs)
+
+    def reset(self) -> None:
+        shape = (self.buffer_size, self.n_envs)
+        self.rewards = np.zeros(shape, dtype=np.float32)
+        self.returns = np.zeros(shape, dtype=np.float32)
+        self.episode_starts = np.zeros(shape, dtype=np.float32)
+        self.values = np.zeros(shape, dtype=np.float32)
+        self.log_probs = np.zeros(shape, dtype=np.float32)
+        self.advantages = np.zeros(shape, dtype=np.float32)
+        self.node_counts = np.zeros(shape, dtype=np.int64)
+        self.edge_counts = np.zeros(shape, dtype=np.int64)
+        self._step_nodes: list[dict[str, np.ndarray]] = []
+        self._step_edges: list[dict[str, np.ndarray]] = []
+        self.generator_ready = False
+        BaseBuffer.reset(self)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the stored graphs and per-step arrays (after a rollout)."""
+        rows = sum(a.nbytes for step in (*self._step_nodes, *self._step_edges) for a in step.values())
+        arrays = (self.rewards, self.returns, self.episode_starts, self.values, self.log_probs, self.advantages)
+        return rows + sum(a.nbytes for a in arrays) + self.node_counts.nbytes + self.edge_counts.nbytes
+
+    def add(  # type: ignore[override]
+        self,
+        obs: dict[str, np.ndarray],
+        action: np.ndarray,
+        reward: np.ndarray,
+        episode_start: np.ndarray,
+        value: torch.Tensor,
+        log_prob: torch.Tensor,
+    ) -> None:
+        """Add one step of every environment.
+
+        :param obs: padded observations, each entry with leading dimension ``n_envs``
+        :param action: ``(n_envs, max_nodes)`` actions (only real vertices' actions are kept)
+        :param reward: ``(n_envs,)``
+        :param episode_start: ``(n_envs,)`` start-of-episode flags
+        :param value: ``(n_envs, 1)`` value estimates
+        :param log_prob: ``(n_envs,)`` log-probabilities of the actions
+        """
+        if self.pos >= self.buffer_size:
+            raise ValueError("GraphRolloutBuffer.add: the rollout is full; call reset() first")
+        nodes, node_counts, edges, edge_counts, node_mask = split_graphs(
+            obs, self.n_envs, self.max_nodes, self.node_features, self.num_relations, "GraphRolloutBuffer"
+        )
+        nodes["action"] = np.asarray(action, dtype=np.float32).reshape(self.n_envs, self.max_nodes)[node_mask]
+        self._step_nodes.append(nodes)
+        self._step_edges.append(edges)
+        self.node_counts[self.pos] = node_counts
+        self.edge_counts[self.pos] = edge_counts
+        self.rewards[self.pos] = np.asarray(reward)
+        self.episode_starts[self.pos] = np.asarray(episode_start)
+        self.values[self.pos] = value.clone().cpu().numpy().flatten()
+        self.log_probs[self.pos] = log_prob.clone().cpu().numpy().reshape(-1)
+        self.pos += 1
+        if self.pos == self.buffer_size:
+            self.full = True
+
+    def _prepare(self) -> None:
+        """Join the steps into flat pools and flatten every per-transition array env-major
+        (SB3's ``swap_and_flatten`` order: transition ``k`` is env ``k // n_steps``, step ``k % n_steps``)."""
+        self._nodes = {k: np.concatenate([s[k] for s in self._step_nodes]) for k in self._step_nodes[0]}
+        self._edges = {k: np.concatenate([s[k] for s in self._step_edges]) for k in self._step_edges[0]}
+        flat = {}
+        for name, counts in (("node", self.node_counts), ("edge", self.edge_counts)):
+            starts = _exclusive_cumsum(counts.reshape(-1)).reshape(counts.shape)  # rows step after step
+            flat[f"{name}_starts"] = starts.swapaxes(0, 1).reshape(-1)
+            flat[f"{name}_counts"] = counts.swapaxes(0, 1).reshape(-1)
+        self._flat = flat
+        for name in ("values", "log_probs", "advantages", "returns"):
+            self.__dict__[name] = self.swap_and_flatten(self.__dict__[name])
+        self.generator_ready = True
+
+    def get(self, batch_size: int | None = None):  # type: ignore[override]
+        """Yield minibatches of ``batch_size`` graphs in a random order (all at once for ``None``).
+
+        :param batch_size: graphs per minibatch
+        :return: a generator of ``RolloutBufferSamples`` with :class:`GraphBatch` observations
+        """
+        assert self.full, "GraphRolloutBuffer.get: the rollout is not complete"
+        indices = np.random.permutation(self.buffer_size * self.n_envs)  # noqa: NPY002 (SB3's generator)
+        if not self.generator_ready:
+            self._prepare()
+        if batch_size is None:
+            batch_size = self.buffer_size * self.n_envs
+        for start in range(0, self.buffer_size * self.n_envs, batch_size):
+            yield self._get_samples(indices[start : start + batch_size])
+
+    def _get_samples(  # type: ignore[override]
+        self, batch_inds: np.ndarray, env: VecNormalize | None = None
+    ) -> RolloutBufferSamples:
+        flat = self._flat
+        graphs, node_idx, batch, node_slot = gather_graph_batch(
+            self._nodes,
+            self._edges,
+            flat["node_starts"][batch_inds],
+            flat["node_counts"][batch_inds],
+            flat["edge_starts"][batch_inds],
+            flat["edge_counts"][batch_inds],
+            self.max_nodes,
+            self.device,
+        )
+        actions = np.zeros((len(batch_inds), self.max_nodes), dtype=np.float32)
+        actions[batch, node_slot] = self._nodes["action"][node_idx]
+        return RolloutBufferSamples(
+            observations=graphs,  # type: ignore[arg-type]
+            actions=self.to_torch(actions),
+            old_values=self.to_torch(self.values[batch_inds].flatten()),
+            old_log_prob=self.to_torch(self.log_probs[batch_inds].flatten()),
+            advantages=self.to_torch(self.advantages[batch_inds].flatten()),
+            returns=self.to_torch(self.returns[batch_inds].flatten()),
         )

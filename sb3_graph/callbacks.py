@@ -14,7 +14,9 @@ Both are referenced from rl-zoo3 style YAML by dotted name, e.g.::
 
 from __future__ import annotations
 
+import numbers
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback
@@ -93,6 +95,8 @@ class InfoLoggerCallback(BaseCallback):
     reward terms) or a list of events (e.g. the ids of vehicles that crossed the intersection in
     the step, logged as ``<name>_count``); their means per step between two logger dumps are
     recorded as ``info/<name>/<entry>`` (TensorBoard, CSV, stdout: wherever the logger writes).
+    A 0-d array counts as its value; entries without a mean (strings, ``None``, other objects) are
+    skipped.
 
     :param keys: names of ``info`` entries to log
     :param verbose: verbosity level
@@ -102,16 +106,19 @@ class InfoLoggerCallback(BaseCallback):
         super().__init__(verbose)
         self.keys = [keys] if isinstance(keys, str) else list(keys)
 
-    def _record(self, name: str, value) -> None:
+    def _record(self, name: str, value: Any) -> None:
         if isinstance(value, dict):
             for entry, sub in value.items():
                 self._record(f"{name}/{entry}", sub)
+        elif isinstance(value, np.ndarray) and value.ndim == 0:
+            self._record(name, value.item())  # a 0-d array is a number (or a string), not an event list
         elif isinstance(value, (list, tuple, np.ndarray)):
             # an event list (e.g. ids of vehicles that crossed this step): log how many
             self.logger.record_mean(f"info/{name}_count", float(len(value)))
-        elif np.isscalar(value) and np.isfinite(value):
+        elif isinstance(value, (numbers.Real, np.bool_)) and np.isfinite(float(value)):
             # record_mean averages every value until the logger's next dump
             self.logger.record_mean(f"info/{name}", float(value))
+        # anything else (a string, None, an object) has no mean: skipped
 
     def _on_step(self) -> bool:
         for info in self.locals.get("infos", []):

@@ -79,7 +79,8 @@ def resolve_object(value: Any, field: str) -> Any:
 
 
 def _schedule(value: Any, field: str) -> Any:
-    """rl-zoo3 schedules: ``lin_<start>`` decays linearly to 0 over training."""
+    """rl-zoo3 schedules (``learning_rate``, PPO's ``clip_range`` and ``clip_range_vf``):
+    ``lin_<start>`` decays linearly to 0 over training."""
     if isinstance(value, str):
         if not value.startswith("lin_"):
             raise ExperimentError(f"{field}: expected a number or 'lin_<value>', got {value!r}")
@@ -98,7 +99,7 @@ def build_algorithm_kwargs(entry: dict[str, Any], action_dim: int) -> dict[str, 
     for field in ("policy_kwargs", "replay_buffer_class", "replay_buffer_kwargs"):
         if field in kwargs:
             kwargs[field] = resolve_object(kwargs[field], field)
-    for field in ("learning_rate",):
+    for field in ("learning_rate", "clip_range", "clip_range_vf"):
         if field in kwargs:
             kwargs[field] = _schedule(kwargs[field], field)
     if isinstance(kwargs.get("train_freq"), list):

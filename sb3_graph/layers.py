@@ -116,13 +116,15 @@ class _RelationalMax(torch.autograd.Function):
     def backward(ctx: Any, grad_out: Tensor) -> tuple[Tensor | None, None, None, None, None]:  # type: ignore[override]
         messages, maxima = ctx.saved_tensors
         layout, (num_vertices, num_relations, stride) = ctx.layout, ctx.shape
-        grad_out = grad_out.reshape(num_vertices, -1)
+        # Explicit channel counts, never -1: a batch without vertices has 0 elements to infer them from.
+        channels = messages.size(1)
+        grad_out = grad_out.reshape(num_vertices, channels)
         # d out_i / d maxima_(i, r) = 1 for every relation r: read the gradient of vertex i.
         grad = grad_out.index_select(0, layout.target_vertex)
         grad = _max_gradient(messages, maxima, layout.target, grad, layout.num_nonempty)
-        grad_rows = grad.new_zeros(num_vertices * stride, grad.size(1))
+        grad_rows = grad.new_zeros(num_vertices * stride, channels)
         if stride > num_relations:
-            grad_rows.view(num_vertices, stride, -1)[:, num_relations] = grad_out
+            grad_rows.view(num_vertices, stride, channels)[:, num_relations] = grad_out
         grad = grad.index_select(0, layout.source_order)
         return grad_rows.index_add_(0, layout.sorted_source, grad), None, None, None, None
 
@@ -152,9 +154,33 @@ class RelationalLayout(NamedTuple):
     num_nonempty: int
 
 
+def check_edges(edge_index: Tensor, edge_type: Tensor, num_nodes: int, num_relations: int) -> None:
+    """Raise a ``ValueError`` when an edge names a vertex outside ``[0, num_nodes)`` or a relation
+    outside ``[0, num_relations)`` (either would silently read another vertex's row). One host
+    sync; layouts call it once per batch.
+
+    :param edge_index: ``(2, E)`` long ``(source, target)`` rows
+    :param edge_type: ``(E,)`` relation ids
+    :param num_nodes: number of vertices ``N``
+    :param num_relations: number of relations ``R``
+    """
+    if edge_index.size(1) == 0:
+        return
+    lo_v, hi_v, lo_r, hi_r = torch.stack(
+        (edge_index.min(), edge_index.max(), edge_type.min().long(), edge_type.max().long())
+    ).tolist()
+    if lo_r < 0 or hi_r >= num_relations:
+        raise ValueError(
+            f"sb3_graph: edge_type holds relation ids in [{lo_r}, {hi_r}], outside [0, num_relations={num_relations})"
+        )
+    if lo_v < 0 or hi_v >= num_nodes:
+        raise ValueError(f"sb3_graph: edge_index holds vertex ids in [{lo_v}, {hi_v}], outside [0, {num_nodes})")
+
+
 def _base_layout(
     edge_index: Tensor, edge_type: Tensor, num_nodes: int, num_relations: int, stride: int, aggr: str
 ) -> RelationalLayout:
+    check_edges(edge_index, edge_type, num_nodes, num_relations)
     edge_type = edge_type.long()
     source = edge_index[0] * stride + edge_type
     target = edge_index[1] * num_relations + edge_type
@@ -228,6 +254,10 @@ class RelationalMaxConv(MessagePassing):
         \mathbf{x}^{\prime}_i = \mathbf{W}_0 \mathbf{x}_i + \mathbf{b}
         + \sum_{r \in \mathcal{R}} \bigoplus_{j \in \mathcal{N}_r(i)} \mathbf{W}_r \mathbf{x}_j
 
+    and, with edge features :math:`\mathbf{e}_{ji}` (``edge_dim > 0``), the message of edge
+    :math:`j \to i` is :math:`\mathbf{W}_r \mathbf{x}_j + \mathbf{U}_r \mathbf{e}_{ji}`, still
+    reduced after the transform (the maximum over these messages, per relation),
+
     where :math:`\bigoplus` is the element-wise maximum (or mean / sum) over the in-neighbours
     :math:`\mathcal{N}_r(i)` of vertex :math:`i` along edges of relation :math:`r`, and an empty
     neighbourhood contributes :math:`\mathbf{0}`: a vertex without incoming edges reduces to a
@@ -246,12 +276,17 @@ class RelationalMaxConv(MessagePassing):
     :param aggr: aggregation within one relation: ``"max"`` (paper), ``"mean"`` or ``"sum"``
     :param root_weight: add the root term :math:`\mathbf{W}_0 \mathbf{x}_i`
     :param bias: add a learnable bias :math:`\mathbf{b}`
+    :param edge_dim: number of edge features :math:`D` (0: messages read vertex features only)
 
     Shapes:
         - **input:** vertex features :math:`(|\mathcal{V}|, F_{in})`, edge indices
           :math:`(2, |\mathcal{E}|)` with rows ``(source, target)``, edge types
-          :math:`(|\mathcal{E}|)`
+          :math:`(|\mathcal{E}|)`, edge features :math:`(|\mathcal{E}|, D)` when ``edge_dim > 0``
         - **output:** vertex features :math:`(|\mathcal{V}|, F_{out})`
+
+    Without edge features, repeated edges are merged for the maximum and the aggregation runs
+    over per-vertex rows (a message is a row of :math:`\mathbf{x} \mathbf{W}_r`); with them, every
+    edge carries its own message (``E x F_out``), reduced by :func:`segment_max`.
     """
 
     def __init__(
@@ -262,7 +297,10 @@ class RelationalMaxConv(MessagePassing):
         aggr: str = "max",
         root_weight: bool = True,
         bias: bool = True,
+        edge_dim: int = 0,
     ) -> None:
+        if edge_dim < 0:
+            raise ValueError(f"RelationalMaxConv: edge_dim must be >= 0, got {edge_dim}")
         if aggr not in AGGREGATIONS:
             raise ValueError(f"RelationalMaxConv: aggr must be one of {AGGREGATIONS}, got {aggr!r}")
         if num_relations < 1:
@@ -274,6 +312,10 @@ class RelationalMaxConv(MessagePassing):
         self.weight = nn.Parameter(torch.empty(num_relations, in_channels, out_channels))
         self.root = nn.Linear(in_channels, out_channels, bias=False) if root_weight else None
         self.bias = nn.Parameter(torch.empty(out_channels)) if bias else None
+        self.edge_dim = int(edge_dim)
+        self.edge_weight = (
+            nn.Parameter(torch.empty(num_relations, edge_dim, out_channels)) if edge_dim else None
+        )
         self.reset_parameters()
 
     def reset_parameters(self) -> None:
@@ -285,15 +327,19 @@ class RelationalMaxConv(MessagePassing):
             self.root.reset_parameters()
         if self.bias is not None:
             nn.init.uniform_(self.bias, -bound, bound)
+        if self.edge_weight is not None:
+            edge_bound = 1.0 / math.sqrt(self.edge_dim)
+            nn.init.uniform_(self.edge_weight, -edge_bound, edge_bound)
 
-    def forward(self, x: Tensor, edge_index: Tensor, edge_type: Tensor) -> Tensor:
+    def forward(self, x: Tensor, edge_index: Tensor, edge_type: Tensor, edge_attr: Tensor | None = None) -> Tensor:
         """
         :param x: ``(N, in_channels)`` vertex features
         :param edge_index: ``(2, E)`` long ``(source, target)`` rows
         :param edge_type: ``(E,)`` long relation ids in ``[0, num_relations)``
+        :param edge_attr: ``(E, edge_dim)`` edge features (required iff ``edge_dim > 0``)
         :return: ``(N, out_channels)`` vertex features
         """
-        return relational_conv([self], x, edge_index, edge_type)
+        return relational_conv([self], x, edge_index, edge_type, edge_attr)
 
     def message(self, x_j: Tensor) -> Tensor:
         return x_j
@@ -301,20 +347,29 @@ class RelationalMaxConv(MessagePassing):
     def __repr__(self) -> str:
         return (
             f"{self.__class__.__name__}({self.in_channels}, {self.out_channels}, "
-            f"num_relations={self.num_relations}, aggr={self.aggr!r})"
+            f"num_relations={self.num_relations}, aggr={self.aggr!r}"
+            + (f", edge_dim={self.edge_dim})" if self.edge_dim else ")")
         )
 
 
-def relational_conv(convs: Sequence[RelationalMaxConv], x: Tensor, edge_index: Tensor, edge_type: Tensor) -> Tensor:
+def relational_conv(
+    convs: Sequence[RelationalMaxConv],
+    x: Tensor,
+    edge_index: Tensor,
+    edge_type: Tensor,
+    edge_attr: Tensor | None = None,
+) -> Tensor:
     """Apply one convolution, or ``K`` convolutions of the same shape each to its own input, on one
     graph batch: one (batched) matmul and one aggregation for all of them (the ``K`` copies are
     ``K`` disjoint graphs).
 
-    :param convs: ``K`` convolutions with equal channels, relations, aggregation, root and bias
+    :param convs: ``K`` convolutions with equal channels, relations, aggregation, root, bias and
+        edge features
     :param x: ``(N, in_channels)`` input of the single convolution (``K = 1``), or
         ``(K, N, in_channels)`` input of each convolution
     :param edge_index: ``(2, E)`` long ``(source, target)`` rows
     :param edge_type: ``(E,)`` relation ids
+    :param edge_attr: ``(E, edge_dim)`` edge features, required iff the convolutions have ``edge_dim > 0``
     :return: ``(N, out_channels)`` or ``(K, N, out_channels)``, as ``x``
     """
     first = convs[0]
@@ -322,6 +377,17 @@ def relational_conv(convs: Sequence[RelationalMaxConv], x: Tensor, edge_index: T
     copies, num_nodes = len(convs), x.size(-2)
     if not stacked and copies != 1:
         raise ValueError(f"relational_conv: x must be (K, N, in_channels) for {copies} convolutions")
+    if first.edge_dim:
+        if edge_attr is None or edge_attr.shape != (edge_index.size(1), first.edge_dim):
+            got = None if edge_attr is None else tuple(edge_attr.shape)
+            raise ValueError(
+                f"relational_conv: edge_attr of shape ({edge_index.size(1)}, {first.edge_dim}) is required, got {got}"
+            )
+        if stacked:
+            return torch.stack(
+                [_edge_conv(c, x[k], edge_index, edge_type, edge_attr) for k, c in enumerate(convs)]
+            )
+        return _edge_conv(first, x, edge_index, edge_type, edge_attr)
     r, out, has_root = first.num_relations, first.out_channels, first.root is not None
     stride = r + 1 if has_root else r
     # Weights (K, in, R * out [+ out]): relation blocks, then the root block; the bias joins the
@@ -355,3 +421,61 @@ def relational_conv(convs: Sequence[RelationalMaxConv], x: Tensor, edge_index: T
         if has_root:
             return result + transformed.view(*shape[:-1], stride, out)[..., r, :]
     return result + bias if bias is not None and not has_root else result
+
+
+class EdgeLayout(NamedTuple):
+    """Per-edge aggregation indices of a convolution with edge features (derived once per batch).
+
+    :param source: ``(E,)`` row ``j * R + r`` of the relation transforms read by edge ``j -> i``
+    :param segment: ``(E,)`` segment ``i * R + r`` it is reduced into
+    :param counts: ``(N * R,)`` edges per segment
+    :param num_nonempty: number of non-empty segments
+    """
+
+    source: Tensor
+    segment: Tensor
+    counts: Tensor
+    num_nonempty: int
+
+
+def edge_layout(edge_index: Tensor, edge_type: Tensor, num_nodes: int, num_relations: int) -> EdgeLayout:
+    """Indices of :func:`_edge_conv`, cached per batch like :func:`relational_layout`."""
+
+    def compute() -> EdgeLayout:
+        check_edges(edge_index, edge_type, num_nodes, num_relations)
+        edge_type_long = edge_type.long()
+        segment = edge_index[1] * num_relations + edge_type_long
+        counts = torch.bincount(segment, minlength=num_nodes * num_relations)
+        return EdgeLayout(
+            edge_index[0] * num_relations + edge_type_long, segment, counts, int(torch.count_nonzero(counts))
+        )
+
+    return derived_indices.get((edge_index, edge_type), ("edges", num_nodes, num_relations), compute)
+
+
+def _edge_conv(
+    conv: RelationalMaxConv, x: Tensor, edge_index: Tensor, edge_type: Tensor, edge_attr: Tensor
+) -> Tensor:
+    """One convolution with edge features: message ``W_r x_j + U_r e_ji`` per edge, reduced per
+    ``(target, relation)`` segment, summed over relations, plus root and bias (plain autograd
+    around :func:`segment_max`)."""
+    r, out, num_nodes = conv.num_relations, conv.out_channels, x.size(0)
+    layout = edge_layout(edge_index, edge_type, num_nodes, r)
+    relation_rows = torch.matmul(x, conv.weight.permute(1, 0, 2).reshape(conv.in_channels, r * out))
+    messages = relation_rows.view(num_nodes * r, out).index_select(0, layout.source)
+    edge_terms = torch.matmul(edge_attr.to(x.dtype), conv.edge_weight.permute(1, 0, 2).reshape(conv.edge_dim, r * out))
+    if r == 1:
+        messages = messages + edge_terms
+    else:
+        index = edge_type.long().view(-1, 1, 1).expand(-1, 1, out)
+        messages = messages + edge_terms.view(-1, r, out).gather(1, index).squeeze(1)
+    if conv.aggr == "max":
+        aggregated = segment_max(messages, None, layout.segment, num_nodes * r, layout.num_nonempty)
+    else:
+        aggregated = messages.new_zeros(num_nodes * r, out).index_add(0, layout.segment, messages)
+        if conv.aggr == "mean":
+            aggregated = aggregated / layout.counts.clamp(min=1).unsqueeze(-1).to(aggregated.dtype)
+    result = aggregated.view(num_nodes, r, out).sum(dim=1)
+    if conv.root is not None:
+        result = result + conv.root(x)
+    return result if conv.bias is None else result + conv.bias

@@ -112,3 +112,24 @@ def test_padded_batch_is_converted_once():
     second = as_graph_batch(obs)
     assert second is not first
     torch.testing.assert_close(second.x, padded_to_batch(obs).x)
+
+
+def test_edges_at_padded_slots_and_fractional_masks_are_rejected():
+    import pytest
+
+    space = GraphSpace(max_nodes=5, node_features=2, max_edges=4, num_relations=2)
+    graphs = [space.encode(np.ones((3, 2)), np.array([[0, 1], [1, 2]])), space.encode(np.ones((2, 2)))]
+    obs = stack(graphs)
+    padded_to_batch(obs)
+    bad = {k: v.clone() for k, v in obs.items()}
+    bad["edge_index"][0, 1, 1] = 4.0  # graph 0's second edge into padded slot 4
+    with pytest.raises(ValueError, match=r"padded vertex slot \(graph 0: 1 -> 4\)"):
+        padded_to_batch(bad)
+    bad = {k: v.clone() for k, v in obs.items()}
+    bad["edge_index"][0, 0, 0] = 7.0
+    with pytest.raises(ValueError, match="outside"):
+        padded_to_batch(bad)
+    bad = {k: v.clone() for k, v in obs.items()}
+    bad["node_mask"] = bad["node_mask"] * 0.5
+    with pytest.raises(ValueError, match="VecNormalize"):
+        padded_to_batch(bad)

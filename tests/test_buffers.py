@@ -247,3 +247,58 @@ def test_episodes_store_next_observations_once(buffer_size, n_envs):
     stream.add_to([ours, clone, reference], 23)
     assert_same_samples(ours, reference)
     assert_same_samples(clone, reference)
+
+
+def test_edges_at_padded_slots_or_unknown_relations_are_rejected():
+    buffer = GraphReplayBuffer(10, SPACE, ACTIONS, device="cpu", n_envs=2)
+    good = SPACE.encode(np.zeros((3, 2)), np.array([[0, 1], [1, 2]]), np.array([0, 2]))
+    g = {k: np.stack([v, v]) for k, v in good.items()}
+    args = (np.zeros((2, MAX_NODES)), np.zeros(2), np.zeros(2), [{}, {}])
+    buffer.add(g, g, *args)
+    bad = {k: v.copy() for k, v in g.items()}
+    bad["edge_index"][1, 1, 1] = 5  # env 1: its second edge points at padded slot 5
+    with pytest.raises(ValueError, match=r"padded vertex slot .*\(3 real vertices\)"):
+        buffer.add(g, bad, *args)
+    bad = {k: v.copy() for k, v in g.items()}
+    bad["edge_type"][0, 0] = 3  # relation 3 of 3
+    with pytest.raises(ValueError, match=r"num_relations=3"):
+        buffer.add(bad, g, *args)
+    # Padded edge slots are never read: anything may sit there.
+    padded = {k: v.copy() for k, v in g.items()}
+    padded["edge_index"][:, :, 2:] = 6
+    padded["edge_type"][:, 2:] = 9
+    buffer.add(padded, padded, *args)
+
+
+@pytest.mark.parametrize(("n_envs", "steps"), [(1, 9), (2, 30)])
+def test_n_step_returns_equal_sb3_n_step_buffer(n_envs, steps):
+    # SB3's NStepReplayBuffer takes no Dict observations: it stores each transition's id as a Box
+    # observation; ours stores graphs whose first feature is that id.
+    from stable_baselines3.common.buffers import NStepReplayBuffer
+
+    ids = spaces.Box(-1e6, 1e6, (1,), np.float32)
+    reference = NStepReplayBuffer(12 * n_envs, ids, ACTIONS, device="cpu", n_envs=n_envs, n_steps=3, gamma=0.9)
+    ours = GraphReplayBuffer(12 * n_envs, SPACE, ACTIONS, device="cpu", n_envs=n_envs, n_steps=3, gamma=0.9)
+    rng = np.random.default_rng(n_envs)
+    for step in range(steps):  # ring of 12 rows: wraps for 30 steps
+        ident = np.arange(n_envs) + 100 * step
+        graph = [SPACE.encode(np.full((2, 2), i, np.float32)) for i in ident]
+        following = [SPACE.encode(np.full((2, 2), i + 0.5, np.float32)) for i in ident]  # "next" of id i
+        done = rng.random(n_envs) < 0.2
+        infos = [{"TimeLimit.truncated": bool(t)} for t in rng.random(n_envs) < 0.2]
+        reward = rng.standard_normal(n_envs)
+        action = np.zeros((n_envs, MAX_NODES))
+        ours.add(*[{k: np.stack([g[k] for g in gs]) for k in gs[0]} for gs in (graph, following)], action, reward,
+                 done, infos)  # fmt: skip
+        reference.add(ident[:, None], ident[:, None] + 0.5, action, reward, done, infos)
+    for seed in range(3):
+        np.random.seed(seed)  # noqa: NPY002 (SB3 samples with the global generator)
+        a = ours.sample(64)
+        np.random.seed(seed)  # noqa: NPY002
+        b = reference.sample(64)
+        for name in ("rewards", "dones", "discounts"):
+            torch.testing.assert_close(getattr(a, name), getattr(b, name))
+        assert torch.all(b.discounts < 0.9 + 1e-6) and torch.any(b.discounts < 0.9**2)  # windows of 1 to 3
+        first = a.next_observations.x[a.next_observations.node_slot == 0, 0]
+        torch.testing.assert_close(first, b.next_observations[:, 0])
+        torch.testing.assert_close(a.observations.x[a.observations.node_slot == 0, 0], b.observations[:, 0])

@@ -120,3 +120,28 @@ def test_info_logger_records_means_of_terms_and_event_counts():
     assert logger.name_to_value["info/reward_terms/velocity"] == pytest.approx(0.5)
     assert logger.name_to_value["info/crossed_count"] == pytest.approx(1.0)
     assert logger.name_to_value["info/num_vehicles"] == pytest.approx(4.0)  # NaN skipped
+
+
+def test_info_logger_takes_0d_arrays_and_skips_strings():
+    from stable_baselines3.common.logger import Logger
+
+    callback = InfoLoggerCallback(keys=["speed", "label", "flag", "nothing", "terms"])
+    logger = Logger(folder=None, output_formats=[])
+
+    class Model:
+        pass
+
+    model = Model()
+    model.logger = logger
+    callback.model = model
+    steps = [
+        {"speed": np.array(2.0), "label": "left", "flag": True, "nothing": None, "terms": {"a": np.float32(1.0)}},
+        {"speed": np.array(4.0), "label": np.array("right"), "flag": np.bool_(False), "terms": {"a": "n/a"}},
+    ]
+    for info in steps:
+        callback.locals = {"infos": [info]}
+        callback._on_step()
+    assert logger.name_to_value["info/speed"] == pytest.approx(3.0)  # 0-d arrays are numbers
+    assert logger.name_to_value["info/flag"] == pytest.approx(0.5)
+    assert logger.name_to_value["info/terms/a"] == pytest.approx(1.0)
+    assert not any("label" in key or "nothing" in key for key in logger.name_to_value)

@@ -200,3 +200,72 @@ def test_layout_is_derived_once_per_batch():
     assert relational_layout(edge_index.clone(), edge_type, x.size(0), 3, stride=4) is not first
     edge_index[0, 0] = (edge_index[0, 0] + 1) % x.size(0)
     assert relational_layout(edge_index, edge_type, x.size(0), 3, stride=4) is not first
+
+
+@pytest.mark.parametrize("aggr", ["max", "mean", "sum"])
+@pytest.mark.parametrize("edge_dim", [0, 2])
+def test_backward_on_a_batch_without_vertices(aggr, edge_dim):
+    conv = RelationalMaxConv(4, 3, num_relations=2, aggr=aggr, edge_dim=edge_dim)
+    x = torch.zeros(0, 4, requires_grad=True)
+    edges = torch.zeros(2, 0, dtype=torch.long)
+    edge_attr = torch.zeros(0, edge_dim) if edge_dim else None
+    out = conv(x, edges, torch.zeros(0, dtype=torch.long), edge_attr)
+    assert out.shape == (0, 3)
+    out.sum().backward()  # used to fail: grad_out.reshape(0, -1)
+    assert x.grad.shape == (0, 4) and torch.all(conv.weight.grad == 0)
+
+
+def test_edges_naming_unknown_relations_or_vertices_are_rejected():
+    conv = RelationalMaxConv(2, 2, num_relations=2)
+    x = torch.randn(3, 2)
+    with pytest.raises(ValueError, match="num_relations=2"):
+        conv(x, torch.tensor([[0], [1]]), torch.tensor([2]))
+    with pytest.raises(ValueError, match=r"outside \[0, 3\)"):
+        conv(x, torch.tensor([[0], [3]]), torch.tensor([0]))
+
+
+def edge_reference(conv: RelationalMaxConv, x, edge_index, edge_type, edge_attr, reduce: str) -> torch.Tensor:
+    """h_i' = W_0 x_i + b + sum_r reduce_{j -> i of relation r} (W_r x_j + U_r e_ji), edge by edge."""
+    out = conv.root(x) + conv.bias
+    for i in range(x.size(0)):
+        for r in range(conv.num_relations):
+            chosen = (edge_index[1] == i) & (edge_type == r)
+            if not chosen.any():
+                continue
+            messages = x[edge_index[0][chosen]] @ conv.weight[r] + edge_attr[chosen] @ conv.edge_weight[r]
+            reducers = {"max": lambda m: m.max(dim=0).values, "mean": lambda m: m.mean(0), "sum": lambda m: m.sum(0)}
+            out[i] += reducers[reduce](messages)
+    return out
+
+
+@pytest.mark.parametrize("aggr", ["max", "mean", "sum"])
+def test_edge_features_enter_each_message_before_the_aggregation(aggr):
+    torch.manual_seed(0)
+    x, edge_index, edge_type = tie_graph(n=12, e=40, relations=3, features=5)
+    edge_attr = torch.randn(edge_index.size(1), 2)
+    conv = RelationalMaxConv(5, 4, num_relations=3, aggr=aggr, edge_dim=2)
+    out = conv(x, edge_index, edge_type, edge_attr)
+    torch.testing.assert_close(out, edge_reference(conv, x, edge_index, edge_type, edge_attr, aggr))
+    # Changing one edge's features changes its target's output only.
+    changed = edge_attr.clone()
+    changed[0] += 1.0
+    target = int(edge_index[1, 0])
+    delta = (conv(x, edge_index, edge_type, changed) - out).abs().sum(dim=1)
+    assert delta[target] > 0 and torch.all(delta[torch.arange(12) != target] == 0)
+    # Gradients reach the edge weights and the edge features.
+    attr = edge_attr.clone().requires_grad_(True)
+    conv(x, edge_index, edge_type, attr).sum().backward()
+    assert conv.edge_weight.grad.abs().sum() > 0 and attr.grad.abs().sum() > 0
+    with pytest.raises(ValueError, match="edge_attr"):
+        conv(x, edge_index, edge_type)
+
+
+def test_stacked_convolutions_with_edge_features_equal_separate_ones():
+    torch.manual_seed(0)
+    convs = [RelationalMaxConv(6, 5, num_relations=3, edge_dim=2) for _ in range(2)]
+    x, edge_index, edge_type = tie_graph()
+    edge_attr = torch.randn(edge_index.size(1), 2)
+    inputs = torch.randn(2, x.size(0), 6)
+    stacked = relational_conv(convs, inputs, edge_index, edge_type, edge_attr)
+    separate = torch.stack([c(inputs[k], edge_index, edge_type, edge_attr) for k, c in enumerate(convs)])
+    torch.testing.assert_close(stacked, separate)

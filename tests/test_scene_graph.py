@@ -149,3 +149,39 @@ def _manual_scene(pos, heading, speed):
         gap=np.full(n, np.inf), priority=np.zeros(n, np.int64), maneuver=np.zeros(n, np.int64),
         length=np.full(n, 5.0), route_names=lay.route_names, conflicts=lay.conflicts,
     )  # fmt: skip
+
+
+def test_edge_features_distance_and_bearing():
+    from envs.scene_graph import edge_features
+
+    sim = _sim()
+    rid = sim.layout.route_id
+    sim.add(np.array([rid("south->north")] * 2), np.ones(2), np.arange(2), arc=np.array([60.0, 40.0]))
+    scene = sim.scene()
+    edge_index, edge_type = edges(scene)
+    assert _edge_set(edge_index, edge_type) == {(0, 1, SAME_LANE)}
+    attr = edge_features(scene, edge_index, ["bearing", "distance"])
+    # The leader is 20 m straight ahead of its follower.
+    np.testing.assert_allclose(attr, [[0.0, 20.0 * DEFAULT_S_SCALE]], atol=1e-6)
+    reverse = edge_features(scene, edge_index[::-1], ["bearing"])
+    np.testing.assert_allclose(np.abs(reverse), [[1.0]], atol=1e-6)  # the follower is behind the leader
+    space = GraphSpace(max_nodes=4, node_features=3, max_edges=4, num_relations=2, edge_features=2)
+    obs = build_observation(scene, space, edge_feature_names=["bearing", "distance"])
+    np.testing.assert_allclose(obs["edge_attr"][:1], attr)
+    with pytest.raises(ValueError, match="2 edge features"):
+        build_observation(scene, space)
+
+
+def test_env_option_edge_features():
+    import gymnasium as gym
+
+    import envs  # noqa: F401 - registers the environments
+
+    env = gym.make("CoopIntersection4Way-v0", config={"edge_features": ["distance", "bearing"]})
+    obs, _ = env.reset(seed=0)
+    assert env.observation_space.edge_features == 2 and env.observation_space.contains(obs)
+    e = int(obs["edge_mask"].sum())
+    assert e > 0 and np.all(obs["edge_attr"][:e, 0] > 0) and np.all(np.abs(obs["edge_attr"][:e, 1]) <= 1)
+    with pytest.raises(ValueError, match="edge_features"):
+        gym.make("CoopIntersection4Way-v0", config={"edge_features": ["speed"]})
+    assert "edge_attr" not in gym.make("CoopIntersection4Way-v0").reset(seed=0)[0]

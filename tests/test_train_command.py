@@ -31,8 +31,8 @@ def train(out, *extra):
     )
 
 
-def acts(model_path):
-    model = TD3.load(model_path)
+def acts(model_path, algorithm=TD3):
+    model = algorithm.load(model_path)
     env = gym.make(ENV_ID)
     obs, _ = env.reset(seed=3)
     action, _ = model.predict(obs, deterministic=True)
@@ -151,3 +151,53 @@ def test_sigterm_saves_a_checkpoint_that_resumes(tmp_path):
     assert (out / "checkpoints" / f"model_replay_buffer_{steps}_steps.pkl").is_file()
     assert train(out, "--resume", "--n-timesteps", str(steps + 20)) == 0
     assert TD3.load(out / "final_model.zip").num_timesteps == steps + 20
+
+
+def test_ppo_run_from_its_zoo_config_resumes_as_ppo(tmp_path, capsys):
+    import sb3_graph
+
+    out = tmp_path / "ppo"
+    config = ROOT / "zoo_configs" / "ppo.yml"
+    tiny = ["--hyperparams", "n_envs:2", "n_steps:32", "batch_size:32", "n_epochs:1"]
+    common = ["train", "--config", str(config), "--env", ENV_ID, "--out", str(out), "--eval-freq", "64",
+              "--eval-episodes", "1", "--checkpoint-freq", "64", "--no-progress"]
+    assert main([*common, "--algo", "ppo", "--n-timesteps", "128", *tiny, *SHORT_EPISODES]) == 0
+    model = sb3_graph.PPO.load(out / "final_model.zip")
+    assert model.num_timesteps == 128 and type(model.policy).__name__ == "GraphActorCriticPolicy"
+    assert json.loads((out / "run.json").read_text())["algo"] == "ppo"
+    assert not list((out / "checkpoints").glob("model_replay_buffer_*"))  # on-policy: no buffer to keep
+    assert main([*common, "--resume", "--n-timesteps", "192"]) == 0  # the run's own algorithm
+    assert sb3_graph.PPO.load(out / "final_model.zip").num_timesteps == 192
+    assert main([*common, "--resume", "--algo", "sac"]) == 2
+    assert "is a ppo run" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("algo", ["sac", "tqc"])
+def test_off_policy_zoo_configs_train(tmp_path, algo):
+    import sb3_graph
+
+    out = tmp_path / algo
+    config = ROOT / "zoo_configs" / f"{algo}.yml"
+    assert main(["train", "--algo", algo, "--config", str(config), "--env", ENV_ID, "--out", str(out),
+                 "--n-timesteps", "100", "--eval-freq", "100", "--eval-episodes", "1", "--no-progress",
+                 *TINY, *SHORT_EPISODES]) == 0
+    cls = {"sac": sb3_graph.SAC, "tqc": sb3_graph.TQC}[algo]
+    model = cls.load(out / "final_model.zip")
+    assert type(model.replay_buffer).__name__ == "GraphReplayBuffer" or model.replay_buffer is None
+    acts(out / "final_model.zip", cls)
+
+
+@pytest.mark.parametrize("algo", ["sac", "ppo"])
+def test_rl_zoo3_runs_the_other_experiment_files(tmp_path, algo):
+    pytest.importorskip("rl_zoo3")
+    params = ["learning_starts:64", "batch_size:16", "buffer_size:1000"] if algo == "sac" else [
+        "n_envs:1", "n_steps:64", "batch_size:32", "n_epochs:1"]
+    command = [
+        sys.executable, "-m", "rl_zoo3.train", "--algo", algo, "--env", ENV_ID, "--gym-packages", "envs",
+        "-conf", str(ROOT / "zoo_configs" / f"{algo}.yml"), "-n", "128", "-params", *params,
+        "--eval-freq", "-1", "-f", str(tmp_path), "--seed", "1", "--env-kwargs", "config:{'duration':8.0}",
+    ]
+    result = subprocess.run(command, capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert result.returncode == 0, result.stderr[-2000:]
+    saved = list(tmp_path.glob(f"{algo}/{ENV_ID}_*/{ENV_ID}.zip"))
+    assert len(saved) == 1

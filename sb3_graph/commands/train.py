@@ -31,10 +31,26 @@ import yaml
 from sb3_graph.cli import UserError
 
 CHECKPOINT_PATTERN = re.compile(r"model_(\d+)_steps\.zip$")
+#: --algo names (rl-zoo3's) -> class names in sb3_graph
+ALGORITHMS = {
+    "td3": "TD3",
+    "ddpg": "DDPG",
+    "sac": "SAC",
+    "tqc": "TQC",
+    "crossq": "CrossQ",
+    "ppo": "PPO",
+    "a2c": "A2C",
+}
 VALIDATION_SEED_OFFSET = 10_000
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--algo",
+        choices=ALGORITHMS,
+        default=None,
+        help="algorithm (default td3; a resumed run keeps its own), as rl-zoo3's --algo",
+    )
     parser.add_argument("--config", required=True, help="rl-zoo3 style YAML file (one entry per env id)")
     parser.add_argument("--env", required=True, help="environment id, the entry to read from --config")
     parser.add_argument("--out", required=True, help="run folder; must not exist unless --resume")
@@ -94,6 +110,7 @@ def _versions() -> dict[str, str]:
 
 def _new_record(args: argparse.Namespace, seed: int) -> dict[str, Any]:
     return {
+        "algo": args.algo or "td3",
         "env": args.env,
         "config_file": str(args.config),
         "seed": seed,
@@ -124,10 +141,13 @@ def latest_checkpoint(folder: Path) -> tuple[int, Path] | None:
 
 
 def save_checkpoint(model, folder: Path) -> None:
-    """Save the model and its replay buffer as ``model_<steps>_steps``; drop older replay buffers."""
+    """Save the model and (off-policy) its replay buffer as ``model_<steps>_steps``; drop older
+    replay buffers."""
     folder.mkdir(parents=True, exist_ok=True)
     steps = model.num_timesteps
     model.save(folder / f"model_{steps}_steps.zip")
+    if getattr(model, "replay_buffer", None) is None:  # on-policy: nothing to carry over
+        return
     newest = folder / f"model_replay_buffer_{steps}_steps.pkl"
     model.save_replay_buffer(newest)
     _drop_old_buffers(folder, keep=newest)
@@ -194,47 +214,122 @@ def _make_env(env_id: str, n_envs: int, seed: int, env_kwargs: dict[str, Any]):
         raise UserError(f"env_kwargs: {error}") from error
 
 
+def _resume_entry(args: argparse.Namespace, out: Path) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The entry and the run record of the run in ``out`` (``--resume``); sets ``args.algo`` to the run's."""
+    config_path = out / "config.yml"
+    if not config_path.is_file():
+        raise UserError(f"--resume: {str(out)!r} holds no run (no config.yml)")
+    entry = yaml.safe_load(config_path.read_text())
+    record_path = out / "run.json"
+    if record_path.is_file():
+        record = json.loads(record_path.read_text())
+    else:  # a run killed before it wrote its record: start one, say so
+        print(f"sb3-graph train: {record_path} is missing; recording seed {args.seed}", file=sys.stderr)
+        record = _new_record(args, args.seed)
+    recorded = record.get("algo", "td3")  # runs recorded before --algo were TD3 runs
+    if args.algo is not None and args.algo != recorded:
+        raise UserError(f"--algo: the run in {str(out)!r} is a {recorded} run, got --algo {args.algo}")
+    args.algo = recorded
+    if args.n_timesteps is not None:  # extend (or shorten) a run; recorded in config.yml
+        entry["n_timesteps"] = args.n_timesteps
+        config_path.write_text(yaml.safe_dump(entry, sort_keys=False))
+    return entry, record
+
+
+def _new_entry(args: argparse.Namespace, out: Path) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The entry of ``--config`` with the command line's overrides, and a fresh run record."""
+    from sb3_graph.experiment import ExperimentError, read_experiment
+
+    if out.exists() and any(out.iterdir()):
+        raise UserError(f"--out: {str(out)!r} already holds files; choose a new folder or pass --resume")
+    try:
+        entry = read_experiment(args.config, args.env)
+    except ExperimentError as error:
+        raise UserError(str(error)) from error
+    entry.update(parse_overrides(args.hyperparams))
+    if args.n_timesteps is not None:
+        entry["n_timesteps"] = args.n_timesteps
+    if args.env_kwargs:
+        entry["env_kwargs"] = {**(entry.get("env_kwargs") or {}), **args.env_kwargs}
+    args.algo = args.algo or "td3"
+    return entry, _new_record(args, args.seed)
+
+
+def _build_model(args, entry, algo_kwargs, train_env, out, seed, tensorboard_log):
+    """The model of a checkpoint of the run (with its replay buffer), or a new one; and the
+    checkpoint's step count (``None`` for a new model)."""
+    algorithm = getattr(importlib.import_module("sb3_graph"), ALGORITHMS[args.algo])
+    checkpoint = latest_checkpoint(out) if args.resume else None
+    if checkpoint is not None:
+        steps, path = checkpoint
+        model = algorithm.load(path, env=train_env, device=args.device, tensorboard_log=tensorboard_log)
+        buffer_path = out / "checkpoints" / f"model_replay_buffer_{steps}_steps.pkl"
+        if buffer_path.is_file() and getattr(model, "replay_buffer", None) is not None:
+            model.load_replay_buffer(buffer_path)
+        return model, steps
+    if args.resume:
+        print(f"sb3-graph train: no checkpoint in {out}, starting the run again", file=sys.stderr)
+    policy = entry.get("policy", "GraphPolicy")
+    if isinstance(policy, str) and "." in policy:
+        from sb3_graph.experiment import resolve_object
+
+        policy = resolve_object(policy, "policy")
+    try:
+        model = algorithm(
+            policy,
+            train_env,
+            seed=seed,
+            device=args.device,
+            verbose=args.verbose,
+            tensorboard_log=tensorboard_log,
+            **algo_kwargs,
+        )
+    except (TypeError, ValueError) as error:
+        raise UserError(f"hyperparameters of {args.env!r} for {args.algo}: {error}") from error
+    if args.init_weights:
+        _load_weights(model, args.init_weights)
+    return model, None
+
+
+def _learn(args, model, callbacks, remaining: int, resumed: bool, record: dict[str, Any], out: Path) -> bool:
+    """Train for ``remaining`` steps; always leave a checkpoint and the updated record. True when
+    interrupted (Ctrl-C or SIGTERM)."""
+    _interrupt_on_sigterm()
+    start = time.time()
+    interrupted = False
+    try:
+        if remaining > 0:
+            model.learn(
+                remaining,
+                callback=callbacks,
+                reset_num_timesteps=not resumed,
+                progress_bar=not args.no_progress,
+                tb_log_name=ALGORITHMS[args.algo],
+            )
+    except KeyboardInterrupt:
+        interrupted = True
+    finally:
+        save_checkpoint(model, out / "checkpoints")
+        elapsed = time.time() - start
+        record["wall_time_s"] = record.get("wall_time_s", 0.0) + elapsed
+        record["num_timesteps"] = int(model.num_timesteps)
+        record["sessions"].append({"started": start, "wall_time_s": elapsed, "steps_until": int(model.num_timesteps)})
+    return interrupted
+
+
 def run(args: argparse.Namespace) -> int:
     import torch as th
     from stable_baselines3.common.callbacks import CallbackList, EvalCallback
 
-    from sb3_graph.experiment import ExperimentError, build_algorithm_kwargs, build_callbacks, read_experiment
-    from sb3_graph.td3 import TD3
+    from sb3_graph.experiment import ExperimentError, build_algorithm_kwargs, build_callbacks
 
     for flag in ("eval_freq", "eval_episodes", "checkpoint_freq", "threads"):
         if getattr(args, flag) < 1:
             raise UserError(f"--{flag.replace('_', '-')} must be at least 1, got {getattr(args, flag)}")
     th.set_num_threads(args.threads)
     out = Path(args.out)
-    config_path = out / "config.yml"
-    if args.resume:
-        if not config_path.is_file():
-            raise UserError(f"--resume: {str(out)!r} holds no run (no config.yml)")
-        entry = yaml.safe_load(config_path.read_text())
-        record_path = out / "run.json"
-        if record_path.is_file():
-            record = json.loads(record_path.read_text())
-        else:  # a run killed before it wrote its record: start one, say so
-            print(f"sb3-graph train: {record_path} is missing; recording seed {args.seed}", file=sys.stderr)
-            record = _new_record(args, args.seed)
-        seed = record["seed"]
-        if args.n_timesteps is not None:  # extend (or shorten) a run; recorded in config.yml
-            entry["n_timesteps"] = args.n_timesteps
-            config_path.write_text(yaml.safe_dump(entry, sort_keys=False))
-    else:
-        if out.exists() and any(out.iterdir()):
-            raise UserError(f"--out: {str(out)!r} already holds files; choose a new folder or pass --resume")
-        try:
-            entry = read_experiment(args.config, args.env)
-        except ExperimentError as error:
-            raise UserError(str(error)) from error
-        entry.update(parse_overrides(args.hyperparams))
-        if args.n_timesteps is not None:
-            entry["n_timesteps"] = args.n_timesteps
-        if args.env_kwargs:
-            entry["env_kwargs"] = {**(entry.get("env_kwargs") or {}), **args.env_kwargs}
-        seed = args.seed
-        record = _new_record(args, seed)
+    entry, record = _resume_entry(args, out) if args.resume else _new_entry(args, out)
+    seed = record["seed"] if args.resume else args.seed
 
     _import_packages(args.gym_packages)
     n_timesteps = int(float(entry["n_timesteps"]))
@@ -251,40 +346,12 @@ def run(args: argparse.Namespace) -> int:
 
     out.mkdir(parents=True, exist_ok=True)
     if not args.resume:
-        config_path.write_text(yaml.safe_dump(entry, sort_keys=False))
+        (out / "config.yml").write_text(yaml.safe_dump(entry, sort_keys=False))
     (out / "run.json").write_text(json.dumps(record, indent=2))
     tensorboard_log = str(out / "tb") if importlib.util.find_spec("tensorboard") else None
-
-    checkpoint = latest_checkpoint(out) if args.resume else None
-    if checkpoint is not None:
-        steps, path = checkpoint
-        model = TD3.load(path, env=train_env, device=args.device, tensorboard_log=tensorboard_log)
-        buffer_path = out / "checkpoints" / f"model_replay_buffer_{steps}_steps.pkl"
-        if buffer_path.is_file():
-            model.load_replay_buffer(buffer_path)
-    else:
-        if args.resume:
-            print(f"sb3-graph train: no checkpoint in {out}, starting the run again", file=sys.stderr)
-        policy = entry.get("policy", "GraphPolicy")
-        if isinstance(policy, str) and "." in policy:
-            from sb3_graph.experiment import resolve_object
-
-            policy = resolve_object(policy, "policy")
-        try:
-            model = TD3(
-                policy,
-                train_env,
-                seed=seed,
-                device=args.device,
-                verbose=args.verbose,
-                tensorboard_log=tensorboard_log,
-                **algo_kwargs,
-            )
-        except (TypeError, ValueError) as error:
-            raise UserError(f"hyperparameters of {args.env!r}: {error}") from error
-        if args.init_weights:
-            _load_weights(model, args.init_weights)
-            record["init_weights"] = str(args.init_weights)
+    model, checkpoint_steps = _build_model(args, entry, algo_kwargs, train_env, out, seed, tensorboard_log)
+    if args.init_weights and checkpoint_steps is None:
+        record["init_weights"] = str(args.init_weights)
 
     eval_callback = EvalCallback(
         eval_env,
@@ -299,29 +366,11 @@ def run(args: argparse.Namespace) -> int:
     eval_callback.best_mean_reward = record.get("best_mean_reward", -np.inf)
     checkpoint_callback = _make_checkpoint_callback(args.checkpoint_freq, out / "checkpoints")
     callbacks = CallbackList([*user_callbacks, eval_callback, checkpoint_callback])
-
-    remaining = n_timesteps - model.num_timesteps
-    _interrupt_on_sigterm()
-    start = time.time()
-    interrupted = False
     try:
-        if remaining > 0:
-            model.learn(
-                remaining,
-                callback=callbacks,
-                reset_num_timesteps=checkpoint is None,
-                progress_bar=not args.no_progress,
-                tb_log_name="TD3",
-            )
-    except KeyboardInterrupt:
-        interrupted = True
+        remaining = n_timesteps - model.num_timesteps
+        interrupted = _learn(args, model, callbacks, remaining, checkpoint_steps is not None, record, out)
     finally:
-        save_checkpoint(model, out / "checkpoints")
-        elapsed = time.time() - start
-        record["wall_time_s"] = record.get("wall_time_s", 0.0) + elapsed
-        record["num_timesteps"] = int(model.num_timesteps)
         record["best_mean_reward"] = float(eval_callback.best_mean_reward)
-        record["sessions"].append({"started": start, "wall_time_s": elapsed, "steps_until": int(model.num_timesteps)})
         (out / "run.json").write_text(json.dumps(record, indent=2))
         train_env.close()
         eval_env.close()

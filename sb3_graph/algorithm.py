@@ -1,0 +1,139 @@
+"""What the ``sb3_graph`` algorithm aliases (``sb3_graph.TD3``, ``SAC``, ``PPO``...) add to SB3's classes.
+
+- Graph buffers by default: :class:`~sb3_graph.GraphReplayBuffer` (off-policy, with the
+  algorithm's ``n_steps`` for n-step returns) or :class:`~sb3_graph.GraphRolloutBuffer`
+  (on-policy) when the observation space is a :class:`~sb3_graph.GraphSpace` and no buffer class
+  is given.
+- A ``VecNormalize`` that normalizes graph observations is refused at construction and at
+  ``set_env`` (:func:`check_vec_normalize`), not deep inside training.
+- For the maximum-entropy algorithms (SAC, TQC, CrossQ), an entropy target that scales with the
+  number of real vertices (:class:`VertexEntropyMixin`).
+
+Training itself is SB3's (or sb3-contrib's) own ``train``.
+"""
+
+from __future__ import annotations
+
+import inspect
+from typing import Any
+
+import numpy as np
+from gymnasium import spaces
+from stable_baselines3.common.vec_env import VecEnv, VecNormalize
+
+from sb3_graph.spaces import EDGE_ATTR, GRAPH_KEYS, GraphSpace
+
+
+def is_graph_space(space: spaces.Space) -> bool:
+    """True for a :class:`~sb3_graph.GraphSpace` or a ``Dict`` with its keys."""
+    keys = set(getattr(space, "spaces", {}) or {})
+    return isinstance(space, spaces.Dict) and keys in (set(GRAPH_KEYS), {*GRAPH_KEYS, EDGE_ATTR})
+
+
+def check_vec_normalize(env: VecEnv | None, observation_space: spaces.Space) -> None:
+    """Refuse a ``VecNormalize`` that normalizes any entry of a graph observation.
+
+    VecNormalize keeps one running mean per array *slot*: it would turn vertex ids and masks into
+    fractions, and scale a vertex's features by the statistics of whatever slot it sits in (so the
+    same vehicle would look different in slot 0 and slot 5). Normalize the vertex features inside
+    the environment instead; ``VecNormalize(norm_obs=False, norm_reward=True)`` is fine.
+
+    :param env: the algorithm's ``VecNormalize`` wrapper (or ``None``)
+    :param observation_space: the observation space
+    :raises ValueError: when graph entries would be normalized
+    """
+    if not isinstance(env, VecNormalize) or not env.norm_obs or not is_graph_space(observation_space):
+        return
+    keys = env.norm_obs_keys if env.norm_obs_keys is not None else list(observation_space.spaces)
+    normalized = sorted(set(keys) & set(observation_space.spaces))
+    if normalized:
+        raise ValueError(
+            f"VecNormalize(norm_obs=True) would normalize the graph observation entries {normalized}: "
+            "vertex ids and masks would stop being integers, and each vertex would be scaled by the "
+            "statistics of its array slot. Use VecNormalize(norm_obs=False) (reward normalization is "
+            "fine) and scale the vertex features in the environment."
+        )
+
+
+class GraphAlgorithmMixin:
+    """Graph defaults for an SB3 algorithm; put it before the SB3 class in the bases.
+
+    The subclass names its graph buffer in ``graph_buffer_class`` and the constructor argument
+    that selects a buffer in ``buffer_class_attribute``.
+    """
+
+    graph_buffer_class: type | None = None
+    buffer_class_attribute = "replay_buffer_class"
+
+    def _setup_model(self) -> None:
+        check_vec_normalize(self._vec_normalize_env, self.observation_space)  # type: ignore[attr-defined]
+        attribute = self.buffer_class_attribute
+        if getattr(self, attribute, None) is None and isinstance(self.observation_space, GraphSpace):  # type: ignore[attr-defined]
+            setattr(self, attribute, self.graph_buffer_class)
+            if attribute == "replay_buffer_class" and self.n_steps > 1:  # type: ignore[attr-defined]
+                # n-step returns: the graph buffer computes them as SB3's NStepReplayBuffer does.
+                self.replay_buffer_kwargs = {  # type: ignore[attr-defined]
+                    **self.replay_buffer_kwargs,  # type: ignore[attr-defined]
+                    "n_steps": self.n_steps,  # type: ignore[attr-defined]
+                    "gamma": self.gamma,  # type: ignore[attr-defined]
+                }
+        if attribute != "replay_buffer_class" or self.n_steps == 1:  # type: ignore[attr-defined]
+            super()._setup_model()  # type: ignore[misc]
+            return
+        # SB3 warns that n_steps is ignored whenever a buffer class is set; here the buffer's own
+        # n_steps is the algorithm's, so the warning would be wrong. Otherwise SB3's warning stands.
+        n_steps, takes_it = self.n_steps, self.replay_buffer_kwargs.get("n_steps") == self.n_steps  # type: ignore[attr-defined]
+        if takes_it:
+            self.n_steps = 1
+        try:
+            super()._setup_model()  # type: ignore[misc]
+        finally:
+            self.n_steps = n_steps
+
+    def set_env(self, env: Any, force_reset: bool = True) -> None:
+        super().set_env(env, force_reset)  # type: ignore[misc]
+        check_vec_normalize(self._vec_normalize_env, self.observation_space)  # type: ignore[attr-defined]
+
+
+class VertexEntropyMixin:
+    """Entropy target per real vertex for SAC, TQC and CrossQ with a per-vertex Gaussian policy.
+
+    The graph actors' log-probability of a graph's action is the *sum* over its real vertices, so
+    its entropy grows with the vertex count. SB3's ``target_entropy="auto"`` is
+    ``-dim(A) = -max_nodes`` for every graph, which asks a small graph for much less entropy per
+    vertex than a large one. With ``target_entropy="auto"`` these aliases instead use
+    ``-1`` per real vertex: the target of graph ``b`` is ``-n_b``.
+
+    The entropy coefficient's loss is linear in the target,
+    ``-(log_alpha * (log_prob_b + target_b)).mean()``, so a per-graph target ``-n_b`` gives the same
+    gradient as the scalar target ``-mean_b(n_b)`` of the sampled batch. The actor records that mean
+    in ``action_log_prob`` (``last_mean_vertices``) and :attr:`target_entropy` returns
+    ``vertex_target_entropy * last_mean_vertices`` where the training loop reads it, right after
+    the actor's call on the batch's observations; SB3's ``train`` runs unchanged.
+
+    A number given as ``target_entropy`` keeps SB3's meaning (one target for every graph).
+    Stock ``stable_baselines3.SAC(GraphSACPolicy, env)`` uses ``-max_nodes``.
+    """
+
+    vertex_target_entropy: float | None = None
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        arguments = inspect.signature(super().__init__).bind_partial(*args, **kwargs).arguments
+        target = arguments.get("target_entropy", "auto")
+        self.vertex_target_entropy = -1.0 if isinstance(target, str) and target == "auto" else None
+        super().__init__(*args, **kwargs)  # type: ignore[call-arg]
+
+    @property
+    def target_entropy(self) -> Any:
+        stored = self.__dict__.get("_target_entropy", "auto")
+        if self.vertex_target_entropy is not None and isinstance(stored, (float, np.floating)):
+            actor = self.__dict__.get("actor")
+            count = getattr(actor, "last_mean_vertices", None)
+            if count is not None:
+                actor.last_mean_vertices = None  # one read per recorded batch
+                return float(self.vertex_target_entropy * count)
+        return stored
+
+    @target_entropy.setter
+    def target_entropy(self, value: Any) -> None:
+        self.__dict__["_target_entropy"] = value
