@@ -119,6 +119,7 @@ def test_rl_zoo3_runs_the_same_experiment_file(tmp_path):
         sys.executable, "-m", "rl_zoo3.train", "--algo", "td3", "--env", ENV_ID, "--gym-packages", "envs",
         "-conf", str(CONFIG), "-n", "120", "-params", "learning_starts:64", "batch_size:16", "buffer_size:1000",
         "--eval-freq", "-1", "-f", str(tmp_path), "--seed", "1", "--env-kwargs", "config:{'duration':8.0}",
+        "--num-threads", "1",
     ]
     result = subprocess.run(command, capture_output=True, text=True, cwd=ROOT, timeout=300)
     assert result.returncode == 0, result.stderr[-2000:]
@@ -196,6 +197,7 @@ def test_rl_zoo3_runs_the_other_experiment_files(tmp_path, algo):
         sys.executable, "-m", "rl_zoo3.train", "--algo", algo, "--env", ENV_ID, "--gym-packages", "envs",
         "-conf", str(ROOT / "zoo_configs" / f"{algo}.yml"), "-n", "128", "-params", *params,
         "--eval-freq", "-1", "-f", str(tmp_path), "--seed", "1", "--env-kwargs", "config:{'duration':8.0}",
+        "--num-threads", "1",
     ]
     result = subprocess.run(command, capture_output=True, text=True, cwd=ROOT, timeout=300)
     assert result.returncode == 0, result.stderr[-2000:]
