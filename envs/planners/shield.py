@@ -246,7 +246,10 @@ class Shield(Planner):
     # ------------------------------------------------------------------ the fallback
     def committed(self, plan: _Plan, arc: np.ndarray, speed: np.ndarray, a_max: float) -> np.ndarray:
         """``(n,)`` bool: the vehicle can no longer stop before its first zone, or has cleared them all."""
-        cannot_stop = arc + speed**2 / (2 * a_max) + _STOP_SLACK > plan.hull_start
+        # A standing vehicle outside the zones can always wait (the slack is for moving ones only).
+        cannot_stop = (arc > plan.hull_start) | (
+            (speed > _STANDING) & (arc + speed**2 / (2 * a_max) + _STOP_SLACK > plan.hull_start)
+        )
         return cannot_stop | (arc > plan.hull_end)
 
     def _fallback(self, scene: Scene, plan: _Plan, arc: np.ndarray, speed: np.ndarray) -> np.ndarray:
