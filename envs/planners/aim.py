@@ -145,24 +145,33 @@ class AIMPlanner(Planner):
     def reset(self, seed: int | None = None) -> None:
         self._ids = np.zeros(0, np.int64)
         self._keys = np.zeros(0)
+        self._committed_at = np.zeros(0)
 
     # ------------------------------------------------------------------ order
-    def arrival_keys(self, scene: Scene, earliest: np.ndarray) -> np.ndarray:
-        """FIFO keys: absolute earliest arrival at the line when first seen, never before the leader's.
+    def arrival_keys(self, scene: Scene, earliest: np.ndarray, committed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """FIFO keys and commitment times, remembered per vehicle id from step to step.
 
         :param scene: the vehicles now
         :param earliest: ``(n,)`` earliest arrival from now [s]
-        :return: ``(n,)`` keys (also remembered for the next steps)
+        :param committed: ``(n,)`` bool: the vehicle holds its reservation now
+        :return: ``(n,)`` keys: the absolute earliest arrival at the line when first seen, never
+            before the leader's; ``(n,)`` the time each vehicle first held its reservation
+            (``inf`` while it does not): a vehicle that commits later never goes before one that
+            committed earlier
         """
         ids = scene.vehicle_id
         keys = scene.time + np.asarray(earliest, float)
+        since = np.full(len(ids), np.inf)
         if self._ids.size:
             pos = np.minimum(np.searchsorted(self._ids, ids), self._ids.size - 1)
-            keys = np.where(self._ids[pos] == ids, self._keys[pos], keys)
+            known = self._ids[pos] == ids
+            keys = np.where(known, self._keys[pos], keys)
+            since = np.where(known, self._committed_at[pos], since)
         keys = leader_chain_max(keys, scene.leader, 1e-3)
+        since = np.where(committed & ~np.isfinite(since), scene.time, since)
         order = np.argsort(ids)
-        self._ids, self._keys = ids[order], keys[order]
-        return keys
+        self._ids, self._keys, self._committed_at = ids[order], keys[order], since[order]
+        return keys, since
 
     # ------------------------------------------------------------------ planning
     def candidates(self, scene: Scene) -> dict[str, np.ndarray]:
@@ -253,10 +262,10 @@ class AIMPlanner(Planner):
         last = np.where(zone[:, None, :], leave, -np.inf).max(axis=2)
         score = np.where(np.isfinite(last), last, arrival) + np.where(kind == 2, p.stop_penalty, 0.0)[None, :]
 
-        # Order: committed first, then FIFO by the remembered arrival keys.
-        keys = self.arrival_keys(scene, cand["earliest"])
+        # Order: committed first, in the order they committed, then FIFO by the remembered arrival keys.
+        keys, since = self.arrival_keys(scene, cand["earliest"], committed)
         order = np.empty(n, np.int64)
-        order[np.lexsort((scene.vehicle_id, keys, ~committed))] = np.arange(n)
+        order[np.lexsort((scene.vehicle_id, keys, since))] = np.arange(n)
         pair = lay.conflicts[route[:, None], route[None, :]] & zone[:, route] & zone[:, route].T
         pair &= order[None, :] < order[:, None]  # (i, j): j reserves before i
         np.fill_diagonal(pair, False)
