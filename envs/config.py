@@ -2,14 +2,19 @@
 
 Every key of the configuration has a rule: its type and the values it allows. An unknown key, a
 wrong type or an impossible value raises a ``ValueError`` that names the key and what is allowed.
+NumPy numbers count as numbers (and are stored as Python ones); sizes have upper bounds, so that a
+typo such as ``max_vehicles=10**9`` fails at once instead of asking for gigabytes later.
 """
 
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
+
+import numpy as np
 
 from envs.layouts import LAYOUT_NAMES
 from envs.rewards import REWARD_TERMS
@@ -18,14 +23,23 @@ from envs.scene_graph import EDGE_FEATURES
 # What a collision does: "terminate" ends the episode (training, as in the paper); "remove" takes
 # the vehicles involved out of the scene and goes on (evaluation: collision rate over a whole run).
 COLLISION_HANDLING = ("terminate", "remove")
+# Upper bounds of the sizes (vertices, edges, simulation sub-steps): far above any real scene.
+MAX_VEHICLES = 1024
+MAX_EDGES = 1 << 18
+MAX_SIMULATION_FREQUENCY = 1000
 
 
 def _is_int(x: Any) -> bool:
-    return isinstance(x, int) and not isinstance(x, bool)
+    return isinstance(x, numbers.Integral) and not isinstance(x, (bool, np.bool_))
 
 
 def _is_number(x: Any) -> bool:
-    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+    if not isinstance(x, numbers.Real) or isinstance(x, (bool, np.bool_)):
+        return False
+    try:
+        return math.isfinite(x)
+    except OverflowError:  # an int beyond float range (JSON integers have no size limit)
+        return False
 
 
 @dataclass(frozen=True)
@@ -40,8 +54,10 @@ class Rule:
     allowed: str
 
 
-def _int(minimum: int) -> Rule:
-    return Rule(lambda x: _is_int(x) and x >= minimum, f"an integer >= {minimum}")
+def _int(minimum: int, maximum: int | None = None) -> Rule:
+    if maximum is None:
+        return Rule(lambda x: _is_int(x) and x >= minimum, f"an integer >= {minimum}")
+    return Rule(lambda x: _is_int(x) and minimum <= x <= maximum, f"an integer in [{minimum}, {maximum:,}]")
 
 
 def _positive() -> Rule:
@@ -80,11 +96,11 @@ def _weights(x: Any) -> bool:
 
 RULES: dict[str, Rule] = {
     "layout": Rule(lambda x: x in LAYOUT_NAMES, f"one of {LAYOUT_NAMES}"),
-    "simulation_frequency": _int(1),
-    "policy_frequency": _int(1),
+    "simulation_frequency": _int(1, MAX_SIMULATION_FREQUENCY),
+    "policy_frequency": _int(1, MAX_SIMULATION_FREQUENCY),
     "duration": _positive(),
-    "max_vehicles": _int(1),
-    "max_edges": _int(0),
+    "max_vehicles": _int(1, MAX_VEHICLES),
+    "max_edges": _int(0, MAX_EDGES),
     "edge_features": Rule(
         lambda x: isinstance(x, (list, tuple)) and set(x) <= set(EDGE_FEATURES) and len(set(x)) == len(x),
         f"a list of distinct names from {list(EDGE_FEATURES)}",
@@ -121,6 +137,21 @@ RULES: dict[str, Rule] = {
 }
 
 
+def _plain(value: Any) -> Any:
+    """NumPy scalars as Python numbers (the configuration is written to JSON and YAML)."""
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if isinstance(value, numbers.Integral):
+        return int(value)
+    if isinstance(value, np.floating):
+        return float(value)
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return type(value)(_plain(v) for v in value)
+    return value
+
+
 def validate_config(config: dict[str, Any], defaults: dict[str, Any]) -> dict[str, Any]:
     """Merge ``config`` into ``defaults`` and check the result.
 
@@ -141,6 +172,7 @@ def validate_config(config: dict[str, Any], defaults: dict[str, Any]) -> dict[st
         rule = RULES.get(key)
         if rule is not None and not rule.check(value):
             raise ValueError(f"config key {key!r} must be {rule.allowed}, got {value!r}")
+        merged[key] = _plain(value)
     if merged["simulation_frequency"] % merged["policy_frequency"]:
         raise ValueError(
             f"config key 'simulation_frequency' must be a multiple of 'policy_frequency', got "

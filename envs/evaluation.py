@@ -47,6 +47,7 @@ class Job:
     :param duration: simulated seconds per run
     :param seed: base seed
     :param env_kwargs: keyword arguments of ``gym.make``
+    :param trust_files: load a model ``.zip`` with SB3's full ``load`` (``--trust-planner-files``)
     """
 
     planner: str
@@ -57,13 +58,14 @@ class Job:
     duration: float
     seed: int
     env_kwargs: dict[str, Any] = field(default_factory=dict)
+    trust_files: bool = False
 
 
 # Per-process caches: a worker runs many jobs, build its envs and planners (model loads) once.
 _ENVS: dict[tuple[str, str], Any] = {}
 # What the harness's environments do on a collision (see the module docstring).
 EVALUATION_CONFIG = {"collision_handling": "remove"}
-_PLANNERS: dict[str, Any] = {}
+_PLANNERS: dict[tuple[str, bool], Any] = {}
 
 
 def _worker_init() -> None:
@@ -103,12 +105,12 @@ def _env(env_id: str, env_kwargs: dict[str, Any]):
     return _ENVS[key]
 
 
-def _planner(spec: str):
+def _planner(spec: str, trust_files: bool = False):
     from envs.planners import make_planner
 
-    if spec not in _PLANNERS:
-        _PLANNERS[spec] = make_planner(spec)
-    return _PLANNERS[spec]
+    if (spec, trust_files) not in _PLANNERS:
+        _PLANNERS[spec, trust_files] = make_planner(spec, trust_files=trust_files)
+    return _PLANNERS[spec, trust_files]
 
 
 def run_episode(
@@ -170,7 +172,7 @@ def run_job(job: Job) -> tuple[dict[str, Any], pd.DataFrame]:
 
     tic = time.perf_counter()
     env = _env(job.env_id, job.env_kwargs)
-    planner = _planner(job.planner)
+    planner = _planner(job.planner, job.trust_files)
     scenario = Scenario.load(job.scenario)
     vehicles, facts = run_episode(env, planner, scenario, job.duration, seed=job.seed + job.index)
     duration = facts["duration"] if facts["duration"] > 0 else job.duration
@@ -247,8 +249,17 @@ def layout_of(env_id: str, env_kwargs: dict[str, Any] | None = None) -> str:
     :param env_kwargs: keyword arguments of ``gym.make``
     :return: e.g. ``"4way"``
     """
-    env = _env(env_id, dict(env_kwargs or {}))
-    return str(env.unwrapped.config["layout"])
+    return str(env_config(env_id, env_kwargs)["layout"])
+
+
+def env_config(env_id: str, env_kwargs: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The resolved configuration of the harness's environment (``max_vehicles``, ``layout`` ...).
+
+    :param env_id: gymnasium id
+    :param env_kwargs: keyword arguments of ``gym.make``
+    :return: a copy of ``env.unwrapped.config``
+    """
+    return dict(_env(env_id, dict(env_kwargs or {})).unwrapped.config)
 
 
 def find_scenarios(folder: str | Path) -> list[Path]:
@@ -293,6 +304,7 @@ def evaluate(
     jobs: int = 1,
     env_kwargs: dict[str, Any] | None = None,
     progress: bool = True,
+    trust_planner_files: bool = False,
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
     """Run every planner on every scenario.
 
@@ -304,13 +316,15 @@ def evaluate(
     :param jobs: worker processes (1: run in this process)
     :param env_kwargs: keyword arguments of ``gym.make``
     :param progress: show a progress bar
+    :param trust_planner_files: load model ``.zip`` files with SB3's full ``load`` (runs their pickles)
     :return: ``(runs, vehicles)``: one row per planner and run, one row per vehicle and run;
         sorted by planner (given order) and scenario, whatever order the workers finished in
     """
     if jobs < 1:
         raise ValueError(f"jobs must be at least 1, got {jobs}")
     work = [
-        Job(word, name, str(path), i, env_id, float(duration), int(seed), dict(env_kwargs or {}))
+        Job(word, name, str(path), i, env_id, float(duration), int(seed), dict(env_kwargs or {}),
+            trust_planner_files)  # fmt: skip
         for word, name in planners
         for i, path in enumerate(scenarios)
     ]

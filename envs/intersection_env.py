@@ -261,6 +261,9 @@ class CoopIntersectionEnv(AbstractEnv):
         action = np.asarray(action, dtype=np.float64).reshape(-1)
         if action.shape[0] != self.action_space.shape[0]:
             raise ValueError(f"action must have shape {self.action_space.shape}, got {np.shape(action)}")
+        if not np.isfinite(action[:n]).all():
+            slot = int(np.flatnonzero(~np.isfinite(action[:n]))[0])
+            raise ValueError(f"action[{slot}] is {action[slot]} (vehicle slot {slot}): actions must be finite numbers")
         acc = np.clip(action[:n], -1.0, 1.0) * cfg["max_acceleration"]
         remove = cfg["collision_handling"] == "remove"
         events = sim.step(acc, remove_collided=remove)

@@ -172,7 +172,7 @@ class Scenario:
         if not isinstance(data["layout"], str):
             raise ValueError(f"{source}: field 'layout' must be a string, got {data['layout']!r}")
         duration = data["duration"]
-        if isinstance(duration, bool) or not isinstance(duration, (int, float)):
+        if isinstance(duration, bool) or not isinstance(duration, (int, float)) or not _fits_float(duration):
             raise ValueError(f"{source}: field 'duration' must be a number, got {duration!r}")
         seed = data.get("seed")
         if seed is not None and (isinstance(seed, bool) or not isinstance(seed, int)):
@@ -192,13 +192,13 @@ class Scenario:
                 raise ValueError(
                     f"{source}: vehicles[{i}] has unknown fields {sorted(unknown)}; allowed: {VEHICLE_FIELDS}"
                 )
-            if isinstance(v["id"], bool) or not isinstance(v["id"], int):
-                raise ValueError(f"{source}: vehicles[{i}].id must be an integer, got {v['id']!r}")
+            if isinstance(v["id"], bool) or not isinstance(v["id"], int) or not -(2**63) <= v["id"] < 2**63:
+                raise ValueError(f"{source}: vehicles[{i}].id must be a 64-bit integer, got {v['id']!r}")
             if not isinstance(v["route"], str):
                 raise ValueError(f"{source}: vehicles[{i}].route must be a string, got {v['route']!r}")
             for key, default in (("time", None), ("speed", None), ("length", 5.0), ("width", 2.0)):
                 value = v.get(key, default)
-                if isinstance(value, bool) or not isinstance(value, (int, float)):
+                if isinstance(value, bool) or not isinstance(value, (int, float)) or not _fits_float(value):
                     raise ValueError(f"{source}: vehicles[{i}].{key} must be a number, got {value!r}")
                 cols[key].append(float(value))
             cols["id"].append(v["id"])
@@ -224,16 +224,29 @@ class Scenario:
         """
         path = Path(path)
         try:
-            text = path.read_text()
+            text = path.read_text(encoding="utf-8")
         except OSError as err:
             raise ValueError(f"{path}: cannot read scenario file ({err.strerror})") from None
+        except UnicodeDecodeError:
+            raise ValueError(f"{path}: not a text (UTF-8 JSON) scenario file") from None
         try:
             data = json.loads(text)
         except json.JSONDecodeError as err:
             raise ValueError(
                 f"{path}: not valid JSON ({err.msg} at line {err.lineno}, column {err.colno})"
             ) from None
+        except RecursionError:
+            raise ValueError(f"{path}: not a scenario file (JSON nested too deeply)") from None
         return cls.from_dict(data, source=str(path))
+
+
+def _fits_float(value: int | float) -> bool:
+    """An int that a float can hold (JSON allows integers of any size)."""
+    try:
+        float(value)
+    except OverflowError:
+        return False
+    return True
 
 
 def generate_scenario(

@@ -20,11 +20,19 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "tune": ("sb3_graph.tuning.commands", "tune reward weights and TD3 settings with Optuna"),
     "tune-report": ("sb3_graph.tuning.report_command", "write the report of an Optuna study"),
     "ind": ("envs.commands.ind", "replay inD recordings through the planners"),
+    "export": ("sb3_graph.commands.export", "write a model's policy as a weights-only file that cannot run code"),
 }
 
 
 class UserError(Exception):
     """A mistake in the user's input: printed as one line, no traceback, exit status 2."""
+
+
+class _Parser(argparse.ArgumentParser):
+    """``argparse`` with one-line errors (argparse itself prints the whole usage first)."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
 def _load(command: str):
@@ -33,7 +41,7 @@ def _load(command: str):
 
 def build_parser(commands: Sequence[str] | None = None) -> argparse.ArgumentParser:
     """The argument parser with a sub-parser for each command whose module is importable."""
-    parser = argparse.ArgumentParser(prog="sb3-graph", description=__doc__.splitlines()[0])
+    parser = _Parser(prog="sb3-graph", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name in commands if commands is not None else COMMANDS:
         help_text = COMMANDS[name][1]
@@ -67,4 +75,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    # `python -m sb3_graph.cli`: run the imported module's main, so that the commands' UserError
+    # (sb3_graph.cli.UserError) is the class caught there, not a copy defined in __main__.
+    from sb3_graph.cli import main as _main
+
+    sys.exit(_main())

@@ -2,28 +2,45 @@
 
 The YAML format is rl-zoo3's (one top-level entry per environment id), so the same file runs
 with ``python -m rl_zoo3.train -conf FILE`` and with ``sb3-graph train --config FILE``. Values
-that rl-zoo3 evaluates as Python (``policy_kwargs``, ``replay_buffer_class``) are evaluated
-here in a namespace holding only ``dict``, ``nn``/``th`` (torch) and ``importlib``.
+that rl-zoo3 evaluates as Python (``policy_kwargs``, ``replay_buffer_class``) are *not*
+evaluated here: :mod:`sb3_graph.safe_values` reads the subset that experiment files need
+(literals, ``dict(...)``, dotted class names inside an allow-list of packages), so an experiment
+file cannot run code through ``sb3-graph``. (rl-zoo3 itself still ``eval``s these strings: run
+files from others with ``sb3-graph train``, or read them first.)
 """
 
 from __future__ import annotations
 
-import importlib
+import math
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch as th
 import yaml
+from stable_baselines3.common.buffers import BaseBuffer
+from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.noise import NormalActionNoise, OrnsteinUhlenbeckActionNoise
+from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from stable_baselines3.common.utils import LinearSchedule
+
+from sb3_graph.safe_values import UnsafeValueError, parse_value
 
 # Keys the trainer consumes itself; all others go to the algorithm's constructor.
 TRAINER_KEYS = {"n_timesteps", "n_envs", "env_kwargs", "noise_type", "noise_std", "callback", "policy"}
 # Keys of rl-zoo3 that this trainer does not implement: refused rather than silently ignored.
 UNSUPPORTED_KEYS = {"normalize", "frame_stack", "env_wrapper", "vec_env_wrapper", "monitor_kwargs"}
 NOISE_TYPES = ("normal", "ornstein-uhlenbeck")
-_EVAL_NAMESPACE = {"__builtins__": {}, "dict": dict, "nn": th.nn, "th": th, "importlib": importlib}
+# What a class named in an entry must be, by field (and by key inside policy_kwargs).
+CLASS_BASES: dict[str, type] = {
+    "policy": BasePolicy,
+    "replay_buffer_class": BaseBuffer,
+    "callback": BaseCallback,
+    "activation_fn": th.nn.Module,
+    "optimizer_class": th.optim.Optimizer,
+    "features_extractor_class": BaseFeaturesExtractor,
+}
 
 
 class ExperimentError(ValueError):
@@ -63,29 +80,145 @@ def read_experiment(path: str | Path, env_id: str) -> dict[str, Any]:
 
 
 def resolve_object(value: Any, field: str) -> Any:
-    """Turn an rl-zoo3 string into an object: a dotted class path or a Python expression."""
+    """Turn an rl-zoo3 string into an object without evaluating it (see :mod:`sb3_graph.safe_values`).
+
+    :param value: a dotted class name, a ``dict(...)``/literal expression, or any non-string (kept)
+    :param field: the entry's field; a class named for a field of :data:`CLASS_BASES` (also
+        inside ``policy_kwargs``) must subclass that field's base
+    :return: the value
+    :raises ExperimentError: naming the field, for anything outside the safe subset
+    """
     if not isinstance(value, str):
         return value
-    if value.replace(".", "").replace("_", "").isalnum() and "." in value:
-        module_name, _, attribute = value.rpartition(".")
-        try:
-            return getattr(importlib.import_module(module_name), attribute)
-        except (ImportError, AttributeError) as error:
-            raise ExperimentError(f"{field}: cannot import {value!r}: {error}") from error
     try:
-        return eval(value, dict(_EVAL_NAMESPACE))  # the rl-zoo3 convention for these fields
-    except Exception as error:  # noqa: BLE001 - any failure is the user's expression
-        raise ExperimentError(f"{field}: cannot evaluate {value!r}: {error}") from error
+        result = parse_value(value, field)
+    except UnsafeValueError as error:
+        raise ExperimentError(str(error)) from None
+    _check_classes(result, field)
+    return result
+
+
+def _check_classes(value: Any, field: str) -> None:
+    checks = [(field, value)]
+    if isinstance(value, dict):
+        checks += [(f"{field}.{key}", item) for key, item in value.items() if key in CLASS_BASES]
+    for name, item in checks:
+        base = CLASS_BASES.get(name.rpartition(".")[2])
+        if base is not None and isinstance(item, type) and not issubclass(item, base):
+            raise ExperimentError(f"{name}: {item.__module__}.{item.__qualname__} is not a {base.__name__}")
+        if base is not None and name == field and not isinstance(item, type):
+            raise ExperimentError(f"{field}: expected a class name such as a dotted path, got {item!r}")
 
 
 def _schedule(value: Any, field: str) -> Any:
     """rl-zoo3 schedules (``learning_rate``, PPO's ``clip_range`` and ``clip_range_vf``):
     ``lin_<start>`` decays linearly to 0 over training."""
     if isinstance(value, str):
-        if not value.startswith("lin_"):
-            raise ExperimentError(f"{field}: expected a number or 'lin_<value>', got {value!r}")
-        return LinearSchedule(float(value[4:]), 0.0, 1.0)
+        start = _lin_start(value)
+        if start is None:
+            raise ExperimentError(f"{field}: expected a positive number or 'lin_<number>', got {value!r}")
+        return LinearSchedule(start, 0.0, 1.0)
     return value
+
+
+def _lin_start(value: str) -> float | None:
+    if not value.startswith("lin_"):
+        return None
+    try:
+        start = float(value[4:])
+    except ValueError:
+        return None
+    return start if math.isfinite(start) and start > 0 else None
+
+
+def _is_number(value: Any) -> bool:
+    if not isinstance(value, (int, float, np.number)) or isinstance(value, (bool, np.bool_)):
+        return False
+    try:
+        return math.isfinite(value)
+    except OverflowError:  # an int beyond float range (YAML and JSON integers have no size limit)
+        return False
+
+
+def _integer(minimum: int, also: tuple[int, ...] = ()) -> tuple[Any, str]:
+    def check(value: Any) -> bool:
+        return _is_number(value) and float(value).is_integer() and (value >= minimum or value in also)
+
+    extra = "".join(f" or {v}" for v in also)
+    return check, f"an integer >= {minimum}{extra}"
+
+
+def _number(low: float, high: float = math.inf, low_open: bool = False) -> tuple[Any, str]:
+    def check(value: Any) -> bool:
+        return _is_number(value) and (value > low if low_open else value >= low) and value <= high
+
+    bracket = "(" if low_open else "["
+    upper = "inf)" if math.isinf(high) else f"{high:g}]"
+    return check, f"a number in {bracket}{low:g}, {upper}"
+
+
+def _train_freq(value: Any) -> bool:
+    if isinstance(value, (list, tuple)):
+        return len(value) == 2 and _integer(1)[0](value[0]) and value[1] in ("step", "episode")
+    return _integer(1)[0](value)
+
+
+# Checked before anything is built, so that a wrong value fails at once and names its field
+# (not after training has started). Keys not listed go to the algorithm's constructor as they are.
+ENTRY_RULES: dict[str, tuple[Any, str]] = {
+    "n_timesteps": _integer(1),
+    "n_envs": _integer(1),
+    "buffer_size": _integer(1),
+    "batch_size": _integer(1),
+    "learning_starts": _integer(0),
+    "gradient_steps": _integer(1, also=(-1,)),
+    "policy_delay": _integer(1),
+    "gamma": _number(0.0, 1.0),
+    "tau": _number(0.0, 1.0),
+    "target_policy_noise": _number(0.0),
+    "target_noise_clip": _number(0.0),
+    "noise_std": _number(0.0),
+    "learning_rate": (
+        lambda v: _number(0.0, low_open=True)[0](v) or (isinstance(v, str) and _lin_start(v) is not None),
+        "a number > 0 or 'lin_<number>'",
+    ),
+    "train_freq": (_train_freq, "an integer >= 1 or [integer, 'step' or 'episode']"),
+    "env_kwargs": (lambda v: v is None or isinstance(v, dict), "a mapping (of gym.make keyword arguments)"),
+}
+
+
+def merge_env_kwargs(base: dict[str, Any], update: dict[str, Any]) -> dict[str, Any]:
+    """Merge ``gym.make`` keyword arguments one level deep: a dict value (highway-env's
+    ``config``) is updated key by key instead of replaced.
+
+    :param base: e.g. the entry's ``env_kwargs``
+    :param update: e.g. ``--env-kwargs``
+    :return: a new dictionary
+    """
+    merged = dict(base)
+    for key, value in update.items():
+        if isinstance(value, dict) and isinstance(merged.get(key), dict):
+            merged[key] = {**merged[key], **value}
+        else:
+            merged[key] = value
+    return merged
+
+
+def check_entry(entry: dict[str, Any]) -> dict[str, Any]:
+    """Check the values of :data:`ENTRY_RULES` in an entry; whole floats become ints (``!!float 2e5``).
+
+    :param entry: hyperparameters (as read, with overrides applied)
+    :return: a new dictionary
+    :raises ExperimentError: ``<key> must be <allowed>, got <value>``, for the first wrong value
+    """
+    checked = dict(entry)
+    for key, (check, allowed) in ENTRY_RULES.items():
+        if key in checked and not check(checked[key]):
+            raise ExperimentError(f"{key} must be {allowed}, got {checked[key]!r}")
+        value = checked.get(key)
+        if allowed.startswith("an integer") and isinstance(value, (float, np.number)):
+            checked[key] = int(value)
+    return checked
 
 
 def build_algorithm_kwargs(entry: dict[str, Any], action_dim: int) -> dict[str, Any]:
@@ -94,7 +227,9 @@ def build_algorithm_kwargs(entry: dict[str, Any], action_dim: int) -> dict[str, 
     :param entry: hyperparameters as read by :func:`read_experiment`
     :param action_dim: size of the flat action space (for the exploration noise)
     :return: keyword arguments (``policy`` not included)
+    :raises ExperimentError: a value of :data:`ENTRY_RULES` out of range, or an unsafe expression
     """
+    entry = check_entry(entry)
     kwargs = {key: value for key, value in entry.items() if key not in TRAINER_KEYS}
     for field in ("policy_kwargs", "replay_buffer_class", "replay_buffer_kwargs"):
         if field in kwargs:
@@ -127,6 +262,10 @@ def build_callbacks(entry: dict[str, Any]) -> list:
             (name, kwargs), = spec.items()
         else:
             name, kwargs = spec, {}
+        if not isinstance(name, str):
+            raise ExperimentError(f"callback: expected a dotted class name, got {name!r}")
+        if kwargs is not None and not isinstance(kwargs, dict):
+            raise ExperimentError(f"callback {name}: keyword arguments must be a mapping, got {kwargs!r}")
         callback_class = resolve_object(name, "callback")
         try:
             callbacks.append(callback_class(**(kwargs or {})))

@@ -148,3 +148,31 @@ def test_default_planners_are_the_baselines_and_the_shipped_model():
         checked_planners(["fifo", "fifo"])
     with pytest.raises(UserError, match="reserved"):
         checked_planners(["fifo"], reserved=("FIFO",))
+
+
+def test_report_states_the_simulated_duration_of_shorter_scenario_files(tmp_path):
+    from envs.traffic import generate_scenario
+
+    folder = tmp_path / "scenarios"
+    folder.mkdir()
+    generate_scenario("4way", 4.0, 0).save(folder / "scenario_000.json")
+    out = tmp_path / "r"
+    args = ["evaluate", "--planner", "pr", "--scenario-dir", str(folder), "--out", str(out), *SMALL]
+    assert main(args) == 0  # SMALL asks for --duration 20
+    report = (out / "report.md").read_text()
+    assert "4 s (--duration 20 s; a run ends with its scenario file)" in report
+    assert pd.read_csv(out / "metrics.csv")["duration_s"].tolist() == [pytest.approx(4.0)]
+    assert not list(tmp_path.glob(".r.partial-*"))  # the staging folder became --out
+
+
+def test_shipped_safetensors_and_zip_give_the_same_report(tmp_path):
+    from envs.commands.evaluate import DEFAULT_MODEL
+
+    copy = tmp_path / "zip" / "best_model.zip"
+    copy.parent.mkdir()
+    copy.write_bytes(DEFAULT_MODEL.with_suffix(".zip").read_bytes())
+    args = ["evaluate", "--planner", str(DEFAULT_MODEL), "--planner", str(copy), "--out", str(tmp_path / "r")]
+    assert main([*args, "--scenarios", "1", "--duration", "10", "--jobs", "1", "--no-progress"]) == 0
+    runs = pd.read_csv(tmp_path / "r" / "metrics.csv").set_index("planner")
+    cols = ["vehicles", "crossed", "stopped_all", "collided"]
+    pd.testing.assert_series_equal(runs.loc["RL:coop_4way", cols], runs.loc["RL:zip", cols], check_names=False)

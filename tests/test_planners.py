@@ -244,7 +244,7 @@ def test_gnn_planner_scales_the_model_action(monkeypatch, tmp_path):
     monkeypatch.setitem(
         sys.modules, "envs.scene_graph", types.SimpleNamespace(build_observation=build_observation)
     )
-    monkeypatch.setattr(gnn, "load_model", lambda path, device="cpu": FakeModel())
+    monkeypatch.setattr(gnn, "load_model", lambda path, device="cpu", **kwargs: FakeModel())
     planner = gnn.GNNPlanner(tmp_path / "run" / "best_model.zip")
     assert planner.name == "RL:run"
     scene = make_scene(

@@ -1,27 +1,43 @@
-"""The GNN planner shipped with the package loads and acts on every layout."""
+"""The GNN planner shipped with the package loads (weights only) and acts on every layout."""
 
 import gymnasium as gym
 import numpy as np
 import pytest
+import torch as th
 import yaml
 
 import envs  # noqa: F401 - registers the environments
 from envs.commands.evaluate import DEFAULT_MODEL
 from envs.planners import make_planner
 from sb3_graph import TD3
+from sb3_graph.weights import read_weights_file
+
+SHIPPED_ZIP = DEFAULT_MODEL.with_suffix(".zip")
 
 
 def test_shipped_model_comes_with_its_run_record():
     folder = DEFAULT_MODEL.parent
-    assert DEFAULT_MODEL.is_file()
+    assert DEFAULT_MODEL.is_file() and DEFAULT_MODEL.suffix == ".safetensors"
     config = yaml.safe_load((folder / "config.yml").read_text())
     assert config["policy"] == "sb3_graph.GraphPolicy" and config["n_timesteps"] > 0
     assert (folder / "run.json").is_file() and (folder / "README.md").is_file()
+    assert "/" not in (folder / "run.json").read_text().split('"command": "')[1].split()[0]  # no machine path
+
+
+def test_shipped_weights_are_the_zip_policy():
+    """The weights-only file is `sb3-graph export` of the shipped zip: the same tensors."""
+    description, state = read_weights_file(DEFAULT_MODEL)
+    assert (description.algorithm, description.policy_class) == ("TD3", "GraphPolicy")
+    policy = TD3.load(SHIPPED_ZIP, device="cpu").policy  # our own shipped file: trusted here
+    reference = policy.state_dict()
+    assert set(state) == set(reference)
+    for key, value in reference.items():
+        assert th.equal(state[key], value), key
 
 
 @pytest.mark.parametrize("env_id", ["CoopIntersection4Way-v0", "CoopIntersection3Way-v0", "CoopIntersectionInD-v0"])
 def test_shipped_model_acts_on_every_layout(env_id):
-    model = TD3.load(DEFAULT_MODEL, device="cpu")
+    model = TD3.load(SHIPPED_ZIP, device="cpu")
     env = gym.make(env_id)
     obs, _ = env.reset(seed=0)
     planner = make_planner(str(DEFAULT_MODEL))

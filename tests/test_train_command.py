@@ -1,6 +1,7 @@
 """`sb3-graph train` and rl-zoo3 on zoo_configs/td3.yml: tiny runs that write models which load and act."""
 
 import json
+import shutil
 import signal
 import subprocess
 import sys
@@ -10,6 +11,7 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 import pytest
+import yaml
 from stable_baselines3.common.env_util import make_vec_env
 
 import envs  # noqa: F401 - registers the environments
@@ -203,3 +205,50 @@ def test_rl_zoo3_runs_the_other_experiment_files(tmp_path, algo):
     assert result.returncode == 0, result.stderr[-2000:]
     saved = list(tmp_path.glob(f"{algo}/{ENV_ID}_*/{ENV_ID}.zip"))
     assert len(saved) == 1
+def test_env_kwargs_merge_into_the_config_block(tmp_path):
+    """--env-kwargs adds to the entry's env_kwargs['config'] instead of replacing it."""
+    import argparse
+
+    from sb3_graph.commands.train import _entry_from_file
+
+    args = argparse.Namespace(config=str(CONFIG), env=ENV_ID, hyperparams=[], n_timesteps=None,
+                              env_kwargs={"config": {"max_vehicles": 16}, "render_mode": None})  # fmt: skip
+    entry = _entry_from_file(args)
+    assert entry["env_kwargs"] == {
+        "config": {"duration": 60.0, "spawn_probability": 0.05, "max_vehicles": 16}, "render_mode": None
+    }  # fmt: skip
+    assert entry["n_timesteps"] == 200000 and isinstance(entry["n_timesteps"], int)
+
+
+def test_failed_run_leaves_nothing_and_reruns_once_the_file_is_fixed(tmp_path, capsys):
+    entry = yaml.safe_load(CONFIG.read_text())[ENV_ID]
+    entry["callback"][0]["sb3_graph.callbacks.LinearScheduleCallback"]["method"] = "set_spawn_probabilty"  # typo
+    config = tmp_path / "exp.yml"
+    config.write_text(yaml.safe_dump({ENV_ID: entry}))
+    out = tmp_path / "run"
+    args = ["train", "--config", str(config), "--env", ENV_ID, "--out", str(out), "--eval-freq", "100",
+            "--eval-episodes", "1", "--n-timesteps", "20", "--no-progress", *TINY, *SHORT_EPISODES]  # fmt: skip
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert "set_spawn_probabilty" in err and "run the command again" in err and err.count("\n") == 1
+    assert not out.exists()
+    # An older failed run left a folder with its config but no checkpoint: --resume reads the file again.
+    out.mkdir()
+    (out / "config.yml").write_text(yaml.safe_dump(entry))
+    entry["callback"][0]["sb3_graph.callbacks.LinearScheduleCallback"]["method"] = "set_spawn_probability"
+    config.write_text(yaml.safe_dump({ENV_ID: entry}))
+    assert main([*args, "--resume"]) == 0, capsys.readouterr().err
+    stored = yaml.safe_load((out / "config.yml").read_text())
+    assert stored["callback"][0]["sb3_graph.callbacks.LinearScheduleCallback"]["method"] == "set_spawn_probability"
+    shutil.rmtree(out)
+    assert main(args) == 0  # the same command as the first time, now that the file is fixed
+
+
+def test_run_record_holds_no_machine_path(tmp_path, monkeypatch):
+    from sb3_graph.commands.train import portable_command, portable_path
+
+    monkeypatch.chdir(tmp_path)
+    argv = ["/home/me/.venv/bin/sb3-graph", "train", "--config", str(tmp_path / "zoo" / "td3.yml"), "--out=/srv/x"]
+    assert portable_command(argv) == "sb3-graph train --config zoo/td3.yml --out=x"
+    assert portable_path(str(Path.home() / "runs" / "a")) == "~/runs/a"
+    assert portable_path("relative/path") == "relative/path"

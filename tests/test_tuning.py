@@ -293,3 +293,17 @@ def test_best_trial_prefers_feasible_trials_then_the_safest():
     add(0.1, 0.0)
     trial, feasible = best_trial(study)
     assert (trial.number, feasible) == (2, True)  # the best flow among the feasible ones
+
+
+def test_a_study_whose_new_trials_all_failed_exits_non_zero_with_the_first_error(tmp_path, capsys):
+    path = tmp_path / "typo.yml"
+    path.write_text(yaml.safe_dump({TOY: {**TINY, "policy_kwargs": "dict(encoder_dims=8)"}}))  # typo: encoder_dims
+    db = f"sqlite:///{tmp_path}/f.db"
+    args = ["--env", TOY, "--storage", db, "--tune-algo", "--timesteps", "100", "--n-trials", "2"]
+    assert tune(path, "f", *args) == 1
+    err = capsys.readouterr().err
+    assert "all 2 new trials failed" in err and "trial 0" in err and "encoder_dims" in err
+    assert err.count("\n") == 1
+    # a study with a good trial among the new ones exits 0
+    path.write_text(yaml.safe_dump({TOY: dict(TINY)}))
+    assert tune(path, "f", *args[:-1], "1") == 0

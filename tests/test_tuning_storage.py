@@ -1,5 +1,6 @@
 """Storage URLs of the tuning command: the accepted forms, clear errors, heartbeats of killed workers."""
 
+import importlib.util
 import time
 
 import optuna
@@ -68,8 +69,31 @@ def test_sqlite_and_journal_create_their_folder_and_keep_trials(tmp_path):
 
 
 def test_unreachable_server_is_a_clear_error():
-    with pytest.raises(StorageURLError, match="cannot open storage"):
+    # Without a PostgreSQL driver (the README's `pip install -e ".[test]"` has none) the clear
+    # error is the one that asks for the driver; with one, the server cannot be reached.
+    has_driver = any(importlib.util.find_spec(name) for name in ("psycopg2", "psycopg"))
+    expected = "cannot open storage" if has_driver else "needs a driver"
+    with pytest.raises(StorageURLError, match=expected):
         make_storage("postgresql://u:p@127.0.0.1:1/db")
+
+
+def test_missing_driver_is_a_clear_error(monkeypatch):
+    import sb3_graph.tuning.storage as storage
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(
+        storage.importlib.util, "find_spec", lambda name, *a: None if name.startswith("psycopg") else real(name, *a)
+    )
+    with pytest.raises(StorageURLError, match=r'pip install "sb3-graph\[postgres\]"'):
+        make_storage("postgresql://u:p@127.0.0.1:1/db")
+
+
+def test_storage_folder_that_cannot_be_made_is_a_clear_error(tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    for url in (f"sqlite:///{blocker}/sub/s.db", f"journal://{blocker}/sub/s.log"):
+        with pytest.raises(StorageURLError, match="cannot create folder"):
+            make_storage(url)
 
 
 @pytest.mark.filterwarnings("ignore:Heartbeat of storage")  # the dead trial is made with study.ask

@@ -17,7 +17,13 @@ vehicle-steps as ``shield_interventions`` in ``summary.json``), e.g. the shield'
 The report folder receives ``scenarios/`` (the generated scenario files, reusable with
 ``--scenario-dir``), ``metrics.csv``, ``vehicles.csv``, ``summary.json``, ``report.md`` and the
 figures (see :mod:`envs.report`). An existing ``--out`` is refused, never overwritten; without
-``--out`` a fresh ``reports/synthetic-<date>-<time>`` folder is made.
+``--out`` a fresh ``reports/synthetic-<date>-<time>`` folder is made. The report is written into a
+hidden temporary folder that becomes ``--out`` only when the run succeeds, so a failed or
+interrupted run leaves nothing that blocks the rerun.
+
+Model planners (``.safetensors`` policy files or SB3 ``.zip`` files) are loaded and checked
+against the environment before any run starts, without running code from the file
+(``--trust-planner-files`` loads a ``.zip`` with SB3's full ``TD3.load``, for one's own files).
 
 A collision does not end a run: the vehicles involved are counted as collided and leave the
 scene, and the run goes on for its whole duration (``--env-kwargs '{"config":
@@ -27,18 +33,24 @@ scene, and the run goes on for its whole duration (``--env-kwargs '{"config":
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import time
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 from sb3_graph.cli import UserError
+from sb3_graph.commands.arguments import finite_float, json_object
 
 DEFAULT_ENV = "CoopIntersection4Way-v0"
-# The GNN planner shipped with the package (trained by `sb3-graph train`, see its README.md).
-DEFAULT_MODEL = Path(__file__).resolve().parents[1] / "pretrained" / "coop_4way" / "best_model.zip"
+# The GNN planner shipped with the package (trained by `sb3-graph train`, see its README.md), in
+# the weights-only format (`sb3-graph export` of best_model.zip beside it).
+DEFAULT_MODEL = Path(__file__).resolve().parents[1] / "pretrained" / "coop_4way" / "best_model.safetensors"
 DEFAULT_BASELINES = ("pr", "fifo", "aim", "signal")
+TRUST_HELP = (
+    "load model .zip files with SB3's full TD3.load, which runs the pickled code inside them: only for "
+    "files you made yourself (by default a .zip is read without unpickling)"
+)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -64,20 +76,25 @@ def add_run_arguments(parser: argparse.ArgumentParser, scenarios: int, out: str,
         action="append",
         default=None,
         metavar="PLANNER",
-        help="repeatable: 'pr' (priority rules), 'fifo', 'aim', 'signal', a saved model .zip, or a Planner class "
-        "(path/to/file.py:ClassName or package.module:ClassName); '+shield' after any of them wraps it in the "
-        "safety shield; default: pr, fifo, aim, signal and the GNN planner shipped in "
-        "envs/pretrained/coop_4way/best_model.zip, without and with the shield",
+        help="repeatable: 'pr' (priority rules), 'fifo', 'aim', 'signal', a policy file .safetensors "
+        "(sb3-graph export) or a saved model .zip, or a Planner class (path/to/file.py:ClassName or "
+        "package.module:ClassName); '+shield' after any of them wraps it in the safety shield; default: pr, fifo, "
+        "aim, signal and the GNN planner shipped in envs/pretrained/coop_4way/best_model.safetensors, without "
+        "and with the shield",
     )
     add_shield_argument(parser)
+    parser.add_argument("--trust-planner-files", action="store_true", help=TRUST_HELP)
     parser.add_argument(
         "--scenarios", type=int, default=scenarios, help=f"scenarios to generate{per} (default: {scenarios})"
     )
     parser.add_argument(
-        "--duration", type=float, default=100.0, help="simulated seconds per run (default: 100)"
+        "--duration",
+        type=finite_float,
+        default=100.0,
+        help="simulated seconds per run (default: 100; a scenario file that ends earlier ends its run)",
     )
     parser.add_argument(
-        "--seed", type=int, default=0, help="base seed of scenarios and environments (default: 0)"
+        "--seed", type=int, default=0, help="base seed of scenarios and environments, >= 0 (default: 0)"
     )
     parser.add_argument("--jobs", type=int, default=2, help="parallel worker processes (default: 2)")
     parser.add_argument(
@@ -87,7 +104,7 @@ def add_run_arguments(parser: argparse.ArgumentParser, scenarios: int, out: str,
     )
     parser.add_argument(
         "--env-kwargs",
-        type=json.loads,
+        type=json_object,
         default=None,
         help="JSON dict passed to gym.make; its 'config' defaults to collision_handling 'remove' (a crash "
         "removes the vehicles involved and the run goes on)",
@@ -97,84 +114,146 @@ def add_run_arguments(parser: argparse.ArgumentParser, scenarios: int, out: str,
 
 def _check(args: argparse.Namespace) -> list[tuple[str, str]]:
     """Validate the arguments; return the ``(planner word, report name)`` pairs."""
+    from sb3_graph.outputs import OutputError, check_destination
 
     if args.scenarios < 1:
         raise UserError(f"--scenarios must be at least 1, got {args.scenarios}")
     if not args.duration > 0:
         raise UserError(f"--duration must be positive, got {args.duration}")
+    if args.seed < 0:
+        raise UserError(f"--seed must be >= 0, got {args.seed}")
     if args.jobs < 1:
         raise UserError(f"--jobs must be at least 1, got {args.jobs}")
     if args.env_kwargs is not None and not isinstance(args.env_kwargs, dict):
         raise UserError("--env-kwargs must be a JSON object, e.g. '{\"duration\": 100}'")
     planners = checked_planners(args.planner, shield=args.shield)
-    if args.out is not None and Path(args.out).exists():
-        raise UserError(f"--out: {args.out!r} exists; choose a new folder (reports are never overwritten)")
-    import gymnasium as gym
-
-    import envs  # noqa: F401  (registers the environments)
-
-    if args.env not in gym.registry:
-        known = sorted(k for k in gym.registry if k.startswith("Coop"))
-        raise UserError(f"--env: unknown environment {args.env!r}; expected one of {known}")
+    if args.out is not None:
+        try:
+            check_destination(Path(args.out))
+        except OutputError as error:
+            raise UserError(str(error)) from None
+    check_env_id(args.env)
     if getattr(args, "scenario_dir", None) is not None and not Path(args.scenario_dir).is_dir():
         raise UserError(f"--scenario-dir: {args.scenario_dir!r} is not a folder")
     return planners
 
 
-def _out_folder(args: argparse.Namespace, prefix: str = "synthetic") -> Path:
-    """Create the report folder (default ``reports/<prefix>-<date>-<time>``); an existing one is refused."""
-    if args.out is None:
-        stamp = time.strftime("%Y%m%d-%H%M%S")
-        out = Path("reports") / f"{prefix}-{stamp}"
-        k = 1
-        while out.exists():
-            out = Path("reports") / f"{prefix}-{stamp}-{k}"
-            k += 1
-    else:
-        out = Path(args.out)
-        if out.exists():
-            raise UserError(
-                f"--out: {str(out)!r} exists; choose a new folder (reports are never overwritten)"
-            )
-    out.mkdir(parents=True)
+def check_env_id(env_id: str) -> None:
+    """Refuse an environment id that is not one of this package's intersection environments.
+
+    :raises UserError: naming ``--env`` and the accepted ids
+    """
+    import gymnasium as gym
+
+    import envs  # noqa: F401  (registers the environments)
+
+    known = sorted(k for k, spec in gym.registry.items() if str(spec.entry_point).startswith("envs."))
+    if env_id not in known:
+        what = "is not an intersection environment of this package" if env_id in gym.registry else "is unknown"
+        raise UserError(f"--env: {env_id!r} {what}; expected one of {known}")
+
+
+def checked_env(env_id: str, env_kwargs: dict[str, Any] | None) -> dict[str, Any]:
+    """The environment's resolved configuration (its ``--env-kwargs`` checked by building it).
+
+    :raises UserError: naming ``--env-kwargs``
+    """
+    from envs.evaluation import env_config
+
+    try:
+        return env_config(env_id, env_kwargs)
+    except (TypeError, ValueError) as error:
+        raise UserError(f"--env-kwargs: {error}") from None
+
+
+def load_model_planners(
+    planners: Sequence[tuple[str, str]], config: dict[str, Any], trust_files: bool = False
+) -> None:
+    """Load every model planner once, before any run: a file that cannot be loaded safely, or whose
+    graphs are smaller than the environment's scenes, is a one-line error instead of a failed run.
+
+    :param planners: ``(word, name)`` pairs
+    :param config: the environment's configuration (:func:`checked_env`)
+    :param trust_files: ``--trust-planner-files``
+    :raises UserError: naming ``--planner``, the file and the problem
+    """
+    from envs.planners import BASELINES, make_planner
+
+    for word, _ in planners:
+        if word in BASELINES:
+            continue
+        try:
+            planner = make_planner(word, trust_files=trust_files)
+            check = getattr(planner, "check_capacity", None)
+            if check is not None:
+                check(int(config["max_vehicles"]), word)
+        except ValueError as error:
+            raise UserError(f"--planner: {error}") from None
+
+
+def _destination(args: argparse.Namespace, prefix: str = "synthetic") -> Path:
+    """The report folder (not created yet): ``--out`` or a fresh ``reports/<prefix>-<date>-<time>``."""
+    if args.out is not None:
+        return Path(args.out)
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    out = Path("reports") / f"{prefix}-{stamp}"
+    k = 1
+    while out.exists():
+        out = Path("reports") / f"{prefix}-{stamp}-{k}"
+        k += 1
     return out
 
 
+def duration_text(runs, requested: float) -> str:
+    """What the runs really simulated: ``--duration``, or less where scenario files end earlier."""
+    if "duration_s" not in getattr(runs, "columns", ()) or runs.empty:
+        return f"{requested:g} s"
+    low, high = float(runs["duration_s"].min()), float(runs["duration_s"].max())
+    if abs(low - requested) < 1e-6 and abs(high - requested) < 1e-6:
+        return f"{requested:g} s"
+    span = f"{low:g} s" if abs(high - low) < 1e-6 else f"{low:g} to {high:g} s"
+    return f"{span} (--duration {requested:g} s; a run ends with its scenario file)"
+
+
 def run(args: argparse.Namespace) -> int:
-    from envs.evaluation import check_scenarios, find_scenarios, generate_scenarios, layout_of
+    from envs.evaluation import check_scenarios, find_scenarios, generate_scenarios
     from envs.report import format_number, write_report
+    from sb3_graph.outputs import OutputError, staged_folder
 
     planners = _check(args)
-    try:
-        layout = layout_of(args.env, args.env_kwargs)
-    except (TypeError, ValueError) as error:
-        raise UserError(f"--env-kwargs: {error}") from None
+    config = checked_env(args.env, args.env_kwargs)
+    layout = str(config["layout"])
     if args.scenario_dir is not None:
         try:
             scenarios = find_scenarios(args.scenario_dir)
             check_scenarios(scenarios, layout)
         except ValueError as error:
             raise UserError(f"--scenario-dir: {error}") from None
-    out = _out_folder(args)
+    load_model_planners(planners, config, args.trust_planner_files)
+    out = _destination(args)
     tic = time.perf_counter()
-    if args.scenario_dir is None:
-        scenarios = generate_scenarios(out / "scenarios", args.scenarios, args.duration, args.seed, layout)
-        source = f"generated into {out / 'scenarios'} (seed {args.seed} + index)"
-    else:
-        source = f"read from {args.scenario_dir}"
-    runs, vehicles = run_harness(args, planners, scenarios)
-    wall = time.perf_counter() - tic
-    meta = {
-        "environment": args.env,
-        "planners": ", ".join(f"{name} ({word})" for word, name in planners),
-        "scenarios": f"{len(scenarios)}, {source}",
-        "duration per run": f"{args.duration:g} s",
-        "seed": args.seed,
-        "jobs": args.jobs,
-        "wall time": f"{wall:.1f} s",
-        "python": platform.python_version(),
-    }
-    summary = write_report(out, runs, vehicles, meta)
+    try:
+        with staged_folder(out) as stage:
+            if args.scenario_dir is None:
+                scenarios = generate_scenarios(stage / "scenarios", args.scenarios, args.duration, args.seed, layout)
+                source = f"generated into {out / 'scenarios'} (seed {args.seed} + index)"
+            else:
+                source = f"read from {args.scenario_dir}"
+            runs, vehicles = run_harness(args, planners, scenarios)
+            wall = time.perf_counter() - tic
+            meta = {
+                "environment": args.env,
+                "planners": ", ".join(f"{name} ({word})" for word, name in planners),
+                "scenarios": f"{len(scenarios)}, {source}",
+                "duration per run": duration_text(runs, args.duration),
+                "seed": args.seed,
+                "jobs": args.jobs,
+                "wall time": f"{wall:.1f} s",
+                "python": platform.python_version(),
+            }
+            summary = write_report(stage, runs, vehicles, meta)
+    except OutputError as error:
+        raise UserError(str(error)) from None
     for name, s in summary.items():
         f, sr = s["flow_rate"], s["stop_ratio"]
         print(
@@ -207,6 +286,7 @@ def run_harness(args: argparse.Namespace, planners: Sequence[tuple[str, str]], s
         jobs=args.jobs,
         env_kwargs=args.env_kwargs,
         progress=not args.no_progress,
+        trust_planner_files=args.trust_planner_files,
     )
 
 

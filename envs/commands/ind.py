@@ -33,6 +33,7 @@ import pandas as pd
 
 from envs.commands.evaluate import add_shield_argument
 from sb3_graph.cli import UserError
+from sb3_graph.commands.arguments import json_object
 
 DEFAULT_ENV = "CoopIntersectionInD-v0"
 DEFAULT_LAYOUT = "inD"
@@ -59,17 +60,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="append",
         default=None,
         metavar="PLANNER",
-        help="repeatable: 'pr', 'fifo', a saved model .zip, or a Planner class (path/to/file.py:ClassName or "
-        "package.module:ClassName), '+shield' after any of them for the shielded planner (default: pr, fifo "
-        "and the shipped GNN planner without and with the shield)",
+        help="repeatable: 'pr', 'fifo', 'aim', 'signal', a policy file .safetensors or a saved model .zip, or a "
+        "Planner class (path/to/file.py:ClassName or package.module:ClassName), '+shield' after any of them for "
+        "the shielded planner (default: pr, fifo, aim, signal and the shipped GNN planner without and with the "
+        "shield)",
+    )
+    parser.add_argument(
+        "--trust-planner-files",
+        action="store_true",
+        help="load model .zip files with SB3's full TD3.load, which runs the pickled code inside them "
+        "(your own files only)",
     )
     add_shield_argument(parser)
     parser.add_argument(
         "--dataset-only", action="store_true", help="only map and measure the recorded drivers"
     )
     parser.add_argument("--env", default=DEFAULT_ENV, help=f"environment id (default: {DEFAULT_ENV})")
-    parser.add_argument("--env-kwargs", type=json.loads, default=None, help="JSON dict passed to gym.make")
-    parser.add_argument("--seed", type=int, default=0, help="base seed of the environments (default: 0)")
+    parser.add_argument("--env-kwargs", type=json_object, default=None, help="JSON dict passed to gym.make")
+    parser.add_argument("--seed", type=int, default=0, help="base seed of the environments, >= 0 (default: 0)")
     parser.add_argument("--jobs", type=int, default=2, help="parallel worker processes (default: 2)")
     parser.add_argument(
         "--out", default=None, help="report folder, must not exist (default: reports/ind-<time>)"
@@ -148,19 +156,14 @@ def _planners(args: argparse.Namespace) -> list[tuple[str, str]]:
     return checked_planners(args.planner, reserved=("inD",), shield=args.shield)
 
 
-def _out_folder(out: str | None) -> Path:
-    if out is None:
-        stamp = time.strftime("%Y%m%d-%H%M%S")
-        path, k = Path("reports") / f"ind-{stamp}", 1
-        while path.exists():
-            path, k = Path("reports") / f"ind-{stamp}-{k}", k + 1
-    else:
-        path = Path(out)
-        if path.exists():
-            raise UserError(
-                f"--out: {str(path)!r} exists; choose a new folder (reports are never overwritten)"
-            )
-    path.mkdir(parents=True)
+def _destination(out: str | None) -> Path:
+    """The report folder (not created yet): ``--out`` or a fresh ``reports/ind-<time>``."""
+    if out is not None:
+        return Path(out)
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    path, k = Path("reports") / f"ind-{stamp}", 1
+    while path.exists():
+        path, k = Path("reports") / f"ind-{stamp}-{k}", k + 1
     return path
 
 
@@ -377,31 +380,60 @@ def _mapping_section(mapped, recordings: Sequence, dataset_table: pd.DataFrame) 
 
 
 def run(args: argparse.Namespace) -> int:
-    from envs.ind.dataset_metrics import dataset_summary, stop_table
-    from envs.ind.loader import class_table
+    from sb3_graph.outputs import OutputError, check_destination, staged_folder
 
     if args.jobs < 1:
         raise UserError(f"--jobs must be at least 1, got {args.jobs}")
+    if args.seed < 0:
+        raise UserError(f"--seed must be >= 0, got {args.seed}")
     if args.env_kwargs is not None and not isinstance(args.env_kwargs, dict):
         raise UserError("--env-kwargs must be a JSON object")
-    if args.out is not None and Path(args.out).exists():
-        raise UserError(f"--out: {args.out!r} exists; choose a new folder (reports are never overwritten)")
+    if args.out is not None:
+        try:
+            check_destination(Path(args.out))
+        except OutputError as error:
+            raise UserError(str(error)) from None
     planners = [] if args.dataset_only else _planners(args)
     if planners:
-        import gymnasium as gym
+        from envs.commands.evaluate import check_env_id, checked_env, load_model_planners
 
-        import envs  # noqa: F401  (registers the environments)
-
-        if args.env not in gym.registry:
-            known = sorted(k for k in gym.registry if k.startswith("Coop"))
-            raise UserError(f"--env: unknown environment {args.env!r}; expected one of {known}")
+        check_env_id(args.env)
+        config = checked_env(args.env, args.env_kwargs)
+        if config["layout"] != DEFAULT_LAYOUT:
+            raise UserError(
+                f"--env: {args.env!r} uses layout {config['layout']!r}; the inD scenarios are written for layout "
+                f"{DEFAULT_LAYOUT!r} (CoopIntersectionInD-v0)"
+            )
+        load_model_planners(planners, config, args.trust_planner_files)
     tic = time.perf_counter()
     recordings, mapped = load_and_map(args)
     if not mapped.tracks["mapped"].any():
         raise UserError(
             "no vehicle track could be mapped; see the reasons with --dataset-only or set --centre"
         )
-    out = _out_folder(args.out)
+    out = _destination(args.out)
+    try:
+        with staged_folder(out) as stage:
+            summary = _write(args, stage, recordings, mapped, planners, tic)
+    except OutputError as error:
+        raise UserError(str(error)) from None
+    from envs.report import format_number
+
+    for name, s in summary.items():
+        sr = s["stop_ratio"]
+        print(
+            f"{name:>10}: {s['vehicles']} vehicles, stops left {format_number(sr['left'])} "
+            f"straight {format_number(sr['straight'])} right {format_number(sr['right'])}, "
+            f"collisions {format_number(s['collision_rate'])}"
+        )
+    print(f"report written to {out} ({time.perf_counter() - tic:.1f} s)")
+    return 0
+
+
+def _write(args: argparse.Namespace, out: Path, recordings, mapped, planners, tic: float) -> dict:
+    """Every report file into ``out`` (the staging folder); returns the summary."""
+    from envs.ind.dataset_metrics import dataset_summary, stop_table
+    from envs.ind.loader import class_table
 
     mapped.tracks.to_csv(out / "tracks.csv", index=False)
     mapped.arms.to_csv(out / "arms.csv")
@@ -424,6 +456,7 @@ def run(args: argparse.Namespace) -> int:
             jobs=args.jobs,
             env_kwargs=args.env_kwargs,
             progress=not args.no_progress,
+            trust_planner_files=args.trust_planner_files,
         )
         recording_of = {path.name: rec.recording_id for rec, path in zip(recordings, scenarios)}
         runs = pd.concat([runs, r.assign(run=r["scenario"].map(recording_of))], ignore_index=True)
@@ -433,7 +466,7 @@ def run(args: argparse.Namespace) -> int:
         runs = runs.sort_values(["planner", "run"], key=lambda c: c.map(order) if c.name == "planner" else c)
         runs = runs.reset_index(drop=True)
 
-    from envs.report import format_number, markdown_report, write_report
+    from envs.report import markdown_report, write_report
 
     wall = time.perf_counter() - tic
     meta = {
@@ -455,13 +488,4 @@ def run(args: argparse.Namespace) -> int:
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     report = markdown_report(summary, runs, vehicles, meta).replace("# Planner evaluation", "# inD replay", 1)
     (out / "report.md").write_text(report + _mapping_section(mapped, recordings, dataset_table))
-    for name, s in summary.items():
-        sr = s["stop_ratio"]
-        print(
-            f"{name:>10}: {s['vehicles']} vehicles, stops left {format_number(sr['left'])} "
-            f"straight {format_number(sr['straight'])} right {format_number(sr['right'])}, "
-            f"collisions {format_number(s['collision_rate'])}"
-        )
-    print(f"report written to {out} ({time.perf_counter() - tic:.1f} s)")
-    return 0
-
+    return summary

@@ -23,7 +23,14 @@ import platform
 import time
 from collections.abc import Sequence
 
-from envs.commands.evaluate import _check, _out_folder, add_run_arguments, run_harness
+from envs.commands.evaluate import (
+    _check,
+    _destination,
+    add_run_arguments,
+    checked_env,
+    load_model_planners,
+    run_harness,
+)
 from sb3_graph.cli import UserError
 
 DEFAULT_DEMAND = (0.05, 0.1, 0.2, 0.3, 0.4)
@@ -59,19 +66,36 @@ def checked_demand(values: Sequence[float]) -> list[float]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from envs.comparison import paired_differences
-    from envs.evaluation import generate_scenarios, layout_of
-    from envs.report import write_report
-    from envs.sweep import capacities, capacity_text, level_folder, write_sweep
+    from envs.sweep import capacities, capacity_text
+    from sb3_graph.outputs import OutputError, staged_folder
 
     demand = checked_demand(args.demand)
     planners = _check(args)
-    try:
-        layout = layout_of(args.env, args.env_kwargs)
-    except (TypeError, ValueError) as error:
-        raise UserError(f"--env-kwargs: {error}") from None
-    out = _out_folder(args, prefix="sweep")
+    config = checked_env(args.env, args.env_kwargs)
+    layout = str(config["layout"])
+    load_model_planners(planners, config, args.trust_planner_files)
+    out = _destination(args, prefix="sweep")
     tic = time.perf_counter()
+    try:
+        with staged_folder(out) as stage:
+            table, wall = _sweep(args, planners, demand, layout, stage, tic)
+    except OutputError as error:
+        raise UserError(str(error)) from None
+    for planner, cap in capacities(table).items():
+        flow = table.loc[table["planner"] == planner, "flow_rate"].max()
+        text = capacity_text(cap, demand[-1]) + ("" if cap is None else " veh/s per major-road lane")
+        print(f"{planner:>10}: capacity {text}, highest flow {flow:.3f} veh/s")
+    print(f"sweep written to {out} ({wall:.1f} s)")
+    return 0
+
+
+def _sweep(args, planners, demand, layout, out, tic):
+    """Run every level into ``out`` (the staging folder); return the sweep table and the wall time."""
+    from envs.comparison import paired_differences
+    from envs.evaluation import generate_scenarios
+    from envs.report import write_report
+    from envs.sweep import level_folder, write_sweep
+
     scenarios = [
         path
         for level in demand
@@ -102,10 +126,4 @@ def run(args: argparse.Namespace) -> int:
         level_meta = {**meta, "demand": f"{level:g} veh/s per major-road lane (minor: half)"}
         summary = write_report(out / level_folder(level), level_runs, level_vehicles, level_meta)
         levels.append((level, summary, paired_differences(level_runs)))
-    table = write_sweep(out, levels, meta)
-    for planner, cap in capacities(table).items():
-        flow = table.loc[table["planner"] == planner, "flow_rate"].max()
-        text = capacity_text(cap, demand[-1]) + ("" if cap is None else " veh/s per major-road lane")
-        print(f"{planner:>10}: capacity {text}, highest flow {flow:.3f} veh/s")
-    print(f"sweep written to {out} ({wall:.1f} s)")
-    return 0
+    return write_sweep(out, levels, meta), wall

@@ -97,6 +97,9 @@ LOCATIONS: dict[int, str] = {1: "Bendplatz", 2: "Frankenburg", 3: "Heckstrasse",
 FOUR_WAY_RECORDINGS: dict[int, tuple[int, ...]] = {1: tuple(range(7, 18)), 2: tuple(range(18, 30))}
 
 FILE_KINDS: tuple[str, ...] = ("tracks", "tracksMeta", "recordingMeta")
+# Highest recording number accepted on the command line (inD has 33; "0-99999999999" must not
+# build a list of 10^11 numbers).
+MAX_RECORDING = 999
 
 
 class IndDataError(ValueError):
@@ -132,6 +135,8 @@ def parse_recordings(text: str) -> list[int]:
             numbers = [int(b) for b in bounds]
         except ValueError:
             raise ValueError(f"recordings: {part!r} is not a number or a range like 07-17") from None
+        if any(n > MAX_RECORDING for n in numbers):
+            raise ValueError(f"recordings: {part!r} goes beyond recording {MAX_RECORDING}")
         if len(numbers) == 1:
             ids.add(numbers[0])
         elif len(numbers) == 2 and numbers[0] <= numbers[1]:

@@ -64,23 +64,76 @@ class Recording:
         return {c: n for c, n in self.class_counts.items() if c not in VEHICLE_CLASSES}
 
 
+# Columns read as numbers (all that this package reads, except the class name), and those that
+# must hold whole numbers. A cell that is empty (a truncated file's last row) or not a number is an
+# error naming the file, the column and the row.
+NUMERIC_COLUMNS = frozenset(
+    REQUIRED_TRACKS_COLUMNS + OPTIONAL_TRACKS_COLUMNS + REQUIRED_RECORDING_META_COLUMNS
+    + ("recordingId", "trackId", "initialFrame", "finalFrame", "numFrames", "width", "length")
+)  # fmt: skip
+INTEGER_COLUMNS = frozenset(
+    ("recordingId", "trackId", "frame", "locationId", "initialFrame", "finalFrame", "numFrames")
+)
+GZIP_MAGIC = b"\x1f\x8b"
+
+
+def _first_line(error: Exception) -> str:
+    text = str(error).strip()
+    return text.splitlines()[0] if text else type(error).__name__
+
+
 def _read_csv(path: Path, required: Sequence[str], optional: Sequence[str] = ()) -> pd.DataFrame:
-    """Read the needed columns of one CSV file; a missing file or column names the file."""
+    """Read the needed columns of one CSV file as numbers (``class`` as text).
+
+    :raises FileNotFoundError: the file is missing
+    :raises IndDataError: naming the file: compressed or binary content, no header, a missing
+        column, or a cell that is empty or not a number (with its column and row)
+    """
     if not path.is_file():
         raise FileNotFoundError(
             f"inD file not found: {path} (expected the published file name XX_<kind>.csv)"
         )
     try:
+        with path.open("rb") as file:
+            magic = file.read(2)
+    except OSError as error:
+        raise IndDataError(f"{path}: cannot read ({error.strerror or error})") from None
+    if magic == GZIP_MAGIC:
+        raise IndDataError(f"{path}: the file is gzip-compressed; unpack it first (gunzip, or inD's own archive)")
+    try:
         header = pd.read_csv(path, nrows=0).columns
-    except (pd.errors.EmptyDataError, pd.errors.ParserError) as error:
-        raise IndDataError(f"{path}: not a CSV file with a header row ({error})") from None
+    except (pd.errors.EmptyDataError, pd.errors.ParserError, UnicodeDecodeError, ValueError) as error:
+        raise IndDataError(f"{path}: not a CSV file with a header row ({_first_line(error)})") from None
     missing = [c for c in required if c not in header]
     if missing:
         raise IndDataError(
             f"{path}: missing column(s) {', '.join(missing)}; the inD format requires {', '.join(required)}"
         )
-    columns = list(required) + [c for c in optional if c in header]
-    return pd.read_csv(path, usecols=columns)
+    columns = list(dict.fromkeys(list(required) + [c for c in optional if c in header]))
+    try:
+        frame = pd.read_csv(path, usecols=columns, dtype=str, keep_default_na=False)
+    except (pd.errors.ParserError, UnicodeDecodeError, ValueError, MemoryError) as error:
+        raise IndDataError(f"{path}: not a readable CSV file ({_first_line(error)})") from None
+    for column in columns:
+        if column in NUMERIC_COLUMNS:
+            frame[column] = _numbers(frame[column], path, column)
+    return frame
+
+
+def _numbers(cells: pd.Series, path: Path, column: str) -> pd.Series:
+    """A column of text cells as numbers, or an error naming the first bad cell."""
+    values = pd.to_numeric(cells.str.strip(), errors="coerce")
+    bad = values.isna() | ~np.isfinite(values.to_numpy(dtype=float, na_value=np.nan))
+    if column in INTEGER_COLUMNS:
+        bad |= values.notna() & (values.round() != values)
+    if bad.any():
+        row = int(np.flatnonzero(bad.to_numpy())[0])
+        cell = cells.iloc[row]
+        what = "is empty (a truncated file?)" if not str(cell).strip() else f"{cell!r} is not a"
+        kind = "whole number" if column in INTEGER_COLUMNS else "finite number"
+        text = what if what.endswith("?)") else f"{what} {kind}"
+        raise IndDataError(f"{path}: column {column!r}, line {row + 2}: {text}")
+    return values.astype(np.int64) if column in INTEGER_COLUMNS else values.astype(float)
 
 
 def load_recording(
@@ -144,6 +197,7 @@ def load_recording(
         raise IndDataError(
             f"{tracks_path}: trackId(s) {unknown[:5].tolist()} have no row in {tracks_meta_path.name}"
         )
+    _check_complete(tracks, tracks_meta, tracks_path, tracks_meta_path)
     vehicle_ids = tracks_meta.index[tracks_meta["is_vehicle"]]
     tracks = tracks[tracks["trackId"].isin(vehicle_ids)].sort_values(["trackId", "frame"], kind="stable")
     speed = np.hypot(tracks["xVelocity"].to_numpy(), tracks["yVelocity"].to_numpy())
@@ -161,6 +215,28 @@ def load_recording(
         tracks=tracks,
         class_counts={str(k): int(v) for k, v in tracks_meta["class"].value_counts().sort_index().items()},
     )
+
+
+def _check_complete(tracks: pd.DataFrame, tracks_meta: pd.DataFrame, tracks_path: Path, meta_path: Path) -> None:
+    """Every track that has rows in the tracks file has them from its ``initialFrame`` to its
+    ``finalFrame``: a file cut off in the middle of a track is refused, not replayed with a vehicle
+    that vanishes. (A track without any row is listed by the mapping as not mapped.)"""
+    span = tracks.groupby("trackId")["frame"].agg(["min", "max"])
+    span = span.reindex(tracks_meta["trackId"].to_numpy())
+    present = span["min"].notna().to_numpy()
+    short = present & (
+        (span["min"].to_numpy() > tracks_meta["initialFrame"].to_numpy())
+        | (span["max"].to_numpy() < tracks_meta["finalFrame"].to_numpy())
+    )
+    if short.any():
+        k = int(np.flatnonzero(short)[0])
+        track = int(tracks_meta["trackId"].iloc[k])
+        first, last = int(tracks_meta["initialFrame"].iloc[k]), int(tracks_meta["finalFrame"].iloc[k])
+        found = f"frames {int(span['min'].iloc[k])}-{int(span['max'].iloc[k])}"
+        raise IndDataError(
+            f"{tracks_path}: track {track} has {found}, {meta_path.name} says frames {first}-{last} "
+            "(a truncated or mismatched tracks file?)"
+        )
 
 
 def load_recordings(

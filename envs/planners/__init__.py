@@ -2,10 +2,11 @@
 
 ``make_planner(spec)`` builds one from a command-line word: ``"pr"`` (static priority rules),
 ``"fifo"`` (first in, first out per group of conflicting paths), ``"aim"`` (reservations per
-conflict zone), ``"signal"`` (an actuated traffic signal), the path of a saved SB3 model ``.zip``
-(the learned GNN planner), or a user class ``path/to/file.py:ClassName`` /
-``package.module:ClassName`` (:mod:`envs.planners.loading`). The suffix ``+shield`` wraps any of
-them in the safety shield (:class:`envs.planners.shield.Shield`).
+conflict zone), ``"signal"`` (an actuated traffic signal), the path of a learned GNN planner (a
+weights-only ``.safetensors`` policy file written by ``sb3-graph export``, or a saved SB3 ``.zip``,
+both loaded without running code from the file, see :mod:`envs.planners.gnn`), or a user class
+``path/to/file.py:ClassName`` / ``package.module:ClassName`` (:mod:`envs.planners.loading`). The
+suffix ``+shield`` wraps any of them in the safety shield (:class:`envs.planners.shield.Shield`).
 """
 
 from __future__ import annotations
@@ -27,14 +28,16 @@ BASELINES: dict[str, type[Planner]] = {
 }
 # A planner word ending in this is the planner wrapped in the safety shield.
 SHIELD_SUFFIX = "+shield"
+# File suffixes of learned planners.
+MODEL_SUFFIXES = (".safetensors", ".zip")
 
 
 def check_planner_spec(spec: str) -> str:
     """Validate a planner word without building it (cheap: no model is loaded).
 
-    :param spec: ``"pr"``, ``"fifo"``, the path of a readable ``.zip`` model file or a class spec
-        (``file.py:Class``, ``package.module:Class``, imported to check it), each optionally
-        followed by ``+shield``
+    :param spec: ``"pr"``, ``"fifo"``, ``"aim"``, ``"signal"``, the path of a readable ``.safetensors``
+        or ``.zip`` model file, or a class spec (``file.py:Class``, ``package.module:Class``, imported
+        to check it), each optionally followed by ``+shield``
     :return: the normalised spec (lower-case baseline name, or the path or class spec as given)
     :raises ValueError: anything else, with the accepted values in the message
     """
@@ -47,7 +50,7 @@ def check_planner_spec(spec: str) -> str:
         load_planner_class(key)
         return key
     path = Path(key)
-    if path.suffix == ".zip" and path.is_file():
+    if path.suffix in MODEL_SUFFIXES and path.is_file():
         try:
             with path.open("rb"):
                 pass
@@ -56,30 +59,33 @@ def check_planner_spec(spec: str) -> str:
         return key
     raise ValueError(
         f"planner {spec!r} is neither a baseline ({', '.join(BASELINES)}) "
-        "nor a readable saved model file (path to a .zip written by model.save) "
+        "nor a readable model file (a .safetensors policy file written by sb3-graph export, "
+        "or a .zip written by model.save) "
         "nor a class (path/to/file.py:ClassName or package.module:ClassName)"
     )
 
 
-def make_planner(spec: str) -> Planner:
+def make_planner(spec: str, trust_files: bool = False) -> Planner:
     """Build a planner from its command-line word.
 
     :param spec: see :func:`check_planner_spec`
+    :param trust_files: load a ``.zip`` with SB3's ``TD3.load``, which runs the pickles in it
+        (``--trust-planner-files``; only for one's own files)
     :return: the planner
-    :raises ValueError: unknown word or unreadable model file
+    :raises ValueError: unknown word, or a model file that cannot be loaded safely
     """
     key = check_planner_spec(spec)
     if key.endswith(SHIELD_SUFFIX):
         from envs.planners.shield import Shield
 
-        return Shield(make_planner(key[: -len(SHIELD_SUFFIX)]))
+        return Shield(make_planner(key[: -len(SHIELD_SUFFIX)], trust_files=trust_files))
     if key in BASELINES:
         return BASELINES[key]()
     if is_class_spec(key):
         return make_class_planner(key)
     from envs.planners.gnn import GNNPlanner
 
-    return GNNPlanner(key)
+    return GNNPlanner(key, trust_files=trust_files)
 
 
 def planner_name(spec: str) -> str:
@@ -104,6 +110,7 @@ def planner_name(spec: str) -> str:
 __all__ = [
     "AIMPlanner",
     "BASELINES",
+    "MODEL_SUFFIXES",
     "FIFOPlanner",
     "Planner",
     "PriorityRulesPlanner",

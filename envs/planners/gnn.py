@@ -1,4 +1,10 @@
-"""The learned planner: a trained SB3 model (TD3 with a graph policy) behind the planner face."""
+"""The learned planner: a trained graph policy (TD3 ``GraphPolicy``) behind the planner face.
+
+Planner files are what people share, so they load without running code: a weights-only
+``.safetensors`` policy file (``sb3-graph export``) or an SB3 ``.zip`` read without unpickling
+(:mod:`sb3_graph.weights`). ``trust_files=True`` (``--trust-planner-files``) restores SB3's full
+``TD3.load`` for one's own files.
+"""
 
 from __future__ import annotations
 
@@ -10,18 +16,18 @@ from envs.planners.base import Planner
 from envs.scene import Scene
 
 
-def load_model(path: str | Path, device: str = "cpu"):
-    """Load a saved SB3 model: ``sb3_graph.TD3`` when available, else ``stable_baselines3.TD3``.
+def load_model(path: str | Path, device: str = "cpu", trust_files: bool = False):
+    """Load a planner's policy from a ``.safetensors`` policy file or a saved SB3 ``.zip``.
 
-    :param path: the ``.zip`` written by ``model.save``
+    :param path: the file
     :param device: torch device
-    :return: the model
+    :param trust_files: load a ``.zip`` with SB3's ``TD3.load``, which runs the pickles in it
+    :return: the policy (``predict``, ``observation_space``)
+    :raises ValueError: a file that cannot be loaded safely (``sb3_graph.weights.PolicyFileError``)
     """
-    try:
-        from sb3_graph import TD3  # type: ignore[attr-defined]
-    except ImportError:
-        from stable_baselines3 import TD3
-    return TD3.load(str(path), device=device)
+    from sb3_graph.weights import load_policy
+
+    return load_policy(path, device=device, trust=trust_files).policy
 
 
 class GNNPlanner(Planner):
@@ -31,16 +37,35 @@ class GNNPlanner(Planner):
     ``GraphSpace``) by ``envs.scene_graph.build_observation``; the deterministic action of
     vertex ``i`` in ``[-1, 1]`` times ``scene.a_max`` is the acceleration of vehicle ``i``.
 
-    :param path: the saved model (``.zip``)
+    :param path: the policy file (``.safetensors``) or saved model (``.zip``)
     :param name: the name shown in reports (default: derived from the path)
     :param device: torch device for inference
+    :param trust_files: load a ``.zip`` with SB3's ``TD3.load`` (runs its pickles)
     """
 
-    def __init__(self, path: str | Path, name: str | None = None, device: str = "cpu") -> None:
+    def __init__(
+        self, path: str | Path, name: str | None = None, device: str = "cpu", trust_files: bool = False
+    ) -> None:
         self.path = Path(path)
         super().__init__(name or model_name(self.path))
-        self.model = load_model(self.path, device)
+        self.model = load_model(self.path, device, trust_files=trust_files)
         self.space = self.model.observation_space
+
+    def check_capacity(self, max_vehicles: int, source: str = "planner") -> None:
+        """Refuse an environment whose scenes can hold more vehicles than the model's graphs.
+
+        :param max_vehicles: the environment's ``max_vehicles``
+        :raises ValueError: naming the model's ``max_nodes``
+        """
+        max_nodes = getattr(self.space, "max_nodes", None)
+        if max_nodes is None or getattr(self.space, "node_features", 3) != 3:
+            raise ValueError(f"{source}: the model does not take the intersection's graph observation")
+        if max_nodes < max_vehicles:
+            raise ValueError(
+                f"{source}: the model's graphs hold max_nodes={max_nodes} vehicles, the environment up to "
+                f"max_vehicles={max_vehicles}; evaluate with --env-kwargs "
+                f"'{{\"config\": {{\"max_vehicles\": {max_nodes}}}}}' or use a model trained for more"
+            )
 
     def act(self, scene: Scene) -> np.ndarray:
         from envs.scene_graph import build_observation
@@ -55,7 +80,8 @@ class GNNPlanner(Planner):
 
 
 def model_name(path: Path) -> str:
-    """Report name of a model file: ``RL:<folder>`` for ``best_model.zip`` and the like, else ``RL:<stem>``.
+    """Report name of a model file: ``RL:<folder>`` for ``best_model.zip`` (or ``.safetensors``) and the
+    like, else ``RL:<stem>``.
 
     :param path: the model file
     :return: the name

@@ -6,9 +6,20 @@ A run folder holds::
     run.json            seed, versions, command, steps, wall time, best validation reward
     best_model.zip      the model with the best validation reward so far (paper: "Experiments")
     evaluations.npz     every validation result (SB3 EvalCallback's log)
-    checkpoints/        model_<steps>_steps.zip and the latest replay buffer, for --resume
+    checkpoints/        model_<steps>_steps.zip and the latest replay buffer, for --resume, with
+                        signatures.json (see below)
     final_model.zip     the model at the end of training
     tb/                 TensorBoard logs (reward terms, curriculum, losses)
+
+Checkpoints are pickles (SB3's format): ``--resume`` loads only checkpoint files that this
+machine's ``sb3-graph train`` signed when it wrote them (:mod:`sb3_graph.signing`), so a run
+folder from elsewhere cannot run code here; ``--trust-run-files`` loads unsigned ones (runs made
+before signatures existed, or your own run copied from another machine). The stored
+``config.yml`` is read like any experiment file, without evaluating code.
+
+A fresh run that fails before its first checkpoint leaves no run folder behind, and ``--resume``
+of a folder without checkpoints reads ``--config`` again: a run that failed on a wrong value is
+rerun with the same command once the file is fixed.
 """
 
 from __future__ import annotations
@@ -19,6 +30,7 @@ import importlib.util
 import json
 import platform
 import re
+import shutil
 import signal
 import sys
 import time
@@ -29,6 +41,7 @@ import numpy as np
 import yaml
 
 from sb3_graph.cli import UserError
+from sb3_graph.commands.arguments import json_object
 
 CHECKPOINT_PATTERN = re.compile(r"model_(\d+)_steps\.zip$")
 #: --algo names (rl-zoo3's) -> class names in sb3_graph
@@ -54,9 +67,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", required=True, help="rl-zoo3 style YAML file (one entry per env id)")
     parser.add_argument("--env", required=True, help="environment id, the entry to read from --config")
     parser.add_argument("--out", required=True, help="run folder; must not exist unless --resume")
-    parser.add_argument("--n-timesteps", type=int, default=None, help="override n_timesteps of the entry")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the training envs and the learner")
+    parser.add_argument("--n-timesteps", type=int, default=None, help="override n_timesteps of the entry (>= 1)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the training envs and the learner (>= 0)")
     parser.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
+    parser.add_argument(
+        "--trust-run-files",
+        action="store_true",
+        help="with --resume: load checkpoints that this machine did not sign (they are pickles: your own runs only)",
+    )
     parser.add_argument("--eval-freq", type=int, default=5000, help="steps between validations (paper: 5000)")
     parser.add_argument("--eval-episodes", type=int, default=10, help="validation episodes (paper: 10)")
     parser.add_argument("--checkpoint-freq", type=int, default=10_000, help="steps between checkpoints")
@@ -66,7 +84,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=["envs"],
         help="modules to import so that they register their environments (default: envs)",
     )
-    parser.add_argument("--env-kwargs", type=json.loads, default=None, help="JSON dict merged into env_kwargs")
+    parser.add_argument(
+        "--env-kwargs",
+        type=json_object,
+        default=None,
+        help="JSON object merged into the entry's env_kwargs (one level deep: keys of 'config' are merged)",
+    )
     parser.add_argument(
         "--hyperparams",
         "-params",
@@ -94,7 +117,10 @@ def parse_overrides(items: list[str]) -> dict[str, Any]:
         key, sep, value = item.partition(":")
         if not sep or not key:
             raise UserError(f"--hyperparams: expected KEY:VALUE, got {item!r}")
-        overrides[key] = yaml.safe_load(value)
+        try:
+            overrides[key] = yaml.safe_load(value)
+        except yaml.YAMLError as error:
+            raise UserError(f"--hyperparams: {item!r}: value is not YAML ({str(error).splitlines()[0]})") from None
     return overrides
 
 
@@ -108,13 +134,43 @@ def _versions() -> dict[str, str]:
     return versions
 
 
+def portable_path(text: str) -> str:
+    """A path as it may be recorded in a run record: relative to the working folder where it lies
+    below it, ``~/...`` below the home folder, else its file name only (no path of the machine)."""
+    path = Path(text)
+    if not path.is_absolute():
+        return text
+    for base, prefix in ((Path.cwd(), ""), (Path.home(), "~/")):
+        try:
+            return prefix + str(path.relative_to(base))
+        except ValueError:
+            continue
+    return path.name
+
+
+def portable_command(argv: list[str]) -> str:
+    """The command line for the run record: ``sb3-graph`` instead of the executable's path, and
+    every absolute path argument made :func:`portable_path`."""
+    program = Path(argv[0]).name if argv else "sb3-graph"
+    if program in ("cli.py", "__main__.py") or program.startswith("python"):
+        program = "sb3-graph"
+    return " ".join([program, *(_portable_argument(item) for item in argv[1:])])
+
+
+def _portable_argument(item: str) -> str:
+    if item.startswith("--") and "=" in item:
+        flag, _, value = item.partition("=")
+        return f"{flag}={portable_path(value)}"
+    return portable_path(item)
+
+
 def _new_record(args: argparse.Namespace, seed: int) -> dict[str, Any]:
     return {
         "algo": args.algo or "td3",
         "env": args.env,
-        "config_file": str(args.config),
+        "config_file": portable_path(str(args.config)),
         "seed": seed,
-        "command": " ".join(sys.argv),
+        "command": portable_command(list(sys.argv)),
         "versions": _versions(),
         "wall_time_s": 0.0,
         "sessions": [],
@@ -141,15 +197,20 @@ def latest_checkpoint(folder: Path) -> tuple[int, Path] | None:
 
 
 def save_checkpoint(model, folder: Path) -> None:
-    """Save the model and (off-policy) its replay buffer as ``model_<steps>_steps``; drop older
-    replay buffers."""
+    """Save the model and its replay buffer as ``model_<steps>_steps``, each signed (see
+    :mod:`sb3_graph.signing`); drop older replay buffers."""
+    from sb3_graph.signing import sign
+
     folder.mkdir(parents=True, exist_ok=True)
     steps = model.num_timesteps
-    model.save(folder / f"model_{steps}_steps.zip")
+    path = folder / f"model_{steps}_steps.zip"
+    model.save(path)
+    sign(path)
     if getattr(model, "replay_buffer", None) is None:  # on-policy: nothing to carry over
         return
     newest = folder / f"model_replay_buffer_{steps}_steps.pkl"
     model.save_replay_buffer(newest)
+    sign(newest)
     _drop_old_buffers(folder, keep=newest)
 
 
@@ -184,16 +245,6 @@ def _make_checkpoint_callback(save_freq: int, folder: Path):
     return CompleteCheckpoint()
 
 
-def _load_weights(model, path: str) -> None:
-    # SB3's set_parameters reads only the zip's .pth files, with torch.load(weights_only=True).
-    if not Path(path).is_file():
-        raise UserError(f"--init-weights: no such file {path!r}")
-    try:
-        model.set_parameters(path, exact_match=True, device=model.device)
-    except Exception as error:  # a zip of another architecture, or not a model at all
-        raise UserError(f"--init-weights: cannot load the weights of {path!r}: {error}") from error
-
-
 def _import_packages(names: list[str]) -> None:
     for name in names:
         try:
@@ -210,72 +261,109 @@ def _make_env(env_id: str, n_envs: int, seed: int, env_kwargs: dict[str, Any]):
         raise UserError(f"--env: unknown environment id {env_id!r} (registered by --gym-packages?)")
     try:
         return make_vec_env(env_id, n_envs=n_envs, seed=seed, env_kwargs=env_kwargs)
-    except ValueError as error:  # the environment's own configuration check
-        raise UserError(f"env_kwargs: {error}") from error
+    except (TypeError, ValueError) as error:  # the environment's own configuration check
+        raise UserError(f"env_kwargs of {env_id!r}: {error}") from error
 
 
-def _resume_entry(args: argparse.Namespace, out: Path) -> tuple[dict[str, Any], dict[str, Any]]:
-    """The entry and the run record of the run in ``out`` (``--resume``); sets ``args.algo`` to the run's."""
-    config_path = out / "config.yml"
-    if not config_path.is_file():
-        raise UserError(f"--resume: {str(out)!r} holds no run (no config.yml)")
-    entry = yaml.safe_load(config_path.read_text())
-    record_path = out / "run.json"
-    if record_path.is_file():
-        record = json.loads(record_path.read_text())
-    else:  # a run killed before it wrote its record: start one, say so
-        print(f"sb3-graph train: {record_path} is missing; recording seed {args.seed}", file=sys.stderr)
-        record = _new_record(args, args.seed)
-    recorded = record.get("algo", "td3")  # runs recorded before --algo were TD3 runs
-    if args.algo is not None and args.algo != recorded:
-        raise UserError(f"--algo: the run in {str(out)!r} is a {recorded} run, got --algo {args.algo}")
-    args.algo = recorded
-    if args.n_timesteps is not None:  # extend (or shorten) a run; recorded in config.yml
-        entry["n_timesteps"] = args.n_timesteps
-        config_path.write_text(yaml.safe_dump(entry, sort_keys=False))
-    return entry, record
+def _check_flags(args: argparse.Namespace) -> None:
+    from sb3_graph.commands.arguments import check_device
+
+    for flag in ("eval_freq", "eval_episodes", "checkpoint_freq", "threads"):
+        if getattr(args, flag) < 1:
+            raise UserError(f"--{flag.replace('_', '-')} must be at least 1, got {getattr(args, flag)}")
+    if args.n_timesteps is not None and args.n_timesteps < 1:
+        raise UserError(f"--n-timesteps must be at least 1, got {args.n_timesteps}")
+    if args.seed < 0:
+        raise UserError(f"--seed must be >= 0, got {args.seed}")
+    if args.trust_run_files and not args.resume:
+        raise UserError("--trust-run-files applies to --resume only")
+    check_device(args.device)
 
 
-def _new_entry(args: argparse.Namespace, out: Path) -> tuple[dict[str, Any], dict[str, Any]]:
-    """The entry of ``--config`` with the command line's overrides, and a fresh run record."""
-    from sb3_graph.experiment import ExperimentError, read_experiment
+def _entry_from_file(args: argparse.Namespace) -> dict[str, Any]:
+    """The entry of ``--env`` in ``--config`` with the command line's overrides, checked."""
+    from sb3_graph.experiment import ExperimentError, check_entry, merge_env_kwargs, read_experiment
 
-    if out.exists() and any(out.iterdir()):
-        raise UserError(f"--out: {str(out)!r} already holds files; choose a new folder or pass --resume")
     try:
         entry = read_experiment(args.config, args.env)
+        entry.update(parse_overrides(args.hyperparams))
+        if args.n_timesteps is not None:
+            entry["n_timesteps"] = args.n_timesteps
+        if args.env_kwargs:
+            if entry.get("env_kwargs") is not None and not isinstance(entry["env_kwargs"], dict):
+                raise ExperimentError(f"env_kwargs must be a mapping, got {entry['env_kwargs']!r}")
+            entry["env_kwargs"] = merge_env_kwargs(entry.get("env_kwargs") or {}, args.env_kwargs)
+        return check_entry(entry)
     except ExperimentError as error:
-        raise UserError(str(error)) from error
-    entry.update(parse_overrides(args.hyperparams))
-    if args.n_timesteps is not None:
-        entry["n_timesteps"] = args.n_timesteps
-    if args.env_kwargs:
-        entry["env_kwargs"] = {**(entry.get("env_kwargs") or {}), **args.env_kwargs}
-    args.algo = args.algo or "td3"
-    return entry, _new_record(args, args.seed)
+        raise UserError(str(error)) from None
 
 
-def _build_model(args, entry, algo_kwargs, train_env, out, seed, tensorboard_log):
-    """The model of a checkpoint of the run (with its replay buffer), or a new one; and the
-    checkpoint's step count (``None`` for a new model)."""
-    algorithm = getattr(importlib.import_module("sb3_graph"), ALGORITHMS[args.algo])
-    checkpoint = latest_checkpoint(out) if args.resume else None
-    if checkpoint is not None:
-        steps, path = checkpoint
-        model = algorithm.load(path, env=train_env, device=args.device, tensorboard_log=tensorboard_log)
-        buffer_path = out / "checkpoints" / f"model_replay_buffer_{steps}_steps.pkl"
-        if buffer_path.is_file() and getattr(model, "replay_buffer", None) is not None:
-            model.load_replay_buffer(buffer_path)
-        return model, steps
-    if args.resume:
-        print(f"sb3-graph train: no checkpoint in {out}, starting the run again", file=sys.stderr)
-    policy = entry.get("policy", "GraphPolicy")
-    if isinstance(policy, str) and "." in policy:
-        from sb3_graph.experiment import resolve_object
+def _stored_entry(config_path: Path, n_timesteps: int | None) -> dict[str, Any]:
+    """The entry a run folder recorded (``config.yml``), checked like a file entry (its expressions
+    are read safely too, though the checkpoint holds the model)."""
+    from sb3_graph.experiment import ExperimentError, build_algorithm_kwargs, check_entry
 
-        policy = resolve_object(policy, "policy")
     try:
-        model = algorithm(
+        entry = yaml.safe_load(config_path.read_text())
+    except (OSError, yaml.YAMLError) as error:
+        raise UserError(f"--resume: cannot read {config_path}: {str(error).splitlines()[0]}") from None
+    if not isinstance(entry, dict):
+        raise UserError(f"--resume: {config_path} is not a mapping of hyperparameters")
+    if n_timesteps is not None:  # extend (or shorten) a run; recorded in config.yml
+        entry["n_timesteps"] = n_timesteps
+    try:
+        entry = check_entry(entry)
+        build_algorithm_kwargs(entry, 1)
+    except ExperimentError as error:
+        raise UserError(f"{config_path}: {error}") from None
+    return entry
+
+
+def _algorithm(args: argparse.Namespace):
+    return getattr(importlib.import_module("sb3_graph"), ALGORITHMS[args.algo])
+
+
+def _load_weights(model, path: str) -> None:
+    # SB3's set_parameters reads only the zip's .pth files, with torch.load(weights_only=True).
+    if not Path(path).is_file():
+        raise UserError(f"--init-weights: no such file {path!r}")
+    try:
+        model.set_parameters(path, exact_match=True, device=model.device)
+    except Exception as error:  # a zip of another architecture, or not a model at all
+        raise UserError(f"--init-weights: cannot load the weights of {path!r}: {error}") from error
+
+
+def _load_checkpoint(path: Path, buffer_path: Path, trust: bool, algorithm, **load_kwargs):
+    """Load a checkpoint and its replay buffer, each only if this machine signed it (or ``trust``)."""
+    from sb3_graph.signing import SignatureError, verify
+
+    if not trust:
+        for file in (path, buffer_path) if buffer_path.is_file() else (path,):
+            try:
+                verify(file)
+            except SignatureError as error:
+                raise UserError(
+                    f"--resume: {error}; it is a pickle and is not loaded (--trust-run-files loads it: "
+                    "only for your own run, e.g. one copied from another machine of yours)"
+                ) from None
+    model = algorithm.load(path, **load_kwargs)
+    if buffer_path.is_file() and getattr(model, "replay_buffer", None) is not None:
+        model.load_replay_buffer(buffer_path)
+    return model
+
+
+def _build_model(entry: dict[str, Any], train_env, seed: int, args: argparse.Namespace, tensorboard_log):
+    from sb3_graph.experiment import ExperimentError, build_algorithm_kwargs, resolve_object
+
+    try:
+        algo_kwargs = build_algorithm_kwargs(entry, int(np.prod(train_env.action_space.shape)))
+        policy = entry.get("policy", "GraphPolicy")
+        if isinstance(policy, str) and "." in policy:
+            policy = resolve_object(policy, "policy")
+    except ExperimentError as error:
+        raise UserError(str(error)) from None
+    try:
+        model = _algorithm(args)(
             policy,
             train_env,
             seed=seed,
@@ -284,74 +372,105 @@ def _build_model(args, entry, algo_kwargs, train_env, out, seed, tensorboard_log
             tensorboard_log=tensorboard_log,
             **algo_kwargs,
         )
-    except (TypeError, ValueError) as error:
-        raise UserError(f"hyperparameters of {args.env!r} for {args.algo}: {error}") from error
+    except (TypeError, ValueError, KeyError, AssertionError) as error:
+        raise UserError(f"hyperparameters of {args.env!r} for {args.algo}: {error}") from None
     if args.init_weights:
         _load_weights(model, args.init_weights)
-    return model, None
+    return model
 
 
-def _learn(args, model, callbacks, remaining: int, resumed: bool, record: dict[str, Any], out: Path) -> bool:
-    """Train for ``remaining`` steps; always leave a checkpoint and the updated record. True when
-    interrupted (Ctrl-C or SIGTERM)."""
-    _interrupt_on_sigterm()
-    start = time.time()
-    interrupted = False
-    try:
-        if remaining > 0:
-            model.learn(
-                remaining,
-                callback=callbacks,
-                reset_num_timesteps=not resumed,
-                progress_bar=not args.no_progress,
-                tb_log_name=ALGORITHMS[args.algo],
-            )
-    except KeyboardInterrupt:
-        interrupted = True
-    finally:
-        save_checkpoint(model, out / "checkpoints")
-        elapsed = time.time() - start
-        record["wall_time_s"] = record.get("wall_time_s", 0.0) + elapsed
-        record["num_timesteps"] = int(model.num_timesteps)
-        record["sessions"].append({"started": start, "wall_time_s": elapsed, "steps_until": int(model.num_timesteps)})
-    return interrupted
+def _discard(out: Path, created: bool) -> None:
+    """Remove what a failed fresh run wrote: the folder if the run made it, else its contents."""
+    if created:
+        shutil.rmtree(out, ignore_errors=True)
+        return
+    for item in out.iterdir():
+        shutil.rmtree(item, ignore_errors=True) if item.is_dir() else item.unlink(missing_ok=True)
 
 
 def run(args: argparse.Namespace) -> int:
     import torch as th
     from stable_baselines3.common.callbacks import CallbackList, EvalCallback
 
-    from sb3_graph.experiment import ExperimentError, build_algorithm_kwargs, build_callbacks
+    from sb3_graph.experiment import ExperimentError, build_callbacks
 
-    for flag in ("eval_freq", "eval_episodes", "checkpoint_freq", "threads"):
-        if getattr(args, flag) < 1:
-            raise UserError(f"--{flag.replace('_', '-')} must be at least 1, got {getattr(args, flag)}")
+    _check_flags(args)
     th.set_num_threads(args.threads)
     out = Path(args.out)
-    entry, record = _resume_entry(args, out) if args.resume else _new_entry(args, out)
-    seed = record["seed"] if args.resume else args.seed
+    config_path = out / "config.yml"
+    checkpoint = None
+    if args.resume:
+        if not config_path.is_file():
+            raise UserError(f"--resume: {str(out)!r} holds no run (no config.yml)")
+        checkpoint = latest_checkpoint(out)
+        record_path = out / "run.json"
+        record = None
+        if record_path.is_file():
+            try:
+                record = json.loads(record_path.read_text())
+            except ValueError:
+                print(f"sb3-graph train: {record_path} is not JSON; starting a new record", file=sys.stderr)
+        if not isinstance(record, dict) or not isinstance(record.get("seed"), int):
+            # a run killed before it wrote its record: start one, say so
+            print(f"sb3-graph train: no usable {record_path}; recording seed {args.seed}", file=sys.stderr)
+            record = _new_record(args, args.seed)
+        record.setdefault("sessions", [])
+        recorded = record.get("algo", "td3")  # runs recorded before --algo were TD3 runs
+        if args.algo is not None and args.algo != recorded:
+            raise UserError(f"--algo: the run in {str(out)!r} is a {recorded} run, got --algo {args.algo}")
+        args.algo = recorded
+        seed = record["seed"]
+        if checkpoint is None:  # nothing trained yet: the run starts again, from the (fixed) file
+            print(f"sb3-graph train: no checkpoint in {out}, starting again from {args.config}", file=sys.stderr)
+            entry = _entry_from_file(args)
+        else:
+            entry = _stored_entry(config_path, args.n_timesteps)
+        created = False
+    else:
+        if out.exists() and (not out.is_dir() or any(out.iterdir())):
+            raise UserError(f"--out: {str(out)!r} already holds files; choose a new folder or pass --resume")
+        args.algo = args.algo or "td3"
+        entry = _entry_from_file(args)
+        seed = args.seed
+        record = _new_record(args, seed)
+        created = not out.exists()
 
     _import_packages(args.gym_packages)
-    n_timesteps = int(float(entry["n_timesteps"]))
+    n_timesteps = int(entry["n_timesteps"])
     n_envs = int(entry.get("n_envs", 1))
     env_kwargs = dict(entry.get("env_kwargs") or {})
     train_env = _make_env(args.env, n_envs, seed, env_kwargs)
     # Validation: built the same way, another seed (paper, "Experiments").
     eval_env = _make_env(args.env, 1, seed + VALIDATION_SEED_OFFSET, env_kwargs)
     try:
-        algo_kwargs = build_algorithm_kwargs(entry, int(np.prod(train_env.action_space.shape)))
         user_callbacks = build_callbacks(entry)
     except ExperimentError as error:
-        raise UserError(str(error)) from error
-
-    out.mkdir(parents=True, exist_ok=True)
-    if not args.resume:
-        (out / "config.yml").write_text(yaml.safe_dump(entry, sort_keys=False))
-    (out / "run.json").write_text(json.dumps(record, indent=2))
+        raise UserError(str(error)) from None
     tensorboard_log = str(out / "tb") if importlib.util.find_spec("tensorboard") else None
-    model, checkpoint_steps = _build_model(args, entry, algo_kwargs, train_env, out, seed, tensorboard_log)
-    if args.init_weights and checkpoint_steps is None:
-        record["init_weights"] = str(args.init_weights)
+    if checkpoint is not None:
+        steps, path = checkpoint
+        buffer_path = out / "checkpoints" / f"model_replay_buffer_{steps}_steps.pkl"
+        model = _load_checkpoint(
+            path,
+            buffer_path,
+            args.trust_run_files,
+            _algorithm(args),
+            env=train_env,
+            device=args.device,
+            tensorboard_log=tensorboard_log,
+        )
+    else:
+        model = _build_model(entry, train_env, seed, args, tensorboard_log)
+        if args.init_weights:
+            record["init_weights"] = str(args.init_weights)
+
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise UserError(f"--out: cannot create {str(out)!r}: {error.strerror or error}") from None
+    if checkpoint is None:
+        config_path.write_text(yaml.safe_dump(entry, sort_keys=False))
+    (out / "run.json").write_text(json.dumps(record, indent=2))
 
     eval_callback = EvalCallback(
         eval_env,
@@ -366,14 +485,45 @@ def run(args: argparse.Namespace) -> int:
     eval_callback.best_mean_reward = record.get("best_mean_reward", -np.inf)
     checkpoint_callback = _make_checkpoint_callback(args.checkpoint_freq, out / "checkpoints")
     callbacks = CallbackList([*user_callbacks, eval_callback, checkpoint_callback])
+
+    remaining = n_timesteps - model.num_timesteps
+    _interrupt_on_sigterm()
+    start = time.time()
+    interrupted = False
     try:
-        remaining = n_timesteps - model.num_timesteps
-        interrupted = _learn(args, model, callbacks, remaining, checkpoint_steps is not None, record, out)
-    finally:
-        record["best_mean_reward"] = float(eval_callback.best_mean_reward)
-        (out / "run.json").write_text(json.dumps(record, indent=2))
+        if remaining > 0:
+            model.learn(
+                remaining,
+                callback=callbacks,
+                reset_num_timesteps=checkpoint is None,
+                progress_bar=not args.no_progress,
+                tb_log_name=ALGORITHMS[args.algo],
+            )
+    except KeyboardInterrupt:
+        interrupted = True
+    except Exception as error:
         train_env.close()
         eval_env.close()
+        if checkpoint is None and latest_checkpoint(out) is None:
+            # Nothing worth keeping: leave no folder that blocks the rerun or holds the failed
+            # config. Before the first checkpoint, a failure is almost always a value of the entry
+            # (a callback's method name, a policy option): one line, naming it.
+            _discard(out, created)
+            first = str(error).strip().splitlines()[0] if str(error).strip() else ""
+            raise UserError(
+                f"training failed at step {model.num_timesteps}: {type(error).__name__}: {first} "
+                f"(nothing was kept in {str(out)!r}; fix the config and run the command again)"
+            ) from error
+        raise
+    save_checkpoint(model, out / "checkpoints")
+    elapsed = time.time() - start
+    record["wall_time_s"] = record.get("wall_time_s", 0.0) + elapsed
+    record["num_timesteps"] = int(model.num_timesteps)
+    record["best_mean_reward"] = float(eval_callback.best_mean_reward)
+    record["sessions"].append({"started": start, "wall_time_s": elapsed, "steps_until": int(model.num_timesteps)})
+    (out / "run.json").write_text(json.dumps(record, indent=2))
+    train_env.close()
+    eval_env.close()
     if interrupted:
         print(f"sb3-graph train: interrupted at step {model.num_timesteps}; continue with --resume", file=sys.stderr)
         return 130

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from sb3_graph.cli import UserError
+from sb3_graph.commands.arguments import check_device, json_object
 
 DEFAULT_STORAGE = "sqlite:///studies/{study}.db"
 # Environment ids with a domain plug-in in this repository: prefix -> (evaluator, env preset).
@@ -56,7 +57,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="module:attribute, a dict or function giving the reduced env kwargs, or none "
         "(default for CoopIntersection*: envs.tuning:tuning_env_kwargs, the 'tuning' preset)",
     )
-    parser.add_argument("--env-kwargs", type=json.loads, default=None, help="JSON dict merged over the preset")
+    parser.add_argument("--env-kwargs", type=json_object, default=None, help="JSON dict merged over the preset")
     parser.add_argument("--pruner", choices=("median", "none"), default="median", help="pruner of the flow objective")
     parser.add_argument("--population-size", type=int, default=10, help="NSGA-II population (pareto)")
     parser.add_argument("--seed", type=int, default=0, help="base training seed (trial k uses seed + k)")
@@ -101,17 +102,6 @@ def _preset(args: argparse.Namespace) -> dict[str, Any]:
     return value
 
 
-def _merge(base: dict[str, Any], update: dict[str, Any]) -> dict[str, Any]:
-    """Merge env kwargs, one level deep into ``config`` (highway-env's configuration dict)."""
-    merged = dict(base)
-    for key, value in update.items():
-        if isinstance(value, dict) and isinstance(merged.get(key), dict):
-            merged[key] = {**merged[key], **value}
-        else:
-            merged[key] = value
-    return merged
-
-
 def prepare(args: argparse.Namespace):
     """Check the options, read the entry, probe the env: everything a worker needs, or a UserError.
 
@@ -121,7 +111,15 @@ def prepare(args: argparse.Namespace):
 
     import gymnasium as gym
 
-    from sb3_graph.experiment import ExperimentError, read_experiment
+    from sb3_graph.experiment import (
+        ExperimentError,
+        build_algorithm_kwargs,
+        build_callbacks,
+        check_entry,
+        merge_env_kwargs,
+        read_experiment,
+        resolve_object,
+    )
     from sb3_graph.tuning.objectives import make_objective
     from sb3_graph.tuning.runner import TrialSettings, resolve_callable
     from sb3_graph.tuning.search_space import WEIGHTS_KEY, weights_in
@@ -133,12 +131,23 @@ def prepare(args: argparse.Namespace):
         raise UserError(f"--weight-spread must be > 1 (a factor each way), got {args.weight_spread}")
     if args.max_retry < 0:
         raise UserError(f"--max-retry must be >= 0, got {args.max_retry}")
+    if args.seed < 0:
+        raise UserError(f"--seed must be >= 0, got {args.seed}")
+    if args.timesteps is not None and args.timesteps < 1:
+        raise UserError(f"--timesteps must be at least 1, got {args.timesteps}")
+    check_device(args.device)
     try:
         objective = make_objective(args.objective, args.max_collision_rate)
     except ValueError as error:
         raise UserError(f"--objective/--max-collision-rate: {error}") from error
     try:
-        entry = read_experiment(args.config, args.env)
+        entry = check_entry(read_experiment(args.config, args.env))
+        # Every value that a trial turns into an object, checked once here (a typo fails the
+        # command, not every trial): no expression is evaluated, see sb3_graph.safe_values.
+        build_algorithm_kwargs(entry, 1)
+        build_callbacks(entry)
+        if isinstance(entry.get("policy"), str) and "." in entry["policy"]:
+            resolve_object(entry["policy"], "policy")
     except ExperimentError as error:
         raise UserError(str(error)) from error
     timesteps = int(float(args.timesteps if args.timesteps is not None else entry["n_timesteps"]))
@@ -167,7 +176,7 @@ def prepare(args: argparse.Namespace):
         raise UserError(str(error)) from error
 
     original_env_kwargs = dict(entry.get("env_kwargs") or {})
-    env_kwargs = _merge(_merge(original_env_kwargs, _preset(args)), dict(args.env_kwargs or {}))
+    env_kwargs = merge_env_kwargs(merge_env_kwargs(original_env_kwargs, _preset(args)), dict(args.env_kwargs or {}))
     try:
         probe = gym.make(args.env, **env_kwargs)
     except (TypeError, ValueError) as error:
@@ -333,4 +342,20 @@ def run(args: argparse.Namespace) -> int:
         f"sb3-graph tune: study {args.study_name!r} in {redact(storage_url(args))}: {len(trials)} trials "
         f"({len(trials) - before} new; {summary})"
     )
-    return 0
+    return _all_failed(sorted(trials, key=lambda t: t.number)[before:])
+
+
+def _all_failed(new_trials) -> int:
+    """Exit status 1 with the first trial's error when every new trial failed, else 0."""
+    import optuna
+
+    if not new_trials or any(t.state != optuna.trial.TrialState.FAIL for t in new_trials):
+        return 0
+    first = new_trials[0]
+    reason = first.user_attrs.get("reason") or first.system_attrs.get("fail_reason") or "no reason recorded"
+    print(
+        f"sb3-graph tune: error: all {len(new_trials)} new trials failed; trial {first.number}: "
+        f"{str(reason).splitlines()[0]}",
+        file=sys.stderr,
+    )
+    return 1

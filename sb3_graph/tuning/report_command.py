@@ -36,8 +36,11 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.exists() and any(out.iterdir()) and not args.overwrite:
         raise UserError(f"--out: {str(out)!r} already holds files; choose a new folder or pass --overwrite")
-    storage = make_storage(url)
-    names = optuna.get_all_study_names(storage)
+    try:
+        storage = make_storage(url)
+        names = optuna.get_all_study_names(storage)
+    except (ValueError, OSError) as error:  # StorageURLError: unreachable server, missing driver
+        raise UserError(f"--storage: {error}") from None
     if args.study_name not in names:
         raise UserError(f"--study-name: no study {args.study_name!r} in {redact(url)}; studies: {names or 'none'}")
     optuna.logging.set_verbosity(optuna.logging.WARNING)

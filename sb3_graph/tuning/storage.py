@@ -152,13 +152,13 @@ def make_storage(
             callback = RetryHeartbeatStaleTrialCallback(max_retry=max_retry)
     if kind == "journal":
         path = Path(url[len("journal://") :])
-        path.parent.mkdir(parents=True, exist_ok=True)
+        _make_folder(path.parent, url)
         # The open()-based lock works on file systems without symlinks (and on most NFS setups).
         backend = JournalFileBackend(str(path), lock_obj=JournalFileOpenLock(str(path)))
         grace = grace_period if grace_period is not None else 2 * int(heartbeat_interval)
         return HeartbeatJournalStorage(backend, int(heartbeat_interval), grace, callback)
     if kind == "sqlite":
-        sqlite_path(url).parent.mkdir(parents=True, exist_ok=True)
+        _make_folder(sqlite_path(url).parent, url)
         engine_kwargs = {"connect_args": {"timeout": SQLITE_TIMEOUT_S}}
     else:
         url = postgres_driver_url(url)
@@ -184,6 +184,15 @@ def make_storage(
                 first = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
                 raise StorageURLError(f"cannot open storage {redact(url)!r}: {first}") from error
     raise AssertionError("unreachable")
+
+
+def _make_folder(folder: Path, url: str) -> None:
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise StorageURLError(
+            f"cannot open storage {redact(url)!r}: cannot create folder {str(folder)!r} ({error.strerror or error})"
+        ) from None
 
 
 def postgres_driver_url(url: str) -> str:

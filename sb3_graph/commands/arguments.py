@@ -1,0 +1,56 @@
+"""Argument types and checks that several commands share (each error names its flag)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from typing import Any
+
+from sb3_graph.cli import UserError
+
+
+def json_object(text: str) -> dict[str, Any]:
+    """``argparse`` type of ``--env-kwargs``: a JSON object.
+
+    :raises argparse.ArgumentTypeError: invalid JSON, or JSON that is not an object
+    """
+    try:
+        value = json.loads(text)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(f"not valid JSON ({error})") from None
+    if not isinstance(value, dict):
+        raise argparse.ArgumentTypeError(
+            f"""must be a JSON object such as '{{"config": {{"duration": 60}}}}', got {text!r}"""
+        )
+    return value
+
+
+json_object.__name__ = "JSON object"  # argparse names the type in its messages
+
+
+def finite_float(text: str) -> float:
+    """``argparse`` type: a finite number (``inf`` and ``nan`` are refused)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
+    return value
+
+
+def check_device(device: str, flag: str = "--device") -> str:
+    """A torch device name that torch understands (``auto`` too).
+
+    :raises UserError: naming the flag and the accepted forms
+    """
+    if device == "auto":
+        return device
+    import torch as th
+
+    try:
+        th.device(device)
+    except (RuntimeError, TypeError, ValueError):
+        raise UserError(f"{flag}: {device!r} is not a torch device (auto, cpu, cuda, cuda:0, mps ...)") from None
+    return device

@@ -1,0 +1,64 @@
+"""``sb3-graph export``: write a model's policy as a weights-only policy file that cannot run code.
+
+Example::
+
+    sb3-graph export runs/4way/best_model.zip planners/4way.safetensors
+
+The output holds the policy's tensors (safetensors) and, in the file's metadata, the JSON that
+rebuilds it: algorithm, policy class (from an allow-list), policy keyword arguments, observation and
+action spaces (see :mod:`sb3_graph.weights`). ``sb3-graph evaluate --planner`` and ``sb3-graph ind
+--planner`` take it like a ``.zip``. The ``.zip`` is read without unpickling; a file that cannot be
+read that way is exported only with ``--trust-planner-files`` (SB3's full ``load``, which runs the
+pickles in the file: only for files you made yourself).
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from sb3_graph.cli import UserError
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``sb3-graph export``."""
+    parser.add_argument("model", help="saved model (.zip written by model.save) or a .safetensors policy file")
+    parser.add_argument("out", help="the policy file to write (.safetensors; must not exist)")
+    parser.add_argument(
+        "--trust-planner-files",
+        action="store_true",
+        help="read the .zip with SB3's full load, which runs the pickled code inside it (your own files only)",
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the command (see the module docstring)."""
+    from sb3_graph.outputs import OutputError, write_file_atomically
+    from sb3_graph.weights import SUFFIX, PolicyFileError, load_policy, save_policy
+
+    model, out = Path(args.model), Path(args.out)
+    if out.suffix != SUFFIX:
+        raise UserError(f"OUT: {str(out)!r} must end with {SUFFIX}")
+    if out.exists():
+        raise UserError(f"OUT: {str(out)!r} exists; choose a new file name")
+    if not model.is_file():
+        raise UserError(f"MODEL: {str(model)!r} is not a file")
+    try:
+        loaded = load_policy(model, device="cpu", trust=args.trust_planner_files)
+    except PolicyFileError as error:
+        raise UserError(f"MODEL: {error}") from None
+    description = loaded.description
+    try:
+        write_file_atomically(
+            out,
+            lambda path: save_policy(loaded.policy, path, description.algorithm, description.source),
+            flag="OUT",
+        )
+    except (OutputError, PolicyFileError) as error:
+        raise UserError(str(error)) from None
+    count = sum(int(p.numel()) for p in loaded.policy.parameters())
+    print(
+        f"sb3-graph export: {description.algorithm} {description.policy_class} ({count:,} parameters) "
+        f"from {model} to {out}"
+    )
+    return 0

@@ -1,0 +1,102 @@
+"""The weights-only policy format and the safe reader of SB3 zips give the policy that was saved."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch as th
+import torch.nn as nn
+
+from sb3_graph import TD3, GraphPolicy
+from sb3_graph.toy_envs import MaxNeighbourEnv
+from sb3_graph.weights import (
+    POLICY_REGISTRY,
+    PolicyFileError,
+    kwargs_from_json,
+    kwargs_to_json,
+    load_policy,
+    pickled_class_reference,
+    read_sb3_zip,
+    register_policy,
+    save_policy,
+    space_from_json,
+    space_to_json,
+)
+
+
+@pytest.fixture(scope="module")
+def model():
+    th.set_num_threads(1)
+    kwargs = {"encoder_dim": 8, "conv_dims": (8, 4), "activation_fn": nn.Tanh, "pooling": "mean"}
+    return TD3(GraphPolicy, MaxNeighbourEnv(), buffer_size=10, seed=0, policy_kwargs=kwargs)
+
+
+def _same_actions(a, b, space):
+    for seed in range(3):
+        space.seed(seed)
+        obs = space.sample()
+        np.testing.assert_array_equal(a.predict(obs, deterministic=True)[0], b.predict(obs, deterministic=True)[0])
+
+
+def test_weights_file_round_trip(model, tmp_path):
+    path = save_policy(model.policy, tmp_path / "p.safetensors", "TD3", {"note": "test"})
+    loaded = load_policy(path)
+    assert loaded.description.policy_kwargs["activation_fn"] == {"class": "torch.nn.modules.activation.Tanh"}
+    assert loaded.description.source == {"note": "test"}
+    assert type(loaded.policy.actor.trunk.activation) is nn.Tanh
+    _same_actions(model.policy, loaded.policy, model.observation_space)
+
+
+def test_sb3_zip_read_without_unpickling_gives_the_same_policy(model, tmp_path):
+    model.save(tmp_path / "m.zip")  # policy_kwargs holds a class: SB3 pickles the whole dict
+    description, state = read_sb3_zip(tmp_path / "m.zip")
+    assert description.policy_kwargs["activation_fn"] == {"class": "torch.nn.modules.activation.Tanh"}
+    assert description.source["file"] == "m.zip"
+    _same_actions(model.policy, load_policy(tmp_path / "m.zip").policy, model.observation_space)
+
+
+def test_spaces_and_kwargs_as_json(model):
+    for space in (model.observation_space, model.action_space):
+        assert space_from_json(space_to_json(space)) == space
+    kwargs = {"a": [1, (2, 3)], "act": nn.ReLU, "opt": th.optim.Adam, "n": None}
+    assert kwargs_from_json(kwargs_to_json(kwargs)) == {"a": [1, [2, 3]], "act": nn.ReLU, "opt": th.optim.Adam,
+                                                        "n": None}  # fmt: skip
+    with pytest.raises(PolicyFileError, match="outside"):
+        kwargs_to_json({"bad": __import__("collections").OrderedDict})
+    with pytest.raises(ValueError, match="outside"):
+        kwargs_from_json({"bad": {"class": "os.system"}})
+
+
+def test_class_references_are_read_from_opcodes_only():
+    import base64
+    import pickle
+
+    assert pickled_class_reference(base64.b64encode(pickle.dumps(GraphPolicy)).decode()) == (
+        "sb3_graph.policies",
+        "GraphPolicy",
+    )
+    assert pickled_class_reference(base64.b64encode(pickle.dumps(GraphPolicy, protocol=2)).decode()) == (
+        "sb3_graph.policies",
+        "GraphPolicy",
+    )
+    for other in (pickle.dumps({"a": GraphPolicy}), pickle.dumps(print), b"not a pickle"):
+        reference = pickled_class_reference(base64.b64encode(other).decode())
+        assert reference is None or reference == ("builtins", "print")
+
+
+def test_registry_is_per_algorithm(tmp_path, model):
+    assert POLICY_REGISTRY["TD3"] == {"GraphPolicy": "sb3_graph.policies:GraphPolicy"}
+    register_policy("SAC", "GraphPolicy", "sb3_graph.policies:GraphPolicy")
+    try:
+        assert "SAC" in POLICY_REGISTRY
+    finally:
+        POLICY_REGISTRY.pop("SAC")
+    path = save_policy(model.policy, tmp_path / "p.safetensors", "TD3")
+    from safetensors import safe_open
+    from safetensors.torch import save_file
+
+    with safe_open(str(path), "pt") as handle:
+        metadata, tensors = handle.metadata(), {k: handle.get_tensor(k) for k in handle.keys()}
+    save_file(tensors, str(tmp_path / "q.safetensors"), {"sb3_graph": metadata["sb3_graph"].replace("TD3", "PPO")})
+    with pytest.raises(PolicyFileError, match="PPO/GraphPolicy is not an allowed planner policy"):
+        load_policy(tmp_path / "q.safetensors")
