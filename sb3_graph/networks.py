@@ -86,6 +86,23 @@ def graph_net_kwargs(
     )
 
 
+class GraphPolicyParameters:
+    """Mixin of the off-policy graph policies: their saved constructor parameters are the graph
+    network's (``graph_kwargs``, ``pooling``, ``use_edge_features``) in place of SB3's ``net_arch``.
+    Put it before the SB3 policy class in the bases."""
+
+    graph_kwargs: dict[str, Any]
+    pooling: str
+    use_edge_features: bool
+
+    def _get_constructor_parameters(self) -> dict[str, Any]:
+        data = super()._get_constructor_parameters()  # type: ignore[misc]
+        data.pop("net_arch", None)
+        data.update({k: v for k, v in self.graph_kwargs.items() if k != "edge_dim"})
+        data.update(pooling=self.pooling, use_edge_features=self.use_edge_features)
+        return data
+
+
 class GraphTrunk(nn.Module):
     """Vertex encoder (one dense layer shared by all vertices) followed by relational convolutions,
     each followed by the activation.

@@ -37,7 +37,7 @@ from torch import Tensor, nn
 
 from sb3_graph.batching import GraphBatch, as_graph_batch, gather_vertex_values
 from sb3_graph.layers import relational_conv
-from sb3_graph.networks import GraphTrunk, _activate, graph_dims, graph_net_kwargs, pool_graphs
+from sb3_graph.networks import GraphPolicyParameters, GraphTrunk, _activate, graph_dims, graph_net_kwargs, pool_graphs
 from sb3_graph.sac.policies import GraphSACActor, _no_sde
 
 
@@ -187,7 +187,7 @@ class GraphCrossQCritic(BaseModel):
                 module.train(mode)
 
 
-class GraphCrossQPolicy(CrossQPolicy):
+class GraphCrossQPolicy(GraphPolicyParameters, CrossQPolicy):
     """CrossQ policy (sb3-contrib) with the graph actor of :class:`~sb3_graph.GraphSACPolicy` and
     :class:`GraphCrossQCritic` critics; see the module docstring for how batch renormalization
     treats ragged batches.
@@ -287,13 +287,6 @@ class GraphCrossQPolicy(CrossQPolicy):
             n_critics=n_critics,
             share_features_extractor=False,
         )
-
-    def _get_constructor_parameters(self) -> dict[str, Any]:
-        data = super()._get_constructor_parameters()
-        data.pop("net_arch", None)
-        data.update({k: v for k, v in self.graph_kwargs.items() if k != "edge_dim"})
-        data.update(pooling=self.pooling, use_edge_features=self.use_edge_features)
-        return data
 
     def make_actor(self, features_extractor: Any = None) -> GraphSACActor:  # type: ignore[override]
         return GraphSACActor(self.observation_space, self.action_space, **self.graph_kwargs).to(self.device)

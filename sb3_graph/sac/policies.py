@@ -22,7 +22,7 @@ from torch import Tensor, nn
 
 from sb3_graph.batching import GraphBatch, as_graph_batch, batch_to_padded
 from sb3_graph.distributions import LOG_STD_MAX, LOG_STD_MIN, squashed_sample, sum_per_graph
-from sb3_graph.networks import GraphCritic, GraphTrunk, graph_dims, graph_net_kwargs
+from sb3_graph.networks import GraphCritic, GraphPolicyParameters, GraphTrunk, graph_dims, graph_net_kwargs
 
 
 class GraphSACActor(BasePolicy):
@@ -119,7 +119,7 @@ def _no_sde(use_sde: bool, owner: str) -> None:
         raise ValueError(f"{owner}: use_sde=True (gSDE) is not supported by the graph actor; use use_sde=False")
 
 
-class GraphSACPolicy(SACPolicy):
+class GraphSACPolicy(GraphPolicyParameters, SACPolicy):
     """SAC policy with a relational GNN actor (per-vertex squashed Gaussian) and graph critics.
 
     The critics are TD3's graph critics (:class:`~sb3_graph.networks.GraphCritic`): each vertex's
@@ -212,13 +212,6 @@ class GraphSACPolicy(SACPolicy):
             n_critics=n_critics,
             share_features_extractor=False,
         )
-
-    def _get_constructor_parameters(self) -> dict[str, Any]:
-        data = super()._get_constructor_parameters()
-        data.pop("net_arch", None)
-        data.update({k: v for k, v in self.graph_kwargs.items() if k != "edge_dim"})
-        data.update(pooling=self.pooling, use_edge_features=self.use_edge_features)
-        return data
 
     def make_actor(self, features_extractor: Any = None) -> GraphSACActor:  # type: ignore[override]
         return GraphSACActor(self.observation_space, self.action_space, **self.graph_kwargs).to(self.device)

@@ -19,7 +19,7 @@ from stable_baselines3.td3.policies import TD3Policy
 from torch import Tensor, nn
 
 from sb3_graph.batching import GraphBatch, as_graph_batch, batch_to_padded
-from sb3_graph.networks import GraphCritic, GraphTrunk, graph_dims, graph_net_kwargs
+from sb3_graph.networks import GraphCritic, GraphPolicyParameters, GraphTrunk, graph_dims, graph_net_kwargs
 
 
 class GraphActor(BasePolicy):
@@ -93,7 +93,7 @@ class GraphActor(BasePolicy):
         return self(observation)
 
 
-class GraphPolicy(TD3Policy):
+class GraphPolicy(GraphPolicyParameters, TD3Policy):
     """TD3 (and DDPG) policy with relational graph neural network actor and critics (Klimke et al. 2022).
 
     Defaults: vertex encoder 64, two relational convolutions 64 -> 64 with max aggregation per
@@ -175,13 +175,6 @@ class GraphPolicy(TD3Policy):
             n_critics=n_critics,
             share_features_extractor=share_features_extractor,
         )
-
-    def _get_constructor_parameters(self) -> dict[str, Any]:
-        data = super()._get_constructor_parameters()
-        data.pop("net_arch", None)
-        data.update({k: v for k, v in self.graph_kwargs.items() if k != "edge_dim"})
-        data.update(pooling=self.pooling, use_edge_features=self.use_edge_features)
-        return data
 
     def make_actor(self, features_extractor: Any = None) -> GraphActor:  # type: ignore[override]
         return GraphActor(self.observation_space, self.action_space, **self.graph_kwargs).to(self.device)

@@ -13,7 +13,7 @@ from stable_baselines3.common.type_aliases import Schedule
 from torch import Tensor, nn
 
 from sb3_graph.batching import GraphBatch
-from sb3_graph.networks import GraphCritic, graph_dims, graph_net_kwargs
+from sb3_graph.networks import GraphCritic, GraphPolicyParameters, graph_dims, graph_net_kwargs
 from sb3_graph.sac.policies import GraphSACActor, _no_sde
 
 
@@ -49,7 +49,7 @@ class GraphQuantileCritic(GraphCritic):
         return torch.stack(super().forward(obs, actions), dim=1)
 
 
-class GraphTQCPolicy(TQCPolicy):
+class GraphTQCPolicy(GraphPolicyParameters, TQCPolicy):
     """TQC policy (sb3-contrib) with the graph actor of :class:`~sb3_graph.GraphSACPolicy` (per-vertex
     squashed Gaussian) and :class:`GraphQuantileCritic` critics.
 
@@ -140,13 +140,6 @@ class GraphTQCPolicy(TQCPolicy):
             n_critics=n_critics,
             share_features_extractor=False,
         )
-
-    def _get_constructor_parameters(self) -> dict[str, Any]:
-        data = super()._get_constructor_parameters()
-        data.pop("net_arch", None)
-        data.update({k: v for k, v in self.graph_kwargs.items() if k != "edge_dim"})
-        data.update(pooling=self.pooling, use_edge_features=self.use_edge_features)
-        return data
 
     def make_actor(self, features_extractor: Any = None) -> GraphSACActor:  # type: ignore[override]
         return GraphSACActor(self.observation_space, self.action_space, **self.graph_kwargs).to(self.device)
