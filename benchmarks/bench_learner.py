@@ -7,7 +7,9 @@ in a ``GraphSpace(max_nodes=64, max_edges=1024)``; the MLP sees the padded obser
 (defaults). Batch 256 for the off-policy algorithms, from a replay buffer of 2,000 transitions.
 PPO: one epoch over a rollout of 2,048 transitions in minibatches of 256 (a "step" is one
 minibatch update). The graph learners use the graph buffers (ragged storage); the MLP learners
-SB3's buffers. Target (TD3): the graph learner within 5x of the MLP learner. Also times the TD3
+SB3's buffers. The two learners of an algorithm are timed in turns (best of 3 runs each), so that
+a change of the machine's load hits both. Target (TD3): the graph learner within 5x of the MLP
+learner. Also times the TD3
 graph learner with 1 and 2 torch threads; ``--profile`` adds its operator breakdown
 (torch.profiler, self CPU time of 10 gradient steps).
 """
@@ -24,9 +26,9 @@ from graph_bench_utils import (
     PaperScaleGraphEnv,
     _null_logger,
     fill,
+    interleaved_rates,
     machine_line,
     markdown_table,
-    rate,
     threads_table,
 )
 from gymnasium.spaces.utils import flatten, flatten_space
@@ -42,11 +44,19 @@ OFF_POLICY = ("TD3", "DDPG", "SAC", "TQC", "CrossQ")
 ON_POLICY = ("PPO",)
 
 
-def steps_per_second(model, min_seconds: float) -> float:
+def training_call(model) -> tuple:
+    """A call that trains ``model`` and the number of gradient steps (minibatch updates) it makes."""
     model.set_logger(_null_logger())
     if hasattr(model, "rollout_buffer"):  # one epoch over the rollout: ROLLOUT / BATCH updates
-        return rate(model.train, min_seconds) * (ROLLOUT // BATCH)
-    return rate(lambda: model.train(gradient_steps=2, batch_size=BATCH), min_seconds) * 2
+        return model.train, ROLLOUT // BATCH
+    return (lambda: model.train(gradient_steps=2, batch_size=BATCH)), 2
+
+
+def steps_per_second(models: list, min_seconds: float) -> list[float]:
+    """Gradient steps per second of each model, timed in turns (see ``interleaved_rates``)."""
+    calls = [training_call(m) for m in models]
+    rates = interleaved_rates([call for call, _ in calls], min_seconds)
+    return [r * steps for r, (_, steps) in zip(rates, calls)]
 
 
 def fill_rollout(buffer, env: PaperScaleGraphEnv, transform=None) -> None:
@@ -113,22 +123,16 @@ def main() -> None:
     env = PaperScaleGraphEnv()
     rows = []
     for name in args.algos:
-        graph, mlp = make_learners(name, env)
-        graph_rate = steps_per_second(graph, args.seconds)
-        mlp_rate = steps_per_second(mlp, args.seconds)
+        graph_rate, mlp_rate = steps_per_second(list(make_learners(name, env)), args.seconds)
         rows.append([name, f"{graph_rate:.1f}", f"{mlp_rate:.1f}", f"{mlp_rate / graph_rate:.1f}"])
         print(f"{name}: graph {graph_rate:.1f}, MLP {mlp_rate:.1f} steps/s", flush=True)
     if "TD3" in args.algos:
+        graph = TD3("GraphPolicy", env, buffer_size=FILL, batch_size=BATCH, seed=0)
         graph_dict = stable_baselines3.TD3(GraphPolicy, env, buffer_size=FILL, seed=0)
-        fill([graph_dict.replay_buffer], env, FILL)
-        rows.append(
-            [
-                "TD3, graph policy with SB3's padded DictReplayBuffer",
-                f"{steps_per_second(graph_dict, args.seconds):.1f}",
-                "",
-                "",
-            ]
-        )
+        fill([graph.replay_buffer, graph_dict.replay_buffer], env, FILL)
+        ours, padded = steps_per_second([graph, graph_dict], args.seconds)
+        rows.append(["TD3, graph policy + GraphReplayBuffer (timed in turns with the next row)", f"{ours:.1f}", "", ""])
+        rows.append(["TD3, graph policy + SB3's padded DictReplayBuffer", f"{padded:.1f}", "", ""])
     inputs = flatten_space(env.observation_space).shape[0]
     print(f"\n## Learner speed (batch {BATCH}, ~20 vertices / ~60 edges, hidden 64, 1 torch thread)\n")
     print(machine_line() + "\n")

@@ -70,7 +70,7 @@ def main() -> None:
         print(f"{name}: error {error:.3f}, {elapsed:.0f} s", flush=True)
     print(f"\n## Toy graph task (GraphMaxNeighbour-v0), seed {args.seed}\n")
     print(machine_line() + "\n")
-    print(markdown_table(["algorithm", "env steps", "mean |error| per vertex", "wall time [s]"], rows))
+    print(markdown_table(["algorithm", "env steps", "mean absolute error per vertex", "wall time [s]"], rows))
 
 
 if __name__ == "__main__":

@@ -91,6 +91,23 @@ def rate(function: Callable[[], Any], min_seconds: float = 1.0, repeats: int = 3
     return best
 
 
+def interleaved_rates(functions: list[Callable[[], Any]], min_seconds: float = 1.0, repeats: int = 3) -> list[float]:
+    """Calls per second of each function, best of ``repeats`` runs, the functions taking turns run by
+    run: on a machine shared with other work, a load change then hits all of them alike instead
+    of whichever happened to run at the time."""
+    for function in functions:
+        function()  # warm-up
+    best = [0.0] * len(functions)
+    for _ in range(repeats):
+        for k, function in enumerate(functions):
+            calls, start = 0, time.perf_counter()
+            while (elapsed := time.perf_counter() - start) < min_seconds:
+                function()
+                calls += 1
+            best[k] = max(best[k], calls / elapsed)
+    return best
+
+
 def graph_td3_steps_per_second(threads: int, min_seconds: float = 1.5, fill_count: int = 2000) -> float:
     """TD3 gradient steps per second (batch 256) with GraphPolicy + GraphReplayBuffer."""
     from sb3_graph import TD3

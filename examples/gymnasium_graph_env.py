@@ -5,8 +5,9 @@ SB3 alone rejects a ``Graph`` observation space before any policy is built (SB3 
 
     python examples/gymnasium_graph_env.py --steps 20000
 
-prints the mean error per vehicle of a random policy and of the trained one (about 1 minute on one
-core for 20,000 steps).
+prints the mean error per vehicle of a random policy and of the trained one. One run on the
+development machine (2 shared cores, busy with other work): random 0.594, PPO after 20,000 steps
+0.044, in 300 s of training.
 """
 
 from __future__ import annotations

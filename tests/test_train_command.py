@@ -190,7 +190,9 @@ def test_off_policy_zoo_configs_train(tmp_path, algo):
     acts(out / "final_model.zip", cls)
 
 
-@pytest.mark.parametrize("algo", ["sac", "ppo"])
+# PPO runs by default (rl-zoo3 builds stock PPO with SB3's padded DictRolloutBuffer); SAC takes
+# the path of the TD3 test above, so it is left to the slow run.
+@pytest.mark.parametrize("algo", [pytest.param("sac", marks=pytest.mark.slow), "ppo"])
 def test_rl_zoo3_runs_the_other_experiment_files(tmp_path, algo):
     pytest.importorskip("rl_zoo3")
     params = ["learning_starts:64", "batch_size:16", "buffer_size:1000"] if algo == "sac" else [
