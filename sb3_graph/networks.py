@@ -95,6 +95,34 @@ class GraphPolicyParameters:
     pooling: str
     use_edge_features: bool
 
+    def _set_graph_kwargs(
+        self,
+        observation_space: spaces.Space,
+        policy_name: str,
+        encoder_dim: int,
+        conv_dims: Sequence[int],
+        aggregation: str,
+        activation_fn: type[nn.Module],
+        use_edge_features: bool,
+        net_arch: Any,
+        pooling: str,
+    ) -> None:
+        """Check the graph network's options and keep them (read by ``make_actor``/``make_critic``,
+        which the SB3 policy's ``__init__`` calls: call this before it)."""
+        self.graph_kwargs = graph_net_kwargs(
+            observation_space,
+            policy_name,
+            encoder_dim,
+            conv_dims,
+            aggregation,
+            activation_fn,
+            use_edge_features,
+            net_arch=net_arch,
+            pooling=pooling,
+        )
+        self.pooling = pooling
+        self.use_edge_features = use_edge_features
+
     def _get_constructor_parameters(self) -> dict[str, Any]:
         data = super()._get_constructor_parameters()  # type: ignore[misc]
         data.pop("net_arch", None)

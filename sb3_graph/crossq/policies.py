@@ -37,7 +37,7 @@ from torch import Tensor, nn
 
 from sb3_graph.batching import GraphBatch, as_graph_batch, gather_vertex_values
 from sb3_graph.layers import relational_conv
-from sb3_graph.networks import GraphPolicyParameters, GraphTrunk, _activate, graph_dims, graph_net_kwargs, pool_graphs
+from sb3_graph.networks import GraphPolicyParameters, GraphTrunk, _activate, graph_dims, pool_graphs
 from sb3_graph.sac.policies import GraphSACActor, _no_sde
 
 
@@ -252,19 +252,10 @@ class GraphCrossQPolicy(GraphPolicyParameters, CrossQPolicy):
     ) -> None:
         graph_dims(observation_space, action_space)
         _no_sde(use_sde, "GraphCrossQPolicy")
-        self.graph_kwargs = graph_net_kwargs(
-            observation_space,
-            "GraphCrossQPolicy",
-            encoder_dim,
-            conv_dims,
-            aggregation,
-            activation_fn,
-            use_edge_features,
-            net_arch=net_arch,
-            pooling=pooling,
-        )
-        self.pooling = pooling
-        self.use_edge_features = use_edge_features
+        self._set_graph_kwargs(
+            observation_space, "GraphCrossQPolicy", encoder_dim, conv_dims, aggregation, activation_fn,
+            use_edge_features, net_arch, pooling,
+        )  # fmt: skip
         super().__init__(
             observation_space,
             action_space,

@@ -22,7 +22,7 @@ from torch import Tensor, nn
 
 from sb3_graph.batching import GraphBatch, as_graph_batch, batch_to_padded
 from sb3_graph.distributions import LOG_STD_MAX, LOG_STD_MIN, squashed_sample, sum_per_graph
-from sb3_graph.networks import GraphCritic, GraphPolicyParameters, GraphTrunk, graph_dims, graph_net_kwargs
+from sb3_graph.networks import GraphCritic, GraphPolicyParameters, GraphTrunk, graph_dims
 
 
 class GraphSACActor(BasePolicy):
@@ -181,19 +181,10 @@ class GraphSACPolicy(GraphPolicyParameters, SACPolicy):
     ) -> None:
         graph_dims(observation_space, action_space)
         _no_sde(use_sde, "GraphSACPolicy")
-        self.graph_kwargs = graph_net_kwargs(
-            observation_space,
-            "GraphSACPolicy",
-            encoder_dim,
-            conv_dims,
-            aggregation,
-            activation_fn,
-            use_edge_features,
-            net_arch=net_arch,
-            pooling=pooling,
-        )
-        self.pooling = pooling
-        self.use_edge_features = use_edge_features
+        self._set_graph_kwargs(
+            observation_space, "GraphSACPolicy", encoder_dim, conv_dims, aggregation, activation_fn, use_edge_features,
+            net_arch, pooling,
+        )  # fmt: skip
         super().__init__(
             observation_space,
             action_space,

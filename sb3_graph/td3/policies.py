@@ -19,7 +19,7 @@ from stable_baselines3.td3.policies import TD3Policy
 from torch import Tensor, nn
 
 from sb3_graph.batching import GraphBatch, as_graph_batch, batch_to_padded
-from sb3_graph.networks import GraphCritic, GraphPolicyParameters, GraphTrunk, graph_dims, graph_net_kwargs
+from sb3_graph.networks import GraphCritic, GraphPolicyParameters, GraphTrunk, graph_dims
 
 
 class GraphActor(BasePolicy):
@@ -148,19 +148,10 @@ class GraphPolicy(GraphPolicyParameters, TD3Policy):
     ) -> None:
         graph_dims(observation_space, action_space)
         # Read by make_actor / make_critic, which TD3Policy.__init__ calls.
-        self.graph_kwargs = graph_net_kwargs(
-            observation_space,
-            "GraphPolicy",
-            encoder_dim,
-            conv_dims,
-            aggregation,
-            activation_fn,
-            use_edge_features,
-            net_arch=net_arch,
-            pooling=pooling,
-        )
-        self.pooling = pooling
-        self.use_edge_features = use_edge_features
+        self._set_graph_kwargs(
+            observation_space, "GraphPolicy", encoder_dim, conv_dims, aggregation, activation_fn, use_edge_features,
+            net_arch, pooling,
+        )  # fmt: skip
         super().__init__(
             observation_space,
             action_space,

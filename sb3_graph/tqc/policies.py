@@ -13,7 +13,7 @@ from stable_baselines3.common.type_aliases import Schedule
 from torch import Tensor, nn
 
 from sb3_graph.batching import GraphBatch
-from sb3_graph.networks import GraphCritic, GraphPolicyParameters, graph_dims, graph_net_kwargs
+from sb3_graph.networks import GraphCritic, GraphPolicyParameters, graph_dims
 from sb3_graph.sac.policies import GraphSACActor, _no_sde
 
 
@@ -108,19 +108,10 @@ class GraphTQCPolicy(GraphPolicyParameters, TQCPolicy):
     ) -> None:
         graph_dims(observation_space, action_space)
         _no_sde(use_sde, "GraphTQCPolicy")
-        self.graph_kwargs = graph_net_kwargs(
-            observation_space,
-            "GraphTQCPolicy",
-            encoder_dim,
-            conv_dims,
-            aggregation,
-            activation_fn,
-            use_edge_features,
-            net_arch=net_arch,
-            pooling=pooling,
-        )
-        self.pooling = pooling
-        self.use_edge_features = use_edge_features
+        self._set_graph_kwargs(
+            observation_space, "GraphTQCPolicy", encoder_dim, conv_dims, aggregation, activation_fn, use_edge_features,
+            net_arch, pooling,
+        )  # fmt: skip
         super().__init__(
             observation_space,
             action_space,
