@@ -107,6 +107,10 @@ RULES: dict[str, Rule] = {
     ),
     "spawn_probability": _probability(),
     "initial_spawn_probability": _probability(),
+    "spawn_probability_range": Rule(
+        lambda x: x is None or (_range(0.0, strict=False).check(x) and x[1] <= 1),
+        "null or a pair [low, high] of probabilities with 0 <= low <= high <= 1",
+    ),
     "initial_speed_range": _range(0.0, strict=True),
     "max_acceleration": _positive(),
     "max_speed": _positive(),

@@ -89,6 +89,9 @@ class CoopIntersectionEnv(AbstractEnv):
         - ``edge_features``: edge features of the observation, any of ``["distance", "bearing"]``
           (default none; see :mod:`envs.scene_graph`)
         - ``spawn_probability``: training spawn probability per lane and step (paper: up to 0.05)
+        - ``spawn_probability_range``: ``None``, or ``[low, high]``: each training episode draws its
+          spawn probability uniformly from it (one planner for light and heavy traffic); it
+          replaces ``spawn_probability`` at every reset (use it without a curriculum)
         - ``initial_spawn_probability``: the same, for the spawn at reset (so episodes start busy)
         - ``initial_speed_range``: initial speed as fractions of the lane limit (paper: 0.6-1.0)
         - ``max_acceleration`` [m/s^2]: commands lie in ``[-max, max]`` (paper: 5)
@@ -119,6 +122,7 @@ class CoopIntersectionEnv(AbstractEnv):
             "max_edges": 1024,
             "edge_features": [],
             "spawn_probability": 0.05,
+            "spawn_probability_range": None,
             "initial_spawn_probability": 1.0,
             "initial_speed_range": [0.6, 1.0],
             "max_acceleration": 5.0,
@@ -214,9 +218,12 @@ class CoopIntersectionEnv(AbstractEnv):
             self._duration = scenario.duration
             entered = self.traffic.spawn(self.sim)
         else:
+            spawn_probability = cfg["spawn_probability"]
+            if cfg["spawn_probability_range"] is not None:
+                spawn_probability = float(self.np_random.uniform(*cfg["spawn_probability_range"]))
             self.traffic = TrainingTraffic(
                 self.layout,
-                spawn_probability=cfg["spawn_probability"],
+                spawn_probability=spawn_probability,
                 speed_range=tuple(cfg["initial_speed_range"]),
                 length=cfg["vehicle_length"],
                 width=cfg["vehicle_width"],

@@ -66,3 +66,17 @@ def test_error_lists_what_is_allowed():
         CoopIntersectionEnv(config={"spawn_probability": 2})
     with pytest.raises(ValueError, match="allowed keys"):
         CoopIntersectionEnv(config={"colour": "red"})
+
+
+def test_spawn_probability_range_draws_per_episode():
+    from envs.intersection_env import CoopIntersectionEnv
+
+    env = CoopIntersectionEnv(config={"spawn_probability_range": [0.01, 0.06]})
+    drawn = set()
+    for seed in range(5):
+        env.reset(seed=seed)
+        assert 0.01 <= env.traffic.spawn_probability <= 0.06
+        drawn.add(env.traffic.spawn_probability)
+    assert len(drawn) == 5
+    with pytest.raises(ValueError, match="spawn_probability_range"):
+        CoopIntersectionEnv(config={"spawn_probability_range": [0.5, 1.5]})
