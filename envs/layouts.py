@@ -136,6 +136,7 @@ class Layout:
     lateral_acceleration: float = DEFAULT_LATERAL_ACCELERATION
     route_index: dict[str, int] = field(default_factory=dict)
     _envelopes: dict[float, np.ndarray] = field(default_factory=dict, repr=False)
+    _envelopes_squared: dict[float, np.ndarray] = field(default_factory=dict, repr=False)
 
     def __post_init__(self) -> None:
         self.route_index = {name: i for i, name in enumerate(self.route_names)}
@@ -164,13 +165,16 @@ class Layout:
         The squared speed is interpolated linearly between samples: on a braking stretch it falls
         at exactly ``2 b`` per metre, so following the envelope takes deceleration ``b``.
         """
-        env = self.speed_envelope(deceleration)
-        last = env.shape[1] - 1
+        key = float(deceleration)
+        squared = self._envelopes_squared.get(key)
+        if squared is None:  # the speed governor calls this every sub-step: square the table once
+            squared = self._envelopes_squared[key] = self.speed_envelope(key) ** 2
+        last = squared.shape[1] - 1
         u = np.minimum(np.maximum(arc / self.ds, 0.0), last)
-        i0 = np.minimum(u.astype(np.int64), last - 1)
-        f = u - i0
-        sq0, sq1 = env[route, i0] ** 2, env[route, i0 + 1] ** 2
-        return np.minimum(np.sqrt(sq0 + (sq1 - sq0) * f), self.limit_at(route, arc))
+        k = u.astype(np.int64)  # the sample of limit_at: clipping before truncating gives the same index
+        i0 = np.minimum(k, last - 1)
+        sq0 = squared[route, i0]
+        return np.minimum(np.sqrt(sq0 + (squared[route, i0 + 1] - sq0) * (u - i0)), self.speed_limit[route, k])
 
     @property
     def num_routes(self) -> int:
@@ -198,16 +202,17 @@ class Layout:
     def pose(self, route: np.ndarray, arc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Positions and headings of points on routes (linear interpolation of the samples).
 
-        :param route: ``(n,)`` route indices
-        :param arc: ``(n,)`` arc lengths along the routes [m]
-        :return: ``(n, 2)`` positions and ``(n,)`` headings wrapped to ``(-pi, pi]``
+        :param route: ``(n,)`` route indices (or any shape that broadcasts against ``arc``)
+        :param arc: ``(n,)`` arc lengths along the routes [m] (or any shape, e.g. ``(times, n)``)
+        :return: ``(n, 2)`` positions and ``(n,)`` headings wrapped to ``(-pi, pi]`` (in general:
+            ``arc``'s shape plus 2, and ``arc``'s shape)
         """
         last = self.xy.shape[1] - 1
         u = np.minimum(np.maximum(arc / self.ds, 0.0), last)
         i0 = np.minimum(u.astype(np.int64), last - 1)
         f = u - i0
         p0, p1 = self.xy[route, i0], self.xy[route, i0 + 1]
-        xy = p0 + (p1 - p0) * f[:, None]
+        xy = p0 + (p1 - p0) * f[..., None]
         h0 = self.heading[route, i0]
         h = h0 + (self.heading[route, i0 + 1] - h0) * f
         return xy, (h + np.pi) % (2 * np.pi) - np.pi
@@ -218,8 +223,13 @@ class Layout:
         return self.speed_limit[route, i]
 
     def lane_at(self, route: np.ndarray, arc: np.ndarray) -> np.ndarray:
-        """Global lane id of points on routes (exact: compares with the lanes' start arcs)."""
-        k = (self.route_lane_starts[route] <= arc[:, None]).sum(axis=1) - 1
+        """Global lane id of points on routes (exact: compares with the lanes' start arcs).
+
+        :param route: ``(n,)`` route indices
+        :param arc: ``(n,)`` arc lengths, or ``(p, n)``: ``p`` points on each route (one comparison)
+        :return: lane ids of the shape of ``arc``
+        """
+        k = (self.route_lane_starts[route] <= arc[..., None]).sum(axis=-1) - 1
         return self.route_lane_ids[route, np.maximum(k, 0)]
 
 

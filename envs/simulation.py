@@ -327,20 +327,34 @@ class Simulation:
             if bump.any():
                 hits.append(np.sort(np.stack([follower[bump], leader[bump]], axis=1), axis=1))
         if cand_i.size:
-            rows = np.union1d(cand_i, cand_j)
-            m, times = rows.size, fine.shape[0]
-            pos, hd = self.layout.pose(np.tile(self.route[rows], times), fine[:, rows].ravel())
-            slot = np.zeros(self.num_vehicles, _INT)
-            slot[rows] = np.arange(m)
-            off = (np.arange(times) * m)[:, None]  # check time s at offset s * m
-            si, sj = (slot[cand_i] + off).ravel(), (slot[cand_j] + off).ravel()
-            length, width = np.tile(self.length[rows], times), np.tile(self.width[rows], times)
-            overlap = _sat_overlap(pos, hd, length, width, si, sj).reshape(times, -1).any(axis=0)
-            if overlap.any():
-                hits.append(np.stack([cand_i[overlap], cand_j[overlap]], axis=1))
+            # Poses of the vehicles in a candidate pair at every check time in one gather; the
+            # separating-axis test only where the circumscribed circles meet (a necessary condition).
+            rows, slot = np.unique(np.concatenate([cand_i, cand_j]), return_inverse=True)
+            p = cand_i.size
+            pos, hd = self.layout.pose(self.route[rows][None, :], fine[:, rows])  # (T, m, 2), (T, m)
+            si, sj = slot[:p], slot[p:]
+            delta = pos[:, sj] - pos[:, si]  # (T, p, 2)
+            radius = 0.5 * np.hypot(self.length, self.width)
+            reach = (radius[cand_i] + radius[cand_j]) ** 2 + 1e-9
+            near_t, near_p = np.nonzero(delta[..., 0] ** 2 + delta[..., 1] ** 2 <= reach)
+            if near_t.size:
+                i, j = cand_i[near_p], cand_j[near_p]
+                overlap = _sat_test(
+                    delta[near_t, near_p],
+                    hd[near_t, si[near_p]],
+                    hd[near_t, sj[near_p]],
+                    self.length[i],
+                    self.width[i],
+                    self.length[j],
+                    self.width[j],
+                )
+                if overlap.any():
+                    hits.append(np.stack([i[overlap], j[overlap]], axis=1))
         if not hits:
             return np.zeros((0, 2), _INT)
-        return np.unique(np.concatenate(hits), axis=0)
+        pairs = np.concatenate(hits)
+        code = np.unique(pairs[:, 0] * self.num_vehicles + pairs[:, 1])  # sorted like rows i < j
+        return np.stack([code // self.num_vehicles, code % self.num_vehicles], axis=1)
 
     # ------------------------------------------------------------------ geometry
     def pose(self) -> tuple[np.ndarray, np.ndarray]:
@@ -380,25 +394,23 @@ class Simulation:
         """
         return self._cached("leaders", self._leaders)
 
-    def _lanes(self) -> np.ndarray:
-        return self._cached("lanes", lambda: self.layout.lane_at(self.route, self.arc))
-
     def _leaders(self) -> tuple[np.ndarray, np.ndarray]:
         n = self.num_vehicles
         if n == 0:
             return np.zeros(0, _INT), np.zeros(0)
         lay = self.layout
-        lane = self._lanes()
-        into_lane = self.arc - lay.lane_start[self.route, lane]  # (n,)
-        x = lay.lane_start[self.route[:, None], lane[None, :]] + into_lane[None, :]  # (i, j): j on i's route
         # Where paths split (a turn pocket, a turn at the stop line) a vehicle that has just taken
         # the other branch still overlaps the shared path: it stays the leader until the point
-        # SPLIT_CLEARANCE behind its rear has passed the split too.
+        # SPLIT_CLEARANCE behind its rear has passed the split too. One lane lookup for both points.
         back_arc = self.arc - self.length / 2 - SPLIT_CLEARANCE
-        back_lane = lay.lane_at(self.route, back_arc)
-        into_back = self.arc - lay.lane_start[self.route, back_lane]
-        x_back = lay.lane_start[self.route[:, None], back_lane[None, :]] + into_back[None, :]
-        x = np.where(np.isfinite(x), x, x_back)
+        lane, back_lane = lay.lane_at(self.route, np.stack([self.arc, back_arc]))
+        into_lane = self.arc - lay.lane_start[self.route, lane]  # (n,)
+        x = lay.lane_start[self.route[:, None], lane[None, :]] + into_lane[None, :]  # (i, j): j on i's route
+        missing = np.isnan(x)  # j's lane is not on i's route
+        if missing.any():
+            into_back = self.arc - lay.lane_start[self.route, back_lane]
+            x_back = lay.lane_start[self.route[:, None], back_lane[None, :]] + into_back[None, :]
+            x = np.where(missing, x_back, x)
         ahead = x - self.arc[:, None]
         valid = np.isfinite(ahead) & (ahead > 0)
         np.fill_diagonal(valid, False)
@@ -487,14 +499,21 @@ def integrate(
     x_all = np.empty_like(v_all)
     v_all[0], x_all[0] = speed, arc
     governed = np.zeros(route.shape[0], bool)
+    cap_now = layout.envelope_at(route, arc, b)
     for k in range(substeps):  # a loop over time (3 sub-steps), vectorized over vehicles
         v = np.minimum(np.maximum(v_all[k] + acc * h, 0.0), max_speed)
         x = x_all[k] + 0.5 * (v_all[k] + v) * h
-        cap = np.minimum(layout.envelope_at(route, x_all[k], b), layout.envelope_at(route, x, b))
+        cap_x = layout.envelope_at(route, x, b)
+        cap = np.minimum(cap_now, cap_x)
         over = v > cap
         governed |= over
         v_all[k + 1] = np.where(over, cap, v)
         x_all[k + 1] = x_all[k] + 0.5 * (v_all[k] + v_all[k + 1]) * h
+        # The next sub-step starts where this one ended: that is x (the same float) unless the
+        # governor slowed the vehicle, so the envelope is looked up again only for those.
+        if over.any():
+            cap_x[over] = layout.envelope_at(route[over], x_all[k + 1][over], b)
+        cap_now = cap_x
     return v_all, x_all, governed
 
 
@@ -538,12 +557,25 @@ def _sat_overlap(
     Separating-axis test on the four edge normals; the projections of one rectangle onto the
     other's axes depend only on ``|cos|`` and ``|sin|`` of the heading difference.
     """
-    d = position[j] - position[i]
-    ci, si = np.cos(heading[i]), np.sin(heading[i])
-    cj, sj = np.cos(heading[j]), np.sin(heading[j])
+    return _sat_test(position[j] - position[i], heading[i], heading[j], length[i], width[i], length[j], width[j])
+
+
+def _sat_test(
+    d: np.ndarray,
+    heading_i: np.ndarray,
+    heading_j: np.ndarray,
+    length_i: np.ndarray,
+    width_i: np.ndarray,
+    length_j: np.ndarray,
+    width_j: np.ndarray,
+) -> np.ndarray:
+    """``(k,)`` bool: rectangle ``j`` at offset ``d[k]`` (``(k, 2)``, centre ``j`` minus centre ``i``)
+    overlaps rectangle ``i``; headings and sizes per pair."""
+    ci, si = np.cos(heading_i), np.sin(heading_i)
+    cj, sj = np.cos(heading_j), np.sin(heading_j)
     c = np.abs(ci * cj + si * sj)  # |cos(h_j - h_i)|
     s = np.abs(ci * sj - si * cj)  # |sin(h_j - h_i)|
-    li, wi, lj, wj = 0.5 * length[i], 0.5 * width[i], 0.5 * length[j], 0.5 * width[j]
+    li, wi, lj, wj = 0.5 * length_i, 0.5 * width_i, 0.5 * length_j, 0.5 * width_j
     return (
         (np.abs(d[:, 0] * ci + d[:, 1] * si) < li + lj * c + wj * s)
         & (np.abs(-d[:, 0] * si + d[:, 1] * ci) < wi + lj * s + wj * c)
