@@ -124,9 +124,7 @@ def _envelope(t: Tables, route, arc):
     return np.minimum(np.sqrt(sq0 + (t.env2[route, i0 + 1] - sq0) * (u - i0)), t.limit[route, k])
 
 
-def bound_step(
-    t: Tables, space: GraphSpace, state: list, acc: np.ndarray
-) -> tuple[dict[str, np.ndarray], np.ndarray]:
+def bound_step(t: Tables, space: GraphSpace, state: list, acc: np.ndarray) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """One policy step of the bound; ``state`` = ``[route, arc, speed, length, width, position,
     heading, leader, gap]`` is updated in place (the last four: of the current arcs).
 
@@ -208,9 +206,8 @@ def bound_step(
     pos, hd, leader, gap = _pose_leaders(t, route, arc, length)
     state[1:] = [arc, speed, length, width, pos, hd, leader, gap]
     entry = t.entry[route]
-    s = np.where(
-        arc < entry, -S_REF + (arc - entry), np.where(arc < exit_, -S_REF + (arc - entry) * (S_REF / (exit_ - entry)), arc - exit_)
-    )  # fmt: skip
+    inside = -S_REF + (arc - entry) * (S_REF / (exit_ - entry))
+    s = np.where(arc < entry, -S_REF + (arc - entry), np.where(arc < exit_, inside, arc - exit_))
     d = pos[None, :, :] - pos[:, None, :]
     c, sn = np.cos(hd)[:, None], np.sin(hd)[:, None]
     lon, lat = d[..., 0] * c + d[..., 1] * sn, d[..., 1] * c - d[..., 0] * sn
@@ -334,7 +331,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seconds", type=float, default=1.0, help="measured time per run")
     parser.add_argument("--repeats", type=int, default=3, help="runs per measurement (the best counts)")
     parser.add_argument("--counts", type=int, nargs="+", default=list(COUNTS), help="vehicle counts")
-    parser.add_argument("--clock", choices=("wall", "cpu"), default="wall", help="wall: perf_counter; cpu: process_time")
+    parser.add_argument(
+        "--clock", choices=("wall", "cpu"), default="wall", help="wall: perf_counter; cpu: process_time"
+    )
     parser.add_argument("--no-stock", action="store_true", help="leave out stock intersection-v0")
     args = parser.parse_args(argv)
     warnings.filterwarnings("ignore")

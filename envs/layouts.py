@@ -270,9 +270,7 @@ def _connector(
     dphi = (phi1 - phi0 + np.pi) % (2 * np.pi) - np.pi
     lanes: list[AbstractLane] = []
     if t - radius > 1e-6:
-        lanes.append(
-            StraightLane(start, p_arc0, line_types=(n, n), priority=priority, speed_limit=speed_limit)
-        )
+        lanes.append(StraightLane(start, p_arc0, line_types=(n, n), priority=priority, speed_limit=speed_limit))
     lanes.append(
         CircularLane(
             centre,
@@ -325,25 +323,19 @@ def _build(name: str, arms: list[ArmSpec], ds: float, lateral_acceleration: floa
             net.add_lane(
                 f"{a}_in",
                 f"{a}_split",
-                StraightLane(
-                    p_far, p_split, line_types=(s, c), priority=prio, speed_limit=APPROACH_SPEED_LIMIT
-                ),
+                StraightLane(p_far, p_split, line_types=(s, c), priority=prio, speed_limit=APPROACH_SPEED_LIMIT),
             )
             p_stop = out * arm.stop_distance + right_in * (1.5 * w)
             net.add_lane(
                 f"{a}_split",
                 f"{a}_stop",
-                StraightLane(
-                    p_split, p_stop, line_types=(n, c), priority=prio, speed_limit=APPROACH_SPEED_LIMIT
-                ),
+                StraightLane(p_split, p_stop, line_types=(n, c), priority=prio, speed_limit=APPROACH_SPEED_LIMIT),
             )
             p_lstop = out * arm.stop_distance + right_in * (w / 2)
             net.add_lane(
                 f"{a}_split",
                 f"{a}_lstop",
-                StraightLane(
-                    p_split, p_lstop, line_types=(s, n), priority=prio, speed_limit=APPROACH_SPEED_LIMIT
-                ),
+                StraightLane(p_split, p_lstop, line_types=(s, n), priority=prio, speed_limit=APPROACH_SPEED_LIMIT),
             )
             up = [(f"{a}_in", f"{a}_split", 0)]
             stops[(a, STRAIGHT)] = (f"{a}_stop", p_stop, h_in, up + [(f"{a}_split", f"{a}_stop", 0)])
@@ -355,9 +347,7 @@ def _build(name: str, arms: list[ArmSpec], ds: float, lateral_acceleration: floa
             net.add_lane(
                 f"{a}_in",
                 f"{a}_stop",
-                StraightLane(
-                    p_far, p_stop, line_types=(s, c), priority=prio, speed_limit=APPROACH_SPEED_LIMIT
-                ),
+                StraightLane(p_far, p_stop, line_types=(s, c), priority=prio, speed_limit=APPROACH_SPEED_LIMIT),
             )
             for m in (LEFT, STRAIGHT, RIGHT):
                 stops[(a, m)] = (f"{a}_stop", p_stop, h_in, [(f"{a}_in", f"{a}_stop", 0)])
@@ -387,11 +377,7 @@ def _build(name: str, arms: list[ArmSpec], ds: float, lateral_acceleration: floa
             # Left turns yield to straight traffic: one priority level lower, as in highway-env.
             lane_prio = prio - 1 if m == LEFT else prio
             pieces = _connector(p_stop, h_in, p_exit, h_out, limit, lane_prio)
-            nodes = (
-                [stop_node]
-                + [f"{arm_in.name}>{arm_out.name}_{k}" for k in range(len(pieces) - 1)]
-                + [exit_node]
-            )
+            nodes = [stop_node] + [f"{arm_in.name}>{arm_out.name}_{k}" for k in range(len(pieces) - 1)] + [exit_node]
             con_lanes = []
             for k, lane in enumerate(pieces):
                 net.add_lane(nodes[k], nodes[k + 1], lane)
@@ -577,10 +563,7 @@ def build_layout(name: str, ds: float = 0.5, lateral_acceleration: float = DEFAU
             for a in ("south", "west", "north", "east")
         ]
     elif name == "3way":
-        arms = [
-            ArmSpec(a, MAJOR if a in ("east", "west") else MINOR, stop, access)
-            for a in ("south", "west", "east")
-        ]
+        arms = [ArmSpec(a, MAJOR if a in ("east", "west") else MINOR, stop, access) for a in ("south", "west", "east")]
     else:
         arms = [
             ArmSpec("south", MINOR, 14.0, access),

@@ -169,9 +169,7 @@ class Simulation:
             setattr(self, name, getattr(self, name)[keep])
 
     # ------------------------------------------------------------------ spawning
-    def spawn_free(
-        self, spawn_lane: np.ndarray, speed: np.ndarray, length: np.ndarray, min_gap: float
-    ) -> np.ndarray:
+    def spawn_free(self, spawn_lane: np.ndarray, speed: np.ndarray, length: np.ndarray, min_gap: float) -> np.ndarray:
         """Whether a new vehicle fits at the start of each given spawn lane.
 
         The bumper gap to the last vehicle that entered by that lane must be at least ``min_gap``
@@ -517,9 +515,7 @@ def integrate(
     return v_all, x_all, governed
 
 
-def overlapping_pairs(
-    position: np.ndarray, heading: np.ndarray, length: np.ndarray, width: np.ndarray
-) -> np.ndarray:
+def overlapping_pairs(position: np.ndarray, heading: np.ndarray, length: np.ndarray, width: np.ndarray) -> np.ndarray:
     """Pairs of oriented rectangles that overlap (separating-axis theorem, vectorized over pairs).
 
     Pairs whose centres are farther apart than the sum of the half diagonals are discarded first.
