@@ -26,11 +26,13 @@ commands drawn uniformly in ``[-3, 3]`` m/s^2 every step (the same draws for eve
 (5 s) per episode so that nobody reaches the end of its route: the count stays ``n``. Random
 placement makes overlaps, so collisions are found (and kept: nobody is removed).
 
-Every rate is the best of ``--repeats`` runs of at least ``--seconds``; bound and ours alternate
-in the same process. Units: simulated s per wall s (a policy step is 0.2 simulated s), policy
-steps per wall s, ms per policy step, and ours / bound (bound's time over ours: 1 = as fast).
+Bound, ours and ``env.step`` run the same episodes in turn in one process (:func:`time_sides`:
+each episode ``--repeats`` times, the fastest run counts), for ``--seconds`` per vehicle count;
+stock runs at least one step and ``--seconds`` / 6. Units: simulated s per wall s (a policy step
+is 0.2 simulated s), policy steps per wall s, ms per policy step, and ours / bound (bound's time
+over ours: 1 = as fast); with ``--clock cpu``, per CPU second of this process instead.
 
-Run: ``python benchmarks/bench_sim_bound.py [--seconds 1] [--repeats 3] [--no-stock]``
+Run: ``python benchmarks/bench_sim_bound.py [--seconds 6] [--repeats 3] [--clock cpu] [--no-stock]``
 """
 
 from __future__ import annotations
@@ -237,61 +239,71 @@ def _fleet(lay: Layout, n: int, rng: np.random.Generator):
     return route, arc, rng.uniform(2.0, 8.0, n)
 
 
-def _time_bound(lay: Layout, space: GraphSpace, n: int, seconds: float, seed: int = 0) -> float:
-    t, rng, wall, steps = tables(lay), np.random.default_rng(seed), 0.0, 0
-    while wall < seconds:
-        route, arc, speed = _fleet(lay, n, rng)
-        length, width = np.full(n, 5.0), np.full(n, 2.0)
-        acc = rng.uniform(-3.0, 3.0, (EPISODE_STEPS, n))
-        start = CLOCK[0]()
-        state = [route, arc, speed, length, width, *_pose_leaders(t, route, arc, length)]
-        for k in range(EPISODE_STEPS):
-            bound_step(t, space, state, acc[k])
-        wall += CLOCK[0]() - start
-        steps += EPISODE_STEPS
-    return wall / steps
+def _episode_bound(t: Tables, space: GraphSpace, fleet: tuple, acc: np.ndarray) -> float:
+    route, arc, speed = fleet
+    n = arc.shape[0]
+    length, width = np.full(n, 5.0), np.full(n, 2.0)
+    start = CLOCK[0]()
+    state = [route, arc, speed, length, width, *_pose_leaders(t, route, arc, length)]
+    for a in acc:
+        bound_step(t, space, state, a)
+    return CLOCK[0]() - start
 
 
-def _time_ours(lay: Layout, space: GraphSpace, n: int, seconds: float, seed: int = 0) -> float:
-    rng, wall, steps = np.random.default_rng(seed), 0.0, 0
-    while wall < seconds:
-        route, arc, speed = _fleet(lay, n, rng)
-        acc = rng.uniform(-3.0, 3.0, (EPISODE_STEPS, n))
-        start = CLOCK[0]()
-        sim = Simulation(lay, HZ_SIM, HZ_POLICY, V_MAX, A_MAX, S_REF, MAX_NODES, B_GOV, RESOLUTION)
-        sim.add(route, speed, np.arange(n), 5.0, 2.0, arc=arc)
-        for k in range(EPISODE_STEPS):
-            sim.step(acc[k])
-            scene = sim.scene()
-            build_observation(scene, space, S_SCALE, D_MAX, min_mahalanobis(scene))
-        wall += CLOCK[0]() - start
-        steps += EPISODE_STEPS
-    return wall / steps
+def _episode_ours(lay: Layout, space: GraphSpace, fleet: tuple, acc: np.ndarray) -> float:
+    route, arc, speed = fleet
+    start = CLOCK[0]()
+    sim = Simulation(lay, HZ_SIM, HZ_POLICY, V_MAX, A_MAX, S_REF, MAX_NODES, B_GOV, RESOLUTION)
+    sim.add(route, speed, np.arange(arc.shape[0]), 5.0, 2.0, arc=arc)
+    for a in acc:
+        sim.step(a)
+        scene = sim.scene()
+        build_observation(scene, space, S_SCALE, D_MAX, min_mahalanobis(scene))
+    return CLOCK[0]() - start
 
 
-def _time_env(n: int, seconds: float, seed: int = 0) -> float:
+def _make_env():
     import gymnasium as gym
 
     import envs  # noqa: F401  (registers the environments)
 
     config = {"spawn_probability": 0.0, "initial_spawn_probability": 0.0, "max_vehicles": MAX_NODES,
               "max_edges": MAX_EDGES, "duration": 1e6}  # fmt: skip
-    env = gym.make("CoopIntersection4Way-v0", config=config)
-    rng, wall, steps = np.random.default_rng(seed), 0.0, 0
+    return gym.make("CoopIntersection4Way-v0", config=config)
+
+
+def _episode_env(env, fleet: tuple, acc: np.ndarray) -> float:
+    env.reset(seed=0)
+    env.unwrapped.place_vehicles(*fleet)
     action = np.zeros(MAX_NODES, np.float32)
-    while wall < seconds:
-        env.reset(seed=seed)
-        base = env.unwrapped
-        route, arc, speed = _fleet(base.layout, n, rng)
+    n = fleet[0].shape[0]
+    start = CLOCK[0]()
+    for a in acc:
+        action[:n] = a / A_MAX
+        env.step(action)
+    return CLOCK[0]() - start
+
+
+def time_sides(lay: Layout, space: GraphSpace, env, n: int, seconds: float, repeats: int) -> dict[str, float]:
+    """Seconds per policy step of the bound, ours and the whole ``env.step`` on the same fleets.
+
+    Each round draws one fleet and its commands; every side runs that episode ``repeats`` times in
+    turn and keeps its fastest run (load bursts on a shared machine hit single runs); the rounds'
+    times are summed per side, so all sides are timed on exactly the same work.
+
+    :param seconds: rounds are drawn until this much wall time has passed
+    """
+    t, rng = tables(lay), np.random.default_rng(n)
+    total = {"bound": 0.0, "ours": 0.0, "env": 0.0}
+    steps, begin = 0, time.perf_counter()
+    while time.perf_counter() - begin < seconds or steps == 0:
+        fleet = _fleet(lay, n, rng)
         acc = rng.uniform(-3.0, 3.0, (EPISODE_STEPS, n))
-        base.place_vehicles(route, arc, speed)
-        start = CLOCK[0]()
-        for k in range(EPISODE_STEPS):
-            action[:n] = acc[k] / A_MAX
-            env.step(action)
-        wall += CLOCK[0]() - start
+        total["bound"] += min(_episode_bound(t, space, fleet, acc) for _ in range(repeats))
+        total["ours"] += min(_episode_ours(lay, space, fleet, acc) for _ in range(repeats))
+        total["env"] += min(_episode_env(env, fleet, acc) for _ in range(repeats))
         steps += EPISODE_STEPS
-    return wall / steps
+    return {side: value / steps for side, value in total.items()}
 
 
 def _time_stock(n: int, seconds: float, seed: int = 0) -> tuple[float, float]:
@@ -339,8 +351,8 @@ def _row(label: str, n: str, step_s: float, policy_hz: int, ratio: str) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--seconds", type=float, default=1.0, help="measured time per run")
-    parser.add_argument("--repeats", type=int, default=3, help="runs per measurement (the best counts)")
+    parser.add_argument("--seconds", type=float, default=6.0, help="wall time per vehicle count")
+    parser.add_argument("--repeats", type=int, default=3, help="runs of each episode (the fastest counts)")
     parser.add_argument("--counts", type=int, nargs="+", default=list(COUNTS), help="vehicle counts")
     parser.add_argument(
         "--clock", choices=("wall", "cpu"), default="wall", help="wall: perf_counter; cpu: process_time"
@@ -359,17 +371,15 @@ def main(argv: list[str] | None = None) -> int:
     print(f"| what | vehicles | simulated s / {per} | policy steps / {per} | ms ({args.clock}) / policy step "
           "| ours / bound |")  # fmt: skip
     print("|---|---|---|---|---|---|")
+    env_ = _make_env()
     for n in args.counts:
-        bound = ours = env = np.inf
-        for _ in range(args.repeats):  # alternate, so that a change of load hits every side
-            bound = min(bound, _time_bound(lay, space, n, args.seconds))
-            ours = min(ours, _time_ours(lay, space, n, args.seconds))
-            env = min(env, _time_env(n, args.seconds))
+        times = time_sides(lay, space, env_, n, args.seconds, args.repeats)
+        bound, ours, env = times["bound"], times["ours"], times["env"]
         print(_row("NumPy bound (bench_sim_bound.bound_step)", str(n), bound, HZ_POLICY, "1"))
         print(_row("ours: Simulation.step + scene + build_observation", str(n), ours, HZ_POLICY, f"{bound / ours:.2f}"))
         print(_row("ours: whole env.step (+ reward, spawn, info)", str(n), env, HZ_POLICY, f"{bound / env:.2f}"))
         if not args.no_stock:
-            stock, mean = _time_stock(n, args.seconds)
+            stock, mean = _time_stock(n, args.seconds / 6)
             # Like for like in simulated time: our env.step covers 0.2 s, a stock step 1 s.
             faster = (1.0 / (env * HZ_POLICY)) / (1.0 / stock)
             label = f"stock intersection-v0 (1 Hz policy), IDLE: ours (env.step) {faster:.0f}x faster in simulated s"
