@@ -32,12 +32,17 @@ stock runs at least one step and ``--seconds`` / 6. Units: simulated s per wall 
 is 0.2 simulated s), policy steps per wall s, ms per policy step, and ours / bound (bound's time
 over ours: 1 = as fast); with ``--clock cpu``, per CPU second of this process instead.
 
-Run: ``python benchmarks/bench_sim_bound.py [--seconds 6] [--repeats 3] [--clock cpu] [--no-stock]``
+With ``--baseline DIR`` the simulation of another checkout (``DIR/envs/simulation.py`` and
+``layouts.py``) runs the same episodes too: a before/after comparison in one process.
+
+Run: ``python benchmarks/bench_sim_bound.py [--seconds 6] [--repeats 3] [--clock cpu] [--no-stock]
+[--baseline DIR]``
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import os
 import platform
 import sys
@@ -45,6 +50,7 @@ import time
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -250,10 +256,12 @@ def _episode_bound(t: Tables, space: GraphSpace, fleet: tuple, acc: np.ndarray) 
     return CLOCK[0]() - start
 
 
-def _episode_ours(lay: Layout, space: GraphSpace, fleet: tuple, acc: np.ndarray) -> float:
+def _episode_ours(
+    lay: Layout, space: GraphSpace, fleet: tuple, acc: np.ndarray, simulation: type = Simulation
+) -> float:
     route, arc, speed = fleet
     start = CLOCK[0]()
-    sim = Simulation(lay, HZ_SIM, HZ_POLICY, V_MAX, A_MAX, S_REF, MAX_NODES, B_GOV, RESOLUTION)
+    sim = simulation(lay, HZ_SIM, HZ_POLICY, V_MAX, A_MAX, S_REF, MAX_NODES, B_GOV, RESOLUTION)
     sim.add(route, speed, np.arange(arc.shape[0]), 5.0, 2.0, arc=arc)
     for a in acc:
         sim.step(a)
@@ -284,7 +292,9 @@ def _episode_env(env, fleet: tuple, acc: np.ndarray) -> float:
     return CLOCK[0]() - start
 
 
-def time_sides(lay: Layout, space: GraphSpace, env, n: int, seconds: float, repeats: int) -> dict[str, float]:
+def time_sides(
+    lay: Layout, space: GraphSpace, env, n: int, seconds: float, repeats: int, baseline: tuple | None = None
+) -> dict[str, float]:
     """Seconds per policy step of the bound, ours and the whole ``env.step`` on the same fleets.
 
     Each round draws one fleet and its commands; every side runs that episode ``repeats`` times in
@@ -292,9 +302,12 @@ def time_sides(lay: Layout, space: GraphSpace, env, n: int, seconds: float, repe
     times are summed per side, so all sides are timed on exactly the same work.
 
     :param seconds: rounds are drawn until this much wall time has passed
+    :param baseline: ``(Simulation class, layout)`` of another checkout, timed as side ``"baseline"``
     """
     t, rng = tables(lay), np.random.default_rng(n)
     total = {"bound": 0.0, "ours": 0.0, "env": 0.0}
+    if baseline is not None:
+        total["baseline"] = 0.0
     steps, begin = 0, time.perf_counter()
     while time.perf_counter() - begin < seconds or steps == 0:
         fleet = _fleet(lay, n, rng)
@@ -302,8 +315,23 @@ def time_sides(lay: Layout, space: GraphSpace, env, n: int, seconds: float, repe
         total["bound"] += min(_episode_bound(t, space, fleet, acc) for _ in range(repeats))
         total["ours"] += min(_episode_ours(lay, space, fleet, acc) for _ in range(repeats))
         total["env"] += min(_episode_env(env, fleet, acc) for _ in range(repeats))
+        if baseline is not None:
+            simulation, other = baseline
+            total["baseline"] += min(_episode_ours(other, space, fleet, acc, simulation) for _ in range(repeats))
         steps += EPISODE_STEPS
     return {side: value / steps for side, value in total.items()}
+
+
+def load_baseline(checkout: Path) -> tuple[type, Layout]:
+    """The simulation and 4-way layout of another checkout (e.g. ``git worktree add /tmp/old <commit>``),
+    imported as separate modules so that both versions run in this process."""
+    modules = {}
+    for name in ("layouts", "simulation"):
+        spec = importlib.util.spec_from_file_location(f"baseline_{name}", checkout / "envs" / f"{name}.py")
+        modules[name] = importlib.util.module_from_spec(spec)
+        sys.modules[spec.name] = modules[name]  # dataclasses look their module up
+        spec.loader.exec_module(modules[name])
+    return modules["simulation"].Simulation, modules["layouts"].build_layout("4way")
 
 
 def _time_stock(n: int, seconds: float, seed: int = 0) -> tuple[float, float]:
@@ -358,6 +386,9 @@ def main(argv: list[str] | None = None) -> int:
         "--clock", choices=("wall", "cpu"), default="wall", help="wall: perf_counter; cpu: process_time"
     )
     parser.add_argument("--no-stock", action="store_true", help="leave out stock intersection-v0")
+    parser.add_argument(
+        "--baseline", type=Path, help="another checkout whose envs/simulation.py is timed too, interleaved"
+    )
     args = parser.parse_args(argv)
     warnings.filterwarnings("ignore")
     CLOCK[0] = time.perf_counter if args.clock == "wall" else time.process_time
@@ -372,10 +403,14 @@ def main(argv: list[str] | None = None) -> int:
           "| ours / bound |")  # fmt: skip
     print("|---|---|---|---|---|---|")
     env_ = _make_env()
+    baseline = load_baseline(args.baseline) if args.baseline else None
     for n in args.counts:
-        times = time_sides(lay, space, env_, n, args.seconds, args.repeats)
+        times = time_sides(lay, space, env_, n, args.seconds, args.repeats, baseline)
         bound, ours, env = times["bound"], times["ours"], times["env"]
         print(_row("NumPy bound (bench_sim_bound.bound_step)", str(n), bound, HZ_POLICY, "1"))
+        if baseline is not None:
+            label = f"baseline {args.baseline}: Simulation.step + scene + build_observation"
+            print(_row(label, str(n), times["baseline"], HZ_POLICY, f"{bound / times['baseline']:.2f}"))
         print(_row("ours: Simulation.step + scene + build_observation", str(n), ours, HZ_POLICY, f"{bound / ours:.2f}"))
         print(_row("ours: whole env.step (+ reward, spawn, info)", str(n), env, HZ_POLICY, f"{bound / env:.2f}"))
         if not args.no_stock:
