@@ -9,7 +9,8 @@ the observation (vertex features and edges), the reward terms and every metric e
 The committed fixture was recorded before the simulation was vectorized further (issue #16), so
 the test proves that the faster code drives the same trajectories.
 
-Run: ``python scripts/record_regression.py [--out tests/data/simulation_regression.npz]``
+Run: ``python scripts/record_regression.py [--out tests/data/simulation_regression.npz]``, or with
+``--check`` to print how far the code here is from the fixture.
 """
 
 from __future__ import annotations
@@ -112,10 +113,31 @@ def record(out: Path = DEFAULT_OUT) -> Path:
     return out
 
 
+def check(fixture: Path = DEFAULT_OUT) -> None:
+    """Replay every case with the code here and print the largest differences from the fixture.
+
+    :param fixture: a recorded ``.npz``
+    """
+    warnings.filterwarnings("ignore")
+    with np.load(fixture) as data:
+        for name in CASES:
+            got = run_case(name)
+            diff = {
+                key: np.abs(got[key] - data[f"{name}/{key}"]).max(initial=0.0) for key in ("position", "speed", "x")
+            }
+            same = all(np.array_equal(got[key], data[f"{name}/{key}"]) for key in ("vehicle_id", *EVENTS))
+            print(f"{name}: largest |difference| " + ", ".join(f"{k} {v:.3g}" for k, v in diff.items())
+                  + f"; ids and events {'identical' if same else 'DIFFER'}")  # fmt: skip
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="fixture to write")
+    parser.add_argument("--check", action="store_true", help="compare with the fixture instead of writing it")
     args = parser.parse_args(argv)
+    if args.check:
+        check(args.out)
+        return 0
     path = record(args.out)
     with np.load(path) as data:
         for name in CASES:
