@@ -68,17 +68,14 @@ def test_maneuvers_follow_right_hand_geometry(layout):
 def test_priorities_and_speed_limits(layout):
     for r, a in enumerate(layout.entry_arm):
         assert layout.priority[r] == (MAJOR if a in ("east", "west") else MINOR)
-        inside = slice(
-            int(np.ceil(layout.entry_arc[r] / layout.ds)) + 1, int(layout.exit_arc[r] / layout.ds) - 1
-        )
+        inside = slice(int(np.ceil(layout.entry_arc[r] / layout.ds)) + 1, int(layout.exit_arc[r] / layout.ds) - 1)
         limit_inside = layout.speed_limit[r, inside]
         if layout.maneuver[r] == STRAIGHT:
             assert (limit_inside == layout.speed_limit[r, 0]).all()
         else:  # the curved part of a turn is slower than the road
             assert limit_inside.min() < layout.speed_limit[r, 0]
     assert (
-        layout.spawn_priority
-        == layout.priority[[layout.spawn_routes(k)[0] for k in range(len(layout.spawn_lanes))]]
+        layout.spawn_priority == layout.priority[[layout.spawn_routes(k)[0] for k in range(len(layout.spawn_lanes))]]
     ).all()
 
 
@@ -121,9 +118,7 @@ def test_ind_left_turns_have_their_own_lane():
         assert lanes_left[1] != lanes_straight[1]
         # The pocket lies beside the through lane at the stop line, one lane width to its left.
         p_left = lay.pose(np.array([lay.route_id(left)]), lay.entry_arc[[lay.route_id(left)]])[0][0]
-        p_straight = lay.pose(np.array([lay.route_id(straight)]), lay.entry_arc[[lay.route_id(straight)]])[0][
-            0
-        ]
+        p_straight = lay.pose(np.array([lay.route_id(straight)]), lay.entry_arc[[lay.route_id(straight)]])[0][0]
         assert 3.5 < np.linalg.norm(p_left - p_straight) < 4.5
         del arm
 
@@ -131,3 +126,36 @@ def test_ind_left_turns_have_their_own_lane():
 def test_unknown_route_is_an_error():
     with pytest.raises(ValueError, match="has no route"):
         build_layout("3way").route_id("north->south")
+
+
+@pytest.mark.parametrize("layout", LAYOUT_NAMES)
+def test_lookups_take_points_in_any_shape(layout):
+    """pose and lane_at on ``(times, n)`` arcs give, row by row, what they give on ``(n,)`` arcs
+    (the simulation's collision check and leaders look several points per vehicle up at once)."""
+    lay = build_layout(layout)
+    rng = np.random.default_rng(0)
+    route = rng.integers(0, lay.num_routes, 7)
+    arc = rng.uniform(-5.0, lay.length[route] + 5.0, (4, 7))
+    position, heading = lay.pose(route[None, :], arc)
+    lanes = lay.lane_at(route, arc)
+    assert position.shape == (4, 7, 2) and heading.shape == lanes.shape == (4, 7)
+    for t in range(4):
+        p, h = lay.pose(route, arc[t])
+        np.testing.assert_array_equal(position[t], p)
+        np.testing.assert_array_equal(heading[t], h)
+        np.testing.assert_array_equal(lanes[t], lay.lane_at(route, arc[t]))
+
+
+@pytest.mark.parametrize("layout", LAYOUT_NAMES)
+def test_envelope_at_interpolates_the_squared_envelope_under_the_limit(layout):
+    lay = build_layout(layout)
+    rng = np.random.default_rng(1)
+    route = rng.integers(0, lay.num_routes, 200)
+    arc = rng.uniform(-3.0, lay.length[route] + 3.0)  # past both ends too
+    env = lay.speed_envelope(3.0)
+    last = env.shape[1] - 1
+    u = np.clip(arc / lay.ds, 0.0, last)
+    i0 = np.minimum(np.floor(u).astype(int), last - 1)
+    sq = env[route, i0] ** 2 + (env[route, i0 + 1] ** 2 - env[route, i0] ** 2) * (u - i0)
+    expected = np.minimum(np.sqrt(sq), lay.limit_at(route, arc))
+    np.testing.assert_array_equal(lay.envelope_at(route, arc, 3.0), expected)
