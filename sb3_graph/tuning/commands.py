@@ -58,7 +58,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "(default for CoopIntersection*: envs.tuning:tuning_env_kwargs, the 'tuning' preset)",
     )
     parser.add_argument("--env-kwargs", type=json_object, default=None, help="JSON dict merged over the preset")
-    parser.add_argument("--pruner", choices=("median", "none"), default="median", help="pruner of the flow objective")
+    parser.add_argument(
+        "--pruner",
+        default="median",
+        help="pruner of the flow objective on the intermediate task metric: median, successive-halving, "
+        "hyperband or none",
+    )
+    parser.add_argument(
+        "--min-resource",
+        type=int,
+        default=None,
+        help="successive-halving/hyperband: training steps of the first rung "
+        "(default: --timesteps / --reduction-factor ** (--evaluations - 1), rounded up)",
+    )
+    parser.add_argument(
+        "--reduction-factor", type=int, default=3, help="successive-halving/hyperband: factor between two rungs (>= 2)"
+    )
     parser.add_argument("--population-size", type=int, default=10, help="NSGA-II population (pareto)")
     parser.add_argument("--seed", type=int, default=0, help="base training seed (trial k uses seed + k)")
     parser.add_argument("--sampler-seed", type=int, default=None, help="sampler seed (worker i uses seed + i)")
@@ -160,6 +175,7 @@ def prepare(args: argparse.Namespace):
         )
     if args.evaluations > 1 and timesteps // args.evaluations < 1:
         raise UserError(f"--evaluations {args.evaluations} exceeds --timesteps {timesteps}")
+    eval_steps = _evaluation_steps(args, timesteps)
     for name in _gym_packages(args):
         try:
             importlib.import_module(name)
@@ -206,6 +222,7 @@ def prepare(args: argparse.Namespace):
         weight_spread=args.weight_spread,
         tune_algo=args.tune_algo,
         evaluations=args.evaluations,
+        eval_steps=eval_steps,
         eval_episodes=args.eval_episodes,
         eval_seed=args.eval_seed,
         seed=args.seed,
@@ -223,8 +240,29 @@ def prepare(args: argparse.Namespace):
         "max_collision_rate": objective.max_collision_rate,
         "evaluator": evaluator_spec,
         "timesteps": timesteps,
+        "pruner": args.pruner if objective.prunable else "none",
+        "eval_steps": list(eval_steps) if objective.prunable else [],
     }
     return settings, attrs
+
+
+def _evaluation_steps(args: argparse.Namespace, timesteps: int) -> tuple[int, ...]:
+    """The intermediate evaluation steps of a trial, or a UserError naming the pruner flags."""
+    from sb3_graph.tuning.pruners import PRUNERS, RUNG_PRUNERS, evaluation_steps
+
+    if args.pruner not in PRUNERS:
+        raise UserError(f"--pruner: unknown pruner {args.pruner!r}; allowed: {', '.join(PRUNERS)}")
+    if args.reduction_factor < 2:
+        raise UserError(f"--reduction-factor must be at least 2, got {args.reduction_factor}")
+    if args.min_resource is not None:
+        if args.pruner not in RUNG_PRUNERS:
+            raise UserError(f"--min-resource applies to --pruner {' or '.join(RUNG_PRUNERS)}, not {args.pruner!r}")
+        if not 1 <= args.min_resource < timesteps:
+            raise UserError(f"--min-resource must be in [1, --timesteps {timesteps}), got {args.min_resource}")
+    try:
+        return evaluation_steps(args.pruner, timesteps, args.evaluations, args.min_resource, args.reduction_factor)
+    except ValueError as error:  # e.g. one evaluation per trial leaves no rung below the budget
+        raise UserError(f"--pruner {args.pruner} with --evaluations {args.evaluations}: {error}") from None
 
 
 def storage_url(args: argparse.Namespace) -> str:
@@ -253,7 +291,9 @@ def create_or_load(args: argparse.Namespace, settings, attrs: dict[str, Any], st
         load_if_exists=True,
         directions=list(objective.directions),
         sampler=objective.sampler(seed=seed, population_size=args.population_size),
-        pruner=objective.pruner(enabled=args.pruner == "median"),
+        pruner=objective.pruner(
+            args.pruner, settings.timesteps, args.evaluations, _first_rung(settings), args.reduction_factor
+        ),
     )
     existing = study.user_attrs
     for key in CHECKED_ATTRS:
@@ -268,6 +308,10 @@ def create_or_load(args: argparse.Namespace, settings, attrs: dict[str, Any], st
         if key not in existing:
             study.set_user_attr(key, value)
     return study
+
+
+def _first_rung(settings) -> int | None:
+    return settings.eval_steps[0] if settings.eval_steps else None
 
 
 def work(args: argparse.Namespace, n_trials: int, worker: int = 0) -> int:
