@@ -1,0 +1,134 @@
+"""Cost of a tuning trial: environment steps per second of TD3's training loop, end to end.
+
+Each variant builds the learner exactly as ``sb3-graph train`` / ``sb3-graph tune`` do, from the
+entry of ``zoo_configs/td3.yml`` (policy, graph replay buffer, curriculum callback, noise) with
+the variant's changes, and times ``model.learn``: environment steps, action selection, replay
+buffer, gradient steps, callbacks. Only the learning phase is timed (from ``learning_starts`` on;
+before it no gradient step runs). Variants run in turns, ``--rounds`` times, and the median is
+reported, so that a change of the shared machine's load hits all of them.
+
+Variants (``today`` is the entry as it is; the others change one thing at a time, then combine):
+
+- ``today``: full environment (60 s episodes, 64 vehicle slots), 1 env, ``train_freq 1``,
+  ``gradient_steps 1``: one gradient step per environment step.
+- ``preset``: the reduced "tuning" environment of ``envs.tuning`` (20 s, 16 slots, 192 edges).
+- ``freq4``: ``train_freq 4, gradient_steps 4``: the same gradient steps per environment step,
+  in fewer, larger calls of ``train``.
+- ``utd½``: ``train_freq 2, gradient_steps 1``: half the gradient steps per environment step
+  (changes the algorithm: its quality must be checked with a study, not assumed).
+- ``2envs``: two environments (``DummyVecEnv``), ``gradient_steps 2`` per vector step: the
+  same updates per transition, batched action selection.
+- ``2envs-subproc``: the same with ``SubprocVecEnv`` (environments in 2 processes).
+- ``preset+utd½+2envs``: the combination.
+
+Prints a markdown table: env steps/s (median over rounds) and the ratio to ``today``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from graph_bench_utils import machine_line, markdown_table
+from stable_baselines3.common.callbacks import BaseCallback, CallbackList
+from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
+
+import envs  # noqa: F401 - registers the environments
+from envs.tuning import tuning_env_kwargs
+from sb3_graph import TD3
+from sb3_graph.experiment import (
+    build_algorithm_kwargs,
+    build_callbacks,
+    check_entry,
+    merge_env_kwargs,
+    read_experiment,
+    resolve_object,
+)
+
+ROOT = Path(__file__).resolve().parents[1]
+ENV_ID = "CoopIntersection4Way-v0"
+PRESET = {"env_kwargs": tuning_env_kwargs()}
+VARIANTS = {
+    "today": {},
+    "preset": PRESET,
+    "freq4": {"train_freq": 4, "gradient_steps": 4},
+    "utd½": {"train_freq": 2, "gradient_steps": 1},
+    "2envs": {"n_envs": 2, "gradient_steps": 2},
+    "2envs-subproc": {"n_envs": 2, "gradient_steps": 2, "vec_env": SubprocVecEnv},
+    "preset+utd½+2envs": {**PRESET, "n_envs": 2, "train_freq": 1, "gradient_steps": 1},
+}
+
+
+class LearningClock(BaseCallback):
+    """Wall time and step count from the first step at or past ``learning_starts`` to the end."""
+
+    def __init__(self, learning_starts: int) -> None:
+        super().__init__()
+        self.learning_starts = learning_starts
+        self.start: tuple[float, int] | None = None
+        self.rate = float("nan")
+
+    def _on_step(self) -> bool:
+        if self.start is None and self.num_timesteps >= self.learning_starts:
+            self.start = (time.perf_counter(), self.num_timesteps)
+        return True
+
+    def _on_training_end(self) -> None:
+        seconds, steps = time.perf_counter() - self.start[0], self.num_timesteps - self.start[1]
+        self.rate = steps / seconds
+
+
+def steps_per_second(base: dict, change: dict, steps: int, learning_starts: int, seed: int) -> float:
+    """Env steps/s of one learning run of ``base`` with ``change`` applied."""
+    change = dict(change)
+    vec_env_cls = change.pop("vec_env", DummyVecEnv)
+    entry = dict(base)
+    entry["env_kwargs"] = merge_env_kwargs(entry.get("env_kwargs") or {}, change.pop("env_kwargs", {}))
+    entry.update(change, learning_starts=learning_starts)
+    n_envs = int(entry.get("n_envs", 1))
+    env = make_vec_env(ENV_ID, n_envs=n_envs, seed=seed, env_kwargs=entry["env_kwargs"], vec_env_cls=vec_env_cls)
+    try:
+        policy = resolve_object(entry["policy"], "policy")
+        model = TD3(policy, env, seed=seed, device="cpu", **build_algorithm_kwargs(entry, env.action_space.shape[0]))
+        clock = LearningClock(learning_starts)
+        model.learn(learning_starts + steps, callback=CallbackList([*build_callbacks(entry), clock]))
+    finally:
+        env.close()
+    return clock.rate
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--steps", type=int, default=1500, help="timed environment steps per run")
+    parser.add_argument("--learning-starts", type=int, default=500, help="untimed steps that fill the buffer")
+    parser.add_argument("--rounds", type=int, default=2, help="runs of each variant, in turns (median)")
+    parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
+    parser.add_argument("--threads", type=int, default=1, help="torch threads")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    base = check_entry(read_experiment(ROOT / "zoo_configs" / "td3.yml", ENV_ID))
+    rates: dict[str, list[float]] = {name: [] for name in args.variants}
+    for round_ in range(args.rounds):
+        for name in args.variants:
+            rate = steps_per_second(base, VARIANTS[name], args.steps, args.learning_starts, seed=round_)
+            rates[name].append(rate)
+            print(f"round {round_}: {name}: {rate:.1f} env steps/s", flush=True)
+    today = statistics.median(rates["today"]) if "today" in rates else float("nan")
+    rows = [
+        [name, f"{statistics.median(r):.1f}", " / ".join(f"{x:.1f}" for x in r), f"{statistics.median(r) / today:.2f}x"]
+        for name, r in rates.items()
+    ]
+    print(markdown_table(["variant", "env steps/s (median)", "each round", "vs today"], rows))
+    print(f"{args.steps} timed steps after {args.learning_starts} per run, {args.threads} torch thread(s)")
+    print(machine_line())
+    if not np.isfinite(today):
+        print("(no 'today' variant: no ratio)")
+
+
+if __name__ == "__main__":
+    main()
