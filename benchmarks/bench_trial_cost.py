@@ -21,7 +21,8 @@ Variants (``today`` is the entry as it is; the others change one thing at a time
 - ``2envs-subproc``: the same with ``SubprocVecEnv`` (environments in 2 processes).
 - ``preset+utd½+2envs``: the combination.
 
-Prints a markdown table: env steps/s (median over rounds) and the ratio to ``today``.
+Prints a markdown table: env steps per wall second and per CPU second of the learner process
+(medians over rounds), each with its ratio to ``today``.
 """
 
 from __future__ import annotations
@@ -65,26 +66,34 @@ VARIANTS = {
 
 
 class LearningClock(BaseCallback):
-    """Wall time and step count from the first step at or past ``learning_starts`` to the end."""
+    """Steps per wall second and per CPU second of this process, from ``learning_starts`` to the end.
 
-    def __init__(self, learning_starts: int) -> None:
+    On a shared, loaded machine the wall rate says as much about the neighbours as about the code;
+    the CPU rate (``time.process_time``, one torch thread) is what an idle core would give, but it
+    misses the work of ``SubprocVecEnv``'s environment processes (reported as NaN there).
+    """
+
+    def __init__(self, learning_starts: int, count_cpu: bool = True) -> None:
         super().__init__()
         self.learning_starts = learning_starts
-        self.start: tuple[float, int] | None = None
-        self.rate = float("nan")
+        self.count_cpu = count_cpu
+        self.start: tuple[float, float, int] | None = None
+        self.rate = self.cpu_rate = float("nan")
 
     def _on_step(self) -> bool:
         if self.start is None and self.num_timesteps >= self.learning_starts:
-            self.start = (time.perf_counter(), self.num_timesteps)
+            self.start = (time.perf_counter(), time.process_time(), self.num_timesteps)
         return True
 
     def _on_training_end(self) -> None:
-        seconds, steps = time.perf_counter() - self.start[0], self.num_timesteps - self.start[1]
-        self.rate = steps / seconds
+        wall, cpu, steps = time.perf_counter(), time.process_time(), self.num_timesteps - self.start[2]
+        self.rate = steps / (wall - self.start[0])
+        if self.count_cpu:
+            self.cpu_rate = steps / (cpu - self.start[1])
 
 
-def steps_per_second(base: dict, change: dict, steps: int, learning_starts: int, seed: int) -> float:
-    """Env steps/s of one learning run of ``base`` with ``change`` applied."""
+def steps_per_second(base: dict, change: dict, steps: int, learning_starts: int, seed: int) -> tuple[float, float]:
+    """Env steps per wall second and per CPU second of one learning run of ``base`` with ``change`` applied."""
     change = dict(change)
     vec_env_cls = change.pop("vec_env", DummyVecEnv)
     entry = dict(base)
@@ -95,11 +104,11 @@ def steps_per_second(base: dict, change: dict, steps: int, learning_starts: int,
     try:
         policy = resolve_object(entry["policy"], "policy")
         model = TD3(policy, env, seed=seed, device="cpu", **build_algorithm_kwargs(entry, env.action_space.shape[0]))
-        clock = LearningClock(learning_starts)
+        clock = LearningClock(learning_starts, count_cpu=vec_env_cls is not SubprocVecEnv)
         model.learn(learning_starts + steps, callback=CallbackList([*build_callbacks(entry), clock]))
     finally:
         env.close()
-    return clock.rate
+    return clock.rate, clock.cpu_rate
 
 
 def main() -> None:
@@ -112,21 +121,24 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     base = check_entry(read_experiment(ROOT / "zoo_configs" / "td3.yml", ENV_ID))
-    rates: dict[str, list[float]] = {name: [] for name in args.variants}
+    rates: dict[str, list[tuple[float, float]]] = {name: [] for name in args.variants}
     for round_ in range(args.rounds):
         for name in args.variants:
-            rate = steps_per_second(base, VARIANTS[name], args.steps, args.learning_starts, seed=round_)
-            rates[name].append(rate)
-            print(f"round {round_}: {name}: {rate:.1f} env steps/s", flush=True)
-    today = statistics.median(rates["today"]) if "today" in rates else float("nan")
+            wall, cpu = steps_per_second(base, VARIANTS[name], args.steps, args.learning_starts, seed=round_)
+            rates[name].append((wall, cpu))
+            print(f"round {round_}: {name}: {wall:.1f} env steps/s, {cpu:.1f} per CPU second", flush=True)
+    median = {name: [statistics.median(r[i] for r in runs) for i in (0, 1)] for name, runs in rates.items()}
+    today = median.get("today", [float("nan")] * 2)
     rows = [
-        [name, f"{statistics.median(r):.1f}", " / ".join(f"{x:.1f}" for x in r), f"{statistics.median(r) / today:.2f}x"]
-        for name, r in rates.items()
+        [name, f"{wall:.1f}", f"{wall / today[0]:.2f}x", f"{cpu:.1f}", f"{cpu / today[1]:.2f}x"]
+        for name, (wall, cpu) in median.items()
     ]
-    print(markdown_table(["variant", "env steps/s (median)", "each round", "vs today"], rows))
+    header = ["variant", "env steps/s (wall)", "vs today", "env steps per CPU s", "vs today"]
+    print(markdown_table(header, rows))
+    print(f"medians over {args.rounds} round(s); wall rates on a loaded machine mostly measure the load")
     print(f"{args.steps} timed steps after {args.learning_starts} per run, {args.threads} torch thread(s)")
     print(machine_line())
-    if not np.isfinite(today):
+    if not np.isfinite(today[0]):
         print("(no 'today' variant: no ratio)")
 
 
