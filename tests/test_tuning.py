@@ -294,11 +294,13 @@ def test_cli_pruner_flags_set_the_rungs_and_are_recorded(config, tmp_path):
     storage = f"sqlite:///{tmp_path}/sha.db"
     assert tune(config, "sha", "--env", TOY, "--storage", storage, "--tune-algo", "--n-trials", "2",
                 "--timesteps", "120", "--eval-episodes", "1", "--pruner", "hyperband", "--min-resource", "60",
-                "--reduction-factor", "2") == 0  # fmt: skip
+                "--reduction-factor", "2", "--trial-hyperparams", "n_envs:2", "train_freq:2") == 0  # fmt: skip
     study = optuna.load_study(study_name="sha", storage=storage)
     assert study.user_attrs["pruner"] == "hyperband" and study.user_attrs["eval_steps"] == [60]
+    assert study.user_attrs["trial_hyperparams"] == {"n_envs": 2, "train_freq": 2}
+    assert "n_envs" not in study.user_attrs["entry"]  # the report's zoo entry keeps the file's values
     for trial in study.trials:
-        assert set(trial.intermediate_values) <= {60, 120}
+        assert trial.state == TrialState.COMPLETE and set(trial.intermediate_values) <= {60, 120}
 
 
 def test_user_errors_are_one_line_exit_2(config, tmp_path, capsys):
@@ -316,6 +318,8 @@ def test_user_errors_are_one_line_exit_2(config, tmp_path, capsys):
         (["--pruner", "hyperband", "--min-resource", "100"], "--min-resource must be in [1, --timesteps 100)"),
         (["--pruner", "hyperband", "--reduction-factor", "1"], "--reduction-factor must be at least 2"),
         (["--pruner", "successive-halving", "--evaluations", "1"], "min resource must be in"),
+        (["--trial-hyperparams", "n_envs"], "--trial-hyperparams: expected KEY:VALUE"),
+        (["--trial-hyperparams", "n_envs:0"], "n_envs"),
     ]
     for extra, message in cases:
         assert tune(config, "e", *base, *extra) == 2

@@ -125,17 +125,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--verbose", type=int, default=0, choices=(0, 1, 2))
 
 
-def parse_overrides(items: list[str]) -> dict[str, Any]:
-    """``["batch_size:64", "gamma:0.9"]`` -> ``{"batch_size": 64, "gamma": 0.9}`` (values as YAML)."""
+def parse_overrides(items: list[str], flag: str = "--hyperparams") -> dict[str, Any]:
+    """``["batch_size:64", "gamma:0.9"]`` -> ``{"batch_size": 64, "gamma": 0.9}`` (values as YAML).
+
+    :param items: ``KEY:VALUE`` strings
+    :param flag: the option named in errors
+    """
     overrides = {}
     for item in items:
         key, sep, value = item.partition(":")
         if not sep or not key:
-            raise UserError(f"--hyperparams: expected KEY:VALUE, got {item!r}")
+            raise UserError(f"{flag}: expected KEY:VALUE, got {item!r}")
         try:
             overrides[key] = yaml.safe_load(value)
         except yaml.YAMLError as error:
-            raise UserError(f"--hyperparams: {item!r}: value is not YAML ({str(error).splitlines()[0]})") from None
+            raise UserError(f"{flag}: {item!r}: value is not YAML ({str(error).splitlines()[0]})") from None
     return overrides
 
 

@@ -17,6 +17,7 @@ from typing import Any
 
 from sb3_graph.cli import UserError
 from sb3_graph.commands.arguments import check_device, json_object
+from sb3_graph.commands.train import parse_overrides
 
 DEFAULT_STORAGE = "sqlite:///studies/{study}.db"
 # Environment ids with a domain plug-in in this repository: prefix -> (evaluator, env preset).
@@ -58,6 +59,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "(default for CoopIntersection*: envs.tuning:tuning_env_kwargs, the 'tuning' preset)",
     )
     parser.add_argument("--env-kwargs", type=json_object, default=None, help="JSON dict merged over the preset")
+    parser.add_argument(
+        "--trial-hyperparams",
+        nargs="+",
+        default=[],
+        metavar="KEY:VALUE",
+        help="entry keys for the trials only, e.g. train_freq:2 n_envs:2 (cheaper trials); the report's "
+        "zoo entry keeps the file's values",
+    )
     parser.add_argument(
         "--pruner",
         default="median",
@@ -155,20 +164,22 @@ def prepare(args: argparse.Namespace):
         objective = make_objective(args.objective, args.max_collision_rate)
     except ValueError as error:
         raise UserError(f"--objective/--max-collision-rate: {error}") from error
+    overrides = parse_overrides(args.trial_hyperparams, "--trial-hyperparams")
     try:
         entry = check_entry(read_experiment(args.config, args.env))
+        trial_entry = check_entry({**entry, **overrides})
         # Every value that a trial turns into an object, checked once here (a typo fails the
         # command, not every trial): no expression is evaluated, see sb3_graph.safe_values.
-        build_algorithm_kwargs(entry, 1)
-        build_callbacks(entry)
-        if isinstance(entry.get("policy"), str) and "." in entry["policy"]:
-            resolve_object(entry["policy"], "policy")
+        build_algorithm_kwargs(trial_entry, 1)
+        build_callbacks(trial_entry)
+        if isinstance(trial_entry.get("policy"), str) and "." in trial_entry["policy"]:
+            resolve_object(trial_entry["policy"], "policy")
     except ExperimentError as error:
-        raise UserError(str(error)) from error
-    timesteps = int(float(args.timesteps if args.timesteps is not None else entry["n_timesteps"]))
+        raise UserError(f"{error} (--config or --trial-hyperparams)" if overrides else str(error)) from error
+    timesteps = int(float(args.timesteps if args.timesteps is not None else trial_entry["n_timesteps"]))
     if timesteps < 1:
         raise UserError(f"--timesteps must be at least 1, got {timesteps}")
-    learning_starts = int(entry.get("learning_starts", 100))
+    learning_starts = int(trial_entry.get("learning_starts", 100))
     if learning_starts >= timesteps:
         raise UserError(
             f"--timesteps {timesteps} <= learning_starts {learning_starts} of the entry: no gradient step would run"
@@ -191,7 +202,7 @@ def prepare(args: argparse.Namespace):
     except ValueError as error:
         raise UserError(str(error)) from error
 
-    original_env_kwargs = dict(entry.get("env_kwargs") or {})
+    original_env_kwargs = dict(trial_entry.get("env_kwargs") or {})
     env_kwargs = merge_env_kwargs(merge_env_kwargs(original_env_kwargs, _preset(args)), dict(args.env_kwargs or {}))
     try:
         probe = gym.make(args.env, **env_kwargs)
@@ -211,7 +222,7 @@ def prepare(args: argparse.Namespace):
             f"nothing to tune: {args.env!r} has no config['reward_weights'] (or --weights is empty) "
             "and --tune-algo is off"
         )
-    study_entry = {**entry, "env_kwargs": env_kwargs}
+    study_entry = {**trial_entry, "env_kwargs": env_kwargs}
     settings = TrialSettings(
         env_id=args.env,
         entry=study_entry,
@@ -241,6 +252,7 @@ def prepare(args: argparse.Namespace):
         "evaluator": evaluator_spec,
         "timesteps": timesteps,
         "pruner": args.pruner if objective.prunable else "none",
+        "trial_hyperparams": json.loads(json.dumps(overrides, default=str)),
         "eval_steps": list(eval_steps) if objective.prunable else [],
     }
     return settings, attrs
