@@ -111,6 +111,30 @@ def steps_per_second(base: dict, change: dict, steps: int, learning_starts: int,
     return clock.rate, clock.cpu_rate
 
 
+def profile_today(base: dict, steps: int, learning_starts: int) -> None:
+    """Where the time of ``today``'s ``learn`` goes (cProfile, cumulative time of the parts)."""
+    import cProfile
+    import pstats
+
+    profiler = cProfile.Profile()
+    profiler.runcall(steps_per_second, base, {}, steps, learning_starts, 0)
+    stats = pstats.Stats(profiler).stats  # (file, line, function) -> (calls, ..., cumulative s, callers)
+    parts = {
+        "gradient steps (TD3.train)": ("td3.py", "train"),
+        "action selection (_sample_action)": ("off_policy_algorithm.py", "_sample_action"),
+        "environment (VecEnv.step)": ("base_vec_env.py", "step"),
+        "whole learn()": ("off_policy_algorithm.py", "learn"),
+    }
+    seconds = {
+        name: max((v[3] for (f, _, fn), v in stats.items() if f.endswith(file) and fn == func), default=0.0)
+        for name, (file, func) in parts.items()
+    }
+    total = seconds["whole learn()"] or 1.0
+    print(f"profile of 'today' ({learning_starts} + {steps} steps), cumulative time:")
+    for name, value in seconds.items():
+        print(f"  {name}: {value:.1f} s ({100 * value / total:.0f} %)")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=1500, help="timed environment steps per run")
@@ -118,9 +142,14 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=2, help="runs of each variant, in turns (median)")
     parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
     parser.add_argument("--threads", type=int, default=1, help="torch threads")
+    parser.add_argument("--profile", action="store_true", help="only profile 'today' (where its time goes)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     base = check_entry(read_experiment(ROOT / "zoo_configs" / "td3.yml", ENV_ID))
+    if args.profile:
+        profile_today(base, args.steps, args.learning_starts)
+        print(machine_line())
+        return
     rates: dict[str, list[tuple[float, float]]] = {name: [] for name in args.variants}
     for round_ in range(args.rounds):
         for name in args.variants:
