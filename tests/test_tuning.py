@@ -13,6 +13,7 @@ from optuna.trial import TrialState
 from sb3_graph.cli import main
 from sb3_graph.tuning.objectives import COLLISION, FLOW, STOP, check_metrics, make_objective
 from sb3_graph.tuning.pruners import evaluation_steps
+from sb3_graph.tuning.report import pruning_summary, trials_table
 from sb3_graph.tuning.runner import TrialSettings, resolve_callable, run_trial
 from sb3_graph.tuning.search_space import (
     ALGO_SPACE,
@@ -288,6 +289,15 @@ def test_successive_halving_stops_a_hopeless_trial_at_its_first_rung():
     assert hopeless.intermediate_values == {25: 0.0}
     assert trained == [25]  # one evaluation, a quarter of the budget trained
     assert hopeless.user_attrs["reason"] == "pruned at step 25 (intermediate value 0)"
+    # the report counts what pruning saved
+    for key, value in {"pruner": "successive-halving", "timesteps": 100, "eval_steps": [25, 50]}.items():
+        study.set_user_attr(key, value)
+    table = trials_table(study)
+    assert list(table["steps_trained"]) == [100, 100, 100, 25]
+    assert pruning_summary(study, table) == (
+        "- pruner: successive-halving, evaluations at steps [25, 50]; finished trials by steps trained: "
+        "25: 1, 100: 3; 325 steps in all, 400 without pruning"
+    )
 
 
 def test_cli_pruner_flags_set_the_rungs_and_are_recorded(config, tmp_path):
