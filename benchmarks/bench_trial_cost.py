@@ -21,6 +21,9 @@ Variants (``today`` is the entry as it is; the others change one thing at a time
 - ``2envs-subproc``: the same with ``SubprocVecEnv`` (environments in 2 processes).
 - ``preset+utd½+2envs``: the combination.
 
+``--critic-pass`` instead times ``TD3.train`` with the twin critics one after the other (today)
+and in one batched pass; ``--profile`` shows where today's ``learn`` spends its time.
+
 Prints a markdown table: env steps per wall second and per CPU second of the learner process
 (medians over rounds), each with its ratio to ``today``.
 """
@@ -135,6 +138,39 @@ def profile_today(base: dict, steps: int, learning_starts: int) -> None:
         print(f"  {name}: {value:.1f} s ({100 * value / total:.0f} %)")
 
 
+def critic_pass_rates(base: dict, rounds: int, gradient_steps: int = 30) -> dict[str, list[float]]:
+    """Gradient steps per CPU second of ``TD3.train`` with the twin critics run one after the other
+    (``GraphCritic.forward`` today) or in one batched pass (``stacked_q_forward``), in turns on the
+    same model and replay buffer (filled by 400 steps of the full environment)."""
+    from stable_baselines3.common.logger import configure
+
+    from sb3_graph.networks import GraphCritic, as_graph_batch, gather_vertex_values, stacked_q_forward
+
+    def batched(self, obs, actions):
+        graphs = as_graph_batch(obs)
+        return tuple(stacked_q_forward(self.q_networks, graphs, gather_vertex_values(actions, graphs)).unbind(0))
+
+    entry = {**base, "learning_starts": 400}
+    env = make_vec_env(ENV_ID, n_envs=1, seed=0, env_kwargs=entry["env_kwargs"])
+    model = TD3(resolve_object(entry["policy"], "policy"), env, seed=0, device="cpu",
+                **build_algorithm_kwargs(entry, env.action_space.shape[0]))  # fmt: skip
+    model.learn(400)
+    model.set_logger(configure(None, [""]))
+    today = GraphCritic.forward
+    rates: dict[str, list[float]] = {"one critic at a time": [], "batched pass": []}
+    try:
+        for _ in range(rounds):
+            for name, forward in zip(rates, (today, batched)):
+                GraphCritic.forward = forward
+                tic = time.process_time()
+                model.train(gradient_steps=gradient_steps, batch_size=int(entry["batch_size"]))
+                rates[name].append(gradient_steps / (time.process_time() - tic))
+    finally:
+        GraphCritic.forward = today
+        env.close()
+    return rates
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=1500, help="timed environment steps per run")
@@ -143,9 +179,18 @@ def main() -> None:
     parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
     parser.add_argument("--threads", type=int, default=1, help="torch threads")
     parser.add_argument("--profile", action="store_true", help="only profile 'today' (where its time goes)")
+    parser.add_argument(
+        "--critic-pass", action="store_true", help="only compare the twin critics one at a time vs batched"
+    )
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     base = check_entry(read_experiment(ROOT / "zoo_configs" / "td3.yml", ENV_ID))
+    if args.critic_pass:
+        rates = critic_pass_rates(base, max(args.rounds, 3))
+        rows = [[name, f"{statistics.median(r):.1f}", " / ".join(f"{x:.1f}" for x in r)] for name, r in rates.items()]
+        print(markdown_table(["twin critics", "gradient steps per CPU s (median)", "each round"], rows))
+        print(machine_line())
+        return
     if args.profile:
         profile_today(base, args.steps, args.learning_starts)
         print(machine_line())
