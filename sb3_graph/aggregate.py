@@ -99,6 +99,7 @@ def aggregate(
     confidence: float = DEFAULT_CONFIDENCE,
     seed: int = 0,
     seed_column: str | None = None,
+    stratified: bool = True,
 ) -> pd.DataFrame:
     """IQM and stratified bootstrap interval of each metric, per group (configuration), over runs and tasks.
 
@@ -113,6 +114,9 @@ def aggregate(
     :param confidence: interval size
     :param seed: seed of the resampling (the same for every group and metric)
     :param seed_column: column of the training seed, to count the seeds (optional)
+    :param stratified: resample the runs within each task (rliable's bootstrap: the tasks are
+        fixed, the interval measures the spread over runs, and a task with one run adds none);
+        ``False`` resamples all runs of a group together (the tasks count as drawn too)
     :return: one row per group and metric: ``group, metric, iqm, ci_low, ci_high, mean, median,
         runs, tasks`` (and ``seeds``)
     """
@@ -128,7 +132,10 @@ def aggregate(
                 row["seeds"] = kept[seed_column].nunique()
             if len(kept):
                 values = kept[metric].astype(float)
-                per_task = [g.to_numpy() for _, g in values.groupby(kept[task], sort=True)]
+                if stratified:
+                    per_task = [g.to_numpy() for _, g in values.groupby(kept[task], sort=True)]
+                else:
+                    per_task = [values.to_numpy()]
                 low, high = stratified_bootstrap_ci(per_task, iqm, reps, confidence, seed)
                 row.update(iqm=float(iqm(values)), ci_low=low, ci_high=high, mean=values.mean(), median=values.median())
             rows.append(row)

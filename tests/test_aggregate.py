@@ -70,6 +70,9 @@ def test_aggregate_table_per_configuration_over_seeds_and_tasks():
     assert a["mean"] == pytest.approx(7.75) and a["median"] == 5.5
     b = table[(table.config == "b") & (table.metric == "delay")].iloc[0]
     assert b.runs == 0 and np.isnan(b.iqm)  # undefined everywhere: no figure rather than a made-up one
+    # the iid bootstrap also resamples across tasks: wider than the stratified one here
+    iid = aggregate(pd.DataFrame(rows), "config", "scenario", ["flow"], reps=5000, stratified=False).iloc[0]
+    assert iid.iqm == 5.5 and iid.ci_low < 5.0 and iid.ci_high > 10.5
     with pytest.raises(KeyError, match="missing"):
         aggregate(pd.DataFrame(rows), "config", "scenario", ["speed"])
 
@@ -98,6 +101,14 @@ def test_aggregate_command_pools_seeds_into_one_configuration(tmp_path, capsys):
     assert flow.loc["table1:PR"].seeds == 0  # a baseline has no training seed
     assert "| table1:RL:seed_* | flow_rate | 5.5 [5, 10.5] |" in (out / "aggregate.md").read_text()
     assert len(pd.read_csv(out / "runs.csv")) == 8
+    # one run per scenario (a baseline): a point under the stratified bootstrap, an interval under iid
+    pr = _report(tmp_path / "pr", {"PR": [0.1, 0.2, 0.3, 0.4]})
+    assert main(["aggregate", str(pr), "--out", str(tmp_path / "pr_s")]) == 0
+    assert main(["aggregate", str(pr), "--bootstrap", "iid", "--out", str(tmp_path / "pr_i")]) == 0
+    point = pd.read_csv(tmp_path / "pr_s" / "aggregate.csv").iloc[0]
+    spread = pd.read_csv(tmp_path / "pr_i" / "aggregate.csv").iloc[0]
+    assert point.ci_low == point.ci_high == point.iqm == pytest.approx(0.25)
+    assert spread.ci_low < 0.25 < spread.ci_high
     capsys.readouterr()
     # bad input: one line naming the flag; an existing output is never overwritten
     for extra, message in [
@@ -105,6 +116,7 @@ def test_aggregate_command_pools_seeds_into_one_configuration(tmp_path, capsys):
         (["--metrics", "speed"], "no column ['speed']; --metrics allowed:"),
         (["--seed-pattern", "seed_\\d+"], "--seed-pattern"),
         (["--confidence", "95"], "--confidence must be in (0, 1)"),
+        (["--bootstrap", "block"], "--bootstrap must be stratified or iid"),
     ]:
         args = ["aggregate", str(table1), "--out", str(tmp_path / "new"), *extra]
         assert main(args) == 2

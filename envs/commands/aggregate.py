@@ -17,8 +17,11 @@ Evaluate every input on the same scenarios (the same ``--seed`` and ``--scenario
 ``--scenario-dir``): the scenario file name is the task of the stratified bootstrap.
 
 Per configuration and metric: the interquartile mean over all its runs (seeds x scenarios), the
-percentile interval of the stratified bootstrap (scenarios are the strata; see
-:mod:`sb3_graph.aggregate`), mean, median and the numbers of runs, seeds and scenarios. Written
+percentile interval of the stratified bootstrap (scenarios are the strata, as rliable's tasks:
+the interval is the spread over seeds, and a configuration with one run per scenario, such as a
+deterministic baseline, gets a point; ``--bootstrap iid`` resamples all runs together, so that the
+scenarios count as drawn too; see :mod:`sb3_graph.aggregate`), mean, median and the numbers of
+runs, seeds and scenarios. Written
 into ``--out`` (which must not exist): ``aggregate.csv``, ``aggregate.md`` and ``runs.csv`` (the
 pooled input rows with their configuration and seed).
 """
@@ -52,6 +55,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--reps", type=int, default=2000, help="bootstrap resamples (default: 2000; rliable: 50000)")
     parser.add_argument("--confidence", type=float, default=0.95, help="interval size in (0, 1) (default: 0.95)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the bootstrap (default: 0)")
+    parser.add_argument(
+        "--bootstrap",
+        default="stratified",
+        help="stratified (default, rliable's: runs resampled within each scenario, scenarios fixed) or iid "
+        "(all runs of a configuration resampled together: scenarios count as drawn too)",
+    )
     parser.add_argument(
         "--seed-pattern",
         default=DEFAULT_SEED_PATTERN,
@@ -118,12 +127,17 @@ def _wildcard(match: re.Match) -> str:
     return text[:start] + "*" + text[start + len(match.group(1)) :]
 
 
-def markdown(table: pd.DataFrame, confidence: float) -> str:
+def markdown(table: pd.DataFrame, confidence: float, bootstrap: str = "stratified") -> str:
     """The aggregate as a markdown table: one row per configuration and metric."""
     level = f"{100 * confidence:g} %"
+    how = (
+        "stratified bootstrap interval (runs resampled within each scenario: the spread over seeds; a "
+        "configuration with one run per scenario gets a point)"
+        if bootstrap == "stratified"
+        else "bootstrap interval over all runs together (seeds and scenarios)"
+    )
     lines = [
-        f"IQM over runs (seeds x scenarios) with the {level} stratified bootstrap interval "
-        "(scenarios are the strata), mean and median.",
+        f"IQM over runs (seeds x scenarios) with the {level} {how}, mean and median.",
         "",
         f"| configuration | metric | IQM [{level} CI] | mean | median | runs | seeds | scenarios |",
         "|---|---|---|---|---|---|---|---|",
@@ -146,6 +160,8 @@ def run(args: argparse.Namespace) -> int:
 
     if args.reps < 1:
         raise UserError(f"--reps must be at least 1, got {args.reps}")
+    if args.bootstrap not in ("stratified", "iid"):
+        raise UserError(f"--bootstrap must be stratified or iid, got {args.bootstrap!r}")
     if not 0 < args.confidence < 1:
         raise UserError(f"--confidence must be in (0, 1), got {args.confidence}")
     try:
@@ -153,14 +169,17 @@ def run(args: argparse.Namespace) -> int:
     except OutputError as error:
         raise UserError(str(error)) from None
     runs = read_runs(args.reports, args.metrics, args.seed_pattern)
-    table = aggregate(runs, CONFIGURATION, TASK, args.metrics, args.reps, args.confidence, args.seed, SEED)
+    table = aggregate(
+        runs, CONFIGURATION, TASK, args.metrics, args.reps, args.confidence, args.seed, SEED,
+        stratified=args.bootstrap == "stratified",
+    )  # fmt: skip
     try:
         with staged_folder(args.out) as folder:
             table.to_csv(folder / "aggregate.csv", index=False)
-            (folder / "aggregate.md").write_text(markdown(table, args.confidence))
+            (folder / "aggregate.md").write_text(markdown(table, args.confidence, args.bootstrap))
             runs.to_csv(folder / "runs.csv", index=False)
     except OutputError as error:
         raise UserError(str(error)) from None
-    print(markdown(table, args.confidence), end="")
+    print(markdown(table, args.confidence, args.bootstrap), end="")
     print(f"sb3-graph aggregate: {len(runs)} runs, {runs[CONFIGURATION].nunique()} configurations -> {args.out}")
     return 0
