@@ -19,6 +19,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "train": ("sb3_graph.commands.train", "train a planner from an rl-zoo3 style YAML experiment"),
     "tune": ("sb3_graph.tuning.commands", "tune reward weights and TD3 settings with Optuna"),
     "tune-report": ("sb3_graph.tuning.report_command", "write the report of an Optuna study"),
+    "aggregate": ("envs.commands.aggregate", "IQM and 95 % intervals of evaluate reports over seeds and scenarios"),
     "ind": ("envs.commands.ind", "replay inD recordings through the planners"),
     "export": ("sb3_graph.commands.export", "write a model's policy as a weights-only file that cannot run code"),
 }

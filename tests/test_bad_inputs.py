@@ -163,6 +163,8 @@ CASES = [
      ["CartPole-v1", "no entry"]),  # fmt: skip
     ("train-hyperparam-yaml", _train(str(CONFIG), "--hyperparams", "gamma:[0.9"), ["--hyperparams", "gamma"]),
     ("train-resume-nothing", _train(str(CONFIG), "--resume"), ["--resume", "no config.yml"]),
+    ("train-seeds-negative", _train(str(CONFIG), "--seeds", "0", "-1"), ["--seeds", "-1"]),
+    ("train-seed-and-seeds", _train(str(CONFIG), "--seeds", "0", "--seed", "1"), ["--seed", "--seeds"]),
     # tune and tune-report
     ("tune-device", _tune(str(CONFIG), "--device", "cudaX"), ["--device", "cudaX"]),
     ("tune-env-kwargs-list", _tune(str(CONFIG), "--env-kwargs", "[1]"), ["--env-kwargs", "JSON object"]),
@@ -170,6 +172,10 @@ CASES = [
     ("tune-lin-abc", _tune("{lin_abc}"), ["learning_rate", "lin_abc"]),
     ("tune-timesteps", _tune(str(CONFIG), "--timesteps", "-5"), ["--timesteps", "-5"]),
     ("tune-seed", _tune(str(CONFIG), "--seed", "-1"), ["--seed", "-1"]),
+    ("tune-pruner", _tune(str(CONFIG), "--pruner", "asha"), ["--pruner", "'asha'", "successive-halving", "hyperband"]),
+    ("tune-min-resource", _tune(str(CONFIG), "--pruner", "hyperband", "--min-resource", "0"), ["--min-resource"]),
+    ("aggregate-no-report", ["aggregate", "{tmp}/nothing", "--out", "{out}"], ["REPORT", "no metrics.csv"]),
+    ("aggregate-reps", ["aggregate", "{tmp}", "--reps", "0", "--out", "{out}"], ["--reps", "0"]),
     ("report-unreachable-server", ["tune-report", "--study-name", "s", "--storage", "postgresql://u:p@127.0.0.1:1/db",
                                    "--out", "{out}"], ["--storage"]),  # fmt: skip
     ("report-storage-under-file", ["tune-report", "--study-name", "s", "--storage", "sqlite:///{afile}/x/s.db",

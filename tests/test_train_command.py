@@ -254,3 +254,26 @@ def test_run_record_holds_no_machine_path(tmp_path, monkeypatch):
     assert portable_command(argv) == "sb3-graph train --config zoo/td3.yml --out=x"
     assert portable_path(str(Path.home() / "runs" / "a")) == "~/runs/a"
     assert portable_path("relative/path") == "relative/path"
+
+
+def test_seeds_train_one_run_per_seed_and_never_overwrite(tmp_path, capsys):
+    out = tmp_path / "seeds"
+    tiny = ["--n-timesteps", "80", *TINY, *SHORT_EPISODES]
+    assert train(out, "--seeds", "0", "1", *tiny) == 0
+    for seed in (0, 1):
+        record = json.loads((out / f"seed_{seed}" / "run.json").read_text())
+        assert record["seed"] == seed and record["num_timesteps"] == 80
+        assert (out / f"seed_{seed}" / "final_model.zip").is_file()
+    stamp = (out / "seed_0" / "run.json").read_text()
+    capsys.readouterr()
+    # an existing seed folder is never overwritten: checked before any run starts
+    assert train(out, "--seeds", "2", "1", *tiny) == 2
+    assert "seed_1 already hold files" in capsys.readouterr().err and not (out / "seed_2").exists()
+    assert train(out, "--seeds", "0", "--seed", "3", *tiny) == 2
+    assert "--seed and --seeds exclude each other" in capsys.readouterr().err
+    assert train(out, "--seeds", "4", "4", *tiny) == 2
+    assert "each seed once" in capsys.readouterr().err
+    # --resume continues the runs that exist and starts the missing ones
+    assert train(out, "--seeds", "0", "2", "--resume", "--n-timesteps", "80") == 0
+    assert (out / "seed_0" / "run.json").read_text() != stamp  # its record gained a session
+    assert json.loads((out / "seed_2" / "run.json").read_text())["seed"] == 2

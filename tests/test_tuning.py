@@ -12,6 +12,8 @@ from optuna.trial import TrialState
 
 from sb3_graph.cli import main
 from sb3_graph.tuning.objectives import COLLISION, FLOW, STOP, check_metrics, make_objective
+from sb3_graph.tuning.pruners import evaluation_steps
+from sb3_graph.tuning.report import pruning_summary, trials_table
 from sb3_graph.tuning.runner import TrialSettings, resolve_callable, run_trial
 from sb3_graph.tuning.search_space import (
     ALGO_SPACE,
@@ -90,6 +92,11 @@ def test_objectives():
     assert flow.values(metrics) == 0.5 and flow.prunable
     assert flow.constraint(metrics) == pytest.approx(0.03)  # > 0: infeasible
     assert isinstance(flow.pruner(), optuna.pruners.MedianPruner)
+    assert isinstance(flow.pruner("successive-halving", 900), optuna.pruners.SuccessiveHalvingPruner)
+    assert isinstance(flow.pruner("hyperband", 900), optuna.pruners.HyperbandPruner)
+    assert isinstance(flow.pruner("none"), optuna.pruners.NopPruner)
+    with pytest.raises(ValueError, match="pruner must be one of"):
+        flow.pruner("asha")
     pareto = make_objective("pareto")
     assert pareto.values(metrics) == (0.5, 0.05, 0.2)
     assert pareto.directions == ("maximize", "minimize", "minimize")
@@ -243,6 +250,69 @@ def test_intermediate_values_let_the_pruner_stop_a_trial():
     assert trial.user_attrs["reason"].startswith("pruned at step 25")
 
 
+def test_rungs_are_the_evaluation_steps_of_sha_and_hyperband():
+    assert evaluation_steps("median", 300, 3) == (100, 200)
+    assert evaluation_steps("none", 300, 1) == ()
+    # 4 evaluations of a surviving trial: 3 rungs below the budget, the last one at the end
+    assert evaluation_steps("successive-halving", 100_000, 4) == (3704, 11112, 33336)
+    assert evaluation_steps("hyperband", 100_000, 3, reduction_factor=2) == (25_000, 50_000)
+    assert evaluation_steps("hyperband", 1000, 3, min_resource=100, reduction_factor=3) == (100, 300, 900)
+    with pytest.raises(ValueError, match="min resource must be in"):
+        evaluation_steps("successive-halving", 100, 2, min_resource=100)
+
+
+def test_successive_halving_stops_a_hopeless_trial_at_its_first_rung():
+    """Toy setup: three trials of rising quality, then a hopeless one; SHA (rungs 25 and 50 of 100
+    steps, halving) must stop the hopeless one at its first evaluation, after a quarter of its budget."""
+    import sb3_graph.toy_envs  # noqa: F401
+
+    quality, trained = [0.5], []
+
+    def evaluator(model, **kwargs):
+        trained.append(model.num_timesteps)
+        return {FLOW: quality[0], COLLISION: 0.0, STOP: 0.0}
+
+    settings = toy_settings(evaluator)
+    settings.eval_steps = evaluation_steps("successive-halving", 100, 3, reduction_factor=2)
+    assert settings.eval_steps == (25, 50)
+    pruner = make_objective("flow").pruner("successive-halving", 100, 3, 25, reduction_factor=2)
+    study = optuna.create_study(direction="maximize", pruner=pruner)
+    for value in (0.5, 0.6, 0.7):  # each new trial the best so far: all promoted
+        quality[0] = value
+        study.optimize(lambda t: run_trial(t, settings), n_trials=1)
+    assert [t.state for t in study.trials] == [TrialState.COMPLETE] * 3
+    assert all(list(t.intermediate_values) == [25, 50, 100] for t in study.trials)
+    quality[0], trained[:] = 0.0, []
+    study.optimize(lambda t: run_trial(t, settings), n_trials=1)
+    hopeless = study.trials[-1]
+    assert hopeless.state == TrialState.PRUNED
+    assert hopeless.intermediate_values == {25: 0.0}
+    assert trained == [25]  # one evaluation, a quarter of the budget trained
+    assert hopeless.user_attrs["reason"] == "pruned at step 25 (intermediate value 0)"
+    # the report counts what pruning saved
+    for key, value in {"pruner": "successive-halving", "timesteps": 100, "eval_steps": [25, 50]}.items():
+        study.set_user_attr(key, value)
+    table = trials_table(study)
+    assert list(table["steps_trained"]) == [100, 100, 100, 25]
+    assert pruning_summary(study, table) == (
+        "- pruner: successive-halving, evaluations at steps [25, 50]; finished trials by steps trained: "
+        "25: 1, 100: 3; 325 steps in all, 400 without pruning"
+    )
+
+
+def test_cli_pruner_flags_set_the_rungs_and_are_recorded(config, tmp_path):
+    storage = f"sqlite:///{tmp_path}/sha.db"
+    assert tune(config, "sha", "--env", TOY, "--storage", storage, "--tune-algo", "--n-trials", "2",
+                "--timesteps", "120", "--eval-episodes", "1", "--pruner", "hyperband", "--min-resource", "60",
+                "--reduction-factor", "2", "--trial-hyperparams", "n_envs:2", "train_freq:2") == 0  # fmt: skip
+    study = optuna.load_study(study_name="sha", storage=storage)
+    assert study.user_attrs["pruner"] == "hyperband" and study.user_attrs["eval_steps"] == [60]
+    assert study.user_attrs["trial_hyperparams"] == {"n_envs": 2, "train_freq": 2}
+    assert "n_envs" not in study.user_attrs["entry"]  # the report's zoo entry keeps the file's values
+    for trial in study.trials:
+        assert trial.state == TrialState.COMPLETE and set(trial.intermediate_values) <= {60, 120}
+
+
 def test_user_errors_are_one_line_exit_2(config, tmp_path, capsys):
     db = f"sqlite:///{tmp_path}/e.db"
     base = ["--env", TOY, "--storage", db, "--tune-algo", "--timesteps", "100", "--n-trials", "1"]
@@ -253,6 +323,13 @@ def test_user_errors_are_one_line_exit_2(config, tmp_path, capsys):
         (["--evaluator", "nocolon"], "module:function"),
         (["--weight-spread", "1"], "--weight-spread must be > 1"),
         (["--env", "Nope-v0"], "no entry for env 'Nope-v0'"),
+        (["--pruner", "asha"], "--pruner: unknown pruner 'asha'; allowed: median, successive-halving, hyperband"),
+        (["--min-resource", "10"], "--min-resource applies to --pruner successive-halving or hyperband"),
+        (["--pruner", "hyperband", "--min-resource", "100"], "--min-resource must be in [1, --timesteps 100)"),
+        (["--pruner", "hyperband", "--reduction-factor", "1"], "--reduction-factor must be at least 2"),
+        (["--pruner", "successive-halving", "--evaluations", "1"], "min resource must be in"),
+        (["--trial-hyperparams", "n_envs"], "--trial-hyperparams: expected KEY:VALUE"),
+        (["--trial-hyperparams", "n_envs:0"], "n_envs"),
     ]
     for extra, message in cases:
         assert tune(config, "e", *base, *extra) == 2

@@ -17,6 +17,10 @@ folder from elsewhere cannot run code here; ``--trust-run-files`` loads unsigned
 before signatures existed, or your own run copied from another machine). The stored
 ``config.yml`` is read like any experiment file, without evaluating code.
 
+``--seeds 0 1 2`` trains one such run per seed into ``OUT/seed_0``, ``OUT/seed_1``, ... (one
+after the other; no existing seed folder is overwritten, ``--resume`` continues them);
+``sb3-graph aggregate`` summarizes runs over seeds and scenarios.
+
 A fresh run that fails before its first checkpoint leaves no run folder behind, and ``--resume``
 of a folder without checkpoints reads ``--config`` again: a run that failed on a wrong value is
 rerun with the same command once the file is fixed.
@@ -68,7 +72,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--env", required=True, help="environment id, the entry to read from --config")
     parser.add_argument("--out", required=True, help="run folder; must not exist unless --resume")
     parser.add_argument("--n-timesteps", type=int, default=None, help="override n_timesteps of the entry (>= 1)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the training envs and the learner (>= 0)")
+    parser.add_argument(
+        "--seed", type=int, default=None, help="seed of the training envs and the learner (>= 0, default 0)"
+    )
+    parser.add_argument(
+        "--seeds",
+        type=int,
+        nargs="+",
+        default=None,
+        metavar="SEED",
+        help="train one run per seed, one after the other, into OUT/seed_<SEED> (instead of --seed); "
+        "with --resume, runs that exist continue and missing ones start",
+    )
     parser.add_argument("--resume", action="store_true", help="continue the run in --out from its last checkpoint")
     parser.add_argument(
         "--trust-run-files",
@@ -110,17 +125,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--verbose", type=int, default=0, choices=(0, 1, 2))
 
 
-def parse_overrides(items: list[str]) -> dict[str, Any]:
-    """``["batch_size:64", "gamma:0.9"]`` -> ``{"batch_size": 64, "gamma": 0.9}`` (values as YAML)."""
+def parse_overrides(items: list[str], flag: str = "--hyperparams") -> dict[str, Any]:
+    """``["batch_size:64", "gamma:0.9"]`` -> ``{"batch_size": 64, "gamma": 0.9}`` (values as YAML).
+
+    :param items: ``KEY:VALUE`` strings
+    :param flag: the option named in errors
+    """
     overrides = {}
     for item in items:
         key, sep, value = item.partition(":")
         if not sep or not key:
-            raise UserError(f"--hyperparams: expected KEY:VALUE, got {item!r}")
+            raise UserError(f"{flag}: expected KEY:VALUE, got {item!r}")
         try:
             overrides[key] = yaml.safe_load(value)
         except yaml.YAMLError as error:
-            raise UserError(f"--hyperparams: {item!r}: value is not YAML ({str(error).splitlines()[0]})") from None
+            raise UserError(f"{flag}: {item!r}: value is not YAML ({str(error).splitlines()[0]})") from None
     return overrides
 
 
@@ -273,7 +292,7 @@ def _check_flags(args: argparse.Namespace) -> None:
             raise UserError(f"--{flag.replace('_', '-')} must be at least 1, got {getattr(args, flag)}")
     if args.n_timesteps is not None and args.n_timesteps < 1:
         raise UserError(f"--n-timesteps must be at least 1, got {args.n_timesteps}")
-    if args.seed < 0:
+    if args.seed is not None and args.seed < 0:
         raise UserError(f"--seed must be >= 0, got {args.seed}")
     if args.trust_run_files and not args.resume:
         raise UserError("--trust-run-files applies to --resume only")
@@ -388,7 +407,57 @@ def _discard(out: Path, created: bool) -> None:
         shutil.rmtree(item, ignore_errors=True) if item.is_dir() else item.unlink(missing_ok=True)
 
 
+def seed_folder(out: str | Path, seed: int) -> Path:
+    """The run folder of ``seed`` in a ``--seeds`` run: ``OUT/seed_<seed>``."""
+    return Path(out) / f"seed_{seed}"
+
+
 def run(args: argparse.Namespace) -> int:
+    """Run the command: one run (``--seed``) or one per seed (``--seeds``)."""
+    if getattr(args, "seeds", None) is None:
+        if args.seed is None:
+            args.seed = 0
+        return _run_one(args)
+    return _run_seeds(args)
+
+
+def _run_seeds(args: argparse.Namespace) -> int:
+    """One run per seed into ``OUT/seed_<seed>``; nothing that exists is overwritten.
+
+    Every seed folder is checked before the first run starts, so a mistake does not surface after
+    hours of training. The runs go one after the other (the learner is single-process; two runs at
+    once on a small machine only share its cores). The first run that does not end normally (an
+    interrupt: exit 130) stops the loop; ``--resume`` continues from there.
+    """
+    import copy
+
+    _check_flags(args)
+    if args.seed is not None:
+        raise UserError("--seed and --seeds exclude each other: give the seeds with --seeds only")
+    seeds = list(args.seeds)
+    if any(seed < 0 for seed in seeds):
+        raise UserError(f"--seeds must be >= 0, got {seeds}")
+    if len(set(seeds)) != len(seeds):
+        raise UserError(f"--seeds: each seed once, got {seeds}")
+    folders = {seed: seed_folder(args.out, seed) for seed in seeds}
+    if not args.resume:
+        busy = [str(f) for f in folders.values() if f.exists() and (not f.is_dir() or any(f.iterdir()))]
+        if busy:
+            raise UserError(f"--out: {', '.join(busy)} already hold files; choose a new --out or pass --resume")
+    for seed, folder in folders.items():
+        one = copy.copy(args)
+        one.seeds, one.seed, one.out = None, seed, str(folder)
+        # --resume continues the runs that exist and starts the missing ones (a loop cut short)
+        one.resume = bool(args.resume and (folder / "config.yml").is_file())
+        one.trust_run_files = args.trust_run_files and one.resume
+        print(f"sb3-graph train: seed {seed} -> {folder}", flush=True)
+        status = _run_one(one)
+        if status:
+            return status
+    return 0
+
+
+def _run_one(args: argparse.Namespace) -> int:
     import torch as th
     from stable_baselines3.common.callbacks import CallbackList, EvalCallback
 

@@ -17,6 +17,7 @@ from typing import Any
 
 from sb3_graph.cli import UserError
 from sb3_graph.commands.arguments import check_device, json_object
+from sb3_graph.commands.train import parse_overrides
 
 DEFAULT_STORAGE = "sqlite:///studies/{study}.db"
 # Environment ids with a domain plug-in in this repository: prefix -> (evaluator, env preset).
@@ -58,7 +59,30 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "(default for CoopIntersection*: envs.tuning:tuning_env_kwargs, the 'tuning' preset)",
     )
     parser.add_argument("--env-kwargs", type=json_object, default=None, help="JSON dict merged over the preset")
-    parser.add_argument("--pruner", choices=("median", "none"), default="median", help="pruner of the flow objective")
+    parser.add_argument(
+        "--trial-hyperparams",
+        nargs="+",
+        default=[],
+        metavar="KEY:VALUE",
+        help="entry keys for the trials only, e.g. train_freq:2 n_envs:2 (cheaper trials); the report's "
+        "zoo entry keeps the file's values",
+    )
+    parser.add_argument(
+        "--pruner",
+        default="median",
+        help="pruner of the flow objective on the intermediate task metric: median, successive-halving, "
+        "hyperband or none",
+    )
+    parser.add_argument(
+        "--min-resource",
+        type=int,
+        default=None,
+        help="successive-halving/hyperband: training steps of the first rung "
+        "(default: --timesteps / --reduction-factor ** (--evaluations - 1), rounded up)",
+    )
+    parser.add_argument(
+        "--reduction-factor", type=int, default=3, help="successive-halving/hyperband: factor between two rungs (>= 2)"
+    )
     parser.add_argument("--population-size", type=int, default=10, help="NSGA-II population (pareto)")
     parser.add_argument("--seed", type=int, default=0, help="base training seed (trial k uses seed + k)")
     parser.add_argument("--sampler-seed", type=int, default=None, help="sampler seed (worker i uses seed + i)")
@@ -140,26 +164,29 @@ def prepare(args: argparse.Namespace):
         objective = make_objective(args.objective, args.max_collision_rate)
     except ValueError as error:
         raise UserError(f"--objective/--max-collision-rate: {error}") from error
+    overrides = parse_overrides(args.trial_hyperparams, "--trial-hyperparams")
     try:
         entry = check_entry(read_experiment(args.config, args.env))
+        trial_entry = check_entry({**entry, **overrides})
         # Every value that a trial turns into an object, checked once here (a typo fails the
         # command, not every trial): no expression is evaluated, see sb3_graph.safe_values.
-        build_algorithm_kwargs(entry, 1)
-        build_callbacks(entry)
-        if isinstance(entry.get("policy"), str) and "." in entry["policy"]:
-            resolve_object(entry["policy"], "policy")
+        build_algorithm_kwargs(trial_entry, 1)
+        build_callbacks(trial_entry)
+        if isinstance(trial_entry.get("policy"), str) and "." in trial_entry["policy"]:
+            resolve_object(trial_entry["policy"], "policy")
     except ExperimentError as error:
-        raise UserError(str(error)) from error
-    timesteps = int(float(args.timesteps if args.timesteps is not None else entry["n_timesteps"]))
+        raise UserError(f"{error} (--config or --trial-hyperparams)" if overrides else str(error)) from error
+    timesteps = int(float(args.timesteps if args.timesteps is not None else trial_entry["n_timesteps"]))
     if timesteps < 1:
         raise UserError(f"--timesteps must be at least 1, got {timesteps}")
-    learning_starts = int(entry.get("learning_starts", 100))
+    learning_starts = int(trial_entry.get("learning_starts", 100))
     if learning_starts >= timesteps:
         raise UserError(
             f"--timesteps {timesteps} <= learning_starts {learning_starts} of the entry: no gradient step would run"
         )
     if args.evaluations > 1 and timesteps // args.evaluations < 1:
         raise UserError(f"--evaluations {args.evaluations} exceeds --timesteps {timesteps}")
+    eval_steps = _evaluation_steps(args, timesteps)
     for name in _gym_packages(args):
         try:
             importlib.import_module(name)
@@ -175,7 +202,7 @@ def prepare(args: argparse.Namespace):
     except ValueError as error:
         raise UserError(str(error)) from error
 
-    original_env_kwargs = dict(entry.get("env_kwargs") or {})
+    original_env_kwargs = dict(trial_entry.get("env_kwargs") or {})
     env_kwargs = merge_env_kwargs(merge_env_kwargs(original_env_kwargs, _preset(args)), dict(args.env_kwargs or {}))
     try:
         probe = gym.make(args.env, **env_kwargs)
@@ -195,7 +222,7 @@ def prepare(args: argparse.Namespace):
             f"nothing to tune: {args.env!r} has no config['reward_weights'] (or --weights is empty) "
             "and --tune-algo is off"
         )
-    study_entry = {**entry, "env_kwargs": env_kwargs}
+    study_entry = {**trial_entry, "env_kwargs": env_kwargs}
     settings = TrialSettings(
         env_id=args.env,
         entry=study_entry,
@@ -206,6 +233,7 @@ def prepare(args: argparse.Namespace):
         weight_spread=args.weight_spread,
         tune_algo=args.tune_algo,
         evaluations=args.evaluations,
+        eval_steps=eval_steps,
         eval_episodes=args.eval_episodes,
         eval_seed=args.eval_seed,
         seed=args.seed,
@@ -223,8 +251,30 @@ def prepare(args: argparse.Namespace):
         "max_collision_rate": objective.max_collision_rate,
         "evaluator": evaluator_spec,
         "timesteps": timesteps,
+        "pruner": args.pruner if objective.prunable else "none",
+        "trial_hyperparams": json.loads(json.dumps(overrides, default=str)),
+        "eval_steps": list(eval_steps) if objective.prunable else [],
     }
     return settings, attrs
+
+
+def _evaluation_steps(args: argparse.Namespace, timesteps: int) -> tuple[int, ...]:
+    """The intermediate evaluation steps of a trial, or a UserError naming the pruner flags."""
+    from sb3_graph.tuning.pruners import PRUNERS, RUNG_PRUNERS, evaluation_steps
+
+    if args.pruner not in PRUNERS:
+        raise UserError(f"--pruner: unknown pruner {args.pruner!r}; allowed: {', '.join(PRUNERS)}")
+    if args.reduction_factor < 2:
+        raise UserError(f"--reduction-factor must be at least 2, got {args.reduction_factor}")
+    if args.min_resource is not None:
+        if args.pruner not in RUNG_PRUNERS:
+            raise UserError(f"--min-resource applies to --pruner {' or '.join(RUNG_PRUNERS)}, not {args.pruner!r}")
+        if not 1 <= args.min_resource < timesteps:
+            raise UserError(f"--min-resource must be in [1, --timesteps {timesteps}), got {args.min_resource}")
+    try:
+        return evaluation_steps(args.pruner, timesteps, args.evaluations, args.min_resource, args.reduction_factor)
+    except ValueError as error:  # e.g. one evaluation per trial leaves no rung below the budget
+        raise UserError(f"--pruner {args.pruner} with --evaluations {args.evaluations}: {error}") from None
 
 
 def storage_url(args: argparse.Namespace) -> str:
@@ -253,7 +303,9 @@ def create_or_load(args: argparse.Namespace, settings, attrs: dict[str, Any], st
         load_if_exists=True,
         directions=list(objective.directions),
         sampler=objective.sampler(seed=seed, population_size=args.population_size),
-        pruner=objective.pruner(enabled=args.pruner == "median"),
+        pruner=objective.pruner(
+            args.pruner, settings.timesteps, args.evaluations, _first_rung(settings), args.reduction_factor
+        ),
     )
     existing = study.user_attrs
     for key in CHECKED_ATTRS:
@@ -268,6 +320,10 @@ def create_or_load(args: argparse.Namespace, settings, attrs: dict[str, Any], st
         if key not in existing:
             study.set_user_attr(key, value)
     return study
+
+
+def _first_rung(settings) -> int | None:
+    return settings.eval_steps[0] if settings.eval_steps else None
 
 
 def work(args: argparse.Namespace, n_trials: int, worker: int = 0) -> int:

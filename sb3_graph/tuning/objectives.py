@@ -3,7 +3,8 @@
 - ``flow``: maximize the flow rate (veh/s) subject to ``collision_rate <= max_collision_rate``.
   The constraint is recorded with :meth:`optuna.Trial.set_constraint`, so the TPE sampler models
   feasibility and :attr:`optuna.Study.best_trial` is the best *feasible* trial. Intermediate
-  evaluations report the flow rate, so a :class:`~optuna.pruners.MedianPruner` stops poor trials early.
+  evaluations report the flow rate, so a pruner (median, successive halving or Hyperband, see
+  :mod:`sb3_graph.tuning.pruners`) stops poor trials early.
 - ``pareto``: flow rate up, collision rate down, stop ratio down with NSGA-II; the result is the
   Pareto front. Multi-objective studies cannot prune, so each trial is evaluated once, at its end.
 
@@ -77,11 +78,29 @@ class Objective:
             return optuna.samplers.TPESampler(seed=seed, constant_liar=True)
         return optuna.samplers.NSGAIISampler(population_size=population_size, seed=seed)
 
-    def pruner(self, n_startup_trials: int = 4, enabled: bool = True) -> optuna.pruners.BasePruner:
-        """A median pruner for ``flow`` (after ``n_startup_trials`` finished trials); none for ``pareto``."""
-        if not (enabled and self.prunable):
+    def pruner(
+        self,
+        kind: str = "median",
+        timesteps: int = 1,
+        evaluations: int = 3,
+        min_resource: int | None = None,
+        reduction_factor: int = 3,
+        n_startup_trials: int = 4,
+    ) -> optuna.pruners.BasePruner:
+        """The pruner of this objective: ``kind`` (see :mod:`sb3_graph.tuning.pruners`), none for ``pareto``.
+
+        :param kind: ``median``, ``successive-halving``, ``hyperband`` or ``none``
+        :param timesteps: training steps of a full trial
+        :param evaluations: evaluations of a full trial
+        :param min_resource: SHA/Hyperband: the first rung [steps] (default from ``evaluations``)
+        :param reduction_factor: SHA/Hyperband: factor between two rungs
+        :param n_startup_trials: median: finished trials before any pruning
+        """
+        from sb3_graph.tuning.pruners import make_pruner
+
+        if not self.prunable:
             return optuna.pruners.NopPruner()
-        return optuna.pruners.MedianPruner(n_startup_trials=n_startup_trials, n_warmup_steps=0)
+        return make_pruner(kind, timesteps, evaluations, min_resource, reduction_factor, n_startup_trials)
 
 
 def make_objective(name: str, max_collision_rate: float = DEFAULT_MAX_COLLISION_RATE) -> Objective:

@@ -61,11 +61,36 @@ def trials_table(study: optuna.Study) -> pd.DataFrame:
             value for key, value in trial.system_attrs.items() if key.startswith("constraints:")
         ]
         row["feasible"] = bool(constraints) and all(c <= 0 for c in constraints) if constraints else None
+        row["steps_trained"] = _steps_trained(trial)
         row["reason"] = trial.user_attrs.get("reason", "")
         row["worker"] = trial.user_attrs.get("worker", "")
         row["duration_s"] = trial.duration.total_seconds() if trial.duration is not None else math.nan
         rows.append(row)
     return pd.DataFrame(rows)
+
+
+def _steps_trained(trial: FrozenTrial) -> float:
+    """Training steps a trial ran: its last reported step (a pruned trial stopped there), else its budget."""
+    if trial.last_step is not None:
+        return float(trial.last_step)
+    if trial.state == TrialState.COMPLETE:
+        return float(trial.user_attrs.get("timesteps", math.nan))
+    return math.nan
+
+
+def pruning_summary(study: optuna.Study, table: pd.DataFrame) -> str:
+    """One line: the pruner, how many trials stopped at each step, and the steps saved by stopping early."""
+    pruner = study.user_attrs.get("pruner", "?")
+    budget = study.user_attrs.get("timesteps")
+    finished = table[table["state"].isin(("COMPLETE", "PRUNED"))]
+    steps = finished["steps_trained"].dropna()
+    if not len(steps) or not budget:
+        return f"- pruner: {pruner}"
+    counts = ", ".join(f"{int(step):,}: {n}" for step, n in sorted(steps.value_counts().items()))
+    return (
+        f"- pruner: {pruner}, evaluations at steps {study.user_attrs.get('eval_steps', [])}; finished trials by "
+        f"steps trained: {counts}; {int(steps.sum()):,} steps in all, {len(steps) * int(budget):,} without pruning"
+    )
 
 
 def best_trial(study: optuna.Study) -> tuple[FrozenTrial | None, bool]:
@@ -233,6 +258,7 @@ def write_report(study: optuna.Study, out: str | Path) -> list[Path]:
         f"directions {[d.name.lower() for d in study.directions]})",
         f"- environment: {study.user_attrs.get('env', '?')}, {study.user_attrs.get('timesteps', '?')} steps per trial",
         f"- trials: {len(table)} ({counts})",
+        pruning_summary(study, table) if len(table) else "- pruner: no trials",
         f"- best trial: {best.number} {best.params}" if best is not None else "- best trial: none (no complete trial)",
         ""
         if feasible or best is None

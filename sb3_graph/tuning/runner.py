@@ -8,9 +8,10 @@ study, not per trial), so trials are compared like for like.
 Outcomes (the reason is the user attribute ``reason``; the study always continues):
 
 - ``COMPLETE``: the metrics are stored as user attributes (one per metric);
-- ``PRUNED``: the pruner (median) stopped a poor trial at an intermediate evaluation, or training
-  diverged (non-finite network parameters or metrics: a poor configuration that the TPE sampler
-  should learn to avoid, which it does for pruned trials but not for failed ones);
+- ``PRUNED``: the pruner (median, successive halving, Hyperband) stopped a poor trial at an
+  intermediate evaluation, or training diverged (non-finite network parameters or metrics: a poor
+  configuration that the TPE sampler should learn to avoid, which it does for pruned trials but not
+  for failed ones);
 - ``FAIL``: the trial raised an exception (its type and message are stored).
 """
 
@@ -21,7 +22,7 @@ import os
 import socket
 import time
 import traceback
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -32,6 +33,7 @@ import torch as th
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList
 
 from sb3_graph.tuning.objectives import Objective, check_metrics
+from sb3_graph.tuning.pruners import evaluation_steps
 from sb3_graph.tuning.search_space import DEFAULT_SPREAD, entry_with_params, sample_algo, sample_reward_weights
 
 Evaluator = Callable[..., Mapping[str, float]]
@@ -75,6 +77,8 @@ class TrialSettings:
     :param tune_algo: also sample TD3 settings
     :param evaluations: evaluations per trial (the last at the end); only prunable objectives
         evaluate before the end
+    :param eval_steps: training steps of the intermediate evaluations (default: ``evaluations``
+        evenly spaced; SHA and Hyperband studies give their rungs, see :mod:`sb3_graph.tuning.pruners`)
     :param eval_episodes: validation episodes per evaluation
     :param eval_seed: seed of the validation episodes (the same for every trial)
     :param seed: base training seed (trial ``k`` trains with ``seed + k``)
@@ -91,6 +95,7 @@ class TrialSettings:
     weight_spread: float = DEFAULT_SPREAD
     tune_algo: bool = False
     evaluations: int = 3
+    eval_steps: tuple[int, ...] | None = None
     eval_episodes: int = 3
     eval_seed: int = 10_000
     seed: int = 0
@@ -116,26 +121,26 @@ class TrialEvalCallback(BaseCallback):
     :param evaluate: ``model -> metrics``
     :param trial: the Optuna trial
     :param objective: gives the reported value and whether to report at all
-    :param eval_every: steps between evaluations
-    :param total: the training length (the final evaluation is the caller's)
+    :param steps: training steps of the intermediate evaluations (the final one is the caller's);
+        with several envs an evaluation runs at the first step count at or past each
     """
 
-    def __init__(
-        self, evaluate: Callable, trial: optuna.Trial, objective: Objective, eval_every: int, total: int
-    ) -> None:
+    def __init__(self, evaluate: Callable, trial: optuna.Trial, objective: Objective, steps: Sequence[int]) -> None:
         super().__init__()
         self.evaluate = evaluate
         self.trial = trial
         self.objective = objective
-        self.eval_every = max(int(eval_every), 1)
-        self.total = int(total)
+        self.steps = sorted(int(step) for step in steps)
+        self._next = 0
         self.pruned_at: int | None = None
         self.last_value: float | None = None
         self.diverged: str | None = None
 
     def _on_step(self) -> bool:
-        if self.num_timesteps % self.eval_every or self.num_timesteps >= self.total:
+        if self._next >= len(self.steps) or self.num_timesteps < self.steps[self._next]:
             return True
+        while self._next < len(self.steps) and self.num_timesteps >= self.steps[self._next]:
+            self._next += 1
         if not _finite_parameters(self.model):
             self.diverged = f"non-finite network parameters at step {self.num_timesteps}"
             return False
@@ -208,9 +213,12 @@ def _run(trial: optuna.Trial, settings: TrialSettings) -> float | tuple[float, .
         model = TD3(policy, train_env, seed=seed, device=settings.device, verbose=0, **algo_kwargs)
         callbacks = build_callbacks(entry)
         monitor = None
-        if settings.objective.prunable and settings.evaluations > 1:
-            every = settings.timesteps // settings.evaluations
-            monitor = TrialEvalCallback(evaluate, trial, settings.objective, every, settings.timesteps)
+        steps = settings.eval_steps
+        if steps is None:
+            steps = evaluation_steps("median", settings.timesteps, settings.evaluations)
+        steps = [step for step in steps if step < settings.timesteps]
+        if settings.objective.prunable and steps:
+            monitor = TrialEvalCallback(evaluate, trial, settings.objective, steps)
             callbacks.append(monitor)
         tic = time.perf_counter()
         model.learn(settings.timesteps, callback=CallbackList(callbacks), progress_bar=False)
