@@ -83,3 +83,17 @@ def test_planner_answers_as_recorded(data, run, planner):
     action = data[f"{run}/action"]
     for scene, rows in _scenes(data, run):
         np.testing.assert_allclose(planner.act(scene), action[rows], rtol=0, atol=1e-9, err_msg=f"{run} t={scene.time}")
+
+
+def test_gnn_predict_is_sb3_predict(data):
+    """The GNN planner's direct inference answers exactly as the policy's SB3 ``predict``."""
+    from envs.planners.gnn import GNNPlanner
+    from envs.scene_graph import build_observation
+
+    path = Path(__file__).parents[1] / "envs" / "pretrained" / "coop_4way" / "best_model.safetensors"
+    planner = GNNPlanner(path)
+    for k, (scene, _) in enumerate(_scenes(data, "fullthrottle+shield")):
+        if k % 5 or scene.num_vehicles == 0:
+            continue
+        obs = build_observation(scene, planner.space)
+        np.testing.assert_array_equal(planner.predict(obs), planner.model.predict(obs, deterministic=True)[0])
