@@ -76,6 +76,11 @@ class _Plan:
     merge_sep: np.ndarray  # (g,) smallest centre distance after the merge [m]
     rank: np.ndarray  # (n,) who goes first when two would enter a zone at once: farthest in, then lowest id
 
+    def __post_init__(self) -> None:
+        # The columns of `follow` and their arcs now, contiguous: the fallback reads them every period.
+        self.follow_rows = (np.ascontiguousarray(self.follow[:, 0]), np.ascontiguousarray(self.follow[:, 1]))
+        self.follow_arc = (self.arc[self.follow_rows[0]], self.arc[self.follow_rows[1]])
+
 
 class Shield(Planner):
     """Wraps a planner so that its commands stay collision-free (see the module docstring).
@@ -272,8 +277,8 @@ class Shield(Planner):
     def _leaders_now(self, plan: _Plan, arc: np.ndarray, go: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(follower, ahead, bumper gap)`` of every same-path pair, and of every pair on merging paths
         whose vehicle ahead (along the common exit lane) proceeds (``go``) or has reached the merge."""
-        f, ahead = plan.follow[:, 0], plan.follow[:, 1]
-        gap = plan.follow_gap + (arc[ahead] - plan.arc[ahead]) - (arc[f] - plan.arc[f])
+        f, ahead = plan.follow_rows
+        gap = plan.follow_gap + (arc[ahead] - plan.follow_arc[1]) - (arc[f] - plan.follow_arc[0])
         if plan.merge.size:
             m0, m1 = plan.merge[:, 0], plan.merge[:, 1]
             a0, a1 = arc[m0], arc[m1]
