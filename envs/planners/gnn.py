@@ -50,7 +50,9 @@ class GNNPlanner(Planner):
         super().__init__(name or model_name(self.path))
         self.model = load_model(self.path, device, trust_files=trust_files)
         self.space = self.model.observation_space
-        self.model.set_training_mode(False)  # once, rather than in every `predict`
+        self._direct = _plain_sb3_policy(self.model)
+        if self._direct:
+            self.model.set_training_mode(False)  # once, rather than in every `predict`
 
     def check_capacity(self, max_vehicles: int, source: str = "planner") -> None:
         """Refuse an environment whose scenes can hold more vehicles than the model's graphs.
@@ -84,17 +86,16 @@ class GNNPlanner(Planner):
         SB3's ``predict`` switches the network to evaluation mode (a walk over every module) and
         checks its arguments on every call, which costs about as much as the graph network's
         forward pass at intersection sizes; the network is in evaluation mode since loading, so
-        this runs the rest of ``predict`` directly (a policy class with its own ``predict`` keeps it).
+        this runs the rest of ``predict`` directly (a model with its own ``predict`` keeps it).
 
         :param obs: one graph observation
         :return: the action, without a batch dimension
         """
         import torch
         from gymnasium import spaces
-        from stable_baselines3.common.policies import BasePolicy
 
         policy = self.model
-        if type(policy).predict is not BasePolicy.predict:
+        if not self._direct:
             return policy.predict(obs, deterministic=True)[0]
         obs_tensor, vectorized = policy.obs_to_tensor(obs)
         with torch.no_grad():
@@ -106,6 +107,15 @@ class GNNPlanner(Planner):
             else:
                 actions = np.clip(actions, policy.action_space.low, policy.action_space.high)
         return actions if vectorized else actions.squeeze(axis=0)
+
+
+def _plain_sb3_policy(model) -> bool:
+    """Whether ``model`` is an SB3 policy that uses SB3's own ``predict``."""
+    try:
+        from stable_baselines3.common.policies import BasePolicy
+    except ImportError:
+        return False
+    return isinstance(model, BasePolicy) and type(model).predict is BasePolicy.predict
 
 
 def model_name(path: Path) -> str:
