@@ -253,12 +253,14 @@ class AIMPlanner(Planner):
         d_in = np.where(zone, np.maximum(z_start - ref[:, None], 0.0), 0.0)[:, None, :]
         d_out = np.where(zone, z_end + L[:, None] - ref[:, None], 0.0)[:, None, :]
         w3, vin3 = speed_at_line[:, :, None], v_in[:, None, None]
-        enter = arrival[:, :, None] + travel_time(d_in, w3, vin3, a)
-        leave = arrival[:, :, None] + travel_time(d_out, w3, vin3, a)
+        # Entering and leaving in one pass: (n, C, 2R), the zones' starts then their ends.
+        d_both = np.concatenate([d_in, d_out], axis=2)
+        both = arrival[:, :, None] + travel_time(d_both, w3, vin3, a)
         # Nobody passes its leader: the front gets that far only once the leader has moved on.
         bound = self.leader_bound(scene, ref)
-        enter = np.maximum(enter, bound(d_in[:, 0, :])[:, None, :])
-        leave = np.maximum(leave, bound(d_out[:, 0, :])[:, None, :])
+        both = np.maximum(both, bound(d_both[:, 0, :])[:, None, :])
+        R = z_start.shape[1]
+        enter, leave = both[:, :, :R], both[:, :, R:]
         last = np.where(zone[:, None, :], leave, -np.inf).max(axis=2)
         score = np.where(np.isfinite(last), last, arrival) + np.where(kind == 2, p.stop_penalty, 0.0)[None, :]
 
