@@ -11,7 +11,9 @@ on a shared machine less disturbed by other processes than wall time), separatel
 
 The reference ``sim`` is ``env.step`` under a trivial planner (every vehicle keeps its speed);
 ``ratio`` is a planner's ``plan`` over that reference. ``shield`` is the share of the shielded
-planner's time spent in the shield's check. Each run is repeated ``--repeat`` times and every
+planner's time spent in the shield's check, ``interv`` its interventions, ``rounds`` its
+predictions per policy step (one per round of overrides) and ``periods`` the policy periods each
+prediction covered. Each run is repeated ``--repeat`` times and every
 column reports its smallest value.
 
 Usage::
@@ -93,6 +95,17 @@ def run(env, planner: Planner, timed: _Timed | None, scenarios, seed: int) -> di
     steps = vehicles = 0
     if timed is not None:
         timed.seconds = 0.0
+    rollouts = [0, 0]  # the shield's predictions, and the periods they predicted
+    if isinstance(planner, Shield):
+        predict = type(planner).predict
+
+        def counted(scene, plan, command):
+            arcs, speeds = predict(planner, scene, plan, command)
+            rollouts[0] += 1
+            rollouts[1] += (len(arcs) - 1) // max(1, int(round(planner.simulation_frequency * scene.dt)))
+            return arcs, speeds
+
+        planner.predict = counted
     for k, scenario in enumerate(scenarios):
         env.reset(seed=seed + k, options={"scenario": scenario})
         planner.reset(seed + k)
@@ -118,6 +131,8 @@ def run(env, planner: Planner, timed: _Timed | None, scenarios, seed: int) -> di
         out["shield"] = 1.0 - timed.seconds / plan
     if isinstance(planner, Shield):
         out["interventions"] = planner.interventions
+        out["rounds"] = rollouts[0] / steps
+        out["periods"] = rollouts[1] / max(rollouts[0], 1)
     return out
 
 
@@ -147,13 +162,13 @@ def main() -> None:
     sim = reference["step"]
     print(f"{args.env}: {args.scenarios} scenarios x {args.duration:g} s, {reference['steps']} policy steps each")
     header = f"{'planner':<22}{'plan ms':>9}{'ratio':>7}{'step ms':>9}{'scene ms':>9}"
-    header += f"{'veh':>6}{'shield':>8}{'interv':>8}"
+    header += f"{'veh':>6}{'shield':>8}{'interv':>8}{'rounds':>8}{'periods':>8}"
     print(header)
     print(f"{'sim (cruise)':<22}{'':>9}{'':>7}{sim:9.2f}{reference['scene']:9.2f}{reference['vehicles']:6.1f}")
     for word in args.planners:
         r = best(word)
         shield = f"{100 * r['shield']:7.0f}%" if "shield" in r else ""
-        interv = f"{r['interventions']:8d}" if "interventions" in r else ""
+        interv = f"{r['interventions']:8d}{r['rounds']:8.2f}{r['periods']:8.1f}" if "interventions" in r else ""
         print(
             f"{word:<22}{r['plan']:9.2f}{r['plan'] / sim:7.2f}{r['step']:9.2f}{r['scene']:9.2f}"
             f"{r['vehicles']:6.1f}{shield:>8}{interv}",
