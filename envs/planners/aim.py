@@ -259,8 +259,8 @@ class AIMPlanner(Planner):
         # Nobody passes its leader: the front gets that far only once the leader has moved on.
         bound = self.leader_bound(scene, ref)
         both = np.maximum(both, bound(d_both[:, 0, :])[:, None, :])
-        R = z_start.shape[1]
-        enter, leave = both[:, :, :R], both[:, :, R:]
+        routes = z_start.shape[1]
+        enter, leave = both[:, :, :routes], both[:, :, routes:]
         last = np.where(zone[:, None, :], leave, -np.inf).max(axis=2)
         score = np.where(np.isfinite(last), last, arrival) + np.where(kind == 2, p.stop_penalty, 0.0)[None, :]
 

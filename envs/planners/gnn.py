@@ -43,6 +43,10 @@ class GNNPlanner(Planner):
     :param trust_files: load a ``.zip`` with SB3's ``TD3.load`` (runs its pickles)
     """
 
+    # Run inference without SB3's `predict` (see :meth:`predict`); set for loaded SB3 policies only,
+    # so that subclasses around other models (a trial's model in training) keep their `predict`.
+    _direct = False
+
     def __init__(
         self, path: str | Path, name: str | None = None, device: str = "cpu", trust_files: bool = False
     ) -> None:

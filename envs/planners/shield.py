@@ -454,7 +454,7 @@ class _PredictionLayout:
     """
 
     def __init__(self, layout, deceleration: float) -> None:
-        self.layout = layout
+        self.layout = weakref.proxy(layout)  # the cache below is keyed weakly by the layout
         self.deceleration = float(deceleration)
         env = layout.speed_envelope(self.deceleration)
         sq = env**2
