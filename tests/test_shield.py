@@ -138,3 +138,26 @@ def test_random_scenes_under_random_proposals_never_collide(seed, count, full):
     planner.reset(seed)
     collided, _ = _run(sim, Shield(planner), steps=20)
     assert not collided
+
+
+@pytest.mark.parametrize("layout", ["4way", "3way", "inD"])
+def test_prediction_layout_is_bitwise_the_layout(layout):
+    """The shield's layout view answers the speed envelope exactly as the layout (and so integrate)."""
+    from envs.planners.shield import prediction_layout
+    from envs.simulation import integrate
+
+    lay = build_layout(layout)
+    view = prediction_layout(lay, 3.0)
+    routes, samples = lay.speed_limit.shape
+    rng = np.random.default_rng(0)
+    route = rng.integers(0, routes, 5000)
+    arc = rng.uniform(-10.0, (samples + 10) * lay.ds, 5000)
+    arc[:40] = np.arange(40) * lay.ds  # on samples, at the last one and past it
+    arc[40:50] = (samples - 1) * lay.ds
+    np.testing.assert_array_equal(view.envelope_at(route, arc, 3.0), lay.envelope_at(route, arc, 3.0))
+    np.testing.assert_array_equal(view.envelope_at(route, arc, 2.0), lay.envelope_at(route, arc, 2.0))
+    speed, acc = rng.uniform(0.0, 20.0, 5000), rng.uniform(-5.0, 5.0, 5000)
+    fast = integrate(view, route, arc, speed, acc, 3, 1 / 15, 20.0, 3.0)
+    for a, b in zip(fast, integrate(lay, route, arc, speed, acc, 3, 1 / 15, 20.0, 3.0)):
+        np.testing.assert_array_equal(a, b)
+    assert view.route_names == lay.route_names  # everything else is the layout's

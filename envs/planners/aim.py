@@ -253,12 +253,14 @@ class AIMPlanner(Planner):
         d_in = np.where(zone, np.maximum(z_start - ref[:, None], 0.0), 0.0)[:, None, :]
         d_out = np.where(zone, z_end + L[:, None] - ref[:, None], 0.0)[:, None, :]
         w3, vin3 = speed_at_line[:, :, None], v_in[:, None, None]
-        enter = arrival[:, :, None] + travel_time(d_in, w3, vin3, a)
-        leave = arrival[:, :, None] + travel_time(d_out, w3, vin3, a)
+        # Entering and leaving in one pass: (n, C, 2R), the zones' starts then their ends.
+        d_both = np.concatenate([d_in, d_out], axis=2)
+        both = arrival[:, :, None] + travel_time(d_both, w3, vin3, a)
         # Nobody passes its leader: the front gets that far only once the leader has moved on.
         bound = self.leader_bound(scene, ref)
-        enter = np.maximum(enter, bound(d_in[:, 0, :])[:, None, :])
-        leave = np.maximum(leave, bound(d_out[:, 0, :])[:, None, :])
+        both = np.maximum(both, bound(d_both[:, 0, :])[:, None, :])
+        routes = z_start.shape[1]
+        enter, leave = both[:, :, :routes], both[:, :, routes:]
         last = np.where(zone[:, None, :], leave, -np.inf).max(axis=2)
         score = np.where(np.isfinite(last), last, arrival) + np.where(kind == 2, p.stop_penalty, 0.0)[None, :]
 
@@ -269,7 +271,10 @@ class AIMPlanner(Planner):
         pair = lay.conflicts[route[:, None], route[None, :]] & zone[:, route] & zone[:, route].T
         pair &= order[None, :] < order[:, None]  # (i, j): j reserves before i
         np.fill_diagonal(pair, False)
-        enter_ij, leave_ij = enter[:, :, route], leave[:, :, route]  # (i, c, j): i's window in zone (r_i, r_j)
+        # Only the pairs that must not clash: (k, C) windows of i in its zone with j, rows sorted by i.
+        pi, pj = np.nonzero(pair)
+        enter_ij, leave_ij = enter[pi, :, route[pj]], leave[pi, :, route[pj]]
+        clashing, starts = np.unique(pi, return_index=True)
         leader = scene.leader
         follows = (leader >= 0) & before & before[np.maximum(leader, 0)]  # both still before the line
         # Without a clash-free plan: wait longest if it can stop, else arrive as late as it can.
@@ -277,11 +282,12 @@ class AIMPlanner(Planner):
         fallback = np.where(can_stop, arrival.shape[1] - 1, latest_go)
         rows = np.arange(n)
         choice = np.zeros(n, np.int64)
+        clash = np.zeros(arrival.shape, bool)
         for _ in range(p.passes):
-            chosen_enter, chosen_leave = enter[rows, choice], leave[rows, choice]  # (n, R)
-            enter_j, leave_j = chosen_enter[:, route].T, chosen_leave[:, route].T  # (i, j): j's window with r_i
-            overlap = (enter_ij < leave_j[:, None, :] + p.buffer) & (enter_j[:, None, :] < leave_ij + p.buffer)
-            clash = (overlap & pair[:, None, :]).any(axis=2)
+            if pi.size:  # j's chosen window in its zone with i against each of i's candidates
+                enter_j, leave_j = enter[pj, choice[pj], route[pi]], leave[pj, choice[pj], route[pi]]
+                overlap = (enter_ij < leave_j[:, None] + p.buffer) & (enter_j[:, None] < leave_ij + p.buffer)
+                clash[clashing] = np.logical_or.reduceat(overlap, starts, axis=0)
             lead_arrival = arrival[rows, choice][np.maximum(leader, 0)] + p.follow_headway
             ok = feasible & ~clash & (~follows[:, None] | (arrival >= lead_arrival[:, None]))
             best = np.where(ok, score, np.inf).argmin(axis=1)

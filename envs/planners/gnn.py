@@ -43,6 +43,10 @@ class GNNPlanner(Planner):
     :param trust_files: load a ``.zip`` with SB3's ``TD3.load`` (runs its pickles)
     """
 
+    # Run inference without SB3's `predict` (see :meth:`predict`); set for loaded SB3 policies only,
+    # so that subclasses around other models (a trial's model in training) keep their `predict`.
+    _direct = False
+
     def __init__(
         self, path: str | Path, name: str | None = None, device: str = "cpu", trust_files: bool = False
     ) -> None:
@@ -50,6 +54,9 @@ class GNNPlanner(Planner):
         super().__init__(name or model_name(self.path))
         self.model = load_model(self.path, device, trust_files=trust_files)
         self.space = self.model.observation_space
+        self._direct = _plain_sb3_policy(self.model)
+        if self._direct:
+            self.model.set_training_mode(False)  # once, rather than in every `predict`
 
     def check_capacity(self, max_vehicles: int, source: str = "planner") -> None:
         """Refuse an environment whose scenes can hold more vehicles than the model's graphs.
@@ -74,9 +81,45 @@ class GNNPlanner(Planner):
         if n == 0:
             return np.zeros(0)
         obs = build_observation(scene, self.space)
-        action, _ = self.model.predict(obs, deterministic=True)
-        action = np.asarray(action, dtype=float).reshape(-1)[:n]
+        action = np.asarray(self.predict(obs), dtype=float).reshape(-1)[:n]
         return np.clip(action * scene.a_max, scene.a_min, scene.a_max)
+
+    def predict(self, obs) -> np.ndarray:
+        """The policy's deterministic action, as ``model.predict(obs, deterministic=True)[0]``.
+
+        SB3's ``predict`` switches the network to evaluation mode (a walk over every module) and
+        checks its arguments on every call, which costs about as much as the graph network's
+        forward pass at intersection sizes; the network is in evaluation mode since loading, so
+        this runs the rest of ``predict`` directly (a model with its own ``predict`` keeps it).
+
+        :param obs: one graph observation
+        :return: the action, without a batch dimension
+        """
+        import torch
+        from gymnasium import spaces
+
+        policy = self.model
+        if not self._direct:
+            return policy.predict(obs, deterministic=True)[0]
+        obs_tensor, vectorized = policy.obs_to_tensor(obs)
+        with torch.no_grad():
+            actions = policy._predict(obs_tensor, deterministic=True)
+        actions = actions.cpu().numpy().reshape((-1, *policy.action_space.shape))
+        if isinstance(policy.action_space, spaces.Box):
+            if policy.squash_output:
+                actions = policy.unscale_action(actions)
+            else:
+                actions = np.clip(actions, policy.action_space.low, policy.action_space.high)
+        return actions if vectorized else actions.squeeze(axis=0)
+
+
+def _plain_sb3_policy(model) -> bool:
+    """Whether ``model`` is an SB3 policy that uses SB3's own ``predict``."""
+    try:
+        from stable_baselines3.common.policies import BasePolicy
+    except ImportError:
+        return False
+    return isinstance(model, BasePolicy) and type(model).predict is BasePolicy.predict
 
 
 def model_name(path: Path) -> str:

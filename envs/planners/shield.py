@@ -76,6 +76,11 @@ class _Plan:
     merge_sep: np.ndarray  # (g,) smallest centre distance after the merge [m]
     rank: np.ndarray  # (n,) who goes first when two would enter a zone at once: farthest in, then lowest id
 
+    def __post_init__(self) -> None:
+        # The columns of `follow` and their arcs now, contiguous: the fallback reads them every period.
+        self.follow_rows = (np.ascontiguousarray(self.follow[:, 0]), np.ascontiguousarray(self.follow[:, 1]))
+        self.follow_arc = (self.arc[self.follow_rows[0]], self.arc[self.follow_rows[1]])
+
 
 class Shield(Planner):
     """Wraps a planner so that its commands stay collision-free (see the module docstring).
@@ -254,29 +259,36 @@ class Shield(Planner):
 
     def _fallback(self, scene: Scene, plan: _Plan, arc: np.ndarray, speed: np.ndarray) -> np.ndarray:
         """The fallback's accelerations in a state: brake, or proceed while keeping a safe gap."""
-        a_max, dt = float(scene.a_max), float(scene.dt)
-        acc = np.full(arc.shape, min(self.proceed_acceleration, a_max))
-        go = self.committed(plan, arc, speed, a_max)
+        go = self.committed(plan, arc, speed, float(scene.a_max))
+        return self._fallback_given(plan, arc, speed, go, float(scene.a_max), float(scene.dt))
+
+    def _fallback_given(
+        self, plan: _Plan, arc: np.ndarray, speed: np.ndarray, go: np.ndarray, a_max: float, dt: float
+    ) -> np.ndarray:
+        """:meth:`_fallback` with the committed vehicles (``go``) already known (the prediction needs them twice)."""
+        proceed = min(self.proceed_acceleration, a_max)
+        acc = np.where(go, proceed, -a_max)
         f, ahead, gap = self._leaders_now(plan, arc, go)
         if f.size:
-            ok = _safe_gap_after(gap, speed[f], speed[ahead], acc[f], a_max, dt, self.gap_margin)
-            np.minimum.at(acc, f, np.where(ok, acc[f], -a_max))
-        return np.where(go, acc, -a_max)
+            ok = _safe_gap_after(gap, speed[f], speed[ahead], proceed, a_max, dt, self.gap_margin)
+            acc[f[~ok & go[f]]] = min(proceed, -a_max)
+        return acc
 
     def _leaders_now(self, plan: _Plan, arc: np.ndarray, go: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(follower, ahead, bumper gap)`` of every same-path pair, and of every pair on merging paths
         whose vehicle ahead (along the common exit lane) proceeds (``go``) or has reached the merge."""
-        f, ahead = plan.follow[:, 0], plan.follow[:, 1]
-        gap = plan.follow_gap + (arc[ahead] - plan.arc[ahead]) - (arc[f] - plan.arc[f])
+        f, ahead = plan.follow_rows
+        gap = plan.follow_gap + (arc[ahead] - plan.follow_arc[1]) - (arc[f] - plan.follow_arc[0])
         if plan.merge.size:
-            e = arc[plan.merge] - plan.merge_exit
-            reached = arc[plan.merge] > plan.merge_lo
-            back = (e[:, 0] >= e[:, 1]).astype(_INT)  # column of the vehicle behind
-            rows = np.arange(len(plan.merge))
-            active = reached[rows, 1 - back] | go[plan.merge[rows, 1 - back]]
-            mf, ma = plan.merge[rows, back][active], plan.merge[rows, 1 - back][active]
+            m0, m1 = plan.merge[:, 0], plan.merge[:, 1]
+            a0, a1 = arc[m0], arc[m1]
+            e0, e1 = a0 - plan.merge_exit[:, 0], a1 - plan.merge_exit[:, 1]
+            second = e0 >= e1  # vehicle 1 is behind along the common exit lane
+            first = np.where(second, m0, m1)
+            active = np.where(second, a0 > plan.merge_lo[:, 0], a1 > plan.merge_lo[:, 1]) | go[first]
+            mf, ma = np.where(second, m1, m0)[active], first[active]
             # kept at gap_margin by the fallback: half a gap margin more than the check's distance
-            mgap = (np.abs(e[:, 0] - e[:, 1]) - plan.merge_sep + 0.5 * self.gap_margin)[active]
+            mgap = (np.abs(e0 - e1) - plan.merge_sep + 0.5 * self.gap_margin)[active]
             f, ahead, gap = np.concatenate([f, mf]), np.concatenate([ahead, ma]), np.concatenate([gap, mgap])
         return f, ahead, gap
 
@@ -292,9 +304,11 @@ class Shield(Planner):
         steps = max(1, int(np.ceil(self.horizon / dt - 1e-9)))
         arcs, speeds = [plan.arc[None]], [plan.speed[None]]
         arc, speed, acc = plan.arc, plan.speed, command
+        a_max = float(scene.a_max)
+        view = prediction_layout(scene.layout, self.governor_deceleration)
         for _ in range(steps):
             v, x, _ = integrate(
-                scene.layout,
+                view,
                 plan.route,
                 arc,
                 speed,
@@ -307,9 +321,10 @@ class Shield(Planner):
             arcs.append(x[1:])
             speeds.append(v[1:])
             arc, speed = x[-1], v[-1]
-            if self._settled(plan, arc, speed, scene.a_max).all():
+            go = self.committed(plan, arc, speed, a_max)
+            if (((speed <= _STANDING) & ~go) | (arc > plan.hull_end)).all():  # `_settled`, sharing `go`
                 break  # everyone stands before its zones or has left them: the fallback keeps it so
-            acc = self._fallback(scene, plan, arc, speed)
+            acc = self._fallback_given(plan, arc, speed, go, a_max, dt)
         return np.concatenate(arcs), np.concatenate(speeds)
 
     def _settled(self, plan: _Plan, arc: np.ndarray, speed: np.ndarray, a_max: float) -> np.ndarray:
@@ -388,7 +403,7 @@ def _safe_gap_after(
     gap: np.ndarray,
     v_follower: np.ndarray,
     v_ahead: np.ndarray,
-    acc: np.ndarray,
+    acc: float,
     a_max: float,
     dt: float,
     margin: float,
@@ -400,18 +415,16 @@ def _safe_gap_after(
     governor only lower the follower's speed, which makes the test conservative).
     """
     travel_f, v_f = _travel(v_follower, acc, dt)
-    travel_a, v_a = _travel(v_ahead, np.full_like(v_ahead, -a_max), dt)
+    travel_a, v_a = _travel(v_ahead, -a_max, dt)
     after = gap + travel_a - travel_f
     return after - np.maximum(v_f**2 - v_a**2, 0.0) / (2 * a_max) >= margin
 
 
-def _travel(speed: np.ndarray, acc: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+def _travel(speed: np.ndarray, acc: float, dt: float) -> tuple[np.ndarray, np.ndarray]:
     """Distance and end speed after ``dt`` at constant ``acc``, stopping at 0."""
     end = speed + acc * dt
-    stops = end < 0
-    with np.errstate(divide="ignore", invalid="ignore"):
-        to_stop = speed**2 / (2 * np.maximum(-acc, 1e-12))
-    return np.where(stops, to_stop, 0.5 * (speed + end) * dt), np.maximum(end, 0.0)
+    to_stop = speed**2 / (2 * max(-acc, 1e-12))
+    return np.where(end < 0, to_stop, 0.5 * (speed + end) * dt), np.maximum(end, 0.0)
 
 
 _MERGING: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
@@ -424,3 +437,58 @@ def _merging_routes(layout) -> np.ndarray:
         last = ids[np.arange(ids.shape[0]), (ids >= 0).sum(axis=1) - 1]
         _MERGING[layout] = layout.conflicts & (last[:, None] == last[None, :])
     return _MERGING[layout]
+
+
+class _PredictionLayout:
+    """The layout as :func:`envs.simulation.integrate` sees it in the shield's predictions.
+
+    ``integrate`` asks the layout for the speed envelope six times per policy period, which is
+    most of a prediction's cost; this view answers :meth:`envelope_at` for the simulation's
+    governor deceleration from tables built once (the squared envelope, its differences and the
+    limits, read by flat index), with exactly :meth:`envs.layouts.Layout.envelope_at`'s arithmetic,
+    so the prediction stays bitwise the simulation's (``tests/test_shield.py`` checks it). Every other
+    attribute is the layout's.
+
+    :param layout: the intersection
+    :param deceleration: the governor deceleration the tables are built for [m/s^2]
+    """
+
+    def __init__(self, layout, deceleration: float) -> None:
+        self.layout = weakref.proxy(layout)  # the cache below is keyed weakly by the layout
+        self.deceleration = float(deceleration)
+        env = layout.speed_envelope(self.deceleration)
+        sq = env**2
+        self.columns = env.shape[1]
+        self.last = env.shape[1] - 1
+        self.ds = layout.ds
+        self.sq = sq.ravel()
+        self.dsq = np.concatenate([sq[:, 1:] - sq[:, :-1], np.zeros((sq.shape[0], 1))], axis=1).ravel()
+        self.limit = np.ascontiguousarray(layout.speed_limit).ravel()
+
+    def envelope_at(self, route: np.ndarray, arc: np.ndarray, deceleration: float) -> np.ndarray:
+        if float(deceleration) != self.deceleration:
+            return self.layout.envelope_at(route, arc, deceleration)
+        # Layout.envelope_at: u, i0, f as there; the limit's sample int(arc / ds) clipped to
+        # [0, last] is i0, or last where u reached it.
+        u = np.minimum(np.maximum(arc / self.ds, 0.0), self.last)
+        i0 = np.minimum(u.astype(np.int64), self.last - 1)
+        f = u - i0
+        flat = route * self.columns + i0
+        sq0 = self.sq.take(flat)
+        envelope = np.sqrt(sq0 + self.dsq.take(flat) * f)
+        return np.minimum(envelope, self.limit.take(flat + (u >= self.last)))
+
+    def __getattr__(self, name: str):
+        return getattr(self.layout, name)
+
+
+_PREDICTION_LAYOUTS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def prediction_layout(layout, deceleration: float) -> _PredictionLayout:
+    """The (cached) :class:`_PredictionLayout` of a layout and governor deceleration."""
+    views = _PREDICTION_LAYOUTS.setdefault(layout, {})
+    key = float(deceleration)
+    if key not in views:
+        views[key] = _PredictionLayout(layout, key)
+    return views[key]

@@ -1,0 +1,99 @@
+"""The planners answer recorded scenes as they did when the scenes were recorded.
+
+``tests/data/planner_scenes.npz`` holds scenes of short evaluation runs and the answers of the
+planner of each run (``scripts/record_planner_scenes.py`` regenerates it). The shield is checked
+on the recorded proposals (its answer and the vehicles it overrode), AIM and the signal are
+replayed scene by scene in order (they remember vehicles from step to step).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import envs  # noqa: F401  (registers the environments)
+from envs.planners import AIMPlanner, SignalPlanner
+from envs.planners.shield import Shield
+from envs.scene import Scene
+
+DATA = Path(__file__).parent / "data" / "planner_scenes.npz"
+FIELDS = (
+    "vehicle_id", "route", "s", "position", "heading", "speed", "speed_limit", "dist_to_entry",
+    "dist_to_exit", "leader", "gap", "priority", "maneuver", "length", "width", "arc",
+)  # fmt: skip
+SHIELD_RUNS = ("pr+shield", "aim+shield", "fullthrottle+shield", "fullthrottle+shield_3way")
+
+_LAYOUTS: dict[str, object] = {}
+
+
+def _layout(env_id: str):
+    if env_id not in _LAYOUTS:
+        env = gym.make(env_id)
+        _LAYOUTS[env_id] = env.unwrapped.layout
+        env.close()
+    return _LAYOUTS[env_id]
+
+
+def _scenes(data, run: str):
+    """Yield ``(scene, rows)`` per recorded step: the rebuilt scene and its slice of the vehicle rows."""
+    lay = _layout(str(data[f"{run}/env_id"]))
+    counts = data[f"{run}/count"]
+    ends = np.cumsum(counts)
+    fields = {name: data[f"{run}/{name}"] for name in FIELDS}
+    for t, (start, end) in enumerate(zip(ends - counts, ends)):
+        rows = slice(int(start), int(end))
+        scene = Scene(
+            time=float(data[f"{run}/time"][t]),
+            dt=float(data[f"{run}/dt"]),
+            route_names=lay.route_names,
+            conflicts=lay.conflicts,
+            a_min=float(data[f"{run}/a_min"]),
+            a_max=float(data[f"{run}/a_max"]),
+            s_ref=float(data[f"{run}/s_ref"]),
+            layout=lay,
+            **{name: value[rows] for name, value in fields.items()},
+        )
+        yield scene, rows
+
+
+@pytest.fixture(scope="module")
+def data():
+    with np.load(DATA) as recorded:
+        return {key: recorded[key] for key in recorded.files}
+
+
+@pytest.mark.parametrize("run", SHIELD_RUNS)
+def test_shield_answers_as_recorded(data, run):
+    shield = Shield(AIMPlanner())  # the wrapped planner is not asked: the proposals are recorded
+    proposal, action, overridden = (data[f"{run}/{key}"] for key in ("proposal", "action", "overridden"))
+    for scene, rows in _scenes(data, run):
+        command = shield.check(scene, proposal[rows])
+        np.testing.assert_allclose(command, action[rows], rtol=0, atol=1e-9, err_msg=f"{run} t={scene.time}")
+        np.testing.assert_array_equal(shield.last_overridden, overridden[rows], err_msg=f"{run} t={scene.time}")
+    assert shield.interventions == int(overridden.sum())
+
+
+@pytest.mark.parametrize("run, planner", [("aim", AIMPlanner), ("signal", SignalPlanner)])
+def test_planner_answers_as_recorded(data, run, planner):
+    planner = planner()
+    planner.reset(0)
+    action = data[f"{run}/action"]
+    for scene, rows in _scenes(data, run):
+        np.testing.assert_allclose(planner.act(scene), action[rows], rtol=0, atol=1e-9, err_msg=f"{run} t={scene.time}")
+
+
+def test_gnn_predict_is_sb3_predict(data):
+    """The GNN planner's direct inference answers exactly as the policy's SB3 ``predict``."""
+    from envs.planners.gnn import GNNPlanner
+    from envs.scene_graph import build_observation
+
+    path = Path(__file__).parents[1] / "envs" / "pretrained" / "coop_4way" / "best_model.safetensors"
+    planner = GNNPlanner(path)
+    for k, (scene, _) in enumerate(_scenes(data, "fullthrottle+shield")):
+        if k % 5 or scene.num_vehicles == 0:
+            continue
+        obs = build_observation(scene, planner.space)
+        np.testing.assert_array_equal(planner.predict(obs), planner.model.predict(obs, deterministic=True)[0])
