@@ -214,7 +214,7 @@ class RayExecutor(JobExecutor):
         if self._owner:
             try:
                 if address is None:
-                    self._ray.init(num_cpus=self.workers, include_dashboard=False)
+                    self._ray.init(num_cpus=self.workers, include_dashboard=False, logging_level=logging.ERROR)
                 else:
                     self._ray.init(address=address)
             except ConnectionError as error:

@@ -93,20 +93,31 @@ def test_missing_cluster_package_names_the_pip_extra(tmp_path, capsys, monkeypat
         make_executor("local", 2, "tcp://127.0.0.1:8786")
 
 
+def _same_report(one, two):
+    for name in ("summary.json", "paired.csv"):
+        assert (one / name).read_text() == (two / name).read_text(), name
+    metrics = [pd.read_csv(folder / "metrics.csv").drop(columns="wall_s") for folder in (one, two)]
+    pd.testing.assert_frame_equal(*metrics)
+
+
 def test_dask_cluster_gives_the_same_summary_as_local_processes(tmp_path):
-    distributed = pytest.importorskip("distributed")
+    distributed = pytest.importorskip("distributed")  # in the test extra: runs in CI
     assert main(["evaluate", *TINY, "--jobs", "1", "--out", str(tmp_path / "local")]) == 0
     with distributed.LocalCluster(
         n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None
     ) as cluster:
         argv = ["evaluate", *TINY, "--executor", "dask", "--scheduler-address", cluster.scheduler_address]
         assert main([*argv, "--out", str(tmp_path / "dask")]) == 0
-    for name in ("summary.json", "paired.csv"):
-        assert (tmp_path / "dask" / name).read_text() == (tmp_path / "local" / name).read_text(), name
-    local = pd.read_csv(tmp_path / "local" / "metrics.csv").drop(columns="wall_s")
-    dask = pd.read_csv(tmp_path / "dask" / "metrics.csv").drop(columns="wall_s")
-    pd.testing.assert_frame_equal(local, dask)
+    _same_report(tmp_path / "local", tmp_path / "dask")
     run = json.loads((tmp_path / "dask" / "run.json").read_text())
     assert run["runs"] == 4 and run["runs_per_s"] > 0
     assert run["executor"].startswith("dask, 2 workers (the cluster at tcp://")
     assert json.loads((tmp_path / "local" / "run.json").read_text())["executor"] == "local, in this process"
+
+
+def test_ray_gives_the_same_summary_as_local_processes(tmp_path):
+    pytest.importorskip("ray")  # not in the test extra (large): runs where Ray is installed
+    assert main(["evaluate", *TINY, "--jobs", "1", "--out", str(tmp_path / "local")]) == 0
+    assert main(["evaluate", *TINY, "--executor", "ray", "--jobs", "2", "--out", str(tmp_path / "ray")]) == 0
+    _same_report(tmp_path / "local", tmp_path / "ray")
+    assert json.loads((tmp_path / "ray" / "run.json").read_text())["executor"] == "ray, 2 CPUs (a local cluster)"
