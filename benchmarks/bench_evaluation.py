@@ -5,7 +5,9 @@ shipped GNN planner without and with the shield) on ``--scenarios`` generated sc
 ``--duration`` simulated seconds; the *sweep* is ``sb3-graph sweep`` with pr and fifo at two demand
 levels. Each runs as its own ``python -m sb3_graph.cli`` process with ``--jobs`` workers, so the
 wall time is what a user waits for (Python start, scenario generation, worker start-up, the runs,
-the report). Runs per second: planner-scenario runs over that wall time.
+the report). Runs per second: planner-scenario runs over that wall time. CPU seconds: user + system
+time of the command and every worker it started (``RUSAGE_CHILDREN``), which a busy shared machine
+inflates far less than the wall time.
 
 ``--checkout DIR`` (repeatable) names source trees to measure, each put first on ``PYTHONPATH``
 (e.g. an older commit unpacked with ``git archive COMMIT | tar -x -C DIR``); the checkouts are
@@ -24,6 +26,7 @@ import json
 import os
 import platform
 import re
+import resource
 import subprocess
 import sys
 import tempfile
@@ -54,17 +57,21 @@ def _measure(checkout: Path, kind: str, args: argparse.Namespace, executor: str,
     out = scratch / f"{len(list(scratch.iterdir()))}"
     argv, runs = _job(kind, args, out, executor)
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(checkout), os.environ.get("PYTHONPATH", "")])}
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     tic = time.perf_counter()
     done = subprocess.run(
         [sys.executable, "-m", "sb3_graph.cli", *argv], env=env, cwd=scratch, capture_output=True, text=True
     )
     wall = time.perf_counter() - tic
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
     if done.returncode != 0:
         raise RuntimeError(f"{' '.join(argv)} failed in {checkout}:\n{done.stderr[-2000:]}")
-    row = {"checkout": checkout.name, "job": kind, "executor": executor, "runs": runs, "wall_s": wall}
+    row = {"checkout": checkout.name, "job": kind, "executor": executor, "runs": runs, "wall_s": wall, "cpu_s": cpu}
     row["runs_per_s"] = runs / wall
     info = out / "run.json"  # written by checkouts with the pluggable harness
     row["harness_runs_per_s"] = json.loads(info.read_text())["runs_per_s"] if info.is_file() else None
+    row["load"] = os.getloadavg()[0]  # 1-minute load average at the end
     found = re.search(r"\((\d+\.\d) s\)\s*$", done.stdout)
     row["command_s"] = float(found.group(1)) if found else None  # the command's own figure
     return row
@@ -95,20 +102,20 @@ def main() -> None:
                         rows.append(_measure(checkout, kind, args, executor, Path(scratch)))
                         print(_line(rows[-1]), flush=True)
     print(f"\nload after: {os.getloadavg()[0]:.2f}\n")
-    print("| job | checkout | executor | runs | wall [s] | runs/s (wall) | runs/s (harness) |")
-    print("|---|---|---|---:|---:|---:|---:|")
+    print("| job | checkout | executor | runs | wall [s] | CPU [s] | runs/s (wall) | runs/s (harness) | load |")
+    print("|---|---|---|---:|---:|---:|---:|---:|---:|")
     for row in rows:
         harness = "n/a" if row["harness_runs_per_s"] is None else f"{row['harness_runs_per_s']:.3f}"
         print(
             f"| {row['job']} | {row['checkout']} | {row['executor']} | {row['runs']} | {row['wall_s']:.1f} "
-            f"| {row['runs_per_s']:.3f} | {harness} |"
+            f"| {row['cpu_s']:.1f} | {row['runs_per_s']:.3f} | {harness} | {row['load']:.1f} |"
         )
 
 
 def _line(row: dict) -> str:
     return (
-        f"{row['job']:>8} {row['checkout']:>12} {row['executor']:>6}: {row['runs']} runs in {row['wall_s']:.1f} s"
-        f" ({row['runs_per_s']:.3f} runs/s)"
+        f"{row['job']:>5} {row['checkout']:>12} {row['executor']:>6}: {row['runs']} runs in {row['wall_s']:.1f} s"
+        f" ({row['runs_per_s']:.3f} runs/s), {row['cpu_s']:.1f} CPU s, load {row['load']:.1f}"
     )
 
 

@@ -24,6 +24,7 @@ vehicles over full runs).
 from __future__ import annotations
 
 import os
+import threading
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -65,12 +66,20 @@ class Job:
     trust_files: bool = False
 
 
-# Per-process caches: a worker runs many jobs, build its envs and planners (model loads) once.
-_ENVS: dict[tuple[str, str], Any] = {}
 # What the harness's environments do on a collision (see the module docstring).
 EVALUATION_CONFIG = {"collision_handling": "remove"}
-_PLANNERS: dict[tuple[str, bool], Any] = {}
+# Per-worker caches: a worker runs many jobs, so it builds its envs and planners (model loads) once.
+# Per thread, since a cluster worker with several threads runs jobs side by side, and an env or a
+# planner with state must not serve two runs at once.
+_CACHES = threading.local()
 _WORKER_READY = False
+
+
+def _cache(name: str) -> dict:
+    """This thread's cache ``name`` (``"envs"`` or ``"planners"``)."""
+    if not hasattr(_CACHES, name):
+        setattr(_CACHES, name, {})
+    return getattr(_CACHES, name)
 
 
 def _worker_init() -> None:
@@ -108,18 +117,20 @@ def _env(env_id: str, env_kwargs: dict[str, Any]):
 
     import envs  # noqa: F401  (registers the environments)
 
+    envs_made = _cache("envs")
     key = (env_id, repr(sorted(env_kwargs.items())))
-    if key not in _ENVS:
-        _ENVS[key] = gym.make(env_id, **evaluation_env_kwargs(env_kwargs))
-    return _ENVS[key]
+    if key not in envs_made:
+        envs_made[key] = gym.make(env_id, **evaluation_env_kwargs(env_kwargs))
+    return envs_made[key]
 
 
 def _planner(spec: str, trust_files: bool = False):
     from envs.planners import make_planner
 
-    if (spec, trust_files) not in _PLANNERS:
-        _PLANNERS[spec, trust_files] = make_planner(spec, trust_files=trust_files)
-    return _PLANNERS[spec, trust_files]
+    planners = _cache("planners")
+    if (spec, trust_files) not in planners:
+        planners[spec, trust_files] = make_planner(spec, trust_files=trust_files)
+    return planners[spec, trust_files]
 
 
 def run_episode(
