@@ -406,5 +406,7 @@ def _progress(total: int, enabled: bool):
         total=total,
         desc="evaluate",
         unit="run",
+        # runs per second even below 1 (tqdm's default turns a slow rate into seconds per run)
+        bar_format="{l_bar}{bar}| {n_fmt}/{total_fmt} [{elapsed}<{remaining}, {rate_noinv_fmt}]",
         disable=not enabled or bool(os.environ.get("SB3_GRAPH_NO_PROGRESS")),
     )

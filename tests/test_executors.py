@@ -121,3 +121,15 @@ def test_ray_gives_the_same_summary_as_local_processes(tmp_path):
     assert main(["evaluate", *TINY, "--executor", "ray", "--jobs", "2", "--out", str(tmp_path / "ray")]) == 0
     _same_report(tmp_path / "local", tmp_path / "ray")
     assert json.loads((tmp_path / "ray" / "run.json").read_text())["executor"] == "ray, 2 CPUs (a local cluster)"
+
+
+def test_progress_bar_shows_runs_per_second_even_when_slow(monkeypatch):
+    from envs.evaluation import _progress
+
+    monkeypatch.delenv("SB3_GRAPH_NO_PROGRESS", raising=False)
+    bar = _progress(20, True)
+    bar.update(1)
+    meter = {**bar.format_dict, "elapsed": 10.0, "rate": None}  # one run in 10 s
+    bar.close()
+    text = bar.format_meter(**meter)
+    assert "0.10run/s" in text and "s/run" not in text
