@@ -13,10 +13,12 @@ inflates far less than the wall time.
 (e.g. an older commit unpacked with ``git archive COMMIT | tar -x -C DIR``); the checkouts are
 measured in turns, ``--repeat`` times, so a load change on a shared machine hits them alike.
 ``--executor dask`` adds the same jobs on a Dask ``LocalCluster`` of ``--jobs`` workers (checkouts
-that have ``--executor`` only). Prints a markdown table with the machine, its load and the command.
+that have ``--executor`` only). ``--job read`` prints what reading one scenario file costs, which
+the old harness paid once per run and the new one once per scenario. Prints a markdown table with
+the machine, its load and the command.
 
 Run: ``python benchmarks/bench_evaluation.py [--scenarios 4] [--duration 100] [--jobs 2]
-[--checkout DIR ...] [--executor dask] [--repeat 1]``
+[--checkout DIR ...] [--executor dask] [--job main|sweep|read ...] [--repeat 1]``
 """
 
 from __future__ import annotations
@@ -77,6 +79,27 @@ def _measure(checkout: Path, kind: str, args: argparse.Namespace, executor: str,
     return row
 
 
+def _read_cost(duration: float) -> str:
+    """What a run paid before the table was shared: reading its scenario file (this tree's code)."""
+    import pickle
+
+    sys.path.insert(0, str(HERE))
+    from envs.evaluation import generate_scenarios
+    from envs.traffic import Scenario
+
+    with tempfile.TemporaryDirectory() as folder:
+        path = generate_scenarios(folder, 1, duration, 0, "4way")[0]
+        tic = time.perf_counter()
+        for _ in range(50):
+            scenario = Scenario.load(path)
+        read = (time.perf_counter() - tic) / 50
+        size = path.stat().st_size
+    return (
+        f"scenario file of {duration:g} s ({scenario.num_vehicles} vehicles, {size} B): read and checked in "
+        f"{1e3 * read:.2f} ms (mean of 50); pickled for the workers: {len(pickle.dumps(scenario))} B"
+    )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scenarios", type=int, default=4, help="scenarios (per demand level) (default: 4)")
@@ -84,13 +107,22 @@ def main() -> None:
     parser.add_argument("--jobs", type=int, default=2, help="workers (default: 2)")
     parser.add_argument("--checkout", action="append", default=None, help="source tree to measure (default: this one)")
     parser.add_argument("--executor", action="append", default=[], choices=["dask", "ray"], help="also measure this")
-    parser.add_argument("--job", action="append", default=None, choices=["main", "sweep"], help="default: both")
+    parser.add_argument(
+        "--job",
+        action="append",
+        default=None,
+        choices=["main", "sweep", "read"],
+        help="main job, sweep, or the cost of reading one scenario file (default: main and sweep)",
+    )
     parser.add_argument("--repeat", type=int, default=1, help="turns over the checkouts (default: 1)")
     args = parser.parse_args()
     checkouts = [Path(c).resolve() for c in (args.checkout or [HERE])]
     jobs = args.job or ["main", "sweep"]
     print(f"machine: {platform.node()}, {os.cpu_count()} cores, load before {os.getloadavg()[0]:.2f}")
     print(f"command: python {' '.join(sys.argv)}\n")
+    if "read" in jobs:
+        print(_read_cost(args.duration) + "\n")
+        jobs = [job for job in jobs if job != "read"]
     rows = []
     with tempfile.TemporaryDirectory() as scratch:
         for _ in range(args.repeat):
@@ -101,6 +133,8 @@ def main() -> None:
                             continue
                         rows.append(_measure(checkout, kind, args, executor, Path(scratch)))
                         print(_line(rows[-1]), flush=True)
+    if not rows:
+        return
     print(f"\nload after: {os.getloadavg()[0]:.2f}\n")
     print("| job | checkout | executor | runs | wall [s] | CPU [s] | runs/s (wall) | runs/s (harness) | load |")
     print("|---|---|---|---:|---:|---:|---:|---:|---:|")
