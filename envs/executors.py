@@ -166,8 +166,10 @@ class DaskExecutor(JobExecutor):
                 self.client = distributed.Client(self._cluster)
             else:
                 self.client = distributed.Client(address, timeout=connect_timeout)
-        except (OSError, TimeoutError) as error:
+        except (OSError, TimeoutError, ValueError) as error:
             self.close()
+            if address is None:
+                raise ExecutorError(f"--executor dask: cannot start a local Dask cluster ({error})") from None
             raise ExecutorError(
                 f"--scheduler-address: cannot reach the Dask scheduler at {address!r} ({error})"
             ) from None
