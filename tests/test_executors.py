@@ -133,3 +133,12 @@ def test_progress_bar_shows_runs_per_second_even_when_slow(monkeypatch):
     bar.close()
     text = bar.format_meter(**meter)
     assert "0.10run/s" in text and "s/run" not in text
+
+
+def test_unreachable_dask_scheduler_is_a_clear_error():
+    pytest.importorskip("distributed")
+    from envs.executors import DaskExecutor
+
+    # Port 1 on the loopback: nothing listens there; the client gives up after the timeout.
+    with pytest.raises(ExecutorError, match="--scheduler-address: cannot reach the Dask scheduler"):
+        DaskExecutor(address="tcp://127.0.0.1:1", connect_timeout=1)
