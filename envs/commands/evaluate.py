@@ -141,7 +141,7 @@ def add_executor_arguments(parser: argparse.ArgumentParser) -> None:
         "--scheduler-address",
         default=None,
         metavar="ADDRESS",
-        help="an existing cluster for --executor dask (e.g. tcp://10.0.0.5:8786) or ray (ray://host:10001, "
+        help="an existing cluster for --executor dask (e.g. tcp://SCHEDULER:8786) or ray (ray://host:10001, "
         "auto); its workers replace --jobs (default: start a local cluster of --jobs workers)",
     )
 
