@@ -1,4 +1,4 @@
-"""Run planners on scenario files, like for like, in parallel processes.
+"""Run planners on scenario files, like for like, in parallel processes or on a cluster.
 
 One *job* is one planner on one scenario file: the environment is reset onto the scenario, and
 at every policy step the planner answers the scene the environment shows
@@ -9,6 +9,11 @@ go into a vehicle log (:class:`envs.metrics.VehicleLog`), reduced to one metrics
 Every planner meets exactly the same traffic: the scenario file fixes every vehicle's appearance
 time, route and initial speed, and the environment's own randomness is seeded per scenario.
 
+The harness reads every scenario file once, into a table that goes to each worker once (not once per
+run), and hands the jobs to an executor (:mod:`envs.executors`): processes on this machine
+(``local``, the default), or an existing Dask or Ray cluster; the results are the same wherever
+they ran.
+
 A collision does not end an evaluation run: the harness makes its environments with
 ``config={"collision_handling": "remove"}`` (unless ``env_kwargs`` sets that key), so the vehicles
 involved are counted as collided and leave the scene while the run goes on, and a planner that
@@ -18,11 +23,10 @@ vehicles over full runs).
 
 from __future__ import annotations
 
-import multiprocessing
 import os
+import threading
 import time
 from collections.abc import Sequence
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -30,6 +34,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from envs.executors import JobExecutor, make_executor
 from envs.metrics import VehicleLog, run_metrics
 
 SCENARIO_SUFFIX = ".json"
@@ -61,15 +66,28 @@ class Job:
     trust_files: bool = False
 
 
-# Per-process caches: a worker runs many jobs, build its envs and planners (model loads) once.
-_ENVS: dict[tuple[str, str], Any] = {}
 # What the harness's environments do on a collision (see the module docstring).
 EVALUATION_CONFIG = {"collision_handling": "remove"}
-_PLANNERS: dict[tuple[str, bool], Any] = {}
+# Per-worker caches: a worker runs many jobs, so it builds its envs and planners (model loads) once.
+# Per thread, since a cluster worker with several threads runs jobs side by side, and an env or a
+# planner with state must not serve two runs at once.
+_CACHES = threading.local()
+_WORKER_READY = False
+
+
+def _cache(name: str) -> dict:
+    """This thread's cache ``name`` (``"envs"`` or ``"planners"``)."""
+    if not hasattr(_CACHES, name):
+        setattr(_CACHES, name, {})
+    return getattr(_CACHES, name)
 
 
 def _worker_init() -> None:
-    """Pool initializer: one torch thread per process (the jobs are the parallelism)."""
+    """Once per worker process: one torch thread (the jobs are the parallelism)."""
+    global _WORKER_READY
+    if _WORKER_READY:
+        return
+    _WORKER_READY = True
     try:
         import torch
 
@@ -99,18 +117,20 @@ def _env(env_id: str, env_kwargs: dict[str, Any]):
 
     import envs  # noqa: F401  (registers the environments)
 
+    envs_made = _cache("envs")
     key = (env_id, repr(sorted(env_kwargs.items())))
-    if key not in _ENVS:
-        _ENVS[key] = gym.make(env_id, **evaluation_env_kwargs(env_kwargs))
-    return _ENVS[key]
+    if key not in envs_made:
+        envs_made[key] = gym.make(env_id, **evaluation_env_kwargs(env_kwargs))
+    return envs_made[key]
 
 
 def _planner(spec: str, trust_files: bool = False):
     from envs.planners import make_planner
 
-    if (spec, trust_files) not in _PLANNERS:
-        _PLANNERS[spec, trust_files] = make_planner(spec, trust_files=trust_files)
-    return _PLANNERS[spec, trust_files]
+    planners = _cache("planners")
+    if (spec, trust_files) not in planners:
+        planners[spec, trust_files] = make_planner(spec, trust_files=trust_files)
+    return planners[spec, trust_files]
 
 
 def run_episode(
@@ -162,10 +182,11 @@ def _schedule(scenario: Any):
     return scenario if isinstance(scenario, Scenario) else None
 
 
-def run_job(job: Job) -> tuple[dict[str, Any], pd.DataFrame]:
+def run_job(job: Job, scenario: Any = None) -> tuple[dict[str, Any], pd.DataFrame]:
     """Run one job (in whichever process calls it).
 
     :param job: what to run
+    :param scenario: the loaded :class:`envs.traffic.Scenario` of ``job.scenario`` (default: read the file)
     :return: ``(metrics row, vehicle log)``, both tagged with planner, run and scenario
     """
     from envs.traffic import Scenario
@@ -173,7 +194,8 @@ def run_job(job: Job) -> tuple[dict[str, Any], pd.DataFrame]:
     tic = time.perf_counter()
     env = _env(job.env_id, job.env_kwargs)
     planner = _planner(job.planner, job.trust_files)
-    scenario = Scenario.load(job.scenario)
+    if scenario is None:
+        scenario = Scenario.load(job.scenario)
     vehicles, facts = run_episode(env, planner, scenario, job.duration, seed=job.seed + job.index)
     duration = facts["duration"] if facts["duration"] > 0 else job.duration
     row: dict[str, Any] = {"planner": job.name, "run": job.index, "scenario": Path(job.scenario).name}
@@ -195,6 +217,17 @@ def run_job(job: Job) -> tuple[dict[str, Any], pd.DataFrame]:
     vehicles.insert(0, "run", job.index)
     vehicles.insert(0, "planner", job.name)
     return row, vehicles
+
+
+def run_shared_job(job: Job, scenarios: Sequence[Any]) -> tuple[dict[str, Any], pd.DataFrame]:
+    """The executors' task: :func:`run_job` with the scenario from the shared table.
+
+    :param job: what to run
+    :param scenarios: every scenario of the evaluation, loaded, in the order of ``job.index``
+    :return: :func:`run_job`'s result
+    """
+    _worker_init()
+    return run_job(job, scenarios[job.index])
 
 
 def is_baseline(spec: str) -> bool:
@@ -305,21 +338,34 @@ def evaluate(
     env_kwargs: dict[str, Any] | None = None,
     progress: bool = True,
     trust_planner_files: bool = False,
+    executor: str | JobExecutor = "local",
+    scheduler_address: str | None = None,
+    stats: dict[str, Any] | None = None,
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
     """Run every planner on every scenario.
 
     :param planners: ``(word, report name)`` pairs, e.g. ``[("pr", "PR"), ("fifo", "FIFO")]``
-    :param scenarios: scenario files
+    :param scenarios: scenario files (each is read once, here, and shared with the workers)
     :param env_id: gymnasium id of the environment
     :param duration: simulated seconds per run
     :param seed: base seed (scenario ``i`` runs with ``seed + i``)
-    :param jobs: worker processes (1: run in this process)
+    :param jobs: parallel workers (``local``: processes, 1 runs in this process; ``dask``/``ray``
+        without ``scheduler_address``: the workers of the local cluster started for the evaluation)
     :param env_kwargs: keyword arguments of ``gym.make``
-    :param progress: show a progress bar
+    :param progress: show a progress bar (with the runs per second)
     :param trust_planner_files: load model ``.zip`` files with SB3's full ``load`` (runs their pickles)
+    :param executor: where the runs execute: ``"local"``, ``"dask"``, ``"ray"``
+        (:mod:`envs.executors`), or a :class:`envs.executors.JobExecutor` of one's own, which is
+        used as it is and not closed here
+    :param scheduler_address: address of an existing Dask scheduler or Ray cluster
+    :param stats: if given, filled with the harness's facts: ``runs``, ``wall_s`` (from the start of
+        the executor, a cluster started for the evaluation included, to the last result),
+        ``runs_per_s`` and ``executor`` (its description)
     :return: ``(runs, vehicles)``: one row per planner and run, one row per vehicle and run;
         sorted by planner (given order) and scenario, whatever order the workers finished in
     """
+    from envs.traffic import Scenario
+
     if jobs < 1:
         raise ValueError(f"jobs must be at least 1, got {jobs}")
     work = [
@@ -328,32 +374,26 @@ def evaluate(
         for word, name in planners
         for i, path in enumerate(scenarios)
     ]
+    table = [Scenario.load(path) for path in scenarios]
     results: list[tuple[dict[str, Any], pd.DataFrame] | None] = [None] * len(work)
+    own = not isinstance(executor, JobExecutor)
+    tic = time.perf_counter()  # a cluster started for this evaluation counts in its wall time
+    runner = make_executor(executor, jobs, scheduler_address) if own else executor
     bar = _progress(len(work), progress)
     try:
-        if jobs == 1:
-            _worker_init()
-            for k, job in enumerate(work):
-                results[k] = run_job(job)
-                bar.update(1)
-        else:
-            # spawn: workers start clean (no forked torch/matplotlib state), same on every OS
-            context = multiprocessing.get_context("spawn")
-            pool = ProcessPoolExecutor(
-                max_workers=min(jobs, len(work)), mp_context=context, initializer=_worker_init
-            )
-            try:
-                futures = {pool.submit(run_job, job): k for k, job in enumerate(work)}
-                for future in as_completed(futures):
-                    results[futures[future]] = future.result()
-                    bar.update(1)
-            except BaseException:
-                # a failed job or Ctrl-C: do not wait for the queued jobs
-                pool.shutdown(wait=False, cancel_futures=True)
-                raise
-            pool.shutdown()
+        for k, result in runner.map_unordered(run_shared_job, work, table):
+            results[k] = result
+            bar.update(1)
+        wall = time.perf_counter() - tic
+        if stats is not None:
+            stats.update(
+                runs=len(work), wall_s=wall, runs_per_s=len(work) / wall if wall > 0 else None,
+                executor=runner.describe(),
+            )  # fmt: skip
     finally:
         bar.close()
+        if own:
+            runner.close()
     runs = pd.DataFrame([r[0] for r in results if r is not None])
     vehicles = pd.concat([r[1] for r in results if r is not None], ignore_index=True)
     return runs, vehicles
@@ -366,5 +406,7 @@ def _progress(total: int, enabled: bool):
         total=total,
         desc="evaluate",
         unit="run",
+        # runs per second even below 1 (tqdm's default turns a slow rate into seconds per run)
+        bar_format="{l_bar}{bar}| {n_fmt}/{total_fmt} [{elapsed}<{remaining}, {rate_noinv_fmt}]",
         disable=not enabled or bool(os.environ.get("SB3_GRAPH_NO_PROGRESS")),
     )

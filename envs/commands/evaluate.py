@@ -15,11 +15,17 @@ vehicle-steps as ``shield_interventions`` in ``summary.json``), e.g. the shield'
         --planner envs.planners.adversarial:RandomAccel --shield --scenarios 20 --duration 100
 
 The report folder receives ``scenarios/`` (the generated scenario files, reusable with
-``--scenario-dir``), ``metrics.csv``, ``vehicles.csv``, ``summary.json``, ``report.md`` and the
-figures (see :mod:`envs.report`). An existing ``--out`` is refused, never overwritten; without
-``--out`` a fresh ``reports/synthetic-<date>-<time>`` folder is made. The report is written into a
-hidden temporary folder that becomes ``--out`` only when the run succeeds, so a failed or
-interrupted run leaves nothing that blocks the rerun.
+``--scenario-dir``), ``metrics.csv``, ``vehicles.csv``, ``summary.json``, ``report.md``, the
+figures (see :mod:`envs.report`) and ``run.json`` (runs, wall time, runs per second, executor).
+An existing ``--out`` is refused, never overwritten; without ``--out`` a fresh
+``reports/synthetic-<date>-<time>`` folder is made. The report is written into a hidden temporary
+folder that becomes ``--out`` only when the run succeeds, so a failed or interrupted run leaves
+nothing that blocks the rerun.
+
+The runs spread over ``--jobs`` processes on this machine, each scenario file read once and sent to
+each worker once; ``--executor dask`` (or ``ray``) runs the same evaluation on a cluster instead, a
+local one of ``--jobs`` workers or the existing one at ``--scheduler-address`` (docs/cluster.md);
+the numbers are the same. The progress bar and ``run.json`` give the runs per second.
 
 Model planners (``.safetensors`` policy files or SB3 ``.zip`` files) are loaded and checked
 against the environment before any run starts, without running code from the file
@@ -47,6 +53,7 @@ DEFAULT_ENV = "CoopIntersection4Way-v0"
 # the weights-only format (`sb3-graph export` of best_model.zip beside it).
 DEFAULT_MODEL = Path(__file__).resolve().parents[1] / "pretrained" / "coop_4way" / "best_model.safetensors"
 DEFAULT_BASELINES = ("pr", "fifo", "aim", "signal")
+RUN_INFO_FILE = "run.json"
 TRUST_HELP = (
     "load model .zip files with SB3's full TD3.load, which runs the pickled code inside them: only for "
     "files you made yourself (by default a .zip is read without unpickling)"
@@ -96,7 +103,7 @@ def add_run_arguments(parser: argparse.ArgumentParser, scenarios: int, out: str,
     parser.add_argument(
         "--seed", type=int, default=0, help="base seed of scenarios and environments, >= 0 (default: 0)"
     )
-    parser.add_argument("--jobs", type=int, default=2, help="parallel worker processes (default: 2)")
+    add_executor_arguments(parser)
     parser.add_argument(
         "--out",
         default=None,
@@ -112,6 +119,48 @@ def add_run_arguments(parser: argparse.ArgumentParser, scenarios: int, out: str,
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
 
 
+def add_executor_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--jobs``, ``--executor`` and ``--scheduler-address`` (shared by the commands that run planners)."""
+    from envs.executors import EXECUTORS
+
+    parser.add_argument(
+        "--jobs",
+        type=int,
+        default=2,
+        help="parallel workers: processes on this machine, or the workers of the local cluster that --executor "
+        "dask/ray starts (default: 2)",
+    )
+    parser.add_argument(
+        "--executor",
+        choices=EXECUTORS,
+        default="local",
+        help="where the runs execute: local processes, a Dask cluster or a Ray cluster (pip install "
+        "'sb3-graph[cluster]' or 'sb3-graph[ray]'); the numbers are the same (default: local)",
+    )
+    parser.add_argument(
+        "--scheduler-address",
+        default=None,
+        metavar="ADDRESS",
+        help="an existing cluster for --executor dask (e.g. tcp://SCHEDULER:8786) or ray (ray://host:10001, "
+        "auto); its workers replace --jobs (default: start a local cluster of --jobs workers)",
+    )
+
+
+def check_executor_arguments(args: argparse.Namespace) -> None:
+    """Refuse a bad ``--jobs``, or an executor that cannot run, before any work starts.
+
+    :raises UserError: naming the flag
+    """
+    from envs.executors import ExecutorError, check_executor
+
+    if args.jobs < 1:
+        raise UserError(f"--jobs must be at least 1, got {args.jobs}")
+    try:
+        check_executor(args.executor, args.scheduler_address)
+    except (ExecutorError, ValueError) as error:
+        raise UserError(str(error)) from None
+
+
 def _check(args: argparse.Namespace) -> list[tuple[str, str]]:
     """Validate the arguments; return the ``(planner word, report name)`` pairs."""
     from sb3_graph.outputs import OutputError, check_destination
@@ -122,8 +171,7 @@ def _check(args: argparse.Namespace) -> list[tuple[str, str]]:
         raise UserError(f"--duration must be positive, got {args.duration}")
     if args.seed < 0:
         raise UserError(f"--seed must be >= 0, got {args.seed}")
-    if args.jobs < 1:
-        raise UserError(f"--jobs must be at least 1, got {args.jobs}")
+    check_executor_arguments(args)
     if args.env_kwargs is not None and not isinstance(args.env_kwargs, dict):
         raise UserError("--env-kwargs must be a JSON object, e.g. '{\"duration\": 100}'")
     planners = checked_planners(args.planner, shield=args.shield)
@@ -239,7 +287,7 @@ def run(args: argparse.Namespace) -> int:
                 source = f"generated into {out / 'scenarios'} (seed {args.seed} + index)"
             else:
                 source = f"read from {args.scenario_dir}"
-            runs, vehicles = run_harness(args, planners, scenarios)
+            runs, vehicles, stats = run_harness(args, planners, scenarios)
             wall = time.perf_counter() - tic
             meta = {
                 "environment": args.env,
@@ -248,10 +296,12 @@ def run(args: argparse.Namespace) -> int:
                 "duration per run": duration_text(runs, args.duration),
                 "seed": args.seed,
                 "jobs": args.jobs,
+                **harness_meta(stats),
                 "wall time": f"{wall:.1f} s",
                 "python": platform.python_version(),
             }
             summary = write_report(stage, runs, vehicles, meta)
+            write_run_info(stage, stats, time.perf_counter() - tic)
     except OutputError as error:
         raise UserError(str(error)) from None
     for name, s in summary.items():
@@ -263,6 +313,7 @@ def run(args: argparse.Namespace) -> int:
             f" {s['speed_limit_violations']} speed-limit violations ({s['vehicles']} scheduled vehicles,"
             f" {s['not_spawned']} never appeared)"
         )
+    print(run_line(stats))
     print(f"report written to {out} ({wall:.1f} s)")
     return 0
 
@@ -273,21 +324,73 @@ def run_harness(args: argparse.Namespace, planners: Sequence[tuple[str, str]], s
     :param args: the parsed ``evaluate``/``sweep`` arguments
     :param planners: ``(planner spec, report name)`` pairs
     :param scenarios: scenario files
-    :return: ``(runs, vehicles)``
+    :return: ``(runs, vehicles, stats)``, stats as :func:`envs.evaluation.evaluate` fills them
+    """
+    return harness(args, planners, scenarios, args.duration)
+
+
+def harness(args: argparse.Namespace, planners: Sequence[tuple[str, str]], scenarios: Sequence[Path], duration):
+    """:func:`envs.evaluation.evaluate` with a command's ``--jobs``, ``--executor``, ``--scheduler-address``,
+    ``--seed``, ``--env``, ``--env-kwargs`` and ``--no-progress``.
+
+    :return: ``(runs, vehicles, stats)``
+    :raises UserError: the executor cannot start (naming its flag)
     """
     from envs.evaluation import evaluate
+    from envs.executors import ExecutorError
 
-    return evaluate(
-        planners,
-        scenarios,
-        args.env,
-        args.duration,
-        seed=args.seed,
-        jobs=args.jobs,
-        env_kwargs=args.env_kwargs,
-        progress=not args.no_progress,
-        trust_planner_files=args.trust_planner_files,
-    )
+    stats: dict[str, Any] = {}
+    try:
+        runs, vehicles = evaluate(
+            planners,
+            scenarios,
+            args.env,
+            duration,
+            seed=args.seed,
+            jobs=args.jobs,
+            env_kwargs=args.env_kwargs,
+            progress=not args.no_progress,
+            trust_planner_files=args.trust_planner_files,
+            executor=args.executor,
+            scheduler_address=args.scheduler_address,
+            stats=stats,
+        )
+    except ExecutorError as error:
+        raise UserError(str(error)) from None
+    return runs, vehicles, stats
+
+
+def harness_meta(stats: dict[str, Any]) -> dict[str, str]:
+    """The report's lines on the harness: where the runs executed and how fast.
+
+    :param stats: :func:`envs.evaluation.evaluate`'s stats
+    """
+    rate = stats.get("runs_per_s")
+    rate_text = "n/a" if rate is None else f"{rate:.3g} runs/s"
+    return {
+        "executor": stats["executor"],
+        "harness": f"{stats['runs']} runs in {stats['wall_s']:.1f} s ({rate_text})",
+    }
+
+
+def run_line(stats: dict[str, Any]) -> str:
+    """One line for the terminal: runs, wall time, runs per second and executor."""
+    meta = harness_meta(stats)
+    return f"{meta['harness']} on {meta['executor']}"
+
+
+def write_run_info(out: Path, stats: dict[str, Any], wall: float) -> None:
+    """``run.json``: the harness's runs, wall time, runs per second and executor (kept out of
+    ``summary.json``, whose keys are the planners and whose numbers do not depend on where they ran).
+
+    :param out: the report folder
+    :param stats: :func:`envs.evaluation.evaluate`'s stats
+    :param wall: the command's wall time so far [s] (scenario generation, runs and report)
+    """
+    import json
+
+    info = {**stats, "command_wall_s": wall}
+    (Path(out) / RUN_INFO_FILE).write_text(json.dumps(info, indent=2) + "\n")
 
 
 def add_shield_argument(parser: argparse.ArgumentParser) -> None:

@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from envs.commands.evaluate import add_shield_argument
+from envs.commands.evaluate import add_executor_arguments, add_shield_argument, check_executor_arguments
 from sb3_graph.cli import UserError
 from sb3_graph.commands.arguments import json_object
 
@@ -78,7 +78,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--env", default=DEFAULT_ENV, help=f"environment id (default: {DEFAULT_ENV})")
     parser.add_argument("--env-kwargs", type=json_object, default=None, help="JSON dict passed to gym.make")
     parser.add_argument("--seed", type=int, default=0, help="base seed of the environments, >= 0 (default: 0)")
-    parser.add_argument("--jobs", type=int, default=2, help="parallel worker processes (default: 2)")
+    add_executor_arguments(parser)
     parser.add_argument(
         "--out", default=None, help="report folder, must not exist (default: reports/ind-<time>)"
     )
@@ -382,8 +382,7 @@ def _mapping_section(mapped, recordings: Sequence, dataset_table: pd.DataFrame) 
 def run(args: argparse.Namespace) -> int:
     from sb3_graph.outputs import OutputError, check_destination, staged_folder
 
-    if args.jobs < 1:
-        raise UserError(f"--jobs must be at least 1, got {args.jobs}")
+    check_executor_arguments(args)
     if args.seed < 0:
         raise UserError(f"--seed must be >= 0, got {args.seed}")
     if args.env_kwargs is not None and not isinstance(args.env_kwargs, dict):
@@ -442,22 +441,13 @@ def _write(args: argparse.Namespace, out: Path, recordings, mapped, planners, ti
     dataset_table.to_csv(out / "dataset_stops.csv")
     runs, vehicles = dataset_runs(mapped, recordings)
 
+    stats = None
     if planners:
-        from envs.evaluation import evaluate
+        from envs.commands.evaluate import harness
 
         scenarios = write_scenarios(mapped, recordings, out / "scenarios")
         # One pool for every planner and recording: each episode ends at its own scenario's duration.
-        r, v = evaluate(
-            planners,
-            scenarios,
-            args.env,
-            max(recording.duration for recording in recordings),
-            seed=args.seed,
-            jobs=args.jobs,
-            env_kwargs=args.env_kwargs,
-            progress=not args.no_progress,
-            trust_planner_files=args.trust_planner_files,
-        )
+        r, v, stats = harness(args, planners, scenarios, max(recording.duration for recording in recordings))
         recording_of = {path.name: rec.recording_id for rec, path in zip(recordings, scenarios)}
         runs = pd.concat([runs, r.assign(run=r["scenario"].map(recording_of))], ignore_index=True)
         vehicles = pd.concat([vehicles, v], ignore_index=True)
@@ -466,6 +456,7 @@ def _write(args: argparse.Namespace, out: Path, recordings, mapped, planners, ti
         runs = runs.sort_values(["planner", "run"], key=lambda c: c.map(order) if c.name == "planner" else c)
         runs = runs.reset_index(drop=True)
 
+    from envs.commands.evaluate import harness_meta, write_run_info
     from envs.report import markdown_report, write_report
 
     wall = time.perf_counter() - tic
@@ -476,6 +467,7 @@ def _write(args: argparse.Namespace, out: Path, recordings, mapped, planners, ti
         "runs": "one per recording"
         + ("" if args.dataset_only else ", each simulated for the recording's duration"),
         "seed": f"{args.seed} (+ index of the recording)",
+        **(harness_meta(stats) if stats else {}),
         "wall time": f"{wall:.1f} s",
         "python": platform.python_version(),
     }
@@ -488,4 +480,6 @@ def _write(args: argparse.Namespace, out: Path, recordings, mapped, planners, ti
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     report = markdown_report(summary, runs, vehicles, meta).replace("# Planner evaluation", "# inD replay", 1)
     (out / "report.md").write_text(report + _mapping_section(mapped, recordings, dataset_table))
+    if stats:
+        write_run_info(out, stats, time.perf_counter() - tic)
     return summary

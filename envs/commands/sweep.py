@@ -13,7 +13,10 @@ planner runs on all of them in one pool of ``--jobs`` workers with one progress 
 ``evaluate``). The folder receives ``sweep.csv`` (one row per planner and level, columns of
 :data:`envs.sweep.SWEEP_COLUMNS`), ``sweep.png``, ``sweep.md`` (capacities, the table, the paired
 differences against the strongest baseline of each level) and, per level, the full ``evaluate``
-report in ``demand_<level>/``. An existing ``--out`` is refused, never overwritten.
+report in ``demand_<level>/``, and ``run.json`` (runs, wall time, runs per second, executor). The
+runs execute where ``--executor`` says, as for ``evaluate`` (``--executor dask
+--scheduler-address tcp://host:8786`` runs the sweep on an existing Dask cluster, docs/cluster.md).
+An existing ``--out`` is refused, never overwritten.
 """
 
 from __future__ import annotations
@@ -28,8 +31,11 @@ from envs.commands.evaluate import (
     _destination,
     add_run_arguments,
     checked_env,
+    harness_meta,
     load_model_planners,
     run_harness,
+    run_line,
+    write_run_info,
 )
 from sb3_graph.cli import UserError
 
@@ -78,19 +84,21 @@ def run(args: argparse.Namespace) -> int:
     tic = time.perf_counter()
     try:
         with staged_folder(out) as stage:
-            table, wall = _sweep(args, planners, demand, layout, stage, tic)
+            table, wall, stats = _sweep(args, planners, demand, layout, stage, tic)
     except OutputError as error:
         raise UserError(str(error)) from None
     for planner, cap in capacities(table).items():
         flow = table.loc[table["planner"] == planner, "flow_rate"].max()
         text = capacity_text(cap, demand[-1]) + ("" if cap is None else " veh/s per major-road lane")
         print(f"{planner:>10}: capacity {text}, highest flow {flow:.3f} veh/s")
+    print(run_line(stats))
     print(f"sweep written to {out} ({wall:.1f} s)")
     return 0
 
 
 def _sweep(args, planners, demand, layout, out, tic):
-    """Run every level into ``out`` (the staging folder); return the sweep table and the wall time."""
+    """Run every level into ``out`` (the staging folder); return the sweep table, the wall time and the
+    harness's stats."""
     from envs.comparison import paired_differences
     from envs.evaluation import generate_scenarios
     from envs.report import write_report
@@ -103,7 +111,7 @@ def _sweep(args, planners, demand, layout, out, tic):
             out / level_folder(level) / "scenarios", args.scenarios, args.duration, args.seed, layout, demand=level
         )
     ]
-    runs, vehicles = run_harness(args, planners, scenarios)
+    runs, vehicles, stats = run_harness(args, planners, scenarios)
     wall = time.perf_counter() - tic
     meta = {
         "environment": args.env,
@@ -112,6 +120,7 @@ def _sweep(args, planners, demand, layout, out, tic):
         "scenarios per level": f"{args.scenarios} (scenario i: seed {args.seed} + i)",
         "duration per run": f"{args.duration:g} s",
         "jobs": args.jobs,
+        **harness_meta(stats),
         "wall time": f"{wall:.1f} s",
         "python": platform.python_version(),
     }
@@ -126,4 +135,6 @@ def _sweep(args, planners, demand, layout, out, tic):
         level_meta = {**meta, "demand": f"{level:g} veh/s per major-road lane (minor: half)"}
         summary = write_report(out / level_folder(level), level_runs, level_vehicles, level_meta)
         levels.append((level, summary, paired_differences(level_runs)))
-    return write_sweep(out, levels, meta), wall
+    table = write_sweep(out, levels, meta)
+    write_run_info(out, stats, time.perf_counter() - tic)
+    return table, wall, stats
