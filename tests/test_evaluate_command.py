@@ -175,4 +175,4 @@ def test_shipped_safetensors_and_zip_give_the_same_report(tmp_path):
     assert main([*args, "--scenarios", "1", "--duration", "10", "--jobs", "1", "--no-progress"]) == 0
     runs = pd.read_csv(tmp_path / "r" / "metrics.csv").set_index("planner")
     cols = ["vehicles", "crossed", "stopped_all", "collided"]
-    pd.testing.assert_series_equal(runs.loc["RL:coop_4way", cols], runs.loc["RL:zip", cols], check_names=False)
+    pd.testing.assert_series_equal(runs.loc["RL:coop_4way_fair", cols], runs.loc["RL:zip", cols], check_names=False)

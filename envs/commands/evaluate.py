@@ -51,7 +51,7 @@ from sb3_graph.commands.arguments import finite_float, json_object
 DEFAULT_ENV = "CoopIntersection4Way-v0"
 # The GNN planner shipped with the package (trained by `sb3-graph train`, see its README.md), in
 # the weights-only format (`sb3-graph export` of best_model.zip beside it).
-DEFAULT_MODEL = Path(__file__).resolve().parents[1] / "pretrained" / "coop_4way" / "best_model.safetensors"
+DEFAULT_MODEL = Path(__file__).resolve().parents[1] / "pretrained" / "coop_4way_fair" / "best_model.safetensors"
 DEFAULT_BASELINES = ("pr", "fifo", "aim", "signal")
 RUN_INFO_FILE = "run.json"
 TRUST_HELP = (
@@ -86,7 +86,7 @@ def add_run_arguments(parser: argparse.ArgumentParser, scenarios: int, out: str,
         help="repeatable: 'pr' (priority rules), 'fifo', 'aim', 'signal', a policy file .safetensors "
         "(sb3-graph export) or a saved model .zip, or a Planner class (path/to/file.py:ClassName or "
         "package.module:ClassName); '+shield' after any of them wraps it in the safety shield; default: pr, fifo, "
-        "aim, signal and the GNN planner shipped in envs/pretrained/coop_4way/best_model.safetensors, without "
+        "aim, signal and the GNN planner shipped in envs/pretrained/coop_4way_fair/best_model.safetensors, without "
         "and with the shield",
     )
     add_shield_argument(parser)
