@@ -3,7 +3,7 @@
 Example::
 
     sb3-graph sweep --env CoopIntersection4Way-v0 --planner aim --planner fifo \\
-        --planner envs/pretrained/coop_4way/best_model.zip --demand 0.05 0.1 0.2 0.3 0.4 \\
+        --planner envs/pretrained/coop_4way_fair/best_model.zip --demand 0.05 0.1 0.2 0.3 0.4 \\
         --scenarios 20 --duration 100 --seed 0 --jobs 2 --out reports/sweep
 
 ``--demand`` is the arrival rate per major-road lane [veh/s]; minor-road lanes get half of it (as
