@@ -1,7 +1,7 @@
 """Run one scenario of a report past its end: does the traffic drain, or is it stuck for good?
 
 The scenario's schedule is kept (no new vehicles after its end); the run goes on to ``--until``
-seconds and prints the crossings after the scenario's end, the last crossing and the vehicles left::
+seconds and prints the crossings after the scenario's end, the last crossing and the vehicles stuck::
 
     python scripts/drain.py reports/shield100_adversarial 2 \\
         --planner envs/planners/adversarial.py:FullThrottle+shield --until 200
@@ -15,39 +15,30 @@ import sys
 from pathlib import Path
 
 import gymnasium as gym
-import numpy as np
 
 import envs  # noqa: F401 - registers the environments
+from envs.evaluation import evaluation_env_kwargs, run_episode
 from envs.planners import make_planner
 from envs.traffic import Scenario
 
 
 def drain(scenario: Scenario, planner_spec: str, seed: int, until: float, env_id: str) -> dict[str, float]:
-    """Run ``scenario`` with the planner to ``until`` seconds.
+    """Run ``scenario`` with the planner to ``until`` seconds, with the evaluation harness's episode.
 
-    :return: ``crossings_after_end``, ``last_crossing`` [s], ``left_in_scene``, ``collisions``
+    :return: ``crossings_after_end``, ``last_crossing`` [s], ``stuck`` (vehicles that entered and
+        neither crossed nor left), ``collided`` (vehicles), ``waiting_at_end`` (not yet spawned)
     """
-    end = scenario.duration
-    env = gym.make(env_id, config={"collision_handling": "remove"})
-    base = env.unwrapped
-    planner = make_planner(planner_spec)
-    env.reset(seed=seed, options={"scenario": dataclasses.replace(scenario, duration=until)})
-    planner.reset(seed)
-    crossings: list[float] = []
-    collisions = 0
-    while True:
-        acc = np.asarray(planner.act(base.scene()), float)
-        _, _, terminated, truncated, info = env.step(base.accelerations_to_action(acc))
-        crossings += [info["time"]] * len(info["crossed"])
-        collisions += len(info["collisions"])
-        if terminated or truncated or info["time"] >= until - 1e-9:
-            break
-    times = np.asarray(crossings)
+    env = gym.make(env_id, **evaluation_env_kwargs(None))
+    longer = dataclasses.replace(scenario, duration=until)
+    vehicles, facts = run_episode(env, make_planner(planner_spec), longer, until, seed=seed)
+    crossed = vehicles["crossed"]
+    stuck = vehicles["spawned"] & crossed.isna() & vehicles["removed"].isna()
     return {
-        "crossings_after_end": int((times > end).sum()),
-        "last_crossing": float(times.max(initial=0.0)),
-        "left_in_scene": int(base.scene().num_vehicles),
-        "collisions": collisions,
+        "crossings_after_end": int((crossed > scenario.duration).sum()),
+        "last_crossing": float(crossed.max()) if crossed.notna().any() else 0.0,
+        "stuck": int(stuck.sum()),
+        "collided": int(vehicles["collided"].sum()),
+        "waiting_at_end": facts["waiting_at_end"],
     }
 
 
