@@ -3,17 +3,20 @@ yield, and random scenes under random proposals stay collision-free."""
 
 from __future__ import annotations
 
+import gymnasium as gym
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from envs.evaluation import evaluation_env_kwargs, run_episode
 from envs.layouts import build_layout
 from envs.planners import Planner, make_planner, planner_name
 from envs.planners.adversarial import FullThrottle, RandomAccel
 from envs.planners.shield import Shield
 from envs.scene import Scene
 from envs.simulation import Simulation
+from envs.traffic import generate_scenario
 
 
 class Fixed(Planner):
@@ -161,3 +164,45 @@ def test_prediction_layout_is_bitwise_the_layout(layout):
     for a, b in zip(fast, integrate(lay, route, arc, speed, acc, 3, 1 / 15, 20.0, 3.0)):
         np.testing.assert_array_equal(a, b)
     assert view.route_names == lay.route_names  # everything else is the layout's
+
+
+def test_two_vehicles_standing_in_one_conflict_zone_are_separated_without_deadlock():
+    # Both stand within the padded zone of their crossing (after an unresolved step, say): no
+    # braking undoes that, so the one farther through goes first and the other holds until it left.
+    sim = _sim([("west->east", 88.0, 0.0), ("south->north", 83.5, 0.0)])
+    shield = Shield(FullThrottle())
+    first = shield.act(sim.scene())
+    np.testing.assert_allclose(first, [5.0, -5.0])
+    collided, _ = _run(sim, shield, steps=40)
+    assert not collided and shield.unresolved == 0
+    assert sim.num_vehicles == 0 or (sim.arc > 100.0).all()
+
+
+def test_a_committed_vehicle_waits_before_a_later_zone_that_a_crossing_vehicle_occupies():
+    # Vehicle 0 can no longer stop before its first zone (from 80.5 m), but can before the zone it
+    # shares with vehicle 1 (from 82.5 m), which vehicle 1 is already in. The fallback must hold
+    # vehicle 0 there instead of relying on its leaders to slow it (deadlock of scenario 2, below).
+    sim = _sim([("east->south", 78.05, 6.0), ("west->east", 85.7, 5.4)])
+    shield = Shield(FullThrottle())
+    scene = sim.scene()
+    plan = shield._plan(scene)
+    go = shield.committed(plan, plan.arc, plan.speed, scene.a_max)
+    assert go.all()
+    np.testing.assert_array_equal(shield._yielding(plan, plan.arc, plan.speed, go, scene.a_max), [True, False])
+    np.testing.assert_allclose(shield._fallback(scene, plan, plan.arc, plan.speed), [-5.0, 3.0])
+    collided, _ = _run(sim, shield, steps=40)
+    assert not collided and shield.unresolved == 0
+    assert sim.num_vehicles == 0 or (sim.arc > 100.0).all()
+
+
+def test_greedy_planner_behind_the_shield_does_not_deadlock_in_the_scenario_that_once_did():
+    # Scenario 2 of the main job: the old fallback left two crossing vehicles standing in one zone
+    # at 88 s (a leader that turned off made a follower faster than predicted) and braked everyone
+    # from then on. Now every step finds a safe plan and vehicles keep crossing to the end (~30 s).
+    env = gym.make("CoopIntersection4Way-v0", **evaluation_env_kwargs(None))
+    scenario = generate_scenario(env.unwrapped.layout, 100.0, 2)
+    shield = Shield(FullThrottle())
+    vehicles, _ = run_episode(env, shield, scenario, 100.0, seed=2)
+    assert shield.unresolved == 0
+    assert not vehicles["collided"].any()
+    assert vehicles["crossed"].max() > 95.0

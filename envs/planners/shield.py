@@ -23,7 +23,9 @@ The fallback is a feedback law of the state alone: a vehicle that can still stop
 conflict zone on its route brakes at ``a_max`` (local planning: it stops before zones it does not
 own); a vehicle that cannot (it is committed, it owns its zone) or that has cleared the
 intersection proceeds at ``proceed_acceleration``, following the vehicles ahead of it with a
-responsibility-sensitive safety gap (it can always stop behind a leader braking at ``a_max``).
+responsibility-sensitive safety gap (it can always stop behind a leader braking at ``a_max``), and
+waiting before a later zone of its route where a crossing vehicle is already committed (so that
+its safety does not rest on predicted timing, which changes when a leader turns off or merges in).
 Because the plan accepted at one step contains the fallback from the next state, the all-fallback
 plan passed the check one step earlier: the shield always has a safe answer (recursive
 feasibility), and once the prediction reaches a state where everyone stands or has left, the
@@ -75,6 +77,8 @@ class _Plan:
     merge_exit: np.ndarray  # (g, 2) exit arcs: arc - exit is a common coordinate after the merge
     merge_sep: np.ndarray  # (g,) smallest centre distance after the merge [m]
     rank: np.ndarray  # (n,) who goes first when two would enter a zone at once: farthest in, then lowest id
+    vehicle_id: np.ndarray  # (n,) ids: the fallback's order of way between committed vehicles (stable over steps)
+    cross_start: np.ndarray  # (c, 2) each body's centre arc in the pair's zone now (before any prediction)
 
     def __post_init__(self) -> None:
         # The columns of `follow` and their arcs now, contiguous: the fallback reads them every period.
@@ -246,6 +250,8 @@ class Shield(Planner):
             merge_exit=merge_exit,
             merge_sep=merge_sep,
             rank=rank,
+            vehicle_id=np.asarray(scene.vehicle_id),
+            cross_start=np.asarray(scene.arc, float)[cross].reshape(-1, 2),
         )
 
     # ------------------------------------------------------------------ the fallback
@@ -267,12 +273,40 @@ class Shield(Planner):
     ) -> np.ndarray:
         """:meth:`_fallback` with the committed vehicles (``go``) already known (the prediction needs them twice)."""
         proceed = min(self.proceed_acceleration, a_max)
-        acc = np.where(go, proceed, -a_max)
+        acc = np.where(go & ~self._yielding(plan, arc, speed, go, a_max), proceed, -a_max)
         f, ahead, gap = self._leaders_now(plan, arc, go)
         if f.size:
             ok = _safe_gap_after(gap, speed[f], speed[ahead], proceed, a_max, dt, self.gap_margin)
             acc[f[~ok & go[f]]] = min(proceed, -a_max)
         return acc
+
+    def _yielding(self, plan: _Plan, arc: np.ndarray, speed: np.ndarray, go: np.ndarray, a_max: float) -> np.ndarray:
+        """``(n,)`` bool: committed vehicles that the fallback holds for a crossing partner.
+
+        Committed means past the point where a vehicle can stop before its *first* zone; a later zone,
+        shared with one crossing route, may still be far enough to stop before. The fallback does not
+        rely on timing there (timing rests on predicted leaders, and the leaders change when a vehicle
+        ahead turns off or merges in): a committed vehicle that can still stop before a pair's zone
+        waits while its partner can no longer stop before it (or is in it) and has not cleared it.
+        Waiting can form a cycle only in a gridlock (each vehicle in one zone and before another),
+        which the check rejects as it rejects any committed vehicle left standing. Two vehicles inside
+        one zone at once (only after an unresolved step) are separated by holding the one less far
+        through it.
+        """
+        hold = np.zeros(len(arc), bool)
+        if not plan.cross.size:
+            return hold
+        x, v = arc[plan.cross], speed[plan.cross]
+        lo, hi = plan.cross_lo, plan.cross_hi
+        can_stop = (x <= lo) & ((v <= _STANDING) | (x + v**2 / (2 * a_max) + _STOP_SLACK <= lo))
+        ids = plan.vehicle_id[plan.cross]
+        waits = go[plan.cross] & can_stop & ~can_stop[:, ::-1] & (x[:, ::-1] < hi[:, ::-1])
+        through = (x - lo) / (hi - lo)
+        both = ((x > lo) & (x < hi)).all(axis=1)
+        behind = (through < through[:, ::-1]) | ((through == through[:, ::-1]) & (ids > ids[:, ::-1]))
+        waits |= both[:, None] & behind
+        hold[plan.cross[waits]] = True
+        return hold
 
     def _leaders_now(self, plan: _Plan, arc: np.ndarray, go: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(follower, ahead, bumper gap)`` of every same-path pair, and of every pair on merging paths
@@ -357,6 +391,19 @@ class Shield(Planner):
             x = later[:, plan.cross]  # (T, c, 2)
             inside = (x > plan.cross_lo) & (x < plan.cross_hi)
             both = inside.all(axis=2)
+            x0 = plan.cross_start
+            already = ((x0 > plan.cross_lo) & (x0 < plan.cross_hi)).all(axis=1)
+            if already.any():
+                # Both in the zone now (after an unresolved step): the one less far through must
+                # not go on while the other is in it (it may still be braking to a stop).
+                through = (x0 - plan.cross_lo) / (plan.cross_hi - plan.cross_lo)
+                ids = plan.vehicle_id[plan.cross]
+                back = (through[:, 1] < through[:, 0]) | ((through[:, 1] == through[:, 0]) & (ids[:, 1] > ids[:, 0]))
+                rows, side = np.arange(len(back)), back.astype(_INT)
+                v0 = plan.speed[plan.cross[rows, side]]
+                stop = x0[rows, side] + v0**2 / (2 * float(scene.a_max)) + _STOP_SLACK
+                moved = x[:, rows, side] > stop
+                both = np.where(already, both & moved, both)
             bad = both.any(axis=0)
             if bad.any():
                 found = True
@@ -385,7 +432,12 @@ class Shield(Planner):
         stuck = ~self._settled(plan, arc[-1], speed[-1], scene.a_max)
         if stuck.any():
             found = True
-            blamed |= stuck & free
+            stuck_free = stuck & free
+            if stuck_free.sum() > 1:
+                # A gridlock in the prediction (each waits for another inside its zone): spare the
+                # first in order; if it still fails, the next round blames it too.
+                stuck_free[np.flatnonzero(stuck_free)[np.argmin(plan.rank[stuck_free])]] = False
+            blamed |= stuck_free
             # A committed vehicle stuck behind a vehicle ahead: that one's command is to blame.
             fl, ah, _ = self._leaders_now(plan, arc[-1], self.committed(plan, arc[-1], speed[-1], scene.a_max))
             culprit = ah[stuck[fl] & ~free[fl] & free[ah]]
