@@ -43,9 +43,11 @@ from __future__ import annotations
 
 import weakref
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 
+from envs.planners import _shield_kernel
 from envs.planners.base import Planner
 from envs.scene import Scene
 from envs.simulation import integrate
@@ -84,6 +86,15 @@ class _Plan:
         # The columns of `follow` and their arcs now, contiguous: the fallback reads them every period.
         self.follow_rows = (np.ascontiguousarray(self.follow[:, 0]), np.ascontiguousarray(self.follow[:, 1]))
         self.follow_arc = (self.arc[self.follow_rows[0]], self.arc[self.follow_rows[1]])
+        # The compiled prediction's arguments (`_shield_kernel.predict`), contiguous and of one dtype
+        # each, so that one compiled signature serves every scene.
+        i, f = partial(np.ascontiguousarray, dtype=_INT), partial(np.ascontiguousarray, dtype=float)
+        self.kernel_arrays = (
+            i(self.route), f(self.hull_start), f(self.hull_end), i(self.follow_rows[0]), i(self.follow_rows[1]),
+            f(self.follow_gap), f(self.follow_arc[0]), f(self.follow_arc[1]), i(self.cross), f(self.cross_lo),
+            f(self.cross_hi), i(self.vehicle_id), i(self.merge), f(self.merge_lo), f(self.merge_exit),
+            f(self.merge_sep),
+        )  # fmt: skip
 
 
 class Shield(Planner):
@@ -330,8 +341,39 @@ class Shield(Planner):
     def predict(self, scene: Scene, plan: _Plan, command: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Arcs at every simulation sub-step: ``command`` for one period, then the fallback.
 
+        Compiled (:mod:`envs.planners._shield_kernel`): the periods are sequential and the arrays
+        small, so NumPy's per-call overhead made most of the shield's cost; bitwise :meth:`predict_numpy`.
+
         :return: ``(T + 1, n)`` arcs (row 0: now) and ``(T + 1, n)`` speeds
         """
+        dt = float(scene.dt)
+        substeps = max(1, int(round(self.simulation_frequency * dt)))
+        steps = max(1, int(np.ceil(self.horizon / dt - 1e-9)))
+        arcs = np.empty((steps * substeps + 1, len(plan.arc)))
+        speeds = np.empty_like(arcs)
+        arcs[0], speeds[0] = plan.arc, plan.speed
+        rows = _shield_kernel.predict(
+            plan.kernel_arrays,
+            prediction_layout(scene.layout, self.governor_deceleration).kernel_table,
+            np.ascontiguousarray(command, dtype=float),
+            arcs,
+            speeds,
+            steps,
+            substeps,
+            dt / substeps,
+            self.max_speed,
+            float(scene.a_max),
+            dt,
+            min(self.proceed_acceleration, float(scene.a_max)),
+            self.gap_margin,
+            _STANDING,
+            _STOP_SLACK,
+        )
+        return arcs[:rows], speeds[:rows]
+
+    def predict_numpy(self, scene: Scene, plan: _Plan, command: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`predict` in NumPy, with :func:`envs.simulation.integrate` itself: the reference that
+        the compiled prediction is tested against (bitwise, ``tests/test_shield.py``)."""
         dt = float(scene.dt)
         substeps = max(1, int(round(self.simulation_frequency * dt)))
         h = dt / substeps
@@ -515,7 +557,9 @@ class _PredictionLayout:
         self.ds = layout.ds
         self.sq = sq.ravel()
         self.dsq = np.concatenate([sq[:, 1:] - sq[:, :-1], np.zeros((sq.shape[0], 1))], axis=1).ravel()
-        self.limit = np.ascontiguousarray(layout.speed_limit).ravel()
+        self.limit = np.ascontiguousarray(layout.speed_limit, dtype=float).ravel()
+        # The same tables for the compiled prediction (`_shield_kernel._envelope`).
+        self.kernel_table = (self.sq, self.dsq, self.limit, int(self.columns), int(self.last), float(self.ds))
 
     def envelope_at(self, route: np.ndarray, arc: np.ndarray, deceleration: float) -> np.ndarray:
         if float(deceleration) != self.deceleration:
