@@ -166,6 +166,44 @@ def test_prediction_layout_is_bitwise_the_layout(layout):
     assert view.route_names == lay.route_names  # everything else is the layout's
 
 
+def _assert_prediction_is_numpy(shield: Shield, scene: Scene, command: np.ndarray) -> None:
+    plan = shield._plan(scene)
+    for compiled, reference in zip(shield.predict(scene, plan, command), shield.predict_numpy(scene, plan, command)):
+        np.testing.assert_array_equal(compiled, reference)  # same shape: the same early stop
+
+
+@pytest.mark.parametrize("layout", ["4way", "3way", "inD"])
+def test_compiled_prediction_is_bitwise_the_numpy_prediction(layout):
+    """The compiled prediction (numba) is the NumPy one (integrate and the fallback law) bit for bit,
+    on random scenes (crossing, merging, following and overlapping vehicles) and on the scenes of a
+    run in which the shield overrides a planner that always accelerates."""
+    lay = build_layout(layout)
+    rng = np.random.default_rng(1)
+    shield = Shield(Fixed())
+    for count in (1, 2, 5, 12, 25) * 4:
+        sim = Simulation(lay)
+        route = rng.integers(0, lay.num_routes, count)
+        arc = rng.uniform(0.0, lay.length[route] - 1.0)
+        sim.add(route, rng.uniform(0.0, 15.0, count), np.arange(count), arc=arc)
+        sim.speed[rng.random(count) < 0.3] = 0.0  # standing vehicles settle the prediction
+        scene = sim.scene()
+        plan = shield._plan(scene)
+        _assert_prediction_is_numpy(shield, scene, rng.uniform(scene.a_min, scene.a_max, count))
+        _assert_prediction_is_numpy(shield, scene, shield._fallback(scene, plan, plan.arc, plan.speed))
+    env_id = {"4way": "CoopIntersection4Way-v0", "3way": "CoopIntersection3Way-v0", "inD": "CoopIntersectionInD-v0"}
+    env = gym.make(env_id[layout], **evaluation_env_kwargs(None))
+    env.reset(seed=3, options={"scenario": generate_scenario(env.unwrapped.layout, 20.0, 3)})
+    shield, done = Shield(FullThrottle()), False
+    while not done:
+        scene = env.unwrapped.scene()
+        if scene.num_vehicles:
+            _assert_prediction_is_numpy(shield, scene, np.full(scene.num_vehicles, scene.a_max))
+        _, _, terminated, truncated, _ = env.step(env.unwrapped.accelerations_to_action(shield.act(scene)))
+        done = terminated or truncated
+    assert shield.interventions > 0
+    env.close()
+
+
 def test_two_vehicles_standing_in_one_conflict_zone_are_separated_without_deadlock():
     # Both stand within the padded zone of their crossing (after an unresolved step, say): no
     # braking undoes that, so the one farther through goes first and the other holds until it left.
