@@ -168,13 +168,15 @@ def test_prediction_layout_is_bitwise_the_layout(layout):
 
 def _assert_prediction_is_numpy(shield: Shield, scene: Scene, command: np.ndarray) -> None:
     plan = shield._plan(scene)
+    fallback = shield._fallback(scene, plan, plan.arc, plan.speed)
+    np.testing.assert_array_equal(fallback, shield._fallback_numpy(scene, plan, plan.arc, plan.speed))
     for compiled, reference in zip(shield.predict(scene, plan, command), shield.predict_numpy(scene, plan, command)):
         np.testing.assert_array_equal(compiled, reference)  # same shape: the same early stop
 
 
 @pytest.mark.parametrize("layout", ["4way", "3way", "inD"])
 def test_compiled_prediction_is_bitwise_the_numpy_prediction(layout):
-    """The compiled prediction (numba) is the NumPy one (integrate and the fallback law) bit for bit,
+    """The compiled prediction and fallback (numba) are the NumPy ones (integrate, the fallback law) bit for bit,
     on random scenes (crossing, merging, following and overlapping vehicles) and on the scenes of a
     run in which the shield overrides a planner that always accelerates."""
     lay = build_layout(layout)

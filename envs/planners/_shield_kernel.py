@@ -18,7 +18,7 @@ is bitwise the NumPy one (``tests/test_shield.py`` checks it against
 - :func:`_integrate`: :func:`envs.simulation.integrate` for one policy period,
 - :func:`_committed`, :func:`_fallback`: ``Shield.committed`` and ``Shield._fallback_given``
   (with ``_yielding``, ``_leaders_now`` and ``_safe_gap_after``),
-- :func:`predict`: the loop of ``Shield.predict_numpy``.
+- :func:`predict`: the loop of ``Shield.predict_numpy``; :func:`fallback`: the fallback in one state.
 
 The first call compiles the kernel (a few seconds); ``cache=True`` stores the machine code next to
 this file (``__pycache__``), so later processes load it in milliseconds.
@@ -166,6 +166,24 @@ def _fallback(plan, arc, speed, go, hold, acc, a_max, dt, proceed, gap_margin, s
         gap = abs(e0 - e1) - merge_sep[g] + 0.5 * gap_margin
         if go[f] and _unsafe(gap, speed[f], speed[ahead], proceed, a_max, dt, gap_margin):
             acc[f] = slow
+
+
+@numba.njit(cache=True)
+def fallback(plan, arc, speed, a_max, dt, proceed, gap_margin, standing, slack):
+    """``Shield._fallback``: the fallback's ``(n,)`` accelerations in a state (``Shield.committed`` first).
+
+    :param plan: the arrays of :attr:`envs.planners.shield._Plan.kernel_arrays`
+    :param arc: ``(n,)`` arcs [m]
+    :param speed: ``(n,)`` speeds [m/s]
+    """
+    hull_start, hull_end = plan[1], plan[2]
+    n = arc.shape[0]
+    go = np.zeros(n, np.bool_)
+    for i in range(n):
+        go[i] = _committed(arc[i], speed[i], hull_start[i], hull_end[i], a_max, standing, slack)
+    acc = np.empty(n)
+    _fallback(plan, arc, speed, go, np.zeros(n, np.bool_), acc, a_max, dt, proceed, gap_margin, standing, slack)
+    return acc
 
 
 @numba.njit(cache=True)

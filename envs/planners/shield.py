@@ -36,7 +36,10 @@ the fallback still fail, every vehicle brakes at ``a_max`` and the step is count
 :attr:`Shield.unresolved`.
 
 Vectorized over vehicles and pairs; the only loops run over the horizon's time steps and over the
-few rounds of overrides.
+few rounds of overrides. The prediction (step 2) runs compiled (:mod:`envs.planners._shield_kernel`,
+numba): its periods are sequential and its arrays small, so in NumPy the per-call overhead was most
+of the shield's cost. It computes bit for bit what :meth:`Shield.predict_numpy` computes with
+:func:`envs.simulation.integrate` and this module's fallback.
 """
 
 from __future__ import annotations
@@ -275,7 +278,25 @@ class Shield(Planner):
         return cannot_stop | (arc > plan.hull_end)
 
     def _fallback(self, scene: Scene, plan: _Plan, arc: np.ndarray, speed: np.ndarray) -> np.ndarray:
-        """The fallback's accelerations in a state: brake, or proceed while keeping a safe gap."""
+        """The fallback's accelerations in a state: brake, or proceed while keeping a safe gap.
+
+        Compiled, as the prediction; bitwise :meth:`_fallback_numpy`.
+        """
+        a_max = float(scene.a_max)
+        return _shield_kernel.fallback(
+            plan.kernel_arrays,
+            np.ascontiguousarray(arc, dtype=float),
+            np.ascontiguousarray(speed, dtype=float),
+            a_max,
+            float(scene.dt),
+            min(self.proceed_acceleration, a_max),
+            self.gap_margin,
+            _STANDING,
+            _STOP_SLACK,
+        )
+
+    def _fallback_numpy(self, scene: Scene, plan: _Plan, arc: np.ndarray, speed: np.ndarray) -> np.ndarray:
+        """:meth:`_fallback` in NumPy (the reference of the compiled one, as :meth:`predict_numpy`)."""
         go = self.committed(plan, arc, speed, float(scene.a_max))
         return self._fallback_given(plan, arc, speed, go, float(scene.a_max), float(scene.dt))
 
