@@ -170,13 +170,17 @@ def _assert_prediction_is_numpy(shield: Shield, scene: Scene, command: np.ndarra
     plan = shield._plan(scene)
     fallback = shield._fallback(scene, plan, plan.arc, plan.speed)
     np.testing.assert_array_equal(fallback, shield._fallback_numpy(scene, plan, plan.arc, plan.speed))
-    for compiled, reference in zip(shield.predict(scene, plan, command), shield.predict_numpy(scene, plan, command)):
+    arc, speed = shield.predict(scene, plan, command)
+    for compiled, reference in zip((arc, speed), shield.predict_numpy(scene, plan, command)):
         np.testing.assert_array_equal(compiled, reference)  # same shape: the same early stop
+    reference = shield._conflicts_numpy(scene, plan, arc, speed)
+    for compiled, expected in zip(shield._conflicts(scene, plan, arc, speed), reference):
+        np.testing.assert_array_equal(compiled, expected)
 
 
 @pytest.mark.parametrize("layout", ["4way", "3way", "inD"])
 def test_compiled_prediction_is_bitwise_the_numpy_prediction(layout):
-    """The compiled prediction and fallback (numba) are the NumPy ones (integrate, the fallback law) bit for bit,
+    """The compiled prediction, fallback and check (numba) are the NumPy ones (integrate, the fallback law) bit for bit,
     on random scenes (crossing, merging, following and overlapping vehicles) and on the scenes of a
     run in which the shield overrides a planner that always accelerates."""
     lay = build_layout(layout)

@@ -1,4 +1,4 @@
-"""The shield's prediction loop, compiled with numba: :meth:`envs.planners.shield.Shield.predict`.
+"""The shield's prediction and its check, compiled with numba (:class:`envs.planners.shield.Shield`).
 
 Why compiled: a prediction runs up to 40 sequential policy periods (the fallback is a feedback law
 of the predicted state), each one ``integrate`` call (three sub-steps, six or more speed-envelope
@@ -18,41 +18,75 @@ is bitwise the NumPy one (``tests/test_shield.py`` checks it against
 - :func:`_integrate`: :func:`envs.simulation.integrate` for one policy period,
 - :func:`_committed`, :func:`_fallback`: ``Shield.committed`` and ``Shield._fallback_given``
   (with ``_yielding``, ``_leaders_now`` and ``_safe_gap_after``),
-- :func:`predict`: the loop of ``Shield.predict_numpy``; :func:`fallback`: the fallback in one state.
+- :func:`predict`: the loop of ``Shield.predict_numpy``; :func:`fallback`: the fallback in one state,
+- :func:`conflicts`: ``Shield._conflicts_numpy``, the check of a prediction (its blame stays in NumPy).
 
-The first call compiles the kernel (a few seconds); ``cache=True`` stores the machine code next to
-this file (``__pycache__``), so later processes load it in milliseconds.
+The first call compiles the kernels (3 s on the development machine); ``cache=True`` stores the
+machine code next to this file (``__pycache__``, or numba's cache directory where that is not
+writable), so that later processes only load it (0.3 s, plus 0.3 s to import numba).
 """
 
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numba
 import numpy as np
 
 
+class PlanArrays(NamedTuple):
+    """The arrays of a :class:`envs.planners.shield._Plan` that the kernels read (see there), contiguous."""
+
+    route: np.ndarray
+    hull_start: np.ndarray
+    hull_end: np.ndarray
+    follower: np.ndarray  # (k,) follow pairs' follower rows
+    ahead: np.ndarray  # (k,) and the rows of the vehicles ahead
+    follow_gap: np.ndarray
+    follower_arc: np.ndarray  # (k,) arcs now
+    ahead_arc: np.ndarray
+    follow_floor: np.ndarray
+    cross: np.ndarray
+    cross_lo: np.ndarray
+    cross_hi: np.ndarray
+    cross_already: np.ndarray
+    cross_back: np.ndarray
+    cross_stop: np.ndarray
+    vehicle_id: np.ndarray
+    merge: np.ndarray
+    merge_lo: np.ndarray
+    merge_exit: np.ndarray
+    merge_sep: np.ndarray
+
+
+class EnvelopeTable(NamedTuple):
+    """The governor's speed envelope as :class:`envs.planners.shield._PredictionLayout` holds it."""
+
+    sq: np.ndarray  # flat (R * S,) squared envelope
+    dsq: np.ndarray  # flat differences of the squared envelope to the next sample (0 at the last)
+    limit: np.ndarray  # flat speed limits
+    columns: int  # samples per route S
+    last: int  # S - 1
+    ds: float  # sample spacing [m]
+
+
 @numba.njit(cache=True)
-def _envelope(sq, dsq, limit, columns, last, ds, route, arc):
+def _envelope(table, route, arc):
     """The governor's speed envelope at one point: ``_PredictionLayout.envelope_at``'s arithmetic.
 
-    :param sq: flat ``(R * S,)`` squared envelope
-    :param dsq: flat squared envelope's differences to the next sample (0 at the last)
-    :param limit: flat speed limits
-    :param columns: samples per route ``S``
-    :param last: ``S - 1``
-    :param ds: sample spacing [m]
+    :param table: the envelope's tables
     :param route: route index
     :param arc: centre arc [m]
     """
-    u = min(max(arc / ds, 0.0), float(last))
-    i0 = min(int(u), last - 1)
+    u = min(max(arc / table.ds, 0.0), float(table.last))
+    i0 = min(int(u), table.last - 1)
     f = u - i0
-    flat = route * columns + i0
-    envelope = math.sqrt(sq[flat] + dsq[flat] * f)
-    if u >= last:
+    flat = route * table.columns + i0
+    envelope = math.sqrt(table.sq[flat] + table.dsq[flat] * f)
+    if u >= table.last:
         flat += 1
-    return min(envelope, limit[flat])
+    return min(envelope, table.limit[flat])
 
 
 @numba.njit(cache=True)
@@ -61,7 +95,7 @@ def _integrate(table, route, acc, arcs, speeds, row, substeps, h, max_speed):
 
     Vehicles are independent in the model, so each runs its sub-steps on its own.
 
-    :param table: ``(sq, dsq, limit, columns, last, ds)`` of the governor's envelope
+    :param table: the governor's envelope
     :param route: ``(n,)`` route indices
     :param acc: ``(n,)`` accelerations held over the period [m/s^2]
     :param arcs: ``(T + 1, n)`` arcs; row ``row`` is the state now, rows ``row + 1 ..
@@ -72,20 +106,19 @@ def _integrate(table, route, acc, arcs, speeds, row, substeps, h, max_speed):
     :param h: sub-step length [s]
     :param max_speed: speed cap [m/s]
     """
-    sq, dsq, limit, columns, last, ds = table
     for i in range(route.shape[0]):
         r = route[i]
         v0, x0 = speeds[row, i], arcs[row, i]
-        cap_now = _envelope(sq, dsq, limit, columns, last, ds, r, x0)
+        cap_now = _envelope(table, r, x0)
         for k in range(substeps):
             v = min(max(v0 + acc[i] * h, 0.0), max_speed)
             x = x0 + 0.5 * (v0 + v) * h
-            cap_x = _envelope(sq, dsq, limit, columns, last, ds, r, x)
+            cap_x = _envelope(table, r, x)
             cap = min(cap_now, cap_x)
             if v > cap:  # the governor: the sub-step ends at the envelope, looked up again there
                 v = cap
                 x = x0 + 0.5 * (v0 + v) * h
-                cap_x = _envelope(sq, dsq, limit, columns, last, ds, r, x)
+                cap_x = _envelope(table, r, x)
             speeds[row + k + 1, i], arcs[row + k + 1, i] = v, x
             v0, x0, cap_now = v, x, cap_x
 
@@ -95,6 +128,17 @@ def _committed(arc, speed, hull_start, hull_end, a_max, standing, slack):
     """``Shield.committed`` of one vehicle: it can no longer stop before its first zone, or has cleared them all."""
     cannot_stop = arc > hull_start or (speed > standing and arc + speed * speed / (2 * a_max) + slack > hull_start)
     return cannot_stop or arc > hull_end
+
+
+@numba.njit(cache=True)
+def _all_committed(plan, arc, speed, go, a_max, standing, slack):
+    """``Shield.committed`` of every vehicle, into ``go``; whether all are settled (``Shield._settled``)."""
+    settled = True
+    for i in range(arc.shape[0]):
+        go[i] = _committed(arc[i], speed[i], plan.hull_start[i], plan.hull_end[i], a_max, standing, slack)
+        if not ((speed[i] <= standing and not go[i]) or arc[i] > plan.hull_end[i]):
+            settled = False
+    return settled
 
 
 @numba.njit(cache=True)
@@ -119,12 +163,14 @@ def _unsafe(gap, v_follower, v_ahead, proceed, a_max, dt, margin):
 def _fallback(plan, arc, speed, go, hold, acc, a_max, dt, proceed, gap_margin, standing, slack):
     """``Shield._fallback_given``: the fallback's accelerations in a state, written into ``acc``.
 
-    :param plan: the arrays of :attr:`envs.planners.shield._Plan.kernel_arrays`
+    :param plan: the scene's arrays
+    :param arc: ``(n,)`` arcs [m]
+    :param speed: ``(n,)`` speeds [m/s]
     :param go: ``(n,)`` committed vehicles
     :param hold: ``(n,)`` scratch for the yielding vehicles
+    :param acc: ``(n,)`` output [m/s^2]
     """
-    _, _, _, f_rows, a_rows, follow_gap, f_arc, a_arc, cross, lo, hi, vid, merge, merge_lo, merge_exit, merge_sep = plan
-    n = arc.shape[0]
+    cross, lo, hi, vid = plan.cross, plan.cross_lo, plan.cross_hi, plan.vehicle_id
     hold[:] = False
     # _yielding: a committed vehicle waits before a pair's zone that it can still stop before while
     # its partner cannot (or is in it) and has not cleared it; two inside one zone: the one less far through.
@@ -144,45 +190,37 @@ def _fallback(plan, arc, speed, go, hold, acc, a_max, dt, proceed, gap_margin, s
                 hold[i] = True
             if through_j < through_i or (through_j == through_i and vid[j] > vid[i]):
                 hold[j] = True
-    for i in range(n):
+    for i in range(arc.shape[0]):
         acc[i] = proceed if go[i] and not hold[i] else -a_max
     # _leaders_now and _safe_gap_after: a committed follower too close to its leader brakes.
     slow = min(proceed, -a_max)
-    for k in range(f_rows.shape[0]):
-        f, ahead = f_rows[k], a_rows[k]
-        gap = follow_gap[k] + (arc[ahead] - a_arc[k]) - (arc[f] - f_arc[k])
+    for k in range(plan.follower.shape[0]):
+        f, ahead = plan.follower[k], plan.ahead[k]
+        gap = plan.follow_gap[k] + (arc[ahead] - plan.ahead_arc[k]) - (arc[f] - plan.follower_arc[k])
         if go[f] and _unsafe(gap, speed[f], speed[ahead], proceed, a_max, dt, gap_margin):
             acc[f] = slow
-    for g in range(merge.shape[0]):
-        m0, m1 = merge[g, 0], merge[g, 1]
+    for g in range(plan.merge.shape[0]):
+        m0, m1 = plan.merge[g, 0], plan.merge[g, 1]
         a0, a1 = arc[m0], arc[m1]
-        e0, e1 = a0 - merge_exit[g, 0], a1 - merge_exit[g, 1]
+        e0, e1 = a0 - plan.merge_exit[g, 0], a1 - plan.merge_exit[g, 1]
         if e0 >= e1:  # vehicle 1 is behind along the common exit lane
-            f, ahead, active = m1, m0, a0 > merge_lo[g, 0] or go[m0]
+            f, ahead, active = m1, m0, a0 > plan.merge_lo[g, 0] or go[m0]
         else:
-            f, ahead, active = m0, m1, a1 > merge_lo[g, 1] or go[m1]
+            f, ahead, active = m0, m1, a1 > plan.merge_lo[g, 1] or go[m1]
         if not active:
             continue
-        gap = abs(e0 - e1) - merge_sep[g] + 0.5 * gap_margin
+        gap = abs(e0 - e1) - plan.merge_sep[g] + 0.5 * gap_margin
         if go[f] and _unsafe(gap, speed[f], speed[ahead], proceed, a_max, dt, gap_margin):
             acc[f] = slow
 
 
 @numba.njit(cache=True)
 def fallback(plan, arc, speed, a_max, dt, proceed, gap_margin, standing, slack):
-    """``Shield._fallback``: the fallback's ``(n,)`` accelerations in a state (``Shield.committed`` first).
-
-    :param plan: the arrays of :attr:`envs.planners.shield._Plan.kernel_arrays`
-    :param arc: ``(n,)`` arcs [m]
-    :param speed: ``(n,)`` speeds [m/s]
-    """
-    hull_start, hull_end = plan[1], plan[2]
+    """``Shield._fallback_numpy``: the fallback's ``(n,)`` accelerations in a state (see :func:`predict`)."""
     n = arc.shape[0]
-    go = np.zeros(n, np.bool_)
-    for i in range(n):
-        go[i] = _committed(arc[i], speed[i], hull_start[i], hull_end[i], a_max, standing, slack)
-    acc = np.empty(n)
-    _fallback(plan, arc, speed, go, np.zeros(n, np.bool_), acc, a_max, dt, proceed, gap_margin, standing, slack)
+    go, hold, acc = np.zeros(n, np.bool_), np.zeros(n, np.bool_), np.empty(n)
+    _all_committed(plan, arc, speed, go, a_max, standing, slack)
+    _fallback(plan, arc, speed, go, hold, acc, a_max, dt, proceed, gap_margin, standing, slack)
     return acc
 
 
@@ -192,29 +230,75 @@ def predict(
 ):
     """``Shield.predict_numpy``: ``command`` for one period, then the fallback until all settle or ``steps`` periods.
 
-    :param plan: the arrays of :attr:`envs.planners.shield._Plan.kernel_arrays`
-    :param table: ``(sq, dsq, limit, columns, last, ds)`` of the governor's envelope
+    :param plan: the scene's arrays
+    :param table: the governor's envelope
     :param command: ``(n,)`` accelerations of the first period [m/s^2]
     :param arcs: ``(steps * substeps + 1, n)`` output, row 0 filled with the arcs now
     :param speeds: as ``arcs``, the speeds
+    :param steps: most periods
+    :param substeps: simulation sub-steps per period
+    :param h: sub-step length [s]
+    :param max_speed: the simulation's speed cap [m/s]
+    :param a_max: braking of the fallback and the acceleration bound [m/s^2]
+    :param dt: policy period [s]
+    :param proceed: acceleration of the fallback's committed vehicles [m/s^2]
+    :param gap_margin: the fallback's gap to a leader braking at ``a_max`` [m]
+    :param standing: speed below which a vehicle stands [m/s]
+    :param slack: slack on "can stop before the zone" [m]
     :return: the number of rows written (row 0 included)
     """
-    route, hull_start, hull_end = plan[0], plan[1], plan[2]
-    n = route.shape[0]
+    n = plan.route.shape[0]
     acc = command.copy()
-    go = np.zeros(n, np.bool_)
-    hold = np.zeros(n, np.bool_)
+    go, hold = np.zeros(n, np.bool_), np.zeros(n, np.bool_)
     row = 0
     for _ in range(steps):
-        _integrate(table, route, acc, arcs, speeds, row, substeps, h, max_speed)
+        _integrate(table, plan.route, acc, arcs, speeds, row, substeps, h, max_speed)
         row += substeps
-        arc, speed = arcs[row], speeds[row]
-        settled = True
-        for i in range(n):
-            go[i] = _committed(arc[i], speed[i], hull_start[i], hull_end[i], a_max, standing, slack)
-            if not ((speed[i] <= standing and not go[i]) or arc[i] > hull_end[i]):
-                settled = False
-        if settled:
+        if _all_committed(plan, arcs[row], speeds[row], go, a_max, standing, slack):
             break  # everyone stands before its zones or has left them: the fallback keeps it so
-        _fallback(plan, arc, speed, go, hold, acc, a_max, dt, proceed, gap_margin, standing, slack)
+        _fallback(plan, arcs[row], speeds[row], go, hold, acc, a_max, dt, proceed, gap_margin, standing, slack)
     return row + 1
+
+
+@numba.njit(cache=True)
+def conflicts(plan, arcs, speed, a_max, standing, slack):
+    """``Shield._conflicts_numpy``: the conflicts of a prediction, in one pass over its sub-steps.
+
+    :param plan: the scene's arrays
+    :param arcs: ``(T + 1, n)`` predicted arcs (row 0: now)
+    :param speed: ``(n,)`` predicted speeds at the end
+    :return: ``(k,)``, ``(c,)``, ``(g,)`` bool conflicting follow, crossing and merging pairs and
+        ``(n,)`` bool vehicles that end neither standing before their zones nor past them
+    """
+    cross, lo, hi, merge = plan.cross, plan.cross_lo, plan.cross_hi, plan.merge
+    bad_follow = np.zeros(plan.follower.shape[0], np.bool_)
+    bad_cross = np.zeros(cross.shape[0], np.bool_)
+    bad_merge = np.zeros(merge.shape[0], np.bool_)
+    for t in range(1, arcs.shape[0]):
+        x = arcs[t]
+        for k in range(plan.follower.shape[0]):
+            gap = (
+                plan.follow_gap[k]
+                + (x[plan.ahead[k]] - plan.ahead_arc[k])
+                - (x[plan.follower[k]] - plan.follower_arc[k])
+            )
+            if gap < plan.follow_floor[k]:
+                bad_follow[k] = True
+        for p in range(cross.shape[0]):
+            both = lo[p, 0] < x[cross[p, 0]] < hi[p, 0] and lo[p, 1] < x[cross[p, 1]] < hi[p, 1]
+            if both and plan.cross_already[p]:
+                both = x[cross[p, plan.cross_back[p]]] > plan.cross_stop[p]
+            if both:
+                bad_cross[p] = True
+        for g in range(merge.shape[0]):
+            x0, x1 = x[merge[g, 0]], x[merge[g, 1]]
+            if x0 > plan.merge_lo[g, 0] and x1 > plan.merge_lo[g, 1]:
+                if abs((x0 - plan.merge_exit[g, 0]) - (x1 - plan.merge_exit[g, 1])) < plan.merge_sep[g]:
+                    bad_merge[g] = True
+    arc = arcs[arcs.shape[0] - 1]
+    go = np.zeros(arc.shape[0], np.bool_)
+    _all_committed(plan, arc, speed, go, a_max, standing, slack)
+    stuck = np.zeros(arc.shape[0], np.bool_)
+    for i in range(arc.shape[0]):
+        stuck[i] = not ((speed[i] <= standing and not go[i]) or arc[i] > plan.hull_end[i])
+    return bad_follow, bad_cross, bad_merge, stuck

@@ -83,21 +83,41 @@ class _Plan:
     merge_sep: np.ndarray  # (g,) smallest centre distance after the merge [m]
     rank: np.ndarray  # (n,) who goes first when two would enter a zone at once: farthest in, then lowest id
     vehicle_id: np.ndarray  # (n,) ids: the fallback's order of way between committed vehicles (stable over steps)
-    cross_start: np.ndarray  # (c, 2) each body's centre arc in the pair's zone now (before any prediction)
+    follow_floor: np.ndarray  # (k,) smallest gap a prediction may leave [m]: half the gap margin, or a short gap now
+    # Crossing pairs whose bodies are both in their zone now (after an unresolved step): the one less
+    # far through (`cross_back`: column 0 or 1) must not move past where it could stop (`cross_stop`).
+    cross_already: np.ndarray  # (c,) bool
+    cross_back: np.ndarray  # (c,) column of the one behind
+    cross_stop: np.ndarray  # (c,) its stopping point from now [m]
 
     def __post_init__(self) -> None:
         # The columns of `follow` and their arcs now, contiguous: the fallback reads them every period.
         self.follow_rows = (np.ascontiguousarray(self.follow[:, 0]), np.ascontiguousarray(self.follow[:, 1]))
         self.follow_arc = (self.arc[self.follow_rows[0]], self.arc[self.follow_rows[1]])
-        # The compiled prediction's arguments (`_shield_kernel.predict`), contiguous and of one dtype
-        # each, so that one compiled signature serves every scene.
+        # The compiled kernels' view, contiguous and of one dtype per field (one compiled signature).
         i, f = partial(np.ascontiguousarray, dtype=_INT), partial(np.ascontiguousarray, dtype=float)
-        self.kernel_arrays = (
-            i(self.route), f(self.hull_start), f(self.hull_end), i(self.follow_rows[0]), i(self.follow_rows[1]),
-            f(self.follow_gap), f(self.follow_arc[0]), f(self.follow_arc[1]), i(self.cross), f(self.cross_lo),
-            f(self.cross_hi), i(self.vehicle_id), i(self.merge), f(self.merge_lo), f(self.merge_exit),
-            f(self.merge_sep),
-        )  # fmt: skip
+        self.kernel_arrays = _shield_kernel.PlanArrays(
+            route=i(self.route),
+            hull_start=f(self.hull_start),
+            hull_end=f(self.hull_end),
+            follower=i(self.follow_rows[0]),
+            ahead=i(self.follow_rows[1]),
+            follow_gap=f(self.follow_gap),
+            follower_arc=f(self.follow_arc[0]),
+            ahead_arc=f(self.follow_arc[1]),
+            follow_floor=f(self.follow_floor),
+            cross=i(self.cross),
+            cross_lo=f(self.cross_lo),
+            cross_hi=f(self.cross_hi),
+            cross_already=np.ascontiguousarray(self.cross_already, dtype=bool),
+            cross_back=i(self.cross_back),
+            cross_stop=f(self.cross_stop),
+            vehicle_id=i(self.vehicle_id),
+            merge=i(self.merge),
+            merge_lo=f(self.merge_lo),
+            merge_exit=f(self.merge_exit),
+            merge_sep=f(self.merge_sep),
+        )
 
 
 class Shield(Planner):
@@ -248,6 +268,19 @@ class Shield(Planner):
         order = np.lexsort((scene.vehicle_id, hull_start - np.asarray(scene.arc, float)))
         rank = np.empty(len(order), _INT)
         rank[order] = np.arange(len(order))
+        # Both in the zone now: the one less far through must not go on while the other is in it (it
+        # may still be braking to a stop).
+        cross_lo, cross_hi = cross_lo.reshape(-1, 2), cross_hi.reshape(-1, 2)
+        x0 = np.asarray(scene.arc, float)[cross].reshape(-1, 2)
+        already = ((x0 > cross_lo) & (x0 < cross_hi)).all(axis=1)
+        through = (x0 - cross_lo) / (cross_hi - cross_lo)
+        ids = np.asarray(scene.vehicle_id)[cross]
+        back = ((through[:, 1] < through[:, 0]) | ((through[:, 1] == through[:, 0]) & (ids[:, 1] > ids[:, 0]))).astype(
+            _INT
+        )
+        rows = np.arange(len(back))
+        v0 = np.asarray(scene.speed, float)[cross[rows, back]]
+        stop = x0[rows, back] + v0**2 / (2 * float(scene.a_max)) + _STOP_SLACK
         return _Plan(
             route=route,
             arc=np.asarray(scene.arc, float),
@@ -257,15 +290,18 @@ class Shield(Planner):
             follow=follow,
             follow_gap=follow_gap,
             cross=cross,
-            cross_lo=cross_lo.reshape(-1, 2),
-            cross_hi=cross_hi.reshape(-1, 2),
+            cross_lo=cross_lo,
+            cross_hi=cross_hi,
             merge=merge,
             merge_lo=merge_lo.reshape(-1, 2),
             merge_exit=merge_exit,
             merge_sep=merge_sep,
             rank=rank,
             vehicle_id=np.asarray(scene.vehicle_id),
-            cross_start=np.asarray(scene.arc, float)[cross].reshape(-1, 2),
+            follow_floor=np.minimum(0.5 * self.gap_margin, follow_gap - 1e-6),  # a short gap may not shrink
+            cross_already=already,
+            cross_back=back,
+            cross_stop=stop,
         )
 
     # ------------------------------------------------------------------ the fallback
@@ -428,6 +464,44 @@ class Shield(Planner):
         standing = (speed <= _STANDING) & ~self.committed(plan, arc, speed, a_max)
         return standing | (arc > plan.hull_end)
 
+    def _conflicts(
+        self, scene: Scene, plan: _Plan, arc: np.ndarray, speed: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The conflicts of a prediction (compiled; bitwise :meth:`_conflicts_numpy`).
+
+        :param arc: ``(T + 1, n)`` predicted arcs (row 0: now), as :meth:`predict` returns them
+        :param speed: ``(T + 1, n)`` predicted speeds
+        :return: ``(k,)`` follow pairs whose gap closes, ``(c,)`` crossing pairs in their zone at once,
+            ``(g,)`` merging pairs too close after the merge (all bool, at any predicted sub-step), and
+            ``(n,)`` bool: vehicles that at the end neither stand before their zones nor have cleared them
+        """
+        return _shield_kernel.conflicts(plan.kernel_arrays, arc, speed[-1], float(scene.a_max), _STANDING, _STOP_SLACK)
+
+    def _conflicts_numpy(
+        self, scene: Scene, plan: _Plan, arc: np.ndarray, speed: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`_conflicts` in NumPy (the reference of the compiled one, as :meth:`predict_numpy`)."""
+        later = arc[1:]
+        # Same path and merged: the gap to the vehicle ahead must stay open.
+        f, ahead = plan.follow[:, 0], plan.follow[:, 1]
+        gap = plan.follow_gap + (later[:, ahead] - plan.arc[ahead]) - (later[:, f] - plan.arc[f])
+        bad_follow = (gap < plan.follow_floor).any(axis=0)
+        # Crossing: never both in the pair's zone.
+        x = later[:, plan.cross]  # (T, c, 2)
+        both = ((x > plan.cross_lo) & (x < plan.cross_hi)).all(axis=2)
+        if plan.cross_already.any():
+            moved = x[:, np.arange(len(plan.cross)), plan.cross_back] > plan.cross_stop
+            both = np.where(plan.cross_already, both & moved, both)
+        bad_cross = both.any(axis=0)
+        # Merging: a separation along the common exit lane once both have reached the merge.
+        x = later[:, plan.merge]
+        reached = (x > plan.merge_lo).all(axis=2)
+        e = x - plan.merge_exit
+        bad_merge = (reached & (np.abs(e[..., 0] - e[..., 1]) < plan.merge_sep)).any(axis=0)
+        # At the end, everyone stands before its zones or has cleared them.
+        stuck = ~self._settled(plan, arc[-1], speed[-1], scene.a_max)
+        return bad_follow, bad_cross, bad_merge, stuck
+
     def _blame(self, scene: Scene, plan: _Plan, command: np.ndarray, free: np.ndarray) -> np.ndarray | None:
         """Vehicles to override so that the plan gets through, ``None`` if it passes as it is.
 
@@ -438,63 +512,30 @@ class Shield(Planner):
         :return: ``(n,)`` bool (all ``False``: conflicts that no free vehicle explains), or ``None``
         """
         arc, speed = self.predict(scene, plan, command)
+        bad_follow, bad_cross, bad_merge, stuck = self._conflicts(scene, plan, arc, speed)
+        if not (bad_follow.any() or bad_cross.any() or bad_merge.any() or stuck.any()):
+            return None
         later = arc[1:]
         blamed = np.zeros(scene.num_vehicles, bool)
-        found = False
-        # Same path and merged: the gap to the vehicle ahead must stay open.
-        f, ahead = plan.follow[:, 0], plan.follow[:, 1]
-        if f.size:
-            gap = plan.follow_gap + (later[:, ahead] - plan.arc[ahead]) - (later[:, f] - plan.arc[f])
-            floor = np.minimum(0.5 * self.gap_margin, plan.follow_gap - 1e-6)  # a short gap may not shrink
-            bad = (gap < floor).any(axis=0)
-            if bad.any():
-                found = True
-                _blame_pairs(blamed, free, f[bad], ahead[bad])
-        if plan.cross.size:
-            x = later[:, plan.cross]  # (T, c, 2)
-            inside = (x > plan.cross_lo) & (x < plan.cross_hi)
-            both = inside.all(axis=2)
-            x0 = plan.cross_start
-            already = ((x0 > plan.cross_lo) & (x0 < plan.cross_hi)).all(axis=1)
-            if already.any():
-                # Both in the zone now (after an unresolved step): the one less far through must
-                # not go on while the other is in it (it may still be braking to a stop).
-                through = (x0 - plan.cross_lo) / (plan.cross_hi - plan.cross_lo)
-                ids = plan.vehicle_id[plan.cross]
-                back = (through[:, 1] < through[:, 0]) | ((through[:, 1] == through[:, 0]) & (ids[:, 1] > ids[:, 0]))
-                rows, side = np.arange(len(back)), back.astype(_INT)
-                v0 = plan.speed[plan.cross[rows, side]]
-                stop = x0[rows, side] + v0**2 / (2 * float(scene.a_max)) + _STOP_SLACK
-                moved = x[:, rows, side] > stop
-                both = np.where(already, both & moved, both)
-            bad = both.any(axis=0)
-            if bad.any():
-                found = True
-                # Who comes second: the later to enter the intersection's zones (one time per
-                # vehicle, so that the order is total and a cycle of conflicts leaves one to go).
-                entered = later > plan.hull_start
-                t_in = np.where(entered.any(axis=0), entered.argmax(axis=0), len(later))
-                key = t_in * (len(plan.rank) + 1) + plan.rank
-                pairs = plan.cross[bad]
-                second = (key[pairs[:, 1]] > key[pairs[:, 0]]).astype(_INT)
-                rows = np.arange(len(pairs))
-                _blame_pairs(blamed, free, pairs[rows, second], pairs[rows, 1 - second])
-        if plan.merge.size:
-            x = later[:, plan.merge]
-            reached = (x > plan.merge_lo).all(axis=2)
-            e = x - plan.merge_exit
-            bad = (reached & (np.abs(e[..., 0] - e[..., 1]) < plan.merge_sep)).any(axis=0)
-            if bad.any():
-                found = True
-                e0 = plan.arc[plan.merge[bad]] - plan.merge_exit[bad]
-                back = (e0[:, 0] >= e0[:, 1]).astype(_INT)
-                rows = np.arange(len(back))
-                pairs = plan.merge[bad]
-                _blame_pairs(blamed, free, pairs[rows, back], pairs[rows, 1 - back])
-        # At the end, everyone stands before its zones or has cleared them.
-        stuck = ~self._settled(plan, arc[-1], speed[-1], scene.a_max)
+        if bad_follow.any():
+            _blame_pairs(blamed, free, plan.follow[bad_follow, 0], plan.follow[bad_follow, 1])
+        if bad_cross.any():
+            # Who comes second: the later to enter the intersection's zones (one time per
+            # vehicle, so that the order is total and a cycle of conflicts leaves one to go).
+            entered = later > plan.hull_start
+            t_in = np.where(entered.any(axis=0), entered.argmax(axis=0), len(later))
+            key = t_in * (len(plan.rank) + 1) + plan.rank
+            pairs = plan.cross[bad_cross]
+            second = (key[pairs[:, 1]] > key[pairs[:, 0]]).astype(_INT)
+            rows = np.arange(len(pairs))
+            _blame_pairs(blamed, free, pairs[rows, second], pairs[rows, 1 - second])
+        if bad_merge.any():
+            e0 = plan.arc[plan.merge[bad_merge]] - plan.merge_exit[bad_merge]
+            back = (e0[:, 0] >= e0[:, 1]).astype(_INT)
+            rows = np.arange(len(back))
+            pairs = plan.merge[bad_merge]
+            _blame_pairs(blamed, free, pairs[rows, back], pairs[rows, 1 - back])
         if stuck.any():
-            found = True
             stuck_free = stuck & free
             if stuck_free.sum() > 1:
                 # A gridlock in the prediction (each waits for another inside its zone): spare the
@@ -505,7 +546,7 @@ class Shield(Planner):
             fl, ah, _ = self._leaders_now(plan, arc[-1], self.committed(plan, arc[-1], speed[-1], scene.a_max))
             culprit = ah[stuck[fl] & ~free[fl] & free[ah]]
             blamed[culprit] = True
-        return blamed if found else None
+        return blamed
 
 
 def _blame_pairs(blamed: np.ndarray, free: np.ndarray, second: np.ndarray, first: np.ndarray) -> None:
@@ -580,7 +621,9 @@ class _PredictionLayout:
         self.dsq = np.concatenate([sq[:, 1:] - sq[:, :-1], np.zeros((sq.shape[0], 1))], axis=1).ravel()
         self.limit = np.ascontiguousarray(layout.speed_limit, dtype=float).ravel()
         # The same tables for the compiled prediction (`_shield_kernel._envelope`).
-        self.kernel_table = (self.sq, self.dsq, self.limit, int(self.columns), int(self.last), float(self.ds))
+        self.kernel_table = _shield_kernel.EnvelopeTable(
+            self.sq, self.dsq, self.limit, int(self.columns), int(self.last), float(self.ds)
+        )
 
     def envelope_at(self, route: np.ndarray, arc: np.ndarray, deceleration: float) -> np.ndarray:
         if float(deceleration) != self.deceleration:
