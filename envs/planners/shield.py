@@ -231,60 +231,54 @@ class Shield(Planner):
     # ------------------------------------------------------------------ scene -> plan
     def _plan(self, scene: Scene) -> _Plan:
         lay, route, length = scene.layout, scene.route, scene.length
+        arc, speed = np.asarray(scene.arc, float), np.asarray(scene.speed, float)
         m = self.zone_margin
-        zs, ze = lay.zone_start[route], lay.zone_end[route]  # (n, R)
-        with np.errstate(invalid="ignore"):
-            first = np.where(np.isnan(zs), np.inf, zs).min(axis=1)
-            last = np.where(np.isnan(ze), -np.inf, ze).max(axis=1)
-        hull_start = first - m - length / 2
-        hull_end = last + m + length / 2
+        first, last = _zone_hull(lay)
+        hull_start = first[route] - m - length / 2
+        hull_end = last[route] + m + length / 2
         # Same path: the leader and the leader's leader (a leader that turns off a shared lane
         # uncovers the next one).
         lead = scene.leader
         rows = np.flatnonzero(lead >= 0)
         second = rows[lead[lead[rows]] >= 0]
-        follow = np.concatenate(
-            [np.stack([rows, lead[rows]], axis=1), np.stack([second, lead[lead[second]]], axis=1)]
+        follow = np.stack(
+            [np.concatenate([rows, second]), np.concatenate([lead[rows], lead[lead[second]]])], axis=1
         ).astype(_INT)
         follow_gap = np.concatenate(
             [scene.gap[rows], scene.gap[second] + length[lead[second]] + scene.gap[lead[second]]]
         )
         # Conflicting routes: crossing pairs by zone occupancy, merging pairs by a common coordinate.
-        merging = _merging_routes(lay)
-        i, j = np.nonzero(np.triu(lay.conflicts[route[:, None], route[None, :]], 1))
-        is_merge = merging[route[i], route[j]]
+        i, j = np.nonzero(lay.conflicts[route[:, None], route[None, :]])
+        i, j = i[i < j], j[i < j]
+        is_merge = _merging_routes(lay)[route[i], route[j]]
         pairs = np.stack([i, j], axis=1).astype(_INT)
         cross, merge = pairs[~is_merge], pairs[is_merge]
-        r, q = route[cross[:, 0]], route[cross[:, 1]]
+        r = route[cross]  # (c, 2); r[:, ::-1]: each one's partner
         half = length[cross] / 2
-        cross_lo = np.stack([lay.zone_start[r, q], lay.zone_start[q, r]], axis=1) - m - half
-        cross_hi = np.stack([lay.zone_end[r, q], lay.zone_end[q, r]], axis=1) + m + half
-        r, q = route[merge[:, 0]], route[merge[:, 1]]
-        merge_lo = np.stack([lay.zone_start[r, q], lay.zone_start[q, r]], axis=1) - m - length[merge] / 2
-        merge_exit = lay.exit_arc[route[merge]].reshape(-1, 2)
+        cross_lo = lay.zone_start[r, r[:, ::-1]] - m - half
+        cross_hi = lay.zone_end[r, r[:, ::-1]] + m + half
+        r = route[merge]
+        merge_lo = lay.zone_start[r, r[:, ::-1]] - m - length[merge] / 2
+        merge_exit = lay.exit_arc[r]
         merge_sep = length[merge].sum(axis=1) / 2 + self.merge_margin
         # A total order, so that a cycle of simultaneous entries (three queues facing each other)
         # always lets its first vehicle go.
-        order = np.lexsort((scene.vehicle_id, hull_start - np.asarray(scene.arc, float)))
+        order = np.lexsort((scene.vehicle_id, hull_start - arc))
         rank = np.empty(len(order), _INT)
         rank[order] = np.arange(len(order))
-        # Both in the zone now: the one less far through must not go on while the other is in it (it
-        # may still be braking to a stop).
-        cross_lo, cross_hi = cross_lo.reshape(-1, 2), cross_hi.reshape(-1, 2)
-        x0 = np.asarray(scene.arc, float)[cross].reshape(-1, 2)
+        # Both in the zone now (after an unresolved step): the one less far through must not go on
+        # while the other is in it (it may still be braking to a stop), that is past where it can stop.
+        x0 = arc[cross]
         already = ((x0 > cross_lo) & (x0 < cross_hi)).all(axis=1)
         through = (x0 - cross_lo) / (cross_hi - cross_lo)
         ids = np.asarray(scene.vehicle_id)[cross]
-        back = ((through[:, 1] < through[:, 0]) | ((through[:, 1] == through[:, 0]) & (ids[:, 1] > ids[:, 0]))).astype(
-            _INT
-        )
-        rows = np.arange(len(back))
-        v0 = np.asarray(scene.speed, float)[cross[rows, back]]
-        stop = x0[rows, back] + v0**2 / (2 * float(scene.a_max)) + _STOP_SLACK
+        back = (through[:, 1] < through[:, 0]) | ((through[:, 1] == through[:, 0]) & (ids[:, 1] > ids[:, 0]))
+        back, rows = back.astype(_INT), np.arange(len(back))
+        stop = x0[rows, back] + speed[cross[rows, back]] ** 2 / (2 * float(scene.a_max)) + _STOP_SLACK
         return _Plan(
             route=route,
-            arc=np.asarray(scene.arc, float),
-            speed=np.asarray(scene.speed, float),
+            arc=arc,
+            speed=speed,
             hull_start=hull_start,
             hull_end=hull_end,
             follow=follow,
@@ -293,7 +287,7 @@ class Shield(Planner):
             cross_lo=cross_lo,
             cross_hi=cross_hi,
             merge=merge,
-            merge_lo=merge_lo.reshape(-1, 2),
+            merge_lo=merge_lo,
             merge_exit=merge_exit,
             merge_sep=merge_sep,
             rank=rank,
@@ -581,6 +575,21 @@ def _travel(speed: np.ndarray, acc: float, dt: float) -> tuple[np.ndarray, np.nd
     end = speed + acc * dt
     to_stop = speed**2 / (2 * max(-acc, 1e-12))
     return np.where(end < 0, to_stop, 0.5 * (speed + end) * dt), np.maximum(end, 0.0)
+
+
+_HULLS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def _zone_hull(layout) -> tuple[np.ndarray, np.ndarray]:
+    """``(R,)`` arcs where each route's first conflict zone starts and its last one ends (``inf``,
+    ``-inf`` for a route without any)."""
+    if layout not in _HULLS:
+        zs, ze = layout.zone_start, layout.zone_end
+        with np.errstate(invalid="ignore"):
+            first = np.where(np.isnan(zs), np.inf, zs).min(axis=1)
+            last = np.where(np.isnan(ze), -np.inf, ze).max(axis=1)
+        _HULLS[layout] = first, last
+    return _HULLS[layout]
 
 
 _MERGING: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
