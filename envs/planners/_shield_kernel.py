@@ -4,10 +4,10 @@ Why compiled: a prediction runs up to 40 sequential policy periods (the fallback
 of the predicted state), each one ``integrate`` call (three sub-steps, six or more speed-envelope
 look-ups) and one fallback evaluation, about 100 NumPy calls on arrays of 10-30 vehicles. On the
 2-core development machine one such call costs 0.4-1.7 us whatever the array size, and a predicted
-period about 250 us in all; for the shield to cost no more than the simulation's step (0.7-1 ms per
-policy step, with 13-60 predicted periods per step), a period may cost about 15 us. That is the
+period about 250 us in all; for the shield to cost no more than the simulation's step (0.6-0.8 ms
+per policy step, with 13-60 predicted periods per step), a period may cost about 15 us. That is the
 per-call overhead of some 20 NumPy calls, less than ``integrate`` alone makes, so no vectorization
-gets there (benchmarks/README.md, "envs: planners in the evaluation loop").
+gets there (benchmarks/README.md, "The shield compiled (numba)").
 
 Every function here is the scalar form of a NumPy one, with the same floating-point operations in
 the same order (no ``fastmath``, so no reassociation or fused multiply-add), so that the prediction
@@ -21,9 +21,10 @@ is bitwise the NumPy one (``tests/test_shield.py`` checks it against
 - :func:`predict`: the loop of ``Shield.predict_numpy``; :func:`fallback`: the fallback in one state,
 - :func:`conflicts`: ``Shield._conflicts_numpy``, the check of a prediction (its blame stays in NumPy).
 
-The first call compiles the kernels (3 s on the development machine); ``cache=True`` stores the
-machine code next to this file (``__pycache__``, or numba's cache directory where that is not
-writable), so that later processes only load it (0.3 s, plus 0.3 s to import numba).
+The first call compiles the kernels (about 6 s on the loaded 2-core development machine);
+``cache=True`` stores the machine code next to this file (``__pycache__``, or numba's cache
+directory where that is not writable), so that later processes only load it (0.7-0.9 s there, plus
+0.2 s to import numba), once per process.
 """
 
 from __future__ import annotations
