@@ -36,10 +36,12 @@ the fallback still fail, every vehicle brakes at ``a_max`` and the step is count
 :attr:`Shield.unresolved`.
 
 Vectorized over vehicles and pairs; the only loops run over the horizon's time steps and over the
-few rounds of overrides. The prediction (step 2) runs compiled (:mod:`envs.planners._shield_kernel`,
-numba): its periods are sequential and its arrays small, so in NumPy the per-call overhead was most
-of the shield's cost. It computes bit for bit what :meth:`Shield.predict_numpy` computes with
-:func:`envs.simulation.integrate` and this module's fallback.
+few rounds of overrides. The prediction (step 2), the fallback and the scan of a prediction for
+conflicts (step 3) run compiled (:mod:`envs.planners._shield_kernel`, numba): the periods are
+sequential and the arrays small, so in NumPy the per-call overhead was most of the shield's cost.
+They compute bit for bit what :meth:`Shield.predict_numpy` (with :func:`envs.simulation.integrate`),
+:meth:`Shield._fallback_numpy` and :meth:`Shield._conflicts_numpy` compute; who is blamed for a
+conflict is decided in NumPy.
 """
 
 from __future__ import annotations
@@ -266,8 +268,8 @@ class Shield(Planner):
         order = np.lexsort((scene.vehicle_id, hull_start - arc))
         rank = np.empty(len(order), _INT)
         rank[order] = np.arange(len(order))
-        # Both in the zone now (after an unresolved step): the one less far through must not go on
-        # while the other is in it (it may still be braking to a stop), that is past where it can stop.
+        # Both in the zone now (after an unresolved step): the one less far through (`back`) must not
+        # move past where it can stop (`stop`) while the other is in it (it may still be braking).
         x0 = arc[cross]
         already = ((x0 > cross_lo) & (x0 < cross_hi)).all(axis=1)
         through = (x0 - cross_lo) / (cross_hi - cross_lo)
