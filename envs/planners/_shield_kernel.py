@@ -73,7 +73,7 @@ class EnvelopeTable(NamedTuple):
 
 
 @numba.njit(cache=True)
-def _envelope(table, route, arc):
+def _envelope(table: EnvelopeTable, route: int, arc: float) -> float:
     """The governor's speed envelope at one point: ``_PredictionLayout.envelope_at``'s arithmetic.
 
     :param table: the envelope's tables
@@ -91,7 +91,17 @@ def _envelope(table, route, arc):
 
 
 @numba.njit(cache=True)
-def _integrate(table, route, acc, arcs, speeds, row, substeps, h, max_speed):
+def _integrate(
+    table: EnvelopeTable,
+    route: np.ndarray,
+    acc: np.ndarray,
+    arcs: np.ndarray,
+    speeds: np.ndarray,
+    row: int,
+    substeps: int,
+    h: float,
+    max_speed: float,
+) -> None:
     """One policy period of :func:`envs.simulation.integrate`, written into ``arcs`` and ``speeds``.
 
     Vehicles are independent in the model, so each runs its sub-steps on its own.
@@ -125,14 +135,18 @@ def _integrate(table, route, acc, arcs, speeds, row, substeps, h, max_speed):
 
 
 @numba.njit(cache=True)
-def _committed(arc, speed, hull_start, hull_end, a_max, standing, slack):
+def _committed(
+    arc: float, speed: float, hull_start: float, hull_end: float, a_max: float, standing: float, slack: float
+) -> bool:
     """``Shield.committed`` of one vehicle: it can no longer stop before its first zone, or has cleared them all."""
     cannot_stop = arc > hull_start or (speed > standing and arc + speed * speed / (2 * a_max) + slack > hull_start)
     return cannot_stop or arc > hull_end
 
 
 @numba.njit(cache=True)
-def _all_committed(plan, arc, speed, go, a_max, standing, slack):
+def _all_committed(
+    plan: PlanArrays, arc: np.ndarray, speed: np.ndarray, go: np.ndarray, a_max: float, standing: float, slack: float
+) -> bool:
     """``Shield.committed`` of every vehicle, into ``go``; whether all are settled (``Shield._settled``)."""
     settled = True
     for i in range(arc.shape[0]):
@@ -143,7 +157,7 @@ def _all_committed(plan, arc, speed, go, a_max, standing, slack):
 
 
 @numba.njit(cache=True)
-def _travel(speed, acc, dt):
+def _travel(speed: float, acc: float, dt: float) -> tuple[float, float]:
     """``shield._travel`` of one vehicle: distance and end speed after ``dt`` at ``acc``, stopping at 0."""
     end = speed + acc * dt
     if end < 0:
@@ -152,7 +166,9 @@ def _travel(speed, acc, dt):
 
 
 @numba.njit(cache=True)
-def _unsafe(gap, v_follower, v_ahead, proceed, a_max, dt, margin):
+def _unsafe(
+    gap: float, v_follower: float, v_ahead: float, proceed: float, a_max: float, dt: float, margin: float
+) -> bool:
     """Not ``shield._safe_gap_after``: the follower could not stop behind a leader braking at ``a_max``."""
     travel_f, v_f = _travel(v_follower, proceed, dt)
     travel_a, v_a = _travel(v_ahead, -a_max, dt)
@@ -161,7 +177,20 @@ def _unsafe(gap, v_follower, v_ahead, proceed, a_max, dt, margin):
 
 
 @numba.njit(cache=True)
-def _fallback(plan, arc, speed, go, hold, acc, a_max, dt, proceed, gap_margin, standing, slack):
+def _fallback(
+    plan: PlanArrays,
+    arc: np.ndarray,
+    speed: np.ndarray,
+    go: np.ndarray,
+    hold: np.ndarray,
+    acc: np.ndarray,
+    a_max: float,
+    dt: float,
+    proceed: float,
+    gap_margin: float,
+    standing: float,
+    slack: float,
+) -> None:
     """``Shield._fallback_given``: the fallback's accelerations in a state, written into ``acc``.
 
     :param plan: the scene's arrays
@@ -216,7 +245,17 @@ def _fallback(plan, arc, speed, go, hold, acc, a_max, dt, proceed, gap_margin, s
 
 
 @numba.njit(cache=True)
-def fallback(plan, arc, speed, a_max, dt, proceed, gap_margin, standing, slack):
+def fallback(
+    plan: PlanArrays,
+    arc: np.ndarray,
+    speed: np.ndarray,
+    a_max: float,
+    dt: float,
+    proceed: float,
+    gap_margin: float,
+    standing: float,
+    slack: float,
+) -> np.ndarray:
     """``Shield._fallback_numpy``: the fallback's ``(n,)`` accelerations in a state (see :func:`predict`)."""
     n = arc.shape[0]
     go, hold, acc = np.zeros(n, np.bool_), np.zeros(n, np.bool_), np.empty(n)
@@ -227,8 +266,22 @@ def fallback(plan, arc, speed, a_max, dt, proceed, gap_margin, standing, slack):
 
 @numba.njit(cache=True)
 def predict(
-    plan, table, command, arcs, speeds, steps, substeps, h, max_speed, a_max, dt, proceed, gap_margin, standing, slack
-):
+    plan: PlanArrays,
+    table: EnvelopeTable,
+    command: np.ndarray,
+    arcs: np.ndarray,
+    speeds: np.ndarray,
+    steps: int,
+    substeps: int,
+    h: float,
+    max_speed: float,
+    a_max: float,
+    dt: float,
+    proceed: float,
+    gap_margin: float,
+    standing: float,
+    slack: float,
+) -> int:
     """``Shield.predict_numpy``: ``command`` for one period, then the fallback until all settle or ``steps`` periods.
 
     :param plan: the scene's arrays
@@ -262,7 +315,9 @@ def predict(
 
 
 @numba.njit(cache=True)
-def conflicts(plan, arcs, speed, a_max, standing, slack):
+def conflicts(
+    plan: PlanArrays, arcs: np.ndarray, speed: np.ndarray, a_max: float, standing: float, slack: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """``Shield._conflicts_numpy``: the conflicts of a prediction, in one pass over its sub-steps.
 
     :param plan: the scene's arrays
