@@ -208,7 +208,7 @@ class Shield(Planner):
         plan = self._plan(scene)
         fallback = self._fallback(scene, plan, plan.arc, plan.speed)
         deviates = np.abs(acc - fallback) > 1e-9
-        overridden = np.zeros(n, bool)
+        overridden = self._awaited_and_braked(scene, plan, acc, fallback)
         command = acc
         for _ in range(n + 1):
             command = np.where(overridden, fallback, acc)
@@ -229,6 +229,18 @@ class Shield(Planner):
         self.interventions += int(overridden.sum())
         self.vehicle_steps += n
         return command
+
+    def _awaited_and_braked(self, scene: Scene, plan: _Plan, acc: np.ndarray, fallback: np.ndarray) -> np.ndarray:
+        """``(n,)`` bool: vehicles that another one waits for (:meth:`_waits`) and that the proposal brakes
+        below the fallback. They get the fallback: a planner that stops a vehicle in a zone while the
+        fallback holds a crossing vehicle for it would otherwise keep both standing (a standoff of
+        the planner's order of way against the shield's)."""
+        awaited = np.zeros(scene.num_vehicles, bool)
+        if plan.cross.size:
+            a_max = float(scene.a_max)
+            go = self.committed(plan, plan.arc, plan.speed, a_max)
+            awaited[plan.cross[:, ::-1][self._waits(plan, plan.arc, plan.speed, go, a_max)]] = True
+        return awaited & (acc < np.minimum(fallback, 0.0) - 1e-9)
 
     # ------------------------------------------------------------------ scene -> plan
     def _plan(self, scene: Scene) -> _Plan:
@@ -345,7 +357,14 @@ class Shield(Planner):
         return acc
 
     def _yielding(self, plan: _Plan, arc: np.ndarray, speed: np.ndarray, go: np.ndarray, a_max: float) -> np.ndarray:
-        """``(n,)`` bool: committed vehicles that the fallback holds for a crossing partner.
+        """``(n,)`` bool: committed vehicles that the fallback holds for a crossing partner (:meth:`_waits`)."""
+        hold = np.zeros(len(arc), bool)
+        if plan.cross.size:
+            hold[plan.cross[self._waits(plan, arc, speed, go, a_max)]] = True
+        return hold
+
+    def _waits(self, plan: _Plan, arc: np.ndarray, speed: np.ndarray, go: np.ndarray, a_max: float) -> np.ndarray:
+        """``(c, 2)`` bool over the crossing pairs: this side waits for the other side.
 
         Committed means past the point where a vehicle can stop before its *first* zone; a later zone,
         shared with one crossing route, may still be far enough to stop before. The fallback does not
@@ -357,9 +376,6 @@ class Shield(Planner):
         one zone at once (only after an unresolved step) are separated by holding the one less far
         through it.
         """
-        hold = np.zeros(len(arc), bool)
-        if not plan.cross.size:
-            return hold
         x, v = arc[plan.cross], speed[plan.cross]
         lo, hi = plan.cross_lo, plan.cross_hi
         can_stop = (x <= lo) & ((v <= _STANDING) | (x + v**2 / (2 * a_max) + _STOP_SLACK <= lo))
@@ -368,9 +384,7 @@ class Shield(Planner):
         through = (x - lo) / (hi - lo)
         both = ((x > lo) & (x < hi)).all(axis=1)
         behind = (through < through[:, ::-1]) | ((through == through[:, ::-1]) & (ids > ids[:, ::-1]))
-        waits |= both[:, None] & behind
-        hold[plan.cross[waits]] = True
-        return hold
+        return waits | (both[:, None] & behind)
 
     def _leaders_now(self, plan: _Plan, arc: np.ndarray, go: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(follower, ahead, bumper gap)`` of every same-path pair, and of every pair on merging paths
