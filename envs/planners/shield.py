@@ -84,13 +84,13 @@ class _Plan:
     merge_exit: np.ndarray  # (g, 2) exit arcs: arc - exit is a common coordinate after the merge
     merge_sep: np.ndarray  # (g,) smallest centre distance after the merge [m]
     rank: np.ndarray  # (n,) who goes first when two would enter a zone at once: farthest in, then lowest id
-    vehicle_id: np.ndarray  # (n,) ids: the fallback's order of way between committed vehicles (stable over steps)
+    vehicle_id: np.ndarray  # (n,) ids: break ties between two vehicles equally far through one zone
     follow_floor: np.ndarray  # (k,) smallest gap a prediction may leave [m]: half the gap margin, or a short gap now
-    # Crossing pairs whose bodies are both in their zone now (after an unresolved step): the one less
-    # far through (`cross_back`: column 0 or 1) must not move past where it could stop (`cross_stop`).
+    # Crossing pairs whose bodies are both in their zone now (after unresolved steps), the one less far
+    # through (`cross_back`: column 0 or 1) standing: it must not move (past `cross_stop`).
     cross_already: np.ndarray  # (c,) bool
     cross_back: np.ndarray  # (c,) column of the one behind
-    cross_stop: np.ndarray  # (c,) its stopping point from now [m]
+    cross_stop: np.ndarray  # (c,) its arc now plus the stopping slack [m]
 
     def __post_init__(self) -> None:
         # The columns of `follow` and their arcs now, contiguous: the fallback reads them every period.
@@ -280,15 +280,16 @@ class Shield(Planner):
         order = np.lexsort((scene.vehicle_id, hull_start - arc))
         rank = np.empty(len(order), _INT)
         rank[order] = np.arange(len(order))
-        # Both in the zone now (after an unresolved step): the one less far through (`back`) must not
-        # move past where it can stop (`stop`) while the other is in it (it may still be braking).
+        # Both in the zone now, the one less far through (`back`) standing (after unresolved steps,
+        # which brake everyone): it must not move (`stop`) while the other is in it, which may go on.
+        # While `back` still moves, the pair counts as a conflict like any other.
         x0 = arc[cross]
-        already = ((x0 > cross_lo) & (x0 < cross_hi)).all(axis=1)
         through = (x0 - cross_lo) / (cross_hi - cross_lo)
         ids = np.asarray(scene.vehicle_id)[cross]
         back = (through[:, 1] < through[:, 0]) | ((through[:, 1] == through[:, 0]) & (ids[:, 1] > ids[:, 0]))
         back, rows = back.astype(_INT), np.arange(len(back))
-        stop = x0[rows, back] + speed[cross[rows, back]] ** 2 / (2 * float(scene.a_max)) + _STOP_SLACK
+        already = ((x0 > cross_lo) & (x0 < cross_hi)).all(axis=1) & (speed[cross[rows, back]] <= _STANDING)
+        stop = x0[rows, back] + _STOP_SLACK
         return _Plan(
             route=route,
             arc=arc,
