@@ -277,3 +277,16 @@ def test_seeds_train_one_run_per_seed_and_never_overwrite(tmp_path, capsys):
     assert train(out, "--seeds", "0", "2", "--resume", "--n-timesteps", "80") == 0
     assert (out / "seed_0" / "run.json").read_text() != stamp  # its record gained a session
     assert json.loads((out / "seed_2" / "run.json").read_text())["seed"] == 2
+
+
+@pytest.mark.parametrize("name", ["td3_fair.yml", "td3_tune.yml"])
+def test_intersection_zoo_entries_read_and_build(name):
+    # The retraining and study entries are read without eval and make the environment they name.
+    from sb3_graph.experiment import build_algorithm_kwargs, build_callbacks, read_experiment
+
+    entry = read_experiment(ROOT / "zoo_configs" / name, "CoopIntersection4Way-v0")
+    env = gym.make("CoopIntersection4Way-v0", **entry["env_kwargs"])
+    assert env.unwrapped.config["spawn_probability_range"] == [0.01, 0.07]
+    assert build_algorithm_kwargs(entry, action_dim=1)["learning_rate"] > 0
+    assert build_callbacks(entry)
+    env.close()
