@@ -24,8 +24,10 @@ conflict zone on its route brakes at ``a_max`` (local planning: it stops before 
 own); a vehicle that cannot (it is committed, it owns its zone) or that has cleared the
 intersection proceeds at ``proceed_acceleration``, following the vehicles ahead of it with a
 responsibility-sensitive safety gap (it can always stop behind a leader braking at ``a_max``), and
-waiting before a later zone of its route where a crossing vehicle is already committed (so that
-its safety does not rest on predicted timing, which changes when a leader turns off or merges in).
+waiting before a later zone of its route that a crossing vehicle can no longer stop before or is in
+(so that its safety does not rest on predicted timing, which changes when a leader turns off or
+merges in). A vehicle that another waits for gets the fallback when the planner would brake it below
+it, so that the planner's order of way and the fallback's cannot stand each other off.
 Because the plan accepted at one step contains the fallback from the next state, the all-fallback
 plan passed the check one step earlier: the shield always has a safe answer (recursive
 feasibility), and once the prediction reaches a state where everyone stands or has left, the
