@@ -92,8 +92,11 @@ class Reservations:
     :param cruise: ``(C,)`` cruise speed of each slowed approach [m/s] (``nan`` otherwise)
     :param arrival: ``(n, C)`` time the front reaches the line (0 inside) [s from now]
     :param line_speed: ``(n, C)`` speed at the line [m/s]
-    :param enter: ``(n, C, R)`` time the body enters its zone with route ``q`` [s from now]
-    :param leave: ``(n, C, R)`` time it has left it
+    :param base: ``(n, C)`` window of a vehicle in a zone it no longer has to pass: its arrival,
+        not before its leader lets it (enter and leave alike) [s from now]
+    :param zone_enter: ``(k, C)`` time the body enters its zone, one row per ``True`` of ``zone``
+        in row-major order [s from now]
+    :param zone_leave: ``(k, C)`` time it has left it
     :param zone: ``(n, R)`` bool: the vehicle still has to pass its zone with route ``q``
     :param start: ``(n, C)`` time a stopping plan starts from rest (``nan`` for the others) [s from now]
     :param rest: ``(n,)`` earliest time the vehicle can be at rest at its line [s from now]
@@ -106,21 +109,48 @@ class Reservations:
     cruise: np.ndarray
     arrival: np.ndarray
     line_speed: np.ndarray
-    enter: np.ndarray
-    leave: np.ndarray
+    base: np.ndarray
+    zone_enter: np.ndarray
+    zone_leave: np.ndarray
     zone: np.ndarray
     start: np.ndarray
     rest: np.ndarray
     committed: np.ndarray
     order: np.ndarray
 
+    def _full(self, windows: np.ndarray) -> np.ndarray:
+        out = np.repeat(self.base[:, :, None], self.zone.shape[1], axis=2)
+        zi, zq = np.nonzero(self.zone)
+        out[zi, :, zq] = windows
+        return out
+
+    @property
+    def enter(self) -> np.ndarray:
+        """``(n, C, R)`` time the body enters its zone with route ``q`` (``base`` where it has none left)."""
+        return self._full(self.zone_enter)
+
+    @property
+    def leave(self) -> np.ndarray:
+        """``(n, C, R)`` time it has left it."""
+        return self._full(self.zone_leave)
+
+    def chosen(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(n, R)`` enter and leave times of the chosen plans (``enter[rows, choice]`` without the full arrays)."""
+        zi, zq = np.nonzero(self.zone)
+        picked = self.choice[zi]
+        out = []
+        for windows in (self.zone_enter, self.zone_leave):
+            full = np.repeat(self.base[np.arange(self.choice.size), self.choice][:, None], self.zone.shape[1], axis=1)
+            full[zi, zq] = windows[np.arange(zi.size), picked]
+            out.append(full)
+        return out[0], out[1]
+
     def window(self, q: int | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(n,)`` chosen enter and leave times in the zone with route(s) ``q`` (``nan`` if none)."""
         rows = np.arange(self.choice.shape[0])
-        enter = self.enter[rows, self.choice, q]
-        leave = self.leave[rows, self.choice, q]
+        enter, leave = self.chosen()
         valid = self.zone[rows, q]
-        return np.where(valid, enter, np.nan), np.where(valid, leave, np.nan)
+        return np.where(valid, enter[rows, q], np.nan), np.where(valid, leave[rows, q], np.nan)
 
 
 class AIMPlanner(Planner):
@@ -246,22 +276,29 @@ class AIMPlanner(Planner):
         a = p.accel
         v_in = inner_limit(lay)[route]
 
-        # Zone windows of every candidate, measured from the line (from the front once inside).
+        # Zone windows of every candidate, measured from the line (from the front once inside), only
+        # for the zones a vehicle still has to pass: rows (i, q) of zone, row-major, (k, C) each.
         ref = np.where(inside, scene.arc + L / 2, lay.entry_arc[route])
         z_start, z_end = lay.zone_start[route], lay.zone_end[route]  # (n, R)
         zone = approaching[:, None] & np.isfinite(z_start) & (z_end + L[:, None] - ref[:, None] > 0)
-        d_in = np.where(zone, np.maximum(z_start - ref[:, None], 0.0), 0.0)[:, None, :]
-        d_out = np.where(zone, z_end + L[:, None] - ref[:, None], 0.0)[:, None, :]
-        w3, vin3 = speed_at_line[:, :, None], v_in[:, None, None]
-        # Entering and leaving in one pass: (n, C, 2R), the zones' starts then their ends.
-        d_both = np.concatenate([d_in, d_out], axis=2)
-        both = arrival[:, :, None] + travel_time(d_both, w3, vin3, a)
+        zi, zq = np.nonzero(zone)
+        k = zi.size
+        # Entering and leaving in one pass: (2k, C), the zones' starts then their ends; then, to
+        # bound them by the leader, the same distances and 0 for each vehicle (its other zones).
+        rows2 = np.concatenate([zi, zi])
+        d_both = np.concatenate([np.maximum(z_start[zi, zq] - ref[zi], 0.0), z_end[zi, zq] + L[zi] - ref[zi]])
+        both = arrival[rows2] + travel_time(d_both[:, None], speed_at_line[rows2], v_in[rows2, None], a)
         # Nobody passes its leader: the front gets that far only once the leader has moved on.
         bound = self.leader_bound(scene, ref)
-        both = np.maximum(both, bound(d_both[:, 0, :])[:, None, :])
-        routes = z_start.shape[1]
-        enter, leave = both[:, :, :routes], both[:, :, routes:]
-        last = np.where(zone[:, None, :], leave, -np.inf).max(axis=2)
+        bound = bound(np.concatenate([rows2, np.arange(n)]), np.concatenate([d_both, np.zeros(n)]))
+        both = np.maximum(both, bound[: 2 * k, None])
+        # Outside its zones a vehicle's window is its arrival (no distance to travel), bounded likewise.
+        base = np.maximum(arrival, bound[2 * k :, None])
+        zone_enter, zone_leave = both[:k], both[k:]
+        starts_i = np.flatnonzero(np.r_[True, zi[1:] != zi[:-1]]) if k else np.zeros(0, np.int64)
+        last = np.full(arrival.shape, -np.inf)
+        if k:
+            last[zi[starts_i]] = np.maximum.reduceat(zone_leave, starts_i, axis=0)
         score = np.where(np.isfinite(last), last, arrival) + np.where(kind == 2, p.stop_penalty, 0.0)[None, :]
 
         # Order: committed first, in the order they committed, then FIFO by the remembered arrival keys.
@@ -271,12 +308,18 @@ class AIMPlanner(Planner):
         pair = lay.conflicts[route[:, None], route[None, :]] & zone[:, route] & zone[:, route].T
         pair &= order[None, :] < order[:, None]  # (i, j): j reserves before i
         np.fill_diagonal(pair, False)
-        # Only the pairs that must not clash: (k, C) windows of i in its zone with j, rows sorted by i.
+        # Only the pairs that must not clash: (P, C) windows of i in its zone with j, rows sorted by i.
         pi, pj = np.nonzero(pair)
-        enter_ij, leave_ij = enter[pi, :, route[pj]], leave[pi, :, route[pj]]
+        at = np.full(zone.shape, -1, np.int64)  # row of (i, q) in the zone windows
+        at[zi, zq] = np.arange(k)
+        ki, kj = at[pi, route[pj]], at[pj, route[pi]]
+        enter_ij, leave_ij = zone_enter[ki], zone_leave[ki] + p.buffer
         clashing, starts = np.unique(pi, return_index=True)
+        flat_enter, flat_leave = zone_enter.ravel(), zone_leave.ravel() + p.buffer
+        kj_flat = kj * arrival.shape[1]
         leader = scene.leader
         follows = (leader >= 0) & before & before[np.maximum(leader, 0)]  # both still before the line
+        not_follows, lead_row = ~follows[:, None], np.maximum(leader, 0)
         # Without a clash-free plan: wait longest if it can stop, else arrive as late as it can.
         latest_go = np.where(feasible & (kind != 2)[None, :], arrival, -np.inf).argmax(axis=1)
         fallback = np.where(can_stop, arrival.shape[1] - 1, latest_go)
@@ -285,11 +328,12 @@ class AIMPlanner(Planner):
         clash = np.zeros(arrival.shape, bool)
         for _ in range(p.passes):
             if pi.size:  # j's chosen window in its zone with i against each of i's candidates
-                enter_j, leave_j = enter[pj, choice[pj], route[pi]], leave[pj, choice[pj], route[pi]]
-                overlap = (enter_ij < leave_j[:, None] + p.buffer) & (enter_j[:, None] < leave_ij + p.buffer)
+                chosen_j = kj_flat + choice[pj]
+                enter_j, leave_j = flat_enter[chosen_j], flat_leave[chosen_j]
+                overlap = (enter_ij < leave_j[:, None]) & (enter_j[:, None] < leave_ij)
                 clash[clashing] = np.logical_or.reduceat(overlap, starts, axis=0)
-            lead_arrival = arrival[rows, choice][np.maximum(leader, 0)] + p.follow_headway
-            ok = feasible & ~clash & (~follows[:, None] | (arrival >= lead_arrival[:, None]))
+            lead_arrival = arrival[rows, choice][lead_row] + p.follow_headway
+            ok = feasible & ~clash & (not_follows | (arrival >= lead_arrival[:, None]))
             best = np.where(ok, score, np.inf).argmin(axis=1)
             new = np.where(ok.any(axis=1), best, fallback)
             if np.array_equal(new, choice):
@@ -301,8 +345,9 @@ class AIMPlanner(Planner):
             cruise=cand["cruise"],
             arrival=arrival,
             line_speed=speed_at_line,
-            enter=enter,
-            leave=leave,
+            base=base,
+            zone_enter=zone_enter,
+            zone_leave=zone_leave,
             zone=zone,
             start=cand["start"],
             rest=cand["rest"],
@@ -317,18 +362,18 @@ class AIMPlanner(Planner):
 
         :param scene: the vehicles now
         :param ref: ``(n,)`` arc the distances are measured from
-        :return: a function of ``(n, k)`` distances giving ``(n, k)`` times [s from now]
+        :return: a function of ``(m,)`` vehicle rows and ``(m,)`` distances giving ``(m,)`` times [s from now]
         """
         leader = np.maximum(scene.leader, 0)
         has = scene.leader >= 0
         front = scene.arc + scene.length / 2
         ahead = ref - front + self.idm.jam_distance - np.where(has, scene.gap, 0.0)
-        v_lead = scene.speed[leader][:, None]
-        limit = np.maximum(scene.speed_limit[leader], scene.speed[leader])[:, None]
+        v_lead = scene.speed[leader]
+        limit = np.maximum(scene.speed_limit[leader], scene.speed[leader])
 
-        def bound(d: np.ndarray) -> np.ndarray:
-            move = np.maximum(d + ahead[:, None], 0.0)
-            return np.where(has[:, None], travel_time(move, v_lead, limit, self.params.accel), 0.0)
+        def bound(rows: np.ndarray, d: np.ndarray) -> np.ndarray:
+            move = np.maximum(d + ahead[rows], 0.0)
+            return np.where(has[rows], travel_time(move, v_lead[rows], limit[rows], self.params.accel), 0.0)
 
         return bound
 
@@ -357,8 +402,7 @@ class AIMPlanner(Planner):
         leader = scene.leader
         leader_speed = np.where(leader >= 0, scene.speed[np.maximum(leader, 0)], 0.0)
         follow = idm_acceleration(v, np.full(n, 1e3), scene.gap, leader_speed, dt, idm)
-        chosen_leave = plan.leave[rows, plan.choice]  # (n, R)
-        chosen_enter = plan.enter[rows, plan.choice]
+        chosen_enter, chosen_leave = plan.chosen()  # (n, R)
         guard = zone_guard(scene, chosen_enter[:, scene.route], chosen_leave[:, scene.route].T, self.idm)
         # Past the intersection: plain IDM.
         acc = np.where(
