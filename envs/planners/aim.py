@@ -42,10 +42,8 @@ from envs.planners.base import Planner
 from envs.planners.idm import (
     DEFAULT_IDM,
     IDMParams,
-    follow_leaders,
     idm_acceleration,
     leader_chain_max,
-    stop_line_acceleration,
     travel_time,
 )
 from envs.planners.vehicle_model import earliest_arrival, inner_limit, line_speed
@@ -170,6 +168,7 @@ class AIMPlanner(Planner):
         super().__init__(name)
         self.params = params if params is not None else AIMParams()
         self.idm = idm
+        self._follow_idm: tuple[tuple, IDMParams | None] = ((None, None), None)  # IDM with acc_max = accel, cached
         self.reset()
 
     def reset(self, seed: int | None = None) -> None:
@@ -391,23 +390,36 @@ class AIMPlanner(Planner):
         # Slowed approach: towards u, and accelerate again in time to reach w at the line.
         w = plan.line_speed[rows, plan.choice]
         speed_up = (w > v) & (dist <= (w**2 - v**2) / (2.0 * p.accel) + v * dt)
-        towards_u = np.clip((np.nan_to_num(u) - v) / dt, -p.decel, p.accel)
+        towards_u = np.clip((np.where(np.isnan(u), 0.0, u) - v) / dt, -p.decel, p.accel)
         slowed = np.where(speed_up, p.accel, towards_u)
         # Stop: at the line, until the start time has come (no wait left once at the stop point).
         at_line = (plan.rest <= 0.0) & (plan.start[rows, plan.choice] <= 1e-9)
-        stop = np.where(at_line, p.accel, stop_line_acceleration(scene, 0.0, self.idm))
-        planned = np.select([~before | (kind == 0), kind == 1], [p.accel, slowed], stop)
-        # Car following: IDM's interaction term (the lane limits are the governor's job).
-        idm = replace(self.idm, acc_max=p.accel)
+        # IDM with this planner's constants, three uses in one call (elementwise, so the same values
+        # as three calls): towards the stop point (stop_line_acceleration), behind the zone a
+        # vehicle must not enter (zone_guard), plain car following (follow_leaders).
         leader = scene.leader
         leader_speed = np.where(leader >= 0, scene.speed[np.maximum(leader, 0)], 0.0)
-        follow = idm_acceleration(v, np.full(n, 1e3), scene.gap, leader_speed, dt, idm)
         chosen_enter, chosen_leave = plan.chosen()  # (n, R)
-        guard = zone_guard(scene, chosen_enter[:, scene.route], chosen_leave[:, scene.route].T, self.idm)
+        obstacle = zone_obstacle(scene, chosen_enter[:, scene.route], chosen_leave[:, scene.route].T, self.idm)
+        to_stop = np.maximum(dist, 0.0) + self.idm.jam_distance
+        to_stop_target = np.where(dist <= 0.5, 0.0, scene.speed_limit)
+        far = np.full(n, 1e3)
+        stop_idm, guard, plain = idm_acceleration(
+            np.concatenate([v, v, v]),
+            np.concatenate([to_stop_target, far, scene.speed_limit]),
+            np.concatenate([to_stop, obstacle, scene.gap]),
+            np.concatenate([np.zeros(2 * n), leader_speed]),
+            dt,
+            self.idm,
+        ).reshape(3, n)
+        stop = np.where(at_line, p.accel, stop_idm)
+        planned = np.where(~before | (kind == 0), p.accel, np.where(kind == 1, slowed, stop))
+        # Car following: IDM's interaction term (the lane limits are the governor's job).
+        if self._follow_idm[0] != (self.idm, p.accel):
+            self._follow_idm = ((self.idm, p.accel), replace(self.idm, acc_max=p.accel))
+        follow = idm_acceleration(v, far, scene.gap, leader_speed, dt, self._follow_idm[1])
         # Past the intersection: plain IDM.
-        acc = np.where(
-            scene.dist_to_exit > 0, np.minimum(np.minimum(planned, follow), guard), follow_leaders(scene, self.idm)
-        )
+        acc = np.where(scene.dist_to_exit > 0, np.minimum(np.minimum(planned, follow), guard), plain)
         return np.clip(acc, scene.a_min, scene.a_max)
 
 
@@ -425,6 +437,19 @@ def zone_guard(scene: Scene, enter: np.ndarray, until: np.ndarray, idm: IDMParam
     :param idm: IDM constants
     :return: ``(n,)`` accelerations (IDM's ``acc_max`` where nothing is in the way)
     """
+    obstacle = zone_obstacle(scene, enter, until, idm)
+    far = np.full(scene.num_vehicles, 1e3)
+    return idm_acceleration(scene.speed, far, obstacle, np.zeros_like(obstacle), scene.dt, idm)
+
+
+def zone_obstacle(scene: Scene, enter: np.ndarray, until: np.ndarray, idm: IDMParams = DEFAULT_IDM) -> np.ndarray:
+    """The standing obstacle of :func:`zone_guard`: ``(n,)`` IDM gap to it [m], ``inf`` where none.
+
+    :param scene: the vehicles now (with its layout)
+    :param enter: ``(n, n)`` time ``i`` plans to enter its zone with ``j`` [s from now]
+    :param until: ``(n, n)`` time ``j`` is expected to have left its zone with ``i`` [s from now]
+    :param idm: IDM constants
+    """
     lay, route = scene.layout, scene.route
     front, rear = scene.arc + scene.length / 2, scene.arc - scene.length / 2
     start, end = lay.zone_start[route[:, None], route[None, :]], lay.zone_end[route[:, None], route[None, :]]
@@ -432,5 +457,4 @@ def zone_guard(scene: Scene, enter: np.ndarray, until: np.ndarray, idm: IDMParam
     to_zone = start - front[:, None]  # (i, j): metres from i's front to its zone with j
     blocking = occupies.T & (to_zone > 0) & ~(enter >= until) & (scene.dist_to_exit > 0)[:, None]
     gap = np.where(blocking, to_zone, np.inf).min(axis=1)
-    obstacle = np.where(np.isfinite(gap), gap + idm.jam_distance, np.inf)  # IDM keeps s0: stop at the start
-    return idm_acceleration(scene.speed, np.full(scene.num_vehicles, 1e3), obstacle, np.zeros_like(gap), scene.dt, idm)
+    return np.where(np.isfinite(gap), gap + idm.jam_distance, np.inf)  # IDM keeps s0: stop at the start
