@@ -38,6 +38,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from envs.planners import _aim_kernel
 from envs.planners.base import Planner
 from envs.planners.idm import (
     DEFAULT_IDM,
@@ -159,6 +160,8 @@ class AIMPlanner(Planner):
     :param idm: IDM constants of car following (its ``acc_max`` is replaced by ``params.accel``)
     """
 
+    # Reservation passes compiled (numba, bitwise ``settle_numpy``); False: the NumPy reference.
+    compiled = True
     # A stopped vehicle this close to its line [m] is at its stop point (IDM settles within ~0.5 m).
     stop_reach = 1.0
     # ... and at rest below this speed [m/s].
@@ -307,37 +310,20 @@ class AIMPlanner(Planner):
         pair = lay.conflicts[route[:, None], route[None, :]] & zone[:, route] & zone[:, route].T
         pair &= order[None, :] < order[:, None]  # (i, j): j reserves before i
         np.fill_diagonal(pair, False)
-        # Only the pairs that must not clash: (P, C) windows of i in its zone with j, rows sorted by i.
+        # Only the pairs that must not clash: i, j, and the rows of i's zone with j and j's zone with i.
         pi, pj = np.nonzero(pair)
         at = np.full(zone.shape, -1, np.int64)  # row of (i, q) in the zone windows
         at[zi, zq] = np.arange(k)
-        ki, kj = at[pi, route[pj]], at[pj, route[pi]]
-        enter_ij, leave_ij = zone_enter[ki], zone_leave[ki] + p.buffer
-        clashing, starts = np.unique(pi, return_index=True)
-        flat_enter, flat_leave = zone_enter.ravel(), zone_leave.ravel() + p.buffer
-        kj_flat = kj * arrival.shape[1]
         leader = scene.leader
         follows = (leader >= 0) & before & before[np.maximum(leader, 0)]  # both still before the line
-        not_follows, lead_row = ~follows[:, None], np.maximum(leader, 0)
         # Without a clash-free plan: wait longest if it can stop, else arrive as late as it can.
         latest_go = np.where(feasible & (kind != 2)[None, :], arrival, -np.inf).argmax(axis=1)
         fallback = np.where(can_stop, arrival.shape[1] - 1, latest_go)
-        rows = np.arange(n)
-        choice = np.zeros(n, np.int64)
-        clash = np.zeros(arrival.shape, bool)
-        for _ in range(p.passes):
-            if pi.size:  # j's chosen window in its zone with i against each of i's candidates
-                chosen_j = kj_flat + choice[pj]
-                enter_j, leave_j = flat_enter[chosen_j], flat_leave[chosen_j]
-                overlap = (enter_ij < leave_j[:, None]) & (enter_j[:, None] < leave_ij)
-                clash[clashing] = np.logical_or.reduceat(overlap, starts, axis=0)
-            lead_arrival = arrival[rows, choice][lead_row] + p.follow_headway
-            ok = feasible & ~clash & (not_follows | (arrival >= lead_arrival[:, None]))
-            best = np.where(ok, score, np.inf).argmin(axis=1)
-            new = np.where(ok.any(axis=1), best, fallback)
-            if np.array_equal(new, choice):
-                break
-            choice = new
+        settle = _aim_kernel.settle if self.compiled else settle_numpy
+        choice = settle(
+            p.passes, pi, pj, at[pi, route[pj]], at[pj, route[pi]], zone_enter, zone_leave, p.buffer,
+            arrival, feasible, score, fallback, follows, np.maximum(leader, 0), p.follow_headway,
+        )  # fmt: skip
         return Reservations(
             choice=choice,
             kind=kind,
@@ -421,6 +407,67 @@ class AIMPlanner(Planner):
         # Past the intersection: plain IDM.
         acc = np.where(scene.dist_to_exit > 0, np.minimum(np.minimum(planned, follow), guard), plain)
         return np.clip(acc, scene.a_min, scene.a_max)
+
+
+def settle_numpy(
+    passes: int,
+    pair_i: np.ndarray,
+    pair_j: np.ndarray,
+    row_i: np.ndarray,
+    row_j: np.ndarray,
+    zone_enter: np.ndarray,
+    zone_leave: np.ndarray,
+    buffer: float,
+    arrival: np.ndarray,
+    feasible: np.ndarray,
+    score: np.ndarray,
+    fallback: np.ndarray,
+    follows: np.ndarray,
+    lead_row: np.ndarray,
+    follow_headway: float,
+) -> np.ndarray:
+    """The reservation passes: every vehicle takes its best candidate that clashes with no choice of
+    the previous pass, until no choice changes (the reference of :func:`envs.planners._aim_kernel.settle`).
+
+    :param passes: most passes
+    :param pair_i: ``(P,)`` vehicle ``i`` of each pair that must not clash (sorted)
+    :param pair_j: ``(P,)`` the vehicle ``j`` that reserves before it
+    :param row_i: ``(P,)`` row of ``i``'s zone with ``j`` in ``zone_enter``
+    :param row_j: ``(P,)`` row of ``j``'s zone with ``i``
+    :param zone_enter: ``(k, C)`` zone windows' starts [s from now]
+    :param zone_leave: ``(k, C)`` and ends
+    :param buffer: seconds kept between two windows
+    :param arrival: ``(n, C)`` arrival at the line [s from now]
+    :param feasible: ``(n, C)`` bool
+    :param score: ``(n, C)`` lower is better
+    :param fallback: ``(n,)`` candidate taken where none is clash-free
+    :param follows: ``(n,)`` bool: arrives ``follow_headway`` after its leader
+    :param lead_row: ``(n,)`` the leader's row (0 where none)
+    :param follow_headway: seconds
+    :return: ``(n,)`` chosen candidates
+    """
+    n = arrival.shape[0]
+    enter_ij, leave_ij = zone_enter[row_i], zone_leave[row_i] + buffer  # (P, C), rows sorted by i
+    clashing, starts = np.unique(pair_i, return_index=True)
+    flat_enter, flat_leave = zone_enter.ravel(), zone_leave.ravel() + buffer
+    row_j_flat = row_j * arrival.shape[1]
+    rows = np.arange(n)
+    choice = np.zeros(n, np.int64)
+    clash = np.zeros(arrival.shape, bool)
+    for _ in range(passes):
+        if pair_i.size:  # j's chosen window in its zone with i against each of i's candidates
+            chosen_j = row_j_flat + choice[pair_j]
+            enter_j, leave_j = flat_enter[chosen_j], flat_leave[chosen_j]
+            overlap = (enter_ij < leave_j[:, None]) & (enter_j[:, None] < leave_ij)
+            clash[clashing] = np.logical_or.reduceat(overlap, starts, axis=0)
+        lead_arrival = arrival[rows, choice][lead_row] + follow_headway
+        ok = feasible & ~clash & (~follows[:, None] | (arrival >= lead_arrival[:, None]))
+        best = np.where(ok, score, np.inf).argmin(axis=1)
+        new = np.where(ok.any(axis=1), best, fallback)
+        if np.array_equal(new, choice):
+            break
+        choice = new
+    return choice
 
 
 def zone_guard(scene: Scene, enter: np.ndarray, until: np.ndarray, idm: IDMParams = DEFAULT_IDM) -> np.ndarray:
