@@ -99,15 +99,21 @@ def test_gnn_predict_is_sb3_predict(data):
         np.testing.assert_array_equal(planner.predict(obs), planner.model.predict(obs, deterministic=True)[0])
 
 
-def test_aim_compiled_passes_are_the_numpy_passes(data):
-    """AIM's compiled reservation passes choose exactly what the NumPy reference chooses, scene by scene."""
+@pytest.mark.parametrize("run", ["aim", "fullthrottle+shield", "fullthrottle+shield_3way"])
+def test_aim_compiled_is_bitwise_numpy(data, run):
+    """AIM's compiled candidates and reservation passes are bitwise the NumPy reference, scene by scene
+    (the full-throttle run adds vehicles that drive as no AIM plan would)."""
     compiled, reference = AIMPlanner(), AIMPlanner()
     reference.compiled = False
-    for scene, _ in _scenes(data, "aim"):
+    for scene, _ in _scenes(data, run):
         if scene.num_vehicles == 0:
             continue
+        for key, value in reference.candidates_numpy(scene).items():
+            np.testing.assert_array_equal(compiled.candidates(scene)[key], value, err_msg=f"{key} t={scene.time}")
         plan, expected = compiled.reserve(scene), reference.reserve(scene)
-        np.testing.assert_array_equal(plan.choice, expected.choice, err_msg=f"t={scene.time}")
+        for key in ("choice", "base", "zone_enter", "zone_leave"):
+            np.testing.assert_array_equal(getattr(plan, key), getattr(expected, key), err_msg=f"{key} t={scene.time}")
+        np.testing.assert_array_equal(compiled.act(scene), reference.act(scene), err_msg=f"t={scene.time}")
 
 
 def test_aim_settle_kernel_on_random_inputs():

@@ -15,6 +15,8 @@ the machine code next to this file, so only the first process compiles it.
 
 from __future__ import annotations
 
+import math
+
 import numba
 import numpy as np
 
@@ -89,3 +91,123 @@ def settle(
             break
         choice[:] = new
     return choice
+
+
+@numba.njit(cache=True)
+def _max(x: float, y: float) -> float:
+    """``np.maximum`` of two floats (a nan propagates)."""
+    return x if (x >= y or x != x) else y
+
+
+@numba.njit(cache=True)
+def _min(x: float, y: float) -> float:
+    """``np.minimum`` of two floats (a nan propagates)."""
+    return x if (x <= y or x != x) else y
+
+
+@numba.njit(cache=True)
+def _earliest_arrival(
+    distance: float, speed: float, line_speed: float, road_speed: float, accel: float, decel: float
+) -> tuple[float, float]:
+    """:func:`envs.planners.vehicle_model.earliest_arrival` for one vehicle: ``(time, speed at the line)``."""
+    d = _max(distance, 0.0)
+    v = _max(speed, 0.0)
+    w = _min(line_speed, math.sqrt(v**2 + 2.0 * accel * d))
+    w = _max(w, math.sqrt(_max(v**2 - 2.0 * decel * d, 0.0)))
+    peak_sq = (2.0 * accel * decel * d + decel * v**2 + accel * w**2) / (accel + decel)
+    peak = _max(_min(math.sqrt(peak_sq), _max(road_speed, v)), _max(v, w))
+    d_acc = (peak**2 - v**2) / (2.0 * accel)
+    d_dec = (peak**2 - w**2) / (2.0 * decel)
+    cruise = _max(d - d_acc - d_dec, 0.0)
+    time = (peak - v) / accel + (peak - w) / decel + cruise / _max(peak, 1e-6)
+    return (time if d > 0 else 0.0), (w if d > 0 else v)
+
+
+@numba.njit(cache=True)
+def candidates(
+    speed: np.ndarray,
+    dist: np.ndarray,
+    dist_to_exit: np.ndarray,
+    speed_limit: np.ndarray,
+    v_line: np.ndarray,
+    cruise: np.ndarray,
+    waits: np.ndarray,
+    accel: float,
+    decel: float,
+    governor_deceleration: float,
+    commit_decel: float,
+    stop_reach: float,
+    rest_speed: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:meth:`envs.planners.aim.AIMPlanner.candidates_numpy` vehicle by vehicle, candidate by candidate.
+
+    :param speed: ``(n,)`` [m/s]
+    :param dist: ``(n,)`` metres to the stop line
+    :param dist_to_exit: ``(n,)`` metres from the rear to the intersection's exit
+    :param speed_limit: ``(n,)`` lane limit [m/s]
+    :param v_line: ``(n,)`` highest speed at the line [m/s]
+    :param cruise: ``(U,)`` cruise speeds of the slowed approaches [m/s]
+    :param waits: ``(W,)`` earliest starts of the stops [s from now]
+    :param accel: ``AIMParams.accel``
+    :param decel: ``AIMParams.decel``
+    :param governor_deceleration: ``AIMParams.governor_deceleration``
+    :param commit_decel: ``AIMParams.commit_decel``
+    :param stop_reach: ``AIMPlanner.stop_reach``
+    :param rest_speed: ``AIMPlanner.rest_speed``
+    :return: ``arrival``, ``line_speed``, ``feasible``, ``start`` ``(n, C)`` (``C = 1 + U + W``);
+        ``rest``, ``earliest``, ``can_stop``, ``committed`` ``(n,)``
+    """
+    n, n_u, n_w = speed.size, cruise.size, waits.size
+    c_count = 1 + n_u + n_w
+    arrival = np.empty((n, c_count))
+    line = np.empty((n, c_count))
+    feasible = np.empty((n, c_count), np.bool_)
+    start = np.full((n, c_count), np.nan)
+    rest_time = np.empty(n)
+    earliest = np.empty(n)
+    can_stop = np.empty(n, np.bool_)
+    committed = np.empty(n, np.bool_)
+    a, b, b_gov = accel, decel, governor_deceleration
+    for i in range(n):
+        v, d_i, wl = speed[i], dist[i], v_line[i]
+        approaching = dist_to_exit[i] > 0
+        before = approaching and d_i > 0
+        inside = approaching and not before
+        v_road = _max(speed_limit[i], v)
+        # The earliest arrival.
+        t0, w0 = _earliest_arrival(d_i, v, wl, v_road, a, b_gov)
+        arrival[i, 0], line[i, 0], feasible[i, 0] = t0, w0, True
+        earliest[i] = t0
+        # Slowed approaches: v -> u, cruise at u, u -> w at the line.
+        for m in range(n_u):
+            u = cruise[m]
+            rate1 = a if u > v else b
+            d1 = abs(v**2 - u**2) / (2.0 * rate1)
+            rest = d_i - d1
+            w = _min(wl, math.sqrt(u**2 + 2.0 * a * _max(rest, 0.0))) if u <= wl else wl
+            rate3 = a if w >= u else b_gov
+            d3 = abs(w**2 - u**2) / (2.0 * rate3)
+            d2 = rest - d3
+            c = 1 + m
+            feasible[i, c] = before and rest >= 0 and d2 >= -1e-6 and u <= v_road + 1e-9
+            arrival[i, c] = abs(v - u) / rate1 + _max(d2, 0.0) / u + abs(w - u) / rate3
+            line[i, c] = w
+        # Stops: come to rest at the line, start from rest later.
+        stop = before and v**2 <= 2.0 * commit_decel * _max(d_i, 0.0)
+        stop_dec = _max(b, v**2 / (2.0 * _max(d_i, 1e-3)))
+        at_stop = before and d_i <= stop_reach and v <= rest_speed
+        t_rest = 0.0 if at_stop else _earliest_arrival(d_i, v, 0.0, v_road, a, stop_dec)[0]
+        creep = d_i if at_stop else 0.0  # what is left to the line from the stop point
+        creep_time, w_stop = math.sqrt(2.0 * creep / a), math.sqrt(2.0 * a * creep)
+        for m in range(n_w):
+            c = 1 + n_u + m
+            start[i, c] = _max(t_rest, waits[m])  # from rest at the stop point, from now
+            arrival[i, c] = start[i, c] + creep_time
+            line[i, c] = w_stop
+            feasible[i, c] = stop
+        if inside:
+            for c in range(c_count):
+                arrival[i, c], line[i, c] = 0.0, v
+        rest_time[i], can_stop[i] = t_rest, stop
+        committed[i] = inside or (before and not stop)
+    return arrival, line, feasible, start, rest_time, earliest, can_stop, committed

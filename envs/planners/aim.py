@@ -209,11 +209,51 @@ class AIMPlanner(Planner):
     def candidates(self, scene: Scene) -> dict[str, np.ndarray]:
         """Candidate plans of every vehicle: time and speed at the line (see the module docstring).
 
+        Compiled (:func:`envs.planners._aim_kernel.candidates`), bitwise :meth:`candidates_numpy`.
+
         :param scene: the vehicles now
         :return: ``arrival``, ``line_speed``, ``feasible`` ``(n, C)``; ``kind``, ``cruise`` ``(C,)``;
             ``start`` ``(n, C)`` (stops: start from rest); ``rest``, ``earliest``, ``can_stop``,
             ``committed`` ``(n,)``
         """
+        if not self.compiled:
+            return self.candidates_numpy(scene)
+        p = self.params
+        v = scene.speed
+        u, waits = self._grids(np.maximum(scene.speed_limit, v).max(initial=0.0))
+        arrival, speed_at_line, feasible, start, rest, earliest, can_stop, committed = _aim_kernel.candidates(
+            v, scene.dist_to_entry, scene.dist_to_exit, scene.speed_limit, line_speed(scene, p.governor_deceleration),
+            u, waits, p.accel, p.decel, p.governor_deceleration, p.commit_decel, self.stop_reach, self.rest_speed,
+        )  # fmt: skip
+        kind, cruise = self._kinds(u, waits)
+        return {
+            "arrival": arrival,
+            "line_speed": speed_at_line,
+            "feasible": feasible,
+            "kind": kind,
+            "cruise": cruise,
+            "start": start,
+            "rest": rest,
+            "earliest": earliest,
+            "can_stop": can_stop,
+            "committed": committed,
+        }
+
+    def _grids(self, top_speed: float) -> tuple[np.ndarray, np.ndarray]:
+        """Cruise speeds of the slowed approaches up to ``top_speed`` and start times of the stops."""
+        p = self.params
+        u = np.arange(1, int(np.floor(top_speed / p.speed_step)) + 1) * p.speed_step
+        waits = np.arange(int(np.floor(p.wait_horizon / p.wait_step)) + 1) * p.wait_step
+        return u, waits
+
+    @staticmethod
+    def _kinds(u: np.ndarray, waits: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``kind`` and ``cruise`` of the candidates (see :meth:`candidates`)."""
+        kind = np.concatenate([[0], np.ones(u.size, np.int64), np.full(waits.size, 2)])
+        return kind, np.concatenate([[np.nan], u, np.full(waits.size, np.nan)])
+
+    def candidates_numpy(self, scene: Scene) -> dict[str, np.ndarray]:
+        """:meth:`candidates` in NumPy (the reference of the compiled one)."""
         p = self.params
         n, v, dist = scene.num_vehicles, scene.speed, scene.dist_to_entry
         approaching = scene.dist_to_exit > 0
@@ -225,7 +265,7 @@ class AIMPlanner(Planner):
         # The earliest arrival.
         t0, w0, _ = earliest_arrival(dist, v, v_line, v_road, a, b_gov)
         # Slowed approaches: v -> u, cruise at u, u -> w at the line.
-        u = np.arange(1, int(np.floor(v_road.max(initial=0.0) / p.speed_step)) + 1) * p.speed_step
+        u, waits = self._grids(v_road.max(initial=0.0))
         U, V, D, WL = u[None, :], v[:, None], dist[:, None], v_line[:, None]
         rate1 = np.where(U > V, a, b)
         d1 = np.abs(V**2 - U**2) / (2.0 * rate1)
@@ -241,12 +281,12 @@ class AIMPlanner(Planner):
         stop_dec = np.maximum(b, v**2 / (2.0 * np.maximum(dist, 1e-3)))
         at_stop = before & (dist <= self.stop_reach) & (v <= self.rest_speed)
         t_rest = np.where(at_stop, 0.0, earliest_arrival(dist, v, np.zeros(n), v_road, a, stop_dec)[0])
-        waits = np.arange(int(np.floor(p.wait_horizon / p.wait_step)) + 1) * p.wait_step
         start = np.maximum(t_rest[:, None], waits[None, :])  # from rest at the stop point, from now
         creep = np.where(at_stop, dist, 0.0)[:, None]  # what is left to the line from there
         t_stop = start + np.sqrt(2.0 * creep / a)
         w_stop = np.broadcast_to(np.sqrt(2.0 * a * creep), start.shape)
 
+        kind, cruise = self._kinds(u, waits)
         arrival = np.concatenate([t0[:, None], t_cruise, t_stop], axis=1)  # (n, C)
         speed_at_line = np.concatenate([w0[:, None], w, w_stop], axis=1)
         return {
@@ -255,8 +295,8 @@ class AIMPlanner(Planner):
             "feasible": np.concatenate(
                 [np.ones((n, 1), bool), cruise_ok, np.broadcast_to(can_stop[:, None], t_stop.shape)], axis=1
             ),
-            "kind": np.concatenate([[0], np.ones(u.size, np.int64), np.full(waits.size, 2)]),
-            "cruise": np.concatenate([[np.nan], u, np.full(waits.size, np.nan)]),
+            "kind": kind,
+            "cruise": cruise,
             "start": np.concatenate([np.full((n, 1 + u.size), np.nan), start], axis=1),
             "rest": t_rest,
             "earliest": t0,
