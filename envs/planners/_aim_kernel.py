@@ -1,16 +1,29 @@
-"""The reservation passes of :class:`envs.planners.aim.AIMPlanner`, compiled with numba.
+"""AIM's candidate plans, zone windows and reservation passes, compiled with numba
+(:class:`envs.planners.aim.AIMPlanner`).
 
-Why compiled: the passes are a fixed-point iteration (each vehicle takes its best clash-free
-candidate given the others' choices of the previous pass), 5-6 passes per policy step on average,
-each about 15 NumPy calls on ``(n, C)`` arrays of some 12 vehicles and 52 candidates. On the loaded
-2-core development machine a NumPy call costs 1-2 us whatever the array size, so the passes alone
-made 0.15-0.2 ms of AIM's step, a quarter of the simulation's own step (benchmarks/README.md,
-"AIM: compiled reservation passes").
+Why compiled: in NumPy, AIM's step made some 400 calls on arrays of 12 vehicles x 52 candidates
+(x 3-4 zones each): the candidates about 150 (every phase of every plan kind, two earliest
+arrivals), the zone windows about 40, and the reservation passes, a fixed-point iteration of 5-6
+passes per policy step on average, about 15 per pass. On the loaded 2-core development machine a
+NumPy call costs 1.4-2.4 us whatever the size of these arrays, so the calls alone made about as
+much as the simulation's whole step (0.6-0.8 ms); removing NumPy calls (windows only for the zones
+a vehicle still has to pass, the three IDM uses in one call) took AIM from 1.5 to 1.4 ms per step
+only (benchmarks/README.md, "AIM's step, compiled").
 
-:func:`settle` is :func:`envs.planners.aim.settle_numpy` (the reference) with the same
-floating-point operations (two additions; the rest are comparisons), no ``fastmath``, so its
-choices are the NumPy ones exactly (``tests/test_baselines.py`` checks it). ``cache=True`` stores
-the machine code next to this file, so only the first process compiles it.
+Every function here is the scalar form of a NumPy one, with the same floating-point operations in
+the same order (no ``fastmath``, so no reassociation or fused multiply-add; ``np.maximum`` and
+``np.minimum`` as :func:`_max` and :func:`_min`, which let a nan through), so that the results are
+bitwise the NumPy ones (``tests/test_planner_regression.py`` checks them on recorded scenes, and
+:func:`settle` on random inputs):
+
+- :func:`candidates`: :meth:`envs.planners.aim.AIMPlanner.candidates_numpy` (with
+  :func:`envs.planners.vehicle_model.earliest_arrival`),
+- :func:`windows`: :func:`envs.planners.aim.windows_numpy` (with
+  :func:`envs.planners.idm.travel_time`),
+- :func:`settle`: :func:`envs.planners.aim.settle_numpy`.
+
+``cache=True`` stores the machine code next to this file (or in numba's cache directory), so only
+the first process compiles it.
 """
 
 from __future__ import annotations
@@ -211,3 +224,65 @@ def candidates(
         rest_time[i], can_stop[i] = t_rest, stop
         committed[i] = inside or (before and not stop)
     return arrival, line, feasible, start, rest_time, earliest, can_stop, committed
+
+
+@numba.njit(cache=True)
+def _travel_time(distance: float, speed: float, v_max: float, accel: float) -> float:
+    """:func:`envs.planners.idm.travel_time` for one distance."""
+    d = _max(distance, 0.0)
+    v = _max(speed, 0.0)
+    vmax = _max(v_max, _max(v, 0.1))
+    d_acc = (vmax**2 - v**2) / (2.0 * accel)  # distance needed to reach v_max
+    if d <= d_acc:
+        return (math.sqrt(v**2 + 2.0 * accel * d) - v) / accel
+    return (vmax - v) / accel + (d - d_acc) / vmax
+
+
+@numba.njit(cache=True)
+def _leader_bound(d: float, ahead: float, v_lead: float, limit: float, has: bool, accel: float) -> float:
+    """:func:`envs.planners.aim.windows_numpy`'s bound by the leader for one distance."""
+    return _travel_time(_max(d + ahead, 0.0), v_lead, limit, accel) if has else 0.0
+
+
+@numba.njit(cache=True)
+def windows(
+    zone_row: np.ndarray,
+    d_in: np.ndarray,
+    d_out: np.ndarray,
+    arrival: np.ndarray,
+    line_speed: np.ndarray,
+    v_in: np.ndarray,
+    ahead: np.ndarray,
+    v_lead: np.ndarray,
+    limit: np.ndarray,
+    has: np.ndarray,
+    accel: float,
+    stop: np.ndarray,
+    stop_penalty: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`envs.planners.aim.windows_numpy` zone by zone, candidate by candidate (same parameters)."""
+    n, c_count = arrival.shape
+    k = zone_row.size
+    enter = np.empty((k, c_count))
+    leave = np.empty((k, c_count))
+    base = np.empty((n, c_count))
+    last = np.full((n, c_count), -np.inf)
+    for i in range(n):
+        bound = _leader_bound(0.0, ahead[i], v_lead[i], limit[i], has[i], accel)
+        for c in range(c_count):
+            base[i, c] = _max(arrival[i, c], bound)
+    for r in range(k):
+        i = zone_row[r]
+        bound_in = _leader_bound(d_in[r], ahead[i], v_lead[i], limit[i], has[i], accel)
+        bound_out = _leader_bound(d_out[r], ahead[i], v_lead[i], limit[i], has[i], accel)
+        first = r == 0 or zone_row[r - 1] != i
+        for c in range(c_count):
+            enter[r, c] = _max(arrival[i, c] + _travel_time(d_in[r], line_speed[i, c], v_in[i], accel), bound_in)
+            leave[r, c] = _max(arrival[i, c] + _travel_time(d_out[r], line_speed[i, c], v_in[i], accel), bound_out)
+            last[i, c] = leave[r, c] if first else _max(last[i, c], leave[r, c])
+    score = np.empty((n, c_count))
+    for i in range(n):
+        for c in range(c_count):
+            value = last[i, c] if math.isfinite(last[i, c]) else arrival[i, c]
+            score[i, c] = value + (stop_penalty if stop[c] else 0.0)
+    return enter, leave, base, score

@@ -27,9 +27,13 @@ intersection:
    soonest; a stop costs ``stop_penalty`` seconds) whose windows keep ``buffer`` seconds from the
    windows of every earlier vehicle in the zones they share, and that arrives ``follow_headway``
    seconds after its leader. The order is a chain of dependencies, so the reservations are settled
-   by a few vectorized passes (at most ``passes``), each one ``(n, candidates, n)`` array algebra.
+   by a few passes (at most ``passes``), each vehicle against the previous pass's choices.
 4. **Control**: each vehicle follows the first phase of its plan (accelerate, change speed
    towards ``u`` or stop at the line), capped by IDM car following.
+
+Steps 1 and 3 run compiled (:mod:`envs.planners._aim_kernel`, numba): bitwise what
+:meth:`AIMPlanner.candidates_numpy`, :func:`windows_numpy` and :func:`settle_numpy` compute (the
+NumPy reference, used with ``compiled = False``; ``tests/test_planner_regression.py``).
 """
 
 from __future__ import annotations
@@ -325,23 +329,12 @@ class AIMPlanner(Planner):
         zone = approaching[:, None] & np.isfinite(z_start) & (z_end + L[:, None] - ref[:, None] > 0)
         zi, zq = np.nonzero(zone)
         k = zi.size
-        # Entering and leaving in one pass: (2k, C), the zones' starts then their ends; then, to
-        # bound them by the leader, the same distances and 0 for each vehicle (its other zones).
-        rows2 = np.concatenate([zi, zi])
-        d_both = np.concatenate([np.maximum(z_start[zi, zq] - ref[zi], 0.0), z_end[zi, zq] + L[zi] - ref[zi]])
-        both = arrival[rows2] + travel_time(d_both[:, None], speed_at_line[rows2], v_in[rows2, None], a)
-        # Nobody passes its leader: the front gets that far only once the leader has moved on.
-        bound = self.leader_bound(scene, ref)
-        bound = bound(np.concatenate([rows2, np.arange(n)]), np.concatenate([d_both, np.zeros(n)]))
-        both = np.maximum(both, bound[: 2 * k, None])
-        # Outside its zones a vehicle's window is its arrival (no distance to travel), bounded likewise.
-        base = np.maximum(arrival, bound[2 * k :, None])
-        zone_enter, zone_leave = both[:k], both[k:]
-        starts_i = np.flatnonzero(np.r_[True, zi[1:] != zi[:-1]]) if k else np.zeros(0, np.int64)
-        last = np.full(arrival.shape, -np.inf)
-        if k:
-            last[zi[starts_i]] = np.maximum.reduceat(zone_leave, starts_i, axis=0)
-        score = np.where(np.isfinite(last), last, arrival) + np.where(kind == 2, p.stop_penalty, 0.0)[None, :]
+        d_in = np.maximum(z_start[zi, zq] - ref[zi], 0.0)
+        d_out = z_end[zi, zq] + L[zi] - ref[zi]
+        windows = _aim_kernel.windows if self.compiled else windows_numpy
+        zone_enter, zone_leave, base, score = windows(
+            zi, d_in, d_out, arrival, speed_at_line, v_in, *self.leader_terms(scene, ref), a, kind == 2, p.stop_penalty
+        )
 
         # Order: committed first, in the order they committed, then FIFO by the remembered arrival keys.
         keys, since = self.arrival_keys(scene, cand["earliest"], committed)
@@ -380,27 +373,22 @@ class AIMPlanner(Planner):
             order=order,
         )
 
-    def leader_bound(self, scene: Scene, ref: np.ndarray):
-        """Lower bound on when a vehicle's front can be ``d`` metres past ``ref``: its leader's rear
-        must first be the jam distance beyond that point, and the leader accelerates at most at
-        ``accel`` up to the road's limit.
+    def leader_terms(self, scene: Scene, ref: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """What bounds when a vehicle's front can be ``d`` metres past ``ref``: its leader's rear must
+        first be the jam distance beyond that point, and the leader accelerates at most at ``accel``
+        up to the road's limit (:func:`windows_numpy`).
 
         :param scene: the vehicles now
         :param ref: ``(n,)`` arc the distances are measured from
-        :return: a function of ``(m,)`` vehicle rows and ``(m,)`` distances giving ``(m,)`` times [s from now]
+        :return: ``(n,)`` metres the leader has to move besides ``d``, its speed, its speed limit
+            and whether there is a leader
         """
         leader = np.maximum(scene.leader, 0)
         has = scene.leader >= 0
         front = scene.arc + scene.length / 2
         ahead = ref - front + self.idm.jam_distance - np.where(has, scene.gap, 0.0)
         v_lead = scene.speed[leader]
-        limit = np.maximum(scene.speed_limit[leader], scene.speed[leader])
-
-        def bound(rows: np.ndarray, d: np.ndarray) -> np.ndarray:
-            move = np.maximum(d + ahead[rows], 0.0)
-            return np.where(has[rows], travel_time(move, v_lead[rows], limit[rows], self.params.accel), 0.0)
-
-        return bound
+        return ahead, v_lead, np.maximum(scene.speed_limit[leader], v_lead), has
 
     # ------------------------------------------------------------------ control
     def act(self, scene: Scene) -> np.ndarray:
@@ -447,6 +435,64 @@ class AIMPlanner(Planner):
         # Past the intersection: plain IDM.
         acc = np.where(scene.dist_to_exit > 0, np.minimum(np.minimum(planned, follow), guard), plain)
         return np.clip(acc, scene.a_min, scene.a_max)
+
+
+def windows_numpy(
+    zone_row: np.ndarray,
+    d_in: np.ndarray,
+    d_out: np.ndarray,
+    arrival: np.ndarray,
+    line_speed: np.ndarray,
+    v_in: np.ndarray,
+    ahead: np.ndarray,
+    v_lead: np.ndarray,
+    limit: np.ndarray,
+    has: np.ndarray,
+    accel: float,
+    stop: np.ndarray,
+    stop_penalty: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Zone windows of every candidate and the candidates' scores (the reference of
+    :func:`envs.planners._aim_kernel.windows`).
+
+    A window is the arrival at the line plus the crossing from the line (``accel`` up to the
+    inner limit), never before the leader has moved on (:meth:`AIMPlanner.leader_terms`).
+
+    :param zone_row: ``(k,)`` vehicle of each zone it still has to pass (sorted)
+    :param d_in: ``(k,)`` metres from the line (from the front once inside) to the zone's start
+    :param d_out: ``(k,)`` and until the rear has left it
+    :param arrival: ``(n, C)`` arrival at the line [s from now]
+    :param line_speed: ``(n, C)`` speed at the line [m/s]
+    :param v_in: ``(n,)`` lowest limit inside the intersection [m/s]
+    :param ahead: ``(n,)`` from :meth:`AIMPlanner.leader_terms`
+    :param v_lead: ``(n,)`` from :meth:`AIMPlanner.leader_terms`
+    :param limit: ``(n,)`` from :meth:`AIMPlanner.leader_terms`
+    :param has: ``(n,)`` from :meth:`AIMPlanner.leader_terms`
+    :param accel: acceleration of the crossing and of the leader [m/s^2]
+    :param stop: ``(C,)`` bool: the candidate stops at the line
+    :param stop_penalty: seconds added to a stop's score
+    :return: ``(k, C)`` enter and leave times [s from now]; ``(n, C)`` the window in a zone a vehicle
+        no longer has to pass (its arrival, bounded likewise); ``(n, C)`` scores: the time the last
+        zone is left (the arrival without zones), plus the penalty of a stop
+    """
+    n, k = arrival.shape[0], zone_row.size
+    # Entering and leaving in one pass: (2k, C), the zones' starts then their ends; then, to
+    # bound them by the leader, the same distances and 0 for each vehicle (its other zones).
+    rows2 = np.concatenate([zone_row, zone_row])
+    d_both = np.concatenate([d_in, d_out])
+    both = arrival[rows2] + travel_time(d_both[:, None], line_speed[rows2], v_in[rows2, None], accel)
+    rows, d = np.concatenate([rows2, np.arange(n)]), np.concatenate([d_both, np.zeros(n)])
+    move = np.maximum(d + ahead[rows], 0.0)
+    bound = np.where(has[rows], travel_time(move, v_lead[rows], limit[rows], accel), 0.0)
+    both = np.maximum(both, bound[: 2 * k, None])
+    base = np.maximum(arrival, bound[2 * k :, None])
+    enter, leave = both[:k], both[k:]
+    starts = np.flatnonzero(np.r_[True, zone_row[1:] != zone_row[:-1]]) if k else np.zeros(0, np.int64)
+    last = np.full(arrival.shape, -np.inf)
+    if k:
+        last[zone_row[starts]] = np.maximum.reduceat(leave, starts, axis=0)
+    score = np.where(np.isfinite(last), last, arrival) + np.where(stop, stop_penalty, 0.0)[None, :]
+    return enter, leave, base, score
 
 
 def settle_numpy(
