@@ -164,7 +164,8 @@ class AIMPlanner(Planner):
     :param idm: IDM constants of car following (its ``acc_max`` is replaced by ``params.accel``)
     """
 
-    # Reservation passes compiled (numba, bitwise ``settle_numpy``); False: the NumPy reference.
+    # Candidates, zone windows and reservation passes compiled (numba, :mod:`envs.planners._aim_kernel`,
+    # bitwise the NumPy code); False: the NumPy reference (``candidates_numpy``, ``windows_numpy``, ``settle_numpy``).
     compiled = True
     # A stopped vehicle this close to its line [m] is at its stop point (IDM settles within ~0.5 m).
     stop_reach = 1.0
@@ -415,8 +416,8 @@ class AIMPlanner(Planner):
         leader_speed = np.where(leader >= 0, scene.speed[np.maximum(leader, 0)], 0.0)
         chosen_enter, chosen_leave = plan.chosen()  # (n, R)
         obstacle = zone_obstacle(scene, chosen_enter[:, scene.route], chosen_leave[:, scene.route].T, self.idm)
-        to_stop = np.maximum(dist, 0.0) + self.idm.jam_distance
-        to_stop_target = np.where(dist <= 0.5, 0.0, scene.speed_limit)
+        to_stop = np.maximum(dist, 0.0) + self.idm.jam_distance  # stop_line_acceleration(scene, 0.0, idm)
+        to_stop_target = np.where(dist <= 0.5, 0.0, scene.speed_limit)  # ... with its settle = 0.5
         far = np.full(n, 1e3)
         stop_idm, guard, plain = idm_acceleration(
             np.concatenate([v, v, v]),
