@@ -97,3 +97,47 @@ def test_gnn_predict_is_sb3_predict(data):
             continue
         obs = build_observation(scene, planner.space)
         np.testing.assert_array_equal(planner.predict(obs), planner.model.predict(obs, deterministic=True)[0])
+
+
+@pytest.mark.parametrize("run", ["aim", "fullthrottle+shield", "fullthrottle+shield_3way"])
+def test_aim_compiled_is_bitwise_numpy(data, run):
+    """AIM's compiled candidates and reservation passes are bitwise the NumPy reference, scene by scene
+    (the full-throttle run adds vehicles that drive as no AIM plan would)."""
+    compiled, reference = AIMPlanner(), AIMPlanner()
+    reference.compiled = False
+    for scene, _ in _scenes(data, run):
+        if scene.num_vehicles == 0:
+            continue
+        for key, value in reference.candidates_numpy(scene).items():
+            np.testing.assert_array_equal(compiled.candidates(scene)[key], value, err_msg=f"{key} t={scene.time}")
+        plan, expected = compiled.reserve(scene), reference.reserve(scene)
+        for key in ("choice", "base", "zone_enter", "zone_leave"):
+            np.testing.assert_array_equal(getattr(plan, key), getattr(expected, key), err_msg=f"{key} t={scene.time}")
+        np.testing.assert_array_equal(compiled.act(scene), reference.act(scene), err_msg=f"t={scene.time}")
+
+
+def test_aim_settle_kernel_on_random_inputs():
+    """The kernel against ``settle_numpy`` where the recorded scenes rarely go: dense clashes, no
+    clash-free candidate (fallback), ties and nan scores, pass limits reached."""
+    from envs.planners._aim_kernel import settle
+    from envs.planners.aim import settle_numpy
+
+    rng = np.random.default_rng(0)
+    for trial in range(300):
+        n, c, k = rng.integers(1, 9), rng.integers(1, 12), rng.integers(1, 20)
+        pair = rng.random((n, n)) < 0.5
+        np.fill_diagonal(pair, False)
+        pi, pj = np.nonzero(pair)
+        row_i, row_j = rng.integers(0, k, pi.size), rng.integers(0, k, pi.size)
+        enter = np.round(rng.uniform(0, 5, (k, c)), 1)
+        leave = enter + np.round(rng.uniform(0, 2, (k, c)), 1)
+        arrival = np.round(rng.uniform(0, 5, (n, c)), 1)
+        score = np.round(rng.uniform(0, 5, (n, c)), 1)
+        score[rng.random((n, c)) < 0.05] = np.nan
+        feasible = rng.random((n, c)) < 0.8
+        fallback = rng.integers(0, c, n)
+        follows = rng.random(n) < 0.3
+        lead_row = rng.integers(0, n, n)
+        args = (int(rng.integers(1, 13)), pi, pj, row_i, row_j, enter, leave, 0.04, arrival, feasible, score,
+                fallback, follows, lead_row, 1.33)  # fmt: skip
+        np.testing.assert_array_equal(settle(*args), settle_numpy(*args), err_msg=f"trial {trial}")

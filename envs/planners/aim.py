@@ -27,9 +27,13 @@ intersection:
    soonest; a stop costs ``stop_penalty`` seconds) whose windows keep ``buffer`` seconds from the
    windows of every earlier vehicle in the zones they share, and that arrives ``follow_headway``
    seconds after its leader. The order is a chain of dependencies, so the reservations are settled
-   by a few vectorized passes (at most ``passes``), each one ``(n, candidates, n)`` array algebra.
+   by a few passes (at most ``passes``), each vehicle against the previous pass's choices.
 4. **Control**: each vehicle follows the first phase of its plan (accelerate, change speed
    towards ``u`` or stop at the line), capped by IDM car following.
+
+Steps 1 and 3 run compiled (:mod:`envs.planners._aim_kernel`, numba): bitwise what
+:meth:`AIMPlanner.candidates_numpy`, :func:`windows_numpy` and :func:`settle_numpy` compute (the
+NumPy reference, used with ``compiled = False``; ``tests/test_planner_regression.py``).
 """
 
 from __future__ import annotations
@@ -38,14 +42,13 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from envs.planners import _aim_kernel
 from envs.planners.base import Planner
 from envs.planners.idm import (
     DEFAULT_IDM,
     IDMParams,
-    follow_leaders,
     idm_acceleration,
     leader_chain_max,
-    stop_line_acceleration,
     travel_time,
 )
 from envs.planners.vehicle_model import earliest_arrival, inner_limit, line_speed
@@ -92,8 +95,11 @@ class Reservations:
     :param cruise: ``(C,)`` cruise speed of each slowed approach [m/s] (``nan`` otherwise)
     :param arrival: ``(n, C)`` time the front reaches the line (0 inside) [s from now]
     :param line_speed: ``(n, C)`` speed at the line [m/s]
-    :param enter: ``(n, C, R)`` time the body enters its zone with route ``q`` [s from now]
-    :param leave: ``(n, C, R)`` time it has left it
+    :param base: ``(n, C)`` window of a vehicle in a zone it no longer has to pass: its arrival,
+        not before its leader lets it (enter and leave alike) [s from now]
+    :param zone_enter: ``(k, C)`` time the body enters its zone, one row per ``True`` of ``zone``
+        in row-major order [s from now]
+    :param zone_leave: ``(k, C)`` time it has left it
     :param zone: ``(n, R)`` bool: the vehicle still has to pass its zone with route ``q``
     :param start: ``(n, C)`` time a stopping plan starts from rest (``nan`` for the others) [s from now]
     :param rest: ``(n,)`` earliest time the vehicle can be at rest at its line [s from now]
@@ -106,21 +112,48 @@ class Reservations:
     cruise: np.ndarray
     arrival: np.ndarray
     line_speed: np.ndarray
-    enter: np.ndarray
-    leave: np.ndarray
+    base: np.ndarray
+    zone_enter: np.ndarray
+    zone_leave: np.ndarray
     zone: np.ndarray
     start: np.ndarray
     rest: np.ndarray
     committed: np.ndarray
     order: np.ndarray
 
+    def _full(self, windows: np.ndarray) -> np.ndarray:
+        out = np.repeat(self.base[:, :, None], self.zone.shape[1], axis=2)
+        zi, zq = np.nonzero(self.zone)
+        out[zi, :, zq] = windows
+        return out
+
+    @property
+    def enter(self) -> np.ndarray:
+        """``(n, C, R)`` time the body enters its zone with route ``q`` (``base`` where it has none left)."""
+        return self._full(self.zone_enter)
+
+    @property
+    def leave(self) -> np.ndarray:
+        """``(n, C, R)`` time it has left it."""
+        return self._full(self.zone_leave)
+
+    def chosen(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(n, R)`` enter and leave times of the chosen plans (``enter[rows, choice]`` without the full arrays)."""
+        zi, zq = np.nonzero(self.zone)
+        picked = self.choice[zi]
+        out = []
+        for windows in (self.zone_enter, self.zone_leave):
+            full = np.repeat(self.base[np.arange(self.choice.size), self.choice][:, None], self.zone.shape[1], axis=1)
+            full[zi, zq] = windows[np.arange(zi.size), picked]
+            out.append(full)
+        return out[0], out[1]
+
     def window(self, q: int | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(n,)`` chosen enter and leave times in the zone with route(s) ``q`` (``nan`` if none)."""
         rows = np.arange(self.choice.shape[0])
-        enter = self.enter[rows, self.choice, q]
-        leave = self.leave[rows, self.choice, q]
+        enter, leave = self.chosen()
         valid = self.zone[rows, q]
-        return np.where(valid, enter, np.nan), np.where(valid, leave, np.nan)
+        return np.where(valid, enter[rows, q], np.nan), np.where(valid, leave[rows, q], np.nan)
 
 
 class AIMPlanner(Planner):
@@ -131,6 +164,9 @@ class AIMPlanner(Planner):
     :param idm: IDM constants of car following (its ``acc_max`` is replaced by ``params.accel``)
     """
 
+    # Candidates, zone windows and reservation passes compiled (numba, :mod:`envs.planners._aim_kernel`,
+    # bitwise the NumPy code); False: the NumPy reference (``candidates_numpy``, ``windows_numpy``, ``settle_numpy``).
+    compiled = True
     # A stopped vehicle this close to its line [m] is at its stop point (IDM settles within ~0.5 m).
     stop_reach = 1.0
     # ... and at rest below this speed [m/s].
@@ -140,6 +176,7 @@ class AIMPlanner(Planner):
         super().__init__(name)
         self.params = params if params is not None else AIMParams()
         self.idm = idm
+        self._follow_idm: tuple[tuple, IDMParams | None] = ((None, None), None)  # IDM with acc_max = accel, cached
         self.reset()
 
     def reset(self, seed: int | None = None) -> None:
@@ -177,11 +214,51 @@ class AIMPlanner(Planner):
     def candidates(self, scene: Scene) -> dict[str, np.ndarray]:
         """Candidate plans of every vehicle: time and speed at the line (see the module docstring).
 
+        Compiled (:func:`envs.planners._aim_kernel.candidates`), bitwise :meth:`candidates_numpy`.
+
         :param scene: the vehicles now
         :return: ``arrival``, ``line_speed``, ``feasible`` ``(n, C)``; ``kind``, ``cruise`` ``(C,)``;
             ``start`` ``(n, C)`` (stops: start from rest); ``rest``, ``earliest``, ``can_stop``,
             ``committed`` ``(n,)``
         """
+        if not self.compiled:
+            return self.candidates_numpy(scene)
+        p = self.params
+        v = scene.speed
+        u, waits = self._grids(np.maximum(scene.speed_limit, v).max(initial=0.0))
+        arrival, speed_at_line, feasible, start, rest, earliest, can_stop, committed = _aim_kernel.candidates(
+            v, scene.dist_to_entry, scene.dist_to_exit, scene.speed_limit, line_speed(scene, p.governor_deceleration),
+            u, waits, p.accel, p.decel, p.governor_deceleration, p.commit_decel, self.stop_reach, self.rest_speed,
+        )  # fmt: skip
+        kind, cruise = self._kinds(u, waits)
+        return {
+            "arrival": arrival,
+            "line_speed": speed_at_line,
+            "feasible": feasible,
+            "kind": kind,
+            "cruise": cruise,
+            "start": start,
+            "rest": rest,
+            "earliest": earliest,
+            "can_stop": can_stop,
+            "committed": committed,
+        }
+
+    def _grids(self, top_speed: float) -> tuple[np.ndarray, np.ndarray]:
+        """Cruise speeds of the slowed approaches up to ``top_speed`` and start times of the stops."""
+        p = self.params
+        u = np.arange(1, int(np.floor(top_speed / p.speed_step)) + 1) * p.speed_step
+        waits = np.arange(int(np.floor(p.wait_horizon / p.wait_step)) + 1) * p.wait_step
+        return u, waits
+
+    @staticmethod
+    def _kinds(u: np.ndarray, waits: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``kind`` and ``cruise`` of the candidates (see :meth:`candidates`)."""
+        kind = np.concatenate([[0], np.ones(u.size, np.int64), np.full(waits.size, 2)])
+        return kind, np.concatenate([[np.nan], u, np.full(waits.size, np.nan)])
+
+    def candidates_numpy(self, scene: Scene) -> dict[str, np.ndarray]:
+        """:meth:`candidates` in NumPy (the reference of the compiled one)."""
         p = self.params
         n, v, dist = scene.num_vehicles, scene.speed, scene.dist_to_entry
         approaching = scene.dist_to_exit > 0
@@ -193,7 +270,7 @@ class AIMPlanner(Planner):
         # The earliest arrival.
         t0, w0, _ = earliest_arrival(dist, v, v_line, v_road, a, b_gov)
         # Slowed approaches: v -> u, cruise at u, u -> w at the line.
-        u = np.arange(1, int(np.floor(v_road.max(initial=0.0) / p.speed_step)) + 1) * p.speed_step
+        u, waits = self._grids(v_road.max(initial=0.0))
         U, V, D, WL = u[None, :], v[:, None], dist[:, None], v_line[:, None]
         rate1 = np.where(U > V, a, b)
         d1 = np.abs(V**2 - U**2) / (2.0 * rate1)
@@ -209,12 +286,12 @@ class AIMPlanner(Planner):
         stop_dec = np.maximum(b, v**2 / (2.0 * np.maximum(dist, 1e-3)))
         at_stop = before & (dist <= self.stop_reach) & (v <= self.rest_speed)
         t_rest = np.where(at_stop, 0.0, earliest_arrival(dist, v, np.zeros(n), v_road, a, stop_dec)[0])
-        waits = np.arange(int(np.floor(p.wait_horizon / p.wait_step)) + 1) * p.wait_step
         start = np.maximum(t_rest[:, None], waits[None, :])  # from rest at the stop point, from now
         creep = np.where(at_stop, dist, 0.0)[:, None]  # what is left to the line from there
         t_stop = start + np.sqrt(2.0 * creep / a)
         w_stop = np.broadcast_to(np.sqrt(2.0 * a * creep), start.shape)
 
+        kind, cruise = self._kinds(u, waits)
         arrival = np.concatenate([t0[:, None], t_cruise, t_stop], axis=1)  # (n, C)
         speed_at_line = np.concatenate([w0[:, None], w, w_stop], axis=1)
         return {
@@ -223,8 +300,8 @@ class AIMPlanner(Planner):
             "feasible": np.concatenate(
                 [np.ones((n, 1), bool), cruise_ok, np.broadcast_to(can_stop[:, None], t_stop.shape)], axis=1
             ),
-            "kind": np.concatenate([[0], np.ones(u.size, np.int64), np.full(waits.size, 2)]),
-            "cruise": np.concatenate([[np.nan], u, np.full(waits.size, np.nan)]),
+            "kind": kind,
+            "cruise": cruise,
             "start": np.concatenate([np.full((n, 1 + u.size), np.nan), start], axis=1),
             "rest": t_rest,
             "earliest": t0,
@@ -246,23 +323,19 @@ class AIMPlanner(Planner):
         a = p.accel
         v_in = inner_limit(lay)[route]
 
-        # Zone windows of every candidate, measured from the line (from the front once inside).
+        # Zone windows of every candidate, measured from the line (from the front once inside), only
+        # for the zones a vehicle still has to pass: rows (i, q) of zone, row-major, (k, C) each.
         ref = np.where(inside, scene.arc + L / 2, lay.entry_arc[route])
         z_start, z_end = lay.zone_start[route], lay.zone_end[route]  # (n, R)
         zone = approaching[:, None] & np.isfinite(z_start) & (z_end + L[:, None] - ref[:, None] > 0)
-        d_in = np.where(zone, np.maximum(z_start - ref[:, None], 0.0), 0.0)[:, None, :]
-        d_out = np.where(zone, z_end + L[:, None] - ref[:, None], 0.0)[:, None, :]
-        w3, vin3 = speed_at_line[:, :, None], v_in[:, None, None]
-        # Entering and leaving in one pass: (n, C, 2R), the zones' starts then their ends.
-        d_both = np.concatenate([d_in, d_out], axis=2)
-        both = arrival[:, :, None] + travel_time(d_both, w3, vin3, a)
-        # Nobody passes its leader: the front gets that far only once the leader has moved on.
-        bound = self.leader_bound(scene, ref)
-        both = np.maximum(both, bound(d_both[:, 0, :])[:, None, :])
-        routes = z_start.shape[1]
-        enter, leave = both[:, :, :routes], both[:, :, routes:]
-        last = np.where(zone[:, None, :], leave, -np.inf).max(axis=2)
-        score = np.where(np.isfinite(last), last, arrival) + np.where(kind == 2, p.stop_penalty, 0.0)[None, :]
+        zi, zq = np.nonzero(zone)
+        k = zi.size
+        d_in = np.maximum(z_start[zi, zq] - ref[zi], 0.0)
+        d_out = z_end[zi, zq] + L[zi] - ref[zi]
+        windows = _aim_kernel.windows if self.compiled else windows_numpy
+        zone_enter, zone_leave, base, score = windows(
+            zi, d_in, d_out, arrival, speed_at_line, v_in, *self.leader_terms(scene, ref), a, kind == 2, p.stop_penalty
+        )
 
         # Order: committed first, in the order they committed, then FIFO by the remembered arrival keys.
         keys, since = self.arrival_keys(scene, cand["earliest"], committed)
@@ -271,38 +344,29 @@ class AIMPlanner(Planner):
         pair = lay.conflicts[route[:, None], route[None, :]] & zone[:, route] & zone[:, route].T
         pair &= order[None, :] < order[:, None]  # (i, j): j reserves before i
         np.fill_diagonal(pair, False)
-        # Only the pairs that must not clash: (k, C) windows of i in its zone with j, rows sorted by i.
+        # Only the pairs that must not clash: i, j, and the rows of i's zone with j and j's zone with i.
         pi, pj = np.nonzero(pair)
-        enter_ij, leave_ij = enter[pi, :, route[pj]], leave[pi, :, route[pj]]
-        clashing, starts = np.unique(pi, return_index=True)
+        at = np.full(zone.shape, -1, np.int64)  # row of (i, q) in the zone windows
+        at[zi, zq] = np.arange(k)
         leader = scene.leader
         follows = (leader >= 0) & before & before[np.maximum(leader, 0)]  # both still before the line
         # Without a clash-free plan: wait longest if it can stop, else arrive as late as it can.
         latest_go = np.where(feasible & (kind != 2)[None, :], arrival, -np.inf).argmax(axis=1)
         fallback = np.where(can_stop, arrival.shape[1] - 1, latest_go)
-        rows = np.arange(n)
-        choice = np.zeros(n, np.int64)
-        clash = np.zeros(arrival.shape, bool)
-        for _ in range(p.passes):
-            if pi.size:  # j's chosen window in its zone with i against each of i's candidates
-                enter_j, leave_j = enter[pj, choice[pj], route[pi]], leave[pj, choice[pj], route[pi]]
-                overlap = (enter_ij < leave_j[:, None] + p.buffer) & (enter_j[:, None] < leave_ij + p.buffer)
-                clash[clashing] = np.logical_or.reduceat(overlap, starts, axis=0)
-            lead_arrival = arrival[rows, choice][np.maximum(leader, 0)] + p.follow_headway
-            ok = feasible & ~clash & (~follows[:, None] | (arrival >= lead_arrival[:, None]))
-            best = np.where(ok, score, np.inf).argmin(axis=1)
-            new = np.where(ok.any(axis=1), best, fallback)
-            if np.array_equal(new, choice):
-                break
-            choice = new
+        settle = _aim_kernel.settle if self.compiled else settle_numpy
+        choice = settle(
+            p.passes, pi, pj, at[pi, route[pj]], at[pj, route[pi]], zone_enter, zone_leave, p.buffer,
+            arrival, feasible, score, fallback, follows, np.maximum(leader, 0), p.follow_headway,
+        )  # fmt: skip
         return Reservations(
             choice=choice,
             kind=kind,
             cruise=cand["cruise"],
             arrival=arrival,
             line_speed=speed_at_line,
-            enter=enter,
-            leave=leave,
+            base=base,
+            zone_enter=zone_enter,
+            zone_leave=zone_leave,
             zone=zone,
             start=cand["start"],
             rest=cand["rest"],
@@ -310,27 +374,22 @@ class AIMPlanner(Planner):
             order=order,
         )
 
-    def leader_bound(self, scene: Scene, ref: np.ndarray):
-        """Lower bound on when a vehicle's front can be ``d`` metres past ``ref``: its leader's rear
-        must first be the jam distance beyond that point, and the leader accelerates at most at
-        ``accel`` up to the road's limit.
+    def leader_terms(self, scene: Scene, ref: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """What bounds when a vehicle's front can be ``d`` metres past ``ref``: its leader's rear must
+        first be the jam distance beyond that point, and the leader accelerates at most at ``accel``
+        up to the road's limit (:func:`windows_numpy`).
 
         :param scene: the vehicles now
         :param ref: ``(n,)`` arc the distances are measured from
-        :return: a function of ``(n, k)`` distances giving ``(n, k)`` times [s from now]
+        :return: ``(n,)`` metres the leader has to move besides ``d``, its speed, its speed limit
+            and whether there is a leader
         """
         leader = np.maximum(scene.leader, 0)
         has = scene.leader >= 0
         front = scene.arc + scene.length / 2
         ahead = ref - front + self.idm.jam_distance - np.where(has, scene.gap, 0.0)
-        v_lead = scene.speed[leader][:, None]
-        limit = np.maximum(scene.speed_limit[leader], scene.speed[leader])[:, None]
-
-        def bound(d: np.ndarray) -> np.ndarray:
-            move = np.maximum(d + ahead[:, None], 0.0)
-            return np.where(has[:, None], travel_time(move, v_lead, limit, self.params.accel), 0.0)
-
-        return bound
+        v_lead = scene.speed[leader]
+        return ahead, v_lead, np.maximum(scene.speed_limit[leader], v_lead), has
 
     # ------------------------------------------------------------------ control
     def act(self, scene: Scene) -> np.ndarray:
@@ -346,25 +405,156 @@ class AIMPlanner(Planner):
         # Slowed approach: towards u, and accelerate again in time to reach w at the line.
         w = plan.line_speed[rows, plan.choice]
         speed_up = (w > v) & (dist <= (w**2 - v**2) / (2.0 * p.accel) + v * dt)
-        towards_u = np.clip((np.nan_to_num(u) - v) / dt, -p.decel, p.accel)
+        towards_u = np.clip((np.where(np.isnan(u), 0.0, u) - v) / dt, -p.decel, p.accel)
         slowed = np.where(speed_up, p.accel, towards_u)
         # Stop: at the line, until the start time has come (no wait left once at the stop point).
         at_line = (plan.rest <= 0.0) & (plan.start[rows, plan.choice] <= 1e-9)
-        stop = np.where(at_line, p.accel, stop_line_acceleration(scene, 0.0, self.idm))
-        planned = np.select([~before | (kind == 0), kind == 1], [p.accel, slowed], stop)
-        # Car following: IDM's interaction term (the lane limits are the governor's job).
-        idm = replace(self.idm, acc_max=p.accel)
+        # IDM with this planner's constants, three uses in one call (elementwise, so the same values
+        # as three calls): towards the stop point (stop_line_acceleration), behind the zone a
+        # vehicle must not enter (zone_guard), plain car following (follow_leaders).
         leader = scene.leader
         leader_speed = np.where(leader >= 0, scene.speed[np.maximum(leader, 0)], 0.0)
-        follow = idm_acceleration(v, np.full(n, 1e3), scene.gap, leader_speed, dt, idm)
-        chosen_leave = plan.leave[rows, plan.choice]  # (n, R)
-        chosen_enter = plan.enter[rows, plan.choice]
-        guard = zone_guard(scene, chosen_enter[:, scene.route], chosen_leave[:, scene.route].T, self.idm)
+        chosen_enter, chosen_leave = plan.chosen()  # (n, R)
+        obstacle = zone_obstacle(scene, chosen_enter[:, scene.route], chosen_leave[:, scene.route].T, self.idm)
+        to_stop = np.maximum(dist, 0.0) + self.idm.jam_distance  # stop_line_acceleration(scene, 0.0, idm)
+        to_stop_target = np.where(dist <= 0.5, 0.0, scene.speed_limit)  # ... with its settle = 0.5
+        far = np.full(n, 1e3)
+        stop_idm, guard, plain = idm_acceleration(
+            np.concatenate([v, v, v]),
+            np.concatenate([to_stop_target, far, scene.speed_limit]),
+            np.concatenate([to_stop, obstacle, scene.gap]),
+            np.concatenate([np.zeros(2 * n), leader_speed]),
+            dt,
+            self.idm,
+        ).reshape(3, n)
+        stop = np.where(at_line, p.accel, stop_idm)
+        planned = np.where(~before | (kind == 0), p.accel, np.where(kind == 1, slowed, stop))
+        # Car following: IDM's interaction term (the lane limits are the governor's job).
+        if self._follow_idm[0] != (self.idm, p.accel):
+            self._follow_idm = ((self.idm, p.accel), replace(self.idm, acc_max=p.accel))
+        follow = idm_acceleration(v, far, scene.gap, leader_speed, dt, self._follow_idm[1])
         # Past the intersection: plain IDM.
-        acc = np.where(
-            scene.dist_to_exit > 0, np.minimum(np.minimum(planned, follow), guard), follow_leaders(scene, self.idm)
-        )
+        acc = np.where(scene.dist_to_exit > 0, np.minimum(np.minimum(planned, follow), guard), plain)
         return np.clip(acc, scene.a_min, scene.a_max)
+
+
+def windows_numpy(
+    zone_row: np.ndarray,
+    d_in: np.ndarray,
+    d_out: np.ndarray,
+    arrival: np.ndarray,
+    line_speed: np.ndarray,
+    v_in: np.ndarray,
+    ahead: np.ndarray,
+    v_lead: np.ndarray,
+    limit: np.ndarray,
+    has: np.ndarray,
+    accel: float,
+    stop: np.ndarray,
+    stop_penalty: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Zone windows of every candidate and the candidates' scores (the reference of
+    :func:`envs.planners._aim_kernel.windows`).
+
+    A window is the arrival at the line plus the crossing from the line (``accel`` up to the
+    inner limit), never before the leader has moved on (:meth:`AIMPlanner.leader_terms`).
+
+    :param zone_row: ``(k,)`` vehicle of each zone it still has to pass (sorted)
+    :param d_in: ``(k,)`` metres from the line (from the front once inside) to the zone's start
+    :param d_out: ``(k,)`` and until the rear has left it
+    :param arrival: ``(n, C)`` arrival at the line [s from now]
+    :param line_speed: ``(n, C)`` speed at the line [m/s]
+    :param v_in: ``(n,)`` lowest limit inside the intersection [m/s]
+    :param ahead: ``(n,)`` from :meth:`AIMPlanner.leader_terms`
+    :param v_lead: ``(n,)`` from :meth:`AIMPlanner.leader_terms`
+    :param limit: ``(n,)`` from :meth:`AIMPlanner.leader_terms`
+    :param has: ``(n,)`` from :meth:`AIMPlanner.leader_terms`
+    :param accel: acceleration of the crossing and of the leader [m/s^2]
+    :param stop: ``(C,)`` bool: the candidate stops at the line
+    :param stop_penalty: seconds added to a stop's score
+    :return: ``(k, C)`` enter and leave times [s from now]; ``(n, C)`` the window in a zone a vehicle
+        no longer has to pass (its arrival, bounded likewise); ``(n, C)`` scores: the time the last
+        zone is left (the arrival without zones), plus the penalty of a stop
+    """
+    n, k = arrival.shape[0], zone_row.size
+    # Entering and leaving in one pass: (2k, C), the zones' starts then their ends; then, to
+    # bound them by the leader, the same distances and 0 for each vehicle (its other zones).
+    rows2 = np.concatenate([zone_row, zone_row])
+    d_both = np.concatenate([d_in, d_out])
+    both = arrival[rows2] + travel_time(d_both[:, None], line_speed[rows2], v_in[rows2, None], accel)
+    rows, d = np.concatenate([rows2, np.arange(n)]), np.concatenate([d_both, np.zeros(n)])
+    move = np.maximum(d + ahead[rows], 0.0)
+    bound = np.where(has[rows], travel_time(move, v_lead[rows], limit[rows], accel), 0.0)
+    both = np.maximum(both, bound[: 2 * k, None])
+    base = np.maximum(arrival, bound[2 * k :, None])
+    enter, leave = both[:k], both[k:]
+    starts = np.flatnonzero(np.r_[True, zone_row[1:] != zone_row[:-1]]) if k else np.zeros(0, np.int64)
+    last = np.full(arrival.shape, -np.inf)
+    if k:
+        last[zone_row[starts]] = np.maximum.reduceat(leave, starts, axis=0)
+    score = np.where(np.isfinite(last), last, arrival) + np.where(stop, stop_penalty, 0.0)[None, :]
+    return enter, leave, base, score
+
+
+def settle_numpy(
+    passes: int,
+    pair_i: np.ndarray,
+    pair_j: np.ndarray,
+    row_i: np.ndarray,
+    row_j: np.ndarray,
+    zone_enter: np.ndarray,
+    zone_leave: np.ndarray,
+    buffer: float,
+    arrival: np.ndarray,
+    feasible: np.ndarray,
+    score: np.ndarray,
+    fallback: np.ndarray,
+    follows: np.ndarray,
+    lead_row: np.ndarray,
+    follow_headway: float,
+) -> np.ndarray:
+    """The reservation passes: every vehicle takes its best candidate that clashes with no choice of
+    the previous pass, until no choice changes (the reference of :func:`envs.planners._aim_kernel.settle`).
+
+    :param passes: most passes
+    :param pair_i: ``(P,)`` vehicle ``i`` of each pair that must not clash (sorted)
+    :param pair_j: ``(P,)`` the vehicle ``j`` that reserves before it
+    :param row_i: ``(P,)`` row of ``i``'s zone with ``j`` in ``zone_enter``
+    :param row_j: ``(P,)`` row of ``j``'s zone with ``i``
+    :param zone_enter: ``(k, C)`` zone windows' starts [s from now]
+    :param zone_leave: ``(k, C)`` and ends
+    :param buffer: seconds kept between two windows
+    :param arrival: ``(n, C)`` arrival at the line [s from now]
+    :param feasible: ``(n, C)`` bool
+    :param score: ``(n, C)`` lower is better
+    :param fallback: ``(n,)`` candidate taken where none is clash-free
+    :param follows: ``(n,)`` bool: arrives ``follow_headway`` after its leader
+    :param lead_row: ``(n,)`` the leader's row (0 where none)
+    :param follow_headway: seconds
+    :return: ``(n,)`` chosen candidates
+    """
+    n = arrival.shape[0]
+    enter_ij, leave_ij = zone_enter[row_i], zone_leave[row_i] + buffer  # (P, C), rows sorted by i
+    clashing, starts = np.unique(pair_i, return_index=True)
+    flat_enter, flat_leave = zone_enter.ravel(), zone_leave.ravel() + buffer
+    row_j_flat = row_j * arrival.shape[1]
+    rows = np.arange(n)
+    choice = np.zeros(n, np.int64)
+    clash = np.zeros(arrival.shape, bool)
+    for _ in range(passes):
+        if pair_i.size:  # j's chosen window in its zone with i against each of i's candidates
+            chosen_j = row_j_flat + choice[pair_j]
+            enter_j, leave_j = flat_enter[chosen_j], flat_leave[chosen_j]
+            overlap = (enter_ij < leave_j[:, None]) & (enter_j[:, None] < leave_ij)
+            clash[clashing] = np.logical_or.reduceat(overlap, starts, axis=0)
+        lead_arrival = arrival[rows, choice][lead_row] + follow_headway
+        ok = feasible & ~clash & (~follows[:, None] | (arrival >= lead_arrival[:, None]))
+        best = np.where(ok, score, np.inf).argmin(axis=1)
+        new = np.where(ok.any(axis=1), best, fallback)
+        if np.array_equal(new, choice):
+            break
+        choice = new
+    return choice
 
 
 def zone_guard(scene: Scene, enter: np.ndarray, until: np.ndarray, idm: IDMParams = DEFAULT_IDM) -> np.ndarray:
@@ -381,6 +571,19 @@ def zone_guard(scene: Scene, enter: np.ndarray, until: np.ndarray, idm: IDMParam
     :param idm: IDM constants
     :return: ``(n,)`` accelerations (IDM's ``acc_max`` where nothing is in the way)
     """
+    obstacle = zone_obstacle(scene, enter, until, idm)
+    far = np.full(scene.num_vehicles, 1e3)
+    return idm_acceleration(scene.speed, far, obstacle, np.zeros_like(obstacle), scene.dt, idm)
+
+
+def zone_obstacle(scene: Scene, enter: np.ndarray, until: np.ndarray, idm: IDMParams = DEFAULT_IDM) -> np.ndarray:
+    """The standing obstacle of :func:`zone_guard`: ``(n,)`` IDM gap to it [m], ``inf`` where none.
+
+    :param scene: the vehicles now (with its layout)
+    :param enter: ``(n, n)`` time ``i`` plans to enter its zone with ``j`` [s from now]
+    :param until: ``(n, n)`` time ``j`` is expected to have left its zone with ``i`` [s from now]
+    :param idm: IDM constants
+    """
     lay, route = scene.layout, scene.route
     front, rear = scene.arc + scene.length / 2, scene.arc - scene.length / 2
     start, end = lay.zone_start[route[:, None], route[None, :]], lay.zone_end[route[:, None], route[None, :]]
@@ -388,5 +591,4 @@ def zone_guard(scene: Scene, enter: np.ndarray, until: np.ndarray, idm: IDMParam
     to_zone = start - front[:, None]  # (i, j): metres from i's front to its zone with j
     blocking = occupies.T & (to_zone > 0) & ~(enter >= until) & (scene.dist_to_exit > 0)[:, None]
     gap = np.where(blocking, to_zone, np.inf).min(axis=1)
-    obstacle = np.where(np.isfinite(gap), gap + idm.jam_distance, np.inf)  # IDM keeps s0: stop at the start
-    return idm_acceleration(scene.speed, np.full(scene.num_vehicles, 1e3), obstacle, np.zeros_like(gap), scene.dt, idm)
+    return np.where(np.isfinite(gap), gap + idm.jam_distance, np.inf)  # IDM keeps s0: stop at the start
