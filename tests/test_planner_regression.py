@@ -97,3 +97,31 @@ def test_gnn_predict_is_sb3_predict(data):
             continue
         obs = build_observation(scene, planner.space)
         np.testing.assert_array_equal(planner.predict(obs), planner.model.predict(obs, deterministic=True)[0])
+
+
+def test_gnn_scene_batch_is_the_padded_observation(data):
+    """The GNN planner's batch built from the scene answers exactly as SB3's ``predict`` on the
+    padded observation (first ``n`` slots), and is the batch that SB3's observation unpads to."""
+    import torch
+
+    from envs.planners.gnn import GNNPlanner
+    from envs.scene_graph import build_graph_batch, build_observation
+    from sb3_graph.batching import padded_to_batch
+
+    path = Path(__file__).parents[1] / "envs" / "pretrained" / "coop_4way" / "best_model.safetensors"
+    planner = GNNPlanner(path)
+    assert planner._graph_actor
+    checked = 0
+    for k, (scene, _) in enumerate(_scenes(data, "fullthrottle+shield")):
+        if k % 3 or scene.num_vehicles == 0:
+            continue
+        obs = build_observation(scene, planner.space)
+        expected = planner.model.predict(obs, deterministic=True)[0][: scene.num_vehicles]
+        np.testing.assert_array_equal(planner.vertex_actions(scene), expected)
+        padded = padded_to_batch({key: torch.as_tensor(value) for key, value in obs.items()})
+        direct = build_graph_batch(scene, planner.space)
+        for name in ("x", "edge_index", "edge_type", "batch", "node_slot"):
+            assert torch.equal(getattr(direct, name), getattr(padded, name)), name
+        assert (direct.num_graphs, direct.max_nodes, direct.edge_attr) == (1, padded.max_nodes, None)
+        checked += 1
+    assert checked > 10
