@@ -341,6 +341,29 @@ class RelationalMaxConv(MessagePassing):
         """
         return relational_conv([self], x, edge_index, edge_type, edge_attr)
 
+    def inference_weights(self) -> tuple[Tensor, Tensor | None]:
+        """The fused weight and bias of :func:`relational_conv` for this convolution alone, for
+        use without autograd (their values, not a graph to the parameters).
+
+        Fusing is ~10 small tensor operations, as costly as the layer's matmul at intersection
+        sizes (~13 vertices), so the result is kept until a parameter changes: another tensor
+        (assignment), an in-place update (version counter: optimizer steps, Polyak updates,
+        ``load_state_dict``) or new storage, type or device (``.to()``, ``.double()``).
+
+        :return: as :func:`_fused_weights` with ``stacked=False``
+        """
+        params = [self.weight] + ([self.root.weight] if self.root is not None else []) + [self.bias]
+        key = tuple(None if p is None else (id(p), p._version, p.data_ptr(), p.dtype, p.device) for p in params)
+        cached = self.__dict__.get("_inference_weights")
+        if cached is None or cached[0] != key:
+            # Plain tensors even when called in inference mode: usable in any later no-grad pass.
+            with torch.inference_mode(False), torch.no_grad():
+                fused = _fused_weights([self], stacked=False)
+            # The parameters themselves are held so that their ids stay theirs while cached.
+            cached = (key, fused, params)
+            self.__dict__["_inference_weights"] = cached
+        return cached[1]
+
     def message(self, x_j: Tensor) -> Tensor:
         return x_j
 
@@ -390,19 +413,10 @@ def relational_conv(
         return _edge_conv(first, x, edge_index, edge_type, edge_attr)
     r, out, has_root = first.num_relations, first.out_channels, first.root is not None
     stride = r + 1 if has_root else r
-    # Weights (K, in, R * out [+ out]): relation blocks, then the root block; the bias joins the
-    # root block, so the matmul adds it.
-    bias = torch.stack([c.bias for c in convs]).unsqueeze(1) if first.bias is not None else None
-    weight = torch.stack([c.weight for c in convs]).permute(0, 2, 1, 3).reshape(copies, -1, r * out)
-    if has_root:
-        weight = torch.cat((weight, torch.stack([c.root.weight for c in convs]).transpose(1, 2)), dim=2)
-        if bias is not None:
-            bias = torch.cat((bias.new_zeros(copies, 1, r * out), bias), dim=2)
-    # A plain matmul for one convolution: cheaper than a batched one, and 2-D results let the
-    # caller apply an in-place activation without autograd's view bookkeeping.
-    if not stacked:
-        weight = weight[0]
-        bias = None if bias is None else bias[0, 0]
+    if stacked or torch.is_grad_enabled():
+        weight, bias = _fused_weights(convs, stacked)
+    else:  # inference: the same tensors, fused once per change of the parameters
+        weight, bias = first.inference_weights()
     if bias is None or not has_root:
         transformed = torch.matmul(x, weight)
     else:
@@ -421,6 +435,31 @@ def relational_conv(
         if has_root:
             return result + transformed.view(*shape[:-1], stride, out)[..., r, :]
     return result + bias if bias is not None and not has_root else result
+
+
+def _fused_weights(convs: Sequence[RelationalMaxConv], stacked: bool) -> tuple[Tensor, Tensor | None]:
+    """Weight and bias of :func:`relational_conv`'s one matmul for ``K`` convolutions.
+
+    :param convs: ``K`` convolutions of the same shape, without edge features
+    :param stacked: ``(K, in, R * out [+ out])`` and ``(K, 1, ...)`` for a batched matmul; else
+        (``K = 1``) ``(in, ...)`` and ``(...,)``
+    :return: the weight (relation blocks, then the root block) and the bias (0 on the relation
+        blocks: it joins the root block, so the matmul adds it), ``None`` without bias
+    """
+    first = convs[0]
+    copies, r, out, has_root = len(convs), first.num_relations, first.out_channels, first.root is not None
+    bias = torch.stack([c.bias for c in convs]).unsqueeze(1) if first.bias is not None else None
+    weight = torch.stack([c.weight for c in convs]).permute(0, 2, 1, 3).reshape(copies, -1, r * out)
+    if has_root:
+        weight = torch.cat((weight, torch.stack([c.root.weight for c in convs]).transpose(1, 2)), dim=2)
+        if bias is not None:
+            bias = torch.cat((bias.new_zeros(copies, 1, r * out), bias), dim=2)
+    # A plain matmul for one convolution: cheaper than a batched one, and 2-D results let the
+    # caller apply an in-place activation without autograd's view bookkeeping.
+    if not stacked:
+        weight = weight[0]
+        bias = None if bias is None else bias[0, 0]
+    return weight, bias
 
 
 class EdgeLayout(NamedTuple):

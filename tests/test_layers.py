@@ -269,3 +269,33 @@ def test_stacked_convolutions_with_edge_features_equal_separate_ones():
     stacked = relational_conv(convs, inputs, edge_index, edge_type, edge_attr)
     separate = torch.stack([c(inputs[k], edge_index, edge_type, edge_attr) for k, c in enumerate(convs)])
     torch.testing.assert_close(stacked, separate)
+
+
+@pytest.mark.parametrize("root_weight, bias", [(True, True), (False, True), (True, False)])
+def test_inference_weights_follow_every_parameter_change(root_weight, bias):
+    """Without autograd the fused weights are kept between calls, and renewed when a parameter is
+    updated in place (optimizer step, load_state_dict), replaced, or converted (.double())."""
+    torch.manual_seed(0)
+    conv = RelationalMaxConv(5, 4, num_relations=3, root_weight=root_weight, bias=bias)
+    x, edge_index, edge_type = random_graph()
+
+    def check(x):
+        expected = conv(x, edge_index, edge_type)  # autograd: fused on every call
+        with torch.no_grad():
+            torch.testing.assert_close(conv(x, edge_index, edge_type), expected, rtol=0, atol=0)
+        with torch.inference_mode():
+            torch.testing.assert_close(conv(x, edge_index, edge_type), expected, rtol=0, atol=0)
+
+    check(x)
+    assert conv.inference_weights()[0] is conv.inference_weights()[0]
+    optimizer = torch.optim.SGD(conv.parameters(), lr=0.1)
+    conv(x, edge_index, edge_type).sum().backward()
+    optimizer.step()
+    check(x)
+    other = RelationalMaxConv(5, 4, num_relations=3, root_weight=root_weight, bias=bias)
+    conv.load_state_dict(other.state_dict())
+    check(x)
+    conv.weight = torch.nn.Parameter(torch.randn(3, 5, 4))
+    check(x)
+    conv.double()
+    check(x.double())
