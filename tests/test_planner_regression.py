@@ -125,3 +125,21 @@ def test_gnn_scene_batch_is_the_padded_observation(data):
         assert (direct.num_graphs, direct.max_nodes, direct.edge_attr) == (1, padded.max_nodes, None)
         checked += 1
     assert checked > 10
+
+
+def test_gnn_act_many_answers_each_scene_as_act(data):
+    """Scenes of runs in lockstep, answered in one batch, get the answers of one ``act`` each
+    (to float tolerance: the batched matmuls run over more rows), an empty scene none."""
+    from envs.planners.gnn import GNNPlanner
+
+    path = Path(__file__).parents[1] / "envs" / "pretrained" / "coop_4way" / "best_model.safetensors"
+    planner = GNNPlanner(path)
+    scenes = [scene for k, (scene, _) in enumerate(_scenes(data, "fullthrottle+shield")) if k % 4 == 0]
+    empty = next(scene for scene, _ in _scenes(data, "fullthrottle+shield") if scene.num_vehicles == 0)
+    assert planner.act_many([]) == []
+    for start in range(0, len(scenes) - 3, 4):
+        group = [scenes[start], empty, *scenes[start + 1 : start + 4]]
+        answers = planner.act_many(group)
+        assert len(answers) == len(group)
+        for scene, answer in zip(group, answers, strict=True):
+            np.testing.assert_allclose(answer, planner.act(scene), rtol=1e-5, atol=1e-5)
