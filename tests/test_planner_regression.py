@@ -118,6 +118,11 @@ def test_gnn_scene_batch_is_the_padded_observation(data):
         obs = build_observation(scene, planner.space)
         expected = planner.model.predict(obs, deterministic=True)[0][: scene.num_vehicles]
         np.testing.assert_array_equal(planner.vertex_actions(scene), expected)
+        # With autograd the layers take their full aggregation layout (deduplicated, sorted):
+        # the inference path's forward-only layout gives the same actions, bit for bit.
+        obs_tensor = planner.model.obs_to_tensor(obs)[0]
+        with_grad = planner.model.unscale_action(planner.model.actor(obs_tensor).detach().numpy())
+        np.testing.assert_array_equal(with_grad[0, : scene.num_vehicles], expected)
         padded = padded_to_batch({key: torch.as_tensor(value) for key, value in obs.items()})
         direct = build_graph_batch(scene, planner.space)
         for name in ("x", "edge_index", "edge_type", "batch", "node_slot"):
