@@ -16,10 +16,15 @@ predictions per policy step (one per round of overrides) and ``periods`` the pol
 prediction covered. Each run is repeated ``--repeat`` times and every
 column reports its smallest value.
 
+``--lockstep`` adds a row ``gnn (lockstep xK)``: the ``K = --scenarios`` scenarios run side by side,
+one environment each, and the GNN answers all ``K`` scenes of a step in one forward pass
+(``GNNPlanner.act_many``); ``plan`` is then per scene, the planner's time over the ``K`` scenes.
+
 Usage::
 
     PYTHONPATH=$PWD python benchmarks/bench_planners.py                      # all planners
     PYTHONPATH=$PWD python benchmarks/bench_planners.py --planners aim aim+shield --scenarios 1
+    PYTHONPATH=$PWD python benchmarks/bench_planners.py --planners gnn --scenarios 4 --lockstep
 """
 
 from __future__ import annotations
@@ -136,6 +141,38 @@ def run(env, planner: Planner, timed: _Timed | None, scenarios, seed: int) -> di
     return out
 
 
+def run_lockstep(side: list, planner, scenarios, seed: int) -> dict[str, float]:
+    """Run the scenarios side by side (scenario ``k`` in ``side[k]``), the GNN answering the scenes
+    of every step at once; mean milliseconds per scene and policy step."""
+    bases = [env.unwrapped for env in side]
+    plan = step = snap = 0.0
+    steps = vehicles = 0
+    for k, (env, scenario) in enumerate(zip(side, scenarios)):
+        env.reset(seed=seed + k, options={"scenario": scenario})
+    running = list(range(len(side)))
+    while running:
+        tic = time.process_time()
+        scenes = [bases[k].scene() for k in running]
+        toc = time.process_time()
+        answers = planner.act_many(scenes)
+        tac = time.process_time()
+        done = []
+        for k, acc in zip(running, answers):
+            _, _, terminated, truncated, _ = side[k].step(bases[k].accelerations_to_action(np.asarray(acc, float)))
+            if terminated or truncated:
+                done.append(k)
+        snap += toc - tic
+        plan += tac - toc
+        step += time.process_time() - tac
+        steps += len(running)
+        vehicles += sum(scene.num_vehicles for scene in scenes)
+        running = [k for k in running if k not in done]
+    out = {"plan": plan, "step": step, "scene": snap}
+    out = {key: 1e3 * value / steps for key, value in out.items()}
+    out.update(vehicles=vehicles / steps, steps=steps)
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--planners", nargs="+", default=list(PLANNERS), help=f"any of {PLANNERS}")
@@ -144,6 +181,9 @@ def main() -> None:
     parser.add_argument("--duration", type=float, default=30.0, help="seconds of traffic per scenario")
     parser.add_argument("--seed", type=int, default=100)
     parser.add_argument("--repeat", type=int, default=2, help="runs per planner; each column reports its minimum")
+    parser.add_argument(
+        "--lockstep", action="store_true", help="add the GNN with the scenarios run side by side, batched"
+    )
     args = parser.parse_args()
     try:
         import torch
@@ -174,6 +214,17 @@ def main() -> None:
             f"{r['vehicles']:6.1f}{shield:>8}{interv}",
             flush=True,
         )
+    if args.lockstep:
+        side = [gym.make(args.env, **evaluation_env_kwargs(None)) for _ in scenarios]
+        runs = [run_lockstep(side, make_planner(GNN), scenarios, args.seed) for _ in range(args.repeat)]
+        r = {key: min(run[key] for run in runs) for key in runs[0]}
+        word = f"gnn (lockstep x{len(scenarios)})"
+        print(
+            f"{word:<22}{r['plan']:9.2f}{r['plan'] / sim:7.2f}{r['step']:9.2f}{r['scene']:9.2f}{r['vehicles']:6.1f}",
+            flush=True,
+        )
+        for other in side:
+            other.close()
     env.close()
 
 

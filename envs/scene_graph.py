@@ -34,8 +34,10 @@ for edge ``j -> i`` (message from ``j`` to ``i``):
 from __future__ import annotations
 
 import numpy as np
+import torch
 
 from envs.scene import Scene
+from sb3_graph.batching import GraphBatch
 from sb3_graph.spaces import GraphSpace
 
 # s in units of the default s_ref (25 m): the GNN's inputs stay of order 1.
@@ -185,3 +187,54 @@ def build_observation(
     edge_index, edge_type = edges(scene, max_edges=space.max_edges)
     edge_attr = edge_features(scene, edge_index, edge_feature_names, s_scale) if edge_feature_names else None
     return space.encode(x, edge_index, edge_type, edge_attr)
+
+
+def build_graph_batch(
+    scene: Scene,
+    space: GraphSpace,
+    s_scale: float = DEFAULT_S_SCALE,
+    d_max: float = 10.0,
+    min_distance: np.ndarray | None = None,
+    edge_feature_names: tuple[str, ...] | list[str] = (),
+) -> GraphBatch:
+    """The scene as a batch of one graph: what ``sb3_graph.batching.padded_to_batch`` makes of
+    :func:`build_observation`'s observation, built straight from the scene's arrays.
+
+    Inference on one scene (the GNN planner) then skips the padding to ``max_nodes`` and
+    ``max_edges``, the tensor conversion of the padded arrays and their unpadding: at
+    intersection sizes those cost more than the graph network itself. The vertices and edges
+    come from :func:`node_features` and :func:`edges`, so they cannot point outside the graph.
+
+    :param scene: the vehicles (at most ``space.max_nodes``)
+    :param space: the model's ``GraphSpace`` (as for :func:`build_observation`)
+    :param s_scale: factor applied to the ``s`` feature (and to the ``distance`` edge feature)
+    :param d_max: upper clip of the ``d`` feature
+    :param min_distance: precomputed :func:`min_mahalanobis`, optional
+    :param edge_feature_names: edge features among :data:`EDGE_FEATURES` (config ``edge_features``)
+    :return: the batch (CPU tensors; vertex ``i`` is vehicle ``i``, in action slot ``i``)
+    :raises ValueError: as :func:`build_observation` for a scene or names that the space cannot hold
+    """
+    if len(edge_feature_names) != space.edge_features:
+        raise ValueError(
+            f"build_graph_batch: the space has {space.edge_features} edge features, got names "
+            f"{list(edge_feature_names)} (config 'edge_features')"
+        )
+    n = scene.num_vehicles
+    if n > space.max_nodes:
+        raise ValueError(f"build_graph_batch: {n} vertices exceed max_nodes={space.max_nodes}")
+    x = node_features(scene, s_scale=s_scale, d_max=d_max, min_distance=min_distance)
+    edge_index, edge_type = edges(scene, max_edges=space.max_edges)
+    edge_attr = None
+    if edge_feature_names:
+        edge_attr = torch.from_numpy(edge_features(scene, edge_index, edge_feature_names, s_scale))
+    vertices = torch.arange(n)
+    return GraphBatch(
+        x=torch.from_numpy(x),
+        edge_index=torch.from_numpy(edge_index),
+        edge_type=torch.from_numpy(edge_type),
+        batch=torch.zeros(n, dtype=torch.long),
+        node_slot=vertices,
+        num_graphs=1,
+        max_nodes=space.max_nodes,
+        edge_attr=edge_attr,
+    )

@@ -116,6 +116,8 @@ class _RelationalMax(torch.autograd.Function):
     def backward(ctx: Any, grad_out: Tensor) -> tuple[Tensor | None, None, None, None, None]:  # type: ignore[override]
         messages, maxima = ctx.saved_tensors
         layout, (num_vertices, num_relations, stride) = ctx.layout, ctx.shape
+        if layout.source_order is None or layout.sorted_source is None or layout.num_nonempty is None:
+            raise RuntimeError("_RelationalMax: a forward-only layout (derived without autograd) in a backward pass")
         # Explicit channel counts, never -1: a batch without vertices has 0 elements to infer them from.
         channels = messages.size(1)
         grad_out = grad_out.reshape(num_vertices, channels)
@@ -143,15 +145,19 @@ class RelationalLayout(NamedTuple):
     :param sorted_source: ``source[source_order]``
     :param counts: ``(K * N * R,)`` edges per segment (mean only; else ``None``)
     :param num_nonempty: number of non-empty segments
+
+    A forward-only layout (max aggregation without autograd, see :func:`relational_layout`)
+    holds ``source`` and ``target`` only, every edge kept and unsorted; the other fields, which
+    only the backward pass reads, are ``None``.
     """
 
     source: Tensor
     target: Tensor
-    target_vertex: Tensor
-    source_order: Tensor
-    sorted_source: Tensor
+    target_vertex: Tensor | None
+    source_order: Tensor | None
+    sorted_source: Tensor | None
     counts: Tensor | None
-    num_nonempty: int
+    num_nonempty: int | None
 
 
 def check_edges(edge_index: Tensor, edge_type: Tensor, num_nodes: int, num_relations: int) -> None:
@@ -201,6 +207,16 @@ def _base_layout(
     )
 
 
+def _forward_layout(
+    edge_index: Tensor, edge_type: Tensor, num_nodes: int, num_relations: int, stride: int
+) -> RelationalLayout:
+    check_edges(edge_index, edge_type, num_nodes, num_relations)
+    edge_type = edge_type.long()
+    source = edge_index[0] * stride + edge_type
+    target = edge_index[1] * num_relations + edge_type
+    return RelationalLayout(source, target, None, None, None, None, None)
+
+
 def relational_layout(
     edge_index: Tensor,
     edge_type: Tensor,
@@ -220,11 +236,18 @@ def relational_layout(
     :param stride: rows of transformed features per vertex (``R``, or ``R + 1`` with the root term)
     :param aggr: ``max``, ``mean`` or ``sum``
     :param copies: number ``K`` of stacked networks
-    :return: the layout
+    :return: the layout; forward-only (see :class:`RelationalLayout`) for the maximum without
+        autograd: a repeated edge cannot change a maximum and the order of the edges does not
+        matter to it, so the deduplication, sorting and counting that the backward pass needs
+        (half of a small batch's layer time at inference) are skipped. It is cached apart from
+        the full layout of the same batch.
     """
-    extra = (num_nodes, num_relations, stride, aggr)
+    forward_only = aggr == "max" and not torch.is_grad_enabled()
+    extra = (num_nodes, num_relations, stride, aggr, forward_only)
 
     def base() -> RelationalLayout:
+        if forward_only:
+            return _forward_layout(edge_index, edge_type, num_nodes, num_relations, stride)
         return _base_layout(edge_index, edge_type, num_nodes, num_relations, stride, aggr)
 
     layout = derived_indices.get((edge_index, edge_type), ("relational", *extra, 1), base)
@@ -233,9 +256,15 @@ def relational_layout(
 
     def stacked() -> RelationalLayout:
         k = torch.arange(copies, device=edge_index.device).unsqueeze(-1)
+        source = (layout.source + k * (num_nodes * stride)).view(-1)
+        target = (layout.target + k * (num_nodes * num_relations)).view(-1)
+        if forward_only:
+            return RelationalLayout(source, target, None, None, None, None, None)
+        assert layout.target_vertex is not None and layout.source_order is not None
+        assert layout.sorted_source is not None and layout.num_nonempty is not None
         return RelationalLayout(
-            source=(layout.source + k * (num_nodes * stride)).view(-1),
-            target=(layout.target + k * (num_nodes * num_relations)).view(-1),
+            source=source,
+            target=target,
             target_vertex=(layout.target_vertex + k * num_nodes).view(-1),
             source_order=(layout.source_order + k * len(layout.source)).view(-1),
             sorted_source=(layout.sorted_source + k * (num_nodes * stride)).view(-1),
@@ -341,6 +370,29 @@ class RelationalMaxConv(MessagePassing):
         """
         return relational_conv([self], x, edge_index, edge_type, edge_attr)
 
+    def inference_weights(self) -> tuple[Tensor, Tensor | None]:
+        """The fused weight and bias of :func:`relational_conv` for this convolution alone, for
+        use without autograd (their values, not a graph to the parameters).
+
+        Fusing is ~10 small tensor operations, as costly as the layer's matmul at intersection
+        sizes (~13 vertices), so the result is kept until a parameter changes: another tensor
+        (assignment), an in-place update (version counter: optimizer steps, Polyak updates,
+        ``load_state_dict``) or new storage, type or device (``.to()``, ``.double()``).
+
+        :return: as :func:`_fused_weights` with ``stacked=False``
+        """
+        params = [self.weight] + ([self.root.weight] if self.root is not None else []) + [self.bias]
+        key = tuple(None if p is None else (id(p), p._version, p.data_ptr(), p.dtype, p.device) for p in params)
+        cached = self.__dict__.get("_inference_weights")
+        if cached is None or cached[0] != key:
+            # Plain tensors even when called in inference mode: usable in any later no-grad pass.
+            with torch.inference_mode(False), torch.no_grad():
+                fused = _fused_weights([self], stacked=False)
+            # The parameters themselves are held so that their ids stay theirs while cached.
+            cached = (key, fused, params)
+            self.__dict__["_inference_weights"] = cached
+        return cached[1]
+
     def message(self, x_j: Tensor) -> Tensor:
         return x_j
 
@@ -390,19 +442,10 @@ def relational_conv(
         return _edge_conv(first, x, edge_index, edge_type, edge_attr)
     r, out, has_root = first.num_relations, first.out_channels, first.root is not None
     stride = r + 1 if has_root else r
-    # Weights (K, in, R * out [+ out]): relation blocks, then the root block; the bias joins the
-    # root block, so the matmul adds it.
-    bias = torch.stack([c.bias for c in convs]).unsqueeze(1) if first.bias is not None else None
-    weight = torch.stack([c.weight for c in convs]).permute(0, 2, 1, 3).reshape(copies, -1, r * out)
-    if has_root:
-        weight = torch.cat((weight, torch.stack([c.root.weight for c in convs]).transpose(1, 2)), dim=2)
-        if bias is not None:
-            bias = torch.cat((bias.new_zeros(copies, 1, r * out), bias), dim=2)
-    # A plain matmul for one convolution: cheaper than a batched one, and 2-D results let the
-    # caller apply an in-place activation without autograd's view bookkeeping.
-    if not stacked:
-        weight = weight[0]
-        bias = None if bias is None else bias[0, 0]
+    if stacked or torch.is_grad_enabled():
+        weight, bias = _fused_weights(convs, stacked)
+    else:  # inference: the same tensors, fused once per change of the parameters
+        weight, bias = first.inference_weights()
     if bias is None or not has_root:
         transformed = torch.matmul(x, weight)
     else:
@@ -421,6 +464,31 @@ def relational_conv(
         if has_root:
             return result + transformed.view(*shape[:-1], stride, out)[..., r, :]
     return result + bias if bias is not None and not has_root else result
+
+
+def _fused_weights(convs: Sequence[RelationalMaxConv], stacked: bool) -> tuple[Tensor, Tensor | None]:
+    """Weight and bias of :func:`relational_conv`'s one matmul for ``K`` convolutions.
+
+    :param convs: ``K`` convolutions of the same shape, without edge features
+    :param stacked: ``(K, in, R * out [+ out])`` and ``(K, 1, ...)`` for a batched matmul; else
+        (``K = 1``) ``(in, ...)`` and ``(...,)``
+    :return: the weight (relation blocks, then the root block) and the bias (0 on the relation
+        blocks: it joins the root block, so the matmul adds it), ``None`` without bias
+    """
+    first = convs[0]
+    copies, r, out, has_root = len(convs), first.num_relations, first.out_channels, first.root is not None
+    bias = torch.stack([c.bias for c in convs]).unsqueeze(1) if first.bias is not None else None
+    weight = torch.stack([c.weight for c in convs]).permute(0, 2, 1, 3).reshape(copies, -1, r * out)
+    if has_root:
+        weight = torch.cat((weight, torch.stack([c.root.weight for c in convs]).transpose(1, 2)), dim=2)
+        if bias is not None:
+            bias = torch.cat((bias.new_zeros(copies, 1, r * out), bias), dim=2)
+    # A plain matmul for one convolution: cheaper than a batched one, and 2-D results let the
+    # caller apply an in-place activation without autograd's view bookkeeping.
+    if not stacked:
+        weight = weight[0]
+        bias = None if bias is None else bias[0, 0]
+    return weight, bias
 
 
 class EdgeLayout(NamedTuple):

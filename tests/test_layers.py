@@ -269,3 +269,55 @@ def test_stacked_convolutions_with_edge_features_equal_separate_ones():
     stacked = relational_conv(convs, inputs, edge_index, edge_type, edge_attr)
     separate = torch.stack([c(inputs[k], edge_index, edge_type, edge_attr) for k, c in enumerate(convs)])
     torch.testing.assert_close(stacked, separate)
+
+
+@pytest.mark.parametrize("root_weight, bias", [(True, True), (False, True), (True, False)])
+def test_inference_weights_follow_every_parameter_change(root_weight, bias):
+    """Without autograd the fused weights are kept between calls, and renewed when a parameter is
+    updated in place (optimizer step, load_state_dict), replaced, or converted (.double())."""
+    torch.manual_seed(0)
+    conv = RelationalMaxConv(5, 4, num_relations=3, root_weight=root_weight, bias=bias)
+    x, edge_index, edge_type = random_graph()
+
+    def check(x):
+        expected = conv(x, edge_index, edge_type)  # autograd: fused on every call
+        with torch.no_grad():
+            torch.testing.assert_close(conv(x, edge_index, edge_type), expected, rtol=0, atol=0)
+        with torch.inference_mode():
+            torch.testing.assert_close(conv(x, edge_index, edge_type), expected, rtol=0, atol=0)
+
+    check(x)
+    assert conv.inference_weights()[0] is conv.inference_weights()[0]
+    optimizer = torch.optim.SGD(conv.parameters(), lr=0.1)
+    conv(x, edge_index, edge_type).sum().backward()
+    optimizer.step()
+    check(x)
+    other = RelationalMaxConv(5, 4, num_relations=3, root_weight=root_weight, bias=bias)
+    conv.load_state_dict(other.state_dict())
+    check(x)
+    conv.weight = torch.nn.Parameter(torch.randn(3, 5, 4))
+    check(x)
+    conv.double()
+    check(x.double())
+
+
+@pytest.mark.parametrize("copies", [1, 2])
+def test_forward_only_layout_gives_the_same_maxima(copies):
+    """Without autograd the maximum runs on every edge, unsorted and with repeats (a forward-only
+    layout): the same values as with autograd, bit for bit; the two layouts of one batch are
+    cached apart, so a later pass with autograd gets the full one and its gradients."""
+    torch.manual_seed(0)
+    convs = [RelationalMaxConv(6, 5, num_relations=3) for _ in range(copies)]
+    x, edge_index, edge_type = tie_graph()
+    inputs = torch.randn(copies, x.size(0), 6) if copies > 1 else torch.randn(x.size(0), 6)
+    with torch.no_grad():
+        forward_only = relational_conv(convs, inputs, edge_index, edge_type)
+        light = relational_layout(edge_index, edge_type, x.size(0), 3, stride=4, copies=copies)
+    assert light.source_order is None and len(light.source) == copies * edge_index.size(1)
+    full = relational_layout(edge_index, edge_type, x.size(0), 3, stride=4, copies=copies)
+    assert full.source_order is not None and len(full.source) < copies * edge_index.size(1)
+    inputs.requires_grad_(True)
+    with_grad = relational_conv(convs, inputs, edge_index, edge_type)
+    torch.testing.assert_close(forward_only, with_grad.detach(), rtol=0, atol=0)
+    with_grad.sum().backward()  # the full layout: a gradient exists
+    assert inputs.grad is not None

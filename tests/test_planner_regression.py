@@ -141,3 +141,54 @@ def test_aim_settle_kernel_on_random_inputs():
         args = (int(rng.integers(1, 13)), pi, pj, row_i, row_j, enter, leave, 0.04, arrival, feasible, score,
                 fallback, follows, lead_row, 1.33)  # fmt: skip
         np.testing.assert_array_equal(settle(*args), settle_numpy(*args), err_msg=f"trial {trial}")
+
+
+def test_gnn_scene_batch_is_the_padded_observation(data):
+    """The GNN planner's batch built from the scene answers exactly as SB3's ``predict`` on the
+    padded observation (first ``n`` slots), and is the batch that SB3's observation unpads to."""
+    import torch
+
+    from envs.planners.gnn import GNNPlanner
+    from envs.scene_graph import build_graph_batch, build_observation
+    from sb3_graph.batching import padded_to_batch
+
+    path = Path(__file__).parents[1] / "envs" / "pretrained" / "coop_4way" / "best_model.safetensors"
+    planner = GNNPlanner(path)
+    assert planner._graph_actor
+    checked = 0
+    for k, (scene, _) in enumerate(_scenes(data, "fullthrottle+shield")):
+        if k % 3 or scene.num_vehicles == 0:
+            continue
+        obs = build_observation(scene, planner.space)
+        expected = planner.model.predict(obs, deterministic=True)[0][: scene.num_vehicles]
+        np.testing.assert_array_equal(planner.vertex_actions(scene), expected)
+        # With autograd the layers take their full aggregation layout (deduplicated, sorted):
+        # the inference path's forward-only layout gives the same actions, bit for bit.
+        obs_tensor = planner.model.obs_to_tensor(obs)[0]
+        with_grad = planner.model.unscale_action(planner.model.actor(obs_tensor).detach().numpy())
+        np.testing.assert_array_equal(with_grad[0, : scene.num_vehicles], expected)
+        padded = padded_to_batch({key: torch.as_tensor(value) for key, value in obs.items()})
+        direct = build_graph_batch(scene, planner.space)
+        for name in ("x", "edge_index", "edge_type", "batch", "node_slot"):
+            assert torch.equal(getattr(direct, name), getattr(padded, name)), name
+        assert (direct.num_graphs, direct.max_nodes, direct.edge_attr) == (1, padded.max_nodes, None)
+        checked += 1
+    assert checked > 10
+
+
+def test_gnn_act_many_answers_each_scene_as_act(data):
+    """Scenes of runs in lockstep, answered in one batch, get the answers of one ``act`` each
+    (to float tolerance: the batched matmuls run over more rows), an empty scene none."""
+    from envs.planners.gnn import GNNPlanner
+
+    path = Path(__file__).parents[1] / "envs" / "pretrained" / "coop_4way" / "best_model.safetensors"
+    planner = GNNPlanner(path)
+    scenes = [scene for k, (scene, _) in enumerate(_scenes(data, "fullthrottle+shield")) if k % 4 == 0]
+    empty = next(scene for scene, _ in _scenes(data, "fullthrottle+shield") if scene.num_vehicles == 0)
+    assert planner.act_many([]) == []
+    for start in range(0, len(scenes) - 3, 4):
+        group = [scenes[start], empty, *scenes[start + 1 : start + 4]]
+        answers = planner.act_many(group)
+        assert len(answers) == len(group)
+        for scene, answer in zip(group, answers, strict=True):
+            np.testing.assert_allclose(answer, planner.act(scene), rtol=1e-5, atol=1e-5)

@@ -11,6 +11,7 @@ from envs.scene_graph import (
     CROSSING,
     DEFAULT_S_SCALE,
     SAME_LANE,
+    build_graph_batch,
     build_observation,
     edges,
     mahalanobis_matrix,
@@ -170,6 +171,34 @@ def test_edge_features_distance_and_bearing():
     np.testing.assert_allclose(obs["edge_attr"][:1], attr)
     with pytest.raises(ValueError, match="2 edge features"):
         build_observation(scene, space)
+
+
+@pytest.mark.parametrize("names", [(), ("distance", "bearing")])
+def test_graph_batch_is_the_unpadded_observation(names):
+    """build_graph_batch equals padded_to_batch of build_observation, edge features and the
+    max_edges cut included, and refuses what the padded observation refuses."""
+    import torch
+
+    from sb3_graph.batching import padded_to_batch
+
+    sim = _sim()
+    lay = sim.layout
+    sn, we, ns = lay.route_id("south->north"), lay.route_id("west->east"), lay.route_id("north->south")
+    sim.add([sn, sn, we, ns], [5.0, 4.0, 6.0, 3.0], [0, 1, 2, 3], arc=[60.0, 40.0, 75.0, 50.0])
+    scene = sim.scene()
+    for max_edges in (16, 3):
+        space = GraphSpace(8, 3, max_edges, 2, edge_features=len(names))
+        obs = build_observation(scene, space, edge_feature_names=names)
+        padded = padded_to_batch({key: torch.as_tensor(value) for key, value in obs.items()})
+        direct = build_graph_batch(scene, space, edge_feature_names=names)
+        for field in ("x", "edge_index", "edge_type", "batch", "node_slot") + (("edge_attr",) if names else ()):
+            assert torch.equal(getattr(direct, field), getattr(padded, field)), field
+        assert (direct.num_graphs, direct.max_nodes) == (1, 8)
+        assert direct.edge_attr is None if not names else direct.edge_attr.shape == (direct.num_edges, 2)
+    with pytest.raises(ValueError, match="exceed max_nodes=3"):
+        build_graph_batch(scene, GraphSpace(3, 3, 16, 2, edge_features=len(names)), edge_feature_names=names)
+    with pytest.raises(ValueError, match="edge features"):
+        build_graph_batch(scene, GraphSpace(8, 3, 16, 2, edge_features=1), edge_feature_names=names)
 
 
 def test_env_option_edge_features():

@@ -8,6 +8,7 @@ Planner files are what people share, so they load without running code: a weight
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -46,6 +47,9 @@ class GNNPlanner(Planner):
     # Run inference without SB3's `predict` (see :meth:`predict`); set for loaded SB3 policies only,
     # so that subclasses around other models (a trial's model in training) keep their `predict`.
     _direct = False
+    # Feed the TD3 graph actor a batch built from the scene (see :meth:`vertex_actions`); set at
+    # load for a plain SB3 TD3 graph policy on a space without edge features.
+    _graph_actor = False
 
     def __init__(
         self, path: str | Path, name: str | None = None, device: str = "cpu", trust_files: bool = False
@@ -57,6 +61,7 @@ class GNNPlanner(Planner):
         self._direct = _plain_sb3_policy(self.model)
         if self._direct:
             self.model.set_training_mode(False)  # once, rather than in every `predict`
+        self._graph_actor = self._direct and _plain_graph_actor(self.model)
 
     def check_capacity(self, max_vehicles: int, source: str = "planner") -> None:
         """Refuse an environment whose scenes can hold more vehicles than the model's graphs.
@@ -80,9 +85,73 @@ class GNNPlanner(Planner):
         n = scene.num_vehicles
         if n == 0:
             return np.zeros(0)
-        obs = build_observation(scene, self.space)
-        action = np.asarray(self.predict(obs), dtype=float).reshape(-1)[:n]
+        if self._graph_actor:
+            action = np.asarray(self.vertex_actions(scene), dtype=float)
+        else:
+            obs = build_observation(scene, self.space)
+            action = np.asarray(self.predict(obs), dtype=float).reshape(-1)[:n]
         return np.clip(action * scene.a_max, scene.a_min, scene.a_max)
+
+    def act_many(self, scenes: Sequence[Scene]) -> list[np.ndarray]:
+        """:meth:`act` for the scenes of several runs stepped in lockstep: one forward pass of the
+        graph network over the batch of their graphs (the planner keeps no state between scenes).
+
+        At intersection sizes the network's cost is mostly per call, not per vertex, so a batch of
+        ``K`` scenes costs far less than ``K`` calls of :meth:`act`.
+
+        :param scenes: one scene per run
+        :return: each scene's accelerations, as :meth:`act` answers it (to float tolerance: the
+            matmuls run over more rows)
+        """
+        if not self._graph_actor:
+            return [self.act(scene) for scene in scenes]
+        import torch
+
+        from envs.scene_graph import build_graph_batch
+        from sb3_graph.batching import concat_graph_batches
+
+        answers = [np.zeros(0) for _ in scenes]
+        busy = [k for k, scene in enumerate(scenes) if scene.num_vehicles]
+        if not busy:
+            return answers
+        policy = self.model
+        graphs = concat_graph_batches([build_graph_batch(scenes[k], self.space) for k in busy])
+        with torch.inference_mode():  # the batch is made outside: see vertex_actions
+            vertex = policy.actor.vertex_actions(graphs).numpy()
+        actions = np.zeros((len(busy), *policy.action_space.shape), dtype=np.float32)
+        actions[graphs.batch.numpy(), graphs.node_slot.numpy()] = vertex
+        actions = policy.unscale_action(actions)
+        for row, k in enumerate(busy):
+            scene = scenes[k]
+            action = np.asarray(actions[row, : scene.num_vehicles], dtype=float)
+            answers[k] = np.clip(action * scene.a_max, scene.a_min, scene.a_max)
+        return answers
+
+    def vertex_actions(self, scene: Scene) -> np.ndarray:
+        """The TD3 graph actor's deterministic action of each vehicle: :meth:`predict` of
+        :func:`~envs.scene_graph.build_observation`'s observation, first ``n`` slots, without the
+        padded observation.
+
+        The graph batch comes straight from the scene (``build_graph_batch``): no padding to
+        ``max_nodes``, no SB3 tensor conversion, no unpadding, no padded action. The batch is made
+        outside inference mode: the layers cache its aggregation indices for both convolutions,
+        which they do not for inference tensors.
+
+        :param scene: at least one vehicle
+        :return: ``(n,)`` float32 actions in the action space's range
+        """
+        import torch
+
+        from envs.scene_graph import build_graph_batch
+
+        policy = self.model
+        graphs = build_graph_batch(scene, self.space)
+        with torch.inference_mode():
+            vertex = policy.actor.vertex_actions(graphs)
+        # SB3's unscaling over the whole action space: bounds of any shape, same arithmetic.
+        actions = np.zeros(policy.action_space.shape, dtype=np.float32)
+        actions[: scene.num_vehicles] = vertex.numpy()
+        return policy.unscale_action(actions)[: scene.num_vehicles]
 
     def predict(self, obs) -> np.ndarray:
         """The policy's deterministic action, as ``model.predict(obs, deterministic=True)[0]``.
@@ -120,6 +189,23 @@ def _plain_sb3_policy(model) -> bool:
     except ImportError:
         return False
     return isinstance(model, BasePolicy) and type(model).predict is BasePolicy.predict
+
+
+def _plain_graph_actor(model) -> bool:
+    """Whether ``model`` is a TD3 graph policy whose ``_predict`` is its actor's forward pass over
+    a space without edge features (what :meth:`GNNPlanner.vertex_actions` runs)."""
+    from stable_baselines3.td3.policies import TD3Policy
+
+    from sb3_graph.td3.policies import GraphActor
+
+    actor = getattr(model, "actor", None)
+    return (
+        isinstance(model, TD3Policy)
+        and type(model)._predict is TD3Policy._predict
+        and type(actor) is GraphActor
+        and model.squash_output
+        and getattr(model.observation_space, "edge_features", None) == 0
+    )
 
 
 def model_name(path: Path) -> str:
