@@ -251,3 +251,17 @@ def test_greedy_planner_behind_the_shield_does_not_deadlock_in_the_scenario_that
     assert shield.unresolved == 0
     assert not vehicles["collided"].any()
     assert vehicles["crossed"].max() > 95.0
+
+
+def test_the_next_vehicle_on_the_same_route_is_followed_where_lanes_split():
+    # inD, east approach: vehicle 1 (east->south) is vehicle 2's leader on the shared lane, but
+    # vehicle 0 ahead of both is on vehicle 2's route, beyond the split to the turn lane: vehicle 2
+    # must keep its gap to vehicle 0 as well (it led to unresolved steps on inD when missed).
+    sim = _sim([("east->north", 69.73, 4.0), ("east->south", 67.27, 6.0), ("east->north", 61.12, 6.0)], "inD")
+    scene = sim.scene()
+    assert scene.leader[2] == 1
+    plan = Shield(FullThrottle())._plan(scene)
+    pairs = {tuple(p) for p in plan.follow.tolist()}
+    assert (2, 0) in pairs
+    k = plan.follow.tolist().index([2, 0])
+    np.testing.assert_allclose(plan.follow_gap[k], 69.73 - 61.12 - 5.0)

@@ -257,11 +257,20 @@ class Shield(Planner):
         lead = scene.leader
         rows = np.flatnonzero(lead >= 0)
         second = rows[lead[lead[rows]] >= 0]
+        # And the next vehicle ahead on the same route, which the lane's leaders miss where lanes
+        # split: on inD a vehicle ahead on a turn lane is no one's leader until the split.
+        by_route = np.lexsort((arc, route))
+        same = route[by_route[:-1]] == route[by_route[1:]]
+        behind, ahead = by_route[:-1][same], by_route[1:][same]
         follow = np.stack(
-            [np.concatenate([rows, second]), np.concatenate([lead[rows], lead[lead[second]]])], axis=1
+            [np.concatenate([rows, second, behind]), np.concatenate([lead[rows], lead[lead[second]], ahead])], axis=1
         ).astype(_INT)
         follow_gap = np.concatenate(
-            [scene.gap[rows], scene.gap[second] + length[lead[second]] + scene.gap[lead[second]]]
+            [
+                scene.gap[rows],
+                scene.gap[second] + length[lead[second]] + scene.gap[lead[second]],
+                arc[ahead] - arc[behind] - (length[ahead] + length[behind]) / 2,
+            ]
         )
         # Conflicting routes: crossing pairs by zone occupancy, merging pairs by a common coordinate.
         i, j = np.nonzero(lay.conflicts[route[:, None], route[None, :]])
