@@ -178,15 +178,34 @@ def build_observation(
     :return: the observation dictionary
     :raises ValueError: when the names do not match the space's number of edge features
     """
+    arrays = _graph_arrays(scene, space, s_scale, d_max, min_distance, edge_feature_names, "build_observation")
+    return space.encode(*arrays)
+
+
+def _graph_arrays(
+    scene: Scene,
+    space: GraphSpace,
+    s_scale: float,
+    d_max: float,
+    min_distance: np.ndarray | None,
+    edge_feature_names: tuple[str, ...] | list[str],
+    caller: str,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+    """``(x, edge_index, edge_type, edge_attr)`` of a scene, unpadded (``edge_attr`` ``None`` without
+    edge features): what :func:`build_observation` pads and :func:`build_graph_batch` wraps.
+
+    :param caller: the public function's name, for the error message
+    :raises ValueError: when the names do not match the space's number of edge features
+    """
     if len(edge_feature_names) != space.edge_features:
         raise ValueError(
-            f"build_observation: the space has {space.edge_features} edge features, got names "
+            f"{caller}: the space has {space.edge_features} edge features, got names "
             f"{list(edge_feature_names)} (config 'edge_features')"
         )
     x = node_features(scene, s_scale=s_scale, d_max=d_max, min_distance=min_distance)
     edge_index, edge_type = edges(scene, max_edges=space.max_edges)
     edge_attr = edge_features(scene, edge_index, edge_feature_names, s_scale) if edge_feature_names else None
-    return space.encode(x, edge_index, edge_type, edge_attr)
+    return x, edge_index, edge_type, edge_attr
 
 
 def build_graph_batch(
@@ -214,27 +233,19 @@ def build_graph_batch(
     :return: the batch (CPU tensors; vertex ``i`` is vehicle ``i``, in action slot ``i``)
     :raises ValueError: as :func:`build_observation` for a scene or names that the space cannot hold
     """
-    if len(edge_feature_names) != space.edge_features:
-        raise ValueError(
-            f"build_graph_batch: the space has {space.edge_features} edge features, got names "
-            f"{list(edge_feature_names)} (config 'edge_features')"
-        )
     n = scene.num_vehicles
     if n > space.max_nodes:
         raise ValueError(f"build_graph_batch: {n} vertices exceed max_nodes={space.max_nodes}")
-    x = node_features(scene, s_scale=s_scale, d_max=d_max, min_distance=min_distance)
-    edge_index, edge_type = edges(scene, max_edges=space.max_edges)
-    edge_attr = None
-    if edge_feature_names:
-        edge_attr = torch.from_numpy(edge_features(scene, edge_index, edge_feature_names, s_scale))
-    vertices = torch.arange(n)
+    x, edge_index, edge_type, edge_attr = _graph_arrays(
+        scene, space, s_scale, d_max, min_distance, edge_feature_names, "build_graph_batch"
+    )
     return GraphBatch(
         x=torch.from_numpy(x),
         edge_index=torch.from_numpy(edge_index),
         edge_type=torch.from_numpy(edge_type),
         batch=torch.zeros(n, dtype=torch.long),
-        node_slot=vertices,
+        node_slot=torch.arange(n),
         num_graphs=1,
         max_nodes=space.max_nodes,
-        edge_attr=edge_attr,
+        edge_attr=None if edge_attr is None else torch.from_numpy(edge_attr),
     )

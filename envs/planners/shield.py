@@ -295,12 +295,10 @@ class Shield(Planner):
         # which brake everyone): it must not move (`stop`) while the other is in it, which may go on.
         # While `back` still moves, the pair counts as a conflict like any other.
         x0 = arc[cross]
-        through = (x0 - cross_lo) / (cross_hi - cross_lo)
-        ids = np.asarray(scene.vehicle_id)[cross]
-        back = (through[:, 1] < through[:, 0]) | ((through[:, 1] == through[:, 0]) & (ids[:, 1] > ids[:, 0]))
-        back, rows = back.astype(_INT), np.arange(len(back))
-        already = ((x0 > cross_lo) & (x0 < cross_hi)).all(axis=1) & (speed[cross[rows, back]] <= _STANDING)
-        stop = x0[rows, back] + _STOP_SLACK
+        back = _less_far_through(x0, cross_lo, cross_hi, np.asarray(scene.vehicle_id)[cross])[:, 1].astype(_INT)
+        pair = np.arange(len(back))
+        already = ((x0 > cross_lo) & (x0 < cross_hi)).all(axis=1) & (speed[cross[pair, back]] <= _STANDING)
+        stop = x0[pair, back] + _STOP_SLACK
         return _Plan(
             route=route,
             arc=arc,
@@ -327,11 +325,7 @@ class Shield(Planner):
     # ------------------------------------------------------------------ the fallback
     def committed(self, plan: _Plan, arc: np.ndarray, speed: np.ndarray, a_max: float) -> np.ndarray:
         """``(n,)`` bool: the vehicle can no longer stop before its first zone, or has cleared them all."""
-        # A standing vehicle outside the zones can always wait (the slack is for moving ones only).
-        cannot_stop = (arc > plan.hull_start) | (
-            (speed > _STANDING) & (arc + speed**2 / (2 * a_max) + _STOP_SLACK > plan.hull_start)
-        )
-        return cannot_stop | (arc > plan.hull_end)
+        return ~_can_stop_before(arc, speed, plan.hull_start, a_max) | (arc > plan.hull_end)
 
     def _fallback(self, scene: Scene, plan: _Plan, arc: np.ndarray, speed: np.ndarray) -> np.ndarray:
         """The fallback's accelerations in a state: brake, or proceed while keeping a safe gap.
@@ -388,15 +382,11 @@ class Shield(Planner):
         one zone at once (only after an unresolved step) are separated by holding the one less far
         through it.
         """
-        x, v = arc[plan.cross], speed[plan.cross]
-        lo, hi = plan.cross_lo, plan.cross_hi
-        can_stop = (x <= lo) & ((v <= _STANDING) | (x + v**2 / (2 * a_max) + _STOP_SLACK <= lo))
-        ids = plan.vehicle_id[plan.cross]
+        x, lo, hi = arc[plan.cross], plan.cross_lo, plan.cross_hi
+        can_stop = _can_stop_before(x, speed[plan.cross], lo, a_max)
         waits = go[plan.cross] & can_stop & ~can_stop[:, ::-1] & (x[:, ::-1] < hi[:, ::-1])
-        through = (x - lo) / (hi - lo)
         both = ((x > lo) & (x < hi)).all(axis=1)
-        behind = (through < through[:, ::-1]) | ((through == through[:, ::-1]) & (ids > ids[:, ::-1]))
-        return waits | (both[:, None] & behind)
+        return waits | (both[:, None] & _less_far_through(x, lo, hi, plan.vehicle_id[plan.cross]))
 
     def _leaders_now(self, plan: _Plan, arc: np.ndarray, go: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(follower, ahead, bumper gap)`` of every same-path pair, and of every pair on merging paths
@@ -569,6 +559,21 @@ class Shield(Planner):
             culprit = ah[stuck[fl] & ~free[fl] & free[ah]]
             blamed[culprit] = True
         return blamed
+
+
+def _can_stop_before(arc: np.ndarray, speed: np.ndarray, line: np.ndarray, a_max: float) -> np.ndarray:
+    """Whether braking at ``a_max`` stops a vehicle's centre at or before ``line`` (elementwise).
+
+    A standing vehicle outside the line can always wait (the slack is for moving ones only).
+    """
+    return (arc <= line) & ((speed <= _STANDING) | (arc + speed**2 / (2 * a_max) + _STOP_SLACK <= line))
+
+
+def _less_far_through(x: np.ndarray, lo: np.ndarray, hi: np.ndarray, ids: np.ndarray) -> np.ndarray:
+    """``(c, 2)`` bool over crossing pairs: this side is less far through the pair's zone than the
+    other (ties: the higher id), the one to hold when both are in it."""
+    through = (x - lo) / (hi - lo)
+    return (through < through[:, ::-1]) | ((through == through[:, ::-1]) & (ids > ids[:, ::-1]))
 
 
 def _blame_pairs(blamed: np.ndarray, free: np.ndarray, second: np.ndarray, first: np.ndarray) -> None:
