@@ -33,7 +33,9 @@ plan passed the check one step earlier: the shield always has a safe answer (rec
 feasibility), and once the prediction reaches a state where everyone stands or has left, the
 fallback keeps it that way. This holds as long as the relations between vehicles stay as predicted:
 new vehicles appear far upstream with a braking gap (the simulation's spawn check), and the
-leaders the fallback follows are those of the scene plus merges along the common exit lane. Should
+leaders the fallback follows are those of the scene, the next vehicle on the same route, the vehicle
+ahead on another route from the same spawn lane until the two centre lines part (lanes that split
+run side by side for a while: inD), and merges along the common exit lane. Should
 the fallback still fail, every vehicle brakes at ``a_max`` and the step is counted in
 :attr:`Shield.unresolved`.
 
@@ -54,6 +56,7 @@ from functools import partial
 
 import numpy as np
 
+from envs.layouts import CONFLICT_DISTANCE
 from envs.planners import _shield_kernel
 from envs.planners.base import Planner
 from envs.scene import Scene
@@ -262,6 +265,13 @@ class Shield(Planner):
         by_route = np.lexsort((arc, route))
         same = route[by_route[:-1]] == route[by_route[1:]]
         behind, ahead = by_route[:-1][same], by_route[1:][same]
+        # And a vehicle ahead on another route from the same spawn lane, until its rear has passed
+        # where the two centre lines part (inD: lanes that split run side by side for 18 m).
+        span = arc[None, :] - arc[:, None] - (length[:, None] + length[None, :]) / 2  # [behind, ahead]
+        d_behind, d_ahead = np.nonzero(
+            (span > 0) & (arc[None, :] - length[None, :] / 2 < _parting_arcs(lay)[route[None, :], route[:, None]])
+        )
+        behind, ahead = np.concatenate([behind, d_behind]), np.concatenate([ahead, d_ahead])
         follow = np.stack(
             [np.concatenate([rows, second, behind]), np.concatenate([lead[rows], lead[lead[second]], ahead])], axis=1
         ).astype(_INT)
@@ -623,6 +633,25 @@ def _zone_hull(layout) -> tuple[np.ndarray, np.ndarray]:
             last = np.where(np.isnan(ze), -np.inf, ze).max(axis=1)
         _HULLS[layout] = first, last
     return _HULLS[layout]
+
+
+_PARTING: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def _parting_arcs(layout) -> np.ndarray:
+    """``(R, R)`` arc on route ``r`` (row) from which its centre line stays at least the layout's
+    conflict distance from route ``q``'s (column), for two routes that leave the same spawn lane;
+    ``-inf`` for every other pair (their vehicles meet in conflict zones or on one lane)."""
+    if layout not in _PARTING:
+        num_r, ds = layout.num_routes, layout.ds
+        out = np.full((num_r, num_r), -np.inf)
+        spawn = layout.route_spawn_lane
+        for a, b in zip(*np.nonzero((spawn[:, None] == spawn[None, :]) & ~np.eye(num_r, dtype=bool))):
+            n = int(layout.length[a] / ds) + 1
+            near = np.linalg.norm(layout.xy[a, :n, None] - layout.xy[b, None], axis=-1).min(axis=1) < CONFLICT_DISTANCE
+            out[a, b] = (np.flatnonzero(near).max() + 1) * ds
+        _PARTING[layout] = out
+    return _PARTING[layout]
 
 
 _MERGING: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
