@@ -375,6 +375,55 @@ def describe_policy(policy, algorithm: str, source: dict[str, Any] | None = None
     )
 
 
+def resize_graph_policy(
+    loaded: LoadedPolicy, max_nodes: int | None, max_edges: int | None, source: str
+) -> LoadedPolicy:
+    """The same network on graphs of another size: the observation space's ``max_nodes`` and
+    ``max_edges`` and the per-vertex action space changed, the weights kept.
+
+    A graph network's weights do not depend on the number of vertices or edges (the GNN of
+    :class:`sb3_graph.GraphPolicy` shares them across vertices), so a policy trained on small graphs
+    (a tuning preset) can run on scenes with more vehicles. A policy whose weights do depend on it
+    (an MLP over the padded graph) does not fit and is refused.
+
+    :param loaded: the policy
+    :param max_nodes: the new ``max_nodes`` (``None``: unchanged)
+    :param max_edges: the new ``max_edges`` (``None``: unchanged)
+    :param source: the file's name, for errors
+    :raises PolicyFileError: not a graph policy with one action row per vertex, or weights that
+        depend on the graph's size
+    """
+    description = loaded.description
+    obs, act = dict(description.observation_space), dict(description.action_space)
+    if obs.get("type") != "GraphSpace":
+        raise PolicyFileError(f"{source}: --max-nodes/--max-edges need a GraphSpace observation, got {obs.get('type')}")
+    old_nodes = obs["max_nodes"]
+    obs["max_nodes"] = old_nodes if max_nodes is None else int(max_nodes)
+    obs["max_edges"] = obs["max_edges"] if max_edges is None else int(max_edges)
+    if max_nodes is not None:
+        if act.get("type") != "Box" or not act.get("shape") or act["shape"][0] != old_nodes:
+            raise PolicyFileError(f"{source}: --max-nodes needs an action space with one row per vertex "
+                                  f"(shape [{old_nodes}, ...]), got {act.get('shape')}")  # fmt: skip
+        for key in ("low", "high"):
+            if isinstance(act[key], list):  # one bound per vertex row: the rows must agree
+                rows = np.asarray(act[key], dtype=object).reshape(old_nodes, -1)
+                if not all((row == rows[0]).all() for row in rows):
+                    raise PolicyFileError(f"{source}: action_space.{key} differs between vertices")
+                act[key] = list(rows[0]) * obs["max_nodes"] if rows.shape[1] > 1 else rows[0, 0]
+        act["shape"] = [obs["max_nodes"], *act["shape"][1:]]
+    resized = PolicyDescription(
+        algorithm=description.algorithm,
+        policy_class=description.policy_class,
+        policy_kwargs=description.policy_kwargs,
+        observation_space=obs,
+        action_space=act,
+        source={**description.source, "resized_from": {"max_nodes": old_nodes,
+                                                        "max_edges": description.observation_space["max_edges"]}},
+    )  # fmt: skip
+    state = {key: value.detach().to("cpu") for key, value in loaded.policy.state_dict().items()}
+    return LoadedPolicy(build_policy(resized, state, source), resized)
+
+
 # ------------------------------------------------------------------ the weights-only format
 def save_policy(policy, path: str | Path, algorithm: str, source: dict[str, Any] | None = None) -> Path:
     """Write a policy in the weights-only format.

@@ -18,6 +18,7 @@ from sb3_graph.weights import (
     pickled_class_reference,
     read_sb3_zip,
     register_policy,
+    resize_graph_policy,
     save_policy,
     space_from_json,
     space_to_json,
@@ -100,3 +101,30 @@ def test_registry_is_per_algorithm(tmp_path, model):
     save_file(tensors, str(tmp_path / "q.safetensors"), {"sb3_graph": metadata["sb3_graph"].replace("TD3", "PPO")})
     with pytest.raises(PolicyFileError, match="PPO/GraphPolicy is not an allowed planner policy"):
         load_policy(tmp_path / "q.safetensors")
+
+
+def test_a_graph_policy_resized_to_larger_graphs_acts_the_same_on_the_same_graph(model, tmp_path):
+    small = load_policy(save_policy(model.policy, tmp_path / "p.safetensors", "TD3"))
+    large = resize_graph_policy(small, 20, 60, "p.safetensors")
+    assert (large.policy.observation_space.max_nodes, large.policy.observation_space.max_edges) == (20, 60)
+    assert large.policy.action_space.shape == (20,)
+    assert large.description.source["resized_from"] == {"max_nodes": 8, "max_edges": 25}
+    space = model.observation_space
+    for seed in range(3):
+        space.seed(seed)
+        obs = space.sample()
+        n = int(obs["node_mask"].sum())
+        wide = large.policy.observation_space.encode(*space.decode(obs))
+        act_small = small.policy.predict(obs, deterministic=True)[0][:n]
+        np.testing.assert_allclose(large.policy.predict(wide, deterministic=True)[0][:n], act_small, atol=1e-6)
+
+
+def test_export_resizes_on_request_and_names_a_bad_size(model, tmp_path, capsys):
+    from sb3_graph.cli import main
+
+    model.save(tmp_path / "m.zip")
+    out = tmp_path / "wide.safetensors"
+    assert main(["export", str(tmp_path / "m.zip"), str(out), "--max-nodes", "20", "--max-edges", "60"]) == 0
+    assert load_policy(out).policy.observation_space.max_nodes == 20
+    assert main(["export", str(tmp_path / "m.zip"), str(tmp_path / "bad.safetensors"), "--max-nodes", "0"]) == 2
+    assert "--max-nodes" in capsys.readouterr().err and not (tmp_path / "bad.safetensors").exists()

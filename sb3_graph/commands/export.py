@@ -3,13 +3,16 @@
 Example::
 
     sb3-graph export runs/4way/best_model.zip planners/4way.safetensors
+    sb3-graph export runs/tuned/seed_0/final_model.zip planners/tuned.safetensors --max-nodes 64 --max-edges 1024
 
 The output holds the policy's tensors (safetensors) and, in the file's metadata, the JSON that
 rebuilds it: algorithm, policy class (from an allow-list), policy keyword arguments, observation and
 action spaces (see :mod:`sb3_graph.weights`). ``sb3-graph evaluate --planner`` and ``sb3-graph ind
 --planner`` take it like a ``.zip``. The ``.zip`` is read without unpickling; a file that cannot be
 read that way is exported only with ``--trust-planner-files`` (SB3's full ``load``, which runs the
-pickles in the file: only for files you made yourself).
+pickles in the file: only for files you made yourself). ``--max-nodes``/``--max-edges`` write a
+graph policy for larger (or smaller) graphs with the same weights (see
+:func:`sb3_graph.weights.resize_graph_policy`).
 """
 
 from __future__ import annotations
@@ -29,12 +32,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="read the .zip with SB3's full load, which runs the pickled code inside it (your own files only)",
     )
+    parser.add_argument(
+        "--max-nodes",
+        type=int,
+        help="write the policy for graphs of up to this many vertices (>= 1; a GNN's weights do not depend on "
+        "it: a model trained on a small tuning preset then runs on the full environment)",
+    )
+    parser.add_argument("--max-edges", type=int, help="likewise for the graph's edges (>= 1)")
 
 
 def run(args: argparse.Namespace) -> int:
     """Run the command (see the module docstring)."""
     from sb3_graph.outputs import OutputError, write_file_atomically
-    from sb3_graph.weights import SUFFIX, PolicyFileError, load_policy, save_policy
+    from sb3_graph.weights import SUFFIX, PolicyFileError, load_policy, resize_graph_policy, save_policy
 
     model, out = Path(args.model), Path(args.out)
     if out.suffix != SUFFIX:
@@ -47,6 +57,14 @@ def run(args: argparse.Namespace) -> int:
         loaded = load_policy(model, device="cpu", trust=args.trust_planner_files)
     except PolicyFileError as error:
         raise UserError(f"MODEL: {error}") from None
+    for flag, value in (("--max-nodes", args.max_nodes), ("--max-edges", args.max_edges)):
+        if value is not None and value < 1:
+            raise UserError(f"{flag}: must be at least 1, got {value}")
+    if args.max_nodes is not None or args.max_edges is not None:
+        try:
+            loaded = resize_graph_policy(loaded, args.max_nodes, args.max_edges, str(model))
+        except PolicyFileError as error:
+            raise UserError(f"MODEL: {error}") from None
     description = loaded.description
     try:
         write_file_atomically(
