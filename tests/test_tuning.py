@@ -13,7 +13,7 @@ from optuna.trial import TrialState
 from sb3_graph.cli import main
 from sb3_graph.tuning.objectives import COLLISION, FLOW, STOP, check_metrics, make_objective
 from sb3_graph.tuning.pruners import evaluation_steps
-from sb3_graph.tuning.report import pruning_summary, trials_table
+from sb3_graph.tuning.report import first_rung_study, pruning_summary, trials_table, write_figures
 from sb3_graph.tuning.runner import TrialSettings, resolve_callable, run_trial
 from sb3_graph.tuning.search_space import (
     ALGO_SPACE,
@@ -384,3 +384,48 @@ def test_a_study_whose_new_trials_all_failed_exits_non_zero_with_the_first_error
     # a study with a good trial among the new ones exits 0
     path.write_text(yaml.safe_dump({TOY: dict(TINY)}))
     assert tune(path, "f", *args[:-1], "1") == 0
+
+
+def test_importances_at_the_first_rung_use_pruned_trials_too(tmp_path):
+    # Successive halving leaves one complete trial; the first rung (step 100) has all four.
+    study = optuna.create_study(direction="maximize")
+    dist = {"weight.idle": optuna.distributions.FloatDistribution(1e-3, 1e-1, log=True)}
+    for k, (idle, first) in enumerate([(0.001, 0.0), (0.01, 0.1), (0.05, 0.2), (0.09, 0.3)]):
+        state = TrialState.COMPLETE if k == 3 else TrialState.PRUNED
+        steps = {100: first, 300: first + 0.1} if k >= 2 else {100: first}
+        study.add_trial(
+            optuna.trial.create_trial(
+                params={"weight.idle": idle}, distributions=dist, intermediate_values=steps,
+                state=state, value=first + 0.2 if state == TrialState.COMPLETE else None,
+            )
+        )  # fmt: skip
+    rung = first_rung_study(study)
+    assert rung.user_attrs["step"] == 100
+    assert [t.value for t in rung.trials] == [0.0, 0.1, 0.2, 0.3]
+    figures = write_figures(study, tmp_path)
+    assert figures["param_importances"] == "needs at least 2 complete trials"
+    assert figures["param_importances_first_rung"] == "param_importances_first_rung.png"
+    assert (tmp_path / "param_importances_first_rung.png").stat().st_size > 0
+    assert first_rung_study(optuna.create_study()) is None
+
+
+def test_the_shipped_weight_study_holds_24_finished_trials_and_reports(tmp_path):
+    # examples/weight_study: the journal of the study of issue #15 and its report's zoo entry.
+    from pathlib import Path
+
+    folder = Path(__file__).resolve().parents[1] / "examples" / "weight_study"
+    storage = f"journal://{folder / 'weights_fair.log'}"
+    study = optuna.load_study(study_name="weights_fair", storage=optuna.storages.JournalStorage(
+        optuna.storages.journal.JournalFileBackend(str(folder / "weights_fair.log"))))  # fmt: skip
+    finished = [t for t in study.trials if t.state in (TrialState.COMPLETE, TrialState.PRUNED)]
+    assert len(finished) >= 24
+    assert max(max(t.intermediate_values, default=0) for t in finished) >= 100_000
+    assert (
+        main(["tune-report", "--study-name", "weights_fair", "--storage", storage, "--out", str(tmp_path / "r")]) == 0
+    )
+    shipped = yaml.safe_load((folder / "best_params.yml").read_text())
+    again = yaml.safe_load((tmp_path / "r" / "best_params.yml").read_text())
+    assert shipped == again
+    weights = shipped["CoopIntersection4Way-v0"]["env_kwargs"]["config"]["reward_weights"]
+    best = study.trials[0].params
+    assert weights == {k.split(".", 1)[1]: v for k, v in best.items()}

@@ -11,6 +11,8 @@ Files written by :func:`write_report` into the output folder:
 - ``trials.csv`` and ``trials.md``: one row per trial (state, values, parameters, metrics, reason).
 - ``pareto_front.csv`` (pareto): the trials of the front.
 - ``optimization_history.png``, ``param_importances.png`` (PED-ANOVA, Optuna's default),
+  ``param_importances_first_rung.png`` (flow: the importances for the validation flow at the first
+  evaluation, which pruned trials reached too; a pruned study may have too few complete trials),
   ``intermediate_values.png`` (flow), ``pareto_front.png`` (pareto: the 3-objective front;
   flow: flow rate against collision rate with the limit), made with ``optuna.visualization.matplotlib``.
 - ``report.md``: a summary that links all of the above and says why a figure is missing.
@@ -33,7 +35,13 @@ from sb3_graph.tuning.objectives import COLLISION, FLOW
 from sb3_graph.tuning.search_space import entry_with_params
 
 METRIC_COLUMNS = ("flow_rate", "collision_rate", "stop_ratio", "stop_ratio_major", "stop_ratio_minor", "delay_mean")
-FIGURES = ("optimization_history", "param_importances", "intermediate_values", "pareto_front")
+FIGURES = (
+    "optimization_history",
+    "param_importances",
+    "param_importances_first_rung",
+    "intermediate_values",
+    "pareto_front",
+)
 
 
 def _metrics(study: optuna.Study) -> list[str]:
@@ -171,6 +179,10 @@ def write_figures(study: optuna.Study, out: Path) -> dict[str, str]:
         "param_importances": lambda: ovm.plot_param_importances(study, target=target, target_name=target_name),
     }
     if single:
+        rung = first_rung_study(study)
+        plots["param_importances_first_rung"] = lambda: ovm.plot_param_importances(
+            rung, target_name=f"{target_name} at step {rung.user_attrs['step']:,}"
+        )
         plots["intermediate_values"] = lambda: ovm.plot_intermediate_values(study)
         plots["pareto_front"] = lambda: _flow_collision(study)
     else:
@@ -180,7 +192,10 @@ def write_figures(study: optuna.Study, out: Path) -> dict[str, str]:
         if name == "param_importances" and len(complete) < 2:
             results[name] = "needs at least 2 complete trials"
             continue
-        if not complete and name != "intermediate_values":
+        if name == "param_importances_first_rung" and rung is None:
+            results[name] = "no evaluation that two trials reached"
+            continue
+        if not complete and name not in ("intermediate_values", "param_importances_first_rung"):
             results[name] = "no complete trial"
             continue
         try:
@@ -192,6 +207,33 @@ def write_figures(study: optuna.Study, out: Path) -> dict[str, str]:
         except (ValueError, RuntimeError, ZeroDivisionError) as error:  # e.g. parameters without variance
             results[name] = f"not drawn: {error}"
     return results
+
+
+def first_rung_study(study: optuna.Study) -> optuna.Study | None:
+    """An in-memory study whose trials are the study's trials (complete and pruned) valued at their
+    first evaluation, the step most trials reported; ``None`` when fewer than two reached it.
+
+    Optuna's importance evaluators read complete trials only; under successive halving most trials
+    stop at the first rung, so this is where every trial has a comparable value.
+    """
+    trials = [
+        t
+        for t in study.get_trials(deepcopy=False)
+        if t.state in (TrialState.COMPLETE, TrialState.PRUNED) and t.intermediate_values and t.params
+    ]
+    steps = [min(t.intermediate_values) for t in trials]
+    if not steps:
+        return None
+    step = max(set(steps), key=lambda k: (steps.count(k), -k))
+    reached = [t for t in trials if step in t.intermediate_values]
+    if len(reached) < 2:
+        return None
+    rung = optuna.create_study(direction=study.direction)
+    rung.set_user_attr("step", int(step))
+    for t in reached:
+        value = t.intermediate_values[step]
+        rung.add_trial(optuna.trial.create_trial(params=t.params, distributions=t.distributions, value=value))
+    return rung
 
 
 def _flow_collision(study: optuna.Study):
