@@ -12,12 +12,18 @@ cd "$(dirname "$0")/.."
 STEPS=${1:-54000}
 SEEDS=(0 1 2)
 if [ $# -gt 1 ]; then SEEDS=("${@:2}"); fi
-PRESET='"duration": 20.0, "max_vehicles": 16, "max_edges": 192'
-# The study's best weights: examples/weight_study/best_params.yml (trial 0 of weights_fair).
-TUNED=$(python -c "
+# The tuning preset (envs.tuning.TUNING_PRESET), the study's best weights (examples/weight_study,
+# trial 0 of weights_fair) and the full environment's graph sizes, read where they are defined.
+read -r PRESET TUNED FULL_NODES FULL_EDGES < <(python -c "
 import json, yaml
+from envs.intersection_env import CoopIntersectionEnv
+from envs.tuning import TUNING_PRESET
 entry = yaml.safe_load(open('examples/weight_study/best_params.yml'))['CoopIntersection4Way-v0']
-print(json.dumps(entry['env_kwargs']['config']['reward_weights']))")
+full = CoopIntersectionEnv.default_config()
+print(json.dumps(TUNING_PRESET, separators=(',', ':'))[1:-1],
+      json.dumps(entry['env_kwargs']['config']['reward_weights'], separators=(',', ':')),
+      full['max_vehicles'], full['max_edges'])")
+[ -n "${FULL_EDGES:-}" ] || { echo "seed_comparison.sh: cannot read the preset and the weights" >&2; exit 1; }
 
 train() { # CFG SEED
   local kw="{\"config\": {$PRESET}}"
@@ -28,7 +34,12 @@ train() { # CFG SEED
 }
 
 for seed in "${SEEDS[@]}"; do
-  train table1 "$seed" & train tuned "$seed" & wait
+  train table1 "$seed" & first=$!
+  train tuned "$seed" & second=$!
+  status=0
+  wait "$first" || status=$?
+  wait "$second" || status=$?
+  [ "$status" -eq 0 ] || { echo "seed_comparison.sh: a training of seed $seed failed" >&2; exit "$status"; }
 done
 
 for cfg in table1 tuned; do
@@ -36,9 +47,9 @@ for cfg in table1 tuned; do
   for seed in "${SEEDS[@]}"; do
     wide="runs/cmp_wide/$cfg/seed_$seed"
     mkdir -p "$wide"
-    # trained on graphs of <= 16 vehicles; the same weights for the full environment's 64
+    # trained on the preset's small graphs; the same weights for the full environment's
     sb3-graph export "runs/cmp/$cfg/seed_$seed/final_model.zip" "$wide/final_model.safetensors" \
-      --max-nodes 64 --max-edges 1024
+      --max-nodes "$FULL_NODES" --max-edges "$FULL_EDGES"
     planners+=(--planner "$wide/final_model.safetensors" --planner "$wide/final_model.safetensors+shield")
   done
   sb3-graph evaluate "${planners[@]}" --scenarios 20 --duration 100 --seed 0 --jobs 2 --no-progress \

@@ -266,7 +266,7 @@ class Shield(Planner):
         same = route[by_route[:-1]] == route[by_route[1:]]
         behind, ahead = by_route[:-1][same], by_route[1:][same]
         # And a vehicle ahead on another route from the same spawn lane, until its rear has passed
-        # where the two centre lines part (inD: lanes that split run side by side for 18 m).
+        # where the two centre lines part (inD: lanes that split at 50 m run side by side to 69 m).
         span = arc[None, :] - arc[:, None] - (length[:, None] + length[None, :]) / 2  # [behind, ahead]
         d_behind, d_ahead = np.nonzero(
             (span > 0) & (arc[None, :] - length[None, :] / 2 < _parting_arcs(lay)[route[None, :], route[:, None]])

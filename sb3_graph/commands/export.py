@@ -47,6 +47,9 @@ def run(args: argparse.Namespace) -> int:
     from sb3_graph.weights import SUFFIX, PolicyFileError, load_policy, resize_graph_policy, save_policy
 
     model, out = Path(args.model), Path(args.out)
+    for flag, value in (("--max-nodes", args.max_nodes), ("--max-edges", args.max_edges)):
+        if value is not None and value < 1:
+            raise UserError(f"{flag}: must be at least 1, got {value}")
     if out.suffix != SUFFIX:
         raise UserError(f"OUT: {str(out)!r} must end with {SUFFIX}")
     if out.exists():
@@ -57,9 +60,6 @@ def run(args: argparse.Namespace) -> int:
         loaded = load_policy(model, device="cpu", trust=args.trust_planner_files)
     except PolicyFileError as error:
         raise UserError(f"MODEL: {error}") from None
-    for flag, value in (("--max-nodes", args.max_nodes), ("--max-edges", args.max_edges)):
-        if value is not None and value < 1:
-            raise UserError(f"{flag}: must be at least 1, got {value}")
     if args.max_nodes is not None or args.max_edges is not None:
         try:
             loaded = resize_graph_policy(loaded, args.max_nodes, args.max_edges, str(model))
