@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from envs.layouts import LAYOUT_NAMES
-from envs.rewards import REWARD_TERMS
+from envs.rewards import REWARD_PRESETS, REWARD_TERMS, preset_weights
 from envs.scene_graph import EDGE_FEATURES
 
 # What a collision does: "terminate" ends the episode (training, as in the paper); "remove" takes
@@ -27,6 +27,8 @@ COLLISION_HANDLING = ("terminate", "remove")
 MAX_VEHICLES = 1024
 MAX_EDGES = 1 << 18
 MAX_SIMULATION_FREQUENCY = 1000
+# Base planners of a residual policy (``residual_base``): the policy's action corrects their command.
+RESIDUAL_BASES = ("fullthrottle", "aim", "fifo", "pr")
 
 
 def _is_int(x: Any) -> bool:
@@ -124,7 +126,12 @@ RULES: dict[str, Rule] = {
     "s_scale": _positive(),
     "d_max": _positive(),
     "proximity_threshold": _positive(),
+    "reward": Rule(lambda x: x in REWARD_PRESETS, f"one of {sorted(REWARD_PRESETS)}"),
     "reward_weights": Rule(_weights, f"a dict mapping some of {REWARD_TERMS} to numbers"),
+    "shield": _bool(),
+    "spawn_queue": _int(0, MAX_VEHICLES),
+    "residual_base": Rule(lambda x: x is None or x in RESIDUAL_BASES, f"null or one of {RESIDUAL_BASES}"),
+    "residual_scale": Rule(lambda x: _is_number(x) and 0 < x <= 2, "a number in (0, 2]"),
     "collision_handling": Rule(lambda x: x in COLLISION_HANDLING, f"one of {COLLISION_HANDLING}"),
     # Rendering (highway-env's viewer reads these).
     "screen_width": _int(1),
@@ -182,9 +189,13 @@ def validate_config(config: dict[str, Any], defaults: dict[str, Any]) -> dict[st
             f"config key 'simulation_frequency' must be a multiple of 'policy_frequency', got "
             f"{merged['simulation_frequency']} and {merged['policy_frequency']}"
         )
-    # Only the given weights change; the other terms keep their default weight.
-    weights = dict(defaults.get("reward_weights", {}))
-    weights.update(merged.get("reward_weights", {}))
+    # Only the given weights change; the other terms keep their default weight (the preset's, when
+    # the call names a new preset).
+    if "reward" in config and config["reward"] != defaults.get("reward"):
+        weights = preset_weights(merged["reward"])
+    else:
+        weights = dict(defaults.get("reward_weights", {}))
+    weights.update(_plain(config.get("reward_weights", {})))
     merged["reward_weights"] = weights
     merged["initial_speed_range"] = [float(v) for v in merged["initial_speed_range"]]
     return merged

@@ -145,7 +145,9 @@ def run_episode(
     :param duration: simulated seconds to run (less if the environment ends the episode)
     :param seed: seed of the environment's reset and of the planner
     :return: ``(vehicle log, facts)``: the log holds every vehicle scheduled within the run (see
-        :mod:`envs.metrics`); facts ``duration`` (simulated seconds actually run),
+        :mod:`envs.metrics`); facts ``return`` (the sum of the environment's rewards),
+        ``return_<preset>`` (the same run's return under each reward preset of :mod:`envs.rewards`),
+        ``duration`` (simulated seconds actually run),
         ``steps``, ``terminated`` (the environment ended the episode, e.g. on a collision with
         ``collision_handling="terminate"``; the harness's own environments go on instead)
     """
@@ -158,19 +160,39 @@ def run_episode(
     start = float(scene.time)
     now = start
     steps = 0
+    total = 0.0
+    terms: dict[str, float] = {}
     terminated = truncated = False
     while now - start < duration - 1e-9 and not (terminated or truncated):
         log.observe(scene)
         acc = np.asarray(planner.act(scene), dtype=float)
-        _, _, terminated, truncated, info = env.step(base.accelerations_to_action(acc))
+        _, reward, terminated, truncated, info = env.step(base.accelerations_to_action(acc))
         log.record(info)
+        total += float(reward)
+        for key, value in info.get("reward_terms", {}).items():
+            terms[key] = terms.get(key, 0.0) + float(value)
         steps += 1
         scene = base.scene()
         now = float(info.get("time", scene.time))
     log.finish(scene)
-    facts = {"duration": now - start, "steps": steps, "terminated": bool(terminated)}
+    facts = {"duration": now - start, "steps": steps, "terminated": bool(terminated), "return": total}
+    facts.update(preset_returns(terms))
     facts["waiting_at_end"] = int(info.get("waiting", 0)) if steps else 0
     return log.frame(schedule=_schedule(scenario), end=now), facts
+
+
+def preset_returns(terms: dict[str, float]) -> dict[str, float]:
+    """A run's return under each reward preset, from the sums of its unweighted terms.
+
+    :param terms: ``term -> sum over the run's steps``
+    :return: ``{"return_<preset>": value}`` for every preset of :data:`envs.rewards.REWARD_PRESETS`
+    """
+    from envs.rewards import REWARD_PRESETS
+
+    return {
+        f"return_{name}": float(sum(weight * terms.get(key, 0.0) for key, weight in weights.items()))
+        for name, weights in REWARD_PRESETS.items()
+    }
 
 
 def _schedule(scenario: Any):
@@ -206,6 +228,7 @@ def run_job(job: Job, scenario: Any = None) -> tuple[dict[str, Any], pd.DataFram
             shield_vehicle_steps=planner.vehicle_steps,
             shield_unresolved=getattr(planner, "unresolved", 0),
         )
+    row.update({key: value for key, value in facts.items() if key.startswith("return")})
     row.update(
         baseline=is_baseline(job.planner),
         steps=facts["steps"],

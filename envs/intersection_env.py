@@ -47,7 +47,15 @@ from highway_env.vehicle.kinematics import Vehicle
 
 from envs.config import validate_config
 from envs.layouts import Layout, build_layout
-from envs.rewards import DEFAULT_PROXIMITY_THRESHOLD, DEFAULT_REWARD_WEIGHTS, reward_terms, weighted
+from envs.rewards import (
+    DEFAULT_PROXIMITY_THRESHOLD,
+    DEFAULT_REWARD,
+    DEFAULT_REWARD_WEIGHTS,
+    REWARD_TERMS,
+    reward_terms,
+    task_reward_terms,
+    weighted,
+)
 from envs.scene import MAJOR, MANEUVERS, Scene
 from envs.scene_graph import DEFAULT_S_SCALE, NODE_FEATURES, NUM_RELATIONS, build_observation, min_mahalanobis
 from envs.simulation import Simulation, StepEvents
@@ -107,7 +115,20 @@ class CoopIntersectionEnv(AbstractEnv):
           (default 0.04: units of 25 m)
         - ``d_max``: clip of the inverse Mahalanobis distance feature
         - ``proximity_threshold``: Mahalanobis distance where the proximity penalty starts
-        - ``reward_weights``: weights of the reward terms (paper's table)
+        - ``reward``: the reward preset, ``"task"`` (default: throughput, delay of every scheduled
+          vehicle, new stops, collisions, shield overrides) or ``"paper"`` (Table I); see :mod:`envs.rewards`
+        - ``reward_weights``: weights of the reward terms (default: the preset's); the given ones
+          replace the preset's
+        - ``shield``: train behind the safety shield (:class:`envs.planners.shield.Shield`): the
+          policy's proposal is checked as in evaluation, the executed command is applied, rewarded
+          and reported in ``info["executed_action"]`` (the graph algorithms store it in the replay
+          buffer), and the override enters the ``shield`` reward term
+        - ``spawn_queue``: training spawns that find their spawn point blocked wait, up to this many
+          per lane (0: dropped); waiting vehicles count in the delay term
+        - ``residual_base``: ``None``, or a planner (``"fullthrottle"``, ``"aim"``, ``"fifo"``,
+          ``"pr"``) whose command the action corrects: ``a = base + residual_scale * action * max_acceleration``
+          (a zero action reproduces the base planner)
+        - ``residual_scale``: largest correction as a fraction of ``max_acceleration``
         - ``collision_handling``: ``"terminate"`` (a collision ends the episode) or ``"remove"``
           (the vehicles involved leave the scene and the episode goes on)
         - rendering: ``screen_width``, ``screen_height``, ``scaling``, ``centering_position``,
@@ -137,7 +158,12 @@ class CoopIntersectionEnv(AbstractEnv):
             "s_scale": DEFAULT_S_SCALE,
             "d_max": 10.0,
             "proximity_threshold": DEFAULT_PROXIMITY_THRESHOLD,
+            "reward": DEFAULT_REWARD,
             "reward_weights": dict(DEFAULT_REWARD_WEIGHTS),
+            "shield": False,
+            "spawn_queue": 10,
+            "residual_base": None,
+            "residual_scale": 0.5,
             "collision_handling": "terminate",
             "screen_width": 600,
             "screen_height": 600,
@@ -228,6 +254,7 @@ class CoopIntersectionEnv(AbstractEnv):
                 length=cfg["vehicle_length"],
                 width=cfg["vehicle_width"],
                 min_gap=cfg["spawn_min_gap"],
+                queue=cfg["spawn_queue"],
             )
             self._duration = float(cfg["duration"])
             entered = self.traffic.spawn(
@@ -239,6 +266,11 @@ class CoopIntersectionEnv(AbstractEnv):
         self.controlled_vehicles = []
         self.road = None
         self._collided = set()
+        self._stopped_ids = _EMPTY_IDS
+        self._shield = self._make_shield() if cfg["shield"] else None
+        self._base = make_residual_base(cfg["residual_base"])
+        if self._base is not None:
+            self._base.reset(seed)
         self._scene = self.sim.scene()
         obs = build_observation(
             self._scene,
@@ -247,7 +279,7 @@ class CoopIntersectionEnv(AbstractEnv):
             d_max=cfg["d_max"],
             edge_feature_names=cfg["edge_features"],
         )
-        zero_terms = dict.fromkeys(DEFAULT_REWARD_WEIGHTS, 0.0)
+        zero_terms = dict.fromkeys(REWARD_TERMS, 0.0)
         info = self._make_info(StepEvents(), entered, zero_terms)
         if self.render_mode == "human":
             self.render()
@@ -271,7 +303,17 @@ class CoopIntersectionEnv(AbstractEnv):
         if not np.isfinite(action[:n]).all():
             slot = int(np.flatnonzero(~np.isfinite(action[:n]))[0])
             raise ValueError(f"action[{slot}] is {action[slot]} (vehicle slot {slot}): actions must be finite numbers")
-        acc = np.clip(action[:n], -1.0, 1.0) * cfg["max_acceleration"]
+        a_max = cfg["max_acceleration"]
+        correction = np.clip(action[:n], -1.0, 1.0)
+        base = None
+        if self._base is not None:
+            base = np.asarray(self._base.act(self._scene), dtype=float).reshape(n)
+            acc = np.clip(base + cfg["residual_scale"] * a_max * correction, -a_max, a_max)
+        else:
+            acc = correction * a_max
+        proposal = acc
+        if self._shield is not None:
+            acc = self._shield.check(self._scene, proposal)
         remove = cfg["collision_handling"] == "remove"
         events = sim.step(acc, remove_collided=remove)
         kept = events.kept
@@ -299,7 +341,26 @@ class CoopIntersectionEnv(AbstractEnv):
             collision=collision,
             proximity_threshold=cfg["proximity_threshold"],
         )
+        new_stops = np.setdiff1d(events.stopped, self._stopped_ids)
+        if new_stops.size:
+            self._stopped_ids = np.union1d(self._stopped_ids, new_stops)
+        terms.update(
+            task_reward_terms(
+                speed=scene.speed,
+                speed_limit=scene.speed_limit,
+                dt=1.0 / cfg["policy_frequency"],
+                waiting=self.traffic.waiting,
+                crossed=events.crossed.size,
+                new_stops=new_stops.size,
+                shield_gap=float(np.abs(proposal - acc).sum()) / a_max,
+            )
+        )
         info = self._make_info(events, entered, terms)
+        if self._shield is not None:
+            overridden = self._shield.last_overridden
+            info["shield_overridden"] = int(overridden.sum())
+            info["shield_intervention_rate"] = float(overridden.mean()) if n else 0.0
+            info["executed_action"] = self._executed_action(acc, base)
         self._collided = set(info["collided"].tolist())
         reward = float(sum(info["reward_weighted"].values()))
         terminated = bool(collision) and not remove
@@ -335,6 +396,27 @@ class CoopIntersectionEnv(AbstractEnv):
             "waiting": int(self.traffic.waiting),
             "collided": np.unique(events.collisions) if events.collisions.size else _EMPTY_IDS,
         }
+
+    def _make_shield(self):
+        from envs.planners.shield import Shield
+
+        cfg = self.config
+        return Shield(
+            _Proposal(),
+            simulation_frequency=cfg["simulation_frequency"],
+            max_speed=cfg["max_speed"],
+            governor_deceleration=cfg["governor_deceleration"],
+        )
+
+    def _executed_action(self, acc: np.ndarray, base: np.ndarray | None) -> np.ndarray:
+        """The padded action that would have commanded ``acc`` (clipped to the action bounds)."""
+        a_max = self.config["max_acceleration"]
+        action = np.zeros(self.action_space.shape, np.float32)
+        if base is None:
+            action[: acc.size] = np.clip(acc / a_max, -1.0, 1.0)
+        else:
+            action[: acc.size] = np.clip((acc - base) / (self.config["residual_scale"] * a_max), -1.0, 1.0)
+        return action
 
     # ------------------------------------------------------------------ public helpers
     def scene(self) -> Scene:
@@ -425,6 +507,34 @@ class CoopIntersectionEnv(AbstractEnv):
             vehicles.append(v)
         self.road.vehicles = vehicles
         return super().render()
+
+
+class _Proposal:
+    """Stands for the policy inside the training shield, which checks proposals with ``Shield.check``."""
+
+    name = "policy"
+
+    def reset(self, seed: int | None = None) -> None:
+        pass
+
+    def act(self, scene: Scene) -> np.ndarray:
+        raise RuntimeError("the training shield checks the policy's proposals; it asks no planner")
+
+
+def make_residual_base(name: str | None):
+    """The base planner of a residual policy (``residual_base``), or ``None``.
+
+    :param name: ``None`` or one of :data:`envs.config.RESIDUAL_BASES`
+    """
+    if name is None:
+        return None
+    from envs.planners import make_planner
+
+    if name == "fullthrottle":
+        from envs.planners.adversarial import FullThrottle
+
+        return FullThrottle()
+    return make_planner(name)
 
 
 class CoopIntersection4WayEnv(CoopIntersectionEnv):

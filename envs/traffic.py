@@ -355,6 +355,10 @@ class TrainingTraffic:
     :param length: vehicle length [m]
     :param width: vehicle width [m]
     :param min_gap: smallest bumper gap to the vehicle ahead at spawning [m]
+    :param queue: largest number of vehicles that wait per spawn lane when their spawn point is not
+        free (0: a blocked spawn is dropped, as before). Waiting vehicles appear once there is
+        space, and count in :attr:`waiting`, so that a reward can charge the delay of a planner
+        that keeps the entry blocked (evaluation scenarios queue in the same way).
     """
 
     def __init__(
@@ -365,8 +369,11 @@ class TrainingTraffic:
         length: float = 5.0,
         width: float = 2.0,
         min_gap: float = 5.0,
+        queue: int = 0,
     ) -> None:
         self.layout = layout
+        self.queue_limit = int(queue)
+        self.queue = np.zeros(len(layout.spawn_lanes), np.int64)
         self.spawn_probability = float(spawn_probability)
         self.speed_range = speed_range
         self.length = float(length)
@@ -381,10 +388,12 @@ class TrainingTraffic:
 
     def reset(self) -> None:
         self.next_id = 0
+        self.queue[:] = 0
 
     @property
     def waiting(self) -> int:
-        return 0
+        """Vehicles waiting for space at their spawn points."""
+        return int(self.queue.sum())
 
     def spawn(
         self, sim: Simulation, rng: np.random.Generator, probability: float | None = None
@@ -407,11 +416,16 @@ class TrainingTraffic:
         counts = self._counts
         route = self._by_lane[self._first + np.minimum((pick * counts).astype(np.int64), counts - 1)]
         speed = frac * lay.speed_limit[route, 0]
+        if self.queue_limit:
+            self.queue = np.minimum(self.queue + draw, self.queue_limit)
+            draw = self.queue > 0
         lanes = np.flatnonzero(draw)
         if lanes.size == 0:
             return np.zeros(0, np.int64)
         free = sim.spawn_free(lanes, speed[lanes], np.full(lanes.size, self.length), self.min_gap)
         lanes = lanes[free][: max(sim.max_vehicles - sim.num_vehicles, 0)]
+        if self.queue_limit:
+            self.queue[lanes] -= 1
         ids = np.arange(self.next_id, self.next_id + lanes.size, dtype=np.int64)
         self.next_id += lanes.size
         if lanes.size:

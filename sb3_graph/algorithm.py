@@ -8,6 +8,10 @@
   ``set_env`` (:func:`check_vec_normalize`), not deep inside training.
 - For the maximum-entropy algorithms (SAC, TQC, CrossQ), an entropy target that scales with the
   number of real vertices (:class:`VertexEntropyMixin`).
+- Off-policy: an environment that replaces the agent's action before applying it (a safety
+  shield) reports what it applied in ``info["executed_action"]`` (in the action space); that
+  action, not the proposal, is stored in the replay buffer, so the critics learn the value of
+  what happened (:data:`EXECUTED_ACTION`).
 
 Training itself is SB3's (or sb3-contrib's) own ``train``.
 """
@@ -22,6 +26,9 @@ from gymnasium import spaces
 from stable_baselines3.common.vec_env import VecEnv, VecNormalize
 
 from sb3_graph.spaces import EDGE_ATTR, GRAPH_KEYS, GraphSpace
+
+#: ``info`` key of an environment's applied action when it differs from the agent's (a shield).
+EXECUTED_ACTION = "executed_action"
 
 
 def is_graph_space(space: spaces.Space) -> bool:
@@ -93,6 +100,19 @@ class GraphAlgorithmMixin:
     def set_env(self, env: Any, force_reset: bool = True) -> None:
         super().set_env(env, force_reset)  # type: ignore[misc]
         check_vec_normalize(self._vec_normalize_env, self.observation_space)  # type: ignore[attr-defined]
+
+    def _store_transition(self, replay_buffer: Any, buffer_action: np.ndarray, *args: Any, **kwargs: Any) -> None:
+        """SB3's ``_store_transition`` with each environment's ``info["executed_action"]`` (when it
+        reports one) in place of the proposed action (off-policy algorithms only)."""
+        infos = kwargs.get("infos", args[-1] if args else ())
+        executed = [k for k, info in enumerate(infos) if EXECUTED_ACTION in info]
+        if executed:
+            buffer_action = np.array(buffer_action, copy=True)
+            for k in executed:  # one per environment of the VecEnv
+                action = np.asarray(infos[k][EXECUTED_ACTION], dtype=buffer_action.dtype)
+                action = action.reshape(buffer_action[k].shape)
+                buffer_action[k] = self.policy.scale_action(action)  # type: ignore[attr-defined]
+        super()._store_transition(replay_buffer, buffer_action, *args, **kwargs)  # type: ignore[misc]
 
 
 class VertexEntropyMixin:

@@ -126,3 +126,58 @@ class InfoLoggerCallback(BaseCallback):
                 if key in info:
                     self._record(key, info[key])
         return True
+
+
+class ActorWarmupCallback(BaseCallback):
+    """Start from a zero action and hold the actor still while the critics learn its value.
+
+    For a residual policy (the action corrects a base planner, zero reproduces it) the first
+    policy should be the base planner, and the first actor updates should follow a critic that
+    has seen the base planner's data, not a random one. At the start of training this callback
+    sets the actor's output layer to zero (``zero_output``; the actor's ``head``, and the target
+    actor's, so ``tanh(0) = 0`` on every vertex) and freezes the actor's parameters; after
+    ``steps`` environment steps it unfreezes them. The critics train all along (TD3's actor loss
+    still runs, but moves no frozen parameter).
+
+    :param steps: environment steps (``num_timesteps``) before the actor learns
+    :param zero_output: set the actor's output layer to zero at the start
+    :param verbose: verbosity level
+    """
+
+    def __init__(self, steps: int, zero_output: bool = True, verbose: int = 0) -> None:
+        super().__init__(verbose)
+        if not isinstance(steps, numbers.Integral) or isinstance(steps, bool) or steps < 0:
+            raise ValueError(f"steps must be an integer >= 0, got {steps!r}")
+        self.steps = int(steps)
+        self.zero_output = bool(zero_output)
+        self.frozen = False
+
+    def _actors(self) -> list[Any]:
+        policy = self.model.policy
+        actors = [getattr(policy, name, None) for name in ("actor", "actor_target")]
+        actors = [a for a in actors if a is not None]
+        if not actors or not all(hasattr(a, "head") for a in actors):
+            raise ValueError("ActorWarmupCallback needs a policy whose actor has a `head` layer (the graph policies)")
+        return actors
+
+    def _set_frozen(self, frozen: bool) -> None:
+        for parameter in self.model.policy.actor.parameters():
+            parameter.requires_grad_(not frozen)
+        self.frozen = frozen
+
+    def _on_training_start(self) -> None:
+        import torch as th
+
+        actors = self._actors()
+        if self.zero_output and self.model.num_timesteps == 0:
+            with th.no_grad():
+                for actor in actors:
+                    for parameter in actor.head.parameters():
+                        parameter.zero_()
+        if self.model.num_timesteps < self.steps:
+            self._set_frozen(True)
+
+    def _on_step(self) -> bool:
+        if self.frozen and self.model.num_timesteps >= self.steps:
+            self._set_frozen(False)
+        return True

@@ -21,6 +21,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "tune-report": ("sb3_graph.tuning.report_command", "write the report of an Optuna study"),
     "aggregate": ("envs.commands.aggregate", "IQM and 95 % intervals of evaluate reports over seeds and scenarios"),
     "ind": ("envs.commands.ind", "replay inD recordings through the planners"),
+    "reward-check": ("envs.commands.reward_check", "rank correlation of each reward's returns with flow and delay"),
     "export": ("sb3_graph.commands.export", "write a model's policy as a weights-only file that cannot run code"),
 }
 

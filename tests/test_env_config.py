@@ -10,7 +10,9 @@ from envs.intersection_env import CoopIntersection3WayEnv, CoopIntersectionEnv
 
 
 def test_defaults_and_merge():
-    env = gym.make("CoopIntersection3Way-v0", config={"max_vehicles": 10, "reward_weights": {"idle": 0.5}})
+    env = gym.make(
+        "CoopIntersection3Way-v0", config={"max_vehicles": 10, "reward": "paper", "reward_weights": {"idle": 0.5}}
+    )
     cfg = env.unwrapped.config
     assert cfg["layout"] == "3way" and cfg["max_vehicles"] == 10
     assert cfg["reward_weights"] == {

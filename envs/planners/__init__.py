@@ -7,6 +7,8 @@ weights-only ``.safetensors`` policy file written by ``sb3-graph export``, or a 
 both loaded without running code from the file, see :mod:`envs.planners.gnn`), or a user class
 ``path/to/file.py:ClassName`` / ``package.module:ClassName`` (:mod:`envs.planners.loading`). The
 suffix ``+shield`` wraps any of them in the safety shield (:class:`envs.planners.shield.Shield`).
+A policy file trained as a residual policy (its header's planner configuration names a
+``residual_base``) is built as :class:`envs.planners.residual.ResidualPlanner` around that base.
 """
 
 from __future__ import annotations
@@ -83,9 +85,16 @@ def make_planner(spec: str, trust_files: bool = False) -> Planner:
         return BASELINES[key]()
     if is_class_spec(key):
         return make_class_planner(key)
+    from envs.intersection_env import make_residual_base
     from envs.planners.gnn import GNNPlanner
+    from envs.planners.residual import ResidualPlanner, check_planner_config
 
-    return GNNPlanner(key, trust_files=trust_files)
+    planner = GNNPlanner(key, trust_files=trust_files)
+    config = check_planner_config(planner.planner_config, key)
+    if not config:
+        return planner
+    base = make_residual_base(config["residual_base"])
+    return ResidualPlanner(base, planner, config["residual_scale"], name=planner.name)
 
 
 def planner_name(spec: str) -> str:

@@ -56,7 +56,12 @@ class GNNPlanner(Planner):
     ) -> None:
         self.path = Path(path)
         super().__init__(name or model_name(self.path))
-        self.model = load_model(self.path, device, trust_files=trust_files)
+        from sb3_graph.weights import load_policy
+
+        loaded = load_policy(self.path, device=device, trust=trust_files)
+        self.model = loaded.policy
+        # What the environment did around the policy in training (a residual base), from the file's header.
+        self.planner_config = dict(loaded.description.source.get("planner") or {})
         self.space = self.model.observation_space
         self._direct = _plain_sb3_policy(self.model)
         if self._direct:

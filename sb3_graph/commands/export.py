@@ -39,6 +39,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "it: a model trained on a small tuning preset then runs on the full environment)",
     )
     parser.add_argument("--max-edges", type=int, help="likewise for the graph's edges (>= 1)")
+    parser.add_argument(
+        "--planner-config",
+        metavar="JSON",
+        help="a JSON object stored as the file's planner configuration (header source.planner), read by the "
+        "domain that runs the policy, e.g. '{\"residual_base\": \"fullthrottle\", \"residual_scale\": 2.0}' "
+        "for a policy trained as a correction of a base planner",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -66,10 +73,21 @@ def run(args: argparse.Namespace) -> int:
         except PolicyFileError as error:
             raise UserError(f"MODEL: {error}") from None
     description = loaded.description
+    source = dict(description.source)
+    if args.planner_config is not None:
+        import json
+
+        try:
+            config = json.loads(args.planner_config)
+        except ValueError as error:
+            raise UserError(f"--planner-config: not JSON ({error})") from None
+        if not isinstance(config, dict):
+            raise UserError(f"--planner-config: must be a JSON object, got {args.planner_config!r}")
+        source["planner"] = config
     try:
         write_file_atomically(
             out,
-            lambda path: save_policy(loaded.policy, path, description.algorithm, description.source),
+            lambda path: save_policy(loaded.policy, path, description.algorithm, source),
             flag="OUT",
         )
     except (OutputError, PolicyFileError) as error:

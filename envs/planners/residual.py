@@ -1,0 +1,76 @@
+"""A residual planner: a base planner's command plus a learned, bounded correction.
+
+``a_i = clip(base_i + scale * correction_i, a_min, a_max)``, where ``correction_i`` is the learned
+planner's own command (its action times ``a_max``). A zero correction reproduces the base planner
+exactly, so a residual policy starts where its base planner is and learns only what improves on it.
+It is what the environment applies with ``residual_base`` and ``residual_scale`` in training
+(:class:`envs.intersection_env.CoopIntersectionEnv`); a policy file trained that way carries both
+in its header (``sb3-graph export --planner-config``), and ``make_planner`` wraps it in this class.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from envs.planners.base import Planner
+from envs.scene import Scene
+
+#: Keys of a policy file's planner configuration (``source["planner"]`` of its header).
+PLANNER_CONFIG_KEYS = ("residual_base", "residual_scale")
+
+
+class ResidualPlanner(Planner):
+    """``base + scale * correction``, clipped to the scene's bounds (see the module docstring).
+
+    :param base: the planner whose command is corrected
+    :param correction: the learned planner (its command in m/s^2 is the correction before scaling)
+    :param scale: the correction's weight, in ``(0, 2]`` (as ``residual_scale`` in training)
+    :param name: report name (default: ``<correction>@<base>``)
+    """
+
+    def __init__(self, base: Planner, correction: Planner, scale: float, name: str | None = None) -> None:
+        if not (isinstance(scale, (int, float)) and math.isfinite(scale) and 0 < scale <= 2):
+            raise ValueError(f"residual_scale must be a number in (0, 2], got {scale!r}")
+        super().__init__(name or f"{correction.name}@{base.name}")
+        self.base = base
+        self.correction = correction
+        self.scale = float(scale)
+
+    def reset(self, seed: int | None = None) -> None:
+        self.base.reset(seed)
+        self.correction.reset(seed)
+
+    def act(self, scene: Scene) -> np.ndarray:
+        n = scene.num_vehicles
+        base = np.asarray(self.base.act(scene), dtype=float).reshape(n)
+        correction = np.asarray(self.correction.act(scene), dtype=float).reshape(n)
+        return np.clip(base + self.scale * correction, scene.a_min, scene.a_max)
+
+
+def check_planner_config(config: Any, source: str) -> dict[str, Any]:
+    """A policy file's planner configuration, checked.
+
+    :param config: ``{}`` or ``{"residual_base": NAME, "residual_scale": X}``
+    :param source: what to name in errors (the file)
+    :raises ValueError: an unknown key, an unknown base or a scale outside ``(0, 2]``
+    """
+    from envs.config import RESIDUAL_BASES
+
+    if config is None:
+        return {}
+    if not isinstance(config, dict) or set(config) - set(PLANNER_CONFIG_KEYS):
+        raise ValueError(
+            f"{source}: planner config must be a dict with keys among {list(PLANNER_CONFIG_KEYS)}, got {config!r}"
+        )
+    base = config.get("residual_base")
+    if base is None:
+        return {}
+    if base not in RESIDUAL_BASES:
+        raise ValueError(f"{source}: planner config residual_base must be one of {RESIDUAL_BASES}, got {base!r}")
+    scale = config.get("residual_scale", 0.5)
+    if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not (math.isfinite(scale) and 0 < scale <= 2):
+        raise ValueError(f"{source}: planner config residual_scale must be a number in (0, 2], got {scale!r}")
+    return {"residual_base": base, "residual_scale": float(scale)}
