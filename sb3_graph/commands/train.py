@@ -46,18 +46,9 @@ import yaml
 
 from sb3_graph.cli import UserError
 from sb3_graph.commands.arguments import json_object
+from sb3_graph.registry import ALGORITHMS
 
 CHECKPOINT_PATTERN = re.compile(r"model_(\d+)_steps\.zip$")
-#: --algo names (rl-zoo3's) -> class names in sb3_graph
-ALGORITHMS = {
-    "td3": "TD3",
-    "ddpg": "DDPG",
-    "sac": "SAC",
-    "tqc": "TQC",
-    "crossq": "CrossQ",
-    "ppo": "PPO",
-    "a2c": "A2C",
-}
 VALIDATION_SEED_OFFSET = 10_000
 
 
@@ -339,7 +330,7 @@ def _stored_entry(config_path: Path, n_timesteps: int | None) -> dict[str, Any]:
 
 
 def _algorithm(args: argparse.Namespace):
-    return getattr(importlib.import_module("sb3_graph"), ALGORITHMS[args.algo])
+    return ALGORITHMS[args.algo].load_class()
 
 
 def _load_weights(model, path: str) -> None:
@@ -566,7 +557,7 @@ def _run_one(args: argparse.Namespace) -> int:
                 callback=callbacks,
                 reset_num_timesteps=checkpoint is None,
                 progress_bar=not args.no_progress,
-                tb_log_name=ALGORITHMS[args.algo],
+                tb_log_name=ALGORITHMS[args.algo].name,
             )
     except KeyboardInterrupt:
         interrupted = True

@@ -1,4 +1,4 @@
-"""``sb3-graph tune``: tune reward weights (and TD3 settings) with Optuna, on one machine or many.
+"""``sb3-graph tune``: tune reward weights (and the algorithm's settings) with Optuna, on one machine or many.
 
 Every invocation adds ``--n-trials`` trials to the study named ``--study-name`` in ``--storage``
 (created on first use): re-running the command resumes the study, and workers on other machines
@@ -18,6 +18,7 @@ from typing import Any
 from sb3_graph.cli import UserError
 from sb3_graph.commands.arguments import check_device, json_object
 from sb3_graph.commands.train import parse_overrides
+from sb3_graph.registry import ALGORITHMS
 
 DEFAULT_STORAGE = "sqlite:///studies/{study}.db"
 # Environment ids with a domain plug-in in this repository: prefix -> (evaluator, env preset).
@@ -26,7 +27,9 @@ DOMAIN_DEFAULTS = {
     "GraphMaxNeighbour": ("sb3_graph.tuning.toy:evaluate_max_neighbour", "none"),
 }
 # Study user attributes written when the study is created, checked when it is resumed.
-CHECKED_ATTRS = ("objective", "env")
+CHECKED_ATTRS = ("objective", "env", "algo")
+# Values of attributes that studies made before the attribute existed have.
+ATTR_DEFAULTS = {"algo": "td3"}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -43,7 +46,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--n-trials", type=int, default=10, help="trials this invocation adds to the study")
     parser.add_argument("--timesteps", type=int, default=None, help="training steps per trial (default: entry)")
     parser.add_argument("--objective", default="flow", help="flow (max flow rate, collision constraint) or pareto")
-    parser.add_argument("--tune-algo", action="store_true", help="also tune TD3 settings (learning rate, batch...)")
+    parser.add_argument(
+        "--algo", choices=ALGORITHMS, default="td3", help="algorithm that the trials train, as rl-zoo3's --algo"
+    )
+    parser.add_argument(
+        "--tune-algo", action="store_true", help="also tune the algorithm's settings (learning rate, batch...)"
+    )
     parser.add_argument("--jobs", type=int, default=1, help="worker processes on this machine")
     parser.add_argument("--weights", nargs="*", default=None, metavar="TERM", help="reward terms to tune (default all)")
     parser.add_argument("--weight-spread", type=float, default=10.0, help="log range factor each way around Table I")
@@ -179,7 +187,7 @@ def prepare(args: argparse.Namespace):
     timesteps = int(float(args.timesteps if args.timesteps is not None else trial_entry["n_timesteps"]))
     if timesteps < 1:
         raise UserError(f"--timesteps must be at least 1, got {timesteps}")
-    learning_starts = int(trial_entry.get("learning_starts", 100))
+    learning_starts = 0 if ALGORITHMS[args.algo].on_policy else int(trial_entry.get("learning_starts", 100))
     if learning_starts >= timesteps:
         raise UserError(
             f"--timesteps {timesteps} <= learning_starts {learning_starts} of the entry: no gradient step would run"
@@ -232,6 +240,7 @@ def prepare(args: argparse.Namespace):
         weight_defaults=defaults,
         weight_spread=args.weight_spread,
         tune_algo=args.tune_algo,
+        algo=args.algo,
         evaluations=args.evaluations,
         eval_steps=eval_steps,
         eval_episodes=args.eval_episodes,
@@ -243,6 +252,7 @@ def prepare(args: argparse.Namespace):
     attrs = {
         "objective": objective.name,
         "env": args.env,
+        "algo": args.algo,
         "config_file": str(args.config),
         # the entry as in the file (full env): the report's YAML puts the best parameters into it
         "entry": json.loads(json.dumps(entry, default=str)),
@@ -309,9 +319,10 @@ def create_or_load(args: argparse.Namespace, settings, attrs: dict[str, Any], st
     )
     existing = study.user_attrs
     for key in CHECKED_ATTRS:
-        if key in existing and existing[key] != attrs[key]:
+        recorded = existing.get(key, ATTR_DEFAULTS.get(key)) if existing else None
+        if recorded is not None and recorded != attrs[key]:
             raise UserError(
-                f"study {args.study_name!r} was created with {key} {existing[key]!r}, not {attrs[key]!r}: "
+                f"study {args.study_name!r} was created with {key} {recorded!r}, not {attrs[key]!r}: "
                 "choose another --study-name"
             )
     if [d.name.lower() for d in study.directions] != list(objective.directions):
