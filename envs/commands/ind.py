@@ -32,7 +32,7 @@ import numpy as np
 import pandas as pd
 
 from envs.commands.evaluate import add_executor_arguments, add_shield_argument, check_executor_arguments
-from sb3_graph.cli import UserError
+from sb3_graph.commands import UserError
 from sb3_graph.commands.arguments import json_object
 
 DEFAULT_ENV = "CoopIntersectionInD-v0"

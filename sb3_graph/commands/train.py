@@ -44,7 +44,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from sb3_graph.cli import UserError
+from sb3_graph.commands import UserError
 from sb3_graph.commands.arguments import json_object
 from sb3_graph.registry import ALGORITHMS
 
@@ -87,8 +87,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--gym-packages",
         nargs="*",
-        default=["envs"],
-        help="modules to import so that they register their environments (default: envs)",
+        default=None,
+        help="modules to import so that they register their environments (default: those of the installed "
+        "domains, their sb3_graph.gym_packages entry points; the repository's intersection package)",
     )
     parser.add_argument(
         "--env-kwargs",
@@ -255,7 +256,12 @@ def _make_checkpoint_callback(save_freq: int, folder: Path):
     return CompleteCheckpoint()
 
 
-def _import_packages(names: list[str]) -> None:
+def _import_packages(names: list[str] | None) -> None:
+    """Import the ``--gym-packages`` (default: every installed domain's, see :mod:`sb3_graph.plugins`)."""
+    if names is None:
+        from sb3_graph.plugins import gym_packages
+
+        names = gym_packages()
     for name in names:
         try:
             importlib.import_module(name)

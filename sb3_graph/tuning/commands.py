@@ -15,17 +15,18 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from sb3_graph.cli import UserError
+from sb3_graph.commands import UserError
 from sb3_graph.commands.arguments import check_device, json_object
 from sb3_graph.commands.train import parse_overrides
 from sb3_graph.registry import ALGORITHMS
 
 DEFAULT_STORAGE = "sqlite:///studies/{study}.db"
-# Environment ids with a domain plug-in in this repository: prefix -> (evaluator, env preset).
+# The package's own environment ids with a tuning plug-in: prefix -> (evaluator, env preset). A
+# domain adds its own through the `sb3_graph.tuning` entry point group (sb3_graph.plugins).
 DOMAIN_DEFAULTS = {
-    "CoopIntersection": ("envs.tuning:evaluate_model", "envs.tuning:tuning_env_kwargs"),
     "GraphMaxNeighbour": ("sb3_graph.tuning.toy:evaluate_max_neighbour", "none"),
 }
+TOY_GYM_PACKAGE = "sb3_graph.toy_envs"
 # Study user attributes written when the study is created, checked when it is resumed.
 CHECKED_ATTRS = ("objective", "env", "algo")
 # Values of attributes that studies made before the attribute existed have.
@@ -64,7 +65,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--env-preset",
         default=None,
         help="module:attribute, a dict or function giving the reduced env kwargs, or none "
-        "(default for CoopIntersection*: envs.tuning:tuning_env_kwargs, the 'tuning' preset)",
+        "(default: the preset of the env id's domain, e.g. the intersection's 'tuning' preset)",
     )
     parser.add_argument("--env-kwargs", type=json_object, default=None, help="JSON dict merged over the preset")
     parser.add_argument(
@@ -99,22 +100,33 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--max-retry", type=int, default=0, help="retries of a trial whose worker died")
     parser.add_argument("--save-models", default=None, help="folder for each trial's final model")
-    parser.add_argument("--gym-packages", nargs="*", default=None, help="modules that register the env")
+    parser.add_argument(
+        "--gym-packages",
+        nargs="*",
+        default=None,
+        help="modules that register the env (default: the installed domains' sb3_graph.gym_packages)",
+    )
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads per worker")
     parser.add_argument("--device", default="cpu", help="torch device")
 
 
 def _domain_default(env_id: str, index: int) -> str | None:
-    for prefix, values in DOMAIN_DEFAULTS.items():
+    from sb3_graph.plugins import tuning_defaults
+
+    for prefix, values in {**DOMAIN_DEFAULTS, **tuning_defaults()}.items():
         if env_id.startswith(prefix):
             return values[index]
     return None
 
 
 def _gym_packages(args: argparse.Namespace) -> list[str]:
+    from sb3_graph.plugins import gym_packages
+
     if args.gym_packages is not None:
         return list(args.gym_packages)
-    return ["envs"] if args.env.startswith("CoopIntersection") else ["sb3_graph.toy_envs"]
+    if any(args.env.startswith(prefix) for prefix in DOMAIN_DEFAULTS):
+        return [TOY_GYM_PACKAGE]
+    return [*gym_packages(), TOY_GYM_PACKAGE]
 
 
 def _preset(args: argparse.Namespace) -> dict[str, Any]:

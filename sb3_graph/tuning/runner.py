@@ -2,8 +2,8 @@
 evaluate on task metrics.
 
 The evaluator is a plug-in: any callable ``evaluate(model, env_id, env_kwargs, episodes, seed)``
-returning a mapping of metric names to numbers (e.g. ``envs.tuning:evaluate_model`` for the
-intersection environments). It always sees the same validation episodes (``seed`` is fixed per
+returning a mapping of metric names to numbers (e.g. the intersection domain's, named by its
+``sb3_graph.tuning`` entry point). It always sees the same validation episodes (``seed`` is fixed per
 study, not per trial), so trials are compared like for like.
 
 Outcomes (the reason is the user attribute ``reason``; the study always continues):
