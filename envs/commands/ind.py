@@ -68,7 +68,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--trust-planner-files",
         action="store_true",
-        help="load model .zip files with SB3's full TD3.load, which runs the pickled code inside them "
+        help="load model .zip files with SB3's full load of their algorithm, which runs the pickled code inside them "
         "(your own files only)",
     )
     add_shield_argument(parser)
