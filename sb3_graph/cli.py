@@ -75,6 +75,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     table = COMMANDS if argv and argv[0] in COMMANDS else all_commands()
     chosen = [argv[0]] if argv and argv[0] in table else None
     parser = build_parser(chosen, table)
+    if argv and not argv[0].startswith("-") and argv[0] not in table:
+        parser.error(
+            f"unknown command {argv[0]!r} (commands: {', '.join(table)}; a domain's commands come from its "
+            "installed entry points: run `pip install -e .` in its repository)"
+        )
     args = parser.parse_args(argv)
     if getattr(args, "_missing", None):
         parser.error(f"command {args.command!r} is unavailable: {args._missing}")

@@ -92,6 +92,11 @@ def test_a_stub_domain_adds_its_command_tuning_and_gym_package(stub, capsys):
     assert stop.value.code == 0
     listed = capsys.readouterr().out
     assert all(name in listed for name in (*OWN, "hello")) and "evaluate" not in listed
+    with pytest.raises(SystemExit) as stop:
+        main(["evaluate"])  # the intersection domain is not installed here
+    assert stop.value.code == 2
+    err = capsys.readouterr().err
+    assert "unknown command 'evaluate'" in err and "pip install -e ." in err and err.count("\n") == 1
 
     from sb3_graph.commands.train import _import_packages
     from sb3_graph.tuning.commands import _domain_default
