@@ -24,10 +24,13 @@ import sb3_graph
 from sb3_graph.toy_envs import MaxNeighbourEnv
 
 ALGOS = ("TD3", "DDPG", "SAC", "TQC", "CrossQ", "PPO", "A2C")
+ENTROPY_ALGOS = ("SAC", "TQC", "CrossQ")
 
 
-def settings(name: str) -> dict:
+def settings(name: str, ent_coef: str | None = None) -> dict:
     kwargs = dict(gamma=0.0, policy_kwargs=dict(encoder_dim=32, conv_dims=[32, 32]))
+    if ent_coef is not None and name in ENTROPY_ALGOS:
+        kwargs["ent_coef"] = ent_coef
     if name == "PPO":
         kwargs.update(n_steps=64, batch_size=32, n_epochs=10, learning_rate=3e-3)
     elif name == "A2C":
@@ -57,18 +60,25 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=2000, help="environment steps per algorithm")
     parser.add_argument("--algos", nargs="+", default=list(ALGOS))
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--ent-coef",
+        default=None,
+        help="ent_coef of SAC, TQC and CrossQ, e.g. auto_0.01 (default: SB3's, 'auto', which starts at 1.0)",
+    )
     args = parser.parse_args()
     torch.set_num_threads(1)
     rows = [["random policy", "", f"{error_per_vertex(None):.3f}", ""]]
     for name in args.algos:
-        model = getattr(sb3_graph, name)("GraphPolicy", MaxNeighbourEnv(), seed=args.seed, **settings(name))
+        kwargs = settings(name, args.ent_coef)
+        model = getattr(sb3_graph, name)("GraphPolicy", MaxNeighbourEnv(), seed=args.seed, **kwargs)
         start = time.perf_counter()
         model.learn(args.steps)
         elapsed = time.perf_counter() - start
         error = error_per_vertex(model)
         rows.append([name, str(args.steps), f"{error:.3f}", f"{elapsed:.0f}"])
         print(f"{name}: error {error:.3f}, {elapsed:.0f} s", flush=True)
-    print(f"\n## Toy graph task (GraphMaxNeighbour-v0), seed {args.seed}\n")
+    coef = f", ent_coef {args.ent_coef} (SAC, TQC, CrossQ)" if args.ent_coef else ""
+    print(f"\n## Toy graph task (GraphMaxNeighbour-v0), seed {args.seed}{coef}\n")
     print(machine_line() + "\n")
     print(markdown_table(["algorithm", "env steps", "mean absolute error per vertex", "wall time [s]"], rows))
 

@@ -5,13 +5,15 @@ metric minus the baseline's on that scenario. The *strongest baseline* is the no
 (``baseline`` column of ``metrics.csv``: its spec is a built-in word, not a model file) with the
 highest median flow rate (on a tie, the lower mean delay). The 95 % interval of the mean
 difference is a percentile bootstrap over scenarios (resampled with replacement,
-:data:`RESAMPLES` times, seeded so a report repeats).
+:data:`RESAMPLES` times, seeded so a report repeats; :func:`sb3_graph.aggregate.bootstrap_interval`).
 """
 
 from __future__ import annotations
 
 import numpy as np
 import pandas as pd
+
+from sb3_graph.aggregate import bootstrap_interval
 
 # metrics.csv column -> label in the report
 PAIRED_METRICS = {"flow_rate": "flow [veh/s]", "delay_mean": "mean delay [s]", "stop_ratio_all": "stop ratio"}
@@ -39,25 +41,6 @@ def strongest_baseline(runs: pd.DataFrame) -> str | None:
     return str(rank.fillna(-np.inf).sort_values(["flow", "delay"], ascending=False, kind="stable").index[0])
 
 
-def bootstrap_interval(
-    differences: np.ndarray, rng: np.random.Generator, resamples: int = RESAMPLES, confidence: float = CONFIDENCE
-) -> np.ndarray:
-    """Percentile bootstrap interval of the mean of each column.
-
-    :param differences: ``(n, m)`` paired differences, ``n >= 1`` pairs of ``m`` metrics (no NaN)
-    :param rng: random generator (one resampling of the pairs serves every column)
-    :param resamples: bootstrap resamples
-    :param confidence: interval level
-    :return: ``(2, m)`` lower and upper bounds
-    """
-    differences = np.asarray(differences, float)
-    n = differences.shape[0]
-    index = rng.integers(0, n, (resamples, n))
-    means = differences[index].mean(axis=1)  # (resamples, m)
-    tail = 100 * (1 - confidence) / 2
-    return np.percentile(means, [tail, 100 - tail], axis=0)
-
-
 def paired_differences(runs: pd.DataFrame, baseline: str | None = None, seed: int = 0) -> pd.DataFrame:
     """Per-scenario differences of every planner against ``baseline``, mean and bootstrap interval.
 
@@ -80,7 +63,9 @@ def paired_differences(runs: pd.DataFrame, baseline: str | None = None, seed: in
             for metric in metrics:
                 d = diff[metric].dropna().to_numpy(float)
                 low, high = (
-                    bootstrap_interval(d[:, None], np.random.default_rng(seed))[:, 0] if d.size else (np.nan, np.nan)
+                    bootstrap_interval(d[:, None], np.random.default_rng(seed), RESAMPLES, CONFIDENCE)[:, 0]
+                    if d.size
+                    else (np.nan, np.nan)
                 )
                 rows.append((str(planner), baseline, metric, d.size, d.mean() if d.size else np.nan, low, high))
     return pd.DataFrame(rows, columns=list(PAIRED_COLUMNS))

@@ -60,6 +60,37 @@ def iqm(scores: np.ndarray | Sequence[float], axis: int | None = None) -> float 
     return np.take(values, np.arange(cut, n - cut), axis=axis).mean(axis=axis)
 
 
+def bootstrap_interval(
+    scores: np.ndarray | Sequence[np.ndarray],
+    rng: np.random.Generator,
+    reps: int = DEFAULT_REPS,
+    confidence: float = DEFAULT_CONFIDENCE,
+    statistic: Callable[..., Any] = np.mean,
+) -> np.ndarray:
+    """Percentile bootstrap interval of ``statistic``, stratified: the rows of each stratum are
+    resampled with replacement within it. The one bootstrap of the repository
+    (:func:`stratified_bootstrap_ci` and the paired planner comparisons use it).
+
+    :param scores: one stratum, an ``(n, ...)`` array of ``n >= 1`` rows, or a list of strata
+        with the same trailing shape (e.g. ``(n, m)``: ``m`` metrics resampled together, row by row)
+    :param rng: random generator (one resampling of the rows serves every trailing column)
+    :param reps: bootstrap resamples
+    :param confidence: interval size in (0, 1)
+    :param statistic: ``f(samples, axis=1)`` over a ``(reps, rows, ...)`` array (``np.mean``, :func:`iqm`)
+    :return: ``(2, ...)`` lower and upper bounds
+    """
+    if not 0 < confidence < 1:
+        raise ValueError(f"confidence must be in (0, 1), got {confidence}")
+    if reps < 1:
+        raise ValueError(f"reps must be at least 1, got {reps}")
+    strata = [np.asarray(scores, dtype=float)] if isinstance(scores, np.ndarray) else list(scores)
+    # one (reps, rows of the stratum, ...) block per stratum, drawn from that stratum's rows only
+    blocks = [stratum[rng.integers(0, stratum.shape[0], size=(reps, stratum.shape[0]))] for stratum in strata]
+    values = np.asarray(statistic(np.concatenate(blocks, axis=1), axis=1), dtype=float)
+    tail = 100 * (1 - confidence) / 2
+    return np.percentile(values, [tail, 100 - tail], axis=0)
+
+
 def stratified_bootstrap_ci(
     scores: np.ndarray | Sequence[Sequence[float]],
     statistic: Callable[..., Any] = iqm,
@@ -77,16 +108,8 @@ def stratified_bootstrap_ci(
     :param seed: seed of the resampling (``None``: fresh entropy)
     :return: ``(low, high)``
     """
-    if not 0 < confidence < 1:
-        raise ValueError(f"confidence must be in (0, 1), got {confidence}")
-    if reps < 1:
-        raise ValueError(f"reps must be at least 1, got {reps}")
-    rng = np.random.default_rng(seed)
-    # one (reps, runs of the task) block per task, drawn from that task's runs only
-    blocks = [task[rng.integers(0, task.size, size=(reps, task.size))] for task in _tasks(scores)]
-    values = np.asarray(statistic(np.concatenate(blocks, axis=1), axis=1), dtype=float)
-    tail = 100 * (1 - confidence) / 2
-    low, high = np.percentile(values, [tail, 100 - tail])
+    tasks = _tasks(scores)
+    low, high = bootstrap_interval(tasks, np.random.default_rng(seed), reps, confidence, statistic)
     return float(low), float(high)
 
 

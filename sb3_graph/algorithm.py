@@ -127,9 +127,13 @@ class VertexEntropyMixin:
     The entropy coefficient's loss is linear in the target,
     ``-(log_alpha * (log_prob_b + target_b)).mean()``, so a per-graph target ``-n_b`` gives the same
     gradient as the scalar target ``-mean_b(n_b)`` of the sampled batch. The actor records that mean
-    in ``action_log_prob`` (``last_mean_vertices``) and :attr:`target_entropy` returns
-    ``vertex_target_entropy * last_mean_vertices`` where the training loop reads it, right after
-    the actor's call on the batch's observations; SB3's ``train`` runs unchanged.
+    in ``action_log_prob`` (``last_mean_vertices``) when it runs with gradients enabled, which in
+    SB3's and sb3-contrib's ``train`` is its call on the batch's observations (the call on the next
+    observations runs under ``no_grad``). :attr:`target_entropy` returns
+    ``vertex_target_entropy * last_mean_vertices`` on *every* read, without side effects: SAC's
+    ``train`` reads it twice per gradient step (an ``assert`` and the loss), TQC and CrossQ once,
+    and each read gets the batch's per-vertex target. Before the first gradient step it is SB3's
+    stored value. SB3's ``train`` runs unchanged.
 
     A number given as ``target_entropy`` keeps SB3's meaning (one target for every graph).
     Stock ``stable_baselines3.SAC(GraphSACPolicy, env)`` uses ``-max_nodes``.
@@ -147,10 +151,8 @@ class VertexEntropyMixin:
     def target_entropy(self) -> Any:
         stored = self.__dict__.get("_target_entropy", "auto")
         if self.vertex_target_entropy is not None and isinstance(stored, (float, np.floating)):
-            actor = self.__dict__.get("actor")
-            count = getattr(actor, "last_mean_vertices", None)
+            count = getattr(self.__dict__.get("actor"), "last_mean_vertices", None)
             if count is not None:
-                actor.last_mean_vertices = None  # one read per recorded batch
                 return float(self.vertex_target_entropy * count)
         return stored
 

@@ -1,8 +1,10 @@
 """The ``sb3-graph`` command line.
 
 Each sub-command lives in its own module that provides ``add_arguments(parser)`` and
-``run(args) -> int``; this file only dispatches, importing a module when its command runs, so
-``sb3_graph`` itself never imports the intersection domain (``envs``).
+``run(args) -> int``; this file only dispatches, importing a module when its command runs.
+:data:`COMMANDS` holds the package's own commands; an installed domain adds its commands through
+the ``sb3_graph.commands`` entry point group (:mod:`sb3_graph.plugins`), so ``sb3_graph`` names
+no domain package.
 """
 
 from __future__ import annotations
@@ -12,22 +14,25 @@ import importlib
 import sys
 from collections.abc import Sequence
 
-# command -> (module, one-line help)
+from sb3_graph.commands import UserError
+
+# command -> (module, one-line help). A domain's command is a line of the same form in the
+# mapping that its `sb3_graph.commands` entry point names (see sb3_graph.plugins).
 COMMANDS: dict[str, tuple[str, str]] = {
-    "evaluate": ("envs.commands.evaluate", "compare planners on the same scenarios and write a report"),
-    "sweep": ("envs.commands.sweep", "compare planners across traffic demand levels, with their capacity"),
     "train": ("sb3_graph.commands.train", "train a planner from an rl-zoo3 style YAML experiment"),
-    "tune": ("sb3_graph.tuning.commands", "tune reward weights and TD3 settings with Optuna"),
+    "tune": ("sb3_graph.tuning.commands", "tune reward weights and algorithm settings with Optuna"),
     "tune-report": ("sb3_graph.tuning.report_command", "write the report of an Optuna study"),
-    "aggregate": ("envs.commands.aggregate", "IQM and 95 % intervals of evaluate reports over seeds and scenarios"),
-    "ind": ("envs.commands.ind", "replay inD recordings through the planners"),
-    "reward-check": ("envs.commands.reward_check", "rank correlation of each reward's returns with flow and delay"),
     "export": ("sb3_graph.commands.export", "write a model's policy as a weights-only file that cannot run code"),
 }
 
+__all__ = ["COMMANDS", "UserError", "all_commands", "build_parser", "main"]
 
-class UserError(Exception):
-    """A mistake in the user's input: printed as one line, no traceback, exit status 2."""
+
+def all_commands() -> dict[str, tuple[str, str]]:
+    """The package's commands, then every installed domain's (a package command keeps its name)."""
+    from sb3_graph.plugins import domain_commands
+
+    return {**COMMANDS, **{name: spec for name, spec in domain_commands().items() if name not in COMMANDS}}
 
 
 class _Parser(argparse.ArgumentParser):
@@ -37,19 +42,24 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
-def _load(command: str):
-    return importlib.import_module(COMMANDS[command][0])
+def build_parser(
+    commands: Sequence[str] | None = None, table: dict[str, tuple[str, str]] | None = None
+) -> argparse.ArgumentParser:
+    """The argument parser with a sub-parser for each command whose module is importable.
 
-
-def build_parser(commands: Sequence[str] | None = None) -> argparse.ArgumentParser:
-    """The argument parser with a sub-parser for each command whose module is importable."""
+    :param commands: the commands to build (default: all)
+    :param table: ``command -> (module, help)`` (default: :func:`all_commands`)
+    """
+    table = all_commands() if table is None else table
     parser = _Parser(prog="sb3-graph", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for name in commands if commands is not None else COMMANDS:
-        help_text = COMMANDS[name][1]
-        sub_parser = sub.add_parser(name, help=help_text, description=help_text)
+    for name in commands if commands is not None else table:
+        module_name, help_text = table[name]
+        # argparse %-formats a help string (not a description): "95 % intervals" must reach it as "95 %% ..."
+        sub_parser = sub.add_parser(name, help=help_text.replace("%", "%%"), description=help_text)
+        sub_parser.set_defaults(_module=module_name)
         try:
-            module = _load(name)
+            module = importlib.import_module(module_name)
         except ModuleNotFoundError as error:  # a command whose module is not part of this install
             sub_parser.set_defaults(_missing=str(error))
             continue
@@ -60,14 +70,21 @@ def build_parser(commands: Sequence[str] | None = None) -> argparse.ArgumentPars
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``sb3-graph`` console script."""
     argv = list(sys.argv[1:] if argv is None else argv)
-    # Build only the chosen command's parser, so that one command's import cost is not paid by all.
-    chosen = [argv[0]] if argv and argv[0] in COMMANDS else None
-    parser = build_parser(chosen)
+    # Build only the chosen command's parser, so that one command's import cost is not paid by all;
+    # the domains' entry points are read only for a command that is not the package's own.
+    table = COMMANDS if argv and argv[0] in COMMANDS else all_commands()
+    chosen = [argv[0]] if argv and argv[0] in table else None
+    parser = build_parser(chosen, table)
+    if argv and not argv[0].startswith("-") and argv[0] not in table:
+        parser.error(
+            f"unknown command {argv[0]!r} (commands: {', '.join(table)}; a domain's commands come from its "
+            "installed entry points: run `pip install -e .` in its repository)"
+        )
     args = parser.parse_args(argv)
     if getattr(args, "_missing", None):
         parser.error(f"command {args.command!r} is unavailable: {args._missing}")
     try:
-        return int(_load(args.command).run(args) or 0)
+        return int(importlib.import_module(args._module).run(args) or 0)
     except UserError as error:
         print(f"sb3-graph {args.command}: error: {error}", file=sys.stderr)
         return 2
@@ -77,8 +94,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    # `python -m sb3_graph.cli`: run the imported module's main, so that the commands' UserError
-    # (sb3_graph.cli.UserError) is the class caught there, not a copy defined in __main__.
+    # `python -m sb3_graph.cli`: run the imported module's main (one COMMANDS table, not a copy in __main__).
     from sb3_graph.cli import main as _main
 
     sys.exit(_main())

@@ -3,8 +3,8 @@
 The policies now live beside their algorithms (``sb3_graph/td3/policies.py``,
 ``sb3_graph/sac/policies.py``, ...) and the GNN pieces that they share in
 :mod:`sb3_graph.networks`. This module re-exports the names it used to define, so that models saved
-with ``sb3_graph.policies.GraphPolicy`` as their policy class (e.g. the shipped
-``envs/pretrained/coop_4way/best_model.zip``) still load.
+with ``sb3_graph.policies.GraphPolicy`` as their policy class (e.g. the repository's shipped
+pretrained intersection planner) still load.
 """
 
 from sb3_graph.networks import (

@@ -49,17 +49,19 @@ import numpy as np
 import torch as th
 from gymnasium import spaces
 
+from sb3_graph.registry import ALGORITHMS
 from sb3_graph.safe_values import UnsafeValueError, resolve_name
 
 FORMAT = "sb3-graph-policy"
 VERSION = 1
 SUFFIX = ".safetensors"
 METADATA_KEY = "sb3_graph"
-# Planner policies by algorithm: algorithm name -> {policy name -> "module:Class"}. Another
-# algorithm registers its graph policies with :func:`register_policy`.
-POLICY_REGISTRY: dict[str, dict[str, str]] = {"TD3": {"GraphPolicy": "sb3_graph.policies:GraphPolicy"}}
+# Planner policies by algorithm: algorithm name -> {policy name -> "module:Class"}, the weights-only
+# export entries of :data:`sb3_graph.registry.ALGORITHMS`. A policy class outside the package is
+# allowed with :func:`register_policy`.
+POLICY_REGISTRY: dict[str, dict[str, str]] = {entry.name: dict(entry.file_policies) for entry in ALGORITHMS.values()}
 # The algorithm class of each registered algorithm ("module:Class"), used by ``trust=True`` only.
-ALGORITHM_CLASSES: dict[str, str] = {"TD3": "sb3_graph.td3:TD3"}
+ALGORITHM_CLASSES: dict[str, str] = {entry.name: entry.algorithm_class for entry in ALGORITHMS.values()}
 # Largest zip entry read into memory (a model's data and weights are far smaller).
 MAX_ENTRY_BYTES = 1 << 30
 # Largest sizes of a space read from a file (a space allocates arrays of its size when built).
@@ -172,15 +174,42 @@ def _allowed() -> str:
     return "allowed: " + ", ".join(f"{a} {p}" for a, names in POLICY_REGISTRY.items() for p in names)
 
 
-def _registry_entry(policy_class: type, source: str) -> tuple[str, str]:
-    for algorithm, names in POLICY_REGISTRY.items():
-        for name, path in names.items():
-            if _import(path) is policy_class:
-                return algorithm, name
-    raise PolicyFileError(
-        f"{source}: policy_class {policy_class.__module__}.{policy_class.__qualname__} is not an allowed "
-        f"planner policy ({_allowed()})"
-    )
+def _zip_fields(algorithm: str) -> tuple[str, ...]:
+    for entry in ALGORITHMS.values():
+        if entry.name == algorithm:
+            return entry.zip_fields
+    return ()
+
+
+def _registry_entry(
+    policy_class: type, source: str, prefer: str | None = None, zip_data: dict[str, Any] | None = None
+) -> tuple[str, str]:
+    """``(algorithm, policy name)`` of a registered policy class.
+
+    Several algorithms may share a policy class (TD3 and DDPG, PPO and A2C): ``prefer`` picks that
+    algorithm when it is one of them; else the fields of an SB3 zip's ``data`` (``zip_data``) pick the
+    algorithm whose :attr:`~sb3_graph.registry.AlgorithmEntry.zip_fields` they hold, the most specific
+    first; else the first registered.
+    """
+    found = [
+        (algorithm, name)
+        for algorithm, names in POLICY_REGISTRY.items()
+        for name, path in names.items()
+        if _import(path) is policy_class
+    ]
+    if not found:
+        raise PolicyFileError(
+            f"{source}: policy_class {policy_class.__module__}.{policy_class.__qualname__} is not an allowed "
+            f"planner policy ({_allowed()})"
+        )
+    for algorithm, name in found:
+        if algorithm == prefer:
+            return algorithm, name
+    if zip_data is not None:
+        fitting = [(a, n) for a, n in found if all(key in zip_data for key in _zip_fields(a))]
+        if fitting:
+            return max(fitting, key=lambda item: len(_zip_fields(item[0])))
+    return found[0]
 
 
 # ------------------------------------------------------------------ spaces and kwargs as JSON
@@ -359,7 +388,7 @@ def build_policy(description: PolicyDescription, state: dict[str, th.Tensor], so
 
 def describe_policy(policy, algorithm: str, source: dict[str, Any] | None = None) -> PolicyDescription:
     """The description of a policy object (its registered name, kwargs and spaces)."""
-    found_algorithm, name = _registry_entry(type(policy), "policy")
+    found_algorithm, name = _registry_entry(type(policy), "policy", prefer=algorithm)
     if found_algorithm != algorithm and algorithm in POLICY_REGISTRY:
         raise PolicyFileError(f"policy {name} is registered for {found_algorithm}, not {algorithm}")
     params = dict(policy._get_constructor_parameters())
@@ -584,7 +613,7 @@ def read_sb3_zip(path: str | Path) -> tuple[PolicyDescription, dict[str, th.Tens
         policy_class = resolve_name(".".join(named), "policy_class")
     except UnsafeValueError as error:
         raise PolicyFileError(f"{source}: {error} ({_allowed()})") from None
-    algorithm, name = _registry_entry(policy_class, source)
+    algorithm, name = _registry_entry(policy_class, source, zip_data=data)
     for key in ("observation_space", "action_space"):
         if key not in data:
             raise PolicyFileError(f"{source}: field {key!r} is missing")

@@ -2,9 +2,14 @@
 
 import os
 import tempfile
+from pathlib import Path
 
 
 def pytest_configure(config):
     # Checkpoint signatures (sb3_graph.signing) use a key of the test session, not the user's.
     if not os.environ.get("SB3_GRAPH_KEY_FILE"):
         os.environ["SB3_GRAPH_KEY_FILE"] = os.path.join(tempfile.mkdtemp(prefix="sb3-graph-key-"), "file-key")
+    # The checkout's entry points (its domain plug-ins), whatever copy of the package is installed.
+    from checkout_entry_points import install
+
+    install(Path(__file__).parents[1], Path(tempfile.mkdtemp(prefix="sb3-graph-entry-points-")))

@@ -234,19 +234,59 @@ def test_crossq_joint_batch_is_a_disjoint_union():
 
 def test_sac_entropy_target_is_minus_one_per_real_vertex():
     model = tiny("SAC")
+    assert model.target_entropy == -8.0  # before any batch: SB3's stored value
     model.learn(20)
     assert model.vertex_target_entropy == -1.0
     samples = model.replay_buffer.sample(16)
     model.actor.action_log_prob(samples.observations)
     n_mean = samples.observations.num_nodes / 16
-    assert model.target_entropy == pytest.approx(-n_mean)  # what SB3's train reads next
-    assert model.target_entropy == pytest.approx(-8.0)  # read once: then SB3's stored value
+    assert model.target_entropy == pytest.approx(-n_mean)
+    assert model.target_entropy == pytest.approx(-n_mean)  # reading has no side effect
+    with torch.no_grad():  # the next observations' call (under no_grad in train) records nothing
+        model.actor.action_log_prob(model.replay_buffer.sample(16).next_observations)
+    assert model.target_entropy == pytest.approx(-n_mean)
     fixed = tiny("SAC", target_entropy=-3.0)
     fixed.actor.action_log_prob(samples.observations)
     assert fixed.vertex_target_entropy is None and fixed.target_entropy == -3.0
     # Stock SB3 keeps -max_nodes.
     stock = stable_baselines3.SAC(GraphSACPolicy, MaxNeighbourEnv(), policy_kwargs=dict(SMALL))
     assert stock.target_entropy == -8.0
+
+
+@pytest.mark.parametrize("name", ["SAC", "TQC", "CrossQ"])
+def test_every_read_of_the_entropy_target_in_train_is_per_vertex(name, monkeypatch):
+    # SB3's real `train`: SAC reads target_entropy twice per gradient step (assert and loss), TQC and
+    # CrossQ once; every read must be -(mean real vertices of that step's sampled observations).
+    model = tiny(name, ent_coef="auto")
+    model.learn(30)
+    batches, reads = [], []
+    sample = model.replay_buffer.sample
+
+    def recording_sample(*args, **kwargs):
+        batch = sample(*args, **kwargs)
+        batches.append(batch.observations.num_nodes / batch.observations.num_graphs)
+        return batch
+
+    getter = type(model).target_entropy.fget
+
+    def counting_getter(self):
+        value = getter(self)
+        reads.append((len(batches) - 1, value))
+        return value
+
+    monkeypatch.setattr(model.replay_buffer, "sample", recording_sample)
+    monkeypatch.setattr(type(model), "target_entropy", property(counting_getter, type(model).target_entropy.fset))
+    steps = 6
+    model.train(gradient_steps=steps, batch_size=8)
+    assert len(batches) == steps
+    per_step = {"SAC": 2, "TQC": 1, "CrossQ": 1}[name]
+    expected_reads = steps * per_step if name != "CrossQ" else per_step * sum(
+        1 for k in range(steps) if (model._n_updates - steps + k + 1) % model.policy_delay == 0
+    )
+    assert len(reads) == expected_reads and expected_reads > 0
+    for step, value in reads:
+        assert value == pytest.approx(-batches[step]), (step, value, batches)
+    assert any(b != 8.0 for b in batches)  # the per-vertex target differs from SB3's -max_nodes
 
 
 def test_n_steps_go_to_the_graph_buffer_without_a_warning():

@@ -6,7 +6,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from envs.comparison import PAIRED_COLUMNS, bootstrap_interval, paired_differences, strongest_baseline
+from envs.comparison import PAIRED_COLUMNS, paired_differences, strongest_baseline
+from sb3_graph.aggregate import bootstrap_interval
 
 
 def _runs(flows: dict[str, list[float]], baseline: dict[str, bool]) -> pd.DataFrame:
@@ -57,7 +58,7 @@ def test_paired_differences_and_their_interval():
 
 def test_bootstrap_interval_is_vectorized_over_columns():
     d = np.column_stack([np.arange(10.0), np.full(10, 2.0)])
-    bounds = bootstrap_interval(d, np.random.default_rng(0), resamples=2000)
+    bounds = bootstrap_interval(d, np.random.default_rng(0), reps=2000)
     assert bounds.shape == (2, 2)
     assert bounds[0, 0] < 4.5 < bounds[1, 0] and (bounds[:, 1] == 2.0).all()
 
@@ -67,3 +68,15 @@ def test_a_flow_tie_goes_to_the_baseline_with_less_delay():
     runs.loc[runs["planner"] == "FIFO", "delay_mean"] = 1.0  # PR: 7 s
     assert strongest_baseline(runs) == "FIFO"
     assert strongest_baseline(runs.assign(delay_mean=np.nan)) == "PR"  # no delay known: the first listed
+
+
+def test_the_paired_interval_is_the_plain_percentile_bootstrap_bit_for_bit():
+    # The reports' figures stay as they were when comparison.py had its own bootstrap: the shared
+    # one (sb3_graph.aggregate) gives the same bounds, bit for bit, as that code written out here.
+    from envs.comparison import CONFIDENCE, RESAMPLES
+
+    d = np.random.default_rng(5).normal(size=(37, 3))
+    index = np.random.default_rng(0).integers(0, 37, (RESAMPLES, 37))
+    tail = 100 * (1 - CONFIDENCE) / 2
+    expected = np.percentile(d[index].mean(axis=1), [tail, 100 - tail], axis=0)
+    np.testing.assert_array_equal(bootstrap_interval(d, np.random.default_rng(0), RESAMPLES, CONFIDENCE), expected)

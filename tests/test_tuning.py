@@ -429,3 +429,21 @@ def test_the_shipped_weight_study_holds_24_finished_trials_and_reports(tmp_path)
     weights = shipped["CoopIntersection4Way-v0"]["env_kwargs"]["config"]["reward_weights"]
     best = study.trials[0].params
     assert weights == {k.split(".", 1)[1]: v for k, v in best.items()}
+
+
+def test_tune_trains_the_chosen_algorithm_with_its_search_space(config, tmp_path, capsys):
+    from sb3_graph.registry import ALGORITHMS
+    from sb3_graph.weights import read_sb3_zip
+
+    storage, models = f"sqlite:///{tmp_path}/sac.db", tmp_path / "models"
+    base = ["--env", TOY, "--storage", storage, "--tune-algo", "--n-trials", "1", "--timesteps", "100"]
+    assert tune(config, "sac", *base, "--algo", "sac", "--eval-episodes", "1", "--save-models", str(models)) == 0
+    study = optuna.load_study(study_name="sac", storage=storage)
+    assert study.user_attrs["algo"] == "sac"
+    (trial,) = study.trials
+    assert trial.state == TrialState.COMPLETE
+    assert set(trial.params) == {f"algo.{key}" for key in ALGORITHMS["sac"].tune_space}
+    assert "algo.policy_delay" not in trial.params  # TD3's setting, not SAC's
+    assert read_sb3_zip(models / "trial_0.zip")[0].algorithm == "SAC"
+    assert tune(config, "sac", *base, "--eval-episodes", "1") == 2  # default --algo td3: another study
+    assert "created with algo 'sac', not 'td3'" in capsys.readouterr().err

@@ -86,12 +86,15 @@ def test_class_references_are_read_from_opcodes_only():
 
 
 def test_registry_is_per_algorithm(tmp_path, model):
+    from sb3_graph.registry import ALGORITHMS
+
     assert POLICY_REGISTRY["TD3"] == {"GraphPolicy": "sb3_graph.policies:GraphPolicy"}
-    register_policy("SAC", "GraphPolicy", "sb3_graph.policies:GraphPolicy")
+    assert list(POLICY_REGISTRY) == [entry.name for entry in ALGORITHMS.values()]  # every algorithm exports
+    register_policy("MyAlgo", "GraphPolicy", "sb3_graph.policies:GraphPolicy")
     try:
-        assert "SAC" in POLICY_REGISTRY
+        assert "MyAlgo" in POLICY_REGISTRY
     finally:
-        POLICY_REGISTRY.pop("SAC")
+        POLICY_REGISTRY.pop("MyAlgo")
     path = save_policy(model.policy, tmp_path / "p.safetensors", "TD3")
     from safetensors import safe_open
     from safetensors.torch import save_file

@@ -34,7 +34,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from sb3_graph.cli import UserError
+from sb3_graph.commands import UserError
 
 DEFAULT_METRICS = ("flow_rate", "stop_ratio_all", "delay_mean", "collision_rate")
 DEFAULT_SEED_PATTERN = r"seed_(\d+)"

@@ -29,7 +29,7 @@ the numbers are the same. The progress bar and ``run.json`` give the runs per se
 
 Model planners (``.safetensors`` policy files or SB3 ``.zip`` files) are loaded and checked
 against the environment before any run starts, without running code from the file
-(``--trust-planner-files`` loads a ``.zip`` with SB3's full ``TD3.load``, for one's own files).
+(``--trust-planner-files`` loads a ``.zip`` with SB3's full ``load`` of its algorithm, for one's own files).
 
 A collision does not end a run: the vehicles involved are counted as collided and leave the
 scene, and the run goes on for its whole duration (``--env-kwargs '{"config":
@@ -45,7 +45,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from sb3_graph.cli import UserError
+from sb3_graph.commands import UserError
 from sb3_graph.commands.arguments import finite_float, json_object
 
 DEFAULT_ENV = "CoopIntersection4Way-v0"
@@ -55,7 +55,7 @@ DEFAULT_MODEL = Path(__file__).resolve().parents[1] / "pretrained" / "coop_4way_
 DEFAULT_BASELINES = ("pr", "fifo", "aim", "signal")
 RUN_INFO_FILE = "run.json"
 TRUST_HELP = (
-    "load model .zip files with SB3's full TD3.load, which runs the pickled code inside them: only for "
+    "load model .zip files with SB3's full load of their algorithm, which runs the pickled code inside them: only for "
     "files you made yourself (by default a .zip is read without unpickling)"
 )
 

@@ -32,7 +32,7 @@ import numpy as np
 import pandas as pd
 
 from envs.commands.evaluate import add_executor_arguments, add_shield_argument, check_executor_arguments
-from sb3_graph.cli import UserError
+from sb3_graph.commands import UserError
 from sb3_graph.commands.arguments import json_object
 
 DEFAULT_ENV = "CoopIntersectionInD-v0"
@@ -68,7 +68,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--trust-planner-files",
         action="store_true",
-        help="load model .zip files with SB3's full TD3.load, which runs the pickled code inside them "
+        help="load model .zip files with SB3's full load of their algorithm, which runs the pickled code inside them "
         "(your own files only)",
     )
     add_shield_argument(parser)

@@ -37,7 +37,7 @@ from envs.commands.evaluate import (
     run_line,
     write_run_info,
 )
-from sb3_graph.cli import UserError
+from sb3_graph.commands import UserError
 
 DEFAULT_DEMAND = (0.05, 0.1, 0.2, 0.3, 0.4)
 

@@ -13,14 +13,13 @@ step only, 2.2x to 1.7x the simulation's (benchmarks/README.md, "AIM's step, com
 Every function here is the scalar form of a NumPy one, with the same floating-point operations in
 the same order (no ``fastmath``, so no reassociation or fused multiply-add; ``np.maximum`` and
 ``np.minimum`` as :func:`_max` and :func:`_min`, which let a nan through), so that the results are
-bitwise the NumPy ones (``tests/test_planner_regression.py`` checks them on recorded scenes, and
-:func:`settle` on random inputs):
+bitwise the NumPy ones. These kernels are the planner's only implementation; the NumPy form lives
+in ``tests/aim_reference.py`` as the oracle (``tests/test_planner_regression.py`` checks them on
+recorded scenes, and :func:`settle` on random inputs):
 
-- :func:`candidates`: :meth:`envs.planners.aim.AIMPlanner.candidates_numpy` (with
-  :func:`envs.planners.vehicle_model.earliest_arrival`),
-- :func:`windows`: :func:`envs.planners.aim.windows_numpy` (with
-  :func:`envs.planners.idm.travel_time`),
-- :func:`settle`: :func:`envs.planners.aim.settle_numpy`.
+- :func:`candidates`: ``candidates_numpy`` (with :func:`envs.planners.vehicle_model.earliest_arrival`),
+- :func:`windows`: ``windows_numpy`` (with :func:`envs.planners.idm.travel_time`),
+- :func:`settle`: ``settle_numpy``.
 
 ``cache=True`` stores the machine code next to this file (or in numba's cache directory), so only
 the first process compiles it.
@@ -52,7 +51,7 @@ def settle(
     lead_row: np.ndarray,
     follow_headway: float,
 ) -> np.ndarray:
-    """The chosen candidate of every vehicle: :func:`envs.planners.aim.settle_numpy`, loop by loop.
+    """The chosen candidate of every vehicle: ``settle_numpy`` (tests/aim_reference.py), loop by loop.
 
     :param passes: most passes
     :param pair_i: ``(P,)`` vehicle ``i`` of each pair that must not clash (sorted)
@@ -152,7 +151,7 @@ def candidates(
     stop_reach: float,
     rest_speed: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """:meth:`envs.planners.aim.AIMPlanner.candidates_numpy` vehicle by vehicle, candidate by candidate.
+    """``candidates_numpy`` (tests/aim_reference.py) vehicle by vehicle, candidate by candidate.
 
     :param speed: ``(n,)`` [m/s]
     :param dist: ``(n,)`` metres to the stop line
@@ -240,7 +239,7 @@ def _travel_time(distance: float, speed: float, v_max: float, accel: float) -> f
 
 @numba.njit(cache=True)
 def _leader_bound(d: float, ahead: float, v_lead: float, limit: float, has: bool, accel: float) -> float:
-    """:func:`envs.planners.aim.windows_numpy`'s bound by the leader for one distance."""
+    """``windows_numpy``'s bound by the leader for one distance."""
     return _travel_time(_max(d + ahead, 0.0), v_lead, limit, accel) if has else 0.0
 
 
@@ -260,7 +259,7 @@ def windows(
     stop: np.ndarray,
     stop_penalty: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`envs.planners.aim.windows_numpy` zone by zone, candidate by candidate (same parameters)."""
+    """``windows_numpy`` (tests/aim_reference.py) zone by zone, candidate by candidate (same parameters)."""
     n, c_count = arrival.shape
     k = zone_row.size
     enter = np.empty((k, c_count))

@@ -31,9 +31,9 @@ intersection:
 4. **Control**: each vehicle follows the first phase of its plan (accelerate, change speed
    towards ``u`` or stop at the line), capped by IDM car following.
 
-Steps 1 and 3 run compiled (:mod:`envs.planners._aim_kernel`, numba): bitwise what
-:meth:`AIMPlanner.candidates_numpy`, :func:`windows_numpy` and :func:`settle_numpy` compute (the
-NumPy reference, used with ``compiled = False``; ``tests/test_planner_regression.py``).
+Steps 1 and 3 run compiled (:mod:`envs.planners._aim_kernel`, numba), the only implementation;
+``tests/aim_reference.py`` holds their NumPy form, the oracle that the kernels match bit for bit
+(``tests/test_planner_regression.py``).
 """
 
 from __future__ import annotations
@@ -49,9 +49,8 @@ from envs.planners.idm import (
     IDMParams,
     idm_acceleration,
     leader_chain_max,
-    travel_time,
 )
-from envs.planners.vehicle_model import earliest_arrival, inner_limit, line_speed
+from envs.planners.vehicle_model import inner_limit, line_speed
 from envs.scene import Scene
 
 
@@ -164,9 +163,6 @@ class AIMPlanner(Planner):
     :param idm: IDM constants of car following (its ``acc_max`` is replaced by ``params.accel``)
     """
 
-    # Candidates, zone windows and reservation passes compiled (numba, :mod:`envs.planners._aim_kernel`,
-    # bitwise the NumPy code); False: the NumPy reference (``candidates_numpy``, ``windows_numpy``, ``settle_numpy``).
-    compiled = True
     # A stopped vehicle this close to its line [m] is at its stop point (IDM settles within ~0.5 m).
     stop_reach = 1.0
     # ... and at rest below this speed [m/s].
@@ -214,15 +210,13 @@ class AIMPlanner(Planner):
     def candidates(self, scene: Scene) -> dict[str, np.ndarray]:
         """Candidate plans of every vehicle: time and speed at the line (see the module docstring).
 
-        Compiled (:func:`envs.planners._aim_kernel.candidates`), bitwise :meth:`candidates_numpy`.
+        Compiled (:func:`envs.planners._aim_kernel.candidates`).
 
         :param scene: the vehicles now
         :return: ``arrival``, ``line_speed``, ``feasible`` ``(n, C)``; ``kind``, ``cruise`` ``(C,)``;
             ``start`` ``(n, C)`` (stops: start from rest); ``rest``, ``earliest``, ``can_stop``,
             ``committed`` ``(n,)``
         """
-        if not self.compiled:
-            return self.candidates_numpy(scene)
         p = self.params
         v = scene.speed
         u, waits = self._grids(np.maximum(scene.speed_limit, v).max(initial=0.0))
@@ -257,58 +251,6 @@ class AIMPlanner(Planner):
         kind = np.concatenate([[0], np.ones(u.size, np.int64), np.full(waits.size, 2)])
         return kind, np.concatenate([[np.nan], u, np.full(waits.size, np.nan)])
 
-    def candidates_numpy(self, scene: Scene) -> dict[str, np.ndarray]:
-        """:meth:`candidates` in NumPy (the reference of the compiled one)."""
-        p = self.params
-        n, v, dist = scene.num_vehicles, scene.speed, scene.dist_to_entry
-        approaching = scene.dist_to_exit > 0
-        before = approaching & (dist > 0)
-        inside = approaching & ~before
-        a, b, b_gov = p.accel, p.decel, p.governor_deceleration
-        v_line = line_speed(scene, b_gov)
-        v_road = np.maximum(scene.speed_limit, v)
-        # The earliest arrival.
-        t0, w0, _ = earliest_arrival(dist, v, v_line, v_road, a, b_gov)
-        # Slowed approaches: v -> u, cruise at u, u -> w at the line.
-        u, waits = self._grids(v_road.max(initial=0.0))
-        U, V, D, WL = u[None, :], v[:, None], dist[:, None], v_line[:, None]
-        rate1 = np.where(U > V, a, b)
-        d1 = np.abs(V**2 - U**2) / (2.0 * rate1)
-        rest = D - d1
-        w = np.where(U <= WL, np.minimum(WL, np.sqrt(U**2 + 2.0 * a * np.maximum(rest, 0.0))), WL)
-        rate3 = np.where(w >= U, a, b_gov)
-        d3 = np.abs(w**2 - U**2) / (2.0 * rate3)
-        d2 = rest - d3
-        cruise_ok = before[:, None] & (rest >= 0) & (d2 >= -1e-6) & (U <= v_road[:, None] + 1e-9)
-        t_cruise = np.abs(V - U) / rate1 + np.maximum(d2, 0.0) / U + np.abs(w - U) / rate3
-        # Stops: come to rest at the line, start from rest later.
-        can_stop = before & (v**2 <= 2.0 * p.commit_decel * np.maximum(dist, 0.0))
-        stop_dec = np.maximum(b, v**2 / (2.0 * np.maximum(dist, 1e-3)))
-        at_stop = before & (dist <= self.stop_reach) & (v <= self.rest_speed)
-        t_rest = np.where(at_stop, 0.0, earliest_arrival(dist, v, np.zeros(n), v_road, a, stop_dec)[0])
-        start = np.maximum(t_rest[:, None], waits[None, :])  # from rest at the stop point, from now
-        creep = np.where(at_stop, dist, 0.0)[:, None]  # what is left to the line from there
-        t_stop = start + np.sqrt(2.0 * creep / a)
-        w_stop = np.broadcast_to(np.sqrt(2.0 * a * creep), start.shape)
-
-        kind, cruise = self._kinds(u, waits)
-        arrival = np.concatenate([t0[:, None], t_cruise, t_stop], axis=1)  # (n, C)
-        speed_at_line = np.concatenate([w0[:, None], w, w_stop], axis=1)
-        return {
-            "arrival": np.where(inside[:, None], 0.0, arrival),
-            "line_speed": np.where(inside[:, None], v[:, None], speed_at_line),
-            "feasible": np.concatenate(
-                [np.ones((n, 1), bool), cruise_ok, np.broadcast_to(can_stop[:, None], t_stop.shape)], axis=1
-            ),
-            "kind": kind,
-            "cruise": cruise,
-            "start": np.concatenate([np.full((n, 1 + u.size), np.nan), start], axis=1),
-            "rest": t_rest,
-            "earliest": t0,
-            "can_stop": can_stop,
-            "committed": inside | (before & ~can_stop),
-        }
-
     def reserve(self, scene: Scene) -> Reservations:
         """Candidate plans, the order, and the reservations of every vehicle (see the module docstring)."""
         p = self.params
@@ -332,8 +274,7 @@ class AIMPlanner(Planner):
         k = zi.size
         d_in = np.maximum(z_start[zi, zq] - ref[zi], 0.0)
         d_out = z_end[zi, zq] + L[zi] - ref[zi]
-        windows = _aim_kernel.windows if self.compiled else windows_numpy
-        zone_enter, zone_leave, base, score = windows(
+        zone_enter, zone_leave, base, score = _aim_kernel.windows(
             zi, d_in, d_out, arrival, speed_at_line, v_in, *self.leader_terms(scene, ref), a, kind == 2, p.stop_penalty
         )
 
@@ -353,8 +294,7 @@ class AIMPlanner(Planner):
         # Without a clash-free plan: wait longest if it can stop, else arrive as late as it can.
         latest_go = np.where(feasible & (kind != 2)[None, :], arrival, -np.inf).argmax(axis=1)
         fallback = np.where(can_stop, arrival.shape[1] - 1, latest_go)
-        settle = _aim_kernel.settle if self.compiled else settle_numpy
-        choice = settle(
+        choice = _aim_kernel.settle(
             p.passes, pi, pj, at[pi, route[pj]], at[pj, route[pi]], zone_enter, zone_leave, p.buffer,
             arrival, feasible, score, fallback, follows, np.maximum(leader, 0), p.follow_headway,
         )  # fmt: skip
@@ -377,7 +317,7 @@ class AIMPlanner(Planner):
     def leader_terms(self, scene: Scene, ref: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """What bounds when a vehicle's front can be ``d`` metres past ``ref``: its leader's rear must
         first be the jam distance beyond that point, and the leader accelerates at most at ``accel``
-        up to the road's limit (:func:`windows_numpy`).
+        up to the road's limit (:func:`envs.planners._aim_kernel.windows`).
 
         :param scene: the vehicles now
         :param ref: ``(n,)`` arc the distances are measured from
@@ -436,125 +376,6 @@ class AIMPlanner(Planner):
         # Past the intersection: plain IDM.
         acc = np.where(scene.dist_to_exit > 0, np.minimum(np.minimum(planned, follow), guard), plain)
         return np.clip(acc, scene.a_min, scene.a_max)
-
-
-def windows_numpy(
-    zone_row: np.ndarray,
-    d_in: np.ndarray,
-    d_out: np.ndarray,
-    arrival: np.ndarray,
-    line_speed: np.ndarray,
-    v_in: np.ndarray,
-    ahead: np.ndarray,
-    v_lead: np.ndarray,
-    limit: np.ndarray,
-    has: np.ndarray,
-    accel: float,
-    stop: np.ndarray,
-    stop_penalty: float,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Zone windows of every candidate and the candidates' scores (the reference of
-    :func:`envs.planners._aim_kernel.windows`).
-
-    A window is the arrival at the line plus the crossing from the line (``accel`` up to the
-    inner limit), never before the leader has moved on (:meth:`AIMPlanner.leader_terms`).
-
-    :param zone_row: ``(k,)`` vehicle of each zone it still has to pass (sorted)
-    :param d_in: ``(k,)`` metres from the line (from the front once inside) to the zone's start
-    :param d_out: ``(k,)`` and until the rear has left it
-    :param arrival: ``(n, C)`` arrival at the line [s from now]
-    :param line_speed: ``(n, C)`` speed at the line [m/s]
-    :param v_in: ``(n,)`` lowest limit inside the intersection [m/s]
-    :param ahead: ``(n,)`` from :meth:`AIMPlanner.leader_terms`
-    :param v_lead: ``(n,)`` from :meth:`AIMPlanner.leader_terms`
-    :param limit: ``(n,)`` from :meth:`AIMPlanner.leader_terms`
-    :param has: ``(n,)`` from :meth:`AIMPlanner.leader_terms`
-    :param accel: acceleration of the crossing and of the leader [m/s^2]
-    :param stop: ``(C,)`` bool: the candidate stops at the line
-    :param stop_penalty: seconds added to a stop's score
-    :return: ``(k, C)`` enter and leave times [s from now]; ``(n, C)`` the window in a zone a vehicle
-        no longer has to pass (its arrival, bounded likewise); ``(n, C)`` scores: the time the last
-        zone is left (the arrival without zones), plus the penalty of a stop
-    """
-    n, k = arrival.shape[0], zone_row.size
-    # Entering and leaving in one pass: (2k, C), the zones' starts then their ends; then, to
-    # bound them by the leader, the same distances and 0 for each vehicle (its other zones).
-    rows2 = np.concatenate([zone_row, zone_row])
-    d_both = np.concatenate([d_in, d_out])
-    both = arrival[rows2] + travel_time(d_both[:, None], line_speed[rows2], v_in[rows2, None], accel)
-    rows, d = np.concatenate([rows2, np.arange(n)]), np.concatenate([d_both, np.zeros(n)])
-    move = np.maximum(d + ahead[rows], 0.0)
-    bound = np.where(has[rows], travel_time(move, v_lead[rows], limit[rows], accel), 0.0)
-    both = np.maximum(both, bound[: 2 * k, None])
-    base = np.maximum(arrival, bound[2 * k :, None])
-    enter, leave = both[:k], both[k:]
-    starts = np.flatnonzero(np.r_[True, zone_row[1:] != zone_row[:-1]]) if k else np.zeros(0, np.int64)
-    last = np.full(arrival.shape, -np.inf)
-    if k:
-        last[zone_row[starts]] = np.maximum.reduceat(leave, starts, axis=0)
-    score = np.where(np.isfinite(last), last, arrival) + np.where(stop, stop_penalty, 0.0)[None, :]
-    return enter, leave, base, score
-
-
-def settle_numpy(
-    passes: int,
-    pair_i: np.ndarray,
-    pair_j: np.ndarray,
-    row_i: np.ndarray,
-    row_j: np.ndarray,
-    zone_enter: np.ndarray,
-    zone_leave: np.ndarray,
-    buffer: float,
-    arrival: np.ndarray,
-    feasible: np.ndarray,
-    score: np.ndarray,
-    fallback: np.ndarray,
-    follows: np.ndarray,
-    lead_row: np.ndarray,
-    follow_headway: float,
-) -> np.ndarray:
-    """The reservation passes: every vehicle takes its best candidate that clashes with no choice of
-    the previous pass, until no choice changes (the reference of :func:`envs.planners._aim_kernel.settle`).
-
-    :param passes: most passes
-    :param pair_i: ``(P,)`` vehicle ``i`` of each pair that must not clash (sorted)
-    :param pair_j: ``(P,)`` the vehicle ``j`` that reserves before it
-    :param row_i: ``(P,)`` row of ``i``'s zone with ``j`` in ``zone_enter``
-    :param row_j: ``(P,)`` row of ``j``'s zone with ``i``
-    :param zone_enter: ``(k, C)`` zone windows' starts [s from now]
-    :param zone_leave: ``(k, C)`` and ends
-    :param buffer: seconds kept between two windows
-    :param arrival: ``(n, C)`` arrival at the line [s from now]
-    :param feasible: ``(n, C)`` bool
-    :param score: ``(n, C)`` lower is better
-    :param fallback: ``(n,)`` candidate taken where none is clash-free
-    :param follows: ``(n,)`` bool: arrives ``follow_headway`` after its leader
-    :param lead_row: ``(n,)`` the leader's row (0 where none)
-    :param follow_headway: seconds
-    :return: ``(n,)`` chosen candidates
-    """
-    n = arrival.shape[0]
-    enter_ij, leave_ij = zone_enter[row_i], zone_leave[row_i] + buffer  # (P, C), rows sorted by i
-    clashing, starts = np.unique(pair_i, return_index=True)
-    flat_enter, flat_leave = zone_enter.ravel(), zone_leave.ravel() + buffer
-    row_j_flat = row_j * arrival.shape[1]
-    rows = np.arange(n)
-    choice = np.zeros(n, np.int64)
-    clash = np.zeros(arrival.shape, bool)
-    for _ in range(passes):
-        if pair_i.size:  # j's chosen window in its zone with i against each of i's candidates
-            chosen_j = row_j_flat + choice[pair_j]
-            enter_j, leave_j = flat_enter[chosen_j], flat_leave[chosen_j]
-            overlap = (enter_ij < leave_j[:, None]) & (enter_j[:, None] < leave_ij)
-            clash[clashing] = np.logical_or.reduceat(overlap, starts, axis=0)
-        lead_arrival = arrival[rows, choice][lead_row] + follow_headway
-        ok = feasible & ~clash & (~follows[:, None] | (arrival >= lead_arrival[:, None]))
-        best = np.where(ok, score, np.inf).argmin(axis=1)
-        new = np.where(ok.any(axis=1), best, fallback)
-        if np.array_equal(new, choice):
-            break
-        choice = new
-    return choice
 
 
 def zone_guard(scene: Scene, enter: np.ndarray, until: np.ndarray, idm: IDMParams = DEFAULT_IDM) -> np.ndarray:

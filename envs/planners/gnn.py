@@ -1,9 +1,12 @@
-"""The learned planner: a trained graph policy (TD3 ``GraphPolicy``) behind the planner face.
+"""The learned planner: a trained graph policy of any algorithm in :data:`sb3_graph.registry.ALGORITHMS`
+(TD3, DDPG, SAC, TQC, CrossQ, PPO, A2C) behind the planner face. It acts with the policy's
+deterministic action, as SB3's ``predict(obs, deterministic=True)``: the actor's output, or the mean
+of a stochastic policy squashed (SAC, TQC, CrossQ) or clipped (PPO, A2C) as ``predict`` does.
 
 Planner files are what people share, so they load without running code: a weights-only
 ``.safetensors`` policy file (``sb3-graph export``) or an SB3 ``.zip`` read without unpickling
 (:mod:`sb3_graph.weights`). ``trust_files=True`` (``--trust-planner-files``) restores SB3's full
-``TD3.load`` for one's own files.
+``Algorithm.load`` for one's own files.
 """
 
 from __future__ import annotations
@@ -22,7 +25,7 @@ def load_model(path: str | Path, device: str = "cpu", trust_files: bool = False)
 
     :param path: the file
     :param device: torch device
-    :param trust_files: load a ``.zip`` with SB3's ``TD3.load``, which runs the pickles in it
+    :param trust_files: load a ``.zip`` with its algorithm's SB3 ``load``, which runs the pickles in it
     :return: the policy (``predict``, ``observation_space``)
     :raises ValueError: a file that cannot be loaded safely (``sb3_graph.weights.PolicyFileError``)
     """
@@ -41,14 +44,14 @@ class GNNPlanner(Planner):
     :param path: the policy file (``.safetensors``) or saved model (``.zip``)
     :param name: the name shown in reports (default: derived from the path)
     :param device: torch device for inference
-    :param trust_files: load a ``.zip`` with SB3's ``TD3.load`` (runs its pickles)
+    :param trust_files: load a ``.zip`` with its algorithm's SB3 ``load`` (runs its pickles)
     """
 
     # Run inference without SB3's `predict` (see :meth:`predict`); set for loaded SB3 policies only,
     # so that subclasses around other models (a trial's model in training) keep their `predict`.
     _direct = False
-    # Feed the TD3 graph actor a batch built from the scene (see :meth:`vertex_actions`); set at
-    # load for a plain SB3 TD3 graph policy on a space without edge features.
+    # Feed the graph network a batch built from the scene (see :meth:`vertex_actions`); set at load
+    # for a registered graph policy (exactly its class) on a space without edge features.
     _graph_actor = False
 
     def __init__(
@@ -114,6 +117,7 @@ class GNNPlanner(Planner):
 
         from envs.scene_graph import build_graph_batch
         from sb3_graph.batching import concat_graph_batches
+        from sb3_graph.registry import deterministic_vertex_actions
 
         answers = [np.zeros(0) for _ in scenes]
         busy = [k for k, scene in enumerate(scenes) if scene.num_vehicles]
@@ -122,10 +126,10 @@ class GNNPlanner(Planner):
         policy = self.model
         graphs = concat_graph_batches([build_graph_batch(scenes[k], self.space) for k in busy])
         with torch.inference_mode():  # the batch is made outside: see vertex_actions
-            vertex = policy.actor.vertex_actions(graphs).numpy()
+            vertex = deterministic_vertex_actions(policy, graphs).numpy()
         actions = np.zeros((len(busy), *policy.action_space.shape), dtype=np.float32)
         actions[graphs.batch.numpy(), graphs.node_slot.numpy()] = vertex
-        actions = policy.unscale_action(actions)
+        actions = _to_action_bounds(policy, actions)
         for row, k in enumerate(busy):
             scene = scenes[k]
             action = np.asarray(actions[row, : scene.num_vehicles], dtype=float)
@@ -133,7 +137,7 @@ class GNNPlanner(Planner):
         return answers
 
     def vertex_actions(self, scene: Scene) -> np.ndarray:
-        """The TD3 graph actor's deterministic action of each vehicle: :meth:`predict` of
+        """The policy's deterministic action of each vehicle: :meth:`predict` of
         :func:`~envs.scene_graph.build_observation`'s observation, first ``n`` slots, without the
         padded observation.
 
@@ -148,15 +152,16 @@ class GNNPlanner(Planner):
         import torch
 
         from envs.scene_graph import build_graph_batch
+        from sb3_graph.registry import deterministic_vertex_actions
 
         policy = self.model
         graphs = build_graph_batch(scene, self.space)
         with torch.inference_mode():
-            vertex = policy.actor.vertex_actions(graphs)
-        # SB3's unscaling over the whole action space: bounds of any shape, same arithmetic.
+            vertex = deterministic_vertex_actions(policy, graphs)
+        # SB3's unscaling (or clipping) over the whole action space: bounds of any shape, same arithmetic.
         actions = np.zeros(policy.action_space.shape, dtype=np.float32)
         actions[: scene.num_vehicles] = vertex.numpy()
-        return policy.unscale_action(actions)[: scene.num_vehicles]
+        return _to_action_bounds(policy, actions)[: scene.num_vehicles]
 
     def predict(self, obs) -> np.ndarray:
         """The policy's deterministic action, as ``model.predict(obs, deterministic=True)[0]``.
@@ -197,20 +202,19 @@ def _plain_sb3_policy(model) -> bool:
 
 
 def _plain_graph_actor(model) -> bool:
-    """Whether ``model`` is a TD3 graph policy whose ``_predict`` is its actor's forward pass over
-    a space without edge features (what :meth:`GNNPlanner.vertex_actions` runs)."""
-    from stable_baselines3.td3.policies import TD3Policy
+    """Whether ``model`` is exactly a registered graph policy (:data:`sb3_graph.registry.ALGORITHMS`,
+    so its ``_predict`` is the graph network's deterministic action) over a space without edge
+    features (what :meth:`GNNPlanner.vertex_actions` runs)."""
+    from sb3_graph.registry import entry_of_policy
 
-    from sb3_graph.td3.policies import GraphActor
+    return entry_of_policy(model) is not None and getattr(model.observation_space, "edge_features", None) == 0
 
-    actor = getattr(model, "actor", None)
-    return (
-        isinstance(model, TD3Policy)
-        and type(model)._predict is TD3Policy._predict
-        and type(actor) is GraphActor
-        and model.squash_output
-        and getattr(model.observation_space, "edge_features", None) == 0
-    )
+
+def _to_action_bounds(policy, actions: np.ndarray) -> np.ndarray:
+    """What SB3's ``predict`` does to the network's actions: unscale a squashed policy's, clip the rest."""
+    if policy.squash_output:
+        return policy.unscale_action(actions)
+    return np.clip(actions, policy.action_space.low, policy.action_space.high)
 
 
 def model_name(path: Path) -> str:

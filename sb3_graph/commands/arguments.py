@@ -7,7 +7,7 @@ import json
 import math
 from typing import Any
 
-from sb3_graph.cli import UserError
+from sb3_graph.commands import UserError
 
 
 def json_object(text: str) -> dict[str, Any]:

@@ -44,20 +44,11 @@ from typing import Any
 import numpy as np
 import yaml
 
-from sb3_graph.cli import UserError
+from sb3_graph.commands import UserError
 from sb3_graph.commands.arguments import json_object
+from sb3_graph.registry import ALGORITHMS
 
 CHECKPOINT_PATTERN = re.compile(r"model_(\d+)_steps\.zip$")
-#: --algo names (rl-zoo3's) -> class names in sb3_graph
-ALGORITHMS = {
-    "td3": "TD3",
-    "ddpg": "DDPG",
-    "sac": "SAC",
-    "tqc": "TQC",
-    "crossq": "CrossQ",
-    "ppo": "PPO",
-    "a2c": "A2C",
-}
 VALIDATION_SEED_OFFSET = 10_000
 
 
@@ -96,8 +87,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--gym-packages",
         nargs="*",
-        default=["envs"],
-        help="modules to import so that they register their environments (default: envs)",
+        default=None,
+        help="modules to import so that they register their environments (default: those of the installed "
+        "domains, their sb3_graph.gym_packages entry points; the repository's intersection package)",
     )
     parser.add_argument(
         "--env-kwargs",
@@ -264,7 +256,12 @@ def _make_checkpoint_callback(save_freq: int, folder: Path):
     return CompleteCheckpoint()
 
 
-def _import_packages(names: list[str]) -> None:
+def _import_packages(names: list[str] | None) -> None:
+    """Import the ``--gym-packages`` (default: every installed domain's, see :mod:`sb3_graph.plugins`)."""
+    if names is None:
+        from sb3_graph.plugins import gym_packages
+
+        names = gym_packages()
     for name in names:
         try:
             importlib.import_module(name)
@@ -339,7 +336,7 @@ def _stored_entry(config_path: Path, n_timesteps: int | None) -> dict[str, Any]:
 
 
 def _algorithm(args: argparse.Namespace):
-    return getattr(importlib.import_module("sb3_graph"), ALGORITHMS[args.algo])
+    return ALGORITHMS[args.algo].load_class()
 
 
 def _load_weights(model, path: str) -> None:
@@ -566,7 +563,7 @@ def _run_one(args: argparse.Namespace) -> int:
                 callback=callbacks,
                 reset_num_timesteps=checkpoint is None,
                 progress_bar=not args.no_progress,
-                tb_log_name=ALGORITHMS[args.algo],
+                tb_log_name=ALGORITHMS[args.algo].name,
             )
     except KeyboardInterrupt:
         interrupted = True

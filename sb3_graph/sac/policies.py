@@ -62,7 +62,8 @@ class GraphSACActor(BasePolicy):
             node_features, num_relations, encoder_dim, conv_dims, aggregation, activation_fn, edge_dim
         )
         self.head = nn.Linear(self.trunk.out_dim, 2)  # mean and log std of each vertex
-        #: Mean real-vertex count of the last batch passed to action_log_prob (see VertexEntropyMixin).
+        #: Mean real-vertex count of the last batch passed to action_log_prob with gradients enabled
+        #: (the batch's observations in SB3's ``train``; see VertexEntropyMixin).
         self.last_mean_vertices: float | None = None
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
@@ -101,7 +102,8 @@ class GraphSACActor(BasePolicy):
         """
         graphs = as_graph_batch(obs)
         actions, log_prob = squashed_sample(*self.vertex_distribution(graphs))
-        self.last_mean_vertices = graphs.num_nodes / max(graphs.num_graphs, 1)
+        if torch.is_grad_enabled():  # the observations' call; the next observations' call runs under no_grad
+            self.last_mean_vertices = graphs.num_nodes / max(graphs.num_graphs, 1)
         return batch_to_padded(actions, graphs), sum_per_graph(log_prob, graphs)
 
     def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> Tensor:

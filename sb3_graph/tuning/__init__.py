@@ -1,8 +1,9 @@
-"""Optuna tuning of reward weights and TD3 settings on task metrics (``sb3-graph tune``, ``tune-report``).
+"""Optuna tuning of reward weights and algorithm settings on task metrics (``sb3-graph tune``, ``tune-report``).
 
 Environment-agnostic: the task metrics come from an evaluator plug-in (``module:function``) and
-the reduced environment from a preset plug-in; the intersection domain provides both in
-``envs.tuning``. Modules: :mod:`~sb3_graph.tuning.storage` (URL -> Optuna storage),
+the reduced environment from a preset plug-in; a domain provides both through its
+``sb3_graph.tuning`` entry point (:mod:`sb3_graph.plugins`).
+Modules: :mod:`~sb3_graph.tuning.storage` (URL -> Optuna storage),
 :mod:`~sb3_graph.tuning.search_space`, :mod:`~sb3_graph.tuning.objectives`,
 :mod:`~sb3_graph.tuning.runner` (one trial), :mod:`~sb3_graph.tuning.report`, and the two
 commands. See ``docs/tuning.md``.

@@ -1,4 +1,4 @@
-"""``sb3-graph tune``: tune reward weights (and TD3 settings) with Optuna, on one machine or many.
+"""``sb3-graph tune``: tune reward weights (and the algorithm's settings) with Optuna, on one machine or many.
 
 Every invocation adds ``--n-trials`` trials to the study named ``--study-name`` in ``--storage``
 (created on first use): re-running the command resumes the study, and workers on other machines
@@ -15,18 +15,22 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from sb3_graph.cli import UserError
+from sb3_graph.commands import UserError
 from sb3_graph.commands.arguments import check_device, json_object
 from sb3_graph.commands.train import parse_overrides
+from sb3_graph.registry import ALGORITHMS
 
 DEFAULT_STORAGE = "sqlite:///studies/{study}.db"
-# Environment ids with a domain plug-in in this repository: prefix -> (evaluator, env preset).
+# The package's own environment ids with a tuning plug-in: prefix -> (evaluator, env preset). A
+# domain adds its own through the `sb3_graph.tuning` entry point group (sb3_graph.plugins).
 DOMAIN_DEFAULTS = {
-    "CoopIntersection": ("envs.tuning:evaluate_model", "envs.tuning:tuning_env_kwargs"),
     "GraphMaxNeighbour": ("sb3_graph.tuning.toy:evaluate_max_neighbour", "none"),
 }
+TOY_GYM_PACKAGE = "sb3_graph.toy_envs"
 # Study user attributes written when the study is created, checked when it is resumed.
-CHECKED_ATTRS = ("objective", "env")
+CHECKED_ATTRS = ("objective", "env", "algo")
+# Values of attributes that studies made before the attribute existed have.
+ATTR_DEFAULTS = {"algo": "td3"}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -43,7 +47,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--n-trials", type=int, default=10, help="trials this invocation adds to the study")
     parser.add_argument("--timesteps", type=int, default=None, help="training steps per trial (default: entry)")
     parser.add_argument("--objective", default="flow", help="flow (max flow rate, collision constraint) or pareto")
-    parser.add_argument("--tune-algo", action="store_true", help="also tune TD3 settings (learning rate, batch...)")
+    parser.add_argument(
+        "--algo", choices=ALGORITHMS, default="td3", help="algorithm that the trials train, as rl-zoo3's --algo"
+    )
+    parser.add_argument(
+        "--tune-algo", action="store_true", help="also tune the algorithm's settings (learning rate, batch...)"
+    )
     parser.add_argument("--jobs", type=int, default=1, help="worker processes on this machine")
     parser.add_argument("--weights", nargs="*", default=None, metavar="TERM", help="reward terms to tune (default all)")
     parser.add_argument("--weight-spread", type=float, default=10.0, help="log range factor each way around Table I")
@@ -56,7 +65,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--env-preset",
         default=None,
         help="module:attribute, a dict or function giving the reduced env kwargs, or none "
-        "(default for CoopIntersection*: envs.tuning:tuning_env_kwargs, the 'tuning' preset)",
+        "(default: the preset of the env id's domain, e.g. the intersection's 'tuning' preset)",
     )
     parser.add_argument("--env-kwargs", type=json_object, default=None, help="JSON dict merged over the preset")
     parser.add_argument(
@@ -91,22 +100,33 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--max-retry", type=int, default=0, help="retries of a trial whose worker died")
     parser.add_argument("--save-models", default=None, help="folder for each trial's final model")
-    parser.add_argument("--gym-packages", nargs="*", default=None, help="modules that register the env")
+    parser.add_argument(
+        "--gym-packages",
+        nargs="*",
+        default=None,
+        help="modules that register the env (default: the installed domains' sb3_graph.gym_packages)",
+    )
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads per worker")
     parser.add_argument("--device", default="cpu", help="torch device")
 
 
 def _domain_default(env_id: str, index: int) -> str | None:
-    for prefix, values in DOMAIN_DEFAULTS.items():
+    from sb3_graph.plugins import tuning_defaults
+
+    for prefix, values in {**DOMAIN_DEFAULTS, **tuning_defaults()}.items():
         if env_id.startswith(prefix):
             return values[index]
     return None
 
 
 def _gym_packages(args: argparse.Namespace) -> list[str]:
+    from sb3_graph.plugins import gym_packages
+
     if args.gym_packages is not None:
         return list(args.gym_packages)
-    return ["envs"] if args.env.startswith("CoopIntersection") else ["sb3_graph.toy_envs"]
+    if any(args.env.startswith(prefix) for prefix in DOMAIN_DEFAULTS):
+        return [TOY_GYM_PACKAGE]
+    return [*gym_packages(), TOY_GYM_PACKAGE]
 
 
 def _preset(args: argparse.Namespace) -> dict[str, Any]:
@@ -179,7 +199,7 @@ def prepare(args: argparse.Namespace):
     timesteps = int(float(args.timesteps if args.timesteps is not None else trial_entry["n_timesteps"]))
     if timesteps < 1:
         raise UserError(f"--timesteps must be at least 1, got {timesteps}")
-    learning_starts = int(trial_entry.get("learning_starts", 100))
+    learning_starts = 0 if ALGORITHMS[args.algo].on_policy else int(trial_entry.get("learning_starts", 100))
     if learning_starts >= timesteps:
         raise UserError(
             f"--timesteps {timesteps} <= learning_starts {learning_starts} of the entry: no gradient step would run"
@@ -232,6 +252,7 @@ def prepare(args: argparse.Namespace):
         weight_defaults=defaults,
         weight_spread=args.weight_spread,
         tune_algo=args.tune_algo,
+        algo=args.algo,
         evaluations=args.evaluations,
         eval_steps=eval_steps,
         eval_episodes=args.eval_episodes,
@@ -243,6 +264,7 @@ def prepare(args: argparse.Namespace):
     attrs = {
         "objective": objective.name,
         "env": args.env,
+        "algo": args.algo,
         "config_file": str(args.config),
         # the entry as in the file (full env): the report's YAML puts the best parameters into it
         "entry": json.loads(json.dumps(entry, default=str)),
@@ -309,9 +331,10 @@ def create_or_load(args: argparse.Namespace, settings, attrs: dict[str, Any], st
     )
     existing = study.user_attrs
     for key in CHECKED_ATTRS:
-        if key in existing and existing[key] != attrs[key]:
+        recorded = existing.get(key, ATTR_DEFAULTS.get(key)) if existing else None
+        if recorded is not None and recorded != attrs[key]:
             raise UserError(
-                f"study {args.study_name!r} was created with {key} {existing[key]!r}, not {attrs[key]!r}: "
+                f"study {args.study_name!r} was created with {key} {recorded!r}, not {attrs[key]!r}: "
                 "choose another --study-name"
             )
     if [d.name.lower() for d in study.directions] != list(objective.directions):

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from sb3_graph.cli import UserError
+from sb3_graph.commands import UserError
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

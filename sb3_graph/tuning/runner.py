@@ -1,8 +1,9 @@
-"""One trial: sample, train ``sb3_graph.TD3`` on the (reduced) environment, evaluate on task metrics.
+"""One trial: sample, train the study's algorithm (``--algo``, TD3 by default) on the (reduced) environment,
+evaluate on task metrics.
 
 The evaluator is a plug-in: any callable ``evaluate(model, env_id, env_kwargs, episodes, seed)``
-returning a mapping of metric names to numbers (e.g. ``envs.tuning:evaluate_model`` for the
-intersection environments). It always sees the same validation episodes (``seed`` is fixed per
+returning a mapping of metric names to numbers (e.g. the intersection domain's, named by its
+``sb3_graph.tuning`` entry point). It always sees the same validation episodes (``seed`` is fixed per
 study, not per trial), so trials are compared like for like.
 
 Outcomes (the reason is the user attribute ``reason``; the study always continues):
@@ -32,6 +33,7 @@ import optuna
 import torch as th
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList
 
+from sb3_graph.registry import ALGORITHMS
 from sb3_graph.tuning.objectives import Objective, check_metrics
 from sb3_graph.tuning.pruners import evaluation_steps
 from sb3_graph.tuning.search_space import DEFAULT_SPREAD, entry_with_params, sample_algo, sample_reward_weights
@@ -74,7 +76,8 @@ class TrialSettings:
     :param evaluator: the metric plug-in (see the module docstring)
     :param weight_defaults: reward weights to tune and their centres (empty: weights not tuned)
     :param weight_spread: factor each way of the weights' log ranges
-    :param tune_algo: also sample TD3 settings
+    :param tune_algo: also sample the algorithm's settings (its registry entry's ``tune_space``)
+    :param algo: ``--algo`` name of the trained algorithm (a key of :data:`sb3_graph.registry.ALGORITHMS`)
     :param evaluations: evaluations per trial (the last at the end); only prunable objectives
         evaluate before the end
     :param eval_steps: training steps of the intermediate evaluations (default: ``evaluations``
@@ -94,6 +97,7 @@ class TrialSettings:
     weight_defaults: dict[str, float] = field(default_factory=dict)
     weight_spread: float = DEFAULT_SPREAD
     tune_algo: bool = False
+    algo: str = "td3"
     evaluations: int = 3
     eval_steps: tuple[int, ...] | None = None
     eval_episodes: int = 3
@@ -107,7 +111,7 @@ def sample_params(trial: optuna.Trial, settings: TrialSettings) -> dict[str, Any
     """Sample the trial's parameters (``weight.*`` and ``algo.*``); the trial records them."""
     sample_reward_weights(trial, settings.weight_defaults, settings.weight_spread)
     if settings.tune_algo:
-        sample_algo(trial)
+        sample_algo(trial, ALGORITHMS[settings.algo].tune_space)
     return dict(trial.params)
 
 
@@ -185,8 +189,6 @@ def _run(trial: optuna.Trial, settings: TrialSettings) -> float | tuple[float, .
     from stable_baselines3.common.env_util import make_vec_env
 
     from sb3_graph.experiment import build_algorithm_kwargs, build_callbacks, resolve_object
-    from sb3_graph.td3 import TD3
-
     params = sample_params(trial, settings)
     entry = entry_with_params(settings.entry, params)
     env_kwargs = dict(entry.get("env_kwargs") or {})
@@ -210,7 +212,8 @@ def _run(trial: optuna.Trial, settings: TrialSettings) -> float | tuple[float, .
         if isinstance(policy, str) and "." in policy:
             policy = resolve_object(policy, "policy")
         algo_kwargs = build_algorithm_kwargs(entry, int(np.prod(train_env.action_space.shape)))
-        model = TD3(policy, train_env, seed=seed, device=settings.device, verbose=0, **algo_kwargs)
+        algorithm = ALGORITHMS[settings.algo].load_class()
+        model = algorithm(policy, train_env, seed=seed, device=settings.device, verbose=0, **algo_kwargs)
         callbacks = build_callbacks(entry)
         monitor = None
         steps = settings.eval_steps

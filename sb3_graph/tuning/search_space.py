@@ -1,4 +1,5 @@
-"""What a trial samples: the reward weights (log scales around their defaults) and, optionally, TD3 settings.
+"""What a trial samples: the reward weights (log scales around their defaults) and, optionally, the settings of
+the trained algorithm (its registry entry's ``tune_space``).
 
 Parameter names carry a prefix that says where the value goes:
 
@@ -25,6 +26,8 @@ from typing import Any
 
 import optuna
 
+from sb3_graph.registry import ALGORITHMS
+
 WEIGHT_PREFIX = "weight."
 ALGO_PREFIX = "algo."
 # Where the weights go inside the env kwargs: gym.make(env_id, config={"reward_weights": {...}}).
@@ -32,14 +35,8 @@ WEIGHTS_KEY = ("config", "reward_weights")
 DEFAULT_SPREAD = 10.0
 
 # TD3 settings tuned with --tune-algo: name -> (kind, arguments). Ranges bracket SB3's and rl-zoo3's TD3 defaults.
-ALGO_SPACE: dict[str, tuple[str, tuple]] = {
-    "learning_rate": ("log", (1e-4, 3e-3)),
-    "batch_size": ("categorical", ((64, 128, 256),)),
-    "gamma": ("categorical", ((0.9, 0.95, 0.98, 0.99, 0.995),)),
-    "tau": ("log", (1e-3, 2e-2)),
-    "noise_std": ("float", (0.05, 0.5)),
-    "policy_delay": ("int", (1, 4)),
-}
+# Every algorithm's space is its registry entry's ``tune_space`` (sb3_graph.registry).
+ALGO_SPACE: dict[str, tuple[str, tuple]] = dict(ALGORITHMS["td3"].tune_space)
 
 
 def sample_reward_weights(
@@ -62,14 +59,15 @@ def sample_reward_weights(
     return weights
 
 
-def sample_algo(trial: optuna.Trial) -> dict[str, Any]:
-    """Sample the TD3 settings of :data:`ALGO_SPACE`.
+def sample_algo(trial: optuna.Trial, space: Mapping[str, tuple[str, tuple]] | None = None) -> dict[str, Any]:
+    """Sample an algorithm's settings.
 
     :param trial: the Optuna trial
+    :param space: setting -> ``(kind, arguments)``, an entry's ``tune_space`` (default: TD3's, :data:`ALGO_SPACE`)
     :return: experiment-entry keys -> values
     """
     values: dict[str, Any] = {}
-    for key, (kind, args) in ALGO_SPACE.items():
+    for key, (kind, args) in (ALGO_SPACE if space is None else space).items():
         name = f"{ALGO_PREFIX}{key}"
         if kind == "log":
             values[key] = trial.suggest_float(name, *args, log=True)
@@ -103,7 +101,7 @@ def split_params(params: Mapping[str, Any]) -> tuple[dict[str, float], dict[str,
 def entry_with_params(entry: Mapping[str, Any], params: Mapping[str, Any]) -> dict[str, Any]:
     """A copy of an experiment entry with a trial's parameters put in place.
 
-    Weights are merged into ``env_kwargs["config"]["reward_weights"]``; TD3 settings replace the
+    Weights are merged into ``env_kwargs["config"]["reward_weights"]``; algorithm settings replace the
     entry's keys (a tuned ``noise_std`` turns on ``noise_type: normal`` if the entry has no noise).
 
     :param entry: rl-zoo3 experiment entry (with its ``env_kwargs``)

@@ -1,0 +1,20 @@
+"""What the intersection domain plugs into sb3-graph, declared as entry points in ``pyproject.toml``
+(groups ``sb3_graph.commands``, ``sb3_graph.tuning`` and ``sb3_graph.gym_packages``; see
+:mod:`sb3_graph.plugins`). Plain strings only: reading this module imports no command.
+"""
+
+from __future__ import annotations
+
+#: ``sb3-graph <command>`` -> (module with ``add_arguments``/``run``, one-line help)
+COMMANDS: dict[str, tuple[str, str]] = {
+    "evaluate": ("envs.commands.evaluate", "compare planners on the same scenarios and write a report"),
+    "sweep": ("envs.commands.sweep", "compare planners across traffic demand levels, with their capacity"),
+    "aggregate": ("envs.commands.aggregate", "IQM and 95 % intervals of evaluate reports over seeds and scenarios"),
+    "ind": ("envs.commands.ind", "replay inD recordings through the planners"),
+    "reward-check": ("envs.commands.reward_check", "rank correlation of each reward's returns with flow and delay"),
+}
+
+#: ``sb3-graph tune``: env id prefix -> (metric evaluator, reduced env kwargs of the trials)
+TUNING: dict[str, tuple[str, str]] = {
+    "CoopIntersection": ("envs.tuning:evaluate_model", "envs.tuning:tuning_env_kwargs"),
+}
