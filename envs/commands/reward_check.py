@@ -26,7 +26,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from sb3_graph.cli import UserError
+from sb3_graph.commands import UserError
 
 TASK_COLUMNS = ("flow_rate", "delay_mean", "stop_ratio_all", "collision_rate")
 
