@@ -400,6 +400,9 @@ CASES = [
     ("tune-yaml-laughs", _tune("{yaml_laughs}"), ["laughs.yml", "1000000 values"]),
     ("train-yaml-binary", _train("{yaml_binary}"), ["binary.yml", "UTF-8"]),
     ("train-yaml-malformed", _train("{yaml_malformed}"), ["malformed.yml", "YAML"]),
+    ("train-hyperparams-deep", _train(str(CONFIG), "--hyperparams", "gamma:" + "[" * 20_000 + "]" * 20_000),
+     ["--hyperparams gamma", "nested"]),  # fmt: skip
+    ("evaluate-env-kwargs-deep", ["evaluate", "--env-kwargs", "[" * 20_000 + "]" * 20_000], ["--env-kwargs", "nested"]),
     ("train-yaml-fifo", _train("{sc_fifo}/a.json"), ["a.json", "not a regular file"]),
     ("evaluate-duration-huge", ["evaluate", "--duration", "1e12"], ["--duration", "1e12"]),
     ("evaluate-scenarios-huge", ["evaluate", "--scenarios", "1000000000"], ["--scenarios", "1000000000"]),

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import math
 from typing import Any
 
@@ -15,10 +14,12 @@ def json_object(text: str) -> dict[str, Any]:
 
     :raises argparse.ArgumentTypeError: invalid JSON, or JSON that is not an object
     """
+    from sb3_graph.safe_values import UnsafeValueError, load_json
+
     try:
-        value = json.loads(text)
-    except ValueError as error:
-        raise argparse.ArgumentTypeError(f"not valid JSON ({error})") from None
+        value = load_json(text, "value", constants=False)
+    except UnsafeValueError as error:
+        raise argparse.ArgumentTypeError(str(error).removeprefix("value: ")) from None
     if not isinstance(value, dict):
         raise argparse.ArgumentTypeError(
             f"""must be a JSON object such as '{{"config": {{"duration": 60}}}}', got {text!r}"""

@@ -131,15 +131,17 @@ def parse_overrides(items: list[str], flag: str = "--hyperparams") -> dict[str, 
     :param items: ``KEY:VALUE`` strings
     :param flag: the option named in errors
     """
+    from sb3_graph.safe_values import UnsafeValueError, load_yaml
+
     overrides = {}
     for item in items:
         key, sep, value = item.partition(":")
         if not sep or not key:
             raise UserError(f"{flag}: expected KEY:VALUE, got {item!r}")
         try:
-            overrides[key] = yaml.safe_load(value)
-        except yaml.YAMLError as error:
-            raise UserError(f"{flag}: {item!r}: value is not YAML ({str(error).splitlines()[0]})") from None
+            overrides[key] = load_yaml(value, f"{flag} {key}")
+        except UnsafeValueError as error:
+            raise UserError(f"{error} (in {item[:60]!r})") from None
     return overrides
 
 
