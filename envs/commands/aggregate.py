@@ -35,7 +35,7 @@ from pathlib import Path
 import pandas as pd
 
 from sb3_graph.cli import UserError
-from sb3_graph.commands.arguments import bounded_int, seed_value
+from sb3_graph.commands.arguments import seed_value
 
 DEFAULT_METRICS = ("flow_rate", "stop_ratio_all", "delay_mean", "collision_rate")
 DEFAULT_SEED_PATTERN = r"seed_(\d+)"
@@ -59,7 +59,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--reps",
-        type=bounded_int(1, MAX_REPS),
+        type=int,
         default=2000,
         help=f"bootstrap resamples, at most {MAX_REPS} (default: 2000; rliable: 50000)",
     )
@@ -189,8 +189,8 @@ def run(args: argparse.Namespace) -> int:
     from sb3_graph.aggregate import aggregate
     from sb3_graph.outputs import OutputError, check_destination, staged_folder
 
-    if args.reps < 1:
-        raise UserError(f"--reps must be at least 1, got {args.reps}")
+    if not 1 <= args.reps <= MAX_REPS:
+        raise UserError(f"--reps must be in [1, {MAX_REPS}], got {args.reps}")
     if args.bootstrap not in ("stratified", "iid"):
         raise UserError(f"--bootstrap must be stratified or iid, got {args.bootstrap!r}")
     if not 0 < args.confidence < 1:

@@ -59,40 +59,6 @@ def seed_value(text: str) -> int:
 seed_value.__name__ = "seed"
 
 
-def bounded_int(low: int, high: int):
-    """An ``argparse`` type: an integer in ``[low, high]`` (a count: scenarios, resamples ...).
-
-    :param low: smallest value
-    :param high: largest value
-    """
-
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected an integer in [{low}, {high}], got {text!r}") from None
-        if not low <= value <= high:
-            raise argparse.ArgumentTypeError(f"expected an integer in [{low}, {high}], got {text!r}")
-        return value
-
-    parse.__name__ = "count"
-    return parse
-
-
-def bounded_float(low: float, high: float, low_open: bool = False):
-    """An ``argparse`` type: a finite number in ``[low, high]`` (``(low, high]`` with ``low_open``)."""
-    interval = f"{'(' if low_open else '['}{low:g}, {high:g}]"
-
-    def parse(text: str) -> float:
-        value = finite_float(text)
-        if not ((value > low) if low_open else (value >= low)) or value > high:
-            raise argparse.ArgumentTypeError(f"expected a number in {interval}, got {text!r}")
-        return value
-
-    parse.__name__ = "number"
-    return parse
-
-
 def check_device(device: str, flag: str = "--device") -> str:
     """A torch device name that torch understands (``auto`` too).
 
