@@ -52,7 +52,7 @@ import torch as th
 from gymnasium import spaces
 
 from sb3_graph.policy_kwargs import check_finite_weights, check_policy_kwargs
-from sb3_graph.safe_values import UnsafeValueError, resolve_name
+from sb3_graph.safe_values import UnsafeValueError, check_structure, resolve_name
 
 FORMAT = "sb3-graph-policy"
 VERSION = 1
@@ -343,7 +343,8 @@ def build_policy(description: PolicyDescription, state: dict[str, th.Tensor], so
     try:
         observation_space = space_from_json(description.observation_space, "observation_space")
         action_space = space_from_json(description.action_space, "action_space")
-        kwargs = check_policy_kwargs(kwargs_from_json(description.policy_kwargs), "policy_kwargs", observation_space)
+        raw_kwargs = check_structure(description.policy_kwargs, "policy_kwargs", max_depth=8)
+        kwargs = check_policy_kwargs(kwargs_from_json(raw_kwargs), "policy_kwargs", observation_space)
         check_finite_weights(state, "policy weights")
     except ValueError as error:  # UnsafeValueError and PolicyKwargsError included
         raise PolicyFileError(f"{source}: {error}") from None

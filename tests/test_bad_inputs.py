@@ -137,6 +137,13 @@ def _garbage_lzma_zip(source: Path, target: Path) -> Path:
     return target
 
 
+def _nested(depth: int) -> list:
+    value: list = []
+    for _ in range(depth):
+        value = [value]
+    return value
+
+
 def _scenario(folder: Path, name: str, **changes) -> Path:
     from envs.traffic import generate_scenario
 
@@ -162,6 +169,7 @@ def _hostile_inputs(f: Path, small, texts: dict[str, str]) -> dict[str, Path]:
         "zip_pooling_null": {"pooling": None},
         "zip_encoder_huge": {"encoder_dim": 1e12},
         "zip_activation_module": {"activation_fn": "<class 'torch.nn.modules.module.Module'>"},
+        "zip_kwargs_deep": {"deep": _nested(500)},
     }.items():
         paths[name] = _changed_zip(f / "small.zip", f / f"{name}.zip", kwargs=kwargs)
     state = {key: value.clone() for key, value in small.policy.state_dict().items()}
@@ -375,6 +383,7 @@ CASES = [
     ("zip-pooling-null", _planner("{zip_pooling_null}"), ["zip_pooling_null.zip", "policy_kwargs.pooling", "None"]),
     ("zip-encoder-huge", _planner("{zip_encoder_huge}"), ["zip_encoder_huge.zip", "policy_kwargs.encoder_dim"]),
     ("zip-activation-module", _planner("{zip_activation_module}"), ["activation_fn", "torch.nn.modules.module.Module"]),
+    ("zip-kwargs-deep", _planner("{zip_kwargs_deep}"), ["zip_kwargs_deep.zip", "policy_kwargs", "nested"]),
     ("zip-nan-weights", _planner("{zip_nan}"), ["zip_nan.zip", "NaN"]),
     ("ind-nan-weights", _ind("--planner", "{zip_nan}"), ["--planner", "zip_nan.zip", "NaN"]),
     ("zip-garbage-lzma", _planner("{zip_lzma}"), ["zip_lzma.zip", "'data'"]),
