@@ -23,6 +23,12 @@ from envs.scene_graph import EDGE_FEATURES
 # What a collision does: "terminate" ends the episode (training, as in the paper); "remove" takes
 # the vehicles involved out of the scene and goes on (evaluation: collision rate over a whole run).
 COLLISION_HANDLING = ("terminate", "remove")
+# Upper bounds of the physical quantities, far above any real vehicle: beyond them the rewards and
+# the simulation overflow (an acceleration of 1e308 gives rewards of -inf).
+MAX_DURATION = 86_400.0  # [s]
+MAX_ACCELERATION = 100.0  # [m/s^2], about 10 g
+MAX_SPEED = 100.0  # [m/s]
+MAX_VEHICLE_SIZE = 30.0  # [m]
 # Upper bounds of the sizes (vertices, edges, simulation sub-steps): far above any real scene.
 MAX_VEHICLES = 1024
 MAX_EDGES = 1 << 18
@@ -62,8 +68,10 @@ def _int(minimum: int, maximum: int | None = None) -> Rule:
     return Rule(lambda x: _is_int(x) and minimum <= x <= maximum, f"an integer in [{minimum}, {maximum:,}]")
 
 
-def _positive() -> Rule:
-    return Rule(lambda x: _is_number(x) and x > 0, "a number > 0")
+def _positive(maximum: float | None = None) -> Rule:
+    if maximum is None:
+        return Rule(lambda x: _is_number(x) and x > 0, "a number > 0")
+    return Rule(lambda x: _is_number(x) and 0 < x <= maximum, f"a number in (0, {maximum:g}]")
 
 
 def _non_negative() -> Rule:
@@ -92,15 +100,23 @@ def _range(lower: float, strict: bool) -> Rule:
     return Rule(check, f"a pair [low, high] of numbers with {lower} <= low {rel} high")
 
 
+# Largest reward weight (in magnitude): a sum of weighted terms must stay finite.
+MAX_REWARD_WEIGHT = 1e6
+
+
 def _weights(x: Any) -> bool:
-    return isinstance(x, dict) and set(x) <= set(REWARD_TERMS) and all(_is_number(v) for v in x.values())
+    return (
+        isinstance(x, dict)
+        and set(x) <= set(REWARD_TERMS)
+        and all(_is_number(v) and abs(v) <= MAX_REWARD_WEIGHT for v in x.values())
+    )
 
 
 RULES: dict[str, Rule] = {
     "layout": Rule(lambda x: x in LAYOUT_NAMES, f"one of {LAYOUT_NAMES}"),
     "simulation_frequency": _int(1, MAX_SIMULATION_FREQUENCY),
     "policy_frequency": _int(1, MAX_SIMULATION_FREQUENCY),
-    "duration": _positive(),
+    "duration": _positive(MAX_DURATION),
     "max_vehicles": _int(1, MAX_VEHICLES),
     "max_edges": _int(0, MAX_EDGES),
     "edge_features": Rule(
@@ -114,20 +130,20 @@ RULES: dict[str, Rule] = {
         "null or a pair [low, high] of probabilities with 0 <= low <= high <= 1",
     ),
     "initial_speed_range": _range(0.0, strict=True),
-    "max_acceleration": _positive(),
-    "max_speed": _positive(),
-    "lateral_acceleration": _positive(),
-    "governor_deceleration": _positive(),
+    "max_acceleration": _positive(MAX_ACCELERATION),
+    "max_speed": _positive(MAX_SPEED),
+    "lateral_acceleration": _positive(MAX_ACCELERATION),
+    "governor_deceleration": _positive(MAX_ACCELERATION),
     "collision_resolution": _positive(),
-    "vehicle_length": _positive(),
-    "vehicle_width": _positive(),
+    "vehicle_length": _positive(MAX_VEHICLE_SIZE),
+    "vehicle_width": _positive(MAX_VEHICLE_SIZE),
     "spawn_min_gap": _non_negative(),
     "s_ref": _positive(),
     "s_scale": _positive(),
     "d_max": _positive(),
     "proximity_threshold": _positive(),
     "reward": Rule(lambda x: x in REWARD_PRESETS, f"one of {sorted(REWARD_PRESETS)}"),
-    "reward_weights": Rule(_weights, f"a dict mapping some of {REWARD_TERMS} to numbers"),
+    "reward_weights": Rule(_weights, f"a dict mapping some of {REWARD_TERMS} to numbers in [-1e6, 1e6]"),
     "shield": _bool(),
     "spawn_queue": _int(0, MAX_VEHICLES),
     "residual_base": Rule(lambda x: x is None or x in RESIDUAL_BASES, f"null or one of {RESIDUAL_BASES}"),

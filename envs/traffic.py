@@ -30,6 +30,12 @@ from envs.simulation import Simulation
 SCENARIO_FORMAT = "sb3-graph-scenario"
 SCENARIO_VERSION = 1
 VEHICLE_FIELDS = ("id", "time", "route", "speed", "length", "width")
+# Bounds of a scenario file (README, "Files from others"): a file from someone else cannot ask for
+# a run that never ends, a vehicle larger than a lane, or more memory than a machine has.
+MAX_DURATION = 86_400.0  # one simulated day [s]
+MAX_VEHICLES = 100_000
+MAX_FILE_BYTES = 64 << 20
+VEHICLE_BOUNDS = {"time": MAX_DURATION, "speed": 100.0, "length": 30.0, "width": 5.0}  # [s], [m/s], [m], [m]
 
 
 @dataclass
@@ -77,11 +83,13 @@ class Scenario:
         """Check every field; raise ``ValueError`` naming ``source`` and the field."""
         if self.layout not in LAYOUT_NAMES:
             raise ValueError(f"{source}: field 'layout' must be one of {LAYOUT_NAMES}, got {self.layout!r}")
-        if not (math.isfinite(self.duration) and self.duration > 0):
+        if not (math.isfinite(self.duration) and 0 < self.duration <= MAX_DURATION):
             raise ValueError(
-                f"{source}: field 'duration' must be a positive number of seconds, got {self.duration}"
+                f"{source}: field 'duration' must be a number of seconds in (0, {MAX_DURATION:g}], got {self.duration}"
             )
         k = self.vehicle_id.shape[0]
+        if k > MAX_VEHICLES:
+            raise ValueError(f"{source}: field 'vehicles' holds {k} vehicles, more than the {MAX_VEHICLES} accepted")
         for name in ("time", "speed", "length", "width"):
             if getattr(self, name).shape[0] != k:
                 raise ValueError(
@@ -98,12 +106,13 @@ class Scenario:
             ("width", 0.0, True),
         ):
             values = getattr(self, name)
-            bad = ~np.isfinite(values) | ((values <= lower) if strict else (values < lower))
+            upper = VEHICLE_BOUNDS[name]
+            bad = ~np.isfinite(values) | ((values <= lower) if strict else (values < lower)) | (values > upper)
             if bad.any():
                 i = int(np.flatnonzero(bad)[0])
-                rel = ">" if strict else ">="
+                low = "(" if strict else "["
                 raise ValueError(
-                    f"{source}: vehicles[{i}].{name} must be a finite number {rel} {lower}, got {values[i]}"
+                    f"{source}: vehicles[{i}].{name} must be a number in {low}{lower:g}, {upper:g}], got {values[i]}"
                 )
         routes = set(build_layout(self.layout).route_names)
         for i, r in enumerate(self.route):
@@ -166,6 +175,11 @@ class Scenario:
             raise ValueError(
                 f"{source}: field 'format' must be {SCENARIO_FORMAT!r}, got {data.get('format')!r}"
             )
+        if data.get("version", SCENARIO_VERSION) != SCENARIO_VERSION or isinstance(data.get("version"), bool):
+            raise ValueError(
+                f"{source}: field 'version' must be {SCENARIO_VERSION} (the only scenario format version), "
+                f"got {data.get('version')!r}"
+            )
         for key in ("layout", "duration", "vehicles"):
             if key not in data:
                 raise ValueError(f"{source}: missing field {key!r}")
@@ -180,6 +194,8 @@ class Scenario:
         vehicles = data["vehicles"]
         if not isinstance(vehicles, list):
             raise ValueError(f"{source}: field 'vehicles' must be a list, got {type(vehicles).__name__}")
+        if len(vehicles) > MAX_VEHICLES:
+            raise ValueError(f"{source}: field 'vehicles' holds {len(vehicles)}, more than the {MAX_VEHICLES} accepted")
         cols: dict[str, list] = {k: [] for k in VEHICLE_FIELDS}
         for i, v in enumerate(vehicles):
             if not isinstance(v, dict):
@@ -222,11 +238,13 @@ class Scenario:
         :param path: the file
         :raises ValueError: for a missing, unreadable or invalid file, naming the file and the field
         """
+        from sb3_graph.safe_values import UnsafeValueError, read_regular_file
+
         path = Path(path)
-        try:
-            text = path.read_text(encoding="utf-8")
-        except OSError as err:
-            raise ValueError(f"{path}: cannot read scenario file ({err.strerror})") from None
+        try:  # a FIFO or a device (also behind a link) is refused before it is opened, a huge file by size
+            text = read_regular_file(path, "scenario file", MAX_FILE_BYTES).decode("utf-8")
+        except UnsafeValueError as err:
+            raise ValueError(str(err)) from None
         except UnicodeDecodeError:
             raise ValueError(f"{path}: not a text (UTF-8 JSON) scenario file") from None
         try:

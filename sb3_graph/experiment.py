@@ -12,12 +12,12 @@ files from others with ``sb3-graph train``, or read them first.)
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch as th
-import yaml
 from stable_baselines3.common.buffers import BaseBuffer
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.noise import NormalActionNoise, OrnsteinUhlenbeckActionNoise
@@ -25,12 +25,25 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from stable_baselines3.common.utils import LinearSchedule
 
-from sb3_graph.safe_values import UnsafeValueError, parse_value
+from sb3_graph.policy_kwargs import PolicyKwargsError, check_policy_kwargs
+from sb3_graph.safe_values import UnsafeValueError, load_yaml, parse_value, read_text_file
 
 # Keys the trainer consumes itself; all others go to the algorithm's constructor.
 TRAINER_KEYS = {"n_timesteps", "n_envs", "env_kwargs", "noise_type", "noise_std", "callback", "policy"}
 # Keys of rl-zoo3 that this trainer does not implement: refused rather than silently ignored.
 UNSUPPORTED_KEYS = {"normalize", "frame_stack", "env_wrapper", "vec_env_wrapper", "monitor_kwargs"}
+# Keys that would choose where a run writes: paths come from the command line only (train writes
+# its TensorBoard logs into OUT/tb).
+PATH_KEYS = {"tensorboard_log"}
+# Largest experiment file read (an entry is a few hundred bytes).
+MAX_FILE_BYTES = 1 << 20
+# Bounds of the counts of an entry (README, "Files from others"): beyond them a run cannot fit in
+# memory or end, so they are refused before anything is built.
+MAX_TIMESTEPS = 10**9
+MAX_ENVS = 256
+MAX_BUFFER = 10**7
+MAX_BATCH = 1 << 16
+MAX_STEPS_PER_UPDATE = 10_000
 NOISE_TYPES = ("normal", "ornstein-uhlenbeck")
 # What a class named in an entry must be, by field (and by key inside policy_kwargs).
 CLASS_BASES: dict[str, type] = {
@@ -56,12 +69,12 @@ def read_experiment(path: str | Path, env_id: str) -> dict[str, Any]:
     :raises ExperimentError: missing file, invalid YAML, missing entry or invalid keys
     """
     path = Path(path)
-    if not path.is_file():
+    if not path.exists():
         raise ExperimentError(f"config file {str(path)!r} does not exist")
     try:
-        content = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as error:
-        raise ExperimentError(f"config file {str(path)!r} is not valid YAML: {error}") from error
+        content = load_yaml(read_text_file(path, "config file", MAX_FILE_BYTES), f"config file {str(path)!r}")
+    except UnsafeValueError as error:
+        raise ExperimentError(str(error)) from None
     if not isinstance(content, dict) or not content:
         raise ExperimentError(f"config file {str(path)!r} must map environment ids to hyperparameters")
     if env_id not in content:
@@ -74,6 +87,8 @@ def read_experiment(path: str | Path, env_id: str) -> dict[str, Any]:
     unsupported = sorted(UNSUPPORTED_KEYS & set(entry))
     if unsupported:
         raise ExperimentError(f"entry {env_id!r}: keys {unsupported} are not supported by sb3-graph train")
+    if not all(isinstance(key, str) for key in entry):
+        raise ExperimentError(f"entry {env_id!r}: every key must be a string, got {sorted(map(repr, entry))}")
     if "n_timesteps" not in entry:
         raise ExperimentError(f"entry {env_id!r}: n_timesteps is required")
     return dict(entry)
@@ -140,12 +155,12 @@ def _is_number(value: Any) -> bool:
         return False
 
 
-def _integer(minimum: int, also: tuple[int, ...] = ()) -> tuple[Any, str]:
+def _integer(minimum: int, maximum: int, also: tuple[int, ...] = ()) -> tuple[Any, str]:
     def check(value: Any) -> bool:
-        return _is_number(value) and float(value).is_integer() and (value >= minimum or value in also)
+        return _is_number(value) and float(value).is_integer() and (minimum <= value <= maximum or value in also)
 
     extra = "".join(f" or {v}" for v in also)
-    return check, f"an integer >= {minimum}{extra}"
+    return check, f"an integer in [{minimum}, {maximum}]{extra}"
 
 
 def _number(low: float, high: float = math.inf, low_open: bool = False) -> tuple[Any, str]:
@@ -159,25 +174,27 @@ def _number(low: float, high: float = math.inf, low_open: bool = False) -> tuple
 
 def _train_freq(value: Any) -> bool:
     if isinstance(value, (list, tuple)):
-        return len(value) == 2 and _integer(1)[0](value[0]) and value[1] in ("step", "episode")
-    return _integer(1)[0](value)
+        return len(value) == 2 and _integer(1, MAX_TIMESTEPS)[0](value[0]) and value[1] in ("step", "episode")
+    return _integer(1, MAX_TIMESTEPS)[0](value)
 
 
 # Checked before anything is built, so that a wrong value fails at once and names its field
 # (not after training has started). Keys not listed go to the algorithm's constructor as they are.
 ENTRY_RULES: dict[str, tuple[Any, str]] = {
-    "n_timesteps": _integer(1),
-    "n_envs": _integer(1),
-    "buffer_size": _integer(1),
-    "batch_size": _integer(1),
-    "learning_starts": _integer(0),
-    "gradient_steps": _integer(1, also=(-1,)),
-    "policy_delay": _integer(1),
+    "n_timesteps": _integer(1, MAX_TIMESTEPS),
+    "n_envs": _integer(1, MAX_ENVS),
+    "buffer_size": _integer(1, MAX_BUFFER),
+    "batch_size": _integer(1, MAX_BATCH),
+    "n_steps": _integer(1, MAX_BUFFER),
+    "n_epochs": _integer(1, MAX_STEPS_PER_UPDATE),
+    "learning_starts": _integer(0, MAX_TIMESTEPS),
+    "gradient_steps": _integer(1, MAX_STEPS_PER_UPDATE, also=(-1,)),
+    "policy_delay": _integer(1, MAX_STEPS_PER_UPDATE),
     "gamma": _number(0.0, 1.0),
     "tau": _number(0.0, 1.0),
-    "target_policy_noise": _number(0.0),
-    "target_noise_clip": _number(0.0),
-    "noise_std": _number(0.0),
+    "target_policy_noise": _number(0.0, 1e6),
+    "target_noise_clip": _number(0.0, 1e6),
+    "noise_std": _number(0.0, 1e6),
     "learning_rate": (
         lambda v: _number(0.0, low_open=True)[0](v) or (isinstance(v, str) and _lin_start(v) is not None),
         "a number > 0 or 'lin_<number>'",
@@ -185,6 +202,44 @@ ENTRY_RULES: dict[str, tuple[Any, str]] = {
     "train_freq": (_train_freq, "an integer >= 1 or [integer, 'step' or 'episode']"),
     "env_kwargs": (lambda v: v is None or isinstance(v, dict), "a mapping (of gym.make keyword arguments)"),
 }
+
+
+# Fields of a run record (``run.json``) that --resume reads: what each must be.
+_RECORD_FIELDS: dict[str, tuple[Any, str]] = {
+    "seed": (lambda v: _integer(0, 2**32 - 1)[0](v) and isinstance(v, int), "an integer in [0, 2**32 - 1]"),
+    "wall_time_s": (lambda v: _is_number(v) and v >= 0, "a number >= 0"),
+    "num_timesteps": (lambda v: isinstance(v, int) and _integer(0, MAX_TIMESTEPS)[0](v), "an integer >= 0"),
+    "best_mean_reward": (
+        lambda v: _is_number(v) or (isinstance(v, float) and v == -math.inf),
+        "a finite number or -Infinity",
+    ),
+    "sessions": (
+        lambda v: isinstance(v, list)
+        and all(isinstance(s, dict) and all(_is_number(x) for x in s.values()) for s in v),
+        "a list of objects of numbers",
+    ),
+}
+
+
+def check_run_record(record: Any, algorithms: list[str], source: str) -> dict[str, Any]:
+    """Check the fields of a run record that ``--resume`` reads, before anything is trained.
+
+    :param record: the parsed ``run.json``
+    :param algorithms: the allowed values of ``algo``
+    :param source: the file, for messages
+    :return: ``record``
+    :raises ExperimentError: ``<source>: field <name> must be <allowed>, got <value>``
+    """
+    if not isinstance(record, dict):
+        raise ExperimentError(f"{source}: must be a JSON object, got {type(record).__name__}")
+    if "algo" in record and record["algo"] not in algorithms:
+        raise ExperimentError(f"{source}: field 'algo' must be one of {algorithms}, got {record['algo']!r}")
+    for key, (check, allowed) in _RECORD_FIELDS.items():
+        if key in record and not check(record[key]):
+            raise ExperimentError(f"{source}: field {key!r} must be {allowed}, got {str(record[key])[:80]!r}")
+    if "seed" not in record:
+        raise ExperimentError(f"{source}: field 'seed' is missing")
+    return record
 
 
 def merge_env_kwargs(base: dict[str, Any], update: dict[str, Any]) -> dict[str, Any]:
@@ -212,6 +267,11 @@ def check_entry(entry: dict[str, Any]) -> dict[str, Any]:
     :raises ExperimentError: ``<key> must be <allowed>, got <value>``, for the first wrong value
     """
     checked = dict(entry)
+    paths = sorted(PATH_KEYS & set(checked))
+    if paths:
+        raise ExperimentError(
+            f"{paths[0]}: an experiment file does not choose where a run writes (train writes OUT/tb; tune none)"
+        )
     for key, (check, allowed) in ENTRY_RULES.items():
         if key in checked and not check(checked[key]):
             raise ExperimentError(f"{key} must be {allowed}, got {checked[key]!r}")
@@ -234,6 +294,11 @@ def build_algorithm_kwargs(entry: dict[str, Any], action_dim: int) -> dict[str, 
     for field in ("policy_kwargs", "replay_buffer_class", "replay_buffer_kwargs"):
         if field in kwargs:
             kwargs[field] = resolve_object(kwargs[field], field)
+    if "policy_kwargs" in kwargs:
+        try:
+            kwargs["policy_kwargs"] = check_policy_kwargs(kwargs["policy_kwargs"])
+        except PolicyKwargsError as error:
+            raise ExperimentError(str(error)) from None
     for field in ("learning_rate", "clip_range", "clip_range_vf"):
         if field in kwargs:
             kwargs[field] = _schedule(kwargs[field], field)
@@ -249,8 +314,28 @@ def build_algorithm_kwargs(entry: dict[str, Any], action_dim: int) -> dict[str, 
     return kwargs
 
 
-def build_callbacks(entry: dict[str, Any]) -> list:
-    """Callbacks listed under ``callback`` (dotted names, optionally with keyword arguments)."""
+#: folder of a run that holds what its experiment-file callbacks write (their path arguments are re-rooted there)
+CALLBACK_FOLDER = "callbacks"
+# Callback arguments that are paths (SB3: save_path, log_path, best_model_save_path) or parts of file names
+# (name_prefix), by the end of their name.
+_PATH_ARGUMENT = re.compile(r"(^|_)(path|dir|directory|folder|file|filename|log)$")
+_NAME_ARGUMENT = re.compile(r"(^|_)(prefix|suffix|name)$")
+
+
+def build_callbacks(entry: dict[str, Any], root: str | Path | None = None) -> list:
+    """Callbacks listed under ``callback`` (dotted names, optionally with keyword arguments).
+
+    No file chooses where a run writes: an argument that is a path (``save_path``, ``log_path``, any
+    name ending in ``_path``, ``_dir``, ``_file`` ...) must be a relative path without ``..`` and is
+    re-rooted under ``root / CALLBACK_FOLDER`` (the run folder's ``callbacks/``); without a ``root``
+    (``tune``) it is refused. A name part (``name_prefix``) and every other string argument must not
+    hold a path separator or ``..``.
+
+    :param entry: the experiment entry
+    :param root: the run folder, or ``None`` where there is none
+    :return: the callbacks
+    :raises ExperimentError: naming the callback and its argument
+    """
     specs = entry.get("callback") or []
     if not isinstance(specs, list):
         specs = [specs]
@@ -267,8 +352,51 @@ def build_callbacks(entry: dict[str, Any]) -> list:
         if kwargs is not None and not isinstance(kwargs, dict):
             raise ExperimentError(f"callback {name}: keyword arguments must be a mapping, got {kwargs!r}")
         callback_class = resolve_object(name, "callback")
+        kwargs = _rooted_arguments(name, kwargs or {}, root)
         try:
-            callbacks.append(callback_class(**(kwargs or {})))
+            callbacks.append(callback_class(**kwargs))
         except (TypeError, ValueError) as error:
             raise ExperimentError(f"callback {name}: {error}") from error
     return callbacks
+
+
+def _rooted_arguments(name: str, kwargs: dict[str, Any], root: str | Path | None) -> dict[str, Any]:
+    """The callback's keyword arguments with every path under ``root/callbacks`` (see :func:`build_callbacks`)."""
+    rooted = {}
+    for key, value in kwargs.items():
+        field = f"callback {name}: argument {key!r}"
+        if not isinstance(key, str):
+            raise ExperimentError(f"callback {name}: argument names must be strings, got {key!r}")
+        if _PATH_ARGUMENT.search(key) and value is not None:
+            if root is None:
+                raise ExperimentError(f"{field} is a path; this command has no run folder to put it in")
+            if not isinstance(value, str) or not _relative_inside(value):
+                raise ExperimentError(
+                    f"{field} must be a relative path without '..' (it is put under the run's "
+                    f"{CALLBACK_FOLDER}/ folder), got {value!r}"
+                )
+            target = Path(root) / CALLBACK_FOLDER / value
+            if not target.resolve().is_relative_to(Path(root).resolve()):  # a link in the run folder
+                raise ExperimentError(f"{field}: {value!r} leads out of the run folder (through a symbolic link)")
+            rooted[key] = str(target)
+            continue
+        for text in _strings(value):
+            if "/" in text or "\\" in text or ".." in text or (_NAME_ARGUMENT.search(key) and text.startswith(".")):
+                raise ExperimentError(f"{field} must not name a path (no '/', '\\' or '..'), got {text!r}")
+        rooted[key] = value
+    return rooted
+
+
+def _relative_inside(text: str) -> bool:
+    path = Path(text)
+    return bool(text.strip()) and not path.is_absolute() and ".." not in path.parts and "\\" not in text
+
+
+def _strings(value: Any) -> list[str]:
+    if isinstance(value, str):
+        return [value]
+    if isinstance(value, dict):
+        return [text for item in [*value.keys(), *value.values()] for text in _strings(item)]
+    if isinstance(value, (list, tuple)):
+        return [text for item in value for text in _strings(item)]
+    return []

@@ -21,7 +21,14 @@ from __future__ import annotations
 
 import ast
 import importlib
+import json
+import math
+import os
+import stat
+from pathlib import Path
 from typing import Any
+
+import yaml
 
 # Packages whose classes an experiment file may name.
 ALLOWED_PACKAGES: tuple[str, ...] = ("sb3_graph", "stable_baselines3", "sb3_contrib", "torch.nn", "torch.optim")
@@ -29,10 +36,134 @@ ALLOWED_PACKAGES: tuple[str, ...] = ("sb3_graph", "stable_baselines3", "sb3_cont
 ALIASES: dict[str, str] = {"nn": "torch.nn", "th": "torch", "torch": "torch"}
 # Longest string accepted (a policy_kwargs expression is a line or two).
 MAX_LENGTH = 10_000
+# Limits on a document read from a file that someone else made (README, "Files from others").
+#: deepest nesting of lists and mappings (experiment entries and metadata need fewer than 10)
+MAX_DEPTH = 64
+#: most values in one document, counting each use of a YAML alias as a copy ("billion laughs")
+MAX_ITEMS = 1_000_000
+#: largest text file read whole (experiment files, run records, signatures, metadata)
+MAX_TEXT_BYTES = 16 << 20
 
 
 class UnsafeValueError(ValueError):
     """A value outside the subset that :func:`parse_value` reads (or a name that does not resolve)."""
+
+
+def read_regular_file(path: str | Path, field: str, max_bytes: int = MAX_TEXT_BYTES) -> bytes:
+    """The bytes of a regular file of at most ``max_bytes`` (FIFOs, devices and sockets are refused
+    before they are opened, so that reading never blocks or runs forever).
+
+    :param path: the file (a symbolic link is followed; its target must be a regular file too)
+    :param field: the flag or field named in messages
+    :param max_bytes: the largest size accepted
+    :raises UnsafeValueError: a missing, non-regular, too large or unreadable file
+    """
+    path = Path(path)
+    try:
+        info = os.stat(path)
+    except OSError as error:
+        raise UnsafeValueError(f"{field}: cannot read {str(path)!r} ({error.strerror or error})") from None
+    if not stat.S_ISREG(info.st_mode):
+        raise UnsafeValueError(f"{field}: {str(path)!r} is not a regular file (a folder, FIFO or device is refused)")
+    if info.st_size > max_bytes:
+        raise UnsafeValueError(f"{field}: {str(path)!r} is {info.st_size} bytes, more than the {max_bytes} accepted")
+    try:
+        # O_NONBLOCK: should the file have been swapped for a FIFO since the check, open does not wait
+        handle = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
+        with os.fdopen(handle, "rb") as file:
+            if not stat.S_ISREG(os.fstat(file.fileno()).st_mode):
+                raise UnsafeValueError(f"{field}: {str(path)!r} is not a regular file")
+            data = file.read(max_bytes + 1)
+    except OSError as error:
+        raise UnsafeValueError(f"{field}: cannot read {str(path)!r} ({error.strerror or error})") from None
+    if len(data) > max_bytes:
+        raise UnsafeValueError(f"{field}: {str(path)!r} is more than the {max_bytes} bytes accepted")
+    return data
+
+
+def read_text_file(path: str | Path, field: str, max_bytes: int = MAX_TEXT_BYTES) -> str:
+    """:func:`read_regular_file` decoded as UTF-8 (a binary file is refused by name)."""
+    try:
+        return read_regular_file(path, field, max_bytes).decode("utf-8")
+    except UnicodeDecodeError:
+        raise UnsafeValueError(f"{field}: {str(path)!r} is not a UTF-8 text file") from None
+
+
+def check_structure(value: Any, field: str, max_depth: int = MAX_DEPTH, max_items: int = MAX_ITEMS) -> Any:
+    """Refuse a document nested deeper than ``max_depth`` or holding more than ``max_items`` values.
+
+    Shared parts (YAML aliases) count once per use, so an alias bomb is refused after ``max_items``
+    steps instead of being expanded; the walk is iterative (no ``RecursionError``).
+
+    :param value: the parsed document
+    :param field: named in messages
+    :return: ``value``
+    :raises UnsafeValueError: too deep or too large
+    """
+    stack = [(value, 1)]
+    seen = 0
+    while stack:
+        item, depth = stack.pop()
+        seen += 1
+        if seen > max_items:
+            raise UnsafeValueError(f"{field}: more than {max_items} values (counting each use of a YAML alias)")
+        if isinstance(item, dict):
+            children = [*item.keys(), *item.values()]
+        elif isinstance(item, (list, tuple, set)):
+            children = list(item)
+        else:
+            continue
+        if depth > max_depth:
+            raise UnsafeValueError(f"{field}: nested more than {max_depth} levels deep")
+        stack.extend((child, depth + 1) for child in children)
+    return value
+
+
+def load_yaml(text: str, field: str) -> Any:
+    """``yaml.safe_load`` of a document from someone else, with :func:`check_structure`.
+
+    :raises UnsafeValueError: not YAML, nested too deeply or too large (naming ``field``)
+    """
+    try:
+        value = yaml.safe_load(text)
+    except yaml.YAMLError as error:
+        first = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+        raise UnsafeValueError(f"{field}: not valid YAML ({first})") from None
+    except RecursionError:
+        raise UnsafeValueError(f"{field}: nested more than {MAX_DEPTH} levels deep") from None
+    except ValueError as error:  # e.g. a timestamp or number that its constructor cannot read
+        raise UnsafeValueError(f"{field}: not valid YAML ({error})") from None
+    return check_structure(value, field)
+
+
+def load_json(text: str | bytes, field: str, constants: bool = True) -> Any:
+    """``json.loads`` of a document from someone else, with :func:`check_structure`.
+
+    :param constants: accept Python's ``NaN``, ``Infinity`` and ``-Infinity`` (not JSON, but what
+        ``json.dumps`` writes for such floats)
+    :raises UnsafeValueError: not JSON, nested too deeply or too large (naming ``field``)
+    """
+
+    def constant(name: str) -> Any:
+        raise ValueError(f"{name} is not a JSON number")
+
+    try:
+        value = json.loads(text, parse_constant=None if constants else constant)
+    except RecursionError:
+        raise UnsafeValueError(f"{field}: nested more than {MAX_DEPTH} levels deep") from None
+    except (TypeError, ValueError) as error:  # JSONDecodeError, UnicodeDecodeError included
+        raise UnsafeValueError(f"{field}: not valid JSON ({error})") from None
+    return check_structure(value, field)
+
+
+def finite_number(value: Any) -> bool:
+    """A real number (not a bool) that a float holds and that is finite."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return False
+    try:
+        return math.isfinite(value)
+    except OverflowError:  # an int beyond float range
+        return False
 
 
 def _within(name: str, packages: tuple[str, ...] = ALLOWED_PACKAGES) -> bool:

@@ -5,8 +5,9 @@ pickles inside. ``sb3-graph train`` therefore signs every checkpoint file when i
 HMAC-SHA256 of the content, keyed with a secret of this user on this machine) and, on
 ``--resume``, loads only files whose signature checks out. A run folder copied from somewhere
 else, or a checkpoint replaced after it was written, is refused: its signatures were made with
-another key or are missing. A plain digest stored next to the files would not do this, since
-whoever hands over the folder can write matching digests too.
+another key or are missing. The run's ``config.yml`` and ``run.json`` are signed the same way
+(:func:`write_signed`), since they decide what a resumed run builds and records. A plain digest
+stored next to the files would not do this, since whoever hands over the folder can write matching digests too.
 
 The key is 32 random bytes in ``$SB3_GRAPH_KEY_FILE``, else
 ``$XDG_CONFIG_HOME/sb3-graph/file-key`` (``~/.config/sb3-graph/file-key``), created with mode
@@ -20,11 +21,17 @@ import hmac
 import json
 import os
 import secrets
+import stat
+import tempfile
 from pathlib import Path
+
+from sb3_graph.safe_values import UnsafeValueError, load_json, read_text_file
 
 KEY_ENV = "SB3_GRAPH_KEY_FILE"
 SIGNATURES = "signatures.json"
 KEY_BYTES = 32
+# Largest signatures.json read (one line per file of a run folder).
+MAX_MANIFEST_BYTES = 1 << 20
 
 
 class SignatureError(ValueError):
@@ -58,8 +65,17 @@ def _key() -> bytes:
 
 
 def file_signature(path: str | Path, key: bytes | None = None) -> str:
-    """HMAC-SHA256 (hex) of a file's content under the signing key."""
+    """HMAC-SHA256 (hex) of a file's content under the signing key.
+
+    :raises SignatureError: not a regular file (a FIFO or device would be read forever)
+    """
     digest = hmac.new(key if key is not None else _key(), digestmod=hashlib.sha256)
+    try:
+        mode = os.stat(path).st_mode
+    except OSError as error:
+        raise SignatureError(f"{path}: cannot read it ({error.strerror or error})") from None
+    if not stat.S_ISREG(mode):
+        raise SignatureError(f"{path} is not a regular file (a FIFO, device or folder is never loaded)")
     with open(path, "rb") as file:
         for block in iter(lambda: file.read(1 << 20), b""):
             digest.update(block)
@@ -68,9 +84,11 @@ def file_signature(path: str | Path, key: bytes | None = None) -> str:
 
 def _manifest(folder: Path) -> dict[str, str]:
     path = folder / SIGNATURES
+    if not path.exists():
+        return {}
     try:
-        data = json.loads(path.read_text())
-    except (OSError, ValueError):
+        data = load_json(read_text_file(path, SIGNATURES, MAX_MANIFEST_BYTES), SIGNATURES)
+    except UnsafeValueError:  # a device, a FIFO, a huge or broken file: nothing counts as signed
         return {}
     if not isinstance(data, dict):
         return {}
@@ -88,6 +106,30 @@ def sign(path: str | Path) -> None:
     os.replace(temporary, path.parent / SIGNATURES)
 
 
+def write_signed(path: str | Path, text: str) -> Path:
+    """Write a text file of the run (``config.yml``, ``run.json``) and sign it.
+
+    The text goes to a temporary file that then replaces ``path``: a symbolic link or a file that
+    someone put at ``path`` is replaced, never written through.
+
+    :param path: the file
+    :param text: its content
+    :return: ``path``
+    """
+    path = Path(path)
+    handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    try:
+        with os.fdopen(handle, "w") as file:
+            file.write(text)
+        os.chmod(temporary, 0o644)
+        os.replace(temporary, path)
+    except BaseException:
+        Path(temporary).unlink(missing_ok=True)
+        raise
+    sign(path)
+    return path
+
+
 def verify(path: str | Path) -> None:
     """Check that ``path`` is exactly a file this machine's key signed.
 
@@ -99,3 +141,21 @@ def verify(path: str | Path) -> None:
         raise SignatureError(f"{path} has no signature in {path.parent / SIGNATURES}")
     if not hmac.compare_digest(expected, file_signature(path)):
         raise SignatureError(f"{path} does not match its signature (changed since written, or signed elsewhere)")
+
+
+TRUST_HINT = "--trust-run-files loads it: only for your own run, e.g. one copied from another machine of yours"
+
+
+def verify_run_file(path: str | Path, trust: bool = False) -> None:
+    """Check a file of a run folder before ``--resume`` reads it (unless ``trust``).
+
+    :param path: ``config.yml``, ``run.json`` or a checkpoint
+    :param trust: skip the check (``--trust-run-files``)
+    :raises SignatureError: unsigned or changed, with the hint to :data:`TRUST_HINT`
+    """
+    if trust:
+        return
+    try:
+        verify(path)
+    except SignatureError as error:
+        raise SignatureError(f"{error}; it is not read ({TRUST_HINT})") from None

@@ -36,10 +36,12 @@ import binascii
 import importlib
 import io
 import json
+import lzma
 import math
 import pickletools
 import re
 import zipfile
+import zlib
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -49,8 +51,9 @@ import numpy as np
 import torch as th
 from gymnasium import spaces
 
+from sb3_graph.policy_kwargs import check_finite_weights, check_policy_kwargs
 from sb3_graph.registry import ALGORITHMS
-from sb3_graph.safe_values import UnsafeValueError, resolve_name
+from sb3_graph.safe_values import UnsafeValueError, check_structure, resolve_name
 
 FORMAT = "sb3-graph-policy"
 VERSION = 1
@@ -116,7 +119,7 @@ class PolicyDescription:
     def from_json(cls, text: str, source: str) -> PolicyDescription:
         try:
             data = json.loads(text)
-        except (TypeError, ValueError) as error:
+        except (TypeError, ValueError, RecursionError) as error:
             raise PolicyFileError(f"{source}: metadata {METADATA_KEY!r} is not JSON ({error})") from None
         if not isinstance(data, dict) or data.get("format") != FORMAT:
             raise PolicyFileError(f"{source}: metadata {METADATA_KEY!r} is not an {FORMAT!r} document")
@@ -369,8 +372,10 @@ def build_policy(description: PolicyDescription, state: dict[str, th.Tensor], so
     try:
         observation_space = space_from_json(description.observation_space, "observation_space")
         action_space = space_from_json(description.action_space, "action_space")
-        kwargs = kwargs_from_json(description.policy_kwargs)
-    except ValueError as error:  # UnsafeValueError included
+        raw_kwargs = check_structure(description.policy_kwargs, "policy_kwargs", max_depth=8)
+        kwargs = check_policy_kwargs(kwargs_from_json(raw_kwargs), "policy_kwargs", observation_space)
+        check_finite_weights(state, "policy weights")
+    except ValueError as error:  # UnsafeValueError and PolicyKwargsError included
         raise PolicyFileError(f"{source}: {error}") from None
     try:
         policy = policy_class(observation_space, action_space, lambda _: 0.0, **kwargs)
@@ -532,7 +537,7 @@ def _zip_entry(archive: zipfile.ZipFile, name: str, source: str) -> bytes:
         raise PolicyFileError(f"{source}: zip entry {name!r} is {info.file_size} bytes, more than a model holds")
     try:
         return archive.read(name)
-    except (zipfile.BadZipFile, OSError, RuntimeError, EOFError, ValueError) as error:
+    except (zipfile.BadZipFile, OSError, RuntimeError, EOFError, ValueError, lzma.LZMAError, zlib.error) as error:
         raise PolicyFileError(f"{source}: cannot read {name!r} from the zip ({error})") from None
 
 
@@ -595,7 +600,7 @@ def read_sb3_zip(path: str | Path) -> tuple[PolicyDescription, dict[str, th.Tens
             version = _zip_entry(archive, "_stable_baselines3_version", source)[:40].decode(errors="replace").strip()
     try:
         data = json.loads(raw)
-    except (ValueError, UnicodeDecodeError) as error:
+    except (ValueError, UnicodeDecodeError, RecursionError) as error:
         raise PolicyFileError(f"{source}: entry 'data' is not JSON ({error})") from None
     if not isinstance(data, dict):
         raise PolicyFileError(f"{source}: entry 'data' is not a JSON object")
@@ -688,6 +693,10 @@ def _load_trusted(path: Path, device: str) -> LoadedPolicy:
         model = algorithm_class.load(str(path), device=device)
     except Exception as error:  # noqa: BLE001 - SB3 raises many kinds on a foreign file
         raise PolicyFileError(f"{path}: {algorithm}.load failed: {type(error).__name__}: {error}") from None
+    try:
+        check_finite_weights(model.policy, str(path))
+    except ValueError as error:
+        raise PolicyFileError(str(error)) from None
     source = {"file": path.name, "num_timesteps": int(model.num_timesteps)}
     description = describe_policy(model.policy, algorithm, source)
     model.policy.set_training_mode(False)

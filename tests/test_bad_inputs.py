@@ -4,6 +4,9 @@ exit, no traceback, and no ``--out`` left behind (table-driven)."""
 from __future__ import annotations
 
 import gzip
+import io
+import json
+import os
 import zipfile
 from pathlib import Path
 
@@ -95,6 +98,171 @@ def files(tmp_path_factory):
     frame.to_csv(recording_file(words, 7, "recordingMeta"), index=False)
     paths["ind_words"] = words
     paths["ind"] = valid
+    paths.update(_hostile_inputs(f, small, texts))
+    return paths
+
+
+def _changed_zip(source: Path, target: Path, kwargs: dict | None = None, state: dict | None = None) -> Path:
+    """A copy of an SB3 zip with other ``policy_kwargs`` (plain JSON parts) or other weights."""
+    with zipfile.ZipFile(source) as archive:
+        entries = {name: archive.read(name) for name in archive.namelist()}
+    if kwargs is not None:
+        data = json.loads(entries["data"])
+        data["policy_kwargs"].update(kwargs)
+        entries["data"] = json.dumps(data).encode()
+    if state is not None:
+        buffer = io.BytesIO()
+        th.save(state, buffer)
+        entries["policy.pth"] = buffer.getvalue()
+    with zipfile.ZipFile(target, "w") as archive:
+        for name, content in entries.items():
+            archive.writestr(name, content)
+    return target
+
+
+def _garbage_lzma_zip(source: Path, target: Path) -> Path:
+    """The zip's entries compressed with LZMA, the compressed bytes of ``data`` then overwritten."""
+    with zipfile.ZipFile(source) as archive:
+        entries = {name: archive.read(name) for name in archive.namelist()}
+    with zipfile.ZipFile(target, "w", compression=zipfile.ZIP_LZMA) as archive:
+        for name, content in entries.items():
+            archive.writestr(name, content)
+    with zipfile.ZipFile(target) as archive:
+        info = archive.getinfo("data")
+    raw = bytearray(target.read_bytes())
+    start = info.header_offset + 30 + len(info.filename.encode()) + len(info.extra)
+    # keep LZMA's 4-byte header and 5 property bytes; the stream after them is garbage
+    raw[start + 9 : start + info.compress_size] = (b"\x5a\xa5" * info.compress_size)[: info.compress_size - 9]
+    target.write_bytes(bytes(raw))
+    return target
+
+
+def _nested(depth: int) -> list:
+    value: list = []
+    for _ in range(depth):
+        value = [value]
+    return value
+
+
+def _scenario(folder: Path, name: str, **changes) -> Path:
+    from envs.traffic import generate_scenario
+
+    folder.mkdir(exist_ok=True)
+    data = generate_scenario("4way", 5.0, 0).to_dict()
+    for key, value in changes.items():
+        if key == "width":
+            data["vehicles"][0]["width"] = value
+        else:
+            data[key] = value
+    (folder / f"{name}.json").write_text(json.dumps(data))
+    return folder
+
+
+def _hostile_inputs(f: Path, small, texts: dict[str, str]) -> dict[str, Path]:
+    """Inputs of the second hostile-input round (README, "Files from others")."""
+    from safetensors.torch import save_file
+
+    from sb3_graph.weights import METADATA_KEY, describe_policy
+
+    paths: dict[str, Path] = {}
+    for name, kwargs in {
+        "zip_pooling_null": {"pooling": None},
+        "zip_encoder_huge": {"encoder_dim": 1e12},
+        "zip_activation_module": {"activation_fn": "<class 'torch.nn.modules.module.Module'>"},
+        "zip_kwargs_deep": {"deep": _nested(500)},
+    }.items():
+        paths[name] = _changed_zip(f / "small.zip", f / f"{name}.zip", kwargs=kwargs)
+    state = {key: value.clone() for key, value in small.policy.state_dict().items()}
+    first = next(key for key, value in state.items() if value.is_floating_point())
+    state[first].view(-1)[0] = float("nan")
+    paths["zip_nan"] = _changed_zip(f / "small.zip", f / "zip_nan.zip", state=state)
+    paths["zip_lzma"] = _garbage_lzma_zip(f / "small.zip", f / "zip_lzma.zip")
+    description = describe_policy(small.policy, "TD3").to_json()
+    save_file(state, str(f / "nan.safetensors"), metadata={METADATA_KEY: description})
+    paths["st_nan"] = f / "nan.safetensors"
+    good = {key: value.contiguous() for key, value in small.policy.state_dict().items()}
+    deep = "[" * 30_000 + "]" * 30_000
+    save_file(good, str(f / "deep.safetensors"), metadata={METADATA_KEY: deep})
+    paths["st_deep"] = f / "deep.safetensors"
+    fused = json.loads(description)
+    fused["policy_kwargs"]["optimizer_kwargs"] = {"fused": True, "foreach": True}
+    save_file(good, str(f / "fused.safetensors"), metadata={METADATA_KEY: json.dumps(fused)})
+    paths["st_fused"] = f / "fused.safetensors"
+    # experiment files
+    for name, changes in {
+        "pooling_null": {"policy_kwargs": "dict(pooling=None)"},
+        "encoder_huge": {"policy_kwargs": "dict(encoder_dim=1e12)"},
+        "activation_module": {"policy_kwargs": "dict(activation_fn=nn.Module)"},
+        "activation_lazy": {"policy_kwargs": "dict(activation_fn=torch.nn.modules.lazy.LazyModuleMixin)"},
+        "activation_error": {"policy_kwargs": "dict(activation_fn=sb3_graph.cli.UserError)"},
+        "fused_foreach": {"policy_kwargs": "dict(optimizer_kwargs=dict(fused=True, foreach=True))"},
+        "too_large": {"policy_kwargs": f"dict(encoder_dim=4096, conv_dims={[4096] * 20})"},
+        "buffer_huge": {"buffer_size": 10**12},
+        "n_envs_huge": {"n_envs": 100_000},
+        "tensorboard_path": {"tensorboard_log": "/tmp/elsewhere"},
+    }.items():
+        paths[name] = _config(f, name, **changes)
+    entry = yaml.safe_load(CONFIG.read_text())[ENV_ID]
+    (f / "deep.yml").write_text(yaml.safe_dump({ENV_ID: entry}) + "  deep: " + "[" * 20_000 + "]" * 20_000 + "\n")
+    paths["yaml_deep"] = f / "deep.yml"
+    laughs = ["  lol0: &a0 [x, x, x, x, x, x, x, x, x]"]
+    laughs += [f"  lol{k}: &a{k} [{', '.join([f'*a{k - 1}'] * 9)}]" for k in range(1, 9)]
+    (f / "laughs.yml").write_text(yaml.safe_dump({ENV_ID: entry}) + "\n".join(laughs) + "\n")
+    paths["yaml_laughs"] = f / "laughs.yml"
+    (f / "binary.yml").write_bytes(bytes(range(256)) * 4)
+    paths["yaml_binary"] = f / "binary.yml"
+    (f / "malformed.yml").write_text(f"{ENV_ID}:\n  n_timesteps: 10\n   gamma: [0.9\n")
+    paths["yaml_malformed"] = f / "malformed.yml"
+    # scenario folders
+    paths["sc_version"] = _scenario(f / "sc_version", "a", version=99)
+    paths["sc_width"] = _scenario(f / "sc_width", "a", width=1e300)
+    paths["sc_duration"] = _scenario(f / "sc_duration", "a", duration=1e12)
+    (f / "sc_fifo").mkdir()
+    os.mkfifo(f / "sc_fifo" / "a.json")
+    paths["sc_fifo"] = f / "sc_fifo"
+    (f / "sc_zero").mkdir()
+    (f / "sc_zero" / "a.json").symlink_to("/dev/zero")
+    paths["sc_zero"] = f / "sc_zero"
+    # evaluate reports for aggregate
+    for name, (column, value) in {"agg_inf": ("flow_rate", "1e400"), "agg_text": ("delay_mean", "abc")}.items():
+        (f / name).mkdir()
+        rows = [f"RL:seed_{k},scenario_000.json,0.5,0.1,2.0,0.0" for k in range(3)]
+        header = "planner,scenario,flow_rate,stop_ratio_all,delay_mean,collision_rate"
+        columns = header.split(",")
+        first = rows[0].split(",")
+        first[columns.index(column)] = value
+        (f / name / "metrics.csv").write_text("\n".join([header, ",".join(first), *rows[1:]]) + "\n")
+        paths[name] = f / name
+    (f / "agg_fifo").mkdir()
+    os.mkfifo(f / "agg_fifo" / "metrics.csv")
+    paths["agg_fifo"] = f / "agg_fifo"
+    # inD recordings with a zero and a negative duration
+    for name, duration in {"ind_zero": "0", "ind_negative": "-5"}.items():
+        folder = f / name
+        folder.mkdir()
+        for kind, text in texts.items():
+            recording_file(folder, 7, kind).write_text(text)
+        frame = pd.read_csv(recording_file(folder, 7, "recordingMeta"))
+        frame.loc[0, "duration"] = float(duration)
+        frame.to_csv(recording_file(folder, 7, "recordingMeta"), index=False)
+        paths[name] = folder
+    # storages of other applications
+    import sqlite3
+
+    with sqlite3.connect(f / "app.db") as connection:
+        connection.execute("CREATE TABLE notes (id INTEGER PRIMARY KEY, text TEXT)")
+        connection.execute("INSERT INTO notes (text) VALUES ('keep me')")
+    connection.close()
+    paths["app_db"] = f / "app.db"
+    (f / "notes.txt").write_text("my notes\n")
+    paths["notes"] = f / "notes.txt"
+    import optuna
+
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    study = optuna.create_study(study_name="s", storage=f"sqlite:///{f / 'bad_study.db'}")
+    study.set_user_attr("timesteps", "many")
+    study.add_trial(optuna.trial.create_trial(value=1.0))
+    paths["bad_study"] = f / "bad_study.db"
     return paths
 
 
@@ -112,6 +280,23 @@ def _train(config="{cfg}", *extra):
 def _tune(config="{cfg}", *extra):
     return ["tune", "--config", config, "--env", ENV_ID, "--study-name", "s", "--storage", "sqlite:///{tmp}/s.db",
             "--n-trials", "1", "--timesteps", "3000", *extra]  # fmt: skip
+
+
+def _tune_storage(storage: str, *extra):
+    return ["tune", "--config", str(CONFIG), "--env", ENV_ID, "--study-name", "s", "--storage", storage,
+            "--n-trials", "1", "--timesteps", "3000", *extra]  # fmt: skip
+
+
+def _report(storage: str):
+    return ["tune-report", "--study-name", "s", "--storage", storage, "--out", "{out}"]
+
+
+def _scenarios(folder: str):
+    return ["evaluate", "--scenario-dir", folder, "--planner", "pr"]
+
+
+def _planner(path: str):
+    return ["evaluate", "--planner", path]
 
 
 def _ind(*extra, data="{ind}"):
@@ -194,6 +379,66 @@ CASES = [
     ("ind-out-is-a-file", ["ind", "--data", "{ind}", "--recordings", "07", "--dataset-only", "--out", "{afile}"],
      ["--out", "afile", "exists"]),  # fmt: skip
     ("ind-env-kwargs-list", _ind("--env-kwargs", "[1]"), ["--env-kwargs", "JSON object"]),
+    # policy_kwargs, wherever they come from: a zip, a .safetensors header, YAML, the command line
+    ("zip-pooling-null", _planner("{zip_pooling_null}"), ["zip_pooling_null.zip", "policy_kwargs.pooling", "None"]),
+    ("zip-encoder-huge", _planner("{zip_encoder_huge}"), ["zip_encoder_huge.zip", "policy_kwargs.encoder_dim"]),
+    ("zip-activation-module", _planner("{zip_activation_module}"), ["activation_fn", "torch.nn.modules.module.Module"]),
+    ("zip-kwargs-deep", _planner("{zip_kwargs_deep}"), ["zip_kwargs_deep.zip", "policy_kwargs", "nested"]),
+    ("zip-nan-weights", _planner("{zip_nan}"), ["zip_nan.zip", "NaN"]),
+    ("ind-nan-weights", _ind("--planner", "{zip_nan}"), ["--planner", "zip_nan.zip", "NaN"]),
+    ("zip-garbage-lzma", _planner("{zip_lzma}"), ["zip_lzma.zip", "'data'"]),
+    ("st-nan-weights", _planner("{st_nan}"), ["nan.safetensors", "NaN"]),
+    ("st-deep-metadata", _planner("{st_deep}"), ["deep.safetensors", "JSON"]),
+    ("st-fused-foreach", _planner("{st_fused}"), ["fused.safetensors", "optimizer_kwargs", "fused"]),
+    ("train-pooling-null", _train("{pooling_null}"), ["policy_kwargs.pooling", "None"]),
+    ("train-encoder-huge", _train("{encoder_huge}"), ["policy_kwargs.encoder_dim", "1000000000000.0"]),
+    ("train-activation-module", _train("{activation_module}"), ["activation_fn", "torch.nn.modules.module.Module"]),
+    ("train-activation-lazy", _train("{activation_lazy}"), ["activation_fn", "LazyModuleMixin"]),
+    ("train-activation-error", _train("{activation_error}"), ["activation_fn", "sb3_graph.cli.UserError"]),
+    ("train-fused-foreach", _train("{fused_foreach}"), ["policy_kwargs.optimizer_kwargs", "fused"]),
+    ("train-too-large", _train("{too_large}"), ["policy_kwargs", "GiB"]),
+    ("train-cli-pooling-null", _train(str(CONFIG), "--hyperparams", "policy_kwargs:dict(pooling=None)"),
+     ["policy_kwargs.pooling"]),  # fmt: skip
+    ("tune-pooling-null", _tune("{pooling_null}"), ["policy_kwargs.pooling"]),
+    # counts, sizes, depths and files that are not regular files
+    ("train-buffer-huge", _train("{buffer_huge}"), ["buffer_size", "1000000000000"]),
+    ("train-n-envs-huge", _train("{n_envs_huge}"), ["n_envs", "100000"]),
+    ("tune-n-envs-huge", _tune("{n_envs_huge}"), ["n_envs", "100000"]),
+    ("train-tensorboard-path", _train("{tensorboard_path}"), ["tensorboard_log"]),
+    ("train-yaml-deep", _train("{yaml_deep}"), ["deep.yml", "nested"]),
+    ("tune-yaml-laughs", _tune("{yaml_laughs}"), ["laughs.yml", "1000000 values"]),
+    ("train-yaml-binary", _train("{yaml_binary}"), ["binary.yml", "UTF-8"]),
+    ("train-yaml-malformed", _train("{yaml_malformed}"), ["malformed.yml", "YAML"]),
+    ("train-hyperparams-deep", _train(str(CONFIG), "--hyperparams", "gamma:" + "[" * 20_000 + "]" * 20_000),
+     ["--hyperparams gamma", "nested"]),  # fmt: skip
+    ("evaluate-env-kwargs-deep", ["evaluate", "--env-kwargs", "[" * 20_000 + "]" * 20_000], ["--env-kwargs", "nested"]),
+    ("train-yaml-fifo", _train("{sc_fifo}/a.json"), ["a.json", "not a regular file"]),
+    ("evaluate-duration-huge", ["evaluate", "--duration", "1e12"], ["--duration", "1e+12"]),
+    ("evaluate-scenarios-huge", ["evaluate", "--scenarios", "1000000000"], ["--scenarios", "1000000000"]),
+    ("evaluate-seed-huge", ["evaluate", "--seed", str(2**64)], ["--seed", str(2**64)]),
+    ("train-seed-huge", _train(str(CONFIG), "--seed", str(2**64)), ["--seed", str(2**64)]),
+    ("sweep-demand-tiny", ["sweep", "--demand", "1e-300", "--scenarios", "1", "--duration", "2", "--jobs", "1",
+                           "--out", "{out}"], ["--demand", "1e-300"]),  # fmt: skip
+    ("aggregate-reps-huge", ["aggregate", "{agg_text}", "--reps", "1000000000", "--out", "{out}"],
+     ["--reps", "1000000000"]),  # fmt: skip
+    ("aggregate-inf", ["aggregate", "{agg_inf}", "--out", "{out}"], ["flow_rate", "'inf'", "row 2"]),
+    ("aggregate-text", ["aggregate", "{agg_text}", "--out", "{out}"], ["delay_mean", "'abc'"]),
+    ("aggregate-fifo", ["aggregate", "{agg_fifo}", "--out", "{out}"], ["metrics.csv", "not a regular file"]),
+    ("scenario-version", _scenarios("{sc_version}"), ["a.json", "version", "99"]),
+    ("scenario-width", _scenarios("{sc_width}"), ["a.json", "width", "1e+300"]),
+    ("scenario-duration", _scenarios("{sc_duration}"), ["a.json", "duration"]),
+    ("scenario-fifo", _scenarios("{sc_fifo}"), ["a.json", "not a regular file"]),
+    ("scenario-dev-zero", _scenarios("{sc_zero}"), ["a.json", "not a regular file"]),
+    ("ind-duration-zero", _ind("--dataset-only", data="{ind_zero}"), ["07_recordingMeta.csv", "duration"]),
+    ("ind-duration-negative", _ind("--dataset-only", data="{ind_negative}"), ["duration", "-5"]),
+    ("env-max-acceleration", ["evaluate", "--env-kwargs", '{"config": {"max_acceleration": 1e308}}'],
+     ["--env-kwargs", "max_acceleration"]),  # fmt: skip
+    # storages: a read-only command creates nothing, tune writes into no other application's file
+    ("report-foreign-db", _report("sqlite:///{app_db}"), ["--storage", "no Optuna study"]),
+    ("report-text-journal", _report("journal://{notes}"), ["--storage", "notes.txt", "not an Optuna journal"]),
+    ("report-bad-study", _report("sqlite:///{bad_study}"), ["study 's'", "timesteps", "many"]),
+    ("tune-foreign-db", _tune_storage("sqlite:///{app_db}"), ["--storage", "notes", "--allow-foreign-storage"]),
+    ("tune-text-journal", _tune_storage("journal://{notes}"), ["notes.txt", "not an Optuna journal"]),
     # export
     ("export-not-zip", ["export", "{notzip}", "{out}.safetensors"], ["MODEL", "notzip.zip"]),
     ("export-ppo", ["export", "{ppo}", "{out}.safetensors"], ["MODEL", "ppo.zip", "policy_class"]),
@@ -229,3 +474,15 @@ def test_bad_input_is_one_line_naming_it(files, tmp_path, capsys, argv, names):
     assert not list(tmp_path.glob("out.*"))
     assert sorted(p.name for p in files["dir"].iterdir()) == before  # nothing written next to the inputs
     assert files["afile"].read_text() == "a file, not a folder"
+    assert files["notes"].read_text() == "my notes\n"
+    assert _tables(files["app_db"]) == ["notes"]
+
+
+def _tables(path: Path) -> list[str]:
+    import sqlite3
+
+    connection = sqlite3.connect(f"file:{path}?mode=ro", uri=True)
+    try:
+        return sorted(row[0] for row in connection.execute("SELECT name FROM sqlite_master WHERE type='table'"))
+    finally:
+        connection.close()

@@ -249,18 +249,27 @@ def _run_folder(tmp_path, marker):
 
 
 def test_resume_does_not_unpickle_files_it_did_not_write(tmp_path, capsys):
-    from sb3_graph.signing import SIGNATURES
+    from sb3_graph.signing import SIGNATURES, sign
 
     marker = tmp_path / "MARKER"
     out, checkpoint = _run_folder(tmp_path, marker)
     args = ["train", "--config", str(CONFIG), "--env", ENV_ID, "--out", str(out), "--resume"]
+    # a folder from elsewhere: its record and config were not signed here, so they are not read
     assert main(args) == 2
     err = capsys.readouterr().err
-    # the stored config is read safely first: its payload is refused by name
+    assert "run.json" in err and "no signature" in err and "--trust-run-files" in err and err.count("\n") == 1
+    # signed here (a run of this machine whose config was then changed and signed): read safely
+    sign(out / "config.yml")
+    sign(out / "run.json")
+    assert main(args) == 2
+    err = capsys.readouterr().err
     assert "policy_kwargs" in err and err.count("\n") == 1
     entry = yaml.safe_load((out / "config.yml").read_text())
     entry["policy_kwargs"] = "dict(encoder_dim=64)"
     (out / "config.yml").write_text(yaml.safe_dump(entry))
+    assert main(args) == 2
+    assert "config.yml does not match its signature" in capsys.readouterr().err
+    sign(out / "config.yml")
     assert main(args) == 2
     err = capsys.readouterr().err
     assert "no signature" in err and "model_10_steps.zip" in err and "--trust-run-files" in err
@@ -269,3 +278,200 @@ def test_resume_does_not_unpickle_files_it_did_not_write(tmp_path, capsys):
     assert main(args) == 2
     assert "does not match its signature" in capsys.readouterr().err
     assert not marker.exists()
+
+
+# ---------------------------------------------------------------- no file chooses where we write
+TINY = ["--eval-freq", "100", "--eval-episodes", "1", "--checkpoint-freq", "100", "--no-progress",
+        "--hyperparams", "learning_starts:64", "batch_size:16", "buffer_size:1000",
+        "--env-kwargs", json.dumps({"config": {"duration": 8.0}})]  # fmt: skip
+CHECKPOINT_CALLBACK = "stable_baselines3.common.callbacks.CheckpointCallback"
+
+
+def _with_callback(tmp_path, name, **kwargs):
+    entry = yaml.safe_load(CONFIG.read_text())[ENV_ID]
+    entry["callback"] = [*entry.get("callback", []), {CHECKPOINT_CALLBACK: {"save_freq": 50, **kwargs}}]
+    path = tmp_path / f"{name}.yml"
+    path.write_text(yaml.safe_dump({ENV_ID: entry}))
+    return path
+
+
+@pytest.mark.parametrize(
+    "kwargs, names",
+    [
+        ({"save_path": "{elsewhere}"}, ["save_path", "relative path"]),
+        ({"save_path": "../../elsewhere"}, ["save_path", "'..'"]),
+        ({"save_path": "ok", "name_prefix": "../../../elsewhere/model"}, ["name_prefix", "path"]),
+    ],
+    ids=["absolute", "dot-dot", "prefix"],
+)
+def test_a_callback_path_outside_the_run_folder_is_refused(tmp_path, capsys, kwargs, names):
+    elsewhere = tmp_path / "elsewhere"
+    kwargs = {key: value.format(elsewhere=elsewhere) for key, value in kwargs.items()}
+    config = _with_callback(tmp_path, "cb", **kwargs)
+    out = tmp_path / "a" / "b" / "run"
+    assert main(["train", "--config", str(config), "--env", ENV_ID, "--out", str(out), "--n-timesteps", "10"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "Traceback" not in err and all(name in err for name in names), err
+    assert not out.exists() and not elsewhere.exists()
+    # tune has no run folder: a path argument is refused there whatever it is
+    storage = f"sqlite:///{tmp_path}/s.db"
+    config = _with_callback(tmp_path, "cb2", save_path="ok")
+    assert main(["tune", "--config", str(config), "--env", ENV_ID, "--study-name", "s", "--storage", storage,
+                 "--n-trials", "1", "--timesteps", "3000"]) == 2  # fmt: skip
+    err = capsys.readouterr().err
+    assert "save_path" in err and "no run folder" in err and err.count("\n") == 1
+    assert not elsewhere.exists()
+
+
+def test_callback_paths_are_rerooted_and_resume_reads_only_signed_run_files(tmp_path, capsys):
+    config = _with_callback(tmp_path, "cb", save_path="snapshots", name_prefix="cb")
+    out = tmp_path / "run"
+    args = ["train", "--config", str(config), "--env", ENV_ID, "--out", str(out), *TINY]
+    assert main([*args, "--n-timesteps", "100"]) == 0, capsys.readouterr().err
+    assert sorted(p.name for p in (out / "callbacks" / "snapshots").iterdir())[0].startswith("cb_")
+    assert not (tmp_path / "snapshots").exists()
+    # someone adds a callback that writes elsewhere to the stored config: --resume refuses it
+    stored = (out / "config.yml").read_text()
+    entry = yaml.safe_load(stored)
+    entry["callback"] = [{CHECKPOINT_CALLBACK: {"save_freq": 1, "save_path": str(tmp_path / "elsewhere")}}]
+    (out / "config.yml").write_text(yaml.safe_dump(entry))
+    resume = [*args, "--resume", "--n-timesteps", "150"]
+    assert main(resume) == 2
+    err = capsys.readouterr().err
+    assert "config.yml does not match its signature" in err and err.count("\n") == 1
+    # with --trust-run-files the file is read, and its path is still refused by name
+    assert main([*resume, "--trust-run-files"]) == 2
+    assert "save_path" in capsys.readouterr().err
+    assert not (tmp_path / "elsewhere").exists()
+    (out / "config.yml").write_text(stored)
+    record = (out / "run.json").read_text()
+    for change in ({"algo": "bogus"}, {"best_mean_reward": "high"}, {"sessions": "many"}, {"wall_time_s": "long"}):
+        (out / "run.json").write_text(json.dumps({**json.loads(record), **change}))
+        assert main(resume) == 2
+        assert "run.json does not match its signature" in capsys.readouterr().err
+        assert main([*resume, "--trust-run-files"]) == 2
+        err = capsys.readouterr().err
+        assert f"field '{next(iter(change))}'" in err and err.count("\n") == 1, err
+    # the signatures file replaced by a device: nothing counts as signed, nothing hangs
+    (out / "run.json").write_text(record)
+    (out / "signatures.json").rename(out / "kept.json")
+    (out / "signatures.json").symlink_to("/dev/zero")
+    assert main(resume) == 2
+    assert "signatures.json' is a symbolic link" in capsys.readouterr().err
+    (out / "signatures.json").unlink()
+    (out / "kept.json").rename(out / "signatures.json")
+    (out / "checkpoints" / "signatures.json").unlink()
+    (out / "checkpoints" / "signatures.json").symlink_to("/dev/zero")
+    assert main(resume) == 2
+    err = capsys.readouterr().err
+    assert "model_100_steps.zip has no signature" in err and err.count("\n") == 1
+
+
+# ---------------------------------------------------------------- storages and outputs
+def _study(path: Path, **attrs) -> str:
+    import optuna
+
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    storage = f"sqlite:///{path}"
+    study = optuna.create_study(study_name="s", storage=storage, load_if_exists=True)
+    for key, value in attrs.items():
+        study.set_user_attr(key, value)
+    if not study.trials:
+        study.add_trial(optuna.trial.create_trial(params={"algo.gamma": 0.9}, distributions={
+            "algo.gamma": optuna.distributions.FloatDistribution(0.8, 0.999)}, value=1.0))  # fmt: skip
+    return storage
+
+
+def test_report_overwrite_replaces_the_whole_folder_or_nothing(tmp_path, capsys):
+    storage = _study(tmp_path / "s.db", timesteps=100)
+    out = tmp_path / "report"
+    report = ["tune-report", "--study-name", "s", "--storage", storage, "--out", str(out)]
+    assert main(report) == 0, capsys.readouterr().err
+    capsys.readouterr()
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    assert "trials.csv" in before and "report.md" in before
+    _study(tmp_path / "s.db", timesteps="many")  # the study now fails its check
+    assert main([*report, "--overwrite"]) == 2
+    err = capsys.readouterr().err
+    assert "timesteps" in err and err.count("\n") == 1
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before  # the old report, whole
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["report", "s.db"]  # no staging left
+    _study(tmp_path / "s.db", timesteps=200)
+    (out / "old-figure.png").write_bytes(b"from the old report")
+    assert main([*report, "--overwrite"]) == 0
+    assert not (out / "old-figure.png").exists()  # one folder, one study
+    assert "200" in (out / "report.md").read_text()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["report", "s.db"]
+
+
+def test_a_server_that_accepts_and_never_answers_times_out(tmp_path, capsys, monkeypatch):
+    import socket
+    import threading
+    import time
+
+    pytest.importorskip("psycopg2")
+    from sb3_graph.tuning import storage as storage_module
+
+    monkeypatch.setattr(storage_module, "CONNECT_TIMEOUT_S", 2)  # libpq's smallest
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen(4)
+    held = []
+    stop = threading.Event()
+
+    def accept():
+        server.settimeout(0.2)
+        while not stop.is_set():
+            try:
+                held.append(server.accept()[0])  # accepted, never answered
+            except OSError:
+                continue
+
+    thread = threading.Thread(target=accept, daemon=True)
+    thread.start()
+    url = f"postgresql://u:p@127.0.0.1:{server.getsockname()[1]}/db"
+    result = {}
+    command = ["tune-report", "--study-name", "s", "--storage", url, "--out", str(tmp_path / "out")]
+    client = threading.Thread(target=lambda: result.update(code=main(command)), daemon=True)
+    try:
+        tic = time.monotonic()
+        client.start()
+        client.join(60)  # bounded even if the timeout were lost: closing the sockets below ends the wait
+        elapsed = time.monotonic() - tic
+    finally:
+        stop.set()
+        thread.join(5)
+        for connection in held:
+            connection.close()
+        server.close()
+        client.join(10)
+    err = capsys.readouterr().err
+    assert held and elapsed < 30, elapsed
+    assert result.get("code") == 2 and "--storage" in err and "u:***@" in err and err.count("\n") == 1, err
+    assert not (tmp_path / "out").exists()
+
+
+def test_sigterm_cleans_up_a_staged_report_as_ctrl_c_does(tmp_path):
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "report"
+    command = [sys.executable, "-m", "sb3_graph.cli", "evaluate", "--planner", "pr", "--scenarios", "200",
+               "--duration", "60", "--jobs", "1", "--no-progress", "--out", str(out)]  # fmt: skip
+    process = subprocess.Popen(command, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        for _ in range(600):  # the staging folder holds the generated scenarios before the runs start
+            if list(tmp_path.glob(".report.partial-*/scenarios/*.json")):
+                break
+            time.sleep(0.1)
+        assert process.poll() is None, process.communicate()
+        process.send_signal(signal.SIGTERM)
+        _, err = process.communicate(timeout=60)
+    finally:
+        if process.poll() is None:
+            process.kill()
+    assert process.returncode == 130, err
+    assert "interrupted" in err and "Traceback" not in err
+    assert list(tmp_path.iterdir()) == []  # neither the report nor its staging folder

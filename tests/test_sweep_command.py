@@ -47,7 +47,7 @@ def test_tiny_sweep_writes_both_files_with_the_schema(tmp_path):
 
 @pytest.mark.parametrize(
     "demand, message",
-    [(["0"], "(0, 1)"), (["1.5"], "(0, 1)"), (["0.1", "0.1"], "twice")],
+    [(["0"], "[0.001, 1)"), (["1.5"], "[0.001, 1)"), (["1e-300"], "[0.001, 1)"), (["0.1", "0.1"], "twice")],
 )
 def test_bad_demand_is_a_one_line_error(tmp_path, capsys, demand, message):
     out = tmp_path / "sweep"

@@ -35,10 +35,15 @@ from pathlib import Path
 import pandas as pd
 
 from sb3_graph.commands import UserError
+from sb3_graph.commands.arguments import seed_value
 
 DEFAULT_METRICS = ("flow_rate", "stop_ratio_all", "delay_mean", "collision_rate")
 DEFAULT_SEED_PATTERN = r"seed_(\d+)"
 CONFIGURATION, SEED, TASK = "configuration", "seed", "scenario"
+# Most bootstrap resamples (rliable uses 50,000); the resampling holds resamples x runs numbers.
+MAX_REPS = 100_000
+# Largest metrics.csv read (an evaluate report holds one row per planner and scenario).
+MAX_REPORT_BYTES = 256 << 20
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -52,9 +57,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=list(DEFAULT_METRICS),
         help=f"columns of metrics.csv to aggregate (default: {' '.join(DEFAULT_METRICS)})",
     )
-    parser.add_argument("--reps", type=int, default=2000, help="bootstrap resamples (default: 2000; rliable: 50000)")
+    parser.add_argument(
+        "--reps",
+        type=int,
+        default=2000,
+        help=f"bootstrap resamples, at most {MAX_REPS} (default: 2000; rliable: 50000)",
+    )
     parser.add_argument("--confidence", type=float, default=0.95, help="interval size in (0, 1) (default: 0.95)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the bootstrap (default: 0)")
+    parser.add_argument("--seed", type=seed_value, default=0, help="seed of the bootstrap (default: 0)")
     parser.add_argument(
         "--bootstrap",
         default="stratified",
@@ -78,8 +88,12 @@ def _inputs(items: list[str]) -> list[tuple[str, Path]]:
         file = Path(path)
         if file.is_dir():
             file = file / "metrics.csv"
-        if not file.is_file():
+        if not file.exists():
             raise UserError(f"REPORT {item!r}: no metrics.csv there (give an sb3-graph evaluate report folder)")
+        if not file.is_file():  # a FIFO or a device would block or never end
+            raise UserError(f"REPORT {item!r}: {str(file)!r} is not a regular file")
+        if file.stat().st_size > MAX_REPORT_BYTES:
+            raise UserError(f"REPORT {item!r}: {str(file)!r} is larger than the {MAX_REPORT_BYTES} bytes accepted")
         if file.resolve() in seen:
             raise UserError(f"REPORT {item!r} is given twice: its runs would count twice")
         seen.add(file.resolve())
@@ -112,6 +126,7 @@ def read_runs(items: list[str], metrics: list[str], seed_pattern: str) -> pd.Dat
                 f"REPORT {str(file)!r} has no column {missing}; --metrics allowed: "
                 f"{sorted(c for c in frame if pd.api.types.is_numeric_dtype(frame[c]))}"
             )
+        _check_metrics(frame, metrics, file)
         planners = frame["planner"].astype(str)
         frame[SEED] = planners.map(lambda name: (m := pattern.search(name)) and m.group(1)).astype("string")
         configuration = planners.map(lambda name: pattern.sub(lambda m: _wildcard(m), name))
@@ -119,6 +134,22 @@ def read_runs(items: list[str], metrics: list[str], seed_pattern: str) -> pd.Dat
         frame.insert(1, "input", str(file))
         frames.append(frame)
     return pd.concat(frames, ignore_index=True)
+
+
+def _check_metrics(frame: pd.DataFrame, metrics: list[str], file: Path) -> None:
+    """Every metric a number: finite, or empty (undefined, e.g. the delay of a run without vehicles)."""
+    import numpy as np
+
+    for name in metrics:
+        values = pd.to_numeric(frame[name], errors="coerce")
+        bad = (values.isna() & frame[name].notna()) | np.isinf(values)
+        if bad.any():
+            row = int(np.flatnonzero(bad.to_numpy())[0])
+            raise UserError(
+                f"REPORT {str(file)!r}: column {name!r} must hold finite numbers (or nothing), "
+                f"got {str(frame[name].iloc[row])[:40]!r} in row {row + 2}"
+            )
+        frame[name] = values
 
 
 def _wildcard(match: re.Match) -> str:
@@ -158,8 +189,8 @@ def run(args: argparse.Namespace) -> int:
     from sb3_graph.aggregate import aggregate
     from sb3_graph.outputs import OutputError, check_destination, staged_folder
 
-    if args.reps < 1:
-        raise UserError(f"--reps must be at least 1, got {args.reps}")
+    if not 1 <= args.reps <= MAX_REPS:
+        raise UserError(f"--reps must be in [1, {MAX_REPS}], got {args.reps}")
     if args.bootstrap not in ("stratified", "iid"):
         raise UserError(f"--bootstrap must be stratified or iid, got {args.bootstrap!r}")
     if not 0 < args.confidence < 1:

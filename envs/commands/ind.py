@@ -33,7 +33,7 @@ import pandas as pd
 
 from envs.commands.evaluate import add_executor_arguments, add_shield_argument, check_executor_arguments
 from sb3_graph.commands import UserError
-from sb3_graph.commands.arguments import json_object
+from sb3_graph.commands.arguments import json_object, seed_value
 
 DEFAULT_ENV = "CoopIntersectionInD-v0"
 DEFAULT_LAYOUT = "inD"
@@ -77,7 +77,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--env", default=DEFAULT_ENV, help=f"environment id (default: {DEFAULT_ENV})")
     parser.add_argument("--env-kwargs", type=json_object, default=None, help="JSON dict passed to gym.make")
-    parser.add_argument("--seed", type=int, default=0, help="base seed of the environments, >= 0 (default: 0)")
+    parser.add_argument("--seed", type=seed_value, default=0, help="base seed of the environments, >= 0 (default: 0)")
     add_executor_arguments(parser)
     parser.add_argument(
         "--out", default=None, help="report folder, must not exist (default: reports/ind-<time>)"

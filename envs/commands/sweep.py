@@ -40,6 +40,8 @@ from envs.commands.evaluate import (
 from sb3_graph.commands import UserError
 
 DEFAULT_DEMAND = (0.05, 0.1, 0.2, 0.3, 0.4)
+# Lowest demand level: one vehicle per lane in about 17 minutes (below, a run holds no traffic to compare).
+MIN_DEMAND = 0.001
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -50,7 +52,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         nargs="+",
         default=list(DEFAULT_DEMAND),
         metavar="RATE",
-        help="arrival rates per major-road lane [veh/s], each in (0, 1); minor-road lanes get half "
+        help=f"arrival rates per major-road lane [veh/s], each in [{MIN_DEMAND:g}, 1); minor-road lanes get half "
         f"(default: {' '.join(f'{d:g}' for d in DEFAULT_DEMAND)})",
     )
 
@@ -59,12 +61,13 @@ def checked_demand(values: Sequence[float]) -> list[float]:
     """The ``--demand`` levels, sorted.
 
     :param values: the levels given
-    :raises UserError: a level outside (0, 1) veh/s, or one given twice
+    :raises UserError: a level outside [MIN_DEMAND, 1) veh/s, or one given twice
     """
     for value in values:
-        if not 0 < value < 1:
+        if not MIN_DEMAND <= value < 1:
             raise UserError(
-                f"--demand: each level must be in (0, 1) veh/s per major-road lane (1 s minimum headway), got {value:g}"
+                f"--demand: each level must be in [{MIN_DEMAND:g}, 1) veh/s per major-road lane (1 s minimum "
+                f"headway), got {value:g}"
             )
     if len(set(values)) != len(values):
         raise UserError(f"--demand: a level is given twice in {' '.join(f'{v:g}' for v in values)}")

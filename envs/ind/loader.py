@@ -24,6 +24,7 @@ from envs.ind.format import (
     IndDataError,
     recording_file,
 )
+from envs.traffic import MAX_DURATION
 
 SPEED_SOURCES = ("norm", "lon")
 
@@ -183,6 +184,11 @@ def load_recording(
     frame_rate = float(meta["frameRate"])
     if not np.isfinite(frame_rate) or frame_rate <= 0:
         raise IndDataError(f"{meta_path}: frameRate must be a positive number, got {meta['frameRate']!r}")
+    duration = float(meta["duration"])
+    if not np.isfinite(duration) or not 0 < duration <= MAX_DURATION:
+        raise IndDataError(
+            f"{meta_path}: duration must be a number of seconds in (0, {MAX_DURATION:g}], got {meta['duration']!r}"
+        )
 
     tracks_meta = _read_csv(tracks_meta_path, REQUIRED_TRACKS_META_COLUMNS, ("numFrames", "width", "length"))
     if tracks_meta["trackId"].duplicated().any():
@@ -209,7 +215,7 @@ def load_recording(
         recording_id=int(recording_id),
         location_id=site,
         frame_rate=frame_rate,
-        duration=float(meta["duration"]),
+        duration=duration,
         meta=meta,
         tracks_meta=tracks_meta,
         tracks=tracks,

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import math
 from typing import Any
 
@@ -15,10 +14,12 @@ def json_object(text: str) -> dict[str, Any]:
 
     :raises argparse.ArgumentTypeError: invalid JSON, or JSON that is not an object
     """
+    from sb3_graph.safe_values import UnsafeValueError, load_json
+
     try:
-        value = json.loads(text)
-    except ValueError as error:
-        raise argparse.ArgumentTypeError(f"not valid JSON ({error})") from None
+        value = load_json(text, "value", constants=False)
+    except UnsafeValueError as error:
+        raise argparse.ArgumentTypeError(str(error).removeprefix("value: ")) from None
     if not isinstance(value, dict):
         raise argparse.ArgumentTypeError(
             f"""must be a JSON object such as '{{"config": {{"duration": 60}}}}', got {text!r}"""
@@ -38,6 +39,24 @@ def finite_float(text: str) -> float:
     if not math.isfinite(value):
         raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
     return value
+
+
+#: largest seed accepted (numpy's legacy seeding, SB3's ``set_random_seed`` and gymnasium take 32 bits)
+MAX_SEED = 2**32 - 1
+
+
+def seed_value(text: str) -> int:
+    """``argparse`` type of ``--seed``: an integer in ``[0, MAX_SEED]``."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer in [0, {MAX_SEED}], got {text!r}") from None
+    if not 0 <= value <= MAX_SEED:
+        raise argparse.ArgumentTypeError(f"expected an integer in [0, {MAX_SEED}], got {text!r}")
+    return value
+
+
+seed_value.__name__ = "seed"
 
 
 def check_device(device: str, flag: str = "--device") -> str:

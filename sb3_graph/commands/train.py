@@ -45,7 +45,7 @@ import numpy as np
 import yaml
 
 from sb3_graph.commands import UserError
-from sb3_graph.commands.arguments import json_object
+from sb3_graph.commands.arguments import json_object, seed_value
 from sb3_graph.registry import ALGORITHMS
 
 CHECKPOINT_PATTERN = re.compile(r"model_(\d+)_steps\.zip$")
@@ -64,11 +64,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, help="run folder; must not exist unless --resume")
     parser.add_argument("--n-timesteps", type=int, default=None, help="override n_timesteps of the entry (>= 1)")
     parser.add_argument(
-        "--seed", type=int, default=None, help="seed of the training envs and the learner (>= 0, default 0)"
+        "--seed", type=seed_value, default=None, help="seed of the training envs and the learner (>= 0, default 0)"
     )
     parser.add_argument(
         "--seeds",
-        type=int,
+        type=seed_value,
         nargs="+",
         default=None,
         metavar="SEED",
@@ -123,15 +123,17 @@ def parse_overrides(items: list[str], flag: str = "--hyperparams") -> dict[str, 
     :param items: ``KEY:VALUE`` strings
     :param flag: the option named in errors
     """
+    from sb3_graph.safe_values import UnsafeValueError, load_yaml
+
     overrides = {}
     for item in items:
         key, sep, value = item.partition(":")
         if not sep or not key:
             raise UserError(f"{flag}: expected KEY:VALUE, got {item!r}")
         try:
-            overrides[key] = yaml.safe_load(value)
-        except yaml.YAMLError as error:
-            raise UserError(f"{flag}: {item!r}: value is not YAML ({str(error).splitlines()[0]})") from None
+            overrides[key] = load_yaml(value, f"{flag} {key}")
+        except UnsafeValueError as error:
+            raise UserError(f"{error} (in {item[:60]!r})") from None
     return overrides
 
 
@@ -314,15 +316,45 @@ def _entry_from_file(args: argparse.Namespace) -> dict[str, Any]:
         raise UserError(str(error)) from None
 
 
-def _stored_entry(config_path: Path, n_timesteps: int | None) -> dict[str, Any]:
-    """The entry a run folder recorded (``config.yml``), checked like a file entry (its expressions
-    are read safely too, though the checkpoint holds the model)."""
+def _check_links(out: Path) -> None:
+    from sb3_graph.outputs import OutputError, check_no_links
+
+    written = ("checkpoints", "tb", "callbacks", "config.yml", "run.json", "signatures.json", "best_model.zip",
+               "evaluations.npz", "final_model.zip")  # fmt: skip
+    try:
+        check_no_links(out, written, "--resume")
+    except OutputError as error:
+        raise UserError(str(error)) from None
+
+
+def _stored_record(record_path: Path, trust: bool) -> dict[str, Any] | None:
+    """The run record (``run.json``) if there is one, signed (unless ``trust``) and checked."""
+    from sb3_graph.experiment import ExperimentError, check_run_record
+    from sb3_graph.safe_values import UnsafeValueError, load_json, read_text_file
+    from sb3_graph.signing import SignatureError, verify_run_file
+
+    if not record_path.exists() and not record_path.is_symlink():
+        return None
+    try:
+        verify_run_file(record_path, trust)
+        record = load_json(read_text_file(record_path, "--resume"), f"--resume: {record_path}")
+        return check_run_record(record, list(ALGORITHMS), f"--resume: {record_path}")
+    except (SignatureError, UnsafeValueError, ExperimentError) as error:
+        raise UserError(str(error)) from None
+
+
+def _stored_entry(config_path: Path, n_timesteps: int | None, trust: bool = False) -> dict[str, Any]:
+    """The entry a run folder recorded (``config.yml``), signed (unless ``trust``) and checked like a
+    file entry (its expressions are read safely too, though the checkpoint holds the model)."""
     from sb3_graph.experiment import ExperimentError, build_algorithm_kwargs, check_entry
+    from sb3_graph.safe_values import UnsafeValueError, load_yaml, read_text_file
+    from sb3_graph.signing import SignatureError, verify_run_file
 
     try:
-        entry = yaml.safe_load(config_path.read_text())
-    except (OSError, yaml.YAMLError) as error:
-        raise UserError(f"--resume: cannot read {config_path}: {str(error).splitlines()[0]}") from None
+        verify_run_file(config_path, trust)
+        entry = load_yaml(read_text_file(config_path, "--resume"), f"--resume: {config_path}")
+    except (SignatureError, UnsafeValueError) as error:
+        raise UserError(str(error)) from None
     if not isinstance(entry, dict):
         raise UserError(f"--resume: {config_path} is not a mapping of hyperparameters")
     if n_timesteps is not None:  # extend (or shorten) a run; recorded in config.yml
@@ -347,6 +379,12 @@ def _load_weights(model, path: str) -> None:
         model.set_parameters(path, exact_match=True, device=model.device)
     except Exception as error:  # a zip of another architecture, or not a model at all
         raise UserError(f"--init-weights: cannot load the weights of {path!r}: {error}") from error
+    from sb3_graph.policy_kwargs import PolicyKwargsError, check_finite_weights
+
+    try:
+        check_finite_weights(model.policy, f"--init-weights: {path}")
+    except PolicyKwargsError as error:
+        raise UserError(str(error)) from None
 
 
 def _load_checkpoint(path: Path, buffer_path: Path, trust: bool, algorithm, **load_kwargs):
@@ -459,6 +497,7 @@ def _run_one(args: argparse.Namespace) -> int:
     from stable_baselines3.common.callbacks import CallbackList, EvalCallback
 
     from sb3_graph.experiment import ExperimentError, build_callbacks
+    from sb3_graph.signing import write_signed
 
     _check_flags(args)
     th.set_num_threads(args.threads)
@@ -468,17 +507,12 @@ def _run_one(args: argparse.Namespace) -> int:
     if args.resume:
         if not config_path.is_file():
             raise UserError(f"--resume: {str(out)!r} holds no run (no config.yml)")
+        _check_links(out)
         checkpoint = latest_checkpoint(out)
-        record_path = out / "run.json"
-        record = None
-        if record_path.is_file():
-            try:
-                record = json.loads(record_path.read_text())
-            except ValueError:
-                print(f"sb3-graph train: {record_path} is not JSON; starting a new record", file=sys.stderr)
-        if not isinstance(record, dict) or not isinstance(record.get("seed"), int):
+        record = _stored_record(out / "run.json", args.trust_run_files)
+        if record is None:
             # a run killed before it wrote its record: start one, say so
-            print(f"sb3-graph train: no usable {record_path}; recording seed {args.seed}", file=sys.stderr)
+            print(f"sb3-graph train: no {out / 'run.json'}; recording seed {args.seed}", file=sys.stderr)
             record = _new_record(args, args.seed)
         record.setdefault("sessions", [])
         recorded = record.get("algo", "td3")  # runs recorded before --algo were TD3 runs
@@ -490,7 +524,7 @@ def _run_one(args: argparse.Namespace) -> int:
             print(f"sb3-graph train: no checkpoint in {out}, starting again from {args.config}", file=sys.stderr)
             entry = _entry_from_file(args)
         else:
-            entry = _stored_entry(config_path, args.n_timesteps)
+            entry = _stored_entry(config_path, args.n_timesteps, args.trust_run_files)
         created = False
     else:
         if out.exists() and (not out.is_dir() or any(out.iterdir())):
@@ -509,7 +543,7 @@ def _run_one(args: argparse.Namespace) -> int:
     # Validation: built the same way, another seed (paper, "Experiments").
     eval_env = _make_env(args.env, 1, seed + VALIDATION_SEED_OFFSET, env_kwargs)
     try:
-        user_callbacks = build_callbacks(entry)
+        user_callbacks = build_callbacks(entry, out)
     except ExperimentError as error:
         raise UserError(str(error)) from None
     tensorboard_log = str(out / "tb") if importlib.util.find_spec("tensorboard") else None
@@ -535,8 +569,8 @@ def _run_one(args: argparse.Namespace) -> int:
     except OSError as error:
         raise UserError(f"--out: cannot create {str(out)!r}: {error.strerror or error}") from None
     if checkpoint is None:
-        config_path.write_text(yaml.safe_dump(entry, sort_keys=False))
-    (out / "run.json").write_text(json.dumps(record, indent=2))
+        write_signed(config_path, yaml.safe_dump(entry, sort_keys=False))
+    write_signed(out / "run.json", json.dumps(record, indent=2))
 
     eval_callback = EvalCallback(
         eval_env,
@@ -587,7 +621,7 @@ def _run_one(args: argparse.Namespace) -> int:
     record["num_timesteps"] = int(model.num_timesteps)
     record["best_mean_reward"] = float(eval_callback.best_mean_reward)
     record["sessions"].append({"started": start, "wall_time_s": elapsed, "steps_until": int(model.num_timesteps)})
-    (out / "run.json").write_text(json.dumps(record, indent=2))
+    write_signed(out / "run.json", json.dumps(record, indent=2))
     train_env.close()
     eval_env.close()
     if interrupted:

@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from sb3_graph.commands import UserError
-from sb3_graph.commands.arguments import check_device, json_object
+from sb3_graph.commands.arguments import check_device, json_object, seed_value
 from sb3_graph.commands.train import parse_overrides
 from sb3_graph.registry import ALGORITHMS
 
@@ -43,6 +43,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="sqlite:///PATH.db (default sqlite:///studies/<study-name>.db), "
         "postgresql://USER:PASSWORD@HOST:PORT/DB or journal://PATH (shared by many workers)",
+    )
+    parser.add_argument(
+        "--allow-foreign-storage",
+        action="store_true",
+        help="use a --storage database that holds tables of another application, or a journal:// file that "
+        "is not an Optuna journal (refused by default: Optuna would add its tables or lines to it)",
     )
     parser.add_argument("--n-trials", type=int, default=10, help="trials this invocation adds to the study")
     parser.add_argument("--timesteps", type=int, default=None, help="training steps per trial (default: entry)")
@@ -93,7 +99,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--reduction-factor", type=int, default=3, help="successive-halving/hyperband: factor between two rungs (>= 2)"
     )
     parser.add_argument("--population-size", type=int, default=10, help="NSGA-II population (pareto)")
-    parser.add_argument("--seed", type=int, default=0, help="base training seed (trial k uses seed + k)")
+    parser.add_argument("--seed", type=seed_value, default=0, help="base training seed (trial k uses seed + k)")
     parser.add_argument("--sampler-seed", type=int, default=None, help="sampler seed (worker i uses seed + i)")
     parser.add_argument(
         "--heartbeat", type=int, default=60, help="seconds between heartbeats; a trial silent for two is failed"
@@ -308,7 +314,10 @@ def open_storage(args: argparse.Namespace):
     from sb3_graph.tuning.storage import make_storage
 
     try:
-        return make_storage(storage_url(args), heartbeat_interval=args.heartbeat, max_retry=args.max_retry)
+        return make_storage(
+            storage_url(args), heartbeat_interval=args.heartbeat, max_retry=args.max_retry,
+            allow_foreign=getattr(args, "allow_foreign_storage", False),
+        )  # fmt: skip
     except ValueError as error:
         raise UserError(f"--storage: {error}") from error
 

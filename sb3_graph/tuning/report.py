@@ -32,7 +32,7 @@ import yaml
 from optuna.trial import FrozenTrial, TrialState
 
 from sb3_graph.tuning.objectives import COLLISION, FLOW
-from sb3_graph.tuning.search_space import entry_with_params
+from sb3_graph.tuning.search_space import entry_with_params, split_params
 
 METRIC_COLUMNS = ("flow_rate", "collision_rate", "stop_ratio", "stop_ratio_major", "stop_ratio_minor", "delay_mean")
 FIGURES = (
@@ -42,6 +42,60 @@ FIGURES = (
     "intermediate_values",
     "pareto_front",
 )
+
+
+def _number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and not math.isnan(value)
+
+
+def _text(value: Any) -> bool:
+    return isinstance(value, str) and len(value) <= 10_000
+
+
+# The attributes a report reads, what each must be (a study is a file or database from others).
+STUDY_ATTRS: dict[str, tuple[Any, str]] = {
+    "metrics": (lambda v: isinstance(v, list) and all(_text(x) for x in v), "a list of strings"),
+    "timesteps": (lambda v: _number(v) and v >= 0 and float(v).is_integer() and v < 2**53, "an integer >= 0"),
+    "max_collision_rate": (lambda v: _number(v) and math.isfinite(v), "a finite number"),
+    "entry": (lambda v: isinstance(v, dict) and all(isinstance(k, str) for k in v), "a mapping"),
+    "env": (_text, "a string"),
+    "pruner": (_text, "a string"),
+    "objective": (_text, "a string"),
+    "eval_steps": (lambda v: isinstance(v, list) and all(_number(x) for x in v), "a list of numbers"),
+}
+TRIAL_ATTRS: dict[str, tuple[Any, str]] = {
+    **{name: (_number, "a number") for name in METRIC_COLUMNS},
+    "timesteps": (_number, "a number"),
+    "step": (lambda v: _number(v) and float(v).is_integer(), "an integer"),
+    "reason": (_text, "a string"),
+    "worker": (lambda v: _text(v) or _number(v), "a string or a number"),
+}
+
+
+def check_study(study: optuna.Study) -> None:
+    """Check the attributes that the report reads, so that a study from elsewhere fails in one line.
+
+    :param study: the study
+    :raises ValueError: ``study <name>: user attribute <key> must be <allowed>, got <value>``
+    """
+    where = f"study {study.study_name!r}"
+
+    def check(attrs: dict[str, Any], rules: dict[str, tuple[Any, str]], owner: str) -> None:
+        for key, (rule, allowed) in rules.items():
+            if key in attrs and not rule(attrs[key]):
+                raise ValueError(f"{owner}: user attribute {key!r} must be {allowed}, got {str(attrs[key])[:80]!r}")
+
+    check(study.user_attrs, STUDY_ATTRS, where)
+    for trial in study.get_trials(deepcopy=False):
+        check(trial.user_attrs, TRIAL_ATTRS, f"{where}, trial {trial.number}")
+        try:
+            split_params(trial.params)
+        except (TypeError, ValueError) as error:
+            raise ValueError(f"{where}, trial {trial.number}: {error}") from None
+        constraints = [v for k, v in trial.system_attrs.items() if k == "constraints" or k.startswith("constraints:")]
+        flat = [c for v in constraints for c in (v if isinstance(v, list) else [v])]
+        if not all(_number(c) for c in flat):
+            raise ValueError(f"{where}, trial {trial.number}: system attribute 'constraints' must hold numbers")
 
 
 def _metrics(study: optuna.Study) -> list[str]:

@@ -11,6 +11,13 @@ Accepted forms (:data:`ACCEPTED_FORMS`):
   shared disk; everything after ``journal://`` is the path, so ``journal:///mnt/shared/study.log``
   is absolute and ``journal://studies/study.log`` relative. Its folder is created.
 
+A storage is often a file or a server that holds other things too, so :func:`make_storage` checks
+before it writes: a read-only command (``tune-report``, ``read_only=True``) never creates tables
+or files, and refuses a database without Optuna's tables; ``tune`` refuses a database that holds
+tables of another application, or a file that is not an Optuna journal, unless ``allow_foreign``
+(``--allow-foreign-storage``). A PostgreSQL server gets :data:`CONNECT_TIMEOUT_S` to answer and
+each statement :data:`STATEMENT_TIMEOUT_S`; SQLite waits :data:`SQLITE_TIMEOUT_S` for a lock.
+
 Every form records a heartbeat of each running trial: the trial of a worker that was killed is
 marked ``FAIL`` once its heartbeat is older than the grace period, the next time any worker asks
 for a trial, so the study goes on (optionally the failed trial is retried with the same
@@ -21,6 +28,7 @@ parameters). The databases use Optuna's own heartbeat table; Optuna's journal st
 from __future__ import annotations
 
 import importlib.util
+import json
 import re
 import time
 import warnings
@@ -42,6 +50,13 @@ ACCEPTED_FORMS = (
 DEFAULT_HEARTBEAT_S = 60
 # SQLite: wait for a lock held by another worker process instead of failing at once.
 SQLITE_TIMEOUT_S = 60.0
+# PostgreSQL: a server that accepts and never answers fails the command after this many seconds.
+CONNECT_TIMEOUT_S = 10
+# PostgreSQL: longest statement (Optuna's are short; a locked table or a stalled server is not).
+STATEMENT_TIMEOUT_S = 120
+# Longest first line of a journal file read to check that it is one.
+JOURNAL_PROBE_BYTES = 1 << 20
+FOREIGN_HINT = "pass --allow-foreign-storage to use it anyway"
 
 
 class StorageURLError(ValueError):
@@ -131,6 +146,8 @@ def make_storage(
     heartbeat_interval: int = DEFAULT_HEARTBEAT_S,
     grace_period: int | None = None,
     max_retry: int = 0,
+    read_only: bool = False,
+    allow_foreign: bool = False,
 ) -> BaseStorage:
     """Open (and create if needed) the Optuna storage a URL names.
 
@@ -139,8 +156,12 @@ def make_storage(
     :param grace_period: seconds without heartbeat after which a running trial is failed
         (default: twice the interval)
     :param max_retry: how often a trial failed that way is retried with the same parameters (0: none)
+    :param read_only: the caller only reads: nothing is created (no folder, table or file), and a
+        storage without Optuna's tables is refused
+    :param allow_foreign: use a database that holds other tables, or a file that is not a journal
     :return: the storage
-    :raises StorageURLError: an unsupported URL, or PostgreSQL without its driver
+    :raises StorageURLError: an unsupported URL, PostgreSQL without its driver, or a storage
+        refused as above
     """
     kind = storage_kind(url)
     if heartbeat_interval < 1:
@@ -152,17 +173,33 @@ def make_storage(
             callback = RetryHeartbeatStaleTrialCallback(max_retry=max_retry)
     if kind == "journal":
         path = Path(url[len("journal://") :])
+        _check_journal(path, url, read_only, allow_foreign)
         _make_folder(path.parent, url)
         # The open()-based lock works on file systems without symlinks (and on most NFS setups).
         backend = JournalFileBackend(str(path), lock_obj=JournalFileOpenLock(str(path)))
         grace = grace_period if grace_period is not None else 2 * int(heartbeat_interval)
         return HeartbeatJournalStorage(backend, int(heartbeat_interval), grace, callback)
     if kind == "sqlite":
-        _make_folder(sqlite_path(url).parent, url)
+        if read_only and not sqlite_path(url).is_file():
+            raise StorageURLError(f"database file {str(sqlite_path(url))!r} does not exist")
+        _check_regular(sqlite_path(url), url)
+        if not read_only:
+            _make_folder(sqlite_path(url).parent, url)
         engine_kwargs = {"connect_args": {"timeout": SQLITE_TIMEOUT_S}}
     else:
         url = postgres_driver_url(url)
-        engine_kwargs = {"pool_pre_ping": True}
+        engine_kwargs = {
+            "pool_pre_ping": True,
+            "connect_args": {
+                "connect_timeout": CONNECT_TIMEOUT_S,
+                "options": f"-c statement_timeout={STATEMENT_TIMEOUT_S * 1000}",
+                "keepalives": 1,
+                "keepalives_idle": CONNECT_TIMEOUT_S,
+                "keepalives_interval": 5,
+                "keepalives_count": 3,
+            },
+        }
+    _check_tables(url, engine_kwargs, read_only, allow_foreign)
     with warnings.catch_warnings():  # heartbeats are "experimental" in Optuna, but documented and used here
         warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
         for attempt in range(SCHEMA_RACE_RETRIES + 1):
@@ -173,6 +210,7 @@ def make_storage(
                     heartbeat_interval=int(heartbeat_interval),
                     grace_period=grace_period,
                     heartbeat_stale_trial_callback=callback,
+                    skip_table_creation=read_only,
                 )
             except (sqlalchemy.exc.IntegrityError, sqlalchemy.exc.ProgrammingError):
                 # Workers that start together on a fresh database race to create Optuna's tables;
@@ -184,6 +222,62 @@ def make_storage(
                 first = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
                 raise StorageURLError(f"cannot open storage {redact(url)!r}: {first}") from error
     raise AssertionError("unreachable")
+
+
+def optuna_tables() -> set[str]:
+    """The tables that Optuna's RDB storage creates (its models and alembic's version table)."""
+    from optuna.storages._rdb import models
+
+    return set(models.BaseModel.metadata.tables) | {"alembic_version"}
+
+
+def _check_tables(url: str, engine_kwargs: dict, read_only: bool, allow_foreign: bool) -> None:
+    """Look at a database's tables before Optuna creates its own (see the module docstring)."""
+    try:
+        engine = sqlalchemy.create_engine(url, **engine_kwargs)
+        try:
+            tables = set(sqlalchemy.inspect(engine).get_table_names())
+        finally:
+            engine.dispose()
+    except sqlalchemy.exc.SQLAlchemyError as error:
+        first = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+        raise StorageURLError(f"cannot open storage {redact(url)!r}: {first}") from error
+    ours = optuna_tables()
+    foreign = sorted(name for name in tables - ours if not name.startswith("sqlite_"))
+    if read_only and not {"studies", "version_info", "alembic_version"} <= tables:
+        raise StorageURLError(
+            f"storage {redact(url)!r} holds no Optuna study (tables: {foreign[:8] or 'none'}); "
+            "a read-only command creates none"
+        )
+    if foreign and not read_only and not allow_foreign:
+        raise StorageURLError(
+            f"storage {redact(url)!r} holds tables of another application ({', '.join(foreign[:8])}); "
+            f"Optuna would add its own there; {FOREIGN_HINT}"
+        )
+
+
+def _check_regular(path: Path, url: str) -> None:
+    if path.exists() and not path.is_file():
+        raise StorageURLError(f"storage {redact(url)!r}: {str(path)!r} is not a regular file")
+
+
+def _check_journal(path: Path, url: str, read_only: bool, allow_foreign: bool) -> None:
+    """A journal file is a regular file whose lines are Optuna's JSON operations (an empty or new one too)."""
+    if read_only and not path.is_file():
+        raise StorageURLError(f"journal file {str(path)!r} does not exist")
+    _check_regular(path, url)
+    if not path.is_file() or path.stat().st_size == 0:
+        return
+    with open(path, "rb") as file:
+        first = file.readline(JOURNAL_PROBE_BYTES)
+    try:
+        operation = json.loads(first)
+    except (ValueError, RecursionError):
+        operation = None
+    if not isinstance(operation, dict) or "op_code" not in operation:
+        hint = "" if read_only else f"; {FOREIGN_HINT}"
+        if read_only or not allow_foreign:
+            raise StorageURLError(f"{str(path)!r} is not an Optuna journal file (its first line is not one){hint}")
 
 
 def _make_folder(folder: Path, url: str) -> None:
