@@ -42,11 +42,15 @@ def _load(command: str):
 
 def build_parser(commands: Sequence[str] | None = None) -> argparse.ArgumentParser:
     """The argument parser with a sub-parser for each command whose module is importable."""
+    from sb3_graph import __version__
+
     parser = _Parser(prog="sb3-graph", description=__doc__.splitlines()[0])
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name in commands if commands is not None else COMMANDS:
         help_text = COMMANDS[name][1]
-        sub_parser = sub.add_parser(name, help=help_text, description=help_text)
+        # argparse %-formats help strings (for %(default)s): a literal "%" must be doubled there
+        sub_parser = sub.add_parser(name, help=help_text.replace("%", "%%"), description=help_text)
         try:
             module = _load(name)
         except ModuleNotFoundError as error:  # a command whose module is not part of this install
@@ -63,6 +67,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     chosen = [argv[0]] if argv and argv[0] in COMMANDS else None
     parser = build_parser(chosen)
     args = parser.parse_args(argv)
+    args.argv = ["sb3-graph", *argv]  # the command as typed (run records), whoever called main
     if getattr(args, "_missing", None):
         parser.error(f"command {args.command!r} is unavailable: {args._missing}")
     try:
