@@ -341,6 +341,7 @@ def evaluate(
     executor: str | JobExecutor = "local",
     scheduler_address: str | None = None,
     stats: dict[str, Any] | None = None,
+    progress_label: str = "evaluate",
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
     """Run every planner on every scenario.
 
@@ -361,6 +362,7 @@ def evaluate(
     :param stats: if given, filled with the harness's facts: ``runs``, ``wall_s`` (from the start of
         the executor, a cluster started for the evaluation included, to the last result),
         ``runs_per_s`` and ``executor`` (its description)
+    :param progress_label: the progress bar's label (the command that runs the harness)
     :return: ``(runs, vehicles)``: one row per planner and run, one row per vehicle and run;
         sorted by planner (given order) and scenario, whatever order the workers finished in
     """
@@ -379,7 +381,7 @@ def evaluate(
     own = not isinstance(executor, JobExecutor)
     tic = time.perf_counter()  # a cluster started for this evaluation counts in its wall time
     runner = make_executor(executor, jobs, scheduler_address) if own else executor
-    bar = _progress(len(work), progress)
+    bar = _progress(len(work), progress, progress_label)
     try:
         for k, result in runner.map_unordered(run_shared_job, work, table):
             results[k] = result
@@ -399,12 +401,12 @@ def evaluate(
     return runs, vehicles
 
 
-def _progress(total: int, enabled: bool):
+def _progress(total: int, enabled: bool, label: str = "evaluate"):
     from tqdm.auto import tqdm
 
     return tqdm(
         total=total,
-        desc="evaluate",
+        desc=label,
         unit="run",
         # runs per second even below 1 (tqdm's default turns a slow rate into seconds per run)
         bar_format="{l_bar}{bar}| {n_fmt}/{total_fmt} [{elapsed}<{remaining}, {rate_noinv_fmt}]",

@@ -265,7 +265,7 @@ def duration_text(runs, requested: float) -> str:
 
 def run(args: argparse.Namespace) -> int:
     from envs.evaluation import check_scenarios, find_scenarios, generate_scenarios
-    from envs.report import format_number, write_report
+    from envs.report import collided_text, format_number, write_report
     from sb3_graph.outputs import OutputError, staged_folder
 
     planners = _check(args)
@@ -277,13 +277,16 @@ def run(args: argparse.Namespace) -> int:
             check_scenarios(scenarios, layout)
         except ValueError as error:
             raise UserError(f"--scenario-dir: {error}") from None
+    say = progress_printer(args)
     load_model_planners(planners, config, args.trust_planner_files)
     out = _destination(args)
     tic = time.perf_counter()
     try:
         with staged_folder(out) as stage:
             if args.scenario_dir is None:
+                say(f"generating {args.scenarios} scenario files of {args.duration:g} s ({layout}, seed {args.seed})")
                 scenarios = generate_scenarios(stage / "scenarios", args.scenarios, args.duration, args.seed, layout)
+                say(f"scenarios ready ({time.perf_counter() - tic:.1f} s)")
                 source = f"generated into {out / 'scenarios'} (seed {args.seed} + index)"
             else:
                 source = f"read from {args.scenario_dir}"
@@ -309,9 +312,9 @@ def run(args: argparse.Namespace) -> int:
         print(
             f"{name:>10}: flow median {format_number(f['median'])} veh/s,"
             f" stops major {format_number(sr['major'])} minor {format_number(sr['minor'])},"
-            f" collisions {format_number(s['collision_rate'])}, delay mean {format_number(s['delay_s']['mean'], 2)} s,"
-            f" {s['speed_limit_violations']} speed-limit violations ({s['vehicles']} scheduled vehicles,"
-            f" {s['not_spawned']} never appeared)"
+            f" collided {collided_text(s.get('collided'), s['vehicles'])}, delay mean"
+            f" {format_number(s['delay_s']['mean'], 2)} s, {s['speed_limit_violations']} speed-limit violations"
+            f" ({s['vehicles']} scheduled vehicles, {s['not_spawned']} not spawned (jam))"
         )
     print(run_line(stats))
     print(f"report written to {out} ({wall:.1f} s)")
@@ -329,6 +332,44 @@ def run_harness(args: argparse.Namespace, planners: Sequence[tuple[str, str]], s
     return harness(args, planners, scenarios, args.duration)
 
 
+def progress_printer(args: argparse.Namespace):
+    """``say(text)``: a progress line on stderr (``sb3-graph <command>: ...``), silent with ``--no-progress``."""
+    import sys
+
+    command = getattr(args, "command", None) or "evaluate"
+
+    def say(text: str) -> None:
+        if not getattr(args, "no_progress", False):
+            print(f"sb3-graph {command}: {text}", file=sys.stderr, flush=True)
+
+    return say
+
+
+def announce_runs(args: argparse.Namespace, planners: Sequence[tuple[str, str]], scenarios: int, duration) -> None:
+    """What happens before the first run ends: how many runs, on how many workers, what compiles first.
+
+    :param args: the command's arguments (``--jobs``, ``--no-progress``)
+    :param planners: ``(planner spec, report name)`` pairs
+    :param scenarios: number of scenario files
+    :param duration: simulated seconds per run (or a text)
+    """
+    from envs.planners import SHIELD_SUFFIX
+
+    say = progress_printer(args)
+    workers = "this process" if args.jobs == 1 and args.executor == "local" else f"{args.jobs} workers"
+    say(
+        f"{len(planners) * scenarios} runs ({len(planners)} planners x {scenarios} scenarios, {duration} s each) on "
+        f"{workers}; each worker first loads the planners, and the bar moves when whole runs end"
+    )
+    kernels = [what for what, used in (
+        ("the shield's", any(spec.endswith(SHIELD_SUFFIX) for spec, _ in planners)),
+        ("AIM's", any(spec.split("+")[0] == "aim" for spec, _ in planners)),
+    ) if used]  # fmt: skip
+    if kernels:
+        say(f"the first run of an installation compiles {' and '.join(kernels)} numba kernels (about 6 s; "
+            "later runs load them in about 1 s)")  # fmt: skip
+
+
 def harness(args: argparse.Namespace, planners: Sequence[tuple[str, str]], scenarios: Sequence[Path], duration):
     """:func:`envs.evaluation.evaluate` with a command's ``--jobs``, ``--executor``, ``--scheduler-address``,
     ``--seed``, ``--env``, ``--env-kwargs`` and ``--no-progress``.
@@ -339,6 +380,8 @@ def harness(args: argparse.Namespace, planners: Sequence[tuple[str, str]], scena
     from envs.evaluation import evaluate
     from envs.executors import ExecutorError
 
+    each = f"up to {duration:g}" if getattr(args, "command", None) == "ind" else f"{duration:g}"  # ind: per recording
+    announce_runs(args, planners, len(scenarios), each)
     stats: dict[str, Any] = {}
     try:
         runs, vehicles = evaluate(
@@ -350,6 +393,7 @@ def harness(args: argparse.Namespace, planners: Sequence[tuple[str, str]], scena
             jobs=args.jobs,
             env_kwargs=args.env_kwargs,
             progress=not args.no_progress,
+            progress_label=getattr(args, "command", None) or "evaluate",
             trust_planner_files=args.trust_planner_files,
             executor=args.executor,
             scheduler_address=args.scheduler_address,
