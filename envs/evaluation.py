@@ -26,7 +26,7 @@ from __future__ import annotations
 import os
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -134,7 +134,12 @@ def _planner(spec: str, trust_files: bool = False):
 
 
 def run_episode(
-    env, planner, scenario: Any, duration: float, seed: int | None = None
+    env,
+    planner,
+    scenario: Any,
+    duration: float,
+    seed: int | None = None,
+    on_step: Callable[[Any, np.ndarray, dict, Any], None] | None = None,
 ) -> tuple[pd.DataFrame, dict]:
     """Run one planner through one scenario.
 
@@ -144,6 +149,8 @@ def run_episode(
     :param scenario: the scenario object, passed as ``reset(options={"scenario": scenario})``
     :param duration: simulated seconds to run (less if the environment ends the episode)
     :param seed: seed of the environment's reset and of the planner
+    :param on_step: called after every policy step as ``on_step(scene, accelerations, info, next_scene)``
+        (e.g. to draw the episode, :mod:`envs.rendering`); it must not change what it is handed
     :return: ``(vehicle log, facts)``: the log holds every vehicle scheduled within the run (see
         :mod:`envs.metrics`); facts ``duration`` (simulated seconds actually run),
         ``steps``, ``terminated`` (the environment ended the episode, e.g. on a collision with
@@ -165,7 +172,10 @@ def run_episode(
         _, _, terminated, truncated, info = env.step(base.accelerations_to_action(acc))
         log.record(info)
         steps += 1
-        scene = base.scene()
+        next_scene = base.scene()
+        if on_step is not None:
+            on_step(scene, acc, info, next_scene)
+        scene = next_scene
         now = float(info.get("time", scene.time))
     log.finish(scene)
     facts = {"duration": now - start, "steps": steps, "terminated": bool(terminated)}

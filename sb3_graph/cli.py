@@ -22,6 +22,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "aggregate": ("envs.commands.aggregate", "IQM and 95 % intervals of evaluate reports over seeds and scenarios"),
     "ind": ("envs.commands.ind", "replay inD recordings through the planners"),
     "export": ("sb3_graph.commands.export", "write a model's policy as a weights-only file that cannot run code"),
+    "record": ("envs.commands.record", "watch one episode: planners on a scenario as a GIF, MP4 or HTML animation"),
 }
 
 

@@ -304,7 +304,11 @@ def run(args: argparse.Namespace) -> int:
                 "python": platform.python_version(),
             }
             summary = write_report(stage, runs, vehicles, meta)
-            write_run_info(stage, stats, time.perf_counter() - tic)
+            replay = {
+                "env": args.env, "env_kwargs": args.env_kwargs, "seed": args.seed, "duration": args.duration,
+                "planners": [list(pair) for pair in planners], "trust_planner_files": args.trust_planner_files,
+            }  # fmt: skip
+            write_run_info(stage, stats, time.perf_counter() - tic, replay)
     except OutputError as error:
         raise UserError(str(error)) from None
     for name, s in summary.items():
@@ -423,17 +427,21 @@ def run_line(stats: dict[str, Any]) -> str:
     return f"{meta['harness']} on {meta['executor']}"
 
 
-def write_run_info(out: Path, stats: dict[str, Any], wall: float) -> None:
+def write_run_info(out: Path, stats: dict[str, Any], wall: float, replay: dict[str, Any] | None = None) -> None:
     """``run.json``: the harness's runs, wall time, runs per second and executor (kept out of
     ``summary.json``, whose keys are the planners and whose numbers do not depend on where they ran).
 
     :param out: the report folder
     :param stats: :func:`envs.evaluation.evaluate`'s stats
     :param wall: the command's wall time so far [s] (scenario generation, runs and report)
+    :param replay: what ``sb3-graph record --report`` needs to run a run again (``env``, ``env_kwargs``,
+        ``seed``, ``duration``, ``planners`` as ``[spec, name]`` pairs, ``trust_planner_files``)
     """
     import json
 
     info = {**stats, "command_wall_s": wall}
+    if replay is not None:
+        info["replay"] = replay
     (Path(out) / RUN_INFO_FILE).write_text(json.dumps(info, indent=2) + "\n")
 
 
