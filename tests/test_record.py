@@ -74,6 +74,10 @@ def test_record_replays_a_run_of_an_evaluate_report(tmp_path, capsys):
     assert "FIFO" in line and "(report, run 1:" in line and "differs" not in line, line
     with Image.open(out) as gif:
         assert gif.n_frames == 30
+    late = tmp_path / "late.gif"
+    assert main(["record", "--report", str(report), "--run", "1", "--from", "4", "--out", str(late), *FAST]) == 0
+    with Image.open(late) as gif:
+        assert gif.n_frames == 10  # 4 s to 6 s
 
 
 @pytest.mark.parametrize(
@@ -85,6 +89,7 @@ def test_record_replays_a_run_of_an_evaluate_report(tmp_path, capsys):
         (["--out", "x.gif", "--report", "nowhere", "--run", "0"], "--report: 'nowhere' is not an evaluate report"),
         (["--out", "x.gif"], "--planner: give at least one planner"),
         (["--out", "x.gif", "--planner", "fifo", "--duration", "-1"], "--duration must be positive"),
+        (["--out", "x.gif", "--planner", "fifo", "--duration", "5", "--from", "5"], "--from must be in [0, 5)"),
         (["--out", "x.gif", "--planner", "fifo", "--scenario", "missing.json"], "--scenario: 'missing.json'"),
     ],
 )
@@ -136,3 +141,13 @@ def test_recorder_states_and_collided_vehicles_stay_drawn():
 def test_outlines():
     corners = outlines(np.array([[10.0, 0.0]]), np.array([np.pi / 2]), np.array([4.0]), np.array([2.0]))
     assert np.allclose(corners[0], [[9, 2], [9, -2], [11, -2], [11, 2]])  # front left first, counter-clockwise
+
+
+def test_drive_a_planner_example_runs_the_harness_loop():
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
+    result = subprocess.run(
+        [sys.executable, "examples/drive_a_planner.py", "--planner", "fifo", "--seed", "3", "--duration", "12"],
+        cwd=ROOT, env=env, capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.startswith("fifo: ") and "collided in 12.0 s" in result.stdout

@@ -7,7 +7,8 @@ Examples::
         --seed 3 --duration 30 --out aim_vs_gnn.gif          # side by side, the same scenario
     sb3-graph record --report reports/main100 --run 33 --planner aim --out aim_run33.mp4
 
-One frame per policy step (``--duration`` x the policy frequency, played in real time at ``--speed 1``):
+One frame per policy step (``--duration`` x the policy frequency, or what follows ``--from``; played
+in real time at ``--speed 1``):
 the time, the planner, the conflict zones and the vehicles coloured by state (moving, stopped, held by
 the speed governor, overridden by the shield, collided), drawn with matplotlib; no display is needed.
 
@@ -62,6 +63,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         help=f"simulated seconds (default: {DEFAULT_DURATION:g}, with --report the run's duration)",
     )
+    parser.add_argument(
+        "--from", dest="from_time", type=finite_float, default=0.0, metavar="SECONDS",
+        help="draw only what happens after this simulated time (the run still starts at 0; default: 0)",
+    )  # fmt: skip
     add_shield_argument(parser)
     parser.add_argument("--out", required=True, help="the file to write, .gif, .mp4 or .html; must not exist")
     parser.add_argument(
@@ -168,6 +173,8 @@ def _settings(args: argparse.Namespace) -> dict[str, Any]:
     settings["duration"] = float(settings.get("duration") or DEFAULT_DURATION)
     if not settings["duration"] > 0:
         raise UserError(f"--duration must be positive, got {settings['duration']}")
+    if not 0 <= args.from_time < settings["duration"]:
+        raise UserError(f"--from must be in [0, {settings['duration']:g}) s (the duration), got {args.from_time:g}")
     words = args.planner or [spec for spec, _ in settings.get("planners", [])]
     if not words:
         raise UserError("--planner: give at least one planner (e.g. --planner aim)")
@@ -242,6 +249,7 @@ def run(args: argparse.Namespace) -> int:
     env.close()
     for episode in episodes:
         print(_result_line(episode, settings.get("results", {}).get(episode.name), args.run))
+        episode.frames = [f for f in episode.frames if f.time > args.from_time + 1e-9]
     total = max(len(e.frames) for e in episodes)
     try:
         with tqdm(total=total, desc="record: draw", unit="frame", disable=hidden) as bar:
@@ -261,7 +269,8 @@ def run(args: argparse.Namespace) -> int:
     except OutputError as error:
         raise UserError(str(error)) from None
     seconds = total / (frequency * args.speed)
-    print(f"wrote {args.out}: {total} frames ({settings['duration']:g} s at {frequency} Hz, plays {seconds:g} s)")
+    shown = settings["duration"] - args.from_time
+    print(f"wrote {args.out}: {total} frames ({shown:g} s at {frequency} Hz, plays {seconds:g} s)")
     return 0
 
 
