@@ -263,8 +263,8 @@ def run(args: argparse.Namespace) -> int:
 
             write_file_atomically(args.out, write, flag="--out")
         if args.still is not None:
-            at = total - 1 if args.still_at is None else round(args.still_at * frequency) - 1
-            at = int(np.clip(at, 0, total - 1))
+            times = np.array([f.time for f in max(episodes, key=lambda e: len(e.frames)).frames])
+            at = total - 1 if args.still_at is None else int(np.argmin(np.abs(times - args.still_at)))
             write_file_atomically(args.still, lambda path: _write_png(episodes, path, at, args.view), flag="--still")
     except OutputError as error:
         raise UserError(str(error)) from None
