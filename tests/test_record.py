@@ -78,6 +78,15 @@ def test_record_replays_a_run_of_an_evaluate_report(tmp_path, capsys):
     assert main(["record", "--report", str(report), "--run", "1", "--from", "4", "--out", str(late), *FAST]) == 0
     with Image.open(late) as gif:
         assert gif.n_frames == 10  # 4 s to 6 s
+    # a report written before run.json kept the replay settings: read from report.md's settings list
+    info = json.loads((report / "run.json").read_text())
+    del info["replay"]
+    (report / "run.json").write_text(json.dumps(info))
+    capsys.readouterr()
+    old = tmp_path / "old.gif"
+    assert main(["record", "--report", str(report), "--run", "1", "--from", "5", "--out", str(old), *FAST]) == 0
+    line = capsys.readouterr().out.splitlines()[0]
+    assert "FIFO" in line and "(report, run 1:" in line and "differs" not in line, line
 
 
 @pytest.mark.parametrize(
