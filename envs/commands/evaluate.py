@@ -311,10 +311,11 @@ def run(args: argparse.Namespace) -> int:
             write_run_info(stage, stats, time.perf_counter() - tic, replay)
     except OutputError as error:
         raise UserError(str(error)) from None
+    width = max([10, *(len(name) for name in summary)])
     for name, s in summary.items():
         f, sr = s["flow_rate"], s["stop_ratio"]
         print(
-            f"{name:>10}: flow median {format_number(f['median'])} veh/s,"
+            f"{name:>{width}}: flow median {format_number(f['median'])} veh/s,"
             f" stops major {format_number(sr['major'])} minor {format_number(sr['minor'])},"
             f" collided {collided_text(s.get('collided'), s['vehicles'])}, delay mean"
             f" {format_number(s['delay_s']['mean'], 2)} s, {s['speed_limit_violations']} speed-limit violations"
