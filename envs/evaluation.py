@@ -26,7 +26,7 @@ from __future__ import annotations
 import os
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -134,7 +134,12 @@ def _planner(spec: str, trust_files: bool = False):
 
 
 def run_episode(
-    env, planner, scenario: Any, duration: float, seed: int | None = None
+    env,
+    planner,
+    scenario: Any,
+    duration: float,
+    seed: int | None = None,
+    on_step: Callable[[Any, np.ndarray, dict, Any], None] | None = None,
 ) -> tuple[pd.DataFrame, dict]:
     """Run one planner through one scenario.
 
@@ -144,6 +149,8 @@ def run_episode(
     :param scenario: the scenario object, passed as ``reset(options={"scenario": scenario})``
     :param duration: simulated seconds to run (less if the environment ends the episode)
     :param seed: seed of the environment's reset and of the planner
+    :param on_step: called after every policy step as ``on_step(scene, accelerations, info, next_scene)``
+        (e.g. to draw the episode, :mod:`envs.rendering`); it must not change what it is handed
     :return: ``(vehicle log, facts)``: the log holds every vehicle scheduled within the run (see
         :mod:`envs.metrics`); facts ``return`` (the sum of the environment's rewards),
         ``return_<preset>`` (the same run's return under each reward preset of :mod:`envs.rewards`),
@@ -172,7 +179,10 @@ def run_episode(
         for key, value in info.get("reward_terms", {}).items():
             terms[key] = terms.get(key, 0.0) + float(value)
         steps += 1
-        scene = base.scene()
+        next_scene = base.scene()
+        if on_step is not None:
+            on_step(scene, acc, info, next_scene)
+        scene = next_scene
         now = float(info.get("time", scene.time))
     log.finish(scene)
     facts = {"duration": now - start, "steps": steps, "terminated": bool(terminated), "return": total}
@@ -364,6 +374,7 @@ def evaluate(
     executor: str | JobExecutor = "local",
     scheduler_address: str | None = None,
     stats: dict[str, Any] | None = None,
+    progress_label: str = "evaluate",
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
     """Run every planner on every scenario.
 
@@ -384,6 +395,7 @@ def evaluate(
     :param stats: if given, filled with the harness's facts: ``runs``, ``wall_s`` (from the start of
         the executor, a cluster started for the evaluation included, to the last result),
         ``runs_per_s`` and ``executor`` (its description)
+    :param progress_label: the progress bar's label (the command that runs the harness)
     :return: ``(runs, vehicles)``: one row per planner and run, one row per vehicle and run;
         sorted by planner (given order) and scenario, whatever order the workers finished in
     """
@@ -402,7 +414,7 @@ def evaluate(
     own = not isinstance(executor, JobExecutor)
     tic = time.perf_counter()  # a cluster started for this evaluation counts in its wall time
     runner = make_executor(executor, jobs, scheduler_address) if own else executor
-    bar = _progress(len(work), progress)
+    bar = _progress(len(work), progress, progress_label)
     try:
         for k, result in runner.map_unordered(run_shared_job, work, table):
             results[k] = result
@@ -422,12 +434,12 @@ def evaluate(
     return runs, vehicles
 
 
-def _progress(total: int, enabled: bool):
+def _progress(total: int, enabled: bool, label: str = "evaluate"):
     from tqdm.auto import tqdm
 
     return tqdm(
         total=total,
-        desc="evaluate",
+        desc=label,
         unit="run",
         # runs per second even below 1 (tqdm's default turns a slow rate into seconds per run)
         bar_format="{l_bar}{bar}| {n_fmt}/{total_fmt} [{elapsed}<{remaining}, {rate_noinv_fmt}]",

@@ -6,7 +6,9 @@ Files written into the report folder:
 - ``vehicles.csv``: every vehicle of every run (the vehicle log, for re-analysis);
 - ``summary.json``: per planner, :func:`envs.metrics.summarize`;
 - ``report.md``: the tables;
-- ``flow_rate.png``: flow-rate distribution per planner (box plot, paper Fig. "flow rate");
+- ``flow_rate.png``: flow-rate distribution per planner (box plot, paper Fig. "flow rate"), with the
+  offered flow (what a perfect planner reaches) as a dashed line;
+- ``delay_collisions.png``: mean delay per run (box plot) and collided vehicles per planner (bars);
 - ``stops_by_priority.png``: vehicles from the major and minor road and the share that stopped;
 - ``stops_by_maneuver.png``: the same by maneuver;
 - ``paired.csv``: per-scenario differences of every planner against the strongest baseline, with
@@ -24,6 +26,7 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
+import matplotlib.ticker  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
@@ -54,12 +57,20 @@ NOTES = (
     "(`collision_handling=\"remove\"`); only a run made with `\"terminate\"` ends early, and its flow rate "
     "is then taken over the simulated time until the collision (`terminated` in `metrics.csv`).",
 )
-FIGURES = ("flow_rate.png", "stops_by_priority.png", "stops_by_maneuver.png")
+FIGURES = ("flow_rate.png", "stops_by_priority.png", "stops_by_maneuver.png", "delay_collisions.png")
 REPORT_FILES = ("metrics.csv", "vehicles.csv", "summary.json", "report.md", "paired.csv") + FIGURES
 
 
 def _pct(value: float | None) -> str:
     return "n/a" if value is None or not np.isfinite(value) else f"{100 * value:.1f} %"
+
+
+def collided_text(collided: int | None, vehicles: int) -> str:
+    """``"2 / 9183 (0.022 %)"``: a count that a rounded rate would hide (``"n/a"`` without a count)."""
+    if collided is None:
+        return "n/a"
+    share = f"{100 * collided / vehicles:.2g} %" if vehicles and collided else "0 %"
+    return f"{collided} / {vehicles} ({share})"
 
 
 def format_number(value: float | None, digits: int = 3) -> str:
@@ -86,7 +97,7 @@ def markdown_report(
     lines = ["# Planner evaluation", ""]
     lines += [f"- {key}: {value}" for key, value in meta.items()]
     lines += ["", "## Flow rate [veh/s]", ""]
-    lines += ["| planner | runs | median | q1 | q3 | mean | offered (mean) | not spawned (jam), mean per run |"]
+    lines += ["| planner | runs | median | q1 | q3 | mean | offered (mean) | not spawned (jam), per run |"]
     lines += ["|---|---:|---:|---:|---:|---:|---:|---:|"]
     for name, s in summary.items():
         f = s["flow_rate"]
@@ -105,14 +116,15 @@ def markdown_report(
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     lines += ["", "## Collisions, delay and speed limits", ""]
     lines.append(
-        "| planner | vehicles (scheduled) | collision rate | delay median [s] | delay mean [s] "
+        "| planner | vehicles (scheduled) | collided vehicles | delay median [s] | delay mean [s] "
         "| speed-limit violations [vehicle-steps] | governor held back [vehicle-steps] |"
     )
     lines.append("|---|---:|---:|---:|---:|---:|---:|")
     for name, s in summary.items():
         d = s["delay_s"]
         lines.append(
-            f"| {name} | {s['vehicles']} ({s.get('vehicles_scheduled', 'n/a')}) | {_pct(s['collision_rate'])} "
+            f"| {name} | {s['vehicles']} ({s.get('vehicles_scheduled', 'n/a')}) "
+            f"| {collided_text(s.get('collided'), s['vehicles'])} "
             f"| {format_number(d['median'], 2)} | {format_number(d['mean'], 2)} "
             f"| {s.get('speed_limit_violations', 'n/a')} | {_pct(s.get('governor_share'))} |"
         )
@@ -150,18 +162,67 @@ def _paired_section(paired: pd.DataFrame) -> list[str]:
     return lines
 
 
+def _planner_axis(ax, planners: Sequence[str]) -> None:
+    """Planner names as x tick labels that do not overlap (slanted when there are several)."""
+    ax.set_xticks(np.arange(1, len(planners) + 1), list(planners))
+    if len(planners) > 2 or max((len(p) for p in planners), default=0) > 12:
+        plt.setp(ax.get_xticklabels(), rotation=30, ha="right", rotation_mode="anchor", fontsize=8)
+
+
+def _figure_width(planners: Sequence[str]) -> float:
+    return max(4.0, 1.5 + 0.9 * len(planners))
+
+
 def flow_rate_figure(runs: pd.DataFrame, planners: Sequence[str], path: Path) -> None:
-    """Box plot of the flow rate per planner (one point per run).
+    """Box plot of the flow rate per planner (one point per run), and the offered flow (mean over
+    runs, dashed): the flow a perfect planner reaches.
 
     :param runs: ``metrics.csv`` rows
     :param planners: planners in display order
     :param path: PNG file to write
     """
-    fig, ax = plt.subplots(figsize=(5, 3.2))
+    fig, ax = plt.subplots(figsize=(_figure_width(planners), 3.6))
     data = [runs.loc[runs["planner"] == p, "flow_rate"].to_numpy(float) for p in planners]
-    ax.boxplot(data, tick_labels=list(planners), showfliers=True, widths=0.5)
+    ax.boxplot(data, showfliers=True, widths=0.5)
+    _planner_axis(ax, planners)
+    if "offered_flow" in runs:
+        offered = runs["offered_flow"].astype(float)
+        if offered.notna().any():
+            ax.axhline(float(offered.mean()), color="tab:green", ls="--", lw=1, label="offered flow (mean)")
+            ax.legend(fontsize=7, loc="lower right")
     ax.set_ylabel("flow rate [veh/s]")
     ax.grid(axis="y", alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=150)
+    plt.close(fig)
+
+
+def delay_collision_figure(runs: pd.DataFrame, planners: Sequence[str], path: Path) -> None:
+    """Mean delay per run (box plot, one point per run) and collided vehicles over all runs (bars,
+    the count on top), per planner.
+
+    :param runs: ``metrics.csv`` rows (``delay_mean`` and ``collided`` columns)
+    :param planners: planners in display order
+    :param path: PNG file to write
+    """
+    width = _figure_width(planners)
+    fig, (left, right) = plt.subplots(1, 2, figsize=(2 * width, 3.6))
+    delays = [runs.loc[runs["planner"] == p, "delay_mean"].to_numpy(float) for p in planners]
+    left.boxplot([d[np.isfinite(d)] for d in delays], showfliers=True, widths=0.5)
+    _planner_axis(left, planners)
+    left.set_ylabel("mean delay per run [s]")
+    left.grid(axis="y", alpha=0.3)
+    collided = [int(runs.loc[runs["planner"] == p, "collided"].fillna(0).sum()) if "collided" in runs else 0
+                for p in planners]  # fmt: skip
+    x = np.arange(1, len(planners) + 1)
+    right.bar(x, collided, width=0.5, color="tab:red")
+    for xi, count in zip(x, collided):
+        right.text(xi, count, str(count), ha="center", va="bottom", fontsize=8)
+    _planner_axis(right, planners)
+    right.set_ylabel("collided vehicles (all runs)")
+    right.set_ylim(0, max(collided + [1]) * 1.2)
+    right.yaxis.set_major_locator(matplotlib.ticker.MaxNLocator(integer=True))
+    right.grid(axis="y", alpha=0.3)
     fig.tight_layout()
     fig.savefig(path, dpi=150)
     plt.close(fig)
@@ -205,6 +266,19 @@ def stop_figure(
     plt.close(fig)
 
 
+def add_collided_counts(summary: dict, vehicles: pd.DataFrame) -> None:
+    """Add ``collided`` (vehicles involved in a collision, over all runs; ``None`` where the log has no
+    collision column, e.g. recorded drivers) to every planner's summary (in place).
+
+    :param summary: :func:`envs.metrics.summarize` output
+    :param vehicles: all vehicle logs with a ``planner`` column
+    """
+    for name, s in summary.items():
+        rows = vehicles.loc[vehicles["planner"] == name, "collided"] if "collided" in vehicles else None
+        known = None if rows is None else rows.dropna()
+        s["collided"] = None if known is None or (len(rows) and not len(known)) else int(known.astype(bool).sum())
+
+
 def add_shield_interventions(summary: dict, runs: pd.DataFrame) -> None:
     """Add ``shield_interventions`` (share of vehicle-steps whose command the shield replaced, over
     all runs) to the summary of every shielded planner (in place).
@@ -236,6 +310,7 @@ def write_report(
     planners = list(pd.unique(runs["planner"]))
     summary = summarize(runs, vehicles)
     paired = paired_differences(runs)
+    add_collided_counts(summary, vehicles)
     add_shield_interventions(summary, runs)
     runs.to_csv(out / "metrics.csv", index=False)
     vehicles.to_csv(out / "vehicles.csv", index=False)
@@ -245,4 +320,5 @@ def write_report(
     flow_rate_figure(runs, planners, out / FIGURES[0])
     stop_figure(vehicles, planners, "priority", PRIORITIES, out / FIGURES[1])
     stop_figure(vehicles, planners, "maneuver", MANEUVERS, out / FIGURES[2])
+    delay_collision_figure(runs, planners, out / FIGURES[3])
     return summary

@@ -12,6 +12,7 @@ from sb3_graph.ppo import PPO, GraphActorCriticPolicy
 from sb3_graph.sac import SAC, GraphSACActor, GraphSACPolicy
 from sb3_graph.spaces import GraphSpace
 from sb3_graph.td3 import TD3, GraphActor, GraphPolicy, GraphTD3Policy
+from sb3_graph.toy_envs import MAX_NEIGHBOUR_ID  # registers the toy task: gym.make("GraphMaxNeighbour-v0")
 from sb3_graph.tqc import TQC, GraphQuantileCritic, GraphTQCPolicy
 
 __version__ = "0.1.0"
@@ -46,6 +47,7 @@ __all__ = [
     "GraphTD3Policy",
     "GraphTQCPolicy",
     "GraphTrunk",
+    "MAX_NEIGHBOUR_ID",
     "RelationalMaxConv",
     "__version__",
     "batch_to_padded",

@@ -51,7 +51,10 @@ def build_parser(
     :param table: ``command -> (module, help)`` (default: :func:`all_commands`)
     """
     table = all_commands() if table is None else table
+    from sb3_graph import __version__
+
     parser = _Parser(prog="sb3-graph", description=__doc__.splitlines()[0])
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name in commands if commands is not None else table:
         module_name, help_text = table[name]
@@ -81,6 +84,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             "installed entry points: run `pip install -e .` in its repository)"
         )
     args = parser.parse_args(argv)
+    args.argv = ["sb3-graph", *argv]  # the command as typed (run records), whoever called main
     if getattr(args, "_missing", None):
         parser.error(f"command {args.command!r} is unavailable: {args._missing}")
     try:

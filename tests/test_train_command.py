@@ -232,7 +232,9 @@ def test_failed_run_leaves_nothing_and_reruns_once_the_file_is_fixed(tmp_path, c
             "--eval-episodes", "1", "--n-timesteps", "20", "--no-progress", *TINY, *SHORT_EPISODES]  # fmt: skip
     assert main(args) == 2
     err = capsys.readouterr().err
-    assert "set_spawn_probabilty" in err and "run the command again" in err and err.count("\n") == 1
+    assert "learning_starts 64" in err  # 20 steps train nothing: warned before the run
+    errors = [line for line in err.splitlines() if ": warning: " not in line]
+    assert len(errors) == 1 and "set_spawn_probabilty" in errors[0] and "run the command again" in errors[0]
     assert not out.exists()
     # An older failed run left a folder with its config but no checkpoint: --resume reads the file again.
     out.mkdir()
@@ -246,12 +248,12 @@ def test_failed_run_leaves_nothing_and_reruns_once_the_file_is_fixed(tmp_path, c
     assert main(args) == 0  # the same command as the first time, now that the file is fixed
 
 
-def test_run_record_holds_no_machine_path(tmp_path, monkeypatch):
+def test_run_record_holds_no_user_folder(tmp_path, monkeypatch):
     from sb3_graph.commands.train import portable_command, portable_path
 
     monkeypatch.chdir(tmp_path)
     argv = ["/home/me/.venv/bin/sb3-graph", "train", "--config", str(tmp_path / "zoo" / "td3.yml"), "--out=/srv/x"]
-    assert portable_command(argv) == "sb3-graph train --config zoo/td3.yml --out=x"
+    assert portable_command(argv) == "sb3-graph train --config zoo/td3.yml --out=/srv/x"  # as typed
     assert portable_path(str(Path.home() / "runs" / "a")) == "~/runs/a"
     assert portable_path("relative/path") == "relative/path"
 
@@ -290,3 +292,27 @@ def test_intersection_zoo_entries_read_and_build(name):
     assert build_algorithm_kwargs(entry, action_dim=1)["learning_rate"] > 0
     assert build_callbacks(entry)
     env.close()
+
+
+def test_short_run_warns_names_its_settings_and_records_the_typed_command(tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    args = ["--n-timesteps", "120", "--hyperparams", "learning_starts:500", "batch_size:16", "buffer_size:1000",
+            *SHORT_EPISODES]  # fmt: skip
+    assert train("short", *args) == 0
+    captured = capsys.readouterr()
+    assert "warning: n_timesteps 120 <= learning_starts 500: no gradient step" in captured.err
+    assert "--eval-freq" not in captured.err  # a validation runs at step 100
+    assert "Eval num_timesteps=100" in captured.out  # the validation score on the console
+    record = json.loads((tmp_path / "short" / "run.json").read_text())
+    assert " --out short " in record["command"] + " " and record["command"].startswith("sb3-graph train ")
+    assert record["best_mean_reward"] is not None
+
+
+def test_short_run_warnings_name_learning_starts_and_eval_freq():
+    from sb3_graph.commands.train import short_run_warnings
+
+    both = short_run_warnings(2000, 0, 2000, 5000)
+    assert len(both) == 2 and "learning_starts 2000" in both[0] and "--eval-freq 5000" in both[1]
+    assert short_run_warnings(20_000, 0, 2000, 5000) == []
+    assert short_run_warnings(2000, 0, None, 1000) == []  # on-policy: no learning_starts
+    assert len(short_run_warnings(6000, 5000, 100, 5000)) == 0  # resumed past the first validation

@@ -271,7 +271,7 @@ def duration_text(runs, requested: float) -> str:
 
 def run(args: argparse.Namespace) -> int:
     from envs.evaluation import check_scenarios, find_scenarios, generate_scenarios
-    from envs.report import format_number, write_report
+    from envs.report import collided_text, format_number, write_report
     from sb3_graph.outputs import OutputError, staged_folder
 
     planners = _check(args)
@@ -283,13 +283,16 @@ def run(args: argparse.Namespace) -> int:
             check_scenarios(scenarios, layout)
         except ValueError as error:
             raise UserError(f"--scenario-dir: {error}") from None
+    say = progress_printer(args)
     load_model_planners(planners, config, args.trust_planner_files)
     out = _destination(args)
     tic = time.perf_counter()
     try:
         with staged_folder(out) as stage:
             if args.scenario_dir is None:
+                say(f"generating {args.scenarios} scenario files of {args.duration:g} s ({layout}, seed {args.seed})")
                 scenarios = generate_scenarios(stage / "scenarios", args.scenarios, args.duration, args.seed, layout)
+                say(f"scenarios ready ({time.perf_counter() - tic:.1f} s)")
                 source = f"generated into {out / 'scenarios'} (seed {args.seed} + index)"
             else:
                 source = f"read from {args.scenario_dir}"
@@ -307,17 +310,22 @@ def run(args: argparse.Namespace) -> int:
                 "python": platform.python_version(),
             }
             summary = write_report(stage, runs, vehicles, meta)
-            write_run_info(stage, stats, time.perf_counter() - tic)
+            replay = {
+                "env": args.env, "env_kwargs": args.env_kwargs, "seed": args.seed, "duration": args.duration,
+                "planners": [list(pair) for pair in planners], "trust_planner_files": args.trust_planner_files,
+            }  # fmt: skip
+            write_run_info(stage, stats, time.perf_counter() - tic, replay)
     except OutputError as error:
         raise UserError(str(error)) from None
+    width = max([10, *(len(name) for name in summary)])
     for name, s in summary.items():
         f, sr = s["flow_rate"], s["stop_ratio"]
         print(
-            f"{name:>10}: flow median {format_number(f['median'])} veh/s,"
+            f"{name:>{width}}: flow median {format_number(f['median'])} veh/s,"
             f" stops major {format_number(sr['major'])} minor {format_number(sr['minor'])},"
-            f" collisions {format_number(s['collision_rate'])}, delay mean {format_number(s['delay_s']['mean'], 2)} s,"
-            f" {s['speed_limit_violations']} speed-limit violations ({s['vehicles']} scheduled vehicles,"
-            f" {s['not_spawned']} never appeared)"
+            f" collided {collided_text(s.get('collided'), s['vehicles'])}, delay mean"
+            f" {format_number(s['delay_s']['mean'], 2)} s, {s['speed_limit_violations']} speed-limit violations"
+            f" ({s['vehicles']} scheduled vehicles, {s['not_spawned']} not spawned (jam))"
         )
     print(run_line(stats))
     print(f"report written to {out} ({wall:.1f} s)")
@@ -335,6 +343,44 @@ def run_harness(args: argparse.Namespace, planners: Sequence[tuple[str, str]], s
     return harness(args, planners, scenarios, args.duration)
 
 
+def progress_printer(args: argparse.Namespace):
+    """``say(text)``: a progress line on stderr (``sb3-graph <command>: ...``), silent with ``--no-progress``."""
+    import sys
+
+    command = getattr(args, "command", None) or "evaluate"
+
+    def say(text: str) -> None:
+        if not getattr(args, "no_progress", False):
+            print(f"sb3-graph {command}: {text}", file=sys.stderr, flush=True)
+
+    return say
+
+
+def announce_runs(args: argparse.Namespace, planners: Sequence[tuple[str, str]], scenarios: int, duration) -> None:
+    """What happens before the first run ends: how many runs, on how many workers, what compiles first.
+
+    :param args: the command's arguments (``--jobs``, ``--no-progress``)
+    :param planners: ``(planner spec, report name)`` pairs
+    :param scenarios: number of scenario files
+    :param duration: simulated seconds per run (or a text)
+    """
+    from envs.planners import SHIELD_SUFFIX
+
+    say = progress_printer(args)
+    workers = "this process" if args.jobs == 1 and args.executor == "local" else f"{args.jobs} workers"
+    say(
+        f"{len(planners) * scenarios} runs ({len(planners)} planners x {scenarios} scenarios, {duration} s each) on "
+        f"{workers}; each worker first loads the planners, and the bar moves when whole runs end"
+    )
+    kernels = [what for what, used in (
+        ("the shield's", any(spec.endswith(SHIELD_SUFFIX) for spec, _ in planners)),
+        ("AIM's", any(spec.split("+")[0] == "aim" for spec, _ in planners)),
+    ) if used]  # fmt: skip
+    if kernels:
+        say(f"the first run of an installation compiles {' and '.join(kernels)} numba kernels (about 6 s; "
+            "later runs load them in about 1 s)")  # fmt: skip
+
+
 def harness(args: argparse.Namespace, planners: Sequence[tuple[str, str]], scenarios: Sequence[Path], duration):
     """:func:`envs.evaluation.evaluate` with a command's ``--jobs``, ``--executor``, ``--scheduler-address``,
     ``--seed``, ``--env``, ``--env-kwargs`` and ``--no-progress``.
@@ -345,6 +391,8 @@ def harness(args: argparse.Namespace, planners: Sequence[tuple[str, str]], scena
     from envs.evaluation import evaluate
     from envs.executors import ExecutorError
 
+    each = f"up to {duration:g}" if getattr(args, "command", None) == "ind" else f"{duration:g}"  # ind: per recording
+    announce_runs(args, planners, len(scenarios), each)
     stats: dict[str, Any] = {}
     try:
         runs, vehicles = evaluate(
@@ -356,6 +404,7 @@ def harness(args: argparse.Namespace, planners: Sequence[tuple[str, str]], scena
             jobs=args.jobs,
             env_kwargs=args.env_kwargs,
             progress=not args.no_progress,
+            progress_label=getattr(args, "command", None) or "evaluate",
             trust_planner_files=args.trust_planner_files,
             executor=args.executor,
             scheduler_address=args.scheduler_address,
@@ -385,17 +434,21 @@ def run_line(stats: dict[str, Any]) -> str:
     return f"{meta['harness']} on {meta['executor']}"
 
 
-def write_run_info(out: Path, stats: dict[str, Any], wall: float) -> None:
+def write_run_info(out: Path, stats: dict[str, Any], wall: float, replay: dict[str, Any] | None = None) -> None:
     """``run.json``: the harness's runs, wall time, runs per second and executor (kept out of
     ``summary.json``, whose keys are the planners and whose numbers do not depend on where they ran).
 
     :param out: the report folder
     :param stats: :func:`envs.evaluation.evaluate`'s stats
     :param wall: the command's wall time so far [s] (scenario generation, runs and report)
+    :param replay: what ``sb3-graph record --report`` needs to run a run again (``env``, ``env_kwargs``,
+        ``seed``, ``duration``, ``planners`` as ``[spec, name]`` pairs, ``trust_planner_files``)
     """
     import json
 
     info = {**stats, "command_wall_s": wall}
+    if replay is not None:
+        info["replay"] = replay
     (Path(out) / RUN_INFO_FILE).write_text(json.dumps(info, indent=2) + "\n")
 
 

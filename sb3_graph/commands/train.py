@@ -149,7 +149,8 @@ def _versions() -> dict[str, str]:
 
 def portable_path(text: str) -> str:
     """A path as it may be recorded in a run record: relative to the working folder where it lies
-    below it, ``~/...`` below the home folder, else its file name only (no path of the machine)."""
+    below it, ``~/...`` below the home folder (no user's folder in a shared record), else as typed
+    (a record that names another folder than the one typed would not rerun)."""
     path = Path(text)
     if not path.is_absolute():
         return text
@@ -158,7 +159,7 @@ def portable_path(text: str) -> str:
             return prefix + str(path.relative_to(base))
         except ValueError:
             continue
-    return path.name
+    return text
 
 
 def portable_command(argv: list[str]) -> str:
@@ -183,7 +184,7 @@ def _new_record(args: argparse.Namespace, seed: int) -> dict[str, Any]:
         "env": args.env,
         "config_file": portable_path(str(args.config)),
         "seed": seed,
-        "command": portable_command(list(sys.argv)),
+        "command": portable_command(list(getattr(args, "argv", None) or sys.argv)),
         "versions": _versions(),
         "wall_time_s": 0.0,
         "sessions": [],
@@ -442,6 +443,31 @@ def _discard(out: Path, created: bool) -> None:
         shutil.rmtree(item, ignore_errors=True) if item.is_dir() else item.unlink(missing_ok=True)
 
 
+def short_run_warnings(
+    n_timesteps: int, done: int, learning_starts: int | None, eval_freq: int
+) -> list[str]:
+    """What a run of ``n_timesteps`` steps will silently not do: gradient steps, validations.
+
+    :param n_timesteps: the run's total steps (``n_timesteps`` of the entry or ``--n-timesteps``)
+    :param done: steps already trained (a resumed run)
+    :param learning_starts: the algorithm's ``learning_starts`` (``None``: an on-policy algorithm)
+    :param eval_freq: ``--eval-freq``
+    :return: one sentence per problem, naming the setting to change
+    """
+    warnings = []
+    if learning_starts is not None and n_timesteps <= learning_starts:
+        warnings.append(
+            f"n_timesteps {n_timesteps} <= learning_starts {learning_starts}: no gradient step will run, the "
+            f"model stays untrained (more steps, or e.g. -params learning_starts:{max(n_timesteps // 4, 1)})"
+        )
+    if eval_freq > n_timesteps and done < eval_freq:
+        warnings.append(
+            f"n_timesteps {n_timesteps} < --eval-freq {eval_freq}: no validation will run, so no best_model.zip "
+            f"and no best_mean_reward (more steps, or e.g. --eval-freq {max(n_timesteps // 2, 1)})"
+        )
+    return warnings
+
+
 def seed_folder(out: str | Path, seed: int) -> Path:
     """The run folder of ``seed`` in a ``--seeds`` run: ``OUT/seed_<seed>``."""
     return Path(out) / f"seed_{seed}"
@@ -579,10 +605,14 @@ def _run_one(args: argparse.Namespace) -> int:
         best_model_save_path=str(out),
         log_path=str(out),
         deterministic=True,
-        verbose=args.verbose,
+        verbose=max(args.verbose, 1),  # the validation scores on the console
     )
     # A resumed run keeps its best model unless a validation beats it.
-    eval_callback.best_mean_reward = record.get("best_mean_reward", -np.inf)
+    best = record.get("best_mean_reward")
+    eval_callback.best_mean_reward = -np.inf if best is None else float(best)
+    for warning in short_run_warnings(n_timesteps, model.num_timesteps, getattr(model, "learning_starts", None),
+                                      args.eval_freq):  # fmt: skip
+        print(f"sb3-graph train: warning: {warning}", file=sys.stderr, flush=True)
     checkpoint_callback = _make_checkpoint_callback(args.checkpoint_freq, out / "checkpoints")
     callbacks = CallbackList([*user_callbacks, eval_callback, checkpoint_callback])
 
@@ -619,7 +649,9 @@ def _run_one(args: argparse.Namespace) -> int:
     elapsed = time.time() - start
     record["wall_time_s"] = record.get("wall_time_s", 0.0) + elapsed
     record["num_timesteps"] = int(model.num_timesteps)
-    record["best_mean_reward"] = float(eval_callback.best_mean_reward)
+    # JSON has no -Infinity: no validation yet is null (and best_model.zip is missing)
+    best = float(eval_callback.best_mean_reward)
+    record["best_mean_reward"] = best if np.isfinite(best) else None
     record["sessions"].append({"started": start, "wall_time_s": elapsed, "steps_until": int(model.num_timesteps)})
     write_signed(out / "run.json", json.dumps(record, indent=2))
     train_env.close()

@@ -1,0 +1,45 @@
+"""The ``sb3-graph`` command line: every command's ``--help`` works, ``--version`` answers."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+import sb3_graph
+from sb3_graph.cli import all_commands, main
+
+ROOT = Path(__file__).resolve().parents[1]
+# The package's commands and the intersection domain's (its entry points: tests/conftest.py loads the checkout's).
+COMMANDS = all_commands()
+
+
+@pytest.mark.parametrize("command", [[]] + [[name] for name in COMMANDS], ids=["sb3-graph", *COMMANDS])
+def test_help_of_every_command_exits_0(command, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main([*command, "--help"])
+    assert exit_info.value.code == 0
+    out = capsys.readouterr().out
+    assert out.startswith("usage: sb3-graph")
+    if not command:  # the top-level help lists every command with its one-line help
+        assert all(name in out for name in COMMANDS) and "95 % intervals" in out
+
+
+def test_version(capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--version"])
+    assert exit_info.value.code == 0 and capsys.readouterr().out.strip() == f"sb3-graph {sb3_graph.__version__}"
+
+
+def test_console_help_exits_0_in_a_fresh_process():
+    result = subprocess.run(
+        [sys.executable, "-m", "sb3_graph.cli", "--help"], cwd=ROOT, capture_output=True, text=True, timeout=120
+    )
+    assert result.returncode == 0, result.stderr
+    assert "Traceback" not in result.stderr
+
+
+def test_import_sb3_graph_registers_the_toy_env():
+    code = "import gymnasium as gym, sb3_graph; env = gym.make('GraphMaxNeighbour-v0'); env.reset(seed=0)"
+    result = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr

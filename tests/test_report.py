@@ -1,0 +1,59 @@
+"""The evaluation report: collided vehicles as counts (a rounded rate hides them), readable figures."""
+
+import json
+
+import matplotlib.image
+import numpy as np
+import pandas as pd
+
+from envs.metrics import run_metrics
+from envs.report import FIGURES, collided_text, write_report
+
+
+def _results(collided_in_fifo: int) -> tuple[pd.DataFrame, pd.DataFrame]:
+    runs, vehicles = [], []
+    names = ("PR", "FIFO", "RL:coop_4way_fair", "RL:coop_4way_fair+shield")
+    for planner in names:
+        for k in range(2):
+            n = 500  # 2 of 1,000 vehicles: 0.2 %, "0.0 %" once rounded to a tenth of a percent of 10 %
+            collided = np.zeros(n, bool)
+            if planner == "FIFO" and k == 0:
+                collided[:collided_in_fifo] = True
+            frame = pd.DataFrame(
+                {
+                    "vehicle_id": np.arange(n), "route": "r", "priority": "major", "maneuver": "straight",
+                    "first_seen": 0.0, "path_length": 100.0, "speed_limit": 10.0,
+                    "crossed": np.where(collided, np.nan, 10.0), "removed": np.nan, "stopped": False,
+                    "collided": collided,
+                }
+            )  # fmt: skip
+            row = {"planner": planner, "run": k, "scenario": f"scenario_{k:03d}.json"}
+            row.update(run_metrics(frame, 100.0))
+            runs.append(row)
+            vehicles.append(frame.assign(planner=planner, scenario=row["scenario"]))
+    return pd.DataFrame(runs), pd.concat(vehicles, ignore_index=True)
+
+
+def test_collided_vehicles_are_integer_counts_in_summary_and_report(tmp_path):
+    runs, vehicles = _results(collided_in_fifo=2)
+    write_report(tmp_path, runs, vehicles, {"environment": "stub"})
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["FIFO"]["collided"] == 2 and isinstance(summary["FIFO"]["collided"], int)
+    assert summary["PR"]["collided"] == 0
+    report = (tmp_path / "report.md").read_text()
+    assert "| 2 / 1000 (0.2 %) |" in report and "| 0 / 1000 (0 %) |" in report
+
+
+def test_collided_text():
+    assert collided_text(2, 9183) == "2 / 9183 (0.022 %)"
+    assert collided_text(431, 9183) == "431 / 9183 (4.7 %)"
+    assert collided_text(None, 10) == "n/a"
+
+
+def test_figures_are_written_with_the_offered_flow_and_delay(tmp_path):
+    runs, vehicles = _results(collided_in_fifo=3)
+    write_report(tmp_path, runs, vehicles, {"environment": "stub"})
+    assert "delay_collisions.png" in FIGURES
+    for figure in FIGURES:
+        image = matplotlib.image.imread(tmp_path / figure)
+        assert image.shape[0] > 100 and image.shape[1] > 100
