@@ -22,6 +22,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "aggregate": ("envs.commands.aggregate", "IQM and 95 % intervals of evaluate reports over seeds and scenarios"),
     "ind": ("envs.commands.ind", "replay inD recordings through the planners"),
     "export": ("sb3_graph.commands.export", "write a model's policy as a weights-only file that cannot run code"),
+    "serve": ("envs.commands.serve", "run a planner as an edge server: scenes in, one acceleration per vehicle out"),
 }
 
 
