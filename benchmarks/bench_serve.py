@@ -223,8 +223,14 @@ def _ms(values: list[float]) -> tuple[float, float, float]:
 
 
 # ---------------------------------------------------------------------- measurements
-def latency(url: str, planner_spec: str, sizes: list[int], decisions: int, seconds: float) -> list[dict]:
-    """Per-decision latency through the server and in process, per scene size."""
+def cpu_s(pid: int) -> float:
+    """CPU time (user + system) a process has used [s] (Linux ``/proc``, 10 ms ticks)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def latency(url: str, pid: int, planner_spec: str, sizes: list[int], decisions: int, seconds: float) -> list[dict]:
+    """Per-decision latency through the server and in process, per scene size, and CPU per decision."""
     from envs.planners import make_planner
     from envs.serve.client import PlannerClient
     from envs.serve.wire import scene_to_wire
@@ -236,26 +242,37 @@ def latency(url: str, planner_spec: str, sizes: list[int], decisions: int, secon
         scene, builder = dense_scene(n)
         stream = client.open("4way", dt=scene.dt, seed=0)
         local.reset(0)
-        remote_t, local_t = [], []
+        remote_t, server_t, local_t = [], [], []
+        server_cpu = local_cpu = 0.0
         stop = time.monotonic() + seconds
-        for k in range(decisions):
+        warm = 5  # untimed first decisions (the planners' first calls load compiled kernels)
+        for k in range(-warm, decisions):
             if time.monotonic() > stop:
                 break
-            t = k * scene.dt
-            wire = scene_to_wire(scene)
-            wire["time"] = t
+            if k == 0:
+                server_cpu = -cpu_s(pid)
+            t = (k + warm) * scene.dt
+            at_t = builder.scene("4way", t, [SimpleCar(**v) for v in scene_to_wire(scene)["vehicles"]])
             tic = time.perf_counter()
-            client.step(stream, scene_to_wire(scene) | {"time": t})
-            remote_t.append(time.perf_counter() - tic)
-            moved = builder.scene("4way", t, [SimpleCar(**v) for v in wire["vehicles"]])
-            tic = time.perf_counter()
-            local.act(moved)
-            local_t.append(time.perf_counter() - tic)
+            client.step(stream, scene_to_wire(at_t))
+            remote = time.perf_counter() - tic
+            tic, cpu = time.perf_counter(), time.process_time()
+            local.act(at_t)
+            if k >= 0:
+                local_t.append(time.perf_counter() - tic)
+                local_cpu += time.process_time() - cpu
+                remote_t.append(remote)
+                server_t.append(client.server_ms / 1e3)
+        server_cpu += cpu_s(pid)
         client.close(stream)
+        count = len(remote_t)
         p50, p99, worst = _ms(remote_t)
+        s50, s99, _ = _ms(server_t)
         l50, l99, _ = _ms(local_t)
-        rows.append({"vehicles": n, "decisions": len(remote_t), "p50": p50, "p99": p99, "max": worst,
-                     "in-proc p50": l50, "in-proc p99": l99, "added": p50 - l50})  # fmt: skip
+        rows.append({"vehicles": n, "decisions": count, "p50": p50, "p99": p99, "max": worst,
+                     "server p50": s50, "server p99": s99, "in-proc p50": l50, "in-proc p99": l99,
+                     "added p50": p50 - l50, "server CPU": 1e3 * server_cpu / count,
+                     "in-proc CPU": 1e3 * local_cpu / count})  # fmt: skip
     client.disconnect()
     return rows
 
@@ -369,6 +386,52 @@ def bad_input_table() -> str:
     return _table(rows)
 
 
+def identity(scenarios: int, duration: float, seed: int, skip_gnn: bool = False) -> str:
+    """``sb3-graph evaluate`` with each planner in process and through a server, on the same generated
+    scenarios in one run; whether every metrics row and every vehicle row is the same.
+
+    Servers: AIM, the GNN, and the GNN with the server's shield; ``+shield`` after a server's address
+    shields it in the client.
+    """
+    import tempfile
+
+    import pandas as pd
+
+    from sb3_graph.cli import main as cli
+
+    servers = [("aim", ())] + ([] if skip_gnn else [(str(MODEL), ()), (str(MODEL), ("--shield",))])
+    started = [start_server(spec, *extra) for spec, extra in servers]
+    try:
+        urls = [url for _, url in started]
+        pairs = [("aim", urls[0]), ("aim+shield", urls[0] + "+shield")]
+        if not skip_gnn:
+            pairs += [(str(MODEL), urls[1]), (str(MODEL) + "+shield", urls[1] + "+shield"),
+                      (str(MODEL) + "+shield", urls[2])]  # fmt: skip
+        words = list(dict.fromkeys(w for pair in pairs for w in pair))
+        with tempfile.TemporaryDirectory() as folder:
+            out = Path(folder) / "report"
+            args = ["evaluate", "--out", str(out), "--scenarios", str(scenarios), "--duration", str(duration),
+                    "--seed", str(seed), "--jobs", "1", "--no-progress"] + [a for w in words for a in ("--planner", w)]
+            if cli(args) != 0:
+                raise RuntimeError("evaluate failed")
+            metrics, vehicles = pd.read_csv(out / "metrics.csv"), pd.read_csv(out / "vehicles.csv")
+    finally:
+        for process, _ in started:
+            stop_server(process)
+    rows, drop = [], ["planner", "wall_s", "baseline"]
+    names = {w: n for w, n in zip(words, list(dict.fromkeys(metrics["planner"])))}
+    for local, remote in pairs:
+        a = metrics[metrics.planner == names[local]].drop(columns=drop).reset_index(drop=True)
+        b = metrics[metrics.planner == names[remote]].drop(columns=drop).reset_index(drop=True)
+        va = vehicles[vehicles.planner == names[local]].drop(columns="planner").reset_index(drop=True)
+        vb = vehicles[vehicles.planner == names[remote]].drop(columns="planner").reset_index(drop=True)
+        rows.append({"in process": names[local], "through the server": names[remote].replace(names[local], "..."),
+                     "runs": len(a), "vehicles": int(a["vehicles"].sum()), "metric columns": a.shape[1],
+                     "metrics identical": "yes" if a.equals(b) else "NO",
+                     "vehicle rows identical": "yes" if va.equals(vb) else "NO"})  # fmt: skip
+    return _table(rows)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", type=int, nargs="+", default=[10, 50, 100])
@@ -379,9 +442,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--load-streams", type=int, nargs="+", default=[1, 8, 32])
     parser.add_argument("--load-seconds", type=float, default=5.0, help="duration of each throughput run [s]")
     parser.add_argument("--churn", type=int, default=10_000, help="streams opened and closed (default: 10000)")
-    parser.add_argument("--churn-seconds", type=float, default=120.0, help="time cap of the churn [s]")
+    parser.add_argument("--churn-seconds", type=float, default=240.0, help="time cap of the churn [s] (default: 240)")
     parser.add_argument("--skip-gnn", action="store_true", help="AIM only")
     parser.add_argument("--bad-input-only", action="store_true", help="only the malformed-input table")
+    parser.add_argument("--identity", action="store_true", help="only: evaluate in process and through servers, "
+                        "compared row by row (--scenarios, --duration, --seed)")  # fmt: skip
+    parser.add_argument("--scenarios", type=int, default=3, help="scenarios of --identity (default: 3)")
+    parser.add_argument("--duration", type=float, default=60.0, help="seconds per run of --identity (default: 60)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of --identity's scenarios (default: 0)")
     args = parser.parse_args(argv)
     import torch
 
@@ -389,6 +457,11 @@ def main(argv: list[str] | None = None) -> int:
     print(f"machine: {platform.node()}, nproc={os.cpu_count()}, load average {os.getloadavg()[0]:.1f}, "
           f"Python {platform.python_version()}, torch {torch.__version__}")  # fmt: skip
     print(f"command: python benchmarks/bench_serve.py {' '.join(argv if argv is not None else sys.argv[1:])}\n")
+    if args.identity:
+        print(f"## evaluate in process and through the server ({args.scenarios} scenarios x {args.duration:g} s, "
+              f"seed {args.seed})\n")  # fmt: skip
+        print(identity(args.scenarios, args.duration, args.seed, args.skip_gnn))
+        return 0
     if args.bad_input_only:
         print("## Malformed input (each followed by a valid step of the same stream)\n")
         print(bad_input_table())
@@ -398,7 +471,11 @@ def main(argv: list[str] | None = None) -> int:
         configs += [(str(MODEL), "gnn", ()), (str(MODEL), "gnn+shield", ("--shield",))]
     big = max(max(args.sizes), args.load_vehicles, 64)
     kwargs = json.dumps({"config": {"max_vehicles": big}})
-    print("## Latency per decision [ms] (wall clock; client.step round trip; in-proc: planner.act)\n")
+    print("## Latency per decision [ms]\n")
+    print("p50/p99/max: wall clock of client.step (encode, round trip, decode); server: the server's own wall "
+          "time (Server-Timing: parse, build the scene, plan, encode); in-proc: planner.act in this process; "
+          "added p50: p50 - in-proc p50; server CPU: the server process's CPU time over the decisions / "
+          "decisions; in-proc CPU: planner.act's CPU time / decisions\n")  # fmt: skip
     for spec, label, extra in configs:
         gnn = spec == str(MODEL)
         sizes = sorted({min(n, 64) if gnn else n for n in args.sizes})
@@ -407,7 +484,7 @@ def main(argv: list[str] | None = None) -> int:
         try:
             local_spec = spec + ("+shield" if extra else "")
             print(f"### {label}\n")
-            print(_table(latency(url, local_spec, sizes, args.decisions, args.seconds)) + "\n", flush=True)
+            print(_table(latency(url, process.pid, local_spec, sizes, args.decisions, args.seconds)) + "\n", flush=True)
         finally:
             stop_server(process)
     print(f"## Throughput, {args.load_planner} at {args.load_vehicles} vehicles, {args.load_seconds:g} s per run\n")

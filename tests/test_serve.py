@@ -337,3 +337,14 @@ def test_server_side_shield_and_gnn_answer_as_in_process(recorded):
         reply = service.step(first.id, SceneIn.model_validate(_through_json(scene)))
         np.testing.assert_array_equal(reply["accelerations"], local.act(scene))
     assert first.planner.interventions == local.interventions and second.planner.interventions == 0
+
+
+@needs_server
+def test_openapi_schema_documents_the_scene_in_physical_units(client):
+    schema = client.request("GET", "/openapi.json")
+    vehicle = schema["components"]["schemas"]["Vehicle"]["properties"]
+    assert set(vehicle) == {"id", "route", "arc", "speed", "length", "width"}
+    assert "[m]" in vehicle["arc"]["description"] and "[m/s]" in vehicle["speed"]["description"]
+    step = schema["paths"]["/streams/{stream}/step"]["post"]
+    assert step["requestBody"]["content"]["application/json"]["schema"]["$ref"].endswith("/SceneIn")
+    assert {"401", "404", "413", "422", "429"} <= set(step["responses"])

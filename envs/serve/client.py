@@ -20,6 +20,7 @@ from __future__ import annotations
 import http.client
 import json
 import os
+import socket
 import weakref
 from pathlib import Path
 from typing import Any
@@ -100,6 +101,8 @@ class PlannerClient:
         self.token = token if token is not None else read_token(os.environ.get(TOKEN_FILE_VARIABLE) or None)
         self.timeout = float(timeout)
         self._connection: http.client.HTTPConnection | None = None
+        # the server's own time for the last answer [ms] (its Server-Timing header; nan without one)
+        self.server_ms = float("nan")
 
     def request(self, method: str, path: str, body: dict[str, Any] | None = None) -> Any:
         """One request; its JSON answer.
@@ -112,11 +115,12 @@ class PlannerClient:
             headers["Authorization"] = f"Bearer {self.token}"
         for attempt in (0, 1):  # a kept-alive connection that the server closed is opened once more
             if self._connection is None:
-                self._connection = http.client.HTTPConnection(self.host, self.port, timeout=self.timeout)
+                self._connection = self._connect()
             try:
                 self._connection.request(method, path, body=data, headers=headers)
                 response = self._connection.getresponse()
                 payload = response.read()
+                self.server_ms = _server_ms(response.getheader("server-timing"))
                 break
             except (ConnectionError, http.client.HTTPException, OSError) as error:
                 self.disconnect()
@@ -131,6 +135,17 @@ class PlannerClient:
                 field, message = "", payload[:200].decode(errors="replace")
             raise RemotePlannerError(response.status, field, f"planner server {self.url}: {response.status} {message}")
         return json.loads(payload) if payload else None
+
+    def _connect(self) -> http.client.HTTPConnection:
+        connection = http.client.HTTPConnection(self.host, self.port, timeout=self.timeout)
+        try:
+            connection.connect()
+        except OSError as error:
+            raise RemotePlannerError(0, "", f"planner server {self.url}: no answer ({error})") from None
+        # http.client writes the headers and the body in two segments: without this, Nagle's algorithm
+        # holds the body until the server acknowledges the headers (a delayed ACK: about 40 ms per request).
+        connection.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        return connection
 
     def disconnect(self) -> None:
         """Close the connection (the next request opens a new one)."""
@@ -175,6 +190,14 @@ class PlannerClient:
     def close(self, stream: str) -> None:
         """Close a stream (its planner state is dropped)."""
         self.request("DELETE", f"/streams/{stream}")
+
+
+def _server_ms(header: str | None) -> float:
+    """``app;dur=1.234`` -> 1.234 (``nan`` for a missing or other header)."""
+    try:
+        return float(str(header).split("dur=")[1].split(",")[0].split(";")[0])
+    except (IndexError, ValueError):
+        return float("nan")
 
 
 def _close_quietly(client: PlannerClient, stream: str) -> None:
