@@ -336,6 +336,7 @@ def test_server_side_shield_and_gnn_answer_as_in_process(recorded):
     for scene in _scenes(recorded, "aim")[:60]:
         reply = service.step(first.id, SceneIn.model_validate(_through_json(scene)))
         np.testing.assert_array_equal(reply["accelerations"], local.act(scene))
+        assert reply["shield"]["overridden"] == local.last_overridden.tolist()
     assert first.planner.interventions == local.interventions and second.planner.interventions == 0
 
 

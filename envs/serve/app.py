@@ -211,14 +211,20 @@ class PlannerService:
             scene = self.builder.scene(scene_in.layout, scene_in.time, scene_in.vehicles)
         except WireError as error:
             raise RequestError(422, error.field, error.message) from None
-        acc = np.asarray(stream.planner.act(scene), dtype=float).reshape(-1)
+        planner = stream.planner
+        unresolved = getattr(planner, "unresolved", 0)
+        acc = np.asarray(planner.act(scene), dtype=float).reshape(-1)
         if acc.shape[0] != scene.num_vehicles or not np.isfinite(acc).all():
             raise RuntimeError(f"the planner answered {acc.shape[0]} accelerations (finite: "
                                f"{bool(np.isfinite(acc).all())}) for {scene.num_vehicles} vehicles")  # fmt: skip
         stream.steps += 1
         stream.last_time = scene_in.time
-        return {"stream": sid, "step": stream.steps, "time": scene_in.time, "ids": scene.vehicle_id.tolist(),
-                "accelerations": acc.tolist()}  # fmt: skip
+        reply = {"stream": sid, "step": stream.steps, "time": scene_in.time, "ids": scene.vehicle_id.tolist(),
+                 "accelerations": acc.tolist(), "shield": None}  # fmt: skip
+        if self.shield:  # what the server's shield did, for the client's counters (the harness reports them)
+            reply["shield"] = {"overridden": planner.last_overridden.tolist(),
+                               "unresolved": planner.unresolved > unresolved}  # fmt: skip
+        return reply
 
     def reset(self, sid: str, request: ResetRequest) -> Stream:
         stream = self.stream(sid)

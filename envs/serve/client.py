@@ -103,6 +103,8 @@ class PlannerClient:
         self._connection: http.client.HTTPConnection | None = None
         # the server's own time for the last answer [ms] (its Server-Timing header; nan without one)
         self.server_ms = float("nan")
+        # the server shield's report of the last step (``None`` for a server without --shield)
+        self.last_shield: dict[str, Any] | None = None
 
     def request(self, method: str, path: str, body: dict[str, Any] | None = None) -> Any:
         """One request; its JSON answer.
@@ -181,6 +183,7 @@ class PlannerClient:
         ids = [v["id"] for v in scene["vehicles"]]
         if reply.get("ids") != ids or len(reply.get("accelerations", ())) != len(ids):
             raise RemotePlannerError(0, "ids", f"planner server {self.url}: the answer is for other vehicles")
+        self.last_shield = reply.get("shield")
         return np.asarray(reply["accelerations"], dtype=float)
 
     def reset(self, stream: str, seed: int | None = None) -> None:
@@ -217,6 +220,9 @@ class RemotePlanner(Planner):
     :param url: ``http://HOST:PORT``
     :param token: the server's token (default: from ``$SB3_GRAPH_TOKEN_FILE``)
     :param name: report name (default: ``<server's planner name>@HOST:PORT``)
+
+    Behind a server started with ``--shield`` it keeps the shield's counters (``interventions``,
+    ``vehicle_steps``, ``unresolved``) from the server's answers, as a local shield does.
     """
 
     def __init__(self, url: str, token: str | None = None, name: str | None = None) -> None:
@@ -227,6 +233,8 @@ class RemotePlanner(Planner):
         self._seed: int | None = None
         self._fresh = True
         self._finalizer: weakref.finalize | None = None
+        if self.info.get("shield"):  # the server shields: its counters, as a local Shield keeps them
+            self.interventions = self.vehicle_steps = self.unresolved = 0
 
     def check_capacity(self, max_vehicles: int, source: str = "planner") -> None:
         """Refuse an environment whose scenes can hold more vehicles than the server takes.
@@ -241,6 +249,8 @@ class RemotePlanner(Planner):
 
     def reset(self, seed: int | None = None) -> None:
         self._seed, self._fresh = seed, True
+        if hasattr(self, "interventions"):
+            self.interventions = self.vehicle_steps = self.unresolved = 0
 
     def act(self, scene: Scene) -> np.ndarray:
         wire = scene_to_wire(scene)
@@ -250,7 +260,13 @@ class RemotePlanner(Planner):
         elif self._fresh:
             self.client.reset(self.stream, self._seed)
         self._fresh = False
-        return self.client.step(self.stream, wire)
+        acc = self.client.step(self.stream, wire)
+        report = self.client.last_shield
+        if report is not None and hasattr(self, "interventions"):
+            self.interventions += sum(map(bool, report["overridden"]))
+            self.vehicle_steps += len(report["overridden"])
+            self.unresolved += bool(report["unresolved"])
+        return acc
 
     def close(self) -> None:
         """Close the stream now."""

@@ -38,6 +38,14 @@ class SceneIn(BaseModel):
     vehicles: list[Vehicle] = Field(max_length=MAX_VEHICLES, description="row i of the answer is vehicles[i]")
 
 
+class ShieldReport(BaseModel):
+    """What the server's shield (``--shield``) did in one step."""
+
+    overridden: list[bool] = Field(description="per vehicle, in the order of the scene: the shield replaced the "
+                                   "planner's command")  # fmt: skip
+    unresolved: bool = Field(description="no safe plan was found: every vehicle brakes")
+
+
 class StepReply(BaseModel):
     """The planner's answer to one scene."""
 
@@ -46,6 +54,7 @@ class StepReply(BaseModel):
     time: float = Field(description="the scene's time [s]")
     ids: list[int] = Field(description="the vehicles' ids, in the order of the scene")
     accelerations: list[float] = Field(description="commanded longitudinal acceleration of each vehicle [m/s^2]")
+    shield: ShieldReport | None = Field(default=None, description="the server's shield; null without --shield")
 
 
 class OpenRequest(BaseModel):
