@@ -22,9 +22,11 @@ script prints it.
 
 Usage::
 
-    PYTHONPATH=$PWD python benchmarks/bench_serve.py                     # everything (a few minutes)
+    PYTHONPATH=$PWD python benchmarks/bench_serve.py                     # everything (about 7 minutes)
     PYTHONPATH=$PWD python benchmarks/bench_serve.py --decisions 100 --churn 2000 --skip-gnn
     PYTHONPATH=$PWD python benchmarks/bench_serve.py --bad-input-only
+    PYTHONPATH=$PWD python benchmarks/bench_serve.py --identity --scenarios 3 --duration 60
+    PYTHONPATH=$PWD python benchmarks/bench_serve.py --components --sizes 100
 """
 
 from __future__ import annotations
@@ -432,6 +434,36 @@ def identity(scenarios: int, duration: float, seed: int, skip_gnn: bool = False)
     return _table(rows)
 
 
+def components(n: int, repeat: int = 200) -> str:
+    """CPU time per call of each piece of one remote decision, in this process (``time.process_time``)."""
+    from envs.planners import AIMPlanner
+    from envs.serve.schema import SceneIn
+    from envs.serve.wire import scene_to_wire
+
+    scene, builder = dense_scene(n)
+    wire = scene_to_wire(scene)
+    body = json.dumps(wire).encode()
+    parsed = SceneIn.model_validate_json(body)
+    planner = AIMPlanner()
+    planner.reset(0)
+    pieces = {
+        "client: scene_to_wire": lambda: scene_to_wire(scene),
+        "client: json.dumps of the scene": lambda: json.dumps(wire),
+        "server: SceneIn.model_validate_json": lambda: SceneIn.model_validate_json(body),
+        "server: json.loads + SceneIn.model_validate": lambda: SceneIn.model_validate(json.loads(body)),
+        "server: rebuild the scene (SceneBuilder.scene)": lambda: builder.scene("4way", 0.0, parsed.vehicles),
+        "AIM act (in process)": lambda: planner.act(scene),
+    }
+    rows = []
+    for name, call in pieces.items():
+        call()
+        tic = time.process_time()
+        for _ in range(repeat):
+            call()
+        rows.append({"piece": name, "CPU ms per call": 1e3 * (time.process_time() - tic) / repeat})
+    return f"{len(body)} bytes of JSON for {n} vehicles\n\n" + _table(rows, 3)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", type=int, nargs="+", default=[10, 50, 100])
@@ -445,6 +477,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--churn-seconds", type=float, default=240.0, help="time cap of the churn [s] (default: 240)")
     parser.add_argument("--skip-gnn", action="store_true", help="AIM only")
     parser.add_argument("--bad-input-only", action="store_true", help="only the malformed-input table")
+    parser.add_argument("--components", action="store_true", help="only: CPU per piece of a decision, in process")
     parser.add_argument("--identity", action="store_true", help="only: evaluate in process and through servers, "
                         "compared row by row (--scenarios, --duration, --seed)")  # fmt: skip
     parser.add_argument("--scenarios", type=int, default=3, help="scenarios of --identity (default: 3)")
@@ -461,6 +494,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"## evaluate in process and through the server ({args.scenarios} scenarios x {args.duration:g} s, "
               f"seed {args.seed})\n")  # fmt: skip
         print(identity(args.scenarios, args.duration, args.seed, args.skip_gnn))
+        return 0
+    if args.components:
+        print(f"## CPU per piece of a decision at {max(args.sizes)} vehicles\n")
+        print(components(max(args.sizes)))
         return 0
     if args.bad_input_only:
         print("## Malformed input (each followed by a valid step of the same stream)\n")
