@@ -41,7 +41,19 @@ FIELDS = (
 ENV = "CoopIntersection4Way-v0"
 MAX_BODY = 65536
 TOKEN = "test-token-0123456789"
-SERVE_EXTRA = all(importlib.util.find_spec(name) is not None for name in ("fastapi", "uvicorn", "pydantic"))
+
+
+def _has_serve_extra() -> bool:
+    try:
+        import fastapi  # noqa: F401
+        import pydantic  # noqa: F401
+        import uvicorn  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+SERVE_EXTRA = _has_serve_extra()
 needs_server = pytest.mark.skipif(not SERVE_EXTRA, reason="the 'serve' extra (fastapi, uvicorn) is not installed")
 
 
