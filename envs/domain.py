@@ -12,6 +12,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "aggregate": ("envs.commands.aggregate", "IQM and 95 % intervals of evaluate reports over seeds and scenarios"),
     "ind": ("envs.commands.ind", "replay inD recordings through the planners"),
     "record": ("envs.commands.record", "watch one episode: planners on a scenario as a GIF, MP4 or HTML animation"),
+    "serve": ("envs.commands.serve", "run a planner as an edge server: scenes in, one acceleration per vehicle out"),
     "reward-check": ("envs.commands.reward_check", "rank correlation of each reward's returns with flow and delay"),
 }
 

@@ -5,7 +5,8 @@
 conflict zone), ``"signal"`` (an actuated traffic signal), the path of a learned GNN planner (a
 weights-only ``.safetensors`` policy file written by ``sb3-graph export``, or a saved SB3 ``.zip``,
 both loaded without running code from the file, see :mod:`envs.planners.gnn`), or a user class
-``path/to/file.py:ClassName`` / ``package.module:ClassName`` (:mod:`envs.planners.loading`). The
+``path/to/file.py:ClassName`` / ``package.module:ClassName`` (:mod:`envs.planners.loading`), or a
+planner server ``http://HOST:PORT`` (``sb3-graph serve``, :mod:`envs.serve.client`). The
 suffix ``+shield`` wraps any of them in the safety shield (:class:`envs.planners.shield.Shield`).
 A policy file trained as a residual policy (its header's planner configuration names a
 ``residual_base``) is built as :class:`envs.planners.residual.ResidualPlanner` around that base.
@@ -18,7 +19,16 @@ from pathlib import Path
 from envs.planners.aim import AIMPlanner
 from envs.planners.base import Planner
 from envs.planners.fifo import FIFOPlanner
-from envs.planners.loading import class_planner_name, is_class_spec, load_planner_class, make_class_planner
+from envs.planners.loading import (
+    check_remote_spec,
+    class_planner_name,
+    is_class_spec,
+    is_remote_spec,
+    load_planner_class,
+    make_class_planner,
+    make_remote_planner,
+    remote_planner_name,
+)
 from envs.planners.priority_rules import PriorityRulesPlanner
 from envs.planners.signal import SignalPlanner
 
@@ -39,7 +49,8 @@ def check_planner_spec(spec: str) -> str:
 
     :param spec: ``"pr"``, ``"fifo"``, ``"aim"``, ``"signal"``, the path of a readable ``.safetensors``
         or ``.zip`` model file, or a class spec (``file.py:Class``, ``package.module:Class``, imported
-        to check it), each optionally followed by ``+shield``
+        to check it), or a planner server ``http://HOST:PORT`` (not contacted here), each optionally
+        followed by ``+shield``
     :return: the normalised spec (lower-case baseline name, or the path or class spec as given)
     :raises ValueError: anything else, with the accepted values in the message
     """
@@ -48,6 +59,8 @@ def check_planner_spec(spec: str) -> str:
         return check_planner_spec(key[: -len(SHIELD_SUFFIX)]) + SHIELD_SUFFIX
     if key.lower() in BASELINES:
         return key.lower()
+    if is_remote_spec(key):
+        return check_remote_spec(key)
     if is_class_spec(key):
         load_planner_class(key)
         return key
@@ -63,7 +76,8 @@ def check_planner_spec(spec: str) -> str:
         f"planner {spec!r} is neither a baseline ({', '.join(BASELINES)}) "
         "nor a readable model file (a .safetensors policy file written by sb3-graph export, "
         "or a .zip written by model.save) "
-        "nor a class (path/to/file.py:ClassName or package.module:ClassName)"
+        "nor a class (path/to/file.py:ClassName or package.module:ClassName) "
+        "nor a planner server (http://HOST:PORT)"
     )
 
 
@@ -83,6 +97,8 @@ def make_planner(spec: str, trust_files: bool = False) -> Planner:
         return Shield(make_planner(key[: -len(SHIELD_SUFFIX)], trust_files=trust_files))
     if key in BASELINES:
         return BASELINES[key]()
+    if is_remote_spec(key):
+        return make_remote_planner(key)
     if is_class_spec(key):
         return make_class_planner(key)
     from envs.intersection_env import make_residual_base
@@ -101,7 +117,8 @@ def planner_name(spec: str) -> str:
     """Report name of a planner word, without building it.
 
     :param spec: a valid planner word (see :func:`check_planner_spec`)
-    :return: ``"PR"``, ``"FIFO"``, ``"RL:<name>"`` or a class planner's ``name``; ``+shield`` appended
+    :return: ``"PR"``, ``"FIFO"``, ``"RL:<name>"``, a class planner's ``name`` or, for a planner server,
+        ``<its planner's name>@HOST:PORT`` (asked from the server); ``+shield`` appended
         for a shielded one
     """
     key = check_planner_spec(spec)
@@ -109,6 +126,8 @@ def planner_name(spec: str) -> str:
         return planner_name(key[: -len(SHIELD_SUFFIX)]) + SHIELD_SUFFIX
     if key in BASELINES:
         return key.upper()
+    if is_remote_spec(key):
+        return remote_planner_name(key)
     if is_class_spec(key):
         return class_planner_name(key)
     from envs.planners.gnn import model_name

@@ -93,3 +93,51 @@ def class_planner_name(spec: str) -> str:
     :return: the name
     """
     return str(make_class_planner(spec).name)
+
+
+# ---------------------------------------------------------------------- remote planners
+def is_remote_spec(spec: str) -> bool:
+    """Whether ``spec`` names a planner server (``http://HOST:PORT``) rather than a local planner.
+
+    :param spec: a planner word (without ``+shield``)
+    """
+    return str(spec).strip().lower().startswith(("http://", "https://"))
+
+
+def check_remote_spec(spec: str) -> str:
+    """Validate a planner server's address without contacting it.
+
+    :param spec: ``http://HOST:PORT``
+    :return: the normalised address
+    :raises ValueError: anything but ``http://HOST:PORT``
+    """
+    from envs.serve.client import parse_address
+
+    host, port = parse_address(spec)
+    return f"http://{host}:{port}"
+
+
+def make_remote_planner(spec: str) -> Planner:
+    """The planner that plans through the server at ``spec`` (:class:`envs.serve.client.RemotePlanner`).
+
+    :param spec: ``http://HOST:PORT``
+    :raises ValueError: the server cannot be reached or refuses (a wrong token)
+    """
+    from envs.serve.client import RemotePlanner
+
+    return RemotePlanner(check_remote_spec(spec))
+
+
+def remote_planner_name(spec: str) -> str:
+    """Report name of a remote planner, asked from the server: ``<its planner's name>@HOST:PORT``.
+
+    :param spec: ``http://HOST:PORT``
+    :raises ValueError: the server cannot be reached or refuses
+    """
+    from envs.serve.client import PlannerClient, remote_name
+
+    client = PlannerClient(check_remote_spec(spec))
+    try:
+        return remote_name(client.version(), client)
+    finally:
+        client.disconnect()

@@ -1,0 +1,542 @@
+"""Latency and load of the planner server (``sb3-graph serve``) on loopback, bounded in count and time.
+
+Each configuration starts its own server process (``--port 0``, loopback, one event loop, one torch
+thread) and drives it with the Python client (:class:`envs.serve.client.PlannerClient`, one kept-alive
+connection per stream) from this process:
+
+- **latency**: per decision, the wall time of ``client.step`` (the scene's wire encoding, the HTTP round
+  trip, the server's parsing, scene building and planning, the answer's decoding), at 10, 50 and 100
+  vehicles, for AIM and the shipped GNN, without and with the server's shield; ``in-proc`` is the same
+  planner's ``act`` on the same scenes in this process, ``added`` the difference of the medians. The
+  GNN takes at most 64 vehicles (its graphs' ``max_nodes``), so its largest size is 64.
+- **throughput**: decisions per second with 1, 8 and 32 streams stepped at once (one thread and one
+  connection each), for ``--load-planner`` at ``--load-vehicles``; every refusal or failure is an error.
+- **memory**: the server's resident memory (``VmRSS``) before and after ``--churn`` streams opened, stepped
+  once and closed (stopped at ``--churn-seconds``; the table says how many ran).
+- ``--bad-input``: the malformed-input table, each case's status and the server's one-line answer.
+
+The scenes are synthetic and dense: vehicles queued on every incoming lane, 6.5 m apart from the route
+start, nearest the intersection first, at 90 % of their lane limit (planners see the same scene at every
+step, the time advancing by one policy period). Times are wall-clock on whatever machine runs this; the
+script prints it.
+
+Usage::
+
+    PYTHONPATH=$PWD python benchmarks/bench_serve.py                     # everything (about 7 minutes)
+    PYTHONPATH=$PWD python benchmarks/bench_serve.py --decisions 100 --churn 2000 --skip-gnn
+    PYTHONPATH=$PWD python benchmarks/bench_serve.py --bad-input-only
+    PYTHONPATH=$PWD python benchmarks/bench_serve.py --identity --scenarios 3 --duration 60
+    PYTHONPATH=$PWD python benchmarks/bench_serve.py --components --sizes 100
+"""
+
+from __future__ import annotations
+
+import argparse
+import http.client
+import json
+import os
+import platform
+import select
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+from urllib.parse import urlsplit
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+MODEL = ROOT / "envs" / "pretrained" / "coop_4way_fair" / "best_model.safetensors"
+ENV = "CoopIntersection4Way-v0"
+
+
+# ---------------------------------------------------------------------- malformed input
+@dataclass(frozen=True)
+class BadCase:
+    """One malformed request and what the server must answer.
+
+    :param name: what is wrong
+    :param body: the raw body
+    :param status: the expected status
+    :param field: the field the answer must name
+    :param path: the request path (``{stream}`` is the open stream)
+    :param token: the token sent (``None``: the right one)
+    :param method: HTTP method
+    """
+
+    name: str
+    body: bytes
+    status: int
+    field: str
+    path: str = "/streams/{stream}/step"
+    token: str | None = None
+    method: str = "POST"
+
+
+def _vehicle_case(good: dict, i: int, key: str, value: Any) -> bytes:
+    vehicles = [dict(v) for v in good["vehicles"]]
+    vehicles[i][key] = value
+    return json.dumps({**good, "vehicles": vehicles}).encode()
+
+
+def bad_input_cases(good: dict, max_body: int, max_vehicles: int = 64) -> list[BadCase]:
+    """The malformed cases, built from a valid wire scene of at least 3 vehicles with ``time`` > 0.
+
+    :param good: a valid wire scene (:func:`envs.serve.wire.scene_to_wire`)
+    :param max_body: the server's body limit [bytes]
+    :param max_vehicles: the server's ``max_vehicles``
+    :return: the cases; their time lies far ahead of ``good``'s, so that the stream's valid steps that
+        follow each case (at ``good``'s time and after) never make a case's time go back
+    """
+    good = {**good, "time": good["time"] + 10_000.0}
+    v0 = good["vehicles"][0]
+    crowd = [{**v0, "id": 10_000 + k} for k in range(max_vehicles + 1)]
+    big = [{**v0, "id": 20_000 + k} for k in range(max_body // 60 + 1)]
+    dump = lambda scene: json.dumps(scene).encode()  # noqa: E731
+    return [
+        BadCase("not JSON (cut short)", dump(good)[:-5], 422, "body"),
+        BadCase("empty body", b"", 422, "body"),
+        BadCase("vehicles missing", dump({"layout": good["layout"], "time": good["time"]}), 422, "vehicles"),
+        BadCase("vehicles not a list", dump({**good, "vehicles": {"id": 1}}), 422, "vehicles"),
+        BadCase("unknown field", _vehicle_case(good, 0, "colour", "red"), 422, "vehicles[0].colour"),
+        BadCase("time is a string", dump({**good, "time": "12.0"}), 422, "time"),
+        BadCase("speed NaN", _vehicle_case(good, 0, "speed", float("nan")), 422, "vehicles[0].speed"),
+        BadCase("arc Infinity", _vehicle_case(good, 1, "arc", float("inf")), 422, "vehicles[1].arc"),
+        BadCase("negative speed", _vehicle_case(good, 1, "speed", -1.0), 422, "vehicles[1].speed"),
+        BadCase("id not an integer", _vehicle_case(good, 0, "id", 1.5), 422, "vehicles[0].id"),
+        BadCase("length zero", _vehicle_case(good, 2, "length", 0.0), 422, "vehicles[2].length"),
+        BadCase("unknown route", _vehicle_case(good, 2, "route", "south->moon"), 422, "vehicles[2].route"),
+        BadCase("duplicate id", _vehicle_case(good, 1, "id", v0["id"]), 422, "vehicles[1].id"),
+        BadCase("arc past the route's end", _vehicle_case(good, 0, "arc", 5000.0), 422, "vehicles[0].arc"),
+        BadCase("speed above the cap", _vehicle_case(good, 0, "speed", 99.0), 422, "vehicles[0].speed"),
+        BadCase("another layout", dump({**good, "layout": "3way"}), 422, "layout"),
+        BadCase("time goes back", dump({**good, "time": 0.0}), 422, "time"),
+        BadCase(f"too many vehicles ({max_vehicles + 1})", dump({**good, "vehicles": crowd}), 422, "vehicles"),
+        BadCase(f"body over {max_body} bytes", dump({**good, "vehicles": big}), 413, "body"),
+        BadCase("wrong token", dump(good), 401, "authorization", token="wrong"),
+        BadCase("unknown stream", dump(good), 404, "stream", path="/streams/0123456789abcdef/step"),
+        BadCase("reset: seed negative", dump({"seed": -1}), 422, "seed", path="/streams/{stream}/reset"),
+    ]
+
+
+def send(url: str, case: BadCase, stream: str, token: str | None = None) -> tuple[int, dict]:
+    """Send one case on a fresh connection; the status and the JSON answer."""
+    parts = urlsplit(url)
+    connection = http.client.HTTPConnection(parts.hostname, parts.port, timeout=30)
+    headers = {"Content-Type": "application/json"}
+    sent = case.token if case.token is not None else token
+    if sent:
+        headers["Authorization"] = f"Bearer {sent}"
+    try:
+        connection.request(case.method, case.path.format(stream=stream), body=case.body, headers=headers)
+        response = connection.getresponse()
+        payload = response.read()
+    finally:
+        connection.close()
+    try:
+        reply = json.loads(payload) if payload else {}
+    except ValueError:
+        reply = {"error": payload[:200].decode(errors="replace")}
+    return response.status, reply
+
+
+# ---------------------------------------------------------------------- scenes and servers
+def dense_scene(n: int, time_s: float = 0.0):
+    """A synthetic scene of ``n`` vehicles on the 4-way layout (see the module docstring)."""
+    import gymnasium as gym
+
+    import envs  # noqa: F401
+    from envs.serve.wire import SceneBuilder
+
+    env = gym.make(ENV, config={"max_vehicles": max(n, 64)})
+    builder = SceneBuilder(dict(env.unwrapped.config))
+    env.close()
+    lay = builder.layout
+    spawns = sorted(set(lay.route_spawn_lane.tolist()))
+    slots = []  # (distance from the entry, spawn lane, k)
+    for spawn in spawns:
+        routes = np.flatnonzero(lay.route_spawn_lane == spawn)
+        top = float(lay.length[routes].min()) - 3.0
+        for k, arc in enumerate(np.arange(3.0, top, 6.5)):
+            slots.append((abs(arc - float(lay.entry_arc[routes[0]]) + 5.0), spawn, k, float(arc)))
+    slots.sort()
+    if n > len(slots):
+        raise ValueError(f"at most {len(slots)} vehicles fit the synthetic scene")
+    cars = []
+    for i, (_, spawn, k, arc) in enumerate(slots[:n]):
+        routes = np.flatnonzero(lay.route_spawn_lane == spawn)
+        route = int(routes[k % routes.size])
+        limit = float(lay.limit_at(np.array([route]), np.array([arc]))[0])
+        cars.append(SimpleCar(i, lay.route_names[route], arc, 0.9 * limit))
+    return builder.scene(lay.name, time_s, cars), builder
+
+
+@dataclass
+class SimpleCar:
+    id: int
+    route: str
+    arc: float
+    speed: float
+    length: float = 4.5
+    width: float = 1.8
+
+
+def start_server(planner: str, *extra: str, wait: float = 300.0) -> tuple[subprocess.Popen, str]:
+    """``sb3-graph serve --port 0 ...`` in its own process, once it listens: ``(process, url)``."""
+    command = [sys.executable, "-m", "sb3_graph.cli", "serve", "--planner", planner, "--port", "0", *extra]
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+    process = subprocess.Popen(command, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    deadline = time.monotonic() + wait
+    while time.monotonic() < deadline:
+        ready, _, _ = select.select([process.stdout], [], [], 1.0)
+        if ready:
+            line = process.stdout.readline()
+            if line.startswith("serving "):
+                return process, line.split(" on ")[-1].strip()
+            if not line and process.poll() is not None:
+                break
+    process.kill()
+    raise RuntimeError(f"server {planner} did not start: {process.stderr.read()[-2000:]}")
+
+
+def stop_server(process: subprocess.Popen) -> None:
+    process.terminate()
+    try:
+        process.wait(timeout=20)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        process.wait()
+
+
+def rss_mib(pid: int) -> float:
+    """Resident memory of a process [MiB] (Linux ``/proc``)."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+def _ms(values: list[float]) -> tuple[float, float, float]:
+    a = np.asarray(values) * 1e3
+    return float(np.percentile(a, 50)), float(np.percentile(a, 99)), float(a.max())
+
+
+# ---------------------------------------------------------------------- measurements
+def cpu_s(pid: int) -> float:
+    """CPU time (user + system) a process has used [s] (Linux ``/proc``, 10 ms ticks)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def latency(url: str, pid: int, planner_spec: str, sizes: list[int], decisions: int, seconds: float) -> list[dict]:
+    """Per-decision latency through the server and in process, per scene size, and CPU per decision."""
+    from envs.planners import make_planner
+    from envs.serve.client import PlannerClient
+    from envs.serve.wire import scene_to_wire
+
+    rows = []
+    client = PlannerClient(url)
+    local = make_planner(planner_spec)
+    for n in sizes:
+        scene, builder = dense_scene(n)
+        stream = client.open("4way", dt=scene.dt, seed=0)
+        local.reset(0)
+        remote_t, server_t, local_t = [], [], []
+        server_cpu = local_cpu = 0.0
+        stop = time.monotonic() + seconds
+        warm = 5  # untimed first decisions (the planners' first calls load compiled kernels)
+        for k in range(-warm, decisions):
+            if time.monotonic() > stop:
+                break
+            if k == 0:
+                server_cpu = -cpu_s(pid)
+            t = (k + warm) * scene.dt
+            at_t = builder.scene("4way", t, [SimpleCar(**v) for v in scene_to_wire(scene)["vehicles"]])
+            tic = time.perf_counter()
+            client.step(stream, scene_to_wire(at_t))
+            remote = time.perf_counter() - tic
+            tic, cpu = time.perf_counter(), time.process_time()
+            local.act(at_t)
+            if k >= 0:
+                local_t.append(time.perf_counter() - tic)
+                local_cpu += time.process_time() - cpu
+                remote_t.append(remote)
+                server_t.append(client.server_ms / 1e3)
+        server_cpu += cpu_s(pid)
+        client.close(stream)
+        count = len(remote_t)
+        p50, p99, worst = _ms(remote_t)
+        s50, s99, _ = _ms(server_t)
+        l50, l99, _ = _ms(local_t)
+        rows.append({"vehicles": n, "decisions": count, "p50": p50, "p99": p99, "max": worst,
+                     "server p50": s50, "server p99": s99, "in-proc p50": l50, "in-proc p99": l99,
+                     "added p50": p50 - l50, "server CPU": 1e3 * server_cpu / count,
+                     "in-proc CPU": 1e3 * local_cpu / count})  # fmt: skip
+    client.disconnect()
+    return rows
+
+
+def throughput(url: str, n: int, streams: int, seconds: float) -> dict:
+    """Decisions per second with ``streams`` streams stepped at once, and the errors."""
+    from envs.serve.client import PlannerClient, RemotePlannerError
+    from envs.serve.wire import scene_to_wire
+
+    scene, _ = dense_scene(n)
+    wire = scene_to_wire(scene)
+    done, errors, lock = [0], [0], threading.Lock()
+    start = threading.Barrier(streams + 1)
+    stop_at: list[float] = [0.0]
+
+    def work() -> None:
+        client = PlannerClient(url)
+        stream = client.open("4way", seed=0)
+        start.wait()
+        k = 0
+        while time.monotonic() < stop_at[0]:
+            try:
+                client.step(stream, {**wire, "time": k * scene.dt})
+                with lock:
+                    done[0] += 1
+            except (RemotePlannerError, OSError):
+                with lock:
+                    errors[0] += 1
+            k += 1
+        client.close(stream)
+        client.disconnect()
+
+    threads = [threading.Thread(target=work) for _ in range(streams)]
+    for thread in threads:
+        thread.start()
+    stop_at[0] = time.monotonic() + seconds + 0.5  # set before the barrier releases the workers
+    start.wait()
+    tic = time.monotonic()
+    for thread in threads:
+        thread.join(timeout=seconds + 60)
+    wall = time.monotonic() - tic
+    return {"streams": streams, "decisions": done[0], "decisions/s": done[0] / wall, "errors": errors[0]}
+
+
+def churn(url: str, pid: int, count: int, seconds: float) -> dict:
+    """Open, step once and close ``count`` streams; the server's memory before and after."""
+    from envs.serve.client import PlannerClient
+    from envs.serve.wire import scene_to_wire
+
+    scene, _ = dense_scene(10)
+    wire = scene_to_wire(scene)
+    client = PlannerClient(url)
+    for _ in range(50):  # warm the allocator before the first reading
+        client.close(stream := client.open("4way"))
+    before = rss_mib(pid)
+    marks, k, stop = {}, 0, time.monotonic() + seconds
+    while k < count and time.monotonic() < stop:
+        stream = client.open("4way", seed=0)
+        client.step(stream, wire)
+        client.close(stream)
+        k += 1
+        if k in (count // 10, count // 2):
+            marks[k] = rss_mib(pid)
+    after = rss_mib(pid)
+    left = client.health()["streams"]
+    client.disconnect()
+    return {"streams opened and closed": k, "RSS before [MiB]": before, **{f"RSS after {m} [MiB]": v for m, v in
+            marks.items()}, "RSS after [MiB]": after, "streams left open": left}  # fmt: skip
+
+
+def _table(rows: list[dict], digits: int = 2) -> str:
+    if not rows:
+        return "(none)"
+    keys = list(rows[0])
+    out = ["| " + " | ".join(keys) + " |", "|" + "---|" * len(keys)]
+    for row in rows:
+        out.append("| " + " | ".join(f"{row[k]:.{digits}f}" if isinstance(row[k], float) else str(row[k])
+                                     for k in keys) + " |")  # fmt: skip
+    return "\n".join(out)
+
+
+def bad_input_table() -> str:
+    """Start a server (AIM, a token, a 64 KiB body limit) and send every malformed case."""
+    import tempfile
+
+    from envs.serve.client import PlannerClient
+    from envs.serve.wire import scene_to_wire
+
+    token = "bench-token"
+    with tempfile.TemporaryDirectory() as folder:
+        token_file = Path(folder) / "token"
+        token_file.write_text(token)
+        process, url = start_server("aim", "--token-file", str(token_file), "--max-body", "65536")
+        try:
+            client = PlannerClient(url, token=token)
+            scene, _ = dense_scene(10, time_s=10.0)
+            good = scene_to_wire(scene)
+            stream = client.open("4way", seed=0)
+            client.step(stream, good)
+            rows = []
+            for case in bad_input_cases(good, 65536):
+                status, reply = send(url, case, stream, token)
+                good = {**good, "time": good["time"] + 0.2}
+                client.step(stream, good)  # the stream goes on
+                ok = "yes" if (status, reply.get("field")) == (case.status, case.field) else "NO"
+                rows.append({"case": case.name, "status": status, "answer": str(reply.get("error", ""))[:90],
+                             "as expected": ok, "next valid step": "200"})  # fmt: skip
+            client.close(stream)
+        finally:
+            stop_server(process)
+    return _table(rows)
+
+
+def identity(scenarios: int, duration: float, seed: int, skip_gnn: bool = False) -> str:
+    """``sb3-graph evaluate`` with each planner in process and through a server, on the same generated
+    scenarios in one run; whether every metrics row and every vehicle row is the same.
+
+    Servers: AIM, the GNN, and the GNN with the server's shield; ``+shield`` after a server's address
+    shields it in the client.
+    """
+    import tempfile
+
+    import pandas as pd
+
+    from sb3_graph.cli import main as cli
+
+    servers = [("aim", ())] + ([] if skip_gnn else [(str(MODEL), ()), (str(MODEL), ("--shield",))])
+    started = [start_server(spec, *extra) for spec, extra in servers]
+    try:
+        urls = [url for _, url in started]
+        pairs = [("aim", urls[0]), ("aim+shield", urls[0] + "+shield")]
+        if not skip_gnn:
+            pairs += [(str(MODEL), urls[1]), (str(MODEL) + "+shield", urls[1] + "+shield"),
+                      (str(MODEL) + "+shield", urls[2])]  # fmt: skip
+        words = list(dict.fromkeys(w for pair in pairs for w in pair))
+        with tempfile.TemporaryDirectory() as folder:
+            out = Path(folder) / "report"
+            args = ["evaluate", "--out", str(out), "--scenarios", str(scenarios), "--duration", str(duration),
+                    "--seed", str(seed), "--jobs", "1", "--no-progress"] + [a for w in words for a in ("--planner", w)]
+            if cli(args) != 0:
+                raise RuntimeError("evaluate failed")
+            metrics, vehicles = pd.read_csv(out / "metrics.csv"), pd.read_csv(out / "vehicles.csv")
+    finally:
+        for process, _ in started:
+            stop_server(process)
+    rows, drop = [], ["planner", "wall_s", "baseline"]
+    names = {w: n for w, n in zip(words, list(dict.fromkeys(metrics["planner"])))}
+    for local, remote in pairs:
+        a = metrics[metrics.planner == names[local]].drop(columns=drop).reset_index(drop=True)
+        b = metrics[metrics.planner == names[remote]].drop(columns=drop).reset_index(drop=True)
+        va = vehicles[vehicles.planner == names[local]].drop(columns="planner").reset_index(drop=True)
+        vb = vehicles[vehicles.planner == names[remote]].drop(columns="planner").reset_index(drop=True)
+        rows.append({"in process": names[local], "through the server": names[remote].replace(names[local], "..."),
+                     "runs": len(a), "vehicles": int(a["vehicles"].sum()), "metric columns": a.shape[1],
+                     "metrics identical": "yes" if a.equals(b) else "NO",
+                     "vehicle rows identical": "yes" if va.equals(vb) else "NO"})  # fmt: skip
+    return _table(rows)
+
+
+def components(n: int, repeat: int = 200) -> str:
+    """CPU time per call of each piece of one remote decision, in this process (``time.process_time``)."""
+    from envs.planners import AIMPlanner
+    from envs.serve.schema import SceneIn
+    from envs.serve.wire import scene_to_wire
+
+    scene, builder = dense_scene(n)
+    wire = scene_to_wire(scene)
+    body = json.dumps(wire).encode()
+    parsed = SceneIn.model_validate_json(body)
+    planner = AIMPlanner()
+    planner.reset(0)
+    pieces = {
+        "client: scene_to_wire": lambda: scene_to_wire(scene),
+        "client: json.dumps of the scene": lambda: json.dumps(wire),
+        "server: SceneIn.model_validate_json": lambda: SceneIn.model_validate_json(body),
+        "server: json.loads + SceneIn.model_validate": lambda: SceneIn.model_validate(json.loads(body)),
+        "server: rebuild the scene (SceneBuilder.scene)": lambda: builder.scene("4way", 0.0, parsed.vehicles),
+        "AIM act (in process)": lambda: planner.act(scene),
+    }
+    rows = []
+    for name, call in pieces.items():
+        call()
+        tic = time.process_time()
+        for _ in range(repeat):
+            call()
+        rows.append({"piece": name, "CPU ms per call": 1e3 * (time.process_time() - tic) / repeat})
+    return f"{len(body)} bytes of JSON for {n} vehicles\n\n" + _table(rows, 3)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--sizes", type=int, nargs="+", default=[10, 50, 100])
+    parser.add_argument("--decisions", type=int, default=300, help="decisions per size (default: 300)")
+    parser.add_argument("--seconds", type=float, default=30.0, help="time cap per size [s] (default: 30)")
+    parser.add_argument("--load-planner", default="aim", help="planner of the throughput runs (default: aim)")
+    parser.add_argument("--load-vehicles", type=int, default=50, help="vehicles in the throughput scene (default: 50)")
+    parser.add_argument("--load-streams", type=int, nargs="+", default=[1, 8, 32])
+    parser.add_argument("--load-seconds", type=float, default=5.0, help="duration of each throughput run [s]")
+    parser.add_argument("--churn", type=int, default=10_000, help="streams opened and closed (default: 10000)")
+    parser.add_argument("--churn-seconds", type=float, default=240.0, help="time cap of the churn [s] (default: 240)")
+    parser.add_argument("--skip-gnn", action="store_true", help="AIM only")
+    parser.add_argument("--bad-input-only", action="store_true", help="only the malformed-input table")
+    parser.add_argument("--components", action="store_true", help="only: CPU per piece of a decision, in process")
+    parser.add_argument("--identity", action="store_true", help="only: evaluate in process and through servers, "
+                        "compared row by row (--scenarios, --duration, --seed)")  # fmt: skip
+    parser.add_argument("--scenarios", type=int, default=3, help="scenarios of --identity (default: 3)")
+    parser.add_argument("--duration", type=float, default=60.0, help="seconds per run of --identity (default: 60)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of --identity's scenarios (default: 0)")
+    args = parser.parse_args(argv)
+    import torch
+
+    torch.set_num_threads(1)
+    print(f"machine: {platform.node()}, nproc={os.cpu_count()}, load average {os.getloadavg()[0]:.1f}, "
+          f"Python {platform.python_version()}, torch {torch.__version__}")  # fmt: skip
+    print(f"command: python benchmarks/bench_serve.py {' '.join(argv if argv is not None else sys.argv[1:])}\n")
+    if args.identity:
+        print(f"## evaluate in process and through the server ({args.scenarios} scenarios x {args.duration:g} s, "
+              f"seed {args.seed})\n")  # fmt: skip
+        print(identity(args.scenarios, args.duration, args.seed, args.skip_gnn))
+        return 0
+    if args.components:
+        print(f"## CPU per piece of a decision at {max(args.sizes)} vehicles\n")
+        print(components(max(args.sizes)))
+        return 0
+    if args.bad_input_only:
+        print("## Malformed input (each followed by a valid step of the same stream)\n")
+        print(bad_input_table())
+        return 0
+    configs = [("aim", "aim", ()), ("aim", "aim+shield", ("--shield",))]
+    if not args.skip_gnn:
+        configs += [(str(MODEL), "gnn", ()), (str(MODEL), "gnn+shield", ("--shield",))]
+    big = max(max(args.sizes), args.load_vehicles, 64)
+    kwargs = json.dumps({"config": {"max_vehicles": big}})
+    print("## Latency per decision [ms]\n")
+    print("p50/p99/max: wall clock of client.step (encode, round trip, decode); server: the server's own wall "
+          "time (Server-Timing: parse, build the scene, plan, encode); in-proc: planner.act in this process; "
+          "added p50: p50 - in-proc p50; server CPU: the server process's CPU time over the decisions / "
+          "decisions; in-proc CPU: planner.act's CPU time / decisions\n")  # fmt: skip
+    for spec, label, extra in configs:
+        gnn = spec == str(MODEL)
+        sizes = sorted({min(n, 64) if gnn else n for n in args.sizes})
+        env_kwargs = () if gnn else ("--env-kwargs", kwargs)  # the GNN's graphs hold 64 vehicles
+        process, url = start_server(spec, *extra, *env_kwargs)
+        try:
+            local_spec = spec + ("+shield" if extra else "")
+            print(f"### {label}\n")
+            print(_table(latency(url, process.pid, local_spec, sizes, args.decisions, args.seconds)) + "\n", flush=True)
+        finally:
+            stop_server(process)
+    print(f"## Throughput, {args.load_planner} at {args.load_vehicles} vehicles, {args.load_seconds:g} s per run\n")
+    process, url = start_server(args.load_planner, "--env-kwargs", kwargs, "--max-streams", "64")
+    try:
+        rows = [throughput(url, args.load_vehicles, k, args.load_seconds) for k in args.load_streams]
+        print(_table(rows, 1) + "\n", flush=True)
+        print(f"## Memory after streams opened, stepped once (10 vehicles) and closed ({args.load_planner})\n")
+        print(_table([churn(url, process.pid, args.churn, args.churn_seconds)], 1) + "\n")
+    finally:
+        stop_server(process)
+    print("## Malformed input (each followed by a valid step of the same stream)\n")
+    print(bad_input_table())
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

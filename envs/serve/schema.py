@@ -1,0 +1,117 @@
+"""The pydantic models of the planner server's requests and replies (its OpenAPI schema).
+
+Units are physical (SI): metres, seconds, metres per second, metres per second squared. Every model
+forbids unknown fields and non-finite numbers, and takes numbers strictly (``"5"`` is not a number,
+``5.0`` is not an id), so a mistake is refused with the field's name instead of guessed at.
+"""
+
+from __future__ import annotations
+
+from pydantic import BaseModel, ConfigDict, Field
+
+_STRICT = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False)
+# Largest number of vehicles the schema takes in one scene (the server's own limit is its
+# environment's max_vehicles, usually far lower).
+MAX_VEHICLES = 1024
+
+
+class Vehicle(BaseModel):
+    """One vehicle of the scene."""
+
+    model_config = _STRICT
+
+    id: int = Field(ge=0, le=2**63 - 1, description="unique in the scene; stable while the vehicle is in it")
+    route: str = Field(min_length=1, max_length=64, description="route name, e.g. 'south->north'")
+    arc: float = Field(ge=0.0, description="centre position along the route from its start [m]")
+    speed: float = Field(ge=0.0, description="speed [m/s]")
+    length: float = Field(gt=0.0, le=30.0, description="vehicle length [m]")
+    width: float = Field(gt=0.0, le=5.0, description="vehicle width [m]")
+
+
+class SceneIn(BaseModel):
+    """Every vehicle at one instant: the planner answers one acceleration for each."""
+
+    model_config = _STRICT
+
+    layout: str = Field(min_length=1, max_length=32, description="intersection layout name: '4way', '3way' or 'inD'")
+    time: float = Field(ge=0.0, le=1e9, description="simulated time [s]; never decreases within a stream")
+    vehicles: list[Vehicle] = Field(max_length=MAX_VEHICLES, description="row i of the answer is vehicles[i]")
+
+
+class ShieldReport(BaseModel):
+    """What the server's shield (``--shield``) did in one step."""
+
+    overridden: list[bool] = Field(description="per vehicle, in the order of the scene: the shield replaced the "
+                                   "planner's command")  # fmt: skip
+    unresolved: bool = Field(description="no safe plan was found: every vehicle brakes")
+
+
+class StepReply(BaseModel):
+    """The planner's answer to one scene."""
+
+    stream: str = Field(description="the stream")
+    step: int = Field(description="steps answered in this stream since it was opened or reset (this one included)")
+    time: float = Field(description="the scene's time [s]")
+    ids: list[int] = Field(description="the vehicles' ids, in the order of the scene")
+    accelerations: list[float] = Field(description="commanded longitudinal acceleration of each vehicle [m/s^2]")
+    shield: ShieldReport | None = Field(default=None, description="the server's shield; null without --shield")
+
+
+class OpenRequest(BaseModel):
+    """Open a planning stream: one intersection, one client, its own planner state."""
+
+    model_config = _STRICT
+
+    layout: str = Field(min_length=1, max_length=32, description="the intersection the stream's scenes are of")
+    dt: float | None = Field(default=None, gt=0.0, le=10.0, description="policy period the client steps at [s]; "
+                             "must be the server's (checked when given)")
+    seed: int | None = Field(default=None, ge=0, le=2**32 - 1, description="seed of the planner's randomness")
+
+
+class ResetRequest(BaseModel):
+    """Start a new episode in a stream: the planner forgets its state (reservations, signal phases...)."""
+
+    model_config = _STRICT
+
+    seed: int | None = Field(default=None, ge=0, le=2**32 - 1, description="seed of the planner's randomness")
+
+
+class StreamReply(BaseModel):
+    """A stream's identity and settings."""
+
+    stream: str = Field(description="id of the stream, used in its URLs")
+    layout: str = Field(description="its layout")
+    dt: float = Field(description="policy period [s]")
+    steps: int = Field(description="steps answered since it was opened or reset")
+
+
+class ServerInfo(BaseModel):
+    """What the server runs."""
+
+    package: str = Field(description="sb3-graph version")
+    schema_version: int = Field(description="version of the wire schema")
+    planner: str = Field(description="the planner's report name")
+    spec: str = Field(description="the planner spec it was started with")
+    shield: bool = Field(description="whether the server shields the planner")
+    env: str = Field(description="gymnasium id of the environment whose settings the server uses")
+    layout: str = Field(description="the intersection layout")
+    dt: float = Field(description="policy period [s]")
+    a_min: float = Field(description="smallest acceleration [m/s^2]")
+    a_max: float = Field(description="largest acceleration [m/s^2]")
+    max_vehicles: int = Field(description="most vehicles in one scene")
+    max_speed: float = Field(description="speed cap [m/s]")
+    max_streams: int = Field(description="most streams open at once")
+
+
+class Health(BaseModel):
+    """Liveness."""
+
+    status: str = Field(description="'ok'")
+    streams: int = Field(description="streams open now")
+
+
+class ErrorReply(BaseModel):
+    """A refused request (4xx)."""
+
+    error: str = Field(description="one line: the field and what is wrong with it")
+    field: str = Field(description="the offending field, e.g. 'vehicles[3].speed', 'stream', 'authorization', 'body'")

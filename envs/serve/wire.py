@@ -1,0 +1,168 @@
+"""The scene on the wire, and its one mapping to and from the in-process :class:`envs.scene.Scene`.
+
+A scene crosses the wire in physical units, as the vehicles themselves know it:
+
+- ``layout``: the intersection by name (``"4way"``, ``"3way"``, ``"inD"``);
+- ``time``: simulated time [s];
+- ``vehicles``: one object per vehicle, ``id`` (integer, unique in the scene, stable while the vehicle
+  is in it), ``route`` (its route by name, ``"<entry arm>-><exit arm>"``), ``arc`` (centre position
+  along the route from the route's start [m]), ``speed`` [m/s], ``length`` and ``width`` [m].
+
+Everything else a planner reads (pose, path coordinate ``s``, lane limits, distances to the
+intersection, leaders and gaps, priority, maneuver, conflicts) is derived on the server by the
+simulation's own code (:meth:`envs.simulation.Simulation.scene`), so a planner behind the server sees
+the scene that it would see in process, to the bit. Row ``i`` of the scene is ``vehicles[i]``, and
+the answer's acceleration ``i`` is that vehicle's.
+
+This module needs only numpy: the client (:mod:`envs.serve.client`) and the server
+(:mod:`envs.serve.app`, with the pydantic schema of :mod:`envs.serve.schema`) both use it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from envs.scene import Scene
+
+# Version of the wire schema; a change that old clients cannot read increments it.
+SCHEMA_VERSION = 1
+VEHICLE_FIELDS = ("id", "route", "arc", "speed", "length", "width")
+
+
+class WireError(ValueError):
+    """A scene that the schema accepts but the intersection does not (an unknown route, a duplicate id...).
+
+    :param field: the offending field, e.g. ``"vehicles[3].route"``
+    :param message: what is wrong with it
+    """
+
+    def __init__(self, field: str, message: str) -> None:
+        super().__init__(f"{field}: {message}")
+        self.field = field
+        self.message = message
+
+
+def scene_to_wire(scene: Scene) -> dict[str, Any]:
+    """The wire form of an in-process scene (what the client sends).
+
+    :param scene: a scene made by the simulation (it needs ``layout`` and ``arc``)
+    :return: a JSON-ready dictionary (plain Python floats: ``json`` writes them so that they read back exactly)
+    :raises ValueError: a hand-built scene without ``layout`` or ``arc``
+    """
+    if scene.layout is None or scene.arc is None:
+        raise ValueError("a remote planner needs scenes with layout and arc (scenes made by the simulation)")
+    n = scene.num_vehicles
+    width = scene.width if scene.width is not None else np.full(n, 2.0)
+    names = scene.route_names
+    columns = zip(
+        scene.vehicle_id.tolist(),
+        [names[r] for r in scene.route.tolist()],
+        scene.arc.tolist(),
+        scene.speed.tolist(),
+        scene.length.tolist(),
+        np.asarray(width, float).tolist(),
+    )
+    vehicles = [dict(zip(VEHICLE_FIELDS, row)) for row in columns]
+    return {"layout": scene.layout.name, "time": float(scene.time), "vehicles": vehicles}
+
+
+@dataclass(frozen=True)
+class WireLimits:
+    """What the server's environment allows in a scene.
+
+    :param max_vehicles: most vehicles in one scene (the environment's ``max_vehicles``)
+    :param max_speed: speed cap [m/s]
+    """
+
+    max_vehicles: int
+    max_speed: float
+
+
+class SceneBuilder:
+    """Turns wire scenes into :class:`Scene` objects with the environment's own simulation code.
+
+    :param config: the environment's resolved configuration (``env.unwrapped.config``)
+    """
+
+    def __init__(self, config: dict[str, Any]) -> None:
+        from envs.layouts import build_layout
+        from envs.simulation import Simulation
+
+        self.config = dict(config)
+        self.layout = build_layout(config["layout"], lateral_acceleration=float(config["lateral_acceleration"]))
+        # The same construction as the environment's reset: the derived quantities use these settings.
+        self._sim = Simulation(
+            self.layout,
+            simulation_frequency=config["simulation_frequency"],
+            policy_frequency=config["policy_frequency"],
+            max_speed=config["max_speed"],
+            max_acceleration=config["max_acceleration"],
+            s_ref=config["s_ref"],
+            max_vehicles=config["max_vehicles"],
+            governor_deceleration=config["governor_deceleration"],
+            collision_resolution=config["collision_resolution"],
+        )
+        self.limits = WireLimits(int(config["max_vehicles"]), float(config["max_speed"]))
+
+    @property
+    def dt(self) -> float:
+        """Policy period of the environment [s]."""
+        return self._sim.dt
+
+    def scene(self, layout: str, time: float, vehicles: Sequence[Any]) -> Scene:
+        """The in-process scene of a wire scene (its types and ranges already checked by the schema).
+
+        :param layout: the scene's layout name
+        :param time: simulated time [s]
+        :param vehicles: objects with the attributes of :data:`VEHICLE_FIELDS`, in row order
+        :return: the scene, row ``i`` = ``vehicles[i]``
+        :raises WireError: another layout, too many vehicles, an unknown route, a duplicate id, an
+            ``arc`` beyond the route's end or a ``speed`` above the cap, naming the field
+        """
+        lay = self.layout
+        if layout != lay.name:
+            raise WireError("layout", f"this server plans for layout {lay.name!r}, got {layout!r}")
+        n = len(vehicles)
+        if n > self.limits.max_vehicles:
+            raise WireError("vehicles", f"{n} vehicles, this server takes at most {self.limits.max_vehicles}")
+        index = lay.route_index
+        try:
+            route = np.fromiter((index[v.route] for v in vehicles), np.int64, n)
+        except KeyError:
+            i = next(i for i, v in enumerate(vehicles) if v.route not in index)
+            raise WireError(f"vehicles[{i}].route", f"layout {lay.name!r} has no route {vehicles[i].route!r}") from None
+        ids = np.fromiter((v.id for v in vehicles), np.int64, n)
+        arc = np.fromiter((v.arc for v in vehicles), float, n)
+        speed = np.fromiter((v.speed for v in vehicles), float, n)
+        length = np.fromiter((v.length for v in vehicles), float, n)
+        width = np.fromiter((v.width for v in vehicles), float, n)
+        _check_rows(ids, route, arc, speed, lay.length, self.limits.max_speed)
+        sim = self._sim
+        sim.reset()
+        sim.time = float(time)
+        if n:
+            sim.add(route, speed, ids, length=length, width=width, arc=arc)
+        return sim.scene()
+
+
+def _check_rows(
+    ids: np.ndarray, route: np.ndarray, arc: np.ndarray, speed: np.ndarray, route_length: np.ndarray, max_speed: float
+) -> None:
+    """Refuse what the simulation could not hold: a duplicate id, an arc past the route, a speed above the cap."""
+    if ids.size and np.unique(ids).size != ids.size:
+        _, first = np.unique(ids, return_index=True)
+        i = int(np.setdiff1d(np.arange(ids.size), first)[0])
+        raise WireError(f"vehicles[{i}].id", f"id {int(ids[i])} appears twice in the scene")
+    beyond = np.flatnonzero(arc > route_length[route])
+    if beyond.size:
+        i = int(beyond[0])
+        end = route_length[route[i]]
+        raise WireError(f"vehicles[{i}].arc", f"{arc[i]} m is past the end of its route ({end:.2f} m)")
+    fast = np.flatnonzero(speed > max_speed)
+    if fast.size:
+        i = int(fast[0])
+        raise WireError(f"vehicles[{i}].speed", f"{speed[i]} m/s is above the speed cap of {max_speed} m/s")
