@@ -21,7 +21,7 @@ along the route.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from functools import cache
 
 import numpy as np
@@ -140,6 +140,18 @@ class Layout:
 
     def __post_init__(self) -> None:
         self.route_index = {name: i for i, name in enumerate(self.route_names)}
+        # One layout serves every simulation, shield and planner of the process (build_layout's
+        # cache): its arrays are read-only down to their buffers, so no planner changes the physics.
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, np.ndarray):
+                setattr(self, f.name, read_only(value))
+        self._sealed = True
+
+    def __setattr__(self, name: str, value) -> None:
+        if getattr(self, "_sealed", False):
+            raise AttributeError(f"Layout is read-only (one layout serves the whole process): cannot set {name!r}")
+        object.__setattr__(self, name, value)
 
     def speed_envelope(self, deceleration: float) -> np.ndarray:
         """``(R, M)`` highest speed at each sample from which every lower limit ahead can still be
@@ -156,7 +168,7 @@ class Layout:
             step = 2.0 * key * self.ds
             for k in range(env.shape[1] - 2, -1, -1):
                 env[:, k] = np.minimum(env[:, k], np.sqrt(env[:, k + 1] ** 2 + step))
-            self._envelopes[key] = env
+            self._envelopes[key] = read_only(env)
         return self._envelopes[key]
 
     def envelope_at(self, route: np.ndarray, arc: np.ndarray, deceleration: float) -> np.ndarray:
@@ -168,7 +180,7 @@ class Layout:
         key = float(deceleration)
         squared = self._envelopes_squared.get(key)
         if squared is None:  # the speed governor calls this every sub-step: square the table once
-            squared = self._envelopes_squared[key] = self.speed_envelope(key) ** 2
+            squared = self._envelopes_squared[key] = read_only(self.speed_envelope(key) ** 2)
         last = squared.shape[1] - 1
         u = np.minimum(np.maximum(arc / self.ds, 0.0), last)
         k = u.astype(np.int64)  # the sample of limit_at: clipping before truncating gives the same index
@@ -231,6 +243,17 @@ class Layout:
         """
         k = (self.route_lane_starts[route] <= arc[..., None]).sum(axis=-1) - 1
         return self.route_lane_ids[route, np.maximum(k, 0)]
+
+
+def read_only(array: np.ndarray) -> np.ndarray:
+    """A read-only copy of an array whose buffer is an immutable ``bytes`` object, so that neither
+    ``setflags(write=True)`` on it nor on its base can make it writable again.
+
+    :param array: any array of a fixed-size dtype
+    :return: the copy (same dtype and shape)
+    """
+    array = np.ascontiguousarray(array)
+    return np.frombuffer(array.tobytes(), dtype=array.dtype).reshape(array.shape)
 
 
 # ---------------------------------------------------------------------- geometry helpers

@@ -265,7 +265,7 @@ def duration_text(runs, requested: float) -> str:
 
 def run(args: argparse.Namespace) -> int:
     from envs.evaluation import check_scenarios, find_scenarios, generate_scenarios
-    from envs.report import format_number, write_report
+    from envs.report import write_report
     from sb3_graph.outputs import OutputError, staged_folder
 
     planners = _check(args)
@@ -304,18 +304,40 @@ def run(args: argparse.Namespace) -> int:
             write_run_info(stage, stats, time.perf_counter() - tic)
     except OutputError as error:
         raise UserError(str(error)) from None
-    for name, s in summary.items():
-        f, sr = s["flow_rate"], s["stop_ratio"]
-        print(
-            f"{name:>10}: flow median {format_number(f['median'])} veh/s,"
-            f" stops major {format_number(sr['major'])} minor {format_number(sr['minor'])},"
-            f" collisions {format_number(s['collision_rate'])}, delay mean {format_number(s['delay_s']['mean'], 2)} s,"
-            f" {s['speed_limit_violations']} speed-limit violations ({s['vehicles']} scheduled vehicles,"
-            f" {s['not_spawned']} never appeared)"
-        )
+    print_summary(summary)
     print(run_line(stats))
     print(f"report written to {out} ({wall:.1f} s)")
+    failed = sum(s.get("failed_runs", 0) for s in summary.values())
+    if failed:
+        print(f"{failed} runs failed on a planner error (see above and metrics.csv): exit status 1")
+        return 1
     return 0
+
+
+def print_summary(summary: dict[str, dict[str, Any]]) -> None:
+    """One line per planner on the console, the shield's counters and the planner errors after it."""
+    from envs.report import format_number
+
+    for name, s in summary.items():
+        if "flow_rate" in s:
+            f, sr = s["flow_rate"], s["stop_ratio"]
+            print(
+                f"{name:>10}: flow median {format_number(f['median'])} veh/s,"
+                f" stops major {format_number(sr['major'])} minor {format_number(sr['minor'])},"
+                f" collisions {format_number(s['collision_rate'])},"
+                f" delay mean {format_number(s['delay_s']['mean'], 2)} s,"
+                f" {s['speed_limit_violations']} speed-limit violations ({s['vehicles']} scheduled vehicles,"
+                f" {s['not_spawned']} never appeared), {s.get('stuck_runs', 0)} stuck runs"
+            )
+        if "shield_interventions" in s:
+            print(
+                f"{'':>10}  shield: interventions {format_number(s['shield_interventions'])},"
+                f" unresolved steps {s.get('shield_unresolved', 0)}, planner errors {s.get('planner_errors', 0)}"
+            )
+        if s.get("failed_runs"):
+            print(f"{name:>10}: {s['failed_runs']} runs failed (left out of the report's tables)")
+        for line in s.get("planner_error_lines", [])[:3]:
+            print(f"{'':>10}  {line}")
 
 
 def run_harness(args: argparse.Namespace, planners: Sequence[tuple[str, str]], scenarios: Sequence[Path]):
