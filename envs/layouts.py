@@ -459,6 +459,7 @@ def _build(name: str, arms: list[ArmSpec], ds: float, lateral_acceleration: floa
         return np.stack([np.concatenate([x, np.repeat(x[-1:], m_max - len(x), axis=0)]) for x in arrs])
 
     xy, heading, speed_limit = pad(samples_xy), pad(samples_h), pad(samples_v)
+    speed_limit = np.minimum(speed_limit, _kink_limits(heading, speed_limit, ds, lateral_acceleration))
 
     # Spawn lanes: distinct first lanes of the routes.
     spawn_lanes: list[tuple[str, str, int]] = []
@@ -500,6 +501,32 @@ def _build(name: str, arms: list[ArmSpec], ds: float, lateral_acceleration: floa
         zone_end=zone_end,
         lateral_acceleration=lateral_acceleration,
     )
+
+
+# Half-width of the stretch around a kink over which its limit holds [m]: more than a vehicle moves in one
+# simulation sub-step at the speed cap (20 m/s at 15 Hz: 1.33 m), so that the governor, which looks up the
+# limit where a sub-step starts and where it would end, never steps over it.
+KINK_REACH = 2.0
+
+
+def _kink_limits(heading: np.ndarray, limit: np.ndarray, ds: float, lateral_acceleration: float) -> np.ndarray:
+    """``(R, M)`` speed limits from the true heading change where lanes join at a kink (inD's lane shifts).
+
+    The curvature of sample interval ``i`` is ``|heading[i + 1] - heading[i]| / ds``, and
+    ``sqrt(a_lat / kappa)`` the speed at which it takes ``a_lat``. Where that is below the lane limits
+    on both sides of the interval (a join the lanes' own limits do not know of; circular lanes are
+    already limited), it holds within :data:`KINK_REACH` of the interval; elsewhere ``inf``.
+    """
+    kappa = np.abs(np.diff(heading, axis=1)) / ds  # (R, M - 1)
+    with np.errstate(divide="ignore"):
+        curve = np.sqrt(lateral_acceleration / kappa)
+    known = np.minimum(limit[:, :-1], limit[:, 1:])
+    kink = np.where(curve < 0.95 * known, curve, np.inf)
+    kink = np.concatenate([kink, np.full((kink.shape[0], 1), np.inf)], axis=1)  # (R, M): sample i = interval i
+    reach = int(np.ceil(KINK_REACH / ds))
+    padded = np.pad(kink, ((0, 0), (reach, reach)), constant_values=np.inf)
+    windows = np.lib.stride_tricks.sliding_window_view(padded, 2 * reach + 1, axis=1)
+    return windows.min(axis=-1)
 
 
 def _lane_limit(lane: AbstractLane, lateral_acceleration: float) -> float:
