@@ -229,7 +229,7 @@ def run_job(job: Job, scenario: Any = None) -> tuple[dict[str, Any], pd.DataFram
     duration = facts["duration"] if facts["duration"] > 0 else job.duration
     row.update(run_metrics(vehicles, duration))
     if hasattr(planner, "interventions"):  # a shielded planner: its counters of this run
-        lines = [f"{line} [{Path(job.scenario).name}]" for line in getattr(planner, "error_lines", [])]
+        lines = [error.line(Path(job.scenario).name) for error in getattr(planner, "errors", [])]
         row.update(
             shield_interventions=planner.interventions,
             shield_vehicle_steps=planner.vehicle_steps,

@@ -31,6 +31,11 @@ Model planners (``.safetensors`` policy files or SB3 ``.zip`` files) are loaded 
 against the environment before any run starts, without running code from the file
 (``--trust-planner-files`` loads a ``.zip`` with SB3's full ``TD3.load``, for one's own files).
 
+A planner's answer is checked every step (:mod:`envs.planners.errors`): an invalid one (NaN, inf, out of
+bounds, wrong shape or dtype) or a planner that raises voids that planner's run without the shield,
+the other runs are still reported and the command exits with status 1; behind the shield the fallback
+takes over and the step counts in ``planner_errors``.
+
 A collision does not end a run: the vehicles involved are counted as collided and leave the
 scene, and the run goes on for its whole duration (``--env-kwargs '{"config":
 {"collision_handling": "terminate"}}'`` ends it instead, as in training).

@@ -182,7 +182,7 @@ class Shield(Planner):
         self.vehicle_steps = 0
         self.unresolved = 0
         self.planner_errors = 0
-        self.error_lines: list[str] = []
+        self.errors: list[PlannerError] = []
         self.last_overridden = np.zeros(0, bool)
 
     # ------------------------------------------------------------------ planner face
@@ -193,7 +193,12 @@ class Shield(Planner):
         self.vehicle_steps = 0
         self.unresolved = 0
         self.planner_errors = 0
-        self.error_lines = []
+        self.errors = []
+
+    @property
+    def error_lines(self) -> list[str]:
+        """The first planner errors of the run (at most :data:`MAX_ERROR_LINES`), one line each."""
+        return [error.line() for error in self.errors]
 
     @property
     def intervention_rate(self) -> float:
@@ -204,7 +209,7 @@ class Shield(Planner):
         """The wrapped planner's proposal for a private copy of the scene, checked on the shield's own.
 
         An invalid proposal (:func:`envs.planners.errors.checked_accelerations`) is a planner error,
-        counted in :attr:`planner_errors` (the first lines in :attr:`error_lines`): the vehicles with a
+        counted in :attr:`planner_errors` (the first ones in :attr:`errors`): the vehicles with a
         non-finite or out-of-bounds value, or all of them when the shape or dtype is wrong, get the
         fallback for this step (counted as interventions); the other values are checked as usual.
         """
@@ -214,8 +219,8 @@ class Shield(Planner):
             proposal = checked_accelerations(output, scene, self.planner.name)
         except PlannerError as error:
             self.planner_errors += 1
-            if len(self.error_lines) < MAX_ERROR_LINES:
-                self.error_lines.append(error.line())
+            if len(self.errors) < MAX_ERROR_LINES:
+                self.errors.append(error)
             if error.rows is None:
                 return self.check(scene, np.zeros(n), forced=np.ones(n, bool))
             return self.check(scene, np.where(error.rows, 0.0, np.asarray(output, float)), forced=error.rows)
