@@ -277,6 +277,13 @@ def write_report(
     out = Path(out)
     every = runs
     runs = runs[~failed_runs(every)]  # what the tables and figures measure; metrics.csv keeps every row
+    if runs.empty:  # every run failed on a planner error: the errors are the report
+        summary: dict = {}
+        add_failures(summary, every)
+        every.to_csv(out / "metrics.csv", index=False)
+        (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+        (out / "report.md").write_text(markdown_report(summary, runs, vehicles, meta).split("Figures: ")[0])
+        return summary
     planners = list(pd.unique(runs["planner"]))
     summary = summarize(runs, vehicles)
     paired = paired_differences(runs)

@@ -138,3 +138,13 @@ def test_the_command_writes_the_report_and_exits_non_zero(tmp_path, scenario, ca
     assert shielded["planner_errors"] > 0 and shielded["shield_unresolved"] == 0 and shielded["stuck_runs"] == 0
     assert len(pd.read_csv(out / "metrics.csv")) == 3
     assert "## Planner errors" in (out / "report.md").read_text()
+
+
+def test_a_report_whose_every_run_failed_still_names_the_errors(tmp_path, scenario, capsys):
+    out = tmp_path / "report"
+    code = main(["evaluate", "--planner", "envs.planners.hostile:NaNPlanner", "--scenario-dir", str(scenario.parent),
+                 "--duration", "10", "--out", str(out), "--no-progress"])  # fmt: skip
+    assert code == 1 and "Traceback" not in capsys.readouterr().out
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["NaNPlanner"]["failed_runs"] == 1
+    assert "## Planner errors" in (out / "report.md").read_text()
