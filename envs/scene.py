@@ -1,8 +1,8 @@
 """What a planner sees: a snapshot of every vehicle in the scene as arrays, one row per vehicle.
 
 Row ``i`` of every array, vertex ``i`` of the graph observation and action slot ``i`` are the
-same vehicle. The snapshot is built by the simulation once per policy step; planners must not
-modify it.
+same vehicle. The snapshot is built by the simulation once per policy step; each planner is handed
+its own :meth:`Scene.copy`, so that what it does to the arrays reaches nothing else.
 
 Step ``info`` of the intersection environment (what the metrics read), all ids are
 ``vehicle_id`` values:

@@ -39,6 +39,11 @@ run side by side for a while: inD), and merges along the common exit lane. Shoul
 the fallback still fail, every vehicle brakes at ``a_max`` and the step is counted in
 :attr:`Shield.unresolved`.
 
+Liveness: inside the intersection a planner may not brake a vehicle below :data:`LIVE_SPEED`. A committed
+vehicle gets the fallback's command instead, and one past its stop line that has not committed is
+proposed onwards (checked like any proposal). Before the line the planner decides (docs/shield.md).
+An invalid proposal is a planner error (:mod:`envs.planners.errors`), answered with the fallback.
+
 Vectorized over vehicles and pairs; the only loops run over the horizon's time steps and over the
 few rounds of overrides. The prediction (step 2), the fallback and the scan of a prediction for
 conflicts (step 3) run compiled (:mod:`envs.planners._shield_kernel`, numba): the periods are
