@@ -172,7 +172,7 @@ def run_episode(
     terminated = truncated = False
     while now - start < duration - 1e-9 and not (terminated or truncated):
         log.observe(scene)
-        acc = np.asarray(planner.act(scene), dtype=float)
+        acc = planned_accelerations(planner, scene)
         _, reward, terminated, truncated, info = env.step(base.accelerations_to_action(acc))
         log.record(info)
         total += float(reward)
@@ -205,6 +205,27 @@ def preset_returns(terms: dict[str, float]) -> dict[str, float]:
     }
 
 
+def planned_accelerations(planner, scene) -> np.ndarray:
+    """The planner's answer to a private copy of ``scene`` (what it does to the copy stays there),
+    checked (:func:`envs.planners.errors.checked_accelerations`).
+
+    :param planner: a :class:`envs.planners.Planner`
+    :param scene: the harness's scene, which the metrics read
+    :return: ``(n,)`` accelerations within the scene's bounds
+    :raises PlannerError: the output is not a valid command, or the planner raised (chained)
+    """
+    from envs.planners.errors import PlannerError, checked_accelerations
+
+    name = getattr(planner, "name", type(planner).__name__)
+    try:
+        output = planner.act(scene.copy())
+    except PlannerError:
+        raise
+    except Exception as error:  # noqa: BLE001 - whatever a planner raises is the planner's error
+        raise PlannerError(name, scene, f"raised {type(error).__name__}: {error}") from error
+    return checked_accelerations(output, scene, name)
+
+
 def _schedule(scenario: Any):
     """The :class:`envs.traffic.Scenario` behind a ``reset`` option (``None`` for none)."""
     from envs.traffic import Scenario
@@ -221,6 +242,7 @@ def run_job(job: Job, scenario: Any = None) -> tuple[dict[str, Any], pd.DataFram
     :param scenario: the loaded :class:`envs.traffic.Scenario` of ``job.scenario`` (default: read the file)
     :return: ``(metrics row, vehicle log)``, both tagged with planner, run and scenario
     """
+    from envs.planners.errors import PlannerError
     from envs.traffic import Scenario
 
     tic = time.perf_counter()
@@ -228,18 +250,28 @@ def run_job(job: Job, scenario: Any = None) -> tuple[dict[str, Any], pd.DataFram
     planner = _planner(job.planner, job.trust_files)
     if scenario is None:
         scenario = Scenario.load(job.scenario)
-    vehicles, facts = run_episode(env, planner, scenario, job.duration, seed=job.seed + job.index)
-    duration = facts["duration"] if facts["duration"] > 0 else job.duration
     row: dict[str, Any] = {"planner": job.name, "run": job.index, "scenario": Path(job.scenario).name}
+    try:
+        vehicles, facts = run_episode(env, planner, scenario, job.duration, seed=run_seed(job.seed, job.index))
+    except PlannerError as error:
+        # The planner's run is void; the other runs of the evaluation go on and are reported.
+        error.planner = job.name
+        row.update(failed=True, planner_error=error.line(Path(job.scenario).name), wall_s=time.perf_counter() - tic)
+        return row, pd.DataFrame({"planner": pd.Series(dtype=object), "run": pd.Series(dtype=np.int64)})
+    duration = facts["duration"] if facts["duration"] > 0 else job.duration
     row.update(run_metrics(vehicles, duration))
     if hasattr(planner, "interventions"):  # a shielded planner: its counters of this run
+        lines = [error.line(Path(job.scenario).name) for error in getattr(planner, "errors", [])]
         row.update(
             shield_interventions=planner.interventions,
             shield_vehicle_steps=planner.vehicle_steps,
             shield_unresolved=getattr(planner, "unresolved", 0),
+            planner_errors=getattr(planner, "planner_errors", 0),
+            planner_error="\n".join(lines) if lines else None,
         )
     row.update({key: value for key, value in facts.items() if key.startswith("return")})
     row.update(
+        failed=False,
         baseline=is_baseline(job.planner),
         steps=facts["steps"],
         terminated=facts["terminated"],
@@ -250,6 +282,15 @@ def run_job(job: Job, scenario: Any = None) -> tuple[dict[str, Any], pd.DataFram
     vehicles.insert(0, "run", job.index)
     vehicles.insert(0, "planner", job.name)
     return row, vehicles
+
+
+def run_seed(seed: int, index: int) -> int:
+    """The seed of the environment's reset and of the planner in run ``index`` of an evaluation with base ``seed``.
+
+    :param seed: the evaluation's base seed (``--seed``)
+    :param index: the scenario's index
+    """
+    return int(seed) + int(index)
 
 
 def run_shared_job(job: Job, scenarios: Sequence[Any]) -> tuple[dict[str, Any], pd.DataFrame]:

@@ -21,7 +21,7 @@ along the route.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from functools import cache
 
 import numpy as np
@@ -140,6 +140,18 @@ class Layout:
 
     def __post_init__(self) -> None:
         self.route_index = {name: i for i, name in enumerate(self.route_names)}
+        # One layout serves every simulation, shield and planner of the process (build_layout's
+        # cache): its arrays are read-only down to their buffers, so no planner changes the physics.
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, np.ndarray):
+                setattr(self, f.name, read_only(value))
+        self._sealed = True
+
+    def __setattr__(self, name: str, value) -> None:
+        if getattr(self, "_sealed", False):
+            raise AttributeError(f"Layout is read-only (one layout serves the whole process): cannot set {name!r}")
+        object.__setattr__(self, name, value)
 
     def speed_envelope(self, deceleration: float) -> np.ndarray:
         """``(R, M)`` highest speed at each sample from which every lower limit ahead can still be
@@ -156,7 +168,7 @@ class Layout:
             step = 2.0 * key * self.ds
             for k in range(env.shape[1] - 2, -1, -1):
                 env[:, k] = np.minimum(env[:, k], np.sqrt(env[:, k + 1] ** 2 + step))
-            self._envelopes[key] = env
+            self._envelopes[key] = read_only(env)
         return self._envelopes[key]
 
     def envelope_at(self, route: np.ndarray, arc: np.ndarray, deceleration: float) -> np.ndarray:
@@ -168,7 +180,7 @@ class Layout:
         key = float(deceleration)
         squared = self._envelopes_squared.get(key)
         if squared is None:  # the speed governor calls this every sub-step: square the table once
-            squared = self._envelopes_squared[key] = self.speed_envelope(key) ** 2
+            squared = self._envelopes_squared[key] = read_only(self.speed_envelope(key) ** 2)
         last = squared.shape[1] - 1
         u = np.minimum(np.maximum(arc / self.ds, 0.0), last)
         k = u.astype(np.int64)  # the sample of limit_at: clipping before truncating gives the same index
@@ -231,6 +243,17 @@ class Layout:
         """
         k = (self.route_lane_starts[route] <= arc[..., None]).sum(axis=-1) - 1
         return self.route_lane_ids[route, np.maximum(k, 0)]
+
+
+def read_only(array: np.ndarray) -> np.ndarray:
+    """A read-only copy of an array whose buffer is an immutable ``bytes`` object, so that neither
+    ``setflags(write=True)`` on it nor on its base can make it writable again.
+
+    :param array: any array of a fixed-size dtype
+    :return: the copy (same dtype and shape)
+    """
+    array = np.ascontiguousarray(array)
+    return np.frombuffer(array.tobytes(), dtype=array.dtype).reshape(array.shape)
 
 
 # ---------------------------------------------------------------------- geometry helpers
@@ -436,6 +459,7 @@ def _build(name: str, arms: list[ArmSpec], ds: float, lateral_acceleration: floa
         return np.stack([np.concatenate([x, np.repeat(x[-1:], m_max - len(x), axis=0)]) for x in arrs])
 
     xy, heading, speed_limit = pad(samples_xy), pad(samples_h), pad(samples_v)
+    speed_limit = np.minimum(speed_limit, _kink_limits(heading, speed_limit, ds, lateral_acceleration))
 
     # Spawn lanes: distinct first lanes of the routes.
     spawn_lanes: list[tuple[str, str, int]] = []
@@ -477,6 +501,32 @@ def _build(name: str, arms: list[ArmSpec], ds: float, lateral_acceleration: floa
         zone_end=zone_end,
         lateral_acceleration=lateral_acceleration,
     )
+
+
+# Half-width of the stretch around a kink over which its limit holds [m]: more than a vehicle moves in one
+# simulation sub-step at the speed cap (20 m/s at 15 Hz: 1.33 m), so that the governor, which looks up the
+# limit where a sub-step starts and where it would end, never steps over it.
+KINK_REACH = 2.0
+
+
+def _kink_limits(heading: np.ndarray, limit: np.ndarray, ds: float, lateral_acceleration: float) -> np.ndarray:
+    """``(R, M)`` speed limits from the true heading change where lanes join at a kink (inD's lane shifts).
+
+    The curvature of sample interval ``i`` is ``|heading[i + 1] - heading[i]| / ds``, and
+    ``sqrt(a_lat / kappa)`` the speed at which it takes ``a_lat``. Where that is below the lane limits
+    on both sides of the interval (a join the lanes' own limits do not know of; circular lanes are
+    already limited), it holds within :data:`KINK_REACH` of the interval; elsewhere ``inf``.
+    """
+    kappa = np.abs(np.diff(heading, axis=1)) / ds  # (R, M - 1)
+    with np.errstate(divide="ignore"):
+        curve = np.sqrt(lateral_acceleration / kappa)
+    known = np.minimum(limit[:, :-1], limit[:, 1:])
+    kink = np.where(curve < 0.95 * known, curve, np.inf)
+    kink = np.concatenate([kink, np.full((kink.shape[0], 1), np.inf)], axis=1)  # (R, M): sample i = interval i
+    reach = int(np.ceil(KINK_REACH / ds))
+    padded = np.pad(kink, ((0, 0), (reach, reach)), constant_values=np.inf)
+    windows = np.lib.stride_tricks.sliding_window_view(padded, 2 * reach + 1, axis=1)
+    return windows.min(axis=-1)
 
 
 def _lane_limit(lane: AbstractLane, lateral_acceleration: float) -> float:

@@ -76,6 +76,9 @@ PRIORITIES = ("major", "minor")
 STOP_GROUPS = ("all",) + PRIORITIES + tuple(MANEUVERS)
 # A vehicle faster than its lane's limit by more than this [m/s] violates it (issue 11).
 SPEED_TOLERANCE = 0.1
+# The liveness watchdog: a run is *stuck* when for this long no vehicle crossed the intersection while
+# some vehicle waited to (appeared, or was due to appear, and had neither crossed nor left) [s].
+STANDSTILL_LIMIT = 30.0
 _FLOAT_COLUMNS = (
     "scheduled", "first_seen", "path_length", "speed_limit", "crossed", "removed", "censored",
     "free_flow", "free_flow_covered",
@@ -362,6 +365,37 @@ def _ratio(stopped: int, total: int) -> float:
     return float(stopped / total) if total else float("nan")
 
 
+def standstill(vehicles: pd.DataFrame, duration: float, start: float = 0.0) -> tuple[float, float]:
+    """The liveness watchdog's reading of one run: the longest time without a crossing while some
+    vehicle waited, and the time of the last crossing.
+
+    Between two consecutive crossings (and from the start to the first, from the last to the end) the
+    standstill is measured from the later of the interval's start and the earliest appearance (the
+    scheduled one if earlier, e.g. a vehicle the jam kept from appearing) among the vehicles still
+    waiting at its end.
+
+    :param vehicles: the run's vehicle log
+    :param duration: simulated duration of the run [s]
+    :param start: simulated time at which the run started [s]
+    :return: ``(longest standstill [s], last crossing [s], nan if none)``
+    """
+    end = start + float(duration)
+    crossed = _column(vehicles, "crossed").astype(float).to_numpy()
+    removed = _column(vehicles, "removed").astype(float).to_numpy()
+    appear = np.fmin(_column(vehicles, "first_seen").astype(float).to_numpy(),
+                     _column(vehicles, "scheduled").astype(float).to_numpy())  # fmt: skip
+    leave = np.where(np.isnan(crossed), np.where(np.isnan(removed), np.inf, removed), crossed)
+    times = np.sort(crossed[np.isfinite(crossed)])
+    lo = np.concatenate([[start], times])
+    hi = np.concatenate([times, [end]])
+    # (intervals, vehicles): waiting at the interval's end, since its appearance
+    waiting = (appear[None, :] < hi[:, None]) & (leave[None, :] >= hi[:, None])
+    first = np.where(waiting, appear[None, :], np.inf).min(axis=1, initial=np.inf)
+    length = np.where(np.isfinite(first), hi - np.maximum(lo, first), 0.0)
+    last = float(times[-1]) if times.size else float("nan")
+    return float(max(length.max(initial=0.0), 0.0)), last
+
+
 def run_metrics(vehicles: pd.DataFrame, duration: float) -> dict[str, float | int]:
     """Metrics of one run (one row of ``metrics.csv``).
 
@@ -370,7 +404,9 @@ def run_metrics(vehicles: pd.DataFrame, duration: float) -> dict[str, float | in
     :return: ``duration_s, vehicles, vehicles_scheduled, not_spawned, crossed, flow_rate`` [veh/s],
         ``offered_flow`` [veh/s], ``stop_ratio_<group>`` and ``vehicles_<group>`` for every group of
         :data:`STOP_GROUPS`, ``collided``, ``collision_rate``, ``delay_mean``, ``delay_median``,
-        ``travel_time_mean`` [s], ``speed_limit_violations`` [vehicle-steps], ``governor_share``
+        ``travel_time_mean`` [s], ``speed_limit_violations`` [vehicle-steps], ``governor_share``,
+        ``longest_standstill_s``, ``stuck`` (the watchdog, :func:`standstill` against
+        :data:`STANDSTILL_LIMIT`) and ``last_crossing_s``
     """
     if duration <= 0:
         raise ValueError(f"duration must be positive, got {duration}")
@@ -398,6 +434,10 @@ def run_metrics(vehicles: pd.DataFrame, duration: float) -> dict[str, float | in
     row["travel_time_mean"] = float(travel.mean()) if len(travel) else float("nan")
     row["speed_limit_violations"] = violations(vehicles)
     row["governor_share"] = governor_share(vehicles)
+    longest, last = standstill(vehicles, duration)
+    row["longest_standstill_s"] = longest
+    row["stuck"] = bool(longest >= STANDSTILL_LIMIT)
+    row["last_crossing_s"] = last
     return row
 
 
@@ -412,7 +452,8 @@ def summarize(runs: pd.DataFrame, vehicles: pd.DataFrame) -> dict[str, dict[str,
     :return: ``planner -> {"runs", "vehicles", "vehicles_scheduled", "not_spawned",
         "flow_rate": {median, q1, q3, mean}, "offered_flow" (mean over runs), "stop_ratio": {all, major,
         minor, left, straight, right}, "collision_rate", "delay_s": {median, mean},
-        "speed_limit_violations", "governor_share"}``
+        "speed_limit_violations", "governor_share", "stuck_runs" (runs the watchdog found stuck),
+        "last_crossing_s" (per run, in run order; ``None`` for a run without a crossing)}``
     """
     summary: dict[str, dict[str, Any]] = {}
     for planner in pd.unique(runs["planner"]):
@@ -440,6 +481,8 @@ def summarize(runs: pd.DataFrame, vehicles: pd.DataFrame) -> dict[str, dict[str,
             },
             "speed_limit_violations": violations(v),
             "governor_share": _finite(governor_share(v)),
+            "stuck_runs": int(_column(r, "stuck", False).astype(bool).sum()),
+            "last_crossing_s": [_finite(t) for t in _column(r, "last_crossing_s").astype(float)],
         }
     return summary
 

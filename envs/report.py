@@ -96,6 +96,8 @@ def markdown_report(
     """
     lines = ["# Planner evaluation", ""]
     lines += [f"- {key}: {value}" for key, value in meta.items()]
+    errors = {name: s for name, s in summary.items() if s.get("planner_error_lines")}
+    summary = {name: s for name, s in summary.items() if "flow_rate" in s}  # planners with a measured run
     lines += ["", "## Flow rate [veh/s]", ""]
     lines += ["| planner | runs | median | q1 | q3 | mean | offered (mean) | not spawned (jam), per run |"]
     lines += ["|---|---:|---:|---:|---:|---:|---:|---:|"]
@@ -130,11 +132,21 @@ def markdown_report(
         )
     if paired is not None and not paired.empty:
         lines += _paired_section(paired)
-    shielded = [(name, s["shield_interventions"]) for name, s in summary.items() if "shield_interventions" in s]
+    shielded = [(name, s) for name, s in summary.items() if "shield_interventions" in s]
     if shielded:
         lines += ["", "## Safety shield: commands replaced, share of vehicle-steps", ""]
-        lines += ["| planner | interventions |", "|---|---:|"]
-        lines += [f"| {name} | {_pct(rate)} |" for name, rate in shielded]
+        lines += ["| planner | interventions | unresolved steps | planner errors (steps) | stuck runs |"]
+        lines += ["|---|---:|---:|---:|---:|"]
+        lines += [
+            f"| {name} | {_pct(s['shield_interventions'])} | {s.get('shield_unresolved', 'n/a')} "
+            f"| {s.get('planner_errors', 'n/a')} | {s.get('stuck_runs', 'n/a')} |"
+            for name, s in shielded
+        ]
+    if errors:
+        lines += ["", "## Planner errors", ""]
+        lines += ["Runs without the shield that a planner error voided are left out of every table above.", ""]
+        for name, s in errors.items():
+            lines.append(f"- {name}: {s.get('failed_runs', 0)} failed runs; first: `{s['planner_error_lines'][0]}`")
     lines += ["", "Figures: " + ", ".join(f"![{f}]({f})" for f in FIGURES), ""]
     lines += ["## How to read these numbers", "", *NOTES, ""]
     return "\n".join(lines)
@@ -293,6 +305,36 @@ def add_shield_interventions(summary: dict, runs: pd.DataFrame) -> None:
         steps = float(rows["shield_vehicle_steps"].sum())
         if len(rows):
             s["shield_interventions"] = float(rows["shield_interventions"].sum()) / steps if steps else None
+            for column in ("shield_unresolved", "planner_errors"):
+                if column in rows:
+                    s[column] = int(rows[column].fillna(0).sum())
+
+
+def add_failures(summary: dict, runs: pd.DataFrame) -> None:
+    """Add ``failed_runs`` and the planner-error lines to the summary of every planner with a planner
+    error (in place); a planner all of whose runs failed gets an entry of its own.
+
+    :param summary: :func:`envs.metrics.summarize` output of the runs that did not fail
+    :param runs: every ``metrics.csv`` row, with ``failed`` and ``planner_error``
+    """
+    if "planner_error" not in runs:
+        return
+    for name in pd.unique(runs["planner"]):
+        rows = runs[runs["planner"] == name]
+        failed = rows["failed"].fillna(False).astype(bool) if "failed" in rows else pd.Series(False, rows.index)
+        lines = [str(x) for x in rows["planner_error"].dropna()]
+        if not lines:
+            continue
+        entry = summary.setdefault(str(name), {"runs": 0})
+        entry["failed_runs"] = int(failed.sum())
+        entry["planner_error_lines"] = "\n".join(lines).splitlines()
+
+
+def failed_runs(runs: pd.DataFrame) -> pd.Series:
+    """``(rows,)`` bool: the runs that a planner error voided (``failed`` in ``metrics.csv``)."""
+    if "failed" not in runs:
+        return pd.Series(False, index=runs.index)
+    return runs["failed"].fillna(False).astype(bool)
 
 
 def write_report(
@@ -307,12 +349,22 @@ def write_report(
     :return: the summary written to ``summary.json``
     """
     out = Path(out)
+    every = runs
+    runs = runs[~failed_runs(every)]  # what the tables and figures measure; metrics.csv keeps every row
+    if runs.empty:  # every run failed on a planner error: the errors are the report
+        summary: dict = {}
+        add_failures(summary, every)
+        every.to_csv(out / "metrics.csv", index=False)
+        (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+        (out / "report.md").write_text(markdown_report(summary, runs, vehicles, meta).split("Figures: ")[0])
+        return summary
     planners = list(pd.unique(runs["planner"]))
     summary = summarize(runs, vehicles)
     paired = paired_differences(runs)
     add_collided_counts(summary, vehicles)
     add_shield_interventions(summary, runs)
-    runs.to_csv(out / "metrics.csv", index=False)
+    add_failures(summary, every)
+    every.to_csv(out / "metrics.csv", index=False)
     vehicles.to_csv(out / "vehicles.csv", index=False)
     paired.to_csv(out / "paired.csv", index=False)
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")

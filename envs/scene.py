@@ -1,8 +1,8 @@
 """What a planner sees: a snapshot of every vehicle in the scene as arrays, one row per vehicle.
 
 Row ``i`` of every array, vertex ``i`` of the graph observation and action slot ``i`` are the
-same vehicle. The snapshot is built by the simulation once per policy step; planners must not
-modify it.
+same vehicle. The snapshot is built by the simulation once per policy step; each planner is handed
+its own :meth:`Scene.copy`, so that what it does to the arrays reaches nothing else.
 
 Step ``info`` of the intersection environment (what the metrics read), all ids are
 ``vehicle_id`` values:
@@ -31,7 +31,7 @@ Added by the environment (all ids are ``vehicle_id`` values):
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields, replace
 from typing import Any
 
 import numpy as np
@@ -114,3 +114,12 @@ class Scene:
     def approaching(self) -> np.ndarray:
         """``(n,)`` bool: the vehicle has not yet left the intersection area."""
         return self.dist_to_exit > 0
+
+    def copy(self) -> Scene:
+        """A copy whose arrays are the copy's own (the layout is shared: it is read-only).
+
+        The harness hands each planner such a copy, so that what a planner does to the scene it is
+        given reaches neither the shield, nor the metrics, nor the simulation.
+        """
+        own = {f.name: getattr(self, f.name) for f in fields(self)}
+        return replace(self, **{k: v.copy() for k, v in own.items() if isinstance(v, np.ndarray)})

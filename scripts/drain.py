@@ -17,7 +17,7 @@ from pathlib import Path
 import gymnasium as gym
 
 import envs  # noqa: F401 - registers the environments
-from envs.evaluation import evaluation_env_kwargs, run_episode
+from envs.evaluation import evaluation_env_kwargs, run_episode, run_seed
 from envs.planners import make_planner
 from envs.traffic import Scenario
 
@@ -42,13 +42,30 @@ def drain(scenario: Scenario, planner_spec: str, seed: int, until: float, env_id
     }
 
 
+def report_seed(report: Path) -> int | None:
+    """The base seed of a report (the ``- seed:`` line of its ``report.md``), ``None`` if it has none."""
+    path = report / "report.md"
+    if path.is_file():
+        for line in path.read_text().splitlines():
+            if line.startswith("- seed: ") and line[8:].strip().lstrip("-").isdigit():
+                return int(line[8:].strip())
+    return None
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("report", type=Path, help="an sb3-graph evaluate report folder (its scenarios/)")
-    parser.add_argument("run", type=int, help="scenario index (scenario_<run>.json; its seed is the run's)")
+    parser.add_argument("run", type=int, help="scenario index (scenario_<run>.json)")
     parser.add_argument("--planner", required=True, help="planner spec, as for sb3-graph evaluate")
     parser.add_argument("--until", type=float, default=200.0, help="simulated seconds to run to (> the scenario's)")
     parser.add_argument("--env", default="CoopIntersection4Way-v0", help="environment id")
+    parser.add_argument(
+        "--seed",
+        type=int,
+        default=None,
+        help="the report's base seed (sb3-graph evaluate --seed; default: the seed its report.md names, else 0): "
+        "the run replays with the seed the harness gave it",
+    )
     args = parser.parse_args(argv)
     path = args.report / "scenarios" / f"scenario_{args.run:03d}.json"
     if not path.is_file():
@@ -56,7 +73,8 @@ def main(argv: list[str] | None = None) -> int:
     scenario = Scenario.load(path)
     if args.until <= scenario.duration:
         parser.error(f"--until must exceed the scenario's duration {scenario.duration:g} s, got {args.until:g}")
-    print(drain(scenario, args.planner, args.run, args.until, args.env))
+    seed = args.seed if args.seed is not None else report_seed(args.report) or 0
+    print(drain(scenario, args.planner, run_seed(seed, args.run), args.until, args.env))
     return 0
 
 

@@ -17,7 +17,8 @@ from envs.scene import MAJOR, MINOR, STRAIGHT, Scene
 
 SUMMARY_KEYS = {
     "runs", "vehicles", "vehicles_scheduled", "not_spawned", "flow_rate", "offered_flow", "stop_ratio",
-    "collision_rate", "collided", "delay_s", "speed_limit_violations", "governor_share",
+    "collision_rate", "collided", "delay_s", "speed_limit_violations", "governor_share", "stuck_runs",
+    "last_crossing_s",
 }  # fmt: skip
 
 

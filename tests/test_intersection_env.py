@@ -68,12 +68,13 @@ def test_reset_seed_is_reproducible():
 
 @pytest.mark.parametrize("env_id", ["CoopIntersection4Way-v0", "CoopIntersectionInD-v0"])
 def test_scenario_file_replays_the_same_trajectories(tmp_path, env_id):
-    env = gym.make(env_id)
+    config = {"collision_handling": "remove"}  # a collision of the simple rule must not end the replay early
+    env = gym.make(env_id, config=config)
     scenario = generate_scenario(env.unwrapped.config["layout"], 20.0, 4, rate_range=(0.4, 0.4))
     path = scenario.save(tmp_path / "scenario.json")
     a, infos = _rollout(env, 500, {"options": {"scenario": scenario}})
     env.reset(seed=999)  # training traffic in between must not matter
-    b, _ = _rollout(gym.make(env_id), 500, {"seed": 3, "options": {"scenario": str(path)}})
+    b, _ = _rollout(gym.make(env_id, config=config), 500, {"seed": 3, "options": {"scenario": str(path)}})
     _same(a, b)
     assert infos[-1]["time"] == pytest.approx(20.0)  # truncated at the scenario's duration
     entered = np.concatenate([i["entered"] for i in infos])

@@ -31,6 +31,11 @@ Model planners (``.safetensors`` policy files or SB3 ``.zip`` files) are loaded 
 against the environment before any run starts, without running code from the file
 (``--trust-planner-files`` loads a ``.zip`` with SB3's full ``load`` of its algorithm, for one's own files).
 
+A planner's answer is checked every step (:mod:`envs.planners.errors`): an invalid one (NaN, inf, out of
+bounds, wrong shape or dtype) or a planner that raises voids that planner's run without the shield,
+the other runs are still reported and the command exits with status 1; behind the shield the fallback
+takes over and the step counts in ``planner_errors``.
+
 A collision does not end a run: the vehicles involved are counted as collided and leave the
 scene, and the run goes on for its whole duration (``--env-kwargs '{"config":
 {"collision_handling": "terminate"}}'`` ends it instead, as in training).
@@ -271,7 +276,7 @@ def duration_text(runs, requested: float) -> str:
 
 def run(args: argparse.Namespace) -> int:
     from envs.evaluation import check_scenarios, find_scenarios, generate_scenarios
-    from envs.report import collided_text, format_number, write_report
+    from envs.report import write_report
     from sb3_graph.outputs import OutputError, staged_folder
 
     planners = _check(args)
@@ -317,19 +322,41 @@ def run(args: argparse.Namespace) -> int:
             write_run_info(stage, stats, time.perf_counter() - tic, replay)
     except OutputError as error:
         raise UserError(str(error)) from None
-    width = max([10, *(len(name) for name in summary)])
-    for name, s in summary.items():
-        f, sr = s["flow_rate"], s["stop_ratio"]
-        print(
-            f"{name:>{width}}: flow median {format_number(f['median'])} veh/s,"
-            f" stops major {format_number(sr['major'])} minor {format_number(sr['minor'])},"
-            f" collided {collided_text(s.get('collided'), s['vehicles'])}, delay mean"
-            f" {format_number(s['delay_s']['mean'], 2)} s, {s['speed_limit_violations']} speed-limit violations"
-            f" ({s['vehicles']} scheduled vehicles, {s['not_spawned']} not spawned (jam))"
-        )
+    print_summary(summary)
     print(run_line(stats))
     print(f"report written to {out} ({wall:.1f} s)")
+    failed = sum(s.get("failed_runs", 0) for s in summary.values())
+    if failed:
+        print(f"{failed} runs failed on a planner error (see above and metrics.csv): exit status 1")
+        return 1
     return 0
+
+
+def print_summary(summary: dict[str, dict[str, Any]]) -> None:
+    """One line per planner on the console, the shield's counters and the planner errors after it."""
+    from envs.report import collided_text, format_number
+
+    width = max([10, *(len(name) for name in summary)])
+    for name, s in summary.items():
+        if "flow_rate" in s:
+            f, sr = s["flow_rate"], s["stop_ratio"]
+            print(
+                f"{name:>{width}}: flow median {format_number(f['median'])} veh/s,"
+                f" stops major {format_number(sr['major'])} minor {format_number(sr['minor'])},"
+                f" collided {collided_text(s.get('collided'), s['vehicles'])}, delay mean"
+                f" {format_number(s['delay_s']['mean'], 2)} s, {s['speed_limit_violations']} speed-limit violations"
+                f" ({s['vehicles']} scheduled vehicles, {s['not_spawned']} not spawned (jam)),"
+                f" {s.get('stuck_runs', 0)} stuck runs"
+            )
+        if "shield_interventions" in s:
+            print(
+                f"{'':>{width}}  shield: interventions {format_number(s['shield_interventions'])},"
+                f" unresolved steps {s.get('shield_unresolved', 0)}, planner errors {s.get('planner_errors', 0)}"
+            )
+        if s.get("failed_runs"):
+            print(f"{name:>{width}}: {s['failed_runs']} runs failed (left out of the report's tables)")
+        for line in s.get("planner_error_lines", [])[:3]:
+            print(f"{'':>{width}}  {line}")
 
 
 def run_harness(args: argparse.Namespace, planners: Sequence[tuple[str, str]], scenarios: Sequence[Path]):

@@ -39,6 +39,11 @@ run side by side for a while: inD), and merges along the common exit lane. Shoul
 the fallback still fail, every vehicle brakes at ``a_max`` and the step is counted in
 :attr:`Shield.unresolved`.
 
+Liveness: inside the intersection a planner may not brake a vehicle below :data:`LIVE_SPEED`. A committed
+vehicle gets the fallback's command instead, and one past its stop line that has not committed is
+proposed onwards (checked like any proposal). Before the line the planner decides (docs/shield.md).
+An invalid proposal is a planner error (:mod:`envs.planners.errors`), answered with the fallback.
+
 Vectorized over vehicles and pairs; the only loops run over the horizon's time steps and over the
 few rounds of overrides. The prediction (step 2), the fallback and the scan of a prediction for
 conflicts (step 3) run compiled (:mod:`envs.planners._shield_kernel`, numba): the periods are
@@ -59,6 +64,7 @@ import numpy as np
 from envs.layouts import CONFLICT_DISTANCE
 from envs.planners import _shield_kernel
 from envs.planners.base import Planner
+from envs.planners.errors import PlannerError, checked_accelerations
 from envs.scene import Scene
 from envs.simulation import integrate
 
@@ -68,6 +74,11 @@ _STANDING = 1e-6
 # Slack on "can stop before the zone" [m]: the simulation's trapezoid integration overshoots the
 # exact stopping distance by at most ``a_max * h^2 / 8`` (4 mm at 15 Hz).
 _STOP_SLACK = 0.05
+# Liveness: inside the intersection, a planner may slow a vehicle down to this speed but not further
+# (below it, the fallback's command or, before the vehicle commits, going on is checked instead) [m/s].
+LIVE_SPEED = 2.0
+# Planner-error lines a shield keeps per run (the count is complete).
+MAX_ERROR_LINES = 5
 
 
 @dataclass
@@ -175,6 +186,8 @@ class Shield(Planner):
         self.interventions = 0
         self.vehicle_steps = 0
         self.unresolved = 0
+        self.planner_errors = 0
+        self.errors: list[PlannerError] = []
         self.last_overridden = np.zeros(0, bool)
 
     # ------------------------------------------------------------------ planner face
@@ -184,6 +197,13 @@ class Shield(Planner):
         self.interventions = 0
         self.vehicle_steps = 0
         self.unresolved = 0
+        self.planner_errors = 0
+        self.errors = []
+
+    @property
+    def error_lines(self) -> list[str]:
+        """The first planner errors of the run (at most :data:`MAX_ERROR_LINES`), one line each."""
+        return [error.line() for error in self.errors]
 
     @property
     def intervention_rate(self) -> float:
@@ -191,20 +211,40 @@ class Shield(Planner):
         return self.interventions / self.vehicle_steps if self.vehicle_steps else float("nan")
 
     def act(self, scene: Scene) -> np.ndarray:
-        proposal = np.asarray(self.planner.act(scene), dtype=float).reshape(scene.num_vehicles)
+        """The wrapped planner's proposal for a private copy of the scene, checked on the shield's own.
+
+        An invalid proposal (:func:`envs.planners.errors.checked_accelerations`) is a planner error,
+        counted in :attr:`planner_errors` (the first ones in :attr:`errors`): the vehicles with a
+        non-finite or out-of-bounds value, or all of them when the shape or dtype is wrong, get the
+        fallback for this step (counted as interventions); the other values are checked as usual.
+        """
+        n = scene.num_vehicles
+        output = self.planner.act(scene.copy())
+        try:
+            proposal = checked_accelerations(output, scene, self.planner.name)
+        except PlannerError as error:
+            self.planner_errors += 1
+            if len(self.errors) < MAX_ERROR_LINES:
+                self.errors.append(error)
+            if error.rows is None:
+                return self.check(scene, np.zeros(n), forced=np.ones(n, bool))
+            return self.check(scene, np.where(error.rows, 0.0, np.asarray(output, float)), forced=error.rows)
         return self.check(scene, proposal)
 
-    def check(self, scene: Scene, proposal: np.ndarray) -> np.ndarray:
+    def check(self, scene: Scene, proposal: np.ndarray, forced: np.ndarray | None = None) -> np.ndarray:
         """The safe version of a proposal: ``proposal`` where it passes, the fallback where it does not.
 
         Records the overridden vehicles in :attr:`last_overridden` and the counters.
 
         :param scene: the vehicles now (must carry ``layout`` and ``arc``)
         :param proposal: ``(n,)`` proposed accelerations [m/s^2]
+        :param forced: ``(n,)`` bool: vehicles that get the fallback whatever they were proposed
+            (counted as overridden); default none
         :return: ``(n,)`` accelerations to apply
         """
         n = scene.num_vehicles
         acc = np.clip(np.asarray(proposal, dtype=float).reshape(n), scene.a_min, scene.a_max)
+        forced = np.zeros(n, bool) if forced is None else np.asarray(forced, bool).reshape(n)
         self.last_overridden = np.zeros(n, bool)
         if n == 0:
             return acc
@@ -212,8 +252,14 @@ class Shield(Planner):
             raise ValueError("the shield needs the scene's layout and arcs (scenes built by the simulation have them)")
         plan = self._plan(scene)
         fallback = self._fallback(scene, plan, plan.arc, plan.speed)
+        acc = np.where(forced, fallback, acc)
+        # Liveness: a vehicle past its stop line that the proposal brakes is proposed onwards instead
+        # (checked like any proposal: where going on conflicts, the fallback brakes it).
+        lifted = self._parked_past_the_line(scene, plan, acc) & ~forced
+        acc = np.where(lifted, min(self.proceed_acceleration, float(scene.a_max)), acc)
         deviates = np.abs(acc - fallback) > 1e-9
-        overridden = self._awaited_and_braked(scene, plan, acc, fallback)
+        overridden = forced | self._awaited_and_braked(scene, plan, acc, fallback)
+        overridden |= self._committed_and_braked(scene, plan, acc, fallback)
         command = acc
         for _ in range(n + 1):
             command = np.where(overridden, fallback, acc)
@@ -227,13 +273,36 @@ class Shield(Planner):
                 # last step, or the scene started unsafe): everyone brakes. Counted in `unresolved`.
                 self.unresolved += 1
                 command = np.full(n, float(scene.a_min))
-                overridden = np.abs(acc - command) > 1e-9
+                overridden = forced | (np.abs(acc - command) > 1e-9)
                 break
             overridden |= blamed
+        overridden = overridden | lifted
         self.last_overridden = overridden
         self.interventions += int(overridden.sum())
         self.vehicle_steps += n
         return command
+
+    def _parked_past_the_line(self, scene: Scene, plan: _Plan, acc: np.ndarray) -> np.ndarray:
+        """``(n,)`` bool: vehicles whose front is past their stop line, that have not yet committed
+        (they can still stop before their first zone: the fallback would hold them there too) and that
+        the proposal brakes below :data:`LIVE_SPEED`. A planner may hold vehicles before the line, not
+        inside the intersection."""
+        go = self.committed(plan, plan.arc, plan.speed, float(scene.a_max))
+        return (np.asarray(scene.dist_to_entry) < 0) & ~go & (acc < 0) & self._slowed_to_a_crawl(scene, plan, acc)
+
+    def _slowed_to_a_crawl(self, scene: Scene, plan: _Plan, acc: np.ndarray) -> np.ndarray:
+        """``(n,)`` bool: the proposal leaves the vehicle below :data:`LIVE_SPEED` after this period."""
+        return plan.speed + acc * float(scene.dt) < LIVE_SPEED
+
+    def _committed_and_braked(self, scene: Scene, plan: _Plan, acc: np.ndarray, fallback: np.ndarray) -> np.ndarray:
+        """``(n,)`` bool: committed vehicles (:meth:`committed`: they can no longer stop before their first
+        zone, or have cleared them all) that the proposal brakes below the fallback and below
+        :data:`LIVE_SPEED`. They get the fallback, so that the box always drains: a planner may hold
+        vehicles before the line, never inside the intersection or on the exit lanes that the vehicles
+        behind them must reach (the fallback itself brakes where safety needs it, and the check still
+        runs on the result)."""
+        go = self.committed(plan, plan.arc, plan.speed, float(scene.a_max))
+        return go & (acc < np.minimum(fallback, 0.0) - 1e-9) & self._slowed_to_a_crawl(scene, plan, acc)
 
     def _awaited_and_braked(self, scene: Scene, plan: _Plan, acc: np.ndarray, fallback: np.ndarray) -> np.ndarray:
         """``(n,)`` bool: vehicles that another one waits for (:meth:`_waits`) and that the proposal brakes

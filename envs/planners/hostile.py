@@ -1,0 +1,218 @@
+"""Hostile planners: the attacks on the safety shield and on the harness that its table in the README runs.
+
+Each one tries a way to break the evaluation from the only place a planner sits: the scene it is
+handed and the array it returns. Run them by class name behind the shield, e.g.
+``sb3-graph evaluate --planner envs.planners.hostile:BoxParker --shield``;
+``scripts/hostile_table.py`` runs them all on every layout.
+
+- :class:`SceneEditor` writes into every array of its scene (to blind the shield) and drives at full throttle.
+- :class:`LayoutEditor` tries to raise the speed limits of the shared layout (to change the physics for
+  everyone) and drives at full throttle.
+- :class:`CollisionSeeker` times each vehicle to reach the intersection together with a crossing one.
+- :class:`BrakeChecker` drives at full throttle and brakes hard every few seconds.
+- :class:`BoxParker` stops every vehicle that is inside the intersection (to stall it).
+- :class:`BangBang` alternates full throttle and full braking every step.
+- :class:`NaNPlanner` answers NaN for one vehicle every step (an invalid output).
+- :class:`LineHolder` holds every vehicle before the stop line forever: the shield's liveness guarantee
+  does not cover it (see the README's "The safety shield").
+"""
+
+from __future__ import annotations
+
+from dataclasses import fields
+
+import numpy as np
+
+from envs.planners.base import Planner
+from envs.scene import Scene
+
+
+def _inside(scene: Scene) -> np.ndarray:
+    """``(n,)`` bool: past the stop line and not yet out of the intersection area."""
+    return (scene.dist_to_entry < 0) & (scene.dist_to_exit > 0)
+
+
+class SceneEditor(Planner):
+    """Overwrites every array of the scene it is handed (speeds 0, positions far away, no leaders, no
+    conflicts, ...), tries the layout's arrays too, and commands full throttle.
+
+    :attr:`writes` counts the writes that went through (into the planner's own copy only),
+    :attr:`refused` those the read-only layout refused.
+
+    :param name: the name shown in reports
+    """
+
+    def __init__(self, name: str = "SceneEditor") -> None:
+        super().__init__(name)
+        self.writes = 0
+        self.refused = 0
+
+    def act(self, scene: Scene) -> np.ndarray:
+        for f in fields(scene):
+            value = getattr(scene, f.name)
+            if isinstance(value, np.ndarray) and value.size:
+                try:
+                    value[...] = -1 if value.dtype.kind in "iub" else 1e6
+                    self.writes += 1
+                except ValueError:
+                    self.refused += 1
+        if scene.layout is not None:
+            self.refused += _attack_layout(scene.layout)
+        return np.full(scene.num_vehicles, float(scene.a_max))
+
+
+def _attack_layout(layout) -> int:
+    """Try to make every array of a layout writable and raise its speed limits; the refused attempts."""
+    refused = 0
+    for name, value in list(vars(layout).items()):
+        if not isinstance(value, np.ndarray):
+            continue
+        for target in (value, value.base):
+            try:
+                if isinstance(target, np.ndarray):
+                    target.setflags(write=True)
+            except ValueError:
+                refused += 1
+        try:
+            value[...] = 20.0 if name in ("speed_limit",) else value
+        except ValueError:
+            refused += 1
+    try:
+        layout.speed_limit = np.full_like(layout.speed_limit, 20.0)
+    except AttributeError:
+        refused += 1
+    return refused
+
+
+class LayoutEditor(Planner):
+    """Tries to set every speed limit of the shared layout to 20 m/s (``speed_limit[:] = 20``, through
+    ``setflags``, its base, and by replacing the attribute), then commands full throttle.
+
+    :param name: the name shown in reports
+    """
+
+    def __init__(self, name: str = "LayoutEditor") -> None:
+        super().__init__(name)
+        self.refused = 0
+
+    def act(self, scene: Scene) -> np.ndarray:
+        if scene.layout is not None:
+            self.refused += _attack_layout(scene.layout)
+        return np.full(scene.num_vehicles, float(scene.a_max))
+
+
+class CollisionSeeker(Planner):
+    """Times every approaching vehicle to reach the intersection together with the crossing vehicle
+    whose arrival is closest to its own (throttle when later, brake when earlier); full throttle
+    inside and after.
+
+    :param name: the name shown in reports
+    """
+
+    def __init__(self, name: str = "CollisionSeeker") -> None:
+        super().__init__(name)
+
+    def act(self, scene: Scene) -> np.ndarray:
+        n = scene.num_vehicles
+        acc = np.full(n, float(scene.a_max))
+        if n < 2:
+            return acc
+        arrival = np.maximum(scene.dist_to_entry, 0.0) / np.maximum(scene.speed, 0.5)
+        partner = scene.conflicts[scene.route[:, None], scene.route[None, :]] & scene.approaching[None, :]
+        spread = np.where(partner, np.abs(arrival[:, None] - arrival[None, :]), np.inf)
+        target = spread.argmin(axis=1)
+        has = np.isfinite(spread[np.arange(n), target]) & (scene.dist_to_entry > 0)
+        early = arrival < arrival[target]
+        acc[has & early] = float(scene.a_min)
+        return acc
+
+
+class BrakeChecker(Planner):
+    """Full throttle, except that every vehicle with an even id brakes at ``a_min`` for the first
+    ``brake`` seconds of every ``period`` seconds.
+
+    :param name: the name shown in reports
+    :param period: cycle length [s]
+    :param brake: braking time per cycle [s]
+    """
+
+    def __init__(self, name: str = "BrakeChecker", period: float = 3.0, brake: float = 1.0) -> None:
+        super().__init__(name)
+        self.period = float(period)
+        self.brake = float(brake)
+
+    def act(self, scene: Scene) -> np.ndarray:
+        acc = np.full(scene.num_vehicles, float(scene.a_max))
+        if (scene.time % self.period) < self.brake:
+            acc[scene.vehicle_id % 2 == 0] = float(scene.a_min)
+        return acc
+
+
+class BoxParker(Planner):
+    """Brakes every vehicle inside the intersection area to a standstill; full throttle elsewhere.
+
+    :param name: the name shown in reports
+    """
+
+    def __init__(self, name: str = "BoxParker") -> None:
+        super().__init__(name)
+
+    def act(self, scene: Scene) -> np.ndarray:
+        return np.where(_inside(scene), float(scene.a_min), float(scene.a_max))
+
+
+class BangBang(Planner):
+    """Every vehicle alternates full throttle and full braking from one step to the next.
+
+    :param name: the name shown in reports
+    """
+
+    def __init__(self, name: str = "BangBang") -> None:
+        super().__init__(name)
+        self.steps = 0
+
+    def reset(self, seed: int | None = None) -> None:
+        self.steps = 0
+
+    def act(self, scene: Scene) -> np.ndarray:
+        self.steps += 1
+        value = scene.a_max if self.steps % 2 else scene.a_min
+        return np.full(scene.num_vehicles, float(value))
+
+
+class NaNPlanner(Planner):
+    """Full throttle, but NaN for one vehicle of every scene (a different row each step): an invalid
+    output every step.
+
+    :param name: the name shown in reports
+    """
+
+    def __init__(self, name: str = "NaNPlanner") -> None:
+        super().__init__(name)
+        self.steps = 0
+
+    def reset(self, seed: int | None = None) -> None:
+        self.steps = 0
+
+    def act(self, scene: Scene) -> np.ndarray:
+        acc = np.full(scene.num_vehicles, float(scene.a_max))
+        if scene.num_vehicles:
+            acc[self.steps % scene.num_vehicles] = np.nan
+        self.steps += 1
+        return acc
+
+
+class LineHolder(Planner):
+    """Holds every vehicle that can still stop before the stop line there, forever; full throttle for
+    the others. No shield can make this planner's traffic flow without overruling it everywhere.
+
+    :param name: the name shown in reports
+    """
+
+    def __init__(self, name: str = "LineHolder") -> None:
+        super().__init__(name)
+
+    def act(self, scene: Scene) -> np.ndarray:
+        a = float(scene.a_max)
+        can_stop = scene.dist_to_entry - scene.speed**2 / (2 * a) > 0.5
+        return np.where(can_stop | (scene.speed < 1e-6) & (scene.dist_to_entry > 0), -a, a)

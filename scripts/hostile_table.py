@@ -1,0 +1,104 @@
+"""The hostile-planner table of the README ("The safety shield"): every attack of
+:mod:`envs.planners.hostile` behind the shield, on every layout, with the evaluation harness.
+
+Per layout and planner: runs, collided vehicles, stuck runs (the watchdog: no crossing for
+``STANDSTILL_LIMIT`` s while vehicles wait), interventions (share of vehicle-steps), planner errors
+(steps), unresolved steps and the mean flow; printed as Markdown and written to ``--csv``::
+
+    python scripts/hostile_table.py --scenarios 4 --duration 60 --seed 8383 --csv hostile.csv
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import pandas as pd
+
+from envs.evaluation import evaluate, generate_scenarios
+from envs.metrics import STANDSTILL_LIMIT
+
+LAYOUTS = {"4way": "CoopIntersection4Way-v0", "3way": "CoopIntersection3Way-v0", "inD": "CoopIntersectionInD-v0"}
+ATTACKS = (
+    ("scene editing", "SceneEditor"),
+    ("layout editing", "LayoutEditor"),
+    ("collision seeking", "CollisionSeeker"),
+    ("brake checks", "BrakeChecker"),
+    ("parking inside the box", "BoxParker"),
+    ("bang-bang", "BangBang"),
+    ("NaN", "NaNPlanner"),
+    ("holding before the line (not covered)", "LineHolder"),
+)
+
+
+def hostile_table(scenarios: int, duration: float, seed: int, jobs: int, layouts=tuple(LAYOUTS)) -> pd.DataFrame:
+    """One row per layout and attack (see the module docstring)."""
+    rows = []
+    planners = [(f"envs.planners.hostile:{cls}+shield", attack) for attack, cls in ATTACKS]
+    with tempfile.TemporaryDirectory() as folder:
+        for layout in layouts:
+            files = generate_scenarios(Path(folder) / layout, scenarios, duration, seed, layout)
+            runs, _ = evaluate(planners, files, LAYOUTS[layout], duration, seed=seed, jobs=jobs, progress=False)
+            for (_, attack), cls in zip(planners, (c for _, c in ATTACKS)):
+                r = runs[runs["planner"] == attack]
+                rows.append(
+                    {
+                        "layout": layout,
+                        "attack": attack,
+                        "planner": cls,
+                        "runs": len(r),
+                        "collided": int(r["collided"].sum()),
+                        "stuck_runs": int(r["stuck"].astype(bool).sum()),
+                        "interventions": float(r["shield_interventions"].sum() / r["shield_vehicle_steps"].sum()),
+                        "planner_errors": int(r["planner_errors"].sum()),
+                        "unresolved": int(r["shield_unresolved"].sum()),
+                        "flow_mean": float(r["flow_rate"].mean()),
+                    }
+                )
+    return pd.DataFrame(rows)
+
+
+def markdown(table: pd.DataFrame) -> str:
+    lines = [
+        "| layout | attack | runs | collided vehicles | stuck runs | interventions | planner errors [steps] "
+        "| unresolved steps | flow [veh/s] |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for row in table.itertuples():
+        lines.append(
+            f"| {row.layout} | {row.attack} | {row.runs} | {row.collided} | {row.stuck_runs} "
+            f"| {100 * row.interventions:.1f} % | {row.planner_errors} | {row.unresolved} | {row.flow_mean:.3f} |"
+        )
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scenarios", type=int, default=4, help="scenarios per layout (>= 1)")
+    parser.add_argument("--duration", type=float, default=60.0, help="simulated seconds per run (> 0)")
+    parser.add_argument("--seed", type=int, default=8383, help="base seed of the scenarios and runs")
+    parser.add_argument("--jobs", type=int, default=1, help="worker processes (>= 1)")
+    parser.add_argument("--layout", action="append", choices=sorted(LAYOUTS), help="layouts (default: all)")
+    parser.add_argument("--csv", type=Path, default=None, help="also write the table here (never overwritten)")
+    args = parser.parse_args(argv)
+    if args.scenarios < 1 or args.jobs < 1 or not args.duration > 0:
+        parser.error("--scenarios and --jobs must be >= 1 and --duration > 0")
+    if args.csv is not None and args.csv.exists():
+        parser.error(f"--csv: {args.csv} exists (never overwritten)")
+    tic = time.perf_counter()
+    table = hostile_table(args.scenarios, args.duration, args.seed, args.jobs, tuple(args.layout or LAYOUTS))
+    print(markdown(table))
+    print(
+        f"\n{args.scenarios} scenarios x {args.duration:g} s per layout, seed {args.seed}; stuck: no crossing for "
+        f"{STANDSTILL_LIMIT:g} s while vehicles wait; {time.perf_counter() - tic:.0f} s wall"
+    )
+    if args.csv is not None:
+        table.to_csv(args.csv, index=False)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
