@@ -94,6 +94,10 @@ class _RelationalMax(torch.autograd.Function):
     ) -> Tensor:
         channels = rows.size(1)
         num_vertices = math.prod(shape[:-1])
+        ctx.layout, ctx.shape = layout, (num_vertices, num_relations, stride)
+        ctx.compiled = _compiled_path(rows)
+        if ctx.compiled:
+            return _compiled_forward(ctx, rows, layout, shape, num_vertices, num_relations, stride)
         messages = rows.index_select(0, layout.source)
         maxima = rows.new_zeros(num_vertices * num_relations, channels)
         index = layout.target.unsqueeze(-1).expand_as(messages)
@@ -109,13 +113,14 @@ class _RelationalMax(torch.autograd.Function):
         for r in range(1, num_relations):
             flat += per_relation[:, r]
         ctx.save_for_backward(messages, maxima)
-        ctx.layout, ctx.shape = layout, (num_vertices, num_relations, stride)
         return out
 
     @staticmethod
     def backward(ctx: Any, grad_out: Tensor) -> tuple[Tensor | None, None, None, None, None]:  # type: ignore[override]
-        messages, maxima = ctx.saved_tensors
         layout, (num_vertices, num_relations, stride) = ctx.layout, ctx.shape
+        if ctx.compiled:
+            return _compiled_backward(ctx, grad_out), None, None, None, None
+        messages, maxima = ctx.saved_tensors
         if layout.source_order is None or layout.sorted_source is None or layout.num_nonempty is None:
             raise RuntimeError("_RelationalMax: a forward-only layout (derived without autograd) in a backward pass")
         # Explicit channel counts, never -1: a batch without vertices has 0 elements to infer them from.
@@ -129,6 +134,85 @@ class _RelationalMax(torch.autograd.Function):
             grad_rows.view(num_vertices, stride, channels)[:, num_relations] = grad_out
         grad = grad.index_select(0, layout.source_order)
         return grad_rows.index_add_(0, layout.sorted_source, grad), None, None, None, None
+
+
+_COMPILED = {"enabled": True, "kernels": None}
+
+
+def use_compiled_kernels(enabled: bool) -> bool:
+    """Switch the compiled (numba) CPU kernels of the relational max aggregation on or off.
+
+    Off, every device runs the PyTorch formulation of :class:`_RelationalMax`: the reference that
+    the kernels are tested against (same values, gradients equal to float rounding).
+
+    :param enabled: use the kernels for CPU tensors of float32 / float64
+    :return: the previous setting
+    """
+    previous = _COMPILED["enabled"]
+    _COMPILED["enabled"] = bool(enabled)
+    return bool(previous)
+
+
+def _compiled_path(rows: Tensor) -> bool:
+    if not _COMPILED["enabled"] or rows.device.type != "cpu" or rows.dtype not in (torch.float32, torch.float64):
+        return False
+    if _COMPILED["kernels"] is None:
+        try:
+            from sb3_graph import _max_kernel
+        except ImportError:  # numba missing or broken: the PyTorch formulation
+            _COMPILED["enabled"] = False
+            return False
+        _COMPILED["kernels"] = _max_kernel
+    return True
+
+
+def _compiled_forward(
+    ctx: Any,
+    rows: Tensor,
+    layout: RelationalLayout,
+    shape: tuple[int, ...],
+    num_vertices: int,
+    num_relations: int,
+    stride: int,
+) -> Tensor:
+    """:class:`_RelationalMax`'s forward pass with :func:`sb3_graph._max_kernel.relational_max_forward`."""
+    kernels = _COMPILED["kernels"]
+    rows = rows.detach().contiguous()
+    channels = rows.size(1)
+    track = layout.target_vertex is not None and ctx.needs_input_grad[0]
+    out = rows.new_empty(shape)
+    maxima = rows.new_zeros(num_vertices * num_relations, channels)
+    winner = torch.empty((num_vertices * num_relations, channels) if track else (0, 0), dtype=torch.int32)
+    seen = torch.zeros(num_vertices * num_relations, dtype=torch.bool)
+    ctx.ties = kernels.relational_max_forward(
+        rows.numpy(), layout.source.numpy(), layout.target.numpy(), num_relations, stride, track,
+        out.view(num_vertices, channels).numpy(), maxima.numpy(), winner.numpy(), seen.numpy(),
+    )  # fmt: skip
+    if track:
+        ctx.save_for_backward(rows, maxima, winner, seen)
+    return out
+
+
+def _compiled_backward(ctx: Any, grad_out: Tensor) -> Tensor:
+    """:class:`_RelationalMax`'s backward pass with the kernels: winners only, or PyTorch's tie
+    rule when the forward pass met an equality."""
+    kernels = _COMPILED["kernels"]
+    layout, (num_vertices, num_relations, stride) = ctx.layout, ctx.shape
+    if layout.target_vertex is None:
+        raise RuntimeError("_RelationalMax: a forward-only layout (derived without autograd) in a backward pass")
+    rows, maxima, winner, seen = ctx.saved_tensors
+    grad_out = grad_out.reshape(num_vertices, rows.size(1)).contiguous().to(rows.dtype)
+    grad_rows = rows.new_zeros(rows.shape)
+    if ctx.ties == 0:
+        kernels.relational_max_backward(
+            grad_out.numpy(), winner.numpy(), seen.numpy(), num_relations, stride, grad_rows.numpy()
+        )
+    else:
+        kernels.relational_max_backward_ties(
+            grad_out.numpy(), rows.numpy(), layout.source.numpy(), layout.target.numpy(), maxima.numpy(),
+            num_relations, stride, grad_rows.numpy(),
+        )  # fmt: skip
+    return grad_rows
 
 
 class RelationalLayout(NamedTuple):
