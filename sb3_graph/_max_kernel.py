@@ -10,8 +10,11 @@ make one pass over the edges in the forward pass, which also records the winning
 (segment, channel), and one pass over the segments in the backward pass, which adds each output
 gradient to its winner's row.
 
-The values are bitwise those of the PyTorch formulation (the same maxima, the same additions in
-the same order for the output). The gradients are PyTorch's rule, the gradient split evenly among
+The forward pass also adds the layer's bias (in the PyTorch formulation ``addmm`` adds it to
+the root block, which first copies the broadcast bias into its whole ``(N, (R + 1) * out)``
+result). The maxima are those of the PyTorch formulation and the output's additions run in its
+order; only the bias joins after the matmul instead of inside it, so outputs agree to float
+rounding. The gradients are PyTorch's rule, the gradient split evenly among
 tied maxima: the forward pass counts equalities, and when one occurred (or a NaN) the backward
 pass counts the tied maxima of every (segment, channel) and splits as PyTorch does. Only the order
 in which the gradients of one row are added differs (segment order instead of edge order), so the
@@ -35,14 +38,18 @@ def relational_max_forward(
     target: np.ndarray,
     num_relations: int,
     stride: int,
+    bias: np.ndarray,
+    num_nodes: int,
     track: bool,
     out: np.ndarray,
     maxima: np.ndarray,
     winner: np.ndarray,
     seen: np.ndarray,
 ) -> int:
-    """Per vertex ``i``: ``out[i] = sum_r maxima[i * R + r] (+ rows[i * stride + R])``, with
-    ``maxima[s] = max_{e : target[e] = s} rows[source[e]]`` per channel (0 for an empty segment).
+    """Per vertex ``i`` of copy ``k``: ``out[i] = sum_r maxima[i * R + r] (+ rows[i * stride + R])
+    (+ bias[k])``, with ``maxima[s] = max_{e : target[e] = s} rows[source[e]]`` per channel (0 for
+    an empty segment). The additions run in the order of the PyTorch formulation: with the root
+    term ``(maxima_0 + (root + bias)) + maxima_1 + ...``, else ``(maxima_0 + maxima_1 + ...) + bias``.
 
     :param rows: ``(M * stride, C)`` transformed rows (per vertex ``R`` relation rows, then the root
         row when ``stride = R + 1``)
@@ -50,14 +57,17 @@ def relational_max_forward(
     :param target: ``(E,)`` segment ``i * R + r`` of each edge (any order)
     :param num_relations: ``R``
     :param stride: rows per vertex
+    :param bias: ``(K, C)`` bias of each of the ``K`` stacked copies, or ``(0, 0)`` for none
+    :param num_nodes: vertices per copy (``M = K * num_nodes``)
     :param track: record the winners (for a backward pass)
     :param out: ``(M, C)`` output, written
-    :param maxima: ``(M * R, C)`` zeros, written with the maxima
+    :param maxima: ``(M * R, C)``, written with the maxima (0 for an empty segment)
     :param winner: ``(M * R, C)`` int32, written with the row of each maximum when ``track``
     :param seen: ``(M * R,)`` False, set for the non-empty segments
     :return: number of equalities and NaNs met (0: every maximum is unique and finite)
     """
     channels = rows.shape[1]
+    has_bias = bias.shape[0] > 0
     ties = 0
     for e in range(source.shape[0]):
         s, t = source[e], target[e]
@@ -79,18 +89,29 @@ def relational_max_forward(
                 if v != v:  # NaN propagates, as in scatter_reduce("amax")
                     maxima[t, c] = v
                 ties += 1
+    for t in range(seen.shape[0]):
+        if not seen[t]:
+            for c in range(channels):
+                maxima[t, c] = 0.0
     for i in range(out.shape[0]):
-        base = i * num_relations
+        base, k = i * num_relations, i // max(num_nodes, 1)
         if stride > num_relations:
             root = i * stride + num_relations
-            for c in range(channels):
-                out[i, c] = maxima[base, c] + rows[root, c]
+            if has_bias:
+                for c in range(channels):
+                    out[i, c] = maxima[base, c] + (rows[root, c] + bias[k, c])
+            else:
+                for c in range(channels):
+                    out[i, c] = maxima[base, c] + rows[root, c]
         else:
             for c in range(channels):
                 out[i, c] = maxima[base, c]
         for r in range(1, num_relations):
             for c in range(channels):
                 out[i, c] += maxima[base + r, c]
+        if has_bias and stride == num_relations:
+            for c in range(channels):
+                out[i, c] += bias[k, c]
     return ties
 
 
