@@ -23,6 +23,7 @@ CPU time of 10 gradient steps).
 from __future__ import annotations
 
 import argparse
+import time
 from collections.abc import Callable
 
 import numpy as np
@@ -89,12 +90,14 @@ def reference_call(call: Callable) -> Callable:
     return run
 
 
-def steps_per_second(models: list, min_seconds: float, reference: tuple[int, ...] = ()) -> list[float]:
+def steps_per_second(
+    models: list, min_seconds: float, reference: tuple[int, ...] = (), repeats: int = 3, clock=time.perf_counter
+) -> list[float]:
     """Gradient steps per second of each model, timed in turns (see ``interleaved_rates``); the
     models at the positions in ``reference`` run with the compiled kernels off."""
     calls = [training_call(m) for m in models]
     functions = [reference_call(call) if k in reference else call for k, (call, _) in enumerate(calls)]
-    rates = interleaved_rates(functions, min_seconds)
+    rates = interleaved_rates(functions, min_seconds, repeats, clock)
     return [r * steps for r, (_, steps) in zip(rates, calls)]
 
 
@@ -157,6 +160,8 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=2.0, help="minimum seconds per timing run")
     parser.add_argument("--algos", nargs="+", default=[*OFF_POLICY, *ON_POLICY], help="algorithms to time")
     parser.add_argument("--data", choices=("intersection", "random"), default="intersection", help="transitions")
+    parser.add_argument("--repeats", type=int, default=3, help="timing runs per learner (the best counts)")
+    parser.add_argument("--clock", choices=("wall", "cpu"), default="wall", help="wall time or this process's CPU time")
     parser.add_argument("--threads", action="store_true", help="also time the TD3 graph learner with 1 and 2 threads")
     parser.add_argument("--profile", action="store_true", help="print the TD3 and SAC graph learners' operators")
     args = parser.parse_args()
@@ -165,7 +170,10 @@ def main() -> None:
     rows = []
     for name in args.algos:
         graph, mlp = make_learners(name, data)
-        ours, reference, mlp_rate = steps_per_second([graph, graph, mlp], args.seconds, reference=(1,))
+        clock = time.process_time if args.clock == "cpu" else time.perf_counter
+        ours, reference, mlp_rate = steps_per_second(
+            [graph, graph, mlp], args.seconds, reference=(1,), repeats=args.repeats, clock=clock
+        )
         rows.append(
             [name, f"{ours:.1f}", f"{reference:.1f}", f"{ours / reference:.2f}", f"{mlp_rate:.1f}",
              f"{mlp_rate / ours:.2f}", f"{mlp_rate / reference:.2f}"]
@@ -174,7 +182,7 @@ def main() -> None:
     nodes, edges = data.mean_size()
     inputs = flatten_space(data.env().observation_space).shape[0]
     print(f"\n## Learner speed ({args.data} data: {nodes:.1f} vertices / {edges:.1f} edges per graph; batch {BATCH}, ")
-    print(f"hidden 64, 1 torch thread)\n\n{machine_line()}\n")
+    print(f"hidden 64, 1 torch thread; steps per {args.clock} second)\n\n{machine_line()}\n")
     header = [
         "algorithm",
         "graph policy, steps/s",

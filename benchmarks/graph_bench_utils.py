@@ -91,17 +91,24 @@ def rate(function: Callable[[], Any], min_seconds: float = 1.0, repeats: int = 3
     return best
 
 
-def interleaved_rates(functions: list[Callable[[], Any]], min_seconds: float = 1.0, repeats: int = 3) -> list[float]:
+def interleaved_rates(
+    functions: list[Callable[[], Any]],
+    min_seconds: float = 1.0,
+    repeats: int = 3,
+    clock: Callable[[], float] = time.perf_counter,
+) -> list[float]:
     """Calls per second of each function, best of ``repeats`` runs, the functions taking turns run by
     run: on a machine shared with other work, a load change then hits all of them alike instead
-    of whichever happened to run at the time."""
+    of whichever happened to run at the time. ``clock``: ``time.perf_counter`` (wall) or
+    ``time.process_time`` (CPU time of this process: on a loaded machine, the time the process
+    was not scheduled does not count)."""
     for function in functions:
         function()  # warm-up
     best = [0.0] * len(functions)
     for _ in range(repeats):
         for k, function in enumerate(functions):
-            calls, start = 0, time.perf_counter()
-            while (elapsed := time.perf_counter() - start) < min_seconds:
+            calls, start = 0, clock()
+            while (elapsed := clock() - start) < min_seconds:
                 function()
                 calls += 1
             best[k] = max(best[k], calls / elapsed)

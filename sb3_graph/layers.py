@@ -190,42 +190,36 @@ def _compiled_forward(
     kernels = _COMPILED["kernels"]
     rows = rows.detach().contiguous()
     channels = rows.size(1)
-    track = layout.target_vertex is not None and ctx.needs_input_grad[0]
     out = rows.new_empty(shape)
     maxima = rows.new_empty(num_vertices * num_relations, channels)
-    winner = torch.empty((num_vertices * num_relations, channels) if track else (0, 0), dtype=torch.int32)
     seen = torch.zeros(num_vertices * num_relations, dtype=torch.bool)
     ctx.bias_shape = None if bias is None else bias.shape
     bias_rows = rows.new_empty(0, 0) if bias is None else bias.detach().reshape(-1, channels).to(rows.dtype)
-    ctx.ties = kernels.relational_max_forward(
+    ctx.num_nonempty = kernels.relational_max_forward(
         rows.numpy(), layout.source.numpy(), layout.target.numpy(), num_relations, stride,
-        bias_rows.contiguous().numpy(), shape[-2], track,
-        out.view(num_vertices, channels).numpy(), maxima.numpy(), winner.numpy(), seen.numpy(),
+        bias_rows.contiguous().numpy(), shape[-2], out.view(num_vertices, channels).numpy(), maxima.numpy(),
+        seen.numpy(),
     )  # fmt: skip
-    if track:
-        ctx.save_for_backward(rows, maxima, winner, seen)
+    if layout.target_vertex is not None and any(ctx.needs_input_grad[:2]):
+        ctx.save_for_backward(rows, maxima)
     return out
 
 
 def _compiled_backward(ctx: Any, grad_out: Tensor) -> tuple[Tensor, Tensor | None]:
-    """:class:`_RelationalMax`'s backward pass with the kernels: winners only, or PyTorch's tie
-    rule when the forward pass met an equality; and the bias gradient."""
+    """:class:`_RelationalMax`'s backward pass with the kernels (PyTorch's tie rule when a maximum
+    is tied) and the bias gradient."""
     kernels = _COMPILED["kernels"]
     layout, (num_vertices, num_relations, stride) = ctx.layout, ctx.shape
     if layout.target_vertex is None:
         raise RuntimeError("_RelationalMax: a forward-only layout (derived without autograd) in a backward pass")
-    rows, maxima, winner, seen = ctx.saved_tensors
+    rows, maxima = ctx.saved_tensors
     grad_out = grad_out.reshape(num_vertices, rows.size(1)).contiguous().to(rows.dtype)
     grad_rows = rows.new_zeros(rows.shape)
-    if ctx.ties == 0:
-        kernels.relational_max_backward(
-            grad_out.numpy(), winner.numpy(), seen.numpy(), num_relations, stride, grad_rows.numpy()
-        )
-    else:
-        kernels.relational_max_backward_ties(
-            grad_out.numpy(), rows.numpy(), layout.source.numpy(), layout.target.numpy(), maxima.numpy(),
-            num_relations, stride, grad_rows.numpy(),
-        )  # fmt: skip
+    arrays = (rows.numpy(), layout.source.numpy(), layout.target.numpy(), maxima.numpy(), num_relations, stride)
+    winners = kernels.relational_max_backward(grad_out.numpy(), *arrays, grad_rows.numpy())
+    if winners != ctx.num_nonempty * rows.size(1):
+        grad_rows.zero_()
+        kernels.relational_max_backward_ties(grad_out.numpy(), *arrays, grad_rows.numpy())
     grad_bias = None
     if ctx.bias_shape is not None and ctx.needs_input_grad[1]:
         copies = 1 if len(ctx.bias_shape) == 1 else ctx.bias_shape[0]
