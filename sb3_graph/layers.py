@@ -411,7 +411,10 @@ class RelationalMaxConv(MessagePassing):
 
     Without edge features, repeated edges are merged for the maximum and the aggregation runs
     over per-vertex rows (a message is a row of :math:`\mathbf{x} \mathbf{W}_r`); with them, every
-    edge carries its own message (``E x F_out``), reduced by :func:`segment_max`.
+    edge carries its own message (``E x F_out``), reduced by :func:`segment_max`. On CPU the max
+    aggregation without edge features runs in compiled kernels (:mod:`sb3_graph._max_kernel`,
+    numba), which also add the bias; :func:`use_compiled_kernels` switches them off for the PyTorch
+    formulation, the reference they are tested against.
     """
 
     def __init__(
