@@ -1,28 +1,37 @@
 """Learner speed: gradient steps per second of every algorithm with its graph policy vs ``MlpPolicy``.
 
-Same data for both learners of an algorithm: random paper-scale graphs (~20 vertices, ~60 edges)
-in a ``GraphSpace(max_nodes=64, max_edges=1024)``; the MLP sees the padded observation flattened
+Same data for both learners of an algorithm. ``--data intersection`` (default): 2,000 transitions
+of the intersection environment as the shipped config trains on it (``CoopIntersection4Way-v0``
+with ``zoo_configs/td3_fair.yml``'s traffic, driven by the shipped planner with the config's action
+noise; about 15 vehicles and 62 edges per observation, see ``IntersectionRecording``).
+``--data random``: random paper-scale graphs (~20 vertices, ~60 edges). Both in a
+``GraphSpace(max_nodes=64, max_edges=1024)``; the MLP sees the padded observation flattened
 (4,352 inputs) with hidden layers [64, 64] (CrossQ's too, instead of its default [256, 256] /
 [1024, 1024]; TQC's 25 quantiles per critic for both); the graph networks use hidden size 64
 (defaults). Batch 256 for the off-policy algorithms, from a replay buffer of 2,000 transitions.
 PPO: one epoch over a rollout of 2,048 transitions in minibatches of 256 (a "step" is one
 minibatch update). The graph learners use the graph buffers (ragged storage); the MLP learners
-SB3's buffers. The two learners of an algorithm are timed in turns (best of 3 runs each), so that
-a change of the machine's load hits both. Target (TD3): the graph learner within 5x of the MLP
-learner. Also times the TD3
-graph learner with 1 and 2 torch threads; ``--profile`` adds its operator breakdown
-(torch.profiler, self CPU time of 10 gradient steps).
+SB3's buffers. Per algorithm, three learners are timed in turns (best of 3 runs each), so that a
+change of the machine's load hits all of them: the graph learner, the same graph learner with the
+compiled kernels of the relational layers off (``use_compiled_kernels(False)``: the PyTorch
+formulation, the reference), and the MLP learner. Target (TD3): the graph learner within 1.5x of
+the MLP learner. Also times the TD3 graph learner with 1 and 2 torch threads (``--threads``);
+``--profile`` adds the operator breakdown of the TD3 and SAC graph learners (torch.profiler, self
+CPU time of 10 gradient steps).
 """
 
 from __future__ import annotations
 
 import argparse
+import time
+from collections.abc import Callable
 
 import numpy as np
 import stable_baselines3
 import torch
 from graph_bench_utils import (
     MAX_NODES,
+    IntersectionRecording,
     PaperScaleGraphEnv,
     _null_logger,
     fill,
@@ -35,13 +44,29 @@ from gymnasium.spaces.utils import flatten, flatten_space
 from gymnasium.wrappers import FlattenObservation
 
 import sb3_graph
-from sb3_graph import TD3, GraphPolicy
+from sb3_graph.layers import use_compiled_kernels
 
 FILL = 2000
 ROLLOUT = 2048
 BATCH = 256
 OFF_POLICY = ("TD3", "DDPG", "SAC", "TQC", "CrossQ")
 ON_POLICY = ("PPO",)
+
+
+class RandomGraphs:
+    """Random paper-scale graphs with the interface of ``IntersectionRecording``."""
+
+    def __init__(self) -> None:
+        self._env = PaperScaleGraphEnv()
+
+    def env(self) -> PaperScaleGraphEnv:
+        return self._env
+
+    def fill(self, buffers: list, transform: Callable | None = None) -> None:
+        fill(buffers, self._env, FILL, transform=transform)
+
+    def mean_size(self) -> tuple[float, float]:
+        return 20.0, 60.0
 
 
 def training_call(model) -> tuple:
@@ -52,15 +77,32 @@ def training_call(model) -> tuple:
     return (lambda: model.train(gradient_steps=2, batch_size=BATCH)), 2
 
 
-def steps_per_second(models: list, min_seconds: float) -> list[float]:
-    """Gradient steps per second of each model, timed in turns (see ``interleaved_rates``)."""
+def reference_call(call: Callable) -> Callable:
+    """``call`` with the compiled kernels off: the PyTorch formulation of the relational layers."""
+
+    def run() -> None:
+        previous = use_compiled_kernels(False)
+        try:
+            call()
+        finally:
+            use_compiled_kernels(previous)
+
+    return run
+
+
+def steps_per_second(
+    models: list, min_seconds: float, reference: tuple[int, ...] = (), repeats: int = 3, clock=time.perf_counter
+) -> list[float]:
+    """Gradient steps per second of each model, timed in turns (see ``interleaved_rates``); the
+    models at the positions in ``reference`` run with the compiled kernels off."""
     calls = [training_call(m) for m in models]
-    rates = interleaved_rates([call for call, _ in calls], min_seconds)
+    functions = [reference_call(call) if k in reference else call for k, (call, _) in enumerate(calls)]
+    rates = interleaved_rates(functions, min_seconds, repeats, clock)
     return [r * steps for r, (_, steps) in zip(rates, calls)]
 
 
-def fill_rollout(buffer, env: PaperScaleGraphEnv, transform=None) -> None:
-    """A full rollout of random graphs, actions (0 in padded slots), values and log-probabilities."""
+def fill_rollout(buffer, env, transform=None) -> None:
+    """A full rollout of the data's graphs, random actions (0 in padded slots), values and log-probabilities."""
     env.reset(seed=0)
     rng = np.random.default_rng(0)
     for step in range(buffer.buffer_size):
@@ -73,9 +115,10 @@ def fill_rollout(buffer, env: PaperScaleGraphEnv, transform=None) -> None:
     buffer.compute_returns_and_advantage(torch.zeros(1, 1), np.array([False]))
 
 
-def make_learners(name: str, env: PaperScaleGraphEnv) -> tuple:
+def make_learners(name: str, data) -> tuple:
     """The graph learner and the MlpPolicy learner of one algorithm, their buffers filled with the
     same transitions."""
+    env = data.env()
     graph_class = getattr(sb3_graph, name)
     stock = getattr(stable_baselines3, name, None) or getattr(__import__("sb3_contrib"), name)
     flat_env = FlattenObservation(env)
@@ -90,18 +133,18 @@ def make_learners(name: str, env: PaperScaleGraphEnv) -> tuple:
         return graph, mlp
     graph = graph_class("GraphPolicy", env, buffer_size=FILL, batch_size=BATCH, seed=0)
     mlp = stock("MlpPolicy", flat_env, buffer_size=FILL, seed=0, policy_kwargs=dict(net_arch=[64, 64]))
-    fill([graph.replay_buffer], env, FILL)
-    fill([mlp.replay_buffer], env, FILL, transform=transform)
+    data.fill([graph.replay_buffer])
+    data.fill([mlp.replay_buffer], transform=transform)
     return graph, mlp
 
 
-def profile_table(model, steps: int = 10, rows: int = 12) -> str:
+def profile_table(model, steps: int = 10, rows: int = 14) -> str:
     """Markdown table of the operators with the most self CPU time over ``steps`` gradient steps."""
     from torch.profiler import ProfilerActivity, profile
 
-    model.train(gradient_steps=2, batch_size=256)  # warm-up
+    model.train(gradient_steps=2, batch_size=BATCH)  # warm-up
     with profile(activities=[ProfilerActivity.CPU]) as prof:
-        model.train(gradient_steps=steps, batch_size=256)
+        model.train(gradient_steps=steps, batch_size=BATCH)
     events = sorted(prof.key_averages(), key=lambda e: e.self_cpu_time_total, reverse=True)
     total = sum(e.self_cpu_time_total for e in events)
     lines = []
@@ -116,41 +159,51 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--seconds", type=float, default=2.0, help="minimum seconds per timing run")
     parser.add_argument("--algos", nargs="+", default=[*OFF_POLICY, *ON_POLICY], help="algorithms to time")
-    parser.add_argument("--skip-threads", action="store_true", help="skip the 1 vs 2 threads timing")
-    parser.add_argument("--profile", action="store_true", help="print the TD3 graph learner's operator breakdown")
+    parser.add_argument("--data", choices=("intersection", "random"), default="intersection", help="transitions")
+    parser.add_argument("--repeats", type=int, default=3, help="timing runs per learner (the best counts)")
+    parser.add_argument("--clock", choices=("wall", "cpu"), default="wall", help="wall time or this process's CPU time")
+    parser.add_argument("--threads", action="store_true", help="also time the TD3 graph learner with 1 and 2 threads")
+    parser.add_argument("--profile", action="store_true", help="print the TD3 and SAC graph learners' operators")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    env = PaperScaleGraphEnv()
+    data = IntersectionRecording(FILL) if args.data == "intersection" else RandomGraphs()
     rows = []
     for name in args.algos:
-        graph_rate, mlp_rate = steps_per_second(list(make_learners(name, env)), args.seconds)
-        rows.append([name, f"{graph_rate:.1f}", f"{mlp_rate:.1f}", f"{mlp_rate / graph_rate:.1f}"])
-        print(f"{name}: graph {graph_rate:.1f}, MLP {mlp_rate:.1f} steps/s", flush=True)
-    if "TD3" in args.algos:
-        graph = TD3("GraphPolicy", env, buffer_size=FILL, batch_size=BATCH, seed=0)
-        graph_dict = stable_baselines3.TD3(GraphPolicy, env, buffer_size=FILL, seed=0)
-        fill([graph.replay_buffer, graph_dict.replay_buffer], env, FILL)
-        ours, padded = steps_per_second([graph, graph_dict], args.seconds)
-        rows.append(["TD3, graph policy + GraphReplayBuffer (timed in turns with the next row)", f"{ours:.1f}", "", ""])
-        rows.append(["TD3, graph policy + SB3's padded DictReplayBuffer", f"{padded:.1f}", "", ""])
-    inputs = flatten_space(env.observation_space).shape[0]
-    print(f"\n## Learner speed (batch {BATCH}, ~20 vertices / ~60 edges, hidden 64, 1 torch thread)\n")
-    print(machine_line() + "\n")
+        graph, mlp = make_learners(name, data)
+        clock = time.process_time if args.clock == "cpu" else time.perf_counter
+        ours, reference, mlp_rate = steps_per_second(
+            [graph, graph, mlp], args.seconds, reference=(1,), repeats=args.repeats, clock=clock
+        )
+        rows.append(
+            [name, f"{ours:.1f}", f"{reference:.1f}", f"{ours / reference:.2f}", f"{mlp_rate:.1f}",
+             f"{mlp_rate / ours:.2f}", f"{mlp_rate / reference:.2f}"]
+        )  # fmt: skip
+        print(f"{name}: graph {ours:.1f} (reference {reference:.1f}), MLP {mlp_rate:.1f} steps/s", flush=True)
+    nodes, edges = data.mean_size()
+    inputs = flatten_space(data.env().observation_space).shape[0]
+    print(f"\n## Learner speed ({args.data} data: {nodes:.1f} vertices / {edges:.1f} edges per graph; batch {BATCH}, ")
+    print(f"hidden 64, 1 torch thread; steps per {args.clock} second)\n\n{machine_line()}\n")
     header = [
         "algorithm",
         "graph policy, steps/s",
+        "graph policy, PyTorch reference, steps/s",
+        "speed-up",
         f"MlpPolicy [64, 64] on {inputs} inputs, steps/s",
         "x slower than MLP",
+        "reference: x slower than MLP",
     ]
     print(markdown_table(header, rows))
-    if not args.skip_threads:
+    if args.threads:
         print("\n" + threads_table(args.seconds))
     if args.profile:
-        print("\n## TD3 graph learner profile (1 torch thread, top operators by self CPU time)\n")
-        torch.set_num_threads(1)
-        graph = TD3("GraphPolicy", env, buffer_size=FILL, batch_size=BATCH, seed=0)
-        fill([graph.replay_buffer], env, FILL)
-        print(profile_table(graph))
+        for name in ("TD3", "SAC"):
+            graph, _ = make_learners(name, data)
+            graph.set_logger(_null_logger())
+            for label, enabled in (("compiled kernels", True), ("PyTorch reference", False)):
+                previous = use_compiled_kernels(enabled)
+                print(f"\n## {name} graph learner profile, {label} (top operators by self CPU time)\n")
+                print(profile_table(graph))
+                use_compiled_kernels(previous)
 
 
 if __name__ == "__main__":

@@ -91,17 +91,24 @@ def rate(function: Callable[[], Any], min_seconds: float = 1.0, repeats: int = 3
     return best
 
 
-def interleaved_rates(functions: list[Callable[[], Any]], min_seconds: float = 1.0, repeats: int = 3) -> list[float]:
+def interleaved_rates(
+    functions: list[Callable[[], Any]],
+    min_seconds: float = 1.0,
+    repeats: int = 3,
+    clock: Callable[[], float] = time.perf_counter,
+) -> list[float]:
     """Calls per second of each function, best of ``repeats`` runs, the functions taking turns run by
     run: on a machine shared with other work, a load change then hits all of them alike instead
-    of whichever happened to run at the time."""
+    of whichever happened to run at the time. ``clock``: ``time.perf_counter`` (wall) or
+    ``time.process_time`` (CPU time of this process: on a loaded machine, the time the process
+    was not scheduled does not count)."""
     for function in functions:
         function()  # warm-up
     best = [0.0] * len(functions)
     for _ in range(repeats):
         for k, function in enumerate(functions):
-            calls, start = 0, time.perf_counter()
-            while (elapsed := time.perf_counter() - start) < min_seconds:
+            calls, start = 0, clock()
+            while (elapsed := clock() - start) < min_seconds:
                 function()
                 calls += 1
             best[k] = max(best[k], calls / elapsed)
@@ -149,3 +156,84 @@ def markdown_table(header: list[str], rows: list[list[str]]) -> str:
 def machine_line() -> str:
     command = "python " + " ".join([os.path.relpath(sys.argv[0])] + sys.argv[1:])
     return f"machine: nproc={os.cpu_count()}, torch {torch.__version__}; command: `{command}`"
+
+
+class IntersectionRecording:
+    """Transitions of the intersection environment as the shipped config trains on it
+    (``CoopIntersection4Way-v0`` with ``zoo_configs/td3_fair.yml``'s ``env_kwargs``: 60 s episodes,
+    spawn probability drawn from [0.01, 0.07], a collision ends the episode), driven by the shipped
+    planner (``envs/pretrained/coop_4way_fair``) with the config's Gaussian action noise (0.1).
+    About 14 vehicles and 54 edges per observation, in ``GraphSpace(max_nodes=64, max_edges=1024)``.
+
+    :param count: transitions to record
+    :param seed: seed of the environment and of the noise
+    """
+
+    MODEL = "envs/pretrained/coop_4way_fair/best_model.safetensors"
+
+    def __init__(self, count: int, seed: int = 0) -> None:
+        import envs  # noqa: F401 - registers the environments
+        from envs.planners import make_planner
+
+        root = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..")
+        env = gym.make("CoopIntersection4Way-v0", config=dict(duration=60.0, spawn_probability_range=[0.01, 0.07]))
+        planner = make_planner(os.path.join(root, self.MODEL))
+        base = env.unwrapped
+        rng = np.random.default_rng(seed)
+        obs, _ = env.reset(seed=seed)
+        self.observation_space, self.action_space = env.observation_space, env.action_space
+        self.transitions: list[tuple[dict, dict, np.ndarray, float, bool]] = []
+        while len(self.transitions) < count:
+            action = base.accelerations_to_action(np.asarray(planner.act(base.scene()), dtype=float))
+            action = np.clip(action + rng.normal(0.0, 0.1, action.shape), -1, 1).astype(np.float32)
+            next_obs, reward, terminated, truncated, _ = env.step(action)
+            self.transitions.append((obs, next_obs, action, float(reward), bool(terminated or truncated)))
+            obs = env.reset()[0] if terminated or truncated else next_obs
+        env.close()
+
+    def env(self) -> gym.Env:
+        """An environment with the recording's spaces whose observations replay the recording."""
+        return _ReplayEnv(self)
+
+    def fill(self, buffers: list[Any], transform: Callable | None = None) -> None:
+        """Add every transition (n_envs=1) to every buffer.
+
+        :param transform: maps an observation to what a buffer stores (e.g. flattening for MlpPolicy)
+        """
+        for obs, next_obs, action, reward, done in self.transitions:
+            for buffer in buffers:
+                o, n = (transform(obs), transform(next_obs)) if transform else (obs, next_obs)
+                if isinstance(o, dict):
+                    o, n = {k: v[None] for k, v in o.items()}, {k: v[None] for k, v in n.items()}
+                else:
+                    o, n = o[None], n[None]
+                buffer.add(o, n, action[None], np.array([reward]), np.array([done]), [{"TimeLimit.truncated": False}])
+
+    def mean_size(self) -> tuple[float, float]:
+        """Mean vertices and edges per observation."""
+        nodes = np.mean([t[0]["node_mask"].sum() for t in self.transitions])
+        edges = np.mean([t[0]["edge_mask"].sum() for t in self.transitions])
+        return float(nodes), float(edges)
+
+
+class _ReplayEnv(gym.Env):
+    """The spaces of a recording; ``reset``/``step`` return its observations in order (for
+    building learners and filling rollouts)."""
+
+    def __init__(self, recording: IntersectionRecording) -> None:
+        self.recording = recording
+        self.observation_space, self.action_space = recording.observation_space, recording.action_space
+        self._next = 0
+
+    def graph(self) -> dict[str, np.ndarray]:
+        obs = self.recording.transitions[self._next % len(self.recording.transitions)][0]
+        self._next += 1
+        return obs
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
+        super().reset(seed=seed)
+        self._next = 0
+        return self.graph(), {}
+
+    def step(self, action: np.ndarray) -> tuple[dict, float, bool, bool, dict]:
+        return self.graph(), 0.0, False, False, {}

@@ -86,14 +86,28 @@ class _RelationalMax(torch.autograd.Function):
     Input ``rows`` ``(M * stride, C)`` holds, per vertex, ``R`` relation rows then (if
     ``stride = R + 1``) its root row; output ``(M, C)`` viewed as ``shape``. One custom backward replaces the
     autograd chain (segment max, sum over relations, root slice, gradient accumulation).
+
+    ``bias`` (``(C,)``, or ``(K, C)`` for ``K`` stacked copies) is given only on the compiled path
+    (:func:`_compiled_path`), which adds it in the kernel; the PyTorch formulation receives
+    ``None`` and rows that already hold it (the matmul added it).
     """
 
     @staticmethod
     def forward(  # type: ignore[override]
-        ctx: Any, rows: Tensor, layout: RelationalLayout, shape: tuple[int, ...], num_relations: int, stride: int
+        ctx: Any,
+        rows: Tensor,
+        bias: Tensor | None,
+        layout: RelationalLayout,
+        shape: tuple[int, ...],
+        num_relations: int,
+        stride: int,
     ) -> Tensor:
         channels = rows.size(1)
         num_vertices = math.prod(shape[:-1])
+        ctx.layout, ctx.shape = layout, (num_vertices, num_relations, stride)
+        ctx.compiled = bias is not None or _compiled_path(rows)
+        if ctx.compiled:
+            return _compiled_forward(ctx, rows, bias, layout, shape, num_vertices, num_relations, stride)
         messages = rows.index_select(0, layout.source)
         maxima = rows.new_zeros(num_vertices * num_relations, channels)
         index = layout.target.unsqueeze(-1).expand_as(messages)
@@ -109,13 +123,14 @@ class _RelationalMax(torch.autograd.Function):
         for r in range(1, num_relations):
             flat += per_relation[:, r]
         ctx.save_for_backward(messages, maxima)
-        ctx.layout, ctx.shape = layout, (num_vertices, num_relations, stride)
         return out
 
     @staticmethod
-    def backward(ctx: Any, grad_out: Tensor) -> tuple[Tensor | None, None, None, None, None]:  # type: ignore[override]
-        messages, maxima = ctx.saved_tensors
+    def backward(ctx: Any, grad_out: Tensor) -> tuple[Tensor | None, ...]:  # type: ignore[override]
         layout, (num_vertices, num_relations, stride) = ctx.layout, ctx.shape
+        if ctx.compiled:
+            return (*_compiled_backward(ctx, grad_out), None, None, None, None)
+        messages, maxima = ctx.saved_tensors
         if layout.source_order is None or layout.sorted_source is None or layout.num_nonempty is None:
             raise RuntimeError("_RelationalMax: a forward-only layout (derived without autograd) in a backward pass")
         # Explicit channel counts, never -1: a batch without vertices has 0 elements to infer them from.
@@ -128,7 +143,88 @@ class _RelationalMax(torch.autograd.Function):
         if stride > num_relations:
             grad_rows.view(num_vertices, stride, channels)[:, num_relations] = grad_out
         grad = grad.index_select(0, layout.source_order)
-        return grad_rows.index_add_(0, layout.sorted_source, grad), None, None, None, None
+        return grad_rows.index_add_(0, layout.sorted_source, grad), None, None, None, None, None
+
+
+_COMPILED = {"enabled": True, "kernels": None}
+
+
+def use_compiled_kernels(enabled: bool) -> bool:
+    """Switch the compiled (numba) CPU kernels of the relational max aggregation on or off.
+
+    Off, every device runs the PyTorch formulation of :class:`_RelationalMax`: the reference that
+    the kernels are tested against (same values, gradients equal to float rounding).
+
+    :param enabled: use the kernels for CPU tensors of float32 / float64
+    :return: the previous setting
+    """
+    previous = _COMPILED["enabled"]
+    _COMPILED["enabled"] = bool(enabled)
+    return bool(previous)
+
+
+def _compiled_path(rows: Tensor) -> bool:
+    if not _COMPILED["enabled"] or rows.device.type != "cpu" or rows.dtype not in (torch.float32, torch.float64):
+        return False
+    if _COMPILED["kernels"] is None:
+        try:
+            from sb3_graph import _max_kernel
+        except ImportError:  # numba missing or broken: the PyTorch formulation
+            _COMPILED["enabled"] = False
+            return False
+        _COMPILED["kernels"] = _max_kernel
+    return True
+
+
+def _compiled_forward(
+    ctx: Any,
+    rows: Tensor,
+    bias: Tensor | None,
+    layout: RelationalLayout,
+    shape: tuple[int, ...],
+    num_vertices: int,
+    num_relations: int,
+    stride: int,
+) -> Tensor:
+    """:class:`_RelationalMax`'s forward pass with :func:`sb3_graph._max_kernel.relational_max_forward`."""
+    kernels = _COMPILED["kernels"]
+    rows = rows.detach().contiguous()
+    channels = rows.size(1)
+    out = rows.new_empty(shape)
+    maxima = rows.new_empty(num_vertices * num_relations, channels)
+    seen = torch.zeros(num_vertices * num_relations, dtype=torch.bool)
+    ctx.bias_shape = None if bias is None else bias.shape
+    bias_rows = rows.new_empty(0, 0) if bias is None else bias.detach().reshape(-1, channels).to(rows.dtype)
+    ctx.num_nonempty = kernels.relational_max_forward(
+        rows.numpy(), layout.source.numpy(), layout.target.numpy(), num_relations, stride,
+        bias_rows.contiguous().numpy(), shape[-2], out.view(num_vertices, channels).numpy(), maxima.numpy(),
+        seen.numpy(),
+    )  # fmt: skip
+    if layout.target_vertex is not None and any(ctx.needs_input_grad[:2]):
+        ctx.save_for_backward(rows, maxima)
+    return out
+
+
+def _compiled_backward(ctx: Any, grad_out: Tensor) -> tuple[Tensor, Tensor | None]:
+    """:class:`_RelationalMax`'s backward pass with the kernels (PyTorch's tie rule when a maximum
+    is tied) and the bias gradient."""
+    kernels = _COMPILED["kernels"]
+    layout, (num_vertices, num_relations, stride) = ctx.layout, ctx.shape
+    if layout.target_vertex is None:
+        raise RuntimeError("_RelationalMax: a forward-only layout (derived without autograd) in a backward pass")
+    rows, maxima = ctx.saved_tensors
+    grad_out = grad_out.reshape(num_vertices, rows.size(1)).contiguous().to(rows.dtype)
+    grad_rows = rows.new_zeros(rows.shape)
+    arrays = (rows.numpy(), layout.source.numpy(), layout.target.numpy(), maxima.numpy(), num_relations, stride)
+    winners = kernels.relational_max_backward(grad_out.numpy(), *arrays, grad_rows.numpy())
+    if winners != ctx.num_nonempty * rows.size(1):
+        grad_rows.zero_()
+        kernels.relational_max_backward_ties(grad_out.numpy(), *arrays, grad_rows.numpy())
+    grad_bias = None
+    if ctx.bias_shape is not None and ctx.needs_input_grad[1]:
+        copies = 1 if len(ctx.bias_shape) == 1 else ctx.bias_shape[0]
+        grad_bias = grad_out.view(copies, -1, grad_out.size(1)).sum(dim=1).view(ctx.bias_shape)
+    return grad_rows, grad_bias
 
 
 class RelationalLayout(NamedTuple):
@@ -315,7 +411,10 @@ class RelationalMaxConv(MessagePassing):
 
     Without edge features, repeated edges are merged for the maximum and the aggregation runs
     over per-vertex rows (a message is a row of :math:`\mathbf{x} \mathbf{W}_r`); with them, every
-    edge carries its own message (``E x F_out``), reduced by :func:`segment_max`.
+    edge carries its own message (``E x F_out``), reduced by :func:`segment_max`. On CPU the max
+    aggregation without edge features runs in compiled kernels (:mod:`sb3_graph._max_kernel`,
+    numba), which also add the bias; :func:`use_compiled_kernels` switches them off for the PyTorch
+    formulation, the reference they are tested against.
     """
 
     def __init__(
@@ -446,15 +545,21 @@ def relational_conv(
         weight, bias = _fused_weights(convs, stacked)
     else:  # inference: the same tensors, fused once per change of the parameters
         weight, bias = first.inference_weights()
+    layout = relational_layout(edge_index, edge_type, num_nodes, r, stride, first.aggr, copies)
+    shape = (copies, num_nodes, out) if stacked else (num_nodes, out)
+    if first.aggr == "max" and first.bias is not None and _compiled_path(x):
+        # The kernel adds the bias: a plain matmul spares addmm's pass that first copies the
+        # broadcast bias into its (N, (R + 1) * out) result.
+        kernel_bias = first.bias if not stacked else torch.stack([c.bias for c in convs])
+        rows = torch.matmul(x, weight).view(copies * num_nodes * stride, out)
+        return _RelationalMax.apply(rows, kernel_bias, layout, shape, r, stride)
     if bias is None or not has_root:
         transformed = torch.matmul(x, weight)
     else:
         transformed = torch.addmm(bias, x, weight) if not stacked else torch.baddbmm(bias, x, weight)
     rows = transformed.view(copies * num_nodes * stride, out)
-    layout = relational_layout(edge_index, edge_type, num_nodes, r, stride, first.aggr, copies)
-    shape = (copies, num_nodes, out) if stacked else (num_nodes, out)
     if first.aggr == "max":
-        result = _RelationalMax.apply(rows, layout, shape, r, stride)
+        result = _RelationalMax.apply(rows, None, layout, shape, r, stride)
     else:
         aggregated = rows.new_zeros(copies * num_nodes * r, out)
         aggregated = aggregated.index_add(0, layout.target, rows.index_select(0, layout.source))

@@ -1,0 +1,79 @@
+"""A training run of the shipped config with the compiled relational kernels on and off, in turns.
+
+Builds TD3 from ``zoo_configs/td3_fair.yml`` as ``sb3-graph train`` does (policy, graph replay
+buffer, action noise, callbacks, the config's traffic), with ``learning_starts`` lowered so that a
+short run trains (the config's 5,000 would leave a 3,000-step run without a gradient step), and
+times ``learn`` from ``learning_starts`` to the end: environment steps, action selection, replay
+buffer and one gradient step (batch 128) per environment step. The two versions differ only in
+``sb3_graph.layers.use_compiled_kernels``: off is the PyTorch formulation of the relational layers
+(the learner before issue #27). They alternate run by run (``--rounds`` each, same seeds), so a
+change of the shared machine's load hits both; the table gives medians of env steps per wall
+second and per CPU second of this process (one torch thread).
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+from pathlib import Path
+
+import torch
+from bench_trial_cost import ENV_ID, LearningClock
+from graph_bench_utils import machine_line, markdown_table
+from stable_baselines3.common.callbacks import CallbackList
+from stable_baselines3.common.env_util import make_vec_env
+
+import envs  # noqa: F401 - registers the environments
+from sb3_graph import TD3
+from sb3_graph.experiment import build_algorithm_kwargs, build_callbacks, check_entry, read_experiment, resolve_object
+from sb3_graph.layers import use_compiled_kernels
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def run(entry: dict, steps: int, learning_starts: int, seed: int, compiled: bool) -> tuple[float, float]:
+    """Env steps per wall second and per CPU second of one learning run."""
+    entry = dict(entry, learning_starts=learning_starts)
+    env = make_vec_env(ENV_ID, n_envs=1, seed=seed, env_kwargs=entry.get("env_kwargs") or {})
+    previous = use_compiled_kernels(compiled)
+    try:
+        policy = resolve_object(entry["policy"], "policy")
+        model = TD3(policy, env, seed=seed, device="cpu", **build_algorithm_kwargs(entry, env.action_space.shape[0]))
+        clock = LearningClock(learning_starts)
+        model.learn(learning_starts + steps, callback=CallbackList([*build_callbacks(entry), clock]))
+    finally:
+        use_compiled_kernels(previous)
+        env.close()
+    return clock.rate, clock.cpu_rate
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--steps", type=int, default=3000, help="timed environment steps per run")
+    parser.add_argument("--learning-starts", type=int, default=500, help="untimed steps that fill the buffer")
+    parser.add_argument("--rounds", type=int, default=2, help="runs of each version, in turns (median)")
+    parser.add_argument("--config", type=Path, default=ROOT / "zoo_configs" / "td3_fair.yml")
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    entry = check_entry(read_experiment(args.config, ENV_ID))
+    rates: dict[str, list[tuple[float, float]]] = {"PyTorch reference": [], "compiled kernels": []}
+    for round_ in range(args.rounds):
+        for name in rates:
+            wall, cpu = run(entry, args.steps, args.learning_starts, seed=round_, compiled=name == "compiled kernels")
+            rates[name].append((wall, cpu))
+            print(f"round {round_}: {name}: {wall:.1f} env steps/s, {cpu:.1f} per CPU second", flush=True)
+    median = {name: [statistics.median(r[i] for r in runs) for i in (0, 1)] for name, runs in rates.items()}
+    before = median["PyTorch reference"]
+    rows = [
+        [name, f"{wall:.1f}", f"{wall / before[0]:.2f}x", f"{cpu:.1f}", f"{cpu / before[1]:.2f}x",
+         f"{args.steps / wall:.0f}"]
+        for name, (wall, cpu) in median.items()
+    ]  # fmt: skip
+    header = ["version", "env steps/s (wall)", "vs reference", "env steps per CPU s", "vs reference", "wall s per run"]
+    print(markdown_table(header, rows))
+    print(f"medians over {args.rounds} round(s); {args.steps} timed steps after {args.learning_starts} per run")
+    print(machine_line())
+
+
+if __name__ == "__main__":
+    main()
