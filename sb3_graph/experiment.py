@@ -210,8 +210,8 @@ _RECORD_FIELDS: dict[str, tuple[Any, str]] = {
     "wall_time_s": (lambda v: _is_number(v) and v >= 0, "a number >= 0"),
     "num_timesteps": (lambda v: isinstance(v, int) and _integer(0, MAX_TIMESTEPS)[0](v), "an integer >= 0"),
     "best_mean_reward": (
-        lambda v: _is_number(v) or (isinstance(v, float) and v == -math.inf),
-        "a finite number or -Infinity",
+        lambda v: v is None or _is_number(v) or (isinstance(v, float) and v == -math.inf),
+        "a finite number, null (no validation yet) or -Infinity",
     ),
     "sessions": (
         lambda v: isinstance(v, list)

@@ -25,6 +25,7 @@ import numpy as np
 import envs  # noqa: F401  (registers the environments)
 from envs.planners import make_planner
 from envs.planners.adversarial import FullThrottle, RandomAccel
+from envs.rewards import PAPER_TERMS
 from envs.traffic import generate_scenario
 
 DEFAULT_OUT = Path(__file__).resolve().parents[1] / "tests" / "data" / "simulation_regression.npz"
@@ -55,7 +56,8 @@ def run_case(name: str) -> dict[str, np.ndarray]:
     :return: arrays named ``<field>`` (concatenated over steps) and ``<field>_count`` (per step)
     """
     env_id, planner_name, scenario_seed, steps, config = CASES[name]
-    env = gym.make(env_id, config={"collision_handling": "remove", **config})
+    # The paper's reward and dropped spawns: the configuration the recording was made with.
+    env = gym.make(env_id, config={"collision_handling": "remove", "reward": "paper", "spawn_queue": 0, **config})
     base = env.unwrapped
     planner = _planner(planner_name)
     options = None
@@ -80,7 +82,7 @@ def run_case(name: str) -> dict[str, np.ndarray]:
         put("x", x)
         put("edge_index", edge_index.T)
         put("edge_type", edge_type)
-        put("reward", np.array([reward, *info["reward_terms"].values()]))
+        put("reward", np.array([reward, *(info["reward_terms"][k] for k in PAPER_TERMS)]))
         for event in EVENTS:
             put(event, info[event])
         put("collisions", info["collisions"].reshape(-1, 2))

@@ -220,7 +220,7 @@ def test_collision_handling(handling):
     base.place_vehicles([sn, we, ew], [mid[sn], mid[we], 20.0], [3.0, 3.0, 8.0], [4, 9, 7])
     _, reward, terminated, truncated, info = env.step(base.accelerations_to_action(np.zeros(3)))
     assert info["collisions"].tolist() == [[4, 9]] and info["collided"].tolist() == [4, 9]
-    assert info["reward_weighted"]["collision"] == -1.0 and reward < 0
+    assert info["reward_weighted"]["collision"] == -base.config["reward_weights"]["collision"] and reward < 0
     ids = base.scene().vehicle_id.tolist()
     if handling == "terminate":
         assert terminated and not truncated

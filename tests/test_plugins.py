@@ -149,7 +149,7 @@ def test_sb3_graph_imports_and_lists_its_commands_without_the_domain(tmp_path):
     assert "DOMAIN MODULES []" in result.stdout
     listed = result.stdout
     assert all(name in listed for name in (*OWN, "hello"))
-    assert not any(name in listed for name in ("evaluate", "sweep", "aggregate", "ind"))
+    assert not any(name in listed for name in ("evaluate", "sweep", "aggregate", "ind", "record", "serve"))
 
 
 def test_the_repository_declares_the_intersection_domain(capsys):
@@ -161,7 +161,8 @@ def test_the_repository_declares_the_intersection_domain(capsys):
     }
     from envs.domain import COMMANDS as DOMAIN
 
-    assert set(DOMAIN) == {"evaluate", "sweep", "aggregate", "ind"} and not set(DOMAIN) & set(COMMANDS)
+    assert set(DOMAIN) == {"evaluate", "sweep", "aggregate", "ind", "record", "serve", "reward-check"}
+    assert not set(DOMAIN) & set(COMMANDS)
     assert plugins.gym_packages()[0] == "envs"  # tests see the checkout's entry points (conftest)
     with pytest.raises(SystemExit) as stop:
         main(["--help"])  # 95 % in a help text: argparse formats it

@@ -155,13 +155,13 @@ def test_the_actor_warmup_starts_at_zero_and_holds_the_actor_until_its_step():
     warmup = ActorWarmupCallback(steps=60)
     model.learn(50, callback=warmup)
     assert warmup.frozen
-    assert all(float(p.abs().max()) == 0.0 for p in model.actor.head.parameters())
-    assert all(float(p.abs().max()) == 0.0 for p in model.actor_target.head.parameters())
+    assert all(float(p.detach().abs().max()) == 0.0 for p in model.actor.head.parameters())
+    assert all(float(p.detach().abs().max()) == 0.0 for p in model.actor_target.head.parameters())
     assert all(bool((a == b).all()) for a, b in zip(trunk_before, model.actor.trunk.parameters()))
     critic_before = [p.detach().clone() for p in model.critic.parameters()]
     model.learn(40, callback=warmup, reset_num_timesteps=False)
     assert not warmup.frozen
-    assert any(float(p.abs().max()) > 0.0 for p in model.actor.head.parameters())
+    assert any(float(p.detach().abs().max()) > 0.0 for p in model.actor.head.parameters())
     assert any(not bool((a == b).all()) for a, b in zip(critic_before, model.critic.parameters()))
     with pytest.raises(ValueError, match="steps"):
         ActorWarmupCallback(steps=-1)

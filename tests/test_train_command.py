@@ -217,7 +217,10 @@ def test_env_kwargs_merge_into_the_config_block(tmp_path):
                               env_kwargs={"config": {"max_vehicles": 16}, "render_mode": None})  # fmt: skip
     entry = _entry_from_file(args)
     assert entry["env_kwargs"] == {
-        "config": {"duration": 60.0, "spawn_probability": 0.05, "max_vehicles": 16}, "render_mode": None
+        "config": {
+            "reward": "paper", "spawn_queue": 0, "duration": 60.0, "spawn_probability": 0.05, "max_vehicles": 16,
+        },
+        "render_mode": None,
     }  # fmt: skip
     assert entry["n_timesteps"] == 200000 and isinstance(entry["n_timesteps"], int)
 

@@ -10,6 +10,7 @@ import torch as th
 import yaml
 from optuna.trial import TrialState
 
+from envs.intersection_env import CoopIntersectionEnv
 from sb3_graph.cli import main
 from sb3_graph.tuning.objectives import COLLISION, FLOW, STOP, check_metrics, make_objective
 from sb3_graph.tuning.pruners import evaluation_steps
@@ -148,6 +149,10 @@ def test_tuning_preset_and_evaluator_give_task_metrics():
     )
 
 
+# The weights a study tunes: the environment's own defaults (the task preset's).
+DEFAULT_WEIGHTS = CoopIntersectionEnv.default_config()["reward_weights"]
+
+
 # ---------------------------------------------------------------- whole studies
 def test_tiny_study_on_sqlite_completes_reports_and_resumes(config, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
@@ -159,7 +164,7 @@ def test_tiny_study_on_sqlite_completes_reports_and_resumes(config, tmp_path, mo
     trials = study.get_trials()
     assert [t.state for t in trials] == [TrialState.COMPLETE] * 2
     for trial in trials:
-        assert {f"weight.{term}" for term in TABLE_I} == set(trial.params)
+        assert {f"weight.{term}" for term in DEFAULT_WEIGHTS} == set(trial.params)
         for metric in (FLOW, COLLISION, STOP):
             assert np.isfinite(trial.user_attrs[metric])
         assert trial.value == trial.user_attrs[FLOW]  # the task metric, not the training reward
@@ -174,7 +179,7 @@ def test_tiny_study_on_sqlite_completes_reports_and_resumes(config, tmp_path, mo
         assert (out / name).is_file() and (out / name).stat().st_size > 0, name
     best = yaml.safe_load((out / "best_params.yml").read_text())[INTERSECTION]
     weights = best["env_kwargs"]["config"]["reward_weights"]
-    assert weights == {term: study.best_trial.params[f"weight.{term}"] for term in TABLE_I}
+    assert weights == {term: study.best_trial.params[f"weight.{term}"] for term in DEFAULT_WEIGHTS}
     assert best["env_kwargs"]["config"]["duration"] == 30.0 and best["n_timesteps"] == TINY["n_timesteps"]
     assert len(pd.read_csv(out / "trials.csv")) == 2
     # a report never replaces files silently

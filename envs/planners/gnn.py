@@ -34,6 +34,28 @@ def load_model(path: str | Path, device: str = "cpu", trust_files: bool = False)
     return load_policy(path, device=device, trust=trust_files).policy
 
 
+def planner_config_of(path: str | Path) -> dict:
+    """The planner configuration in a policy file's header (``source["planner"]``, written by
+    ``sb3-graph export --planner-config``); ``{}`` for a ``.zip`` or a file without one.
+
+    :param path: a policy file that :func:`load_model` has read
+    """
+    import json
+
+    from safetensors import safe_open
+
+    from sb3_graph.weights import METADATA_KEY
+
+    path = Path(path)
+    if path.suffix != ".safetensors" or not path.is_file():
+        return {}
+    with safe_open(str(path), framework="pt") as handle:
+        text = (handle.metadata() or {}).get(METADATA_KEY, "{}")
+    source = json.loads(text).get("source")
+    config = source.get("planner") if isinstance(source, dict) else None
+    return dict(config) if isinstance(config, dict) else {}
+
+
 class GNNPlanner(Planner):
     """A trained model answering for every vehicle at once.
 
@@ -59,12 +81,9 @@ class GNNPlanner(Planner):
     ) -> None:
         self.path = Path(path)
         super().__init__(name or model_name(self.path))
-        from sb3_graph.weights import load_policy
-
-        loaded = load_policy(self.path, device=device, trust=trust_files)
-        self.model = loaded.policy
+        self.model = load_model(self.path, device, trust_files=trust_files)
         # What the environment did around the policy in training (a residual base), from the file's header.
-        self.planner_config = dict(loaded.description.source.get("planner") or {})
+        self.planner_config = planner_config_of(self.path)
         self.space = self.model.observation_space
         self._direct = _plain_sb3_policy(self.model)
         if self._direct:
