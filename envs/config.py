@@ -120,7 +120,10 @@ RULES: dict[str, Rule] = {
     "max_vehicles": _int(1, MAX_VEHICLES),
     "max_edges": _int(0, MAX_EDGES),
     "edge_features": Rule(
-        lambda x: isinstance(x, (list, tuple)) and set(x) <= set(EDGE_FEATURES) and len(set(x)) == len(x),
+        lambda x: isinstance(x, (list, tuple))
+        and all(isinstance(v, str) for v in x)
+        and set(x) <= set(EDGE_FEATURES)
+        and len(set(x)) == len(x),
         f"a list of distinct names from {list(EDGE_FEATURES)}",
     ),
     "spawn_probability": _probability(),
@@ -142,11 +145,13 @@ RULES: dict[str, Rule] = {
     "s_scale": _positive(),
     "d_max": _positive(),
     "proximity_threshold": _positive(),
-    "reward": Rule(lambda x: x in REWARD_PRESETS, f"one of {sorted(REWARD_PRESETS)}"),
+    "reward": Rule(lambda x: isinstance(x, str) and x in REWARD_PRESETS, f"one of {sorted(REWARD_PRESETS)}"),
     "reward_weights": Rule(_weights, f"a dict mapping some of {REWARD_TERMS} to numbers in [-1e6, 1e6]"),
     "shield": _bool(),
     "spawn_queue": _int(0, MAX_VEHICLES),
-    "residual_base": Rule(lambda x: x is None or x in RESIDUAL_BASES, f"null or one of {RESIDUAL_BASES}"),
+    "residual_base": Rule(
+        lambda x: x is None or (isinstance(x, str) and x in RESIDUAL_BASES), f"null or one of {RESIDUAL_BASES}"
+    ),
     "residual_scale": Rule(lambda x: _is_number(x) and 0 < x <= 2, "a number in (0, 2]"),
     "collision_handling": Rule(lambda x: x in COLLISION_HANDLING, f"one of {COLLISION_HANDLING}"),
     # Rendering (highway-env's viewer reads these).

@@ -44,6 +44,13 @@ def test_configure_takes_effect_at_reset():
         ({"initial_speed_range": [0.6, 0.6]}, "initial_speed_range"),
         ({"reward_weights": {"velocity": "big"}}, "reward_weights"),  # weight not a number
         ({"reward_weights": {"speed": 1.0}}, "reward_weights"),  # unknown term
+        ({"edge_features": [[]]}, "edge_features"),  # unhashable entries are a wrong value, not a TypeError
+        ({"reward": []}, "reward"),
+        ({"reward": "fast"}, "reward"),
+        ({"residual_base": ["aim"]}, "residual_base"),
+        ({"residual_scale": 3.0}, "residual_scale"),
+        ({"spawn_queue": -1}, "spawn_queue"),
+        ({"shield": "yes"}, "shield"),
         ({"max_vehicles": 0}, "max_vehicles"),
         ({"max_vehicles": 2.5}, "max_vehicles"),
         ({"max_acceleration": True}, "max_acceleration"),
