@@ -221,17 +221,7 @@ class CoopIntersectionEnv(AbstractEnv):
         self.define_spaces()
         cfg = self.config
         self.layout = build_layout(cfg["layout"], lateral_acceleration=float(cfg["lateral_acceleration"]))
-        self.sim = Simulation(
-            self.layout,
-            simulation_frequency=cfg["simulation_frequency"],
-            policy_frequency=cfg["policy_frequency"],
-            max_speed=cfg["max_speed"],
-            max_acceleration=cfg["max_acceleration"],
-            s_ref=cfg["s_ref"],
-            max_vehicles=cfg["max_vehicles"],
-            governor_deceleration=cfg["governor_deceleration"],
-            collision_resolution=cfg["collision_resolution"],
-        )
+        self.sim = Simulation.from_config(self.layout, cfg)
         scenario = options.get("scenario")
         if scenario is not None:
             if isinstance(scenario, (str, Path)):
@@ -268,8 +258,11 @@ class CoopIntersectionEnv(AbstractEnv):
         self._collided = set()
         self._stopped_ids = _EMPTY_IDS
         self._shield = self._make_shield() if cfg["shield"] else None
-        self._base = make_residual_base(cfg["residual_base"])
-        if self._base is not None:
+        self._base = None
+        if cfg["residual_base"] is not None:
+            from envs.planners.residual import make_residual_base
+
+            self._base = make_residual_base(cfg["residual_base"])
             self._base.reset(seed)
         self._scene = self.sim.scene()
         obs = build_observation(
@@ -519,22 +512,6 @@ class _Proposal:
 
     def act(self, scene: Scene) -> np.ndarray:
         raise RuntimeError("the training shield checks the policy's proposals; it asks no planner")
-
-
-def make_residual_base(name: str | None):
-    """The base planner of a residual policy (``residual_base``), or ``None``.
-
-    :param name: ``None`` or one of :data:`envs.config.RESIDUAL_BASES`
-    """
-    if name is None:
-        return None
-    from envs.planners import make_planner
-
-    if name == "fullthrottle":
-        from envs.planners.adversarial import FullThrottle
-
-        return FullThrottle()
-    return make_planner(name)
 
 
 class CoopIntersection4WayEnv(CoopIntersectionEnv):

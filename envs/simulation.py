@@ -73,6 +73,26 @@ class Simulation:
     :param collision_resolution: largest distance a body moves between two collision checks [m]
     """
 
+    @classmethod
+    def from_config(cls, layout: Layout, config: dict[str, Any]) -> Simulation:
+        """The simulation that an environment's resolved ``default_config()`` settings ask for (the
+        environment's ``reset`` and the edge server's scene builder both build it so).
+
+        :param layout: the intersection
+        :param config: a validated environment configuration
+        """
+        return cls(
+            layout,
+            simulation_frequency=config["simulation_frequency"],
+            policy_frequency=config["policy_frequency"],
+            max_speed=config["max_speed"],
+            max_acceleration=config["max_acceleration"],
+            s_ref=config["s_ref"],
+            max_vehicles=config["max_vehicles"],
+            governor_deceleration=config["governor_deceleration"],
+            collision_resolution=config["collision_resolution"],
+        )
+
     def __init__(
         self,
         layout: Layout,

@@ -101,9 +101,8 @@ def make_planner(spec: str, trust_files: bool = False) -> Planner:
         return make_remote_planner(key)
     if is_class_spec(key):
         return make_class_planner(key)
-    from envs.intersection_env import make_residual_base
     from envs.planners.gnn import GNNPlanner
-    from envs.planners.residual import ResidualPlanner, check_planner_config
+    from envs.planners.residual import ResidualPlanner, check_planner_config, make_residual_base
 
     planner = GNNPlanner(key, trust_files=trust_files)
     config = check_planner_config(planner.planner_config, key)

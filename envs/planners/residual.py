@@ -74,3 +74,19 @@ def check_planner_config(config: Any, source: str) -> dict[str, Any]:
     if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not (math.isfinite(scale) and 0 < scale <= 2):
         raise ValueError(f"{source}: planner config residual_scale must be a number in (0, 2], got {scale!r}")
     return {"residual_base": base, "residual_scale": float(scale)}
+
+
+def make_residual_base(name: str | None):
+    """The base planner of a residual policy (``residual_base``), or ``None``.
+
+    :param name: ``None`` or one of :data:`envs.config.RESIDUAL_BASES`
+    """
+    if name is None:
+        return None
+    from envs.planners import make_planner
+
+    if name == "fullthrottle":
+        from envs.planners.adversarial import FullThrottle
+
+        return FullThrottle()
+    return make_planner(name)

@@ -94,18 +94,8 @@ class SceneBuilder:
 
         self.config = dict(config)
         self.layout = build_layout(config["layout"], lateral_acceleration=float(config["lateral_acceleration"]))
-        # The same construction as the environment's reset: the derived quantities use these settings.
-        self._sim = Simulation(
-            self.layout,
-            simulation_frequency=config["simulation_frequency"],
-            policy_frequency=config["policy_frequency"],
-            max_speed=config["max_speed"],
-            max_acceleration=config["max_acceleration"],
-            s_ref=config["s_ref"],
-            max_vehicles=config["max_vehicles"],
-            governor_deceleration=config["governor_deceleration"],
-            collision_resolution=config["collision_resolution"],
-        )
+        # The environment's own construction (its reset calls the same): the derived quantities use these settings.
+        self._sim = Simulation.from_config(self.layout, config)
         self.limits = WireLimits(int(config["max_vehicles"]), float(config["max_speed"]))
 
     @property
