@@ -18,7 +18,7 @@ import numpy as np
 
 from envs.layouts import LAYOUT_NAMES
 from envs.rewards import REWARD_PRESETS, REWARD_TERMS, preset_weights
-from envs.scene_graph import EDGE_FEATURES
+from envs.scene_graph import EDGE_FEATURES, VERTEX_FEATURES
 
 # What a collision does: "terminate" ends the episode (training, as in the paper); "remove" takes
 # the vehicles involved out of the scene and goes on (evaluation: collision rate over a whole run).
@@ -112,6 +112,17 @@ def _weights(x: Any) -> bool:
     )
 
 
+def _distinct_names(allowed) -> Rule:
+    """A list of distinct names from ``allowed`` (feature lists)."""
+    return Rule(
+        lambda x: isinstance(x, (list, tuple))
+        and all(isinstance(v, str) for v in x)
+        and set(x) <= set(allowed)
+        and len(set(x)) == len(x),
+        f"a list of distinct names from {list(allowed)}",
+    )
+
+
 RULES: dict[str, Rule] = {
     "layout": Rule(lambda x: x in LAYOUT_NAMES, f"one of {LAYOUT_NAMES}"),
     "simulation_frequency": _int(1, MAX_SIMULATION_FREQUENCY),
@@ -119,13 +130,8 @@ RULES: dict[str, Rule] = {
     "duration": _positive(MAX_DURATION),
     "max_vehicles": _int(1, MAX_VEHICLES),
     "max_edges": _int(0, MAX_EDGES),
-    "edge_features": Rule(
-        lambda x: isinstance(x, (list, tuple))
-        and all(isinstance(v, str) for v in x)
-        and set(x) <= set(EDGE_FEATURES)
-        and len(set(x)) == len(x),
-        f"a list of distinct names from {list(EDGE_FEATURES)}",
-    ),
+    "edge_features": _distinct_names(EDGE_FEATURES),
+    "vertex_features": _distinct_names(VERTEX_FEATURES),
     "spawn_probability": _probability(),
     "initial_spawn_probability": _probability(),
     "spawn_probability_range": Rule(

@@ -57,7 +57,7 @@ from envs.rewards import (
     weighted,
 )
 from envs.scene import MAJOR, MANEUVERS, Scene
-from envs.scene_graph import DEFAULT_S_SCALE, NODE_FEATURES, NUM_RELATIONS, build_observation, min_mahalanobis
+from envs.scene_graph import DEFAULT_S_SCALE, NUM_RELATIONS, build_observation, min_mahalanobis, num_node_features
 from envs.simulation import Simulation, StepEvents
 from envs.traffic import Scenario, ScenarioTraffic, TrainingTraffic
 from sb3_graph.spaces import GraphSpace
@@ -94,8 +94,10 @@ class CoopIntersectionEnv(AbstractEnv):
         - ``duration`` [s]: training episode length (a scenario brings its own)
         - ``max_vehicles``: vertices/action slots; spawning waits while the scene is full
         - ``max_edges``: edge slots of the observation
-        - ``edge_features``: edge features of the observation, any of ``["distance", "bearing"]``
-          (default none; see :mod:`envs.scene_graph`)
+        - ``edge_features``: edge features of the observation, any of ``["distance", "bearing",
+          "zone_receiver", "zone_sender"]`` (default none; see :mod:`envs.scene_graph`)
+        - ``vertex_features``: vertex features after the paper's ``[s, v, d]``, any of
+          ``["maneuver", "priority", "limit", "line", "zone", "committed"]`` (default none: the paper's)
         - ``spawn_probability``: training spawn probability per lane and step (paper: up to 0.05)
         - ``spawn_probability_range``: ``None``, or ``[low, high]``: each training episode draws its
           spawn probability uniformly from it (one planner for light and heavy traffic); it
@@ -142,6 +144,7 @@ class CoopIntersectionEnv(AbstractEnv):
             "max_vehicles": 64,
             "max_edges": 1024,
             "edge_features": [],
+            "vertex_features": [],
             "spawn_probability": 0.05,
             "spawn_probability_range": None,
             "initial_spawn_probability": 1.0,
@@ -191,7 +194,7 @@ class CoopIntersectionEnv(AbstractEnv):
         self.action_type = None
         self.observation_space = GraphSpace(
             max_nodes=self.config["max_vehicles"],
-            node_features=NODE_FEATURES,
+            node_features=num_node_features(self.config["vertex_features"]),
             max_edges=self.config["max_edges"],
             num_relations=NUM_RELATIONS,
             edge_features=len(self.config["edge_features"]),
@@ -271,6 +274,7 @@ class CoopIntersectionEnv(AbstractEnv):
             s_scale=cfg["s_scale"],
             d_max=cfg["d_max"],
             edge_feature_names=cfg["edge_features"],
+            vertex_feature_names=cfg["vertex_features"],
         )
         zero_terms = dict.fromkeys(REWARD_TERMS, 0.0)
         info = self._make_info(StepEvents(), entered, zero_terms)
@@ -323,6 +327,7 @@ class CoopIntersectionEnv(AbstractEnv):
             d_max=cfg["d_max"],
             min_distance=dmin,
             edge_feature_names=cfg["edge_features"],
+            vertex_feature_names=cfg["vertex_features"],
         )
         collision = events.collisions.shape[0] > 0
         terms = reward_terms(

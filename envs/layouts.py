@@ -21,6 +21,7 @@ along the route.
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass, field, fields
 from functools import cache
 
@@ -45,6 +46,9 @@ DEFAULT_LATERAL_ACCELERATION = 3.0
 # when they share the exit lane (paths merge). A vehicle is 2 m wide: parallel lanes 4 m apart
 # stay apart, crossing paths reach 0.
 CONFLICT_DISTANCE = 2.5
+# Padding of every conflict zone on both ends [m]: the shield's default, which the observation's
+# zone features use too (envs.scene_graph).
+ZONE_MARGIN = 1.5
 
 
 @dataclass(frozen=True)
@@ -243,6 +247,25 @@ class Layout:
         """
         k = (self.route_lane_starts[route] <= arc[..., None]).sum(axis=-1) - 1
         return self.route_lane_ids[route, np.maximum(k, 0)]
+
+
+_HULLS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def zone_hull(layout: Layout) -> tuple[np.ndarray, np.ndarray]:
+    """``(R,)`` arcs where each route's first conflict zone starts and its last one ends (``inf``,
+    ``-inf`` for a route without any); cached per layout (the shield and the observation read them
+    at every step).
+
+    :param layout: the intersection
+    """
+    if layout not in _HULLS:
+        zs, ze = layout.zone_start, layout.zone_end
+        with np.errstate(invalid="ignore"):
+            first = np.where(np.isnan(zs), np.inf, zs).min(axis=1)
+            last = np.where(np.isnan(ze), -np.inf, ze).max(axis=1)
+        _HULLS[layout] = read_only(first), read_only(last)
+    return _HULLS[layout]
 
 
 def read_only(array: np.ndarray) -> np.ndarray:

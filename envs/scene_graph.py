@@ -23,12 +23,33 @@ Edges (relation ids):
 When the edges outnumber the space's ``max_edges``, all same-lane edges are kept first and then the
 crossing edges between the closest vehicle pairs.
 
+Optional vertex features (config ``vertex_features``, any of :data:`VERTEX_FEATURES`, in the order
+given, after ``[s, v, d]``): what AIM and the shield know about a vehicle and the paper's three
+features do not say (issue #22):
+
+- ``"maneuver"``: one-hot ``[left, straight, right]`` (3 columns),
+- ``"priority"``: 1 on the major road, 0 on the minor one,
+- ``"limit"``: the lane's speed limit over 10 m/s (the road's limit on straight lanes),
+- ``"line"``: metres from the front to the stop line (``Scene.dist_to_entry``) times ``s_scale``,
+  clipped to ``[-1, 4]`` (negative once past it),
+- ``"zone"``: metres from the centre to where the body reaches its route's first conflict zone (padded by
+  the shield's ``ZONE_MARGIN``) times ``s_scale``, clipped to ``[-1, 4]`` (4 for a route without any),
+- ``"committed"``: 1 when braking at ``a_max`` can no longer stop the body before that zone, or the
+  vehicle has left its last zone (the shield's :meth:`~envs.planners.shield.Shield.committed`), else 0.
+
+``zone`` and ``committed`` need the scene's layout (every simulated scene has it).
+
 Optional edge features (config ``edge_features``, any of :data:`EDGE_FEATURES`, in the order given),
 for edge ``j -> i`` (message from ``j`` to ``i``):
 
 - ``"distance"``: ``|p_j - p_i|`` [m] times ``s_scale`` (units of 25 m by default, like ``s``),
 - ``"bearing"``: direction of ``p_j`` seen from vehicle ``i``, relative to ``i``'s heading, in
-  ``[-1, 1]`` (radians / pi: 0 straight ahead, +-1 behind, positive to the left).
+  ``[-1, 1]`` (radians / pi: 0 straight ahead, +-1 behind, positive to the left),
+- ``"zone_receiver"``, ``"zone_sender"``: on a crossing edge, metres from the centre of ``i``
+  (receiver) or ``j`` (sender) to where its body reaches the two routes' conflict zone (the shield's
+  entry arc, padded by ``ZONE_MARGIN``), times ``s_scale``, clipped to ``[-1, 4]``; 0 where the two
+  routes have no conflict zone (same-lane edges of one route). The pair says who reaches the zone
+  first (needs the scene's layout).
 """
 
 from __future__ import annotations
@@ -36,16 +57,22 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from envs.scene import Scene
+from envs.layouts import ZONE_MARGIN, zone_hull
+from envs.scene import LEFT, MAJOR, RIGHT, STRAIGHT, Scene
 from sb3_graph.batching import GraphBatch
 from sb3_graph.spaces import GraphSpace
 
 # s in units of the default s_ref (25 m): the GNN's inputs stay of order 1.
 DEFAULT_S_SCALE = 0.04
 SAME_LANE, CROSSING = 0, 1
-EDGE_FEATURES = ("distance", "bearing")
+EDGE_FEATURES = ("distance", "bearing", "zone_receiver", "zone_sender")
 NUM_RELATIONS = 2
-NODE_FEATURES = 3
+NODE_FEATURES = 3  # the paper's [s, v, d]
+# Optional vertex features and the columns each adds (config ``vertex_features``).
+VERTEX_FEATURES = {"maneuver": 3, "priority": 1, "limit": 1, "line": 1, "zone": 1, "committed": 1}
+# Distances past this many units of s_scale (100 m by default) look the same to the network.
+DISTANCE_CLIP = (-1.0, 4.0)
+LIMIT_SCALE = 0.1  # 1 / (10 m/s)
 MAHALANOBIS_LENGTH = 5.0
 MAHALANOBIS_WIDTH = 2.0
 
@@ -84,22 +111,91 @@ def min_mahalanobis(scene: Scene) -> np.ndarray:
     return mahalanobis_matrix(scene.position, scene.heading).min(axis=1)
 
 
+def num_node_features(vertex_feature_names: tuple[str, ...] | list[str] = ()) -> int:
+    """Columns of the vertex features: the paper's 3 plus those of the optional ones.
+
+    :param vertex_feature_names: names among :data:`VERTEX_FEATURES` (config ``vertex_features``)
+    :raises ValueError: an unknown name
+    """
+    unknown = [name for name in vertex_feature_names if name not in VERTEX_FEATURES]
+    if unknown:
+        raise ValueError(f"vertex feature {unknown[0]!r} is unknown; choose from {list(VERTEX_FEATURES)}")
+    return NODE_FEATURES + sum(VERTEX_FEATURES[name] for name in vertex_feature_names)
+
+
+def zone_arc(scene: Scene) -> np.ndarray:
+    """``(n,)`` centre arc at which each body reaches its route's first conflict zone, padded by
+    ``ZONE_MARGIN`` (as the shield's ``hull_start``); ``inf`` for a route without any.
+
+    :raises ValueError: a scene without its layout or arcs (hand-built)
+    """
+    if scene.layout is None or scene.arc is None:
+        raise ValueError("the zone features need the scene's layout and arcs (every simulated scene has them)")
+    first, _ = zone_hull(scene.layout)
+    return first[scene.route] - ZONE_MARGIN - scene.length / 2
+
+
+def committed(scene: Scene, zone: np.ndarray | None = None) -> np.ndarray:
+    """``(n,)`` bool: braking at ``a_max`` can no longer stop the body before its first zone, or the
+    vehicle has left its last one (the shield's rule, at its default margin).
+
+    :param scene: the vehicles (with their layout)
+    :param zone: precomputed :func:`zone_arc`
+    """
+    zone = zone_arc(scene) if zone is None else zone
+    _, last = zone_hull(scene.layout)
+    arc, speed = np.asarray(scene.arc, float), scene.speed
+    stopping = np.where(speed > 1e-6, speed**2 / (2 * scene.a_max), 0.0)
+    cleared = arc > last[scene.route] + ZONE_MARGIN + scene.length / 2
+    return (arc + stopping > zone) | cleared
+
+
+def _distance_feature(metres: np.ndarray, s_scale: float) -> np.ndarray:
+    return np.clip(metres * s_scale, *DISTANCE_CLIP)
+
+
 def node_features(
-    scene: Scene, s_scale: float = DEFAULT_S_SCALE, d_max: float = 10.0, min_distance: np.ndarray | None = None
+    scene: Scene,
+    s_scale: float = DEFAULT_S_SCALE,
+    d_max: float = 10.0,
+    min_distance: np.ndarray | None = None,
+    vertex_feature_names: tuple[str, ...] | list[str] = (),
 ) -> np.ndarray:
-    """``(n, 3)`` float32 vertex features ``[s, v, d]`` (see the module docstring).
+    """``(n, num_node_features(vertex_feature_names))`` float32 vertex features: ``[s, v, d]`` and
+    the optional ones named (see the module docstring).
 
     :param scene: the vehicles
-    :param s_scale: factor applied to ``s``
+    :param s_scale: factor applied to ``s`` and to the distance features
     :param d_max: upper clip of ``d``
     :param min_distance: precomputed :func:`min_mahalanobis` (saves one pairwise pass)
+    :param vertex_feature_names: optional features among :data:`VERTEX_FEATURES`, in the order wanted
+    :raises ValueError: an unknown name, or a zone feature of a scene without its layout
     """
     if min_distance is None:
         min_distance = min_mahalanobis(scene)
     with np.errstate(divide="ignore"):
         d = np.minimum(1.0 / min_distance, d_max)
     v = scene.speed / scene.speed_limit
-    return np.stack([scene.s * s_scale, v, d], axis=1).astype(np.float32)
+    columns = [scene.s * s_scale, v, d]
+    num_node_features(vertex_feature_names)
+    zone = None
+    for name in vertex_feature_names:
+        if name == "maneuver":
+            columns += [scene.maneuver == LEFT, scene.maneuver == STRAIGHT, scene.maneuver == RIGHT]
+        elif name == "priority":
+            columns.append(scene.priority == MAJOR)
+        elif name == "limit":
+            columns.append(scene.speed_limit * LIMIT_SCALE)
+        elif name == "line":
+            columns.append(_distance_feature(scene.dist_to_entry, s_scale))
+        elif name in ("zone", "committed"):
+            zone = zone_arc(scene) if zone is None else zone
+            if name == "zone":
+                with np.errstate(invalid="ignore"):  # inf - arc: a route without zones
+                    columns.append(_distance_feature(zone - scene.arc, s_scale))
+            else:
+                columns.append(committed(scene, zone))
+    return np.stack(columns, axis=1).astype(np.float32)
 
 
 def edges(scene: Scene, max_edges: int | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -153,9 +249,23 @@ def edge_features(
             lon = delta[:, 0] * c + delta[:, 1] * s
             lat = -delta[:, 0] * s + delta[:, 1] * c
             columns.append(np.arctan2(lat, lon) / np.pi)
+        elif name in ("zone_receiver", "zone_sender"):
+            columns.append(_pair_zone(scene, edge_index, receiver=name == "zone_receiver", s_scale=s_scale))
         else:
             raise ValueError(f"edge feature {name!r} is unknown; choose from {EDGE_FEATURES}")
     return np.stack(columns, axis=1).astype(np.float32) if columns else np.zeros((len(src), 0), np.float32)
+
+
+def _pair_zone(scene: Scene, edge_index: np.ndarray, receiver: bool, s_scale: float) -> np.ndarray:
+    """``(e,)`` distance feature from the receiver's (or sender's) centre to where its body reaches the
+    conflict zone of the edge's two routes; 0 where the routes have none (same-lane edges)."""
+    if scene.layout is None or scene.arc is None:
+        raise ValueError("the zone edge features need the scene's layout and arcs (every simulated scene has them)")
+    src, dst = edge_index
+    me, other = (dst, src) if receiver else (src, dst)
+    start = scene.layout.zone_start[scene.route[me], scene.route[other]]
+    metres = start - ZONE_MARGIN - scene.length[me] / 2 - np.asarray(scene.arc)[me]
+    return np.where(np.isnan(start), 0.0, _distance_feature(np.nan_to_num(metres), s_scale))
 
 
 def build_observation(
@@ -165,20 +275,24 @@ def build_observation(
     d_max: float = 10.0,
     min_distance: np.ndarray | None = None,
     edge_feature_names: tuple[str, ...] | list[str] = (),
+    vertex_feature_names: tuple[str, ...] | list[str] = (),
 ) -> dict[str, np.ndarray]:
     """Turn any scene into the padded graph observation of ``space`` (what the environment returns).
 
     :param scene: the vehicles (at most ``space.max_nodes``)
-    :param space: a ``GraphSpace`` with 3 node features, 2 relations and ``len(edge_feature_names)``
-        edge features
+    :param space: a ``GraphSpace`` with ``num_node_features(vertex_feature_names)`` node features, 2
+        relations and ``len(edge_feature_names)`` edge features
     :param s_scale: factor applied to the ``s`` feature (and to the ``distance`` edge feature)
     :param d_max: upper clip of the ``d`` feature
     :param min_distance: precomputed :func:`min_mahalanobis`, optional
     :param edge_feature_names: edge features among :data:`EDGE_FEATURES` (config ``edge_features``)
+    :param vertex_feature_names: optional vertex features among :data:`VERTEX_FEATURES` (config ``vertex_features``)
     :return: the observation dictionary
-    :raises ValueError: when the names do not match the space's number of edge features
+    :raises ValueError: when the names do not match the space's number of edge or node features
     """
-    arrays = _graph_arrays(scene, space, s_scale, d_max, min_distance, edge_feature_names, "build_observation")
+    arrays = _graph_arrays(
+        scene, space, s_scale, d_max, min_distance, edge_feature_names, vertex_feature_names, "build_observation"
+    )
     return space.encode(*arrays)
 
 
@@ -189,20 +303,29 @@ def _graph_arrays(
     d_max: float,
     min_distance: np.ndarray | None,
     edge_feature_names: tuple[str, ...] | list[str],
+    vertex_feature_names: tuple[str, ...] | list[str],
     caller: str,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
     """``(x, edge_index, edge_type, edge_attr)`` of a scene, unpadded (``edge_attr`` ``None`` without
     edge features): what :func:`build_observation` pads and :func:`build_graph_batch` wraps.
 
     :param caller: the public function's name, for the error message
-    :raises ValueError: when the names do not match the space's number of edge features
+    :raises ValueError: when the names do not match the space's number of edge or node features
     """
     if len(edge_feature_names) != space.edge_features:
         raise ValueError(
             f"{caller}: the space has {space.edge_features} edge features, got names "
             f"{list(edge_feature_names)} (config 'edge_features')"
         )
-    x = node_features(scene, s_scale=s_scale, d_max=d_max, min_distance=min_distance)
+    if num_node_features(vertex_feature_names) != space.node_features:
+        raise ValueError(
+            f"{caller}: the space has {space.node_features} node features, the vertex features "
+            f"{['s', 'v', 'd', *vertex_feature_names]} give {num_node_features(vertex_feature_names)} "
+            f"(config 'vertex_features')"
+        )
+    x = node_features(
+        scene, s_scale=s_scale, d_max=d_max, min_distance=min_distance, vertex_feature_names=vertex_feature_names
+    )
     edge_index, edge_type = edges(scene, max_edges=space.max_edges)
     edge_attr = edge_features(scene, edge_index, edge_feature_names, s_scale) if edge_feature_names else None
     return x, edge_index, edge_type, edge_attr
@@ -215,6 +338,7 @@ def build_graph_batch(
     d_max: float = 10.0,
     min_distance: np.ndarray | None = None,
     edge_feature_names: tuple[str, ...] | list[str] = (),
+    vertex_feature_names: tuple[str, ...] | list[str] = (),
 ) -> GraphBatch:
     """The scene as a batch of one graph: what ``sb3_graph.batching.padded_to_batch`` makes of
     :func:`build_observation`'s observation, built straight from the scene's arrays.
@@ -230,6 +354,7 @@ def build_graph_batch(
     :param d_max: upper clip of the ``d`` feature
     :param min_distance: precomputed :func:`min_mahalanobis`, optional
     :param edge_feature_names: edge features among :data:`EDGE_FEATURES` (config ``edge_features``)
+    :param vertex_feature_names: optional vertex features among :data:`VERTEX_FEATURES` (config ``vertex_features``)
     :return: the batch (CPU tensors; vertex ``i`` is vehicle ``i``, in action slot ``i``)
     :raises ValueError: as :func:`build_observation` for a scene or names that the space cannot hold
     """
@@ -237,7 +362,7 @@ def build_graph_batch(
     if n > space.max_nodes:
         raise ValueError(f"build_graph_batch: {n} vertices exceed max_nodes={space.max_nodes}")
     x, edge_index, edge_type, edge_attr = _graph_arrays(
-        scene, space, s_scale, d_max, min_distance, edge_feature_names, "build_graph_batch"
+        scene, space, s_scale, d_max, min_distance, edge_feature_names, vertex_feature_names, "build_graph_batch"
     )
     return GraphBatch(
         x=torch.from_numpy(x),

@@ -68,7 +68,13 @@ ALGORITHM_CLASSES: dict[str, str] = {entry.name: entry.algorithm_class for entry
 # Largest zip entry read into memory (a model's data and weights are far smaller).
 MAX_ENTRY_BYTES = 1 << 30
 # Largest sizes of a space read from a file (a space allocates arrays of its size when built).
-SPACE_LIMITS = {"max_nodes": 1 << 16, "node_features": 1 << 12, "max_edges": 1 << 22, "num_relations": 1 << 12}
+SPACE_LIMITS = {
+    "max_nodes": 1 << 16,
+    "node_features": 1 << 12,
+    "max_edges": 1 << 22,
+    "num_relations": 1 << 12,
+    "edge_features": 1 << 12,
+}
 MAX_BOX_SIZE = 1 << 22
 EXPORT_HINT = (
     "convert a model file that you trust once with `sb3-graph export MODEL.zip OUT.safetensors "
@@ -251,6 +257,16 @@ def space_to_json(space: spaces.Space) -> dict[str, Any]:
             "num_relations": space.num_relations,
             "low": _float_json(space.low),
             "high": _float_json(space.high),
+            # Only when there are any: files without edge features keep their bytes.
+            **(
+                {
+                    "edge_features": space.edge_features,
+                    "edge_low": _float_json(space.edge_low),
+                    "edge_high": _float_json(space.edge_high),
+                }
+                if space.edge_features
+                else {}
+            ),
         }
     if isinstance(space, spaces.Box):
         return {
@@ -287,6 +303,9 @@ def space_from_json(data: Any, what: str = "space") -> spaces.Space:
             num_relations=_int_field(data, "num_relations", what),
             low=_float_from_json(data.get("low", "-inf"), f"{what}.low"),
             high=_float_from_json(data.get("high", "inf"), f"{what}.high"),
+            edge_features=_int_field({"edge_features": 0, **data}, "edge_features", what),
+            edge_low=_float_from_json(data.get("edge_low", "-inf"), f"{what}.edge_low"),
+            edge_high=_float_from_json(data.get("edge_high", "inf"), f"{what}.edge_high"),
         )
     if kind == "Box":
         shape = data.get("shape")
@@ -550,6 +569,9 @@ def _rebuilt_space(value: Any, key: str, source: str) -> dict[str, Any]:
         rebuilt = {"type": "GraphSpace"}
         for name in ("max_nodes", "node_features", "max_edges", "num_relations", "low", "high"):
             rebuilt[name] = _float_json(value[name]) if isinstance(value.get(name), float) else value.get(name)
+        if value.get("edge_features"):
+            for name in ("edge_features", "edge_low", "edge_high"):
+                rebuilt[name] = _float_json(value[name]) if isinstance(value.get(name), float) else value.get(name)
         return rebuilt
     if kind == "<class 'gymnasium.spaces.box.Box'>":
         shape = value.get("_shape")

@@ -237,13 +237,17 @@ def test_gnn_planner_scales_the_model_action(monkeypatch, tmp_path):
             seen["deterministic"] = deterministic
             return np.array([0.5, -1.0, 0.2, 0.9, 0.9]), None  # padded to 5 slots
 
-    def build_observation(scene, space):
+    def build_observation(scene, space, **names):
         seen["space"] = space
+        assert names == {"vertex_feature_names": (), "edge_feature_names": ()}  # a file without a planner config
         return {"n": scene.num_vehicles}
 
-    monkeypatch.setitem(
-        sys.modules, "envs.scene_graph", types.SimpleNamespace(build_observation=build_observation)
+    import envs.scene_graph as real
+
+    fake = types.SimpleNamespace(
+        build_observation=build_observation, EDGE_FEATURES=real.EDGE_FEATURES, VERTEX_FEATURES=real.VERTEX_FEATURES
     )
+    monkeypatch.setitem(sys.modules, "envs.scene_graph", fake)
     monkeypatch.setattr(gnn, "load_model", lambda path, device="cpu", **kwargs: FakeModel())
     planner = gnn.GNNPlanner(tmp_path / "run" / "best_model.zip")
     assert planner.name == "RL:run"

@@ -11,7 +11,8 @@ from envs.evaluation import run_episode
 from envs.planners import AIMPlanner, make_planner
 from envs.planners.adversarial import FullThrottle
 from envs.planners.base import Planner
-from envs.planners.residual import ResidualPlanner, check_planner_config
+from envs.planners.gnn import check_planner_config
+from envs.planners.residual import ResidualPlanner
 from envs.planners.shield import Shield
 from envs.traffic import generate_scenario
 from sb3_graph import TD3

@@ -102,11 +102,11 @@ def make_planner(spec: str, trust_files: bool = False) -> Planner:
     if is_class_spec(key):
         return make_class_planner(key)
     from envs.planners.gnn import GNNPlanner
-    from envs.planners.residual import ResidualPlanner, check_planner_config, make_residual_base
+    from envs.planners.residual import ResidualPlanner, make_residual_base
 
     planner = GNNPlanner(key, trust_files=trust_files)
-    config = check_planner_config(planner.planner_config, key)
-    if not config:
+    config = planner.planner_config  # checked at load
+    if config.get("residual_base") is None:
         return planner
     base = make_residual_base(config["residual_base"])
     return ResidualPlanner(base, planner, config["residual_scale"], name=planner.name)

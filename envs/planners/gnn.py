@@ -11,8 +11,10 @@ Planner files are what people share, so they load without running code: a weight
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -32,6 +34,51 @@ def load_model(path: str | Path, device: str = "cpu", trust_files: bool = False)
     from sb3_graph.weights import load_policy
 
     return load_policy(path, device=device, trust=trust_files).policy
+
+
+#: Keys of a policy file's planner configuration (``source["planner"]`` of its header): what the
+#: environment did around the policy in training, which the planner must do again.
+PLANNER_CONFIG_KEYS = ("residual_base", "residual_scale", "vertex_features", "edge_features")
+
+
+def check_planner_config(config: Any, source: str) -> dict[str, Any]:
+    """A policy file's planner configuration, checked and completed.
+
+    :param config: ``None`` or a dict with keys among :data:`PLANNER_CONFIG_KEYS`: ``residual_base``
+        (a planner of ``envs.config.RESIDUAL_BASES``) and ``residual_scale`` (in ``(0, 2]``, default 0.5)
+        for a residual policy; ``vertex_features`` and ``edge_features``, the observation's feature
+        names (the environment config's keys of the same names)
+    :param source: what to name in errors (the file)
+    :return: ``vertex_features`` and ``edge_features`` (tuples, default empty), plus ``residual_base``
+        and ``residual_scale`` for a residual policy
+    :raises ValueError: an unknown key, base or feature name, or a scale outside ``(0, 2]``
+    """
+    from envs.config import RESIDUAL_BASES
+    from envs.scene_graph import EDGE_FEATURES, VERTEX_FEATURES
+
+    config = {} if config is None else config
+    if not isinstance(config, dict) or set(config) - set(PLANNER_CONFIG_KEYS):
+        raise ValueError(
+            f"{source}: planner config must be a dict with keys among {list(PLANNER_CONFIG_KEYS)}, got {config!r}"
+        )
+    checked: dict[str, Any] = {}
+    for key, allowed in (("vertex_features", VERTEX_FEATURES), ("edge_features", EDGE_FEATURES)):
+        names = config.get(key, [])
+        distinct = isinstance(names, list) and all(isinstance(n, str) and n in allowed for n in names)
+        if not (distinct and len(set(names)) == len(names)):
+            raise ValueError(
+                f"{source}: planner config {key} must be a list of distinct names from {list(allowed)}, got {names!r}"
+            )
+        checked[key] = tuple(names)
+    base = config.get("residual_base")
+    if base is None:
+        return checked
+    if base not in RESIDUAL_BASES:
+        raise ValueError(f"{source}: planner config residual_base must be one of {RESIDUAL_BASES}, got {base!r}")
+    scale = config.get("residual_scale", 0.5)
+    if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not (math.isfinite(scale) and 0 < scale <= 2):
+        raise ValueError(f"{source}: planner config residual_scale must be a number in (0, 2], got {scale!r}")
+    return {**checked, "residual_base": base, "residual_scale": float(scale)}
 
 
 def planner_config_of(path: str | Path) -> dict:
@@ -73,8 +120,11 @@ class GNNPlanner(Planner):
     # so that subclasses around other models (a trial's model in training) keep their `predict`.
     _direct = False
     # Feed the graph network a batch built from the scene (see :meth:`vertex_actions`); set at load
-    # for a registered graph policy (exactly its class) on a space without edge features.
+    # for a registered graph policy (exactly its class).
     _graph_actor = False
+    # The observation's optional features, as in training (the file's planner config).
+    vertex_features: tuple[str, ...] = ()
+    edge_features: tuple[str, ...] = ()
 
     def __init__(
         self, path: str | Path, name: str | None = None, device: str = "cpu", trust_files: bool = False
@@ -82,9 +132,13 @@ class GNNPlanner(Planner):
         self.path = Path(path)
         super().__init__(name or model_name(self.path))
         self.model = load_model(self.path, device, trust_files=trust_files)
-        # What the environment did around the policy in training (a residual base), from the file's header.
-        self.planner_config = planner_config_of(self.path)
+        # What the environment did around the policy in training (a residual base, the observation's
+        # features), from the file's header.
+        self.planner_config = check_planner_config(planner_config_of(self.path), str(self.path))
+        self.vertex_features = self.planner_config["vertex_features"]
+        self.edge_features = self.planner_config["edge_features"]
         self.space = self.model.observation_space
+        self._check_features(str(self.path))
         self._direct = _plain_sb3_policy(self.model)
         if self._direct:
             self.model.set_training_mode(False)  # once, rather than in every `predict`
@@ -96,8 +150,10 @@ class GNNPlanner(Planner):
         :param max_vehicles: the environment's ``max_vehicles``
         :raises ValueError: naming the model's ``max_nodes``
         """
+        from envs.scene_graph import num_node_features
+
         max_nodes = getattr(self.space, "max_nodes", None)
-        if max_nodes is None or getattr(self.space, "node_features", 3) != 3:
+        if max_nodes is None or getattr(self.space, "node_features", None) != num_node_features(self.vertex_features):
             raise ValueError(f"{source}: the model does not take the intersection's graph observation")
         if max_nodes < max_vehicles:
             raise ValueError(
@@ -105,6 +161,28 @@ class GNNPlanner(Planner):
                 f"max_vehicles={max_vehicles}; evaluate with --env-kwargs "
                 f"'{{\"config\": {{\"max_vehicles\": {max_nodes}}}}}' or use a model trained for more"
             )
+
+    def _check_features(self, source: str) -> None:
+        """Refuse a model whose graph space does not match the feature names of its planner config.
+
+        :raises ValueError: naming both, and how to export the file with the training's names
+        """
+        node, edge = getattr(self.space, "node_features", None), getattr(self.space, "edge_features", None)
+        if node is None:
+            return  # not a graph model: check_capacity says so
+        from envs.scene_graph import num_node_features
+
+        if node != num_node_features(self.vertex_features) or edge != len(self.edge_features):
+            raise ValueError(
+                f"{source}: the model takes {node} vertex and {edge} edge features, its planner config names "
+                f"vertex_features={list(self.vertex_features)} (3 + their columns) and "
+                f"edge_features={list(self.edge_features)}; export it with the training's names, e.g. "
+                f"sb3-graph export MODEL OUT --planner-config "
+                f"'{{\"vertex_features\": [...], \"edge_features\": [...]}}'"
+            )
+
+    def _observation_kwargs(self) -> dict[str, Any]:
+        return {"vertex_feature_names": self.vertex_features, "edge_feature_names": self.edge_features}
 
     def act(self, scene: Scene) -> np.ndarray:
         from envs.scene_graph import build_observation
@@ -115,7 +193,7 @@ class GNNPlanner(Planner):
         if self._graph_actor:
             action = np.asarray(self.vertex_actions(scene), dtype=float)
         else:
-            obs = build_observation(scene, self.space)
+            obs = build_observation(scene, self.space, **self._observation_kwargs())
             action = np.asarray(self.predict(obs), dtype=float).reshape(-1)[:n]
         return np.clip(action * scene.a_max, scene.a_min, scene.a_max)
 
@@ -143,7 +221,8 @@ class GNNPlanner(Planner):
         if not busy:
             return answers
         policy = self.model
-        graphs = concat_graph_batches([build_graph_batch(scenes[k], self.space) for k in busy])
+        kwargs = self._observation_kwargs()
+        graphs = concat_graph_batches([build_graph_batch(scenes[k], self.space, **kwargs) for k in busy])
         with torch.inference_mode():  # the batch is made outside: see vertex_actions
             vertex = deterministic_vertex_actions(policy, graphs).numpy()
         actions = np.zeros((len(busy), *policy.action_space.shape), dtype=np.float32)
@@ -174,7 +253,7 @@ class GNNPlanner(Planner):
         from sb3_graph.registry import deterministic_vertex_actions
 
         policy = self.model
-        graphs = build_graph_batch(scene, self.space)
+        graphs = build_graph_batch(scene, self.space, **self._observation_kwargs())
         with torch.inference_mode():
             vertex = deterministic_vertex_actions(policy, graphs)
         # SB3's unscaling (or clipping) over the whole action space: bounds of any shape, same arithmetic.
@@ -222,11 +301,10 @@ def _plain_sb3_policy(model) -> bool:
 
 def _plain_graph_actor(model) -> bool:
     """Whether ``model`` is exactly a registered graph policy (:data:`sb3_graph.registry.ALGORITHMS`,
-    so its ``_predict`` is the graph network's deterministic action) over a space without edge
-    features (what :meth:`GNNPlanner.vertex_actions` runs)."""
+    so its ``_predict`` is the graph network's deterministic action: what :meth:`GNNPlanner.vertex_actions` runs)."""
     from sb3_graph.registry import entry_of_policy
 
-    return entry_of_policy(model) is not None and getattr(model.observation_space, "edge_features", None) == 0
+    return entry_of_policy(model) is not None
 
 
 def _to_action_bounds(policy, actions: np.ndarray) -> np.ndarray:

@@ -11,15 +11,11 @@ in its header (``sb3-graph export --planner-config``), and ``make_planner`` wrap
 from __future__ import annotations
 
 import math
-from typing import Any
 
 import numpy as np
 
 from envs.planners.base import Planner
 from envs.scene import Scene
-
-#: Keys of a policy file's planner configuration (``source["planner"]`` of its header).
-PLANNER_CONFIG_KEYS = ("residual_base", "residual_scale")
 
 
 class ResidualPlanner(Planner):
@@ -48,32 +44,6 @@ class ResidualPlanner(Planner):
         base = np.asarray(self.base.act(scene), dtype=float).reshape(n)
         correction = np.asarray(self.correction.act(scene), dtype=float).reshape(n)
         return np.clip(base + self.scale * correction, scene.a_min, scene.a_max)
-
-
-def check_planner_config(config: Any, source: str) -> dict[str, Any]:
-    """A policy file's planner configuration, checked.
-
-    :param config: ``{}`` or ``{"residual_base": NAME, "residual_scale": X}``
-    :param source: what to name in errors (the file)
-    :raises ValueError: an unknown key, an unknown base or a scale outside ``(0, 2]``
-    """
-    from envs.config import RESIDUAL_BASES
-
-    if config is None:
-        return {}
-    if not isinstance(config, dict) or set(config) - set(PLANNER_CONFIG_KEYS):
-        raise ValueError(
-            f"{source}: planner config must be a dict with keys among {list(PLANNER_CONFIG_KEYS)}, got {config!r}"
-        )
-    base = config.get("residual_base")
-    if base is None:
-        return {}
-    if base not in RESIDUAL_BASES:
-        raise ValueError(f"{source}: planner config residual_base must be one of {RESIDUAL_BASES}, got {base!r}")
-    scale = config.get("residual_scale", 0.5)
-    if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not (math.isfinite(scale) and 0 < scale <= 2):
-        raise ValueError(f"{source}: planner config residual_scale must be a number in (0, 2], got {scale!r}")
-    return {"residual_base": base, "residual_scale": float(scale)}
 
 
 def make_residual_base(name: str | None):

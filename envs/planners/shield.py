@@ -61,7 +61,7 @@ from functools import partial
 
 import numpy as np
 
-from envs.layouts import CONFLICT_DISTANCE
+from envs.layouts import CONFLICT_DISTANCE, ZONE_MARGIN, zone_hull
 from envs.planners import _shield_kernel
 from envs.planners.base import Planner
 from envs.planners.errors import PlannerError, checked_accelerations
@@ -164,7 +164,7 @@ class Shield(Planner):
         self,
         planner: Planner,
         horizon: float = 8.0,
-        zone_margin: float = 1.5,
+        zone_margin: float = ZONE_MARGIN,
         gap_margin: float = 2.0,
         merge_margin: float = 2.0,
         proceed_acceleration: float = 3.0,
@@ -321,7 +321,7 @@ class Shield(Planner):
         lay, route, length = scene.layout, scene.route, scene.length
         arc, speed = np.asarray(scene.arc, float), np.asarray(scene.speed, float)
         m = self.zone_margin
-        first, last = _zone_hull(lay)
+        first, last = zone_hull(lay)
         hull_start = first[route] - m - length / 2
         hull_end = last[route] + m + length / 2
         # Same path: the leader and the leader's leader (a leader that turns off a shared lane
@@ -687,21 +687,6 @@ def _travel(speed: np.ndarray, acc: float, dt: float) -> tuple[np.ndarray, np.nd
     end = speed + acc * dt
     to_stop = speed**2 / (2 * max(-acc, 1e-12))
     return np.where(end < 0, to_stop, 0.5 * (speed + end) * dt), np.maximum(end, 0.0)
-
-
-_HULLS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-
-
-def _zone_hull(layout) -> tuple[np.ndarray, np.ndarray]:
-    """``(R,)`` arcs where each route's first conflict zone starts and its last one ends (``inf``,
-    ``-inf`` for a route without any)."""
-    if layout not in _HULLS:
-        zs, ze = layout.zone_start, layout.zone_end
-        with np.errstate(invalid="ignore"):
-            first = np.where(np.isnan(zs), np.inf, zs).min(axis=1)
-            last = np.where(np.isnan(ze), -np.inf, ze).max(axis=1)
-        _HULLS[layout] = first, last
-    return _HULLS[layout]
 
 
 _PARTING: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()

@@ -1,0 +1,150 @@
+"""The observation's optional vertex and zone edge features (config ``vertex_features`` and
+``edge_features``, issue #22): each column is what its definition says, the shield agrees on who is
+committed, and a planner file trained with them acts as the model does in training."""
+
+import json
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+
+import envs  # noqa: F401  (registers the environments)
+from envs.planners import make_planner
+from envs.planners.adversarial import FullThrottle
+from envs.planners.gnn import GNNPlanner
+from envs.planners.shield import Shield
+from envs.scene_graph import (
+    DEFAULT_S_SCALE,
+    VERTEX_FEATURES,
+    build_observation,
+    committed,
+    edges,
+    node_features,
+    num_node_features,
+)
+from sb3_graph import TD3
+from sb3_graph.cli import main
+
+torch.set_num_threads(1)
+
+ALL_VERTEX = list(VERTEX_FEATURES)
+ZONE_EDGES = ["zone_receiver", "zone_sender"]
+SMALL = {"max_vehicles": 16, "max_edges": 256, "duration": 20.0, "spawn_probability": 0.07}
+
+
+def _busy_scenes(steps: int = 60, seed: int = 0):
+    """Scenes of an episode driven at full throttle behind the shield: vehicles before, in and past the box."""
+    env = gym.make("CoopIntersection4Way-v0", config={**SMALL, "shield": True})
+    env.reset(seed=seed)
+    scenes = []
+    for _ in range(steps):
+        env.step(np.ones(env.action_space.shape, np.float32))
+        scenes.append(env.unwrapped.scene())
+    env.close()
+    return [scene for scene in scenes if scene.num_vehicles > 1]
+
+
+def test_each_vertex_column_is_its_definition():
+    scenes = _busy_scenes()
+    seen_committed = set()
+    for scene in scenes:
+        x = node_features(scene, vertex_feature_names=ALL_VERTEX)
+        assert x.shape == (scene.num_vehicles, num_node_features(ALL_VERTEX)) == (scene.num_vehicles, 11)
+        np.testing.assert_array_equal(x[:, :3], node_features(scene))  # the paper's [s, v, d] first
+        maneuver, priority, limit, line, zone, done = x[:, 3:6], x[:, 6], x[:, 7], x[:, 8], x[:, 9], x[:, 10]
+        np.testing.assert_array_equal(maneuver.argmax(axis=1), scene.maneuver)
+        np.testing.assert_array_equal(maneuver.sum(axis=1), 1.0)
+        np.testing.assert_array_equal(priority, (scene.priority == 1).astype(np.float32))
+        np.testing.assert_allclose(limit, scene.speed_limit / 10.0, rtol=1e-6)
+        np.testing.assert_allclose(line, np.clip(scene.dist_to_entry * DEFAULT_S_SCALE, -1, 4), rtol=1e-6, atol=1e-7)
+        assert np.all((zone >= -1) & (zone <= 4))
+        # The zone lies after the stop line on every route: a body reaches it after its front passes the line.
+        before_line = scene.dist_to_entry > 0
+        assert np.all(zone[before_line] >= line[before_line] - 2.5 * DEFAULT_S_SCALE - 1e-6)
+        seen_committed |= set(done.tolist())
+    assert seen_committed == {0.0, 1.0}
+
+
+def test_committed_is_the_shields_rule():
+    shield = Shield(FullThrottle())
+    disagreements = total = 0
+    for scene in _busy_scenes(seed=3):
+        plan = shield._plan(scene)
+        theirs = shield.committed(plan, plan.arc, plan.speed, float(scene.a_max))
+        ours = committed(scene)
+        # The shield adds 5 cm of slack to "can stop": only a vehicle within it may differ.
+        disagreements += int((ours != theirs).sum())
+        total += scene.num_vehicles
+    assert total > 200 and disagreements <= total // 100
+
+
+def test_zone_edge_features_mirror_on_reversed_edges():
+    for scene in _busy_scenes(seed=1):
+        edge_index, edge_type = edges(scene)
+        from envs.scene_graph import edge_features
+
+        attr = edge_features(scene, edge_index, ZONE_EDGES)
+        crossing = edge_type == 1
+        if not crossing.any():
+            continue
+        pairs = {(int(s), int(t)): k for k, (s, t) in enumerate(edge_index.T)}
+        for k in np.flatnonzero(crossing):
+            s, t = edge_index[:, k]
+            back = pairs[(int(t), int(s))]
+            assert attr[k, 0] == attr[back, 1] and attr[k, 1] == attr[back, 0]
+        assert np.all((attr >= -1) & (attr <= 4))
+        # The receiver's distance is to the zone of the two routes, never before its first zone.
+        zone = node_features(scene, vertex_feature_names=["zone"])[:, 3]
+        receiver = edge_index[1, crossing]
+        assert np.all(attr[crossing, 0] >= zone[receiver] - 1e-6)
+
+
+def test_an_unknown_feature_names_the_key():
+    with pytest.raises(ValueError, match="vertex_features"):
+        gym.make("CoopIntersection4Way-v0", config={"vertex_features": ["route"]})
+    with pytest.raises(ValueError, match="edge_features"):
+        gym.make("CoopIntersection4Way-v0", config={"edge_features": ["zone"]})
+    with pytest.raises(ValueError, match="unknown"):
+        num_node_features(["speed"])
+
+
+def test_the_env_space_and_observation_carry_the_features():
+    config = {**SMALL, "vertex_features": ["committed", "maneuver"], "edge_features": ["bearing", *ZONE_EDGES]}
+    env = gym.make("CoopIntersection4Way-v0", config=config)
+    obs, _ = env.reset(seed=0)
+    space = env.observation_space
+    assert space.node_features == 7 and space.edge_features == 3 and space.contains(obs)
+    scene = env.unwrapped.scene()
+    expected = build_observation(
+        scene, space, edge_feature_names=config["edge_features"], vertex_feature_names=config["vertex_features"]
+    )
+    for key in obs:
+        np.testing.assert_array_equal(obs[key], expected[key])
+    with pytest.raises(ValueError, match="vertex_features"):
+        build_observation(scene, space, edge_feature_names=config["edge_features"])
+
+
+def test_a_planner_file_with_features_acts_as_the_model(tmp_path):
+    config = {**SMALL, "vertex_features": ALL_VERTEX, "edge_features": ZONE_EDGES}
+    env = gym.make("CoopIntersection4Way-v0", config=config)
+    model = TD3("GraphPolicy", env, learning_starts=10, policy_kwargs={"encoder_dim": 8, "conv_dims": (8,)}, seed=0)
+    model.learn(30)
+    model.save(tmp_path / "model.zip")
+    out = tmp_path / "features.safetensors"
+    names = json.dumps({"vertex_features": ALL_VERTEX, "edge_features": ZONE_EDGES})
+    assert main(["export", str(tmp_path / "model.zip"), str(out), "--planner-config", names]) == 0
+    planner = make_planner(str(out))
+    assert isinstance(planner, GNNPlanner) and planner.vertex_features == tuple(ALL_VERTEX)
+    obs, _ = env.reset(seed=4)
+    for _ in range(15):
+        obs, *_ = env.step(np.ones(env.action_space.shape, np.float32))
+    scene = env.unwrapped.scene()
+    want = model.predict(obs, deterministic=True)[0][: scene.num_vehicles] * scene.a_max
+    np.testing.assert_allclose(planner.act(scene), np.clip(want, scene.a_min, scene.a_max), atol=1e-5)
+    np.testing.assert_allclose(planner.act_many([scene, scene])[1], planner.act(scene), atol=1e-5)
+    # Without the names the file is refused, with a message that says how to export it.
+    plain = tmp_path / "plain.safetensors"
+    assert main(["export", str(tmp_path / "model.zip"), str(plain)]) == 0
+    with pytest.raises(ValueError, match="planner-config"):
+        make_planner(str(plain))
