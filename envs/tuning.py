@@ -22,11 +22,16 @@ The environment id and layout come from the study (``--env``), so the preset app
 ``CoopIntersection*`` id.
 
 **The evaluator** (:func:`evaluate_model`): the trained model behind a
-:class:`~envs.planners.gnn.GNNPlanner` face runs :func:`envs.evaluation.run_episode` on a few
-validation scenarios, drawn in memory with :func:`envs.traffic.generate_scenario` exactly like the
-evaluation scenarios (the same seeds for every trial), and :func:`envs.metrics.summarize` turns
-the vehicle logs into the task metrics: flow rate, collision rate, stop ratio. The training
-reward is not used.
+:class:`~envs.planners.gnn.GNNPlanner` face, as the evaluation harness runs the planner that the
+training config describes (:func:`trial_planner`): a ``residual_base`` config makes it a
+:class:`~envs.planners.residual.ResidualPlanner` on that base with the config's ``residual_scale``,
+a ``shield: true`` config puts it behind the safety :class:`~envs.planners.shield.Shield` (as
+``sb3-graph evaluate --planner FILE+shield``). It runs :func:`envs.evaluation.run_episode` on a
+few validation scenarios, drawn in memory with :func:`envs.traffic.generate_scenario` exactly
+like the evaluation scenarios (the same seeds for every trial), in the harness's environment
+(the study's config without ``shield`` and ``residual_base``, which the planner applies, and with
+the harness's ``collision_handling``), and :func:`envs.metrics.summarize` turns the vehicle logs
+into the task metrics: flow rate, collision rate, stop ratio, delay. The training reward is not used.
 """
 
 from __future__ import annotations
@@ -38,7 +43,7 @@ import gymnasium as gym
 import numpy as np
 import pandas as pd
 
-from envs.evaluation import run_episode
+from envs.evaluation import EVALUATION_CONFIG, run_episode
 from envs.metrics import run_metrics, summarize
 from envs.planners.base import Planner
 from envs.planners.gnn import GNNPlanner
@@ -69,6 +74,43 @@ class ModelPlanner(GNNPlanner):
         self.space = model.observation_space
 
 
+def trial_planner(model: Any, config: dict[str, Any]) -> Planner:
+    """The planner that a trial's model is under the training config ``config``: the model's command,
+    corrected onto ``residual_base`` (scaled by ``residual_scale``) when the config has one, behind the
+    :class:`~envs.planners.shield.Shield` when ``shield`` is true (with the config's vehicle-model
+    constants, as the training environment's shield).
+
+    :param model: the trial's SB3 model
+    :param config: the training environment's config (``env.unwrapped.config``)
+    """
+    from envs.planners.residual import ResidualPlanner, make_residual_base
+    from envs.planners.shield import Shield
+
+    planner: Planner = ModelPlanner(model)
+    base = make_residual_base(config.get("residual_base"))
+    if base is not None:
+        planner = ResidualPlanner(base, planner, float(config["residual_scale"]), name=planner.name)
+    if config.get("shield"):
+        planner = Shield(
+            planner,
+            simulation_frequency=config["simulation_frequency"],
+            max_speed=config["max_speed"],
+            governor_deceleration=config["governor_deceleration"],
+        )
+    return planner
+
+
+def harness_env_kwargs(env_kwargs: dict[str, Any]) -> dict[str, Any]:
+    """The validation environment's ``gym.make`` kwargs: the study's, without the training-side
+    ``shield`` and ``residual_base`` (the planner of :func:`trial_planner` applies them) and with the
+    evaluation harness's collision handling (:data:`envs.evaluation.EVALUATION_CONFIG`)."""
+    kwargs = dict(env_kwargs or {})
+    config = dict(kwargs.get("config") or {})
+    config.update(shield=False, residual_base=None, **EVALUATION_CONFIG)
+    kwargs["config"] = config
+    return kwargs
+
+
 @functools.lru_cache(maxsize=8)
 def validation_scenarios(layout: str, count: int, duration: float, seed: int) -> tuple[Scenario, ...]:
     """The validation scenarios of a study (drawn once per process; scenario ``i`` uses ``seed + i``).
@@ -89,30 +131,62 @@ def evaluate_model(
     seed: int = 10_000,
     duration: float = EVAL_DURATION_S,
 ) -> dict[str, float]:
-    """Task metrics of a trained model on ``episodes`` validation scenarios.
+    """Task metrics of a trained model, as the planner of its training config (:func:`trial_planner`:
+    residual, shielded), on ``episodes`` validation scenarios.
 
     :param model: trained SB3 model with a graph observation space
     :param env_id: gymnasium id of a ``CoopIntersection*`` environment
     :param env_kwargs: ``gym.make`` keyword arguments (the study's, weights included: they do not
-        change the metrics)
+        change the metrics; ``shield`` and ``residual_base`` choose the planner)
     :param episodes: number of validation scenarios, at least 1
     :param seed: base seed of the scenarios and of the environment resets
     :param duration: simulated seconds per scenario
     :return: ``flow_rate`` (mean over scenarios, veh/s), ``flow_rate_median``, ``collision_rate`` and
         ``stop_ratio`` (pooled over all vehicles), ``stop_ratio_major``, ``stop_ratio_minor``,
-        ``delay_mean`` [s] (NaN when undefined), ``vehicles``, ``terminated`` (episodes ended by a collision)
+        ``delay_mean`` [s] (NaN when undefined), ``vehicles``, ``terminated`` (episodes ended by a
+        collision: none under the harness's collision handling), and behind the shield
+        ``shield_intervention_rate`` (share of vehicle-steps whose command the shield replaced)
     """
     import envs  # noqa: F401  (registers the environments)
 
     if episodes < 1:
         raise ValueError(f"episodes must be at least 1, got {episodes}")
     env = gym.make(env_id, **env_kwargs)
+    config = dict(env.unwrapped.config)
+    env.close()
+    return evaluate_planner(trial_planner(model, config), env_id, env_kwargs, episodes, seed, duration)
+
+
+def evaluate_planner(
+    planner: Planner,
+    env_id: str,
+    env_kwargs: dict[str, Any],
+    episodes: int = 3,
+    seed: int = 10_000,
+    duration: float = EVAL_DURATION_S,
+) -> dict[str, float]:
+    """:func:`evaluate_model`'s metrics of any planner on the same validation scenarios.
+
+    :param planner: the planner (a :class:`~envs.planners.shield.Shield` adds ``shield_intervention_rate``)
+    :param env_id: gymnasium id of a ``CoopIntersection*`` environment
+    :param env_kwargs: the study's ``gym.make`` keyword arguments (see :func:`harness_env_kwargs`)
+    :param episodes: number of validation scenarios, at least 1
+    :param seed: base seed of the scenarios and of the environment resets
+    :param duration: simulated seconds per scenario
+    """
+    import envs  # noqa: F401  (registers the environments)
+
+    if episodes < 1:
+        raise ValueError(f"episodes must be at least 1, got {episodes}")
+    env = gym.make(env_id, **harness_env_kwargs(env_kwargs))
+    interventions = vehicle_steps = 0
     try:
         layout = str(env.unwrapped.config["layout"])
-        planner = ModelPlanner(model)
         rows, logs = [], []
         for i, scenario in enumerate(validation_scenarios(layout, int(episodes), float(duration), int(seed))):
             vehicles, facts = run_episode(env, planner, scenario, duration, seed=seed + i)
+            interventions += int(getattr(planner, "interventions", 0))  # counted per episode (reset)
+            vehicle_steps += int(getattr(planner, "vehicle_steps", 0))
             run_duration = facts["duration"] if facts["duration"] > 0 else duration
             rows.append({"planner": planner.name, **run_metrics(vehicles, run_duration), **facts})
             vehicles.insert(0, "planner", planner.name)
@@ -125,7 +199,7 @@ def evaluate_model(
     def number(value: Any) -> float:
         return float("nan") if value is None else float(value)
 
-    return {
+    metrics = {
         "flow_rate": number(summary["flow_rate"]["mean"]),
         "flow_rate_median": number(summary["flow_rate"]["median"]),
         "collision_rate": number(summary["collision_rate"]),
@@ -136,3 +210,6 @@ def evaluate_model(
         "vehicles": int(summary["vehicles"]),
         "terminated": int(np.sum(runs["terminated"])),
     }
+    if hasattr(planner, "interventions"):
+        metrics["shield_intervention_rate"] = interventions / vehicle_steps if vehicle_steps else float("nan")
+    return metrics

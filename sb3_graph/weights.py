@@ -666,6 +666,75 @@ def read_sb3_zip(path: str | Path) -> tuple[PolicyDescription, dict[str, th.Tens
     return description, state
 
 
+# ------------------------------------------------------------------ tensors into a policy that exists
+def read_policy_tensors(path: str | Path) -> tuple[PolicyDescription, dict[str, th.Tensor]]:
+    """The tensors of a policy file, without building a policy: a ``.safetensors`` policy file, or
+    an SB3 ``.zip`` read without unpickling (:func:`read_sb3_zip`).
+
+    :raises PolicyFileError: no such file, another suffix, a file that cannot be read safely, or
+        weights with NaN or infinite values
+    """
+    path = Path(path)
+    source = str(path)
+    if not path.is_file():
+        raise PolicyFileError(f"{source}: no such file")
+    if path.suffix == SUFFIX:
+        description, state = read_weights_file(path)
+    elif path.suffix == ".zip":
+        description, state = read_sb3_zip(path)
+    else:
+        raise PolicyFileError(f"{source}: expected a {SUFFIX} policy file or a model .zip")
+    try:
+        check_finite_weights(state, source)
+    except ValueError as error:
+        raise PolicyFileError(str(error)) from None
+    return description, state
+
+
+def load_policy_tensors(policy, state: dict[str, th.Tensor], source: str, algorithm: str | None = None) -> None:
+    """Copy a state dict into a policy whose architecture must be the file's: the same tensor names
+    and shapes, every one (fine-tuning; the policy's optimizer is left as it is).
+
+    :param policy: the policy of a model just built (e.g. a tuning trial's)
+    :param state: the tensors (:func:`read_policy_tensors`)
+    :param source: the file, for messages
+    :param algorithm: the file's algorithm, named in the message when the tensors do not fit
+    :raises PolicyFileError: one line naming the first tensor that is missing, extra or of another shape
+    """
+    own = policy.state_dict()
+    missing = sorted(set(own) - set(state))
+    extra = sorted(set(state) - set(own))
+    shapes = [key for key in sorted(set(own) & set(state)) if tuple(own[key].shape) != tuple(state[key].shape)]
+    if missing or extra or shapes:
+        if shapes:
+            key = shapes[0]
+            first = f"{key} is {list(state[key].shape)} in the file, {list(own[key].shape)} in the policy"
+        elif missing:
+            first = f"the file has no {missing[0]}"
+        else:
+            first = f"the policy has no {extra[0]}"
+        counts = f"{len(shapes)} shapes differ, {len(missing)} tensors missing, {len(extra)} extra"
+        mine = type(policy).__name__
+        held = f"a {algorithm} policy" if algorithm else "a policy"
+        raise PolicyFileError(
+            f"{source}: {held} of another architecture than the {mine} to train ({first}; {counts}): "
+            "the policy_kwargs of the experiment entry and the observation's features must be the file's"
+        )
+    policy.load_state_dict(state, strict=True)
+
+
+def init_from_file(policy, path: str | Path) -> PolicyDescription:
+    """Start a policy just built from the tensors of a policy file (fine-tuning; nothing unpickled):
+    :func:`read_policy_tensors`, then :func:`load_policy_tensors`.
+
+    :return: the file's description
+    :raises PolicyFileError: an unreadable file or another architecture (one line)
+    """
+    description, state = read_policy_tensors(path)
+    load_policy_tensors(policy, state, str(path), description.algorithm)
+    return description
+
+
 # ------------------------------------------------------------------ one entry point
 @dataclass
 class LoadedPolicy:

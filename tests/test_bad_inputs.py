@@ -75,6 +75,7 @@ def files(tmp_path_factory):
         "n_envs_0": {"n_envs": 0},
         "negative_steps": {"n_timesteps": -5},
         "env_kwargs_list": {"env_kwargs": [1]},
+        "narrow": {"policy_kwargs": "dict(encoder_dim=16, conv_dims=(16,))"},
     }.items():
         paths[name] = _config(f, name, **changes)
     valid = f / "ind"
@@ -433,6 +434,18 @@ CASES = [
     ("ind-duration-negative", _ind("--dataset-only", data="{ind_negative}"), ["duration", "-5"]),
     ("env-max-acceleration", ["evaluate", "--env-kwargs", '{"config": {"max_acceleration": 1e308}}'],
      ["--env-kwargs", "max_acceleration"]),  # fmt: skip
+    # tune's search space and start (issue #23)
+    ("tune-weights-unknown", _tune(str(CONFIG), "--weights", "speed"), ["--weights", "['speed']", "terms of reward"]),
+    ("tune-config-range", _tune(str(CONFIG), "--tune-config", "residual_scale:0.5:3"),
+     ["--tune-config residual_scale", "(0, 2]"]),  # fmt: skip
+    ("tune-config-form", _tune(str(CONFIG), "--tune-config", "residual_scale"), ["--tune-config", "KEY:LOW:HIGH"]),
+    ("tune-objective-weight", _tune(str(CONFIG), "--objective-weight", "0.1"), ["objective 'flow' takes no weight"]),
+    ("tune-init-weights-architecture", _tune("{narrow}", "--init-weights", "{small_st}"),
+     ["--init-weights", "small.safetensors", "another architecture"]),  # fmt: skip
+    ("tune-init-weights-junk", _tune(str(CONFIG), "--init-weights", "{junk_st}"), ["--init-weights", "junk.safetens"]),
+    ("tune-init-weights-mlp", _tune(str(CONFIG), "--init-weights", "{mlp}"), ["--init-weights", "mlp.zip"]),
+    ("train-init-weights-architecture", _train("{narrow}", "--init-weights", "{small_st}"),
+     ["--init-weights", "small.safetensors", "another architecture"]),  # fmt: skip
     # storages: a read-only command creates nothing, tune writes into no other application's file
     ("report-foreign-db", _report("sqlite:///{app_db}"), ["--storage", "no Optuna study"]),
     ("report-text-journal", _report("journal://{notes}"), ["--storage", "notes.txt", "not an Optuna journal"]),

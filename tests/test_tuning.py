@@ -12,7 +12,7 @@ from optuna.trial import TrialState
 
 from envs.intersection_env import CoopIntersectionEnv
 from sb3_graph.cli import main
-from sb3_graph.tuning.objectives import COLLISION, FLOW, STOP, check_metrics, make_objective
+from sb3_graph.tuning.objectives import COLLISION, DELAY, FLOW, STOP, check_metrics, make_objective
 from sb3_graph.tuning.pruners import evaluation_steps
 from sb3_graph.tuning.report import first_rung_study, pruning_summary, trials_table, write_figures
 from sb3_graph.tuning.runner import TrialSettings, resolve_callable, run_trial
@@ -88,7 +88,7 @@ def test_params_go_into_the_entry_without_changing_it():
 
 
 def test_objectives():
-    metrics = {FLOW: 0.5, COLLISION: 0.05, STOP: 0.2}
+    metrics = {FLOW: 0.5, COLLISION: 0.05, STOP: 0.2, DELAY: 10.0}
     flow = make_objective("flow", max_collision_rate=0.02)
     assert flow.values(metrics) == 0.5 and flow.prunable
     assert flow.constraint(metrics) == pytest.approx(0.03)  # > 0: infeasible
@@ -98,17 +98,30 @@ def test_objectives():
     assert isinstance(flow.pruner("none"), optuna.pruners.NopPruner)
     with pytest.raises(ValueError, match="pruner must be one of"):
         flow.pruner("asha")
+    # flow with a delay or a stop term: one value, prunable, under the same collision constraint
+    delay = make_objective("flow-delay", weight=0.02)
+    assert delay.values(metrics) == pytest.approx(0.5 - 0.02 * 10.0) and delay.prunable
+    assert delay.labels == ("flow_rate - 0.02 * delay_mean",) and delay.required() == (FLOW, DELAY, COLLISION)
+    assert make_objective("flow-delay").values(metrics) == pytest.approx(0.5 - 0.01 * 10.0)  # default weight
+    stop = make_objective("flow-stop")
+    assert stop.values(metrics) == pytest.approx(0.5 - 0.2 * 0.2) and stop.constraint(metrics) == pytest.approx(0.03)
+    assert isinstance(stop.sampler(), optuna.samplers.TPESampler)
+    # pareto: flow up, delay down, stops down, with the constraint
     pareto = make_objective("pareto")
-    assert pareto.values(metrics) == (0.5, 0.05, 0.2)
+    assert pareto.values(metrics) == (0.5, 10.0, 0.2) and pareto.labels == (FLOW, DELAY, STOP)
     assert pareto.directions == ("maximize", "minimize", "minimize")
     assert not pareto.prunable and isinstance(pareto.pruner(), optuna.pruners.NopPruner)
     assert isinstance(pareto.sampler(), optuna.samplers.NSGAIISampler)
-    assert pareto.constraint(metrics) is None
+    assert pareto.constraint(metrics) == pytest.approx(0.03)
     with pytest.raises(ValueError, match="objective must be one of"):
         make_objective("fast")
     with pytest.raises(ValueError, match="max_collision_rate"):
         make_objective("flow", max_collision_rate=2.0)
-    assert "no ['stop_ratio']" in check_metrics({FLOW: 1.0, COLLISION: 0.0}, pareto)
+    with pytest.raises(ValueError, match="takes no weight"):
+        make_objective("flow", weight=0.1)
+    with pytest.raises(ValueError, match="finite number >= 0"):
+        make_objective("flow-stop", weight=-1.0)
+    assert "no ['delay_mean']" in check_metrics({FLOW: 1.0, COLLISION: 0.0, STOP: 0.0}, pareto)
     assert "non-finite" in check_metrics({FLOW: math.nan, COLLISION: 0.0}, flow)
     assert check_metrics(metrics, pareto) is None
 

@@ -108,8 +108,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--init-weights",
         default=None,
-        help="start from the network weights of a saved model .zip (fine-tuning; read as tensors only, "
-        "the architecture must match); recorded in run.json",
+        help="start from the network weights of a saved model .zip or a .safetensors policy file (fine-tuning; "
+        "read as tensors only, the architecture must match); recorded in run.json",
     )
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (see benchmarks/)")
     parser.add_argument("--device", default="auto", help="torch device (auto, cpu, cuda)")
@@ -373,9 +373,18 @@ def _algorithm(args: argparse.Namespace):
 
 
 def _load_weights(model, path: str) -> None:
-    # SB3's set_parameters reads only the zip's .pth files, with torch.load(weights_only=True).
+    # SB3's set_parameters reads only the zip's .pth files, with torch.load(weights_only=True); a
+    # .safetensors policy file is tensors by construction (sb3_graph.weights).
     if not Path(path).is_file():
         raise UserError(f"--init-weights: no such file {path!r}")
+    if Path(path).suffix == ".safetensors":
+        from sb3_graph.weights import PolicyFileError, init_from_file
+
+        try:
+            init_from_file(model.policy, path)
+        except PolicyFileError as error:
+            raise UserError(f"--init-weights: {error}") from None
+        return
     try:
         model.set_parameters(path, exact_match=True, device=model.device)
     except Exception as error:  # a zip of another architecture, or not a model at all

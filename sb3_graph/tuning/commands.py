@@ -1,9 +1,14 @@
-"""``sb3-graph tune``: tune reward weights (and the algorithm's settings) with Optuna, on one machine or many.
+"""``sb3-graph tune``: tune reward weights (and environment-config keys, the algorithm's settings) with Optuna,
+on one machine or many.
 
 Every invocation adds ``--n-trials`` trials to the study named ``--study-name`` in ``--storage``
 (created on first use): re-running the command resumes the study, and workers on other machines
 that run the same command against the same PostgreSQL server or journal file join it.
 ``--jobs N`` starts N worker processes on this machine, sharing the trials of this invocation.
+
+Each trial trains as the entry says (behind the shield when its env config asks for it), from
+scratch or from ``--init-weights`` (tensors only, fitted once here on a probe model), and is scored
+by the domain's evaluator on task metrics (``--objective``), never on the training reward.
 """
 
 from __future__ import annotations
@@ -28,9 +33,9 @@ DOMAIN_DEFAULTS = {
 }
 TOY_GYM_PACKAGE = "sb3_graph.toy_envs"
 # Study user attributes written when the study is created, checked when it is resumed.
-CHECKED_ATTRS = ("objective", "env", "algo")
+CHECKED_ATTRS = ("objective", "metrics", "env", "algo", "init_weights_sha256")
 # Values of attributes that studies made before the attribute existed have.
-ATTR_DEFAULTS = {"algo": "td3"}
+ATTR_DEFAULTS = {"algo": "td3", "init_weights_sha256": ""}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -52,7 +57,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--n-trials", type=int, default=10, help="trials this invocation adds to the study")
     parser.add_argument("--timesteps", type=int, default=None, help="training steps per trial (default: entry)")
-    parser.add_argument("--objective", default="flow", help="flow (max flow rate, collision constraint) or pareto")
+    parser.add_argument(
+        "--objective",
+        default="flow",
+        help="task metric on the validation scenarios, every one under the --max-collision-rate constraint: "
+        "flow (max flow rate), flow-delay (max flow_rate - W * delay_mean [s]), flow-stop (max flow_rate - "
+        "W * stop_ratio), or pareto (NSGA-II front of flow up, delay down, stops down)",
+    )
+    parser.add_argument(
+        "--objective-weight",
+        type=float,
+        default=None,
+        metavar="W",
+        help="W of flow-delay (default 0.01 veh/s per s of mean delay) or flow-stop (default 0.2)",
+    )
     parser.add_argument(
         "--algo", choices=ALGORITHMS, default="td3", help="algorithm that the trials train, as rl-zoo3's --algo"
     )
@@ -60,10 +78,42 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--tune-algo", action="store_true", help="also tune the algorithm's settings (learning rate, batch...)"
     )
     parser.add_argument("--jobs", type=int, default=1, help="worker processes on this machine")
-    parser.add_argument("--weights", nargs="*", default=None, metavar="TERM", help="reward terms to tune (default all)")
-    parser.add_argument("--weight-spread", type=float, default=10.0, help="log range factor each way around Table I")
-    parser.add_argument("--max-collision-rate", type=float, default=0.02, help="constraint of the flow objective")
-    parser.add_argument("--evaluations", type=int, default=3, help="evaluations per trial (flow: pruning points)")
+    parser.add_argument(
+        "--weights",
+        nargs="*",
+        default=None,
+        metavar="TERM",
+        help="reward terms to tune (default: every term of the env's reward_weights, i.e. of the preset that the "
+        "entry's config['reward'] selects; none: --weights with no term)",
+    )
+    parser.add_argument(
+        "--weight-spread",
+        type=float,
+        default=10.0,
+        help="log range factor each way around each weight of the entry's env (its reward preset's weights, with "
+        "the entry's reward_weights over them)",
+    )
+    parser.add_argument(
+        "--tune-config",
+        nargs="+",
+        default=[],
+        metavar="KEY:LOW:HIGH[:log]",
+        help="also tune numbers of the env's config, e.g. residual_scale:0.25:2 for a residual policy "
+        "(the env checks both bounds)",
+    )
+    parser.add_argument(
+        "--init-weights",
+        default=None,
+        metavar="FILE",
+        help="every trial fine-tunes the policy of FILE (.safetensors policy file, or a model .zip read without "
+        "unpickling; tensors only) instead of training from scratch; its architecture must be the entry's",
+    )
+    parser.add_argument(
+        "--max-collision-rate", type=float, default=0.02, help="collision-rate constraint of every objective"
+    )
+    parser.add_argument(
+        "--evaluations", type=int, default=3, help="evaluations per trial (single objectives: pruning points)"
+    )
     parser.add_argument("--eval-episodes", type=int, default=3, help="validation episodes per evaluation")
     parser.add_argument("--eval-seed", type=int, default=10_000, help="seed of the validation episodes")
     parser.add_argument("--evaluator", default=None, help="metric plug-in module:function (default per env id)")
@@ -85,7 +135,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--pruner",
         default="median",
-        help="pruner of the flow objective on the intermediate task metric: median, successive-halving, "
+        help="pruner of a single objective (not pareto) on its intermediate value: median, successive-halving, "
         "hyperband or none",
     )
     parser.add_argument(
@@ -172,7 +222,7 @@ def prepare(args: argparse.Namespace):
     )
     from sb3_graph.tuning.objectives import make_objective
     from sb3_graph.tuning.runner import TrialSettings, resolve_callable
-    from sb3_graph.tuning.search_space import WEIGHTS_KEY, weights_in
+    from sb3_graph.tuning.search_space import WEIGHTS_KEY, parse_config_space, weights_in
 
     for name in ("n_trials", "jobs", "evaluations", "eval_episodes", "population_size", "heartbeat", "threads"):
         if getattr(args, name) < 1:
@@ -187,9 +237,15 @@ def prepare(args: argparse.Namespace):
         raise UserError(f"--timesteps must be at least 1, got {args.timesteps}")
     check_device(args.device)
     try:
-        objective = make_objective(args.objective, args.max_collision_rate)
+        objective = make_objective(args.objective, args.max_collision_rate, getattr(args, "objective_weight", None))
     except ValueError as error:
-        raise UserError(f"--objective/--max-collision-rate: {error}") from error
+        raise UserError(f"--objective/--objective-weight/--max-collision-rate: {error}") from error
+    try:
+        config_space = parse_config_space(getattr(args, "tune_config", None) or [])
+    except ValueError as error:
+        raise UserError(f"--tune-config: {error}") from None
+    if WEIGHTS_KEY[1] in config_space:
+        raise UserError(f"--tune-config: {WEIGHTS_KEY[1]!r} is tuned by --weights")
     overrides = parse_overrides(args.trial_hyperparams, "--trial-hyperparams")
     try:
         entry = check_entry(read_experiment(args.config, args.env))
@@ -239,15 +295,17 @@ def prepare(args: argparse.Namespace):
     defaults = dict(config.get(WEIGHTS_KEY[1]) or {}) if isinstance(config, dict) else {}
     defaults.update(weights_in(env_kwargs))
     if args.weights is not None:
-        unknown = sorted(set(args.weights) - set(defaults))
-        if unknown:
-            raise UserError(f"--weights: unknown reward terms {unknown}; allowed: {sorted(defaults)}")
-        defaults = {term: defaults[term] for term in args.weights}
-    if not defaults and not args.tune_algo:
+        defaults = _chosen_weights(args.weights, defaults, config)
+    _check_config_space(args.env, env_kwargs, config, config_space)
+    if not defaults and not config_space and not args.tune_algo:
         raise UserError(
-            f"nothing to tune: {args.env!r} has no config['reward_weights'] (or --weights is empty) "
-            "and --tune-algo is off"
+            f"nothing to tune: {args.env!r} has no config['reward_weights'] (or --weights is empty), "
+            "no --tune-config and --tune-algo is off"
         )
+    init_weights, init_hash = None, ""
+    if getattr(args, "init_weights", None):
+        init_weights = Path(args.init_weights)
+        init_hash = _check_init_weights(args, trial_entry, env_kwargs, init_weights)
     study_entry = {**trial_entry, "env_kwargs": env_kwargs}
     settings = TrialSettings(
         env_id=args.env,
@@ -257,6 +315,7 @@ def prepare(args: argparse.Namespace):
         evaluator=evaluator_spec,  # resolved in each worker
         weight_defaults=defaults,
         weight_spread=args.weight_spread,
+        config_space=config_space,
         tune_algo=args.tune_algo,
         algo=args.algo,
         evaluations=args.evaluations,
@@ -266,6 +325,7 @@ def prepare(args: argparse.Namespace):
         seed=args.seed,
         device=args.device,
         save_models=Path(args.save_models) if args.save_models else None,
+        init_weights=init_weights,
     )
     attrs = {
         "objective": objective.name,
@@ -275,8 +335,14 @@ def prepare(args: argparse.Namespace):
         # the entry as in the file (full env): the report's YAML puts the best parameters into it
         "entry": json.loads(json.dumps(entry, default=str)),
         "tuning_env_kwargs": json.loads(json.dumps(env_kwargs, default=str)),
-        "metrics": list(objective.metrics),
+        "metrics": list(objective.labels),
+        "objective_weight": -objective.coefficients[1] if objective.coefficients else None,
         "max_collision_rate": objective.max_collision_rate,
+        "reward": config.get("reward") if isinstance(config, dict) else None,
+        "weight_centres": json.loads(json.dumps(defaults, default=str)),
+        "config_space": {key: list(bounds) for key, bounds in config_space.items()},
+        "init_weights": str(init_weights) if init_weights is not None else "",
+        "init_weights_sha256": init_hash,
         "evaluator": evaluator_spec,
         "timesteps": timesteps,
         "pruner": args.pruner if objective.prunable else "none",
@@ -284,6 +350,81 @@ def prepare(args: argparse.Namespace):
         "eval_steps": list(eval_steps) if objective.prunable else [],
     }
     return settings, attrs
+
+
+def _chosen_weights(terms: list[str], defaults: dict[str, Any], config: Any) -> dict[str, Any]:
+    """The ``--weights`` terms with their centres, or a UserError naming the env's terms."""
+    preset = config.get("reward") if isinstance(config, dict) else None
+    of = f" of reward {preset!r}" if isinstance(preset, str) else ""
+    unknown = sorted(set(terms) - set(defaults))
+    if unknown:
+        raise UserError(f"--weights: unknown reward terms {unknown}; the terms{of}: {sorted(defaults)}")
+    flat = sorted(term for term in terms if not float(defaults[term]) > 0)
+    if flat:
+        raise UserError(
+            f"--weights: {flat} weigh {[defaults[t] for t in flat]}{of}: a log range needs a centre > 0 "
+            "(set one in the entry's reward_weights)"
+        )
+    return {term: defaults[term] for term in terms}
+
+
+def _check_config_space(env_id: str, env_kwargs: dict[str, Any], config: Any, space: dict) -> None:
+    """Each ``--tune-config`` key is a number of the env's config that the env accepts at both bounds."""
+    import gymnasium as gym
+
+    from sb3_graph.experiment import merge_env_kwargs
+
+    def number(value: Any) -> bool:
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+    config = config if isinstance(config, dict) else {}
+    for key, (low, high, _) in space.items():
+        if not number(config.get(key)):
+            known = sorted(k for k, v in config.items() if number(v))
+            raise UserError(f"--tune-config: {key!r} is not a number of {env_id!r}'s config; its numbers: {known}")
+        for bound in (low, high):
+            try:
+                gym.make(env_id, **merge_env_kwargs(env_kwargs, {"config": {key: bound}})).close()
+            except (TypeError, ValueError) as error:
+                raise UserError(f"--tune-config {key}: {bound:g} is refused by {env_id!r}: {error}") from None
+
+
+def _check_init_weights(args: argparse.Namespace, entry: dict[str, Any], env_kwargs: dict[str, Any], path: Path):
+    """Read ``--init-weights`` (tensors only) and fit it to the policy that the trials build.
+
+    :return: the file's SHA-256 (recorded in the study: a resumed study fine-tunes the same file)
+    :raises UserError: one line: no such file, not a policy file, another architecture
+    """
+    import hashlib
+
+    import numpy as np
+    from stable_baselines3.common.env_util import make_vec_env
+
+    from sb3_graph.experiment import build_algorithm_kwargs, resolve_object
+    from sb3_graph.tuning.runner import load_init_weights
+    from sb3_graph.weights import PolicyFileError
+
+    if not path.is_file():
+        raise UserError(f"--init-weights: no such file {str(path)!r}")
+    probe = make_vec_env(args.env, n_envs=1, seed=0, env_kwargs=env_kwargs)
+    try:
+        kwargs = build_algorithm_kwargs(entry, int(np.prod(probe.action_space.shape)))
+        if not ALGORITHMS[args.algo].on_policy:
+            kwargs["buffer_size"] = 16  # the probe never trains: a small buffer, not the entry's
+        policy = entry.get("policy", "GraphPolicy")
+        if isinstance(policy, str) and "." in policy:
+            policy = resolve_object(policy, "policy")
+        try:
+            model = ALGORITHMS[args.algo].load_class()(policy, probe, device="cpu", verbose=0, **kwargs)
+        except (TypeError, ValueError, KeyError, AssertionError) as error:
+            raise UserError(f"hyperparameters of {args.env!r} for {args.algo}: {error}") from None
+        try:
+            load_init_weights(model, path)
+        except PolicyFileError as error:
+            raise UserError(f"--init-weights: {error}") from None
+    finally:
+        probe.close()
+    return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
 def _evaluation_steps(args: argparse.Namespace, timesteps: int) -> tuple[int, ...]:

@@ -34,7 +34,15 @@ from optuna.trial import FrozenTrial, TrialState
 from sb3_graph.tuning.objectives import COLLISION, FLOW
 from sb3_graph.tuning.search_space import entry_with_params, split_params
 
-METRIC_COLUMNS = ("flow_rate", "collision_rate", "stop_ratio", "stop_ratio_major", "stop_ratio_minor", "delay_mean")
+METRIC_COLUMNS = (
+    "flow_rate",
+    "collision_rate",
+    "stop_ratio",
+    "stop_ratio_major",
+    "stop_ratio_minor",
+    "delay_mean",
+    "shield_intervention_rate",
+)
 FIGURES = (
     "optimization_history",
     "param_importances",
@@ -62,6 +70,7 @@ STUDY_ATTRS: dict[str, tuple[Any, str]] = {
     "pruner": (_text, "a string"),
     "objective": (_text, "a string"),
     "eval_steps": (lambda v: isinstance(v, list) and all(_number(x) for x in v), "a list of numbers"),
+    "init_weights": (_text, "a string"),
 }
 TRIAL_ATTRS: dict[str, tuple[Any, str]] = {
     **{name: (_number, "a number") for name in METRIC_COLUMNS},
@@ -353,6 +362,9 @@ def write_report(study: optuna.Study, out: str | Path) -> list[Path]:
         f"- objective: {study.user_attrs.get('objective', '?')} ({', '.join(_metrics(study))}; "
         f"directions {[d.name.lower() for d in study.directions]})",
         f"- environment: {study.user_attrs.get('env', '?')}, {study.user_attrs.get('timesteps', '?')} steps per trial",
+        f"- trials fine-tune {study.user_attrs['init_weights']} (`sb3-graph train --init-weights` with the zoo entry)"
+        if study.user_attrs.get("init_weights")
+        else "- trials train from scratch",
         f"- trials: {len(table)} ({counts})",
         pruning_summary(study, table) if len(table) else "- pruner: no trials",
         f"- best trial: {best.number} {best.params}" if best is not None else "- best trial: none (no complete trial)",

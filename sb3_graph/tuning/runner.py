@@ -1,5 +1,5 @@
 """One trial: sample, train the study's algorithm (``--algo``, TD3 by default) on the (reduced) environment,
-evaluate on task metrics.
+from scratch or from the tensors of ``--init-weights``, evaluate on task metrics.
 
 The evaluator is a plug-in: any callable ``evaluate(model, env_id, env_kwargs, episodes, seed)``
 returning a mapping of metric names to numbers (e.g. the intersection domain's, named by its
@@ -36,7 +36,13 @@ from stable_baselines3.common.callbacks import BaseCallback, CallbackList
 from sb3_graph.registry import ALGORITHMS
 from sb3_graph.tuning.objectives import Objective, check_metrics
 from sb3_graph.tuning.pruners import evaluation_steps
-from sb3_graph.tuning.search_space import DEFAULT_SPREAD, entry_with_params, sample_algo, sample_reward_weights
+from sb3_graph.tuning.search_space import (
+    DEFAULT_SPREAD,
+    entry_with_params,
+    sample_algo,
+    sample_config,
+    sample_reward_weights,
+)
 
 Evaluator = Callable[..., Mapping[str, float]]
 REASON = "reason"
@@ -76,6 +82,8 @@ class TrialSettings:
     :param evaluator: the metric plug-in (see the module docstring)
     :param weight_defaults: reward weights to tune and their centres (empty: weights not tuned)
     :param weight_spread: factor each way of the weights' log ranges
+    :param config_space: environment-config keys to sample, key -> ``(low, high, log)``
+        (``--tune-config``, :func:`~sb3_graph.tuning.search_space.parse_config_space`)
     :param tune_algo: also sample the algorithm's settings (its registry entry's ``tune_space``)
     :param algo: ``--algo`` name of the trained algorithm (a key of :data:`sb3_graph.registry.ALGORITHMS`)
     :param evaluations: evaluations per trial (the last at the end); only prunable objectives
@@ -87,6 +95,8 @@ class TrialSettings:
     :param seed: base training seed (trial ``k`` trains with ``seed + k``)
     :param device: torch device
     :param save_models: folder for each trial's final model (``trial_<k>.zip``), or ``None``
+    :param init_weights: a policy file (``.safetensors``, or an SB3 ``.zip`` read without unpickling)
+        whose tensors every trial's policy starts from (fine-tuning), or ``None`` (from scratch)
     """
 
     env_id: str
@@ -96,6 +106,7 @@ class TrialSettings:
     evaluator: Evaluator
     weight_defaults: dict[str, float] = field(default_factory=dict)
     weight_spread: float = DEFAULT_SPREAD
+    config_space: dict[str, tuple[float, float, bool]] = field(default_factory=dict)
     tune_algo: bool = False
     algo: str = "td3"
     evaluations: int = 3
@@ -105,11 +116,13 @@ class TrialSettings:
     seed: int = 0
     device: str = "cpu"
     save_models: Path | None = None
+    init_weights: Path | None = None
 
 
 def sample_params(trial: optuna.Trial, settings: TrialSettings) -> dict[str, Any]:
-    """Sample the trial's parameters (``weight.*`` and ``algo.*``); the trial records them."""
+    """Sample the trial's parameters (``weight.*``, ``config.*`` and ``algo.*``); the trial records them."""
     sample_reward_weights(trial, settings.weight_defaults, settings.weight_spread)
+    sample_config(trial, settings.config_space)
     if settings.tune_algo:
         sample_algo(trial, ALGORITHMS[settings.algo].tune_space)
     return dict(trial.params)
@@ -159,6 +172,16 @@ class TrialEvalCallback(BaseCallback):
             self.pruned_at = self.num_timesteps
             return False
         return True
+
+
+def load_init_weights(model, path: str | Path) -> None:
+    """Start ``model``'s policy from the tensors of a policy file (tensors only, nothing unpickled).
+
+    :raises sb3_graph.weights.PolicyFileError: an unreadable file or another architecture (one line)
+    """
+    from sb3_graph.weights import init_from_file
+
+    init_from_file(model.policy, path)
 
 
 def run_trial(trial: optuna.Trial, settings: TrialSettings) -> float | tuple[float, ...]:
@@ -214,6 +237,8 @@ def _run(trial: optuna.Trial, settings: TrialSettings) -> float | tuple[float, .
         algo_kwargs = build_algorithm_kwargs(entry, int(np.prod(train_env.action_space.shape)))
         algorithm = ALGORITHMS[settings.algo].load_class()
         model = algorithm(policy, train_env, seed=seed, device=settings.device, verbose=0, **algo_kwargs)
+        if settings.init_weights is not None:
+            load_init_weights(model, settings.init_weights)
         callbacks = build_callbacks(entry)
         monitor = None
         steps = settings.eval_steps
@@ -250,7 +275,5 @@ def _run(trial: optuna.Trial, settings: TrialSettings) -> float | tuple[float, .
         raise TrialDiverged(problem)
     if settings.objective.prunable:  # the last point of the learning curve that the pruner compares
         trial.report(float(settings.objective.values(metrics)), settings.timesteps)
-    constraint = settings.objective.constraint(metrics)
-    if constraint is not None:
-        trial.set_constraint("collision_rate", constraint)
+    trial.set_constraint("collision_rate", settings.objective.constraint(metrics))
     return settings.objective.values(metrics)

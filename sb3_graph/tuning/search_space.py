@@ -1,15 +1,19 @@
-"""What a trial samples: the reward weights (log scales around their defaults) and, optionally, the settings of
-the trained algorithm (its registry entry's ``tune_space``).
+"""What a trial samples: the reward weights (log scales around their defaults), optionally keys of the
+environment's config (``--tune-config``) and the settings of the trained algorithm (its registry entry's
+``tune_space``).
 
 Parameter names carry a prefix that says where the value goes:
 
 - ``weight.<term>``: the reward weight of ``<term>``, sampled log-uniformly in
-  ``[w0 / spread, w0 * spread]`` around its default ``w0``. For the intersection environments the
-  defaults are the paper's Table I (velocity 0.03, action 0.01, idle 0.01, proximity 0.2,
-  collision 1.0), read from the environment's own ``default_config()["reward_weights"]`` (or from
-  the experiment entry's ``env_kwargs``), so this module needs no knowledge of the domain. The
-  weights reach the environment as ``env_kwargs["config"]["reward_weights"]`` (highway-env's
-  configuration habit).
+  ``[w0 / spread, w0 * spread]`` around its default ``w0``. The defaults are the weights of the
+  environment that the study's entry makes, read from its ``config["reward_weights"]`` (for the
+  intersection: the preset that ``config["reward"]`` selects, the task reward's by default, the
+  paper's Table I for ``reward: paper``, with the entry's own ``reward_weights`` over it), so this
+  module needs no knowledge of the domain. The weights reach the environment as
+  ``env_kwargs["config"]["reward_weights"]`` (highway-env's configuration habit).
+- ``config.<key>``: a number in the environment's config, sampled in ``[low, high]`` (log or
+  linear, :func:`parse_config_space`), e.g. the intersection's ``residual_scale`` for a residual
+  policy; it reaches the environment as ``env_kwargs["config"][key]``.
 - ``algo.<key>``: a key of the rl-zoo3 experiment entry (``learning_rate``, ``batch_size``,
   ``gamma``, ``tau``, ``noise_std``, ``policy_delay``; see :data:`ALGO_SPACE`), with ``--tune-algo``.
 
@@ -29,6 +33,7 @@ import optuna
 from sb3_graph.registry import ALGORITHMS
 
 WEIGHT_PREFIX = "weight."
+CONFIG_PREFIX = "config."
 ALGO_PREFIX = "algo."
 # Where the weights go inside the env kwargs: gym.make(env_id, config={"reward_weights": {...}}).
 WEIGHTS_KEY = ("config", "reward_weights")
@@ -59,6 +64,41 @@ def sample_reward_weights(
     return weights
 
 
+def parse_config_space(specs: list[str] | tuple[str, ...]) -> dict[str, tuple[float, float, bool]]:
+    """``["residual_scale:0.25:2"]`` -> ``{"residual_scale": (0.25, 2.0, False)}`` (``KEY:LOW:HIGH[:log]``).
+
+    :param specs: one ``KEY:LOW:HIGH`` or ``KEY:LOW:HIGH:log`` per key
+    :return: key -> ``(low, high, log)``
+    :raises ValueError: a malformed spec, ``low >= high``, a non-positive bound on a log scale, a key twice
+    """
+    space: dict[str, tuple[float, float, bool]] = {}
+    for spec in specs:
+        parts = str(spec).split(":")
+        if len(parts) not in (3, 4) or not parts[0] or (len(parts) == 4 and parts[3] not in ("log", "linear")):
+            raise ValueError(f"expected KEY:LOW:HIGH or KEY:LOW:HIGH:log, got {spec!r}")
+        key = parts[0]
+        try:
+            low, high = float(parts[1]), float(parts[2])
+        except ValueError:
+            raise ValueError(f"{spec!r}: LOW and HIGH must be numbers") from None
+        log = len(parts) == 4 and parts[3] == "log"
+        if not (math.isfinite(low) and math.isfinite(high) and low < high):
+            raise ValueError(f"{spec!r}: expected finite LOW < HIGH")
+        if log and low <= 0:
+            raise ValueError(f"{spec!r}: a log scale needs LOW > 0")
+        if key in space:
+            raise ValueError(f"{spec!r}: key {key!r} given twice")
+        space[key] = (low, high, log)
+    return space
+
+
+def sample_config(trial: optuna.Trial, space: Mapping[str, tuple[float, float, bool]]) -> dict[str, float]:
+    """Sample the environment-config keys of ``space`` (see :func:`parse_config_space`)."""
+    return {
+        key: trial.suggest_float(f"{CONFIG_PREFIX}{key}", low, high, log=log) for key, (low, high, log) in space.items()
+    }
+
+
 def sample_algo(trial: optuna.Trial, space: Mapping[str, tuple[str, tuple]] | None = None) -> dict[str, Any]:
     """Sample an algorithm's settings.
 
@@ -81,11 +121,12 @@ def sample_algo(trial: optuna.Trial, space: Mapping[str, tuple[str, tuple]] | No
 
 
 def split_params(params: Mapping[str, Any]) -> tuple[dict[str, float], dict[str, Any]]:
-    """Split a trial's parameters into reward weights and experiment-entry keys.
+    """Split a trial's parameters into reward weights and experiment-entry keys (``config.*`` ones:
+    :func:`config_params`).
 
-    :param params: ``{"weight.<term>": ..., "algo.<key>": ...}``
+    :param params: ``{"weight.<term>": ..., "config.<key>": ..., "algo.<key>": ...}``
     :return: ``(weights, algo)`` without the prefixes
-    :raises ValueError: a parameter with neither prefix
+    :raises ValueError: a parameter with none of the prefixes
     """
     weights, algo = {}, {}
     for name, value in params.items():
@@ -93,15 +134,28 @@ def split_params(params: Mapping[str, Any]) -> tuple[dict[str, float], dict[str,
             weights[name[len(WEIGHT_PREFIX) :]] = float(value)
         elif name.startswith(ALGO_PREFIX):
             algo[name[len(ALGO_PREFIX) :]] = value
-        else:
-            raise ValueError(f"parameter {name!r}: expected a name starting with {WEIGHT_PREFIX!r} or {ALGO_PREFIX!r}")
+        elif not name.startswith(CONFIG_PREFIX) or name == CONFIG_PREFIX:
+            raise ValueError(
+                f"parameter {name!r}: expected a name starting with {WEIGHT_PREFIX!r}, {CONFIG_PREFIX!r} or "
+                f"{ALGO_PREFIX!r}"
+            )
     return weights, algo
+
+
+def config_params(params: Mapping[str, Any]) -> dict[str, float]:
+    """The environment-config keys among a trial's parameters (``config.<key>``), without the prefix."""
+    return {
+        name[len(CONFIG_PREFIX) :]: float(value)
+        for name, value in params.items()
+        if name.startswith(CONFIG_PREFIX) and name != CONFIG_PREFIX
+    }
 
 
 def entry_with_params(entry: Mapping[str, Any], params: Mapping[str, Any]) -> dict[str, Any]:
     """A copy of an experiment entry with a trial's parameters put in place.
 
-    Weights are merged into ``env_kwargs["config"]["reward_weights"]``; algorithm settings replace the
+    Weights are merged into ``env_kwargs["config"]["reward_weights"]``, config keys set in
+    ``env_kwargs["config"]``; algorithm settings replace the
     entry's keys (a tuned ``noise_std`` turns on ``noise_type: normal`` if the entry has no noise).
 
     :param entry: rl-zoo3 experiment entry (with its ``env_kwargs``)
@@ -109,13 +163,16 @@ def entry_with_params(entry: Mapping[str, Any], params: Mapping[str, Any]) -> di
     :return: the new entry (the given one is not changed)
     """
     weights, algo = split_params(params)
+    settings = config_params(params)
     new = copy.deepcopy(dict(entry))
-    if weights:
+    if weights or settings:
         env_kwargs = new.setdefault("env_kwargs", {}) or {}
         new["env_kwargs"] = env_kwargs
         config = env_kwargs.setdefault(WEIGHTS_KEY[0], {}) or {}
         env_kwargs[WEIGHTS_KEY[0]] = config
-        config[WEIGHTS_KEY[1]] = {**(config.get(WEIGHTS_KEY[1]) or {}), **weights}
+        config.update(settings)
+        if weights:
+            config[WEIGHTS_KEY[1]] = {**(config.get(WEIGHTS_KEY[1]) or {}), **weights}
     new.update(algo)
     if "noise_std" in algo and not new.get("noise_type"):
         new["noise_type"] = "normal"

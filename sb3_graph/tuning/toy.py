@@ -5,7 +5,8 @@ objectives, with these meanings (per vertex, over the validation episodes, deter
 
 - ``flow_rate``: share of vertices answered within 0.25 of their target (useful output);
 - ``collision_rate``: share answered more than 1.0 away (gross errors);
-- ``stop_ratio``: share whose output is within 0.05 of 0 (idle output).
+- ``stop_ratio``: share whose output is within 0.05 of 0 (idle output);
+- ``delay_mean``: mean absolute error of the answers (how far off, on average).
 """
 
 from __future__ import annotations
@@ -26,7 +27,8 @@ def evaluate_max_neighbour(
     :param env_kwargs: keyword arguments of ``gym.make``
     :param episodes: validation episodes
     :param seed: episode ``i`` resets with ``seed + i``
-    :return: ``flow_rate``, ``collision_rate``, ``stop_ratio`` (see the module docstring), ``vertices``
+    :return: ``flow_rate``, ``collision_rate``, ``stop_ratio``, ``delay_mean`` (see the module docstring),
+        ``vertices``
     """
     import sb3_graph.toy_envs  # noqa: F401  (registers the env)
 
@@ -48,10 +50,11 @@ def evaluate_max_neighbour(
     error = np.concatenate(errors) if errors else np.zeros(0)
     output = np.concatenate(outputs) if outputs else np.zeros(0)
     if error.size == 0:
-        return {"flow_rate": 0.0, "collision_rate": 0.0, "stop_ratio": 0.0, "vertices": 0}
+        return {"flow_rate": 0.0, "collision_rate": 0.0, "stop_ratio": 0.0, "delay_mean": 0.0, "vertices": 0}
     return {
         "flow_rate": float((error < 0.25).mean()),
         "collision_rate": float((error > 1.0).mean()),
         "stop_ratio": float((np.abs(output) < 0.05).mean()),
+        "delay_mean": float(error.mean()),
         "vertices": int(error.size),
     }
