@@ -37,6 +37,7 @@ into the task metrics: flow rate, collision rate, stop ratio, delay. The trainin
 from __future__ import annotations
 
 import functools
+from collections.abc import Sequence
 from typing import Any
 
 import gymnasium as gym
@@ -65,13 +66,23 @@ class ModelPlanner(GNNPlanner):
 
     :param model: the SB3 model (its ``observation_space`` is the env's ``GraphSpace``)
     :param name: report name
+    :param vertex_features: the training config's ``vertex_features`` (the observation's optional names)
+    :param edge_features: the training config's ``edge_features``
     """
 
-    def __init__(self, model: Any, name: str = "RL:trial") -> None:
+    def __init__(
+        self,
+        model: Any,
+        name: str = "RL:trial",
+        vertex_features: Sequence[str] = (),
+        edge_features: Sequence[str] = (),
+    ) -> None:
         Planner.__init__(self, name)
         self.path = None
         self.model = model
         self.space = model.observation_space
+        self.vertex_features, self.edge_features = tuple(vertex_features), tuple(edge_features)
+        self._check_features("the trial's model")
 
 
 def trial_planner(model: Any, config: dict[str, Any]) -> Planner:
@@ -86,7 +97,9 @@ def trial_planner(model: Any, config: dict[str, Any]) -> Planner:
     from envs.planners.residual import ResidualPlanner, make_residual_base
     from envs.planners.shield import Shield
 
-    planner: Planner = ModelPlanner(model)
+    planner: Planner = ModelPlanner(
+        model, vertex_features=config.get("vertex_features", ()), edge_features=config.get("edge_features", ())
+    )
     base = make_residual_base(config.get("residual_base"))
     if base is not None:
         planner = ResidualPlanner(base, planner, float(config["residual_scale"]), name=planner.name)

@@ -148,3 +148,17 @@ def test_a_planner_file_with_features_acts_as_the_model(tmp_path):
     assert main(["export", str(tmp_path / "model.zip"), str(plain)]) == 0
     with pytest.raises(ValueError, match="planner-config"):
         make_planner(str(plain))
+
+
+def test_a_tuning_trial_sees_the_training_features():
+    from envs.tuning import trial_planner
+
+    config = {**SMALL, "vertex_features": ["line", "zone"], "edge_features": ["zone_sender"]}
+    env = gym.make("CoopIntersection4Way-v0", config=config)
+    model = TD3("GraphPolicy", env, policy_kwargs={"encoder_dim": 8, "conv_dims": (8,)}, seed=0)
+    obs, _ = env.reset(seed=2)
+    scene = env.unwrapped.scene()
+    want = np.clip(model.predict(obs, deterministic=True)[0][: scene.num_vehicles] * scene.a_max, -5, 5)
+    np.testing.assert_allclose(trial_planner(model, env.unwrapped.config).act(scene), want, atol=1e-5)
+    with pytest.raises(ValueError, match="vertex_features"):
+        trial_planner(model, {**env.unwrapped.config, "vertex_features": []})
