@@ -9,17 +9,19 @@ per policy step, with 13-60 predicted periods per step), a period may cost about
 per-call overhead of some 20 NumPy calls, less than ``integrate`` alone makes, so no vectorization
 gets there (benchmarks/README.md, "The shield compiled (numba)").
 
-Every function here is the scalar form of a NumPy one, with the same floating-point operations in
-the same order (no ``fastmath``, so no reassociation or fused multiply-add), so that the prediction
-is bitwise the NumPy one (``tests/test_shield.py`` checks it against
-:meth:`~envs.planners.shield.Shield.predict_numpy`, which calls :func:`envs.simulation.integrate`):
+These kernels are the only implementation of the shield's prediction, fallback and check.
+``tests/shield_reference.py`` holds the same rules in NumPy, with :func:`envs.simulation.integrate`
+itself: every function here performs the same floating-point operations in the same order as its
+NumPy form (no ``fastmath``, so no reassociation or fused multiply-add), so that
+``tests/test_shield.py`` can require the results to be bitwise equal:
 
-- :func:`_envelope`: :meth:`envs.planners.shield._PredictionLayout.envelope_at` for one vehicle,
+- :func:`_envelope`: :meth:`envs.layouts.Layout.envelope_at` for one vehicle, from the tables of
+  :func:`envs.planners.shield.envelope_table`,
 - :func:`_integrate`: :func:`envs.simulation.integrate` for one policy period,
-- :func:`_committed`, :func:`_fallback`: ``Shield.committed`` and ``Shield._fallback_given``
-  (with ``_yielding``, ``_leaders_now`` and ``_safe_gap_after``),
-- :func:`predict`: the loop of ``Shield.predict_numpy``; :func:`fallback`: the fallback in one state,
-- :func:`conflicts`: ``Shield._conflicts_numpy``, the check of a prediction (its blame stays in NumPy).
+- :func:`_committed`, :func:`_fallback`: the reference's ``committed`` and ``fallback_given``
+  (with ``yielding``, ``leaders_now`` and ``safe_gap_after``),
+- :func:`predict`: the reference's ``predict_numpy``; :func:`fallback`: ``fallback_numpy``,
+- :func:`conflicts`: ``conflicts_numpy``, the check of a prediction (its blame stays in NumPy).
 
 The first call compiles the kernels (about 6 s on the loaded 2-core development machine);
 ``cache=True`` stores the machine code next to this file (``__pycache__``, or numba's cache
@@ -62,7 +64,7 @@ class PlanArrays(NamedTuple):
 
 
 class EnvelopeTable(NamedTuple):
-    """The governor's speed envelope as :class:`envs.planners.shield._PredictionLayout` holds it."""
+    """The governor's speed envelope in flat tables (:func:`envs.planners.shield.envelope_table`)."""
 
     sq: np.ndarray  # flat (R * S,) squared envelope
     dsq: np.ndarray  # flat differences of the squared envelope to the next sample (0 at the last)
@@ -74,7 +76,7 @@ class EnvelopeTable(NamedTuple):
 
 @numba.njit(cache=True)
 def _envelope(table: EnvelopeTable, route: int, arc: float) -> float:
-    """The governor's speed envelope at one point: ``_PredictionLayout.envelope_at``'s arithmetic.
+    """The governor's speed envelope at one point: :meth:`envs.layouts.Layout.envelope_at`'s arithmetic.
 
     :param table: the envelope's tables
     :param route: route index
@@ -138,7 +140,7 @@ def _integrate(
 def _committed(
     arc: float, speed: float, hull_start: float, hull_end: float, a_max: float, standing: float, slack: float
 ) -> bool:
-    """``Shield.committed`` of one vehicle: it can no longer stop before its first zone, or has cleared them all."""
+    """``committed`` of one vehicle: it can no longer stop before its first zone, or has cleared them all."""
     cannot_stop = arc > hull_start or (speed > standing and arc + speed * speed / (2 * a_max) + slack > hull_start)
     return cannot_stop or arc > hull_end
 
@@ -147,7 +149,7 @@ def _committed(
 def _all_committed(
     plan: PlanArrays, arc: np.ndarray, speed: np.ndarray, go: np.ndarray, a_max: float, standing: float, slack: float
 ) -> bool:
-    """``Shield.committed`` of every vehicle, into ``go``; whether all are settled (``Shield._settled``)."""
+    """``committed`` of every vehicle, into ``go``; whether all are settled (the reference's ``settled``)."""
     settled = True
     for i in range(arc.shape[0]):
         go[i] = _committed(arc[i], speed[i], plan.hull_start[i], plan.hull_end[i], a_max, standing, slack)
@@ -158,7 +160,7 @@ def _all_committed(
 
 @numba.njit(cache=True)
 def _travel(speed: float, acc: float, dt: float) -> tuple[float, float]:
-    """``shield._travel`` of one vehicle: distance and end speed after ``dt`` at ``acc``, stopping at 0."""
+    """``travel`` of one vehicle: distance and end speed after ``dt`` at ``acc``, stopping at 0."""
     end = speed + acc * dt
     if end < 0:
         return speed * speed / (2 * max(-acc, 1e-12)), 0.0
@@ -169,7 +171,7 @@ def _travel(speed: float, acc: float, dt: float) -> tuple[float, float]:
 def _unsafe(
     gap: float, v_follower: float, v_ahead: float, proceed: float, a_max: float, dt: float, margin: float
 ) -> bool:
-    """Not ``shield._safe_gap_after``: the follower could not stop behind a leader braking at ``a_max``."""
+    """Not ``safe_gap_after``: the follower could not stop behind a leader braking at ``a_max``."""
     travel_f, v_f = _travel(v_follower, proceed, dt)
     travel_a, v_a = _travel(v_ahead, -a_max, dt)
     after = gap + travel_a - travel_f
@@ -191,7 +193,7 @@ def _fallback(
     standing: float,
     slack: float,
 ) -> None:
-    """``Shield._fallback_given``: the fallback's accelerations in a state, written into ``acc``.
+    """``fallback_given``: the fallback's accelerations in a state, written into ``acc``.
 
     :param plan: the scene's arrays
     :param arc: ``(n,)`` arcs [m]
@@ -202,7 +204,7 @@ def _fallback(
     """
     cross, lo, hi, vid = plan.cross, plan.cross_lo, plan.cross_hi, plan.vehicle_id
     hold[:] = False
-    # _yielding: a committed vehicle waits before a pair's zone that it can still stop before while
+    # yielding: a committed vehicle waits before a pair's zone that it can still stop before while
     # its partner cannot (or is in it) and has not cleared it; two inside one zone: the one less far through.
     for p in range(cross.shape[0]):
         i, j = cross[p, 0], cross[p, 1]
@@ -222,7 +224,7 @@ def _fallback(
                 hold[j] = True
     for i in range(arc.shape[0]):
         acc[i] = proceed if go[i] and not hold[i] else -a_max
-    # _leaders_now and _safe_gap_after: a committed follower too close to its leader brakes.
+    # leaders_now and safe_gap_after: a committed follower too close to its leader brakes.
     slow = min(proceed, -a_max)
     for k in range(plan.follower.shape[0]):
         f, ahead = plan.follower[k], plan.ahead[k]
@@ -256,7 +258,7 @@ def fallback(
     standing: float,
     slack: float,
 ) -> np.ndarray:
-    """``Shield._fallback_numpy``: the fallback's ``(n,)`` accelerations in a state (see :func:`predict`)."""
+    """``fallback_numpy``: the fallback's ``(n,)`` accelerations in a state (see :func:`predict`)."""
     n = arc.shape[0]
     go, hold, acc = np.zeros(n, np.bool_), np.zeros(n, np.bool_), np.empty(n)
     _all_committed(plan, arc, speed, go, a_max, standing, slack)
@@ -282,7 +284,7 @@ def predict(
     standing: float,
     slack: float,
 ) -> int:
-    """``Shield.predict_numpy``: ``command`` for one period, then the fallback until all settle or ``steps`` periods.
+    """``predict_numpy``: ``command`` for one period, then the fallback until all settle or ``steps`` periods.
 
     :param plan: the scene's arrays
     :param table: the governor's envelope
@@ -318,7 +320,7 @@ def predict(
 def conflicts(
     plan: PlanArrays, arcs: np.ndarray, speed: np.ndarray, a_max: float, standing: float, slack: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """``Shield._conflicts_numpy``: the conflicts of a prediction, in one pass over its sub-steps.
+    """``conflicts_numpy``: the conflicts of a prediction, in one pass over its sub-steps.
 
     :param plan: the scene's arrays
     :param arcs: ``(T + 1, n)`` predicted arcs (row 0: now)

@@ -48,9 +48,9 @@ Vectorized over vehicles and pairs; the only loops run over the horizon's time s
 few rounds of overrides. The prediction (step 2), the fallback and the scan of a prediction for
 conflicts (step 3) run compiled (:mod:`envs.planners._shield_kernel`, numba): the periods are
 sequential and the arrays small, so in NumPy the per-call overhead was most of the shield's cost.
-They compute bit for bit what :meth:`Shield.predict_numpy` (with :func:`envs.simulation.integrate`),
-:meth:`Shield._fallback_numpy` and :meth:`Shield._conflicts_numpy` compute; who is blamed for a
-conflict is decided in NumPy.
+The kernels are the only implementation of these rules; ``tests/shield_reference.py`` holds their
+NumPy form (with :func:`envs.simulation.integrate` itself), the oracle that they match bit for bit.
+Who is blamed for a conflict is decided in NumPy.
 """
 
 from __future__ import annotations
@@ -66,7 +66,6 @@ from envs.planners import _shield_kernel
 from envs.planners.base import Planner
 from envs.planners.errors import PlannerError, checked_accelerations
 from envs.scene import Scene
-from envs.simulation import integrate
 
 _INT = np.int64
 # A vehicle counts as standing below this speed [m/s] (speeds are clipped to exactly 0 when braking).
@@ -409,7 +408,7 @@ class Shield(Planner):
     def _fallback(self, scene: Scene, plan: _Plan, arc: np.ndarray, speed: np.ndarray) -> np.ndarray:
         """The fallback's accelerations in a state: brake, or proceed while keeping a safe gap.
 
-        Compiled, as the prediction; bitwise :meth:`_fallback_numpy`.
+        Compiled, as the prediction.
         """
         a_max = float(scene.a_max)
         return _shield_kernel.fallback(
@@ -423,30 +422,6 @@ class Shield(Planner):
             _STANDING,
             _STOP_SLACK,
         )
-
-    def _fallback_numpy(self, scene: Scene, plan: _Plan, arc: np.ndarray, speed: np.ndarray) -> np.ndarray:
-        """:meth:`_fallback` in NumPy (the reference of the compiled one, as :meth:`predict_numpy`)."""
-        go = self.committed(plan, arc, speed, float(scene.a_max))
-        return self._fallback_given(plan, arc, speed, go, float(scene.a_max), float(scene.dt))
-
-    def _fallback_given(
-        self, plan: _Plan, arc: np.ndarray, speed: np.ndarray, go: np.ndarray, a_max: float, dt: float
-    ) -> np.ndarray:
-        """:meth:`_fallback` with the committed vehicles (``go``) already known (the prediction needs them twice)."""
-        proceed = min(self.proceed_acceleration, a_max)
-        acc = np.where(go & ~self._yielding(plan, arc, speed, go, a_max), proceed, -a_max)
-        f, ahead, gap = self._leaders_now(plan, arc, go)
-        if f.size:
-            ok = _safe_gap_after(gap, speed[f], speed[ahead], proceed, a_max, dt, self.gap_margin)
-            acc[f[~ok & go[f]]] = min(proceed, -a_max)
-        return acc
-
-    def _yielding(self, plan: _Plan, arc: np.ndarray, speed: np.ndarray, go: np.ndarray, a_max: float) -> np.ndarray:
-        """``(n,)`` bool: committed vehicles that the fallback holds for a crossing partner (:meth:`_waits`)."""
-        hold = np.zeros(len(arc), bool)
-        if plan.cross.size:
-            hold[plan.cross[self._waits(plan, arc, speed, go, a_max)]] = True
-        return hold
 
     def _waits(self, plan: _Plan, arc: np.ndarray, speed: np.ndarray, go: np.ndarray, a_max: float) -> np.ndarray:
         """``(c, 2)`` bool over the crossing pairs: this side waits for the other side.
@@ -490,7 +465,7 @@ class Shield(Planner):
         """Arcs at every simulation sub-step: ``command`` for one period, then the fallback.
 
         Compiled (:mod:`envs.planners._shield_kernel`): the periods are sequential and the arrays
-        small, so NumPy's per-call overhead made most of the shield's cost; bitwise :meth:`predict_numpy`.
+        small, so NumPy's per-call overhead made most of the shield's cost.
 
         :return: ``(T + 1, n)`` arcs (row 0: now) and ``(T + 1, n)`` speeds
         """
@@ -502,7 +477,7 @@ class Shield(Planner):
         arcs[0], speeds[0] = plan.arc, plan.speed
         rows = _shield_kernel.predict(
             plan.kernel_arrays,
-            prediction_layout(scene.layout, self.governor_deceleration).kernel_table,
+            envelope_table(scene.layout, self.governor_deceleration),
             np.ascontiguousarray(command, dtype=float),
             arcs,
             speeds,
@@ -519,46 +494,10 @@ class Shield(Planner):
         )
         return arcs[:rows], speeds[:rows]
 
-    def predict_numpy(self, scene: Scene, plan: _Plan, command: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """:meth:`predict` in NumPy, with :func:`envs.simulation.integrate` itself: the reference that
-        the compiled prediction is tested against (bitwise, ``tests/test_shield.py``)."""
-        dt = float(scene.dt)
-        substeps = max(1, int(round(self.simulation_frequency * dt)))
-        h = dt / substeps
-        steps = max(1, int(np.ceil(self.horizon / dt - 1e-9)))
-        arcs, speeds = [plan.arc[None]], [plan.speed[None]]
-        arc, speed, acc = plan.arc, plan.speed, command
-        a_max = float(scene.a_max)
-        view = prediction_layout(scene.layout, self.governor_deceleration)
-        for _ in range(steps):
-            v, x, _ = integrate(
-                view,
-                plan.route,
-                arc,
-                speed,
-                acc,
-                substeps,
-                h,
-                self.max_speed,
-                self.governor_deceleration,
-            )
-            arcs.append(x[1:])
-            speeds.append(v[1:])
-            arc, speed = x[-1], v[-1]
-            go = self.committed(plan, arc, speed, a_max)
-            if (((speed <= _STANDING) & ~go) | (arc > plan.hull_end)).all():  # `_settled`, sharing `go`
-                break  # everyone stands before its zones or has left them: the fallback keeps it so
-            acc = self._fallback_given(plan, arc, speed, go, a_max, dt)
-        return np.concatenate(arcs), np.concatenate(speeds)
-
-    def _settled(self, plan: _Plan, arc: np.ndarray, speed: np.ndarray, a_max: float) -> np.ndarray:
-        standing = (speed <= _STANDING) & ~self.committed(plan, arc, speed, a_max)
-        return standing | (arc > plan.hull_end)
-
     def _conflicts(
         self, scene: Scene, plan: _Plan, arc: np.ndarray, speed: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """The conflicts of a prediction (compiled; bitwise :meth:`_conflicts_numpy`).
+        """The conflicts of a prediction (compiled).
 
         :param arc: ``(T + 1, n)`` predicted arcs (row 0: now), as :meth:`predict` returns them
         :param speed: ``(T + 1, n)`` predicted speeds
@@ -567,31 +506,6 @@ class Shield(Planner):
             ``(n,)`` bool: vehicles that at the end neither stand before their zones nor have cleared them
         """
         return _shield_kernel.conflicts(plan.kernel_arrays, arc, speed[-1], float(scene.a_max), _STANDING, _STOP_SLACK)
-
-    def _conflicts_numpy(
-        self, scene: Scene, plan: _Plan, arc: np.ndarray, speed: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """:meth:`_conflicts` in NumPy (the reference of the compiled one, as :meth:`predict_numpy`)."""
-        later = arc[1:]
-        # Same path and merged: the gap to the vehicle ahead must stay open.
-        f, ahead = plan.follow[:, 0], plan.follow[:, 1]
-        gap = plan.follow_gap + (later[:, ahead] - plan.arc[ahead]) - (later[:, f] - plan.arc[f])
-        bad_follow = (gap < plan.follow_floor).any(axis=0)
-        # Crossing: never both in the pair's zone.
-        x = later[:, plan.cross]  # (T, c, 2)
-        both = ((x > plan.cross_lo) & (x < plan.cross_hi)).all(axis=2)
-        if plan.cross_already.any():
-            moved = x[:, np.arange(len(plan.cross)), plan.cross_back] > plan.cross_stop
-            both = np.where(plan.cross_already, both & moved, both)
-        bad_cross = both.any(axis=0)
-        # Merging: a separation along the common exit lane once both have reached the merge.
-        x = later[:, plan.merge]
-        reached = (x > plan.merge_lo).all(axis=2)
-        e = x - plan.merge_exit
-        bad_merge = (reached & (np.abs(e[..., 0] - e[..., 1]) < plan.merge_sep)).any(axis=0)
-        # At the end, everyone stands before its zones or has cleared them.
-        stuck = ~self._settled(plan, arc[-1], speed[-1], scene.a_max)
-        return bad_follow, bad_cross, bad_merge, stuck
 
     def _blame(self, scene: Scene, plan: _Plan, command: np.ndarray, free: np.ndarray) -> np.ndarray | None:
         """Vehicles to override so that the plan gets through, ``None`` if it passes as it is.
@@ -661,34 +575,6 @@ def _blame_pairs(blamed: np.ndarray, free: np.ndarray, second: np.ndarray, first
     blamed[pick[free[pick]]] = True
 
 
-def _safe_gap_after(
-    gap: np.ndarray,
-    v_follower: np.ndarray,
-    v_ahead: np.ndarray,
-    acc: float,
-    a_max: float,
-    dt: float,
-    margin: float,
-) -> np.ndarray:
-    """Whether after ``dt`` at ``acc`` the follower can still stop behind a vehicle that brakes at ``a_max`` now.
-
-    Responsibility-sensitive safety with equal braking: the gap left once both have stopped,
-    ``gap - max(0, v_f^2 - v_a^2) / (2 a_max)``, must stay above ``margin`` (the speed cap and the
-    governor only lower the follower's speed, which makes the test conservative).
-    """
-    travel_f, v_f = _travel(v_follower, acc, dt)
-    travel_a, v_a = _travel(v_ahead, -a_max, dt)
-    after = gap + travel_a - travel_f
-    return after - np.maximum(v_f**2 - v_a**2, 0.0) / (2 * a_max) >= margin
-
-
-def _travel(speed: np.ndarray, acc: float, dt: float) -> tuple[np.ndarray, np.ndarray]:
-    """Distance and end speed after ``dt`` at constant ``acc``, stopping at 0."""
-    end = speed + acc * dt
-    to_stop = speed**2 / (2 * max(-acc, 1e-12))
-    return np.where(end < 0, to_stop, 0.5 * (speed + end) * dt), np.maximum(end, 0.0)
-
-
 _HULLS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
@@ -735,60 +621,27 @@ def _merging_routes(layout) -> np.ndarray:
     return _MERGING[layout]
 
 
-class _PredictionLayout:
-    """The layout as :func:`envs.simulation.integrate` sees it in the shield's predictions.
+_ENVELOPES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
-    ``integrate`` asks the layout for the speed envelope six times per policy period, which is
-    most of a prediction's cost; this view answers :meth:`envelope_at` for the simulation's
-    governor deceleration from tables built once (the squared envelope, its differences and the
-    limits, read by flat index), with exactly :meth:`envs.layouts.Layout.envelope_at`'s arithmetic,
-    so the prediction stays bitwise the simulation's (``tests/test_shield.py`` checks it). Every other
-    attribute is the layout's.
+
+def envelope_table(layout, deceleration: float) -> _shield_kernel.EnvelopeTable:
+    """The governor's speed envelope of a layout as the compiled prediction reads it (cached).
+
+    ``integrate`` asks the layout for the envelope six times per policy period; the kernel reads
+    it from these flat tables instead (the squared envelope, its differences to the next sample and
+    the limits, by flat index), with exactly :meth:`envs.layouts.Layout.envelope_at`'s arithmetic,
+    so the prediction stays bitwise the simulation's (``tests/test_shield.py`` checks it).
 
     :param layout: the intersection
-    :param deceleration: the governor deceleration the tables are built for [m/s^2]
+    :param deceleration: the simulation's governor deceleration [m/s^2]
     """
-
-    def __init__(self, layout, deceleration: float) -> None:
-        self.layout = weakref.proxy(layout)  # the cache below is keyed weakly by the layout
-        self.deceleration = float(deceleration)
-        env = layout.speed_envelope(self.deceleration)
-        sq = env**2
-        self.columns = env.shape[1]
-        self.last = env.shape[1] - 1
-        self.ds = layout.ds
-        self.sq = sq.ravel()
-        self.dsq = np.concatenate([sq[:, 1:] - sq[:, :-1], np.zeros((sq.shape[0], 1))], axis=1).ravel()
-        self.limit = np.ascontiguousarray(layout.speed_limit, dtype=float).ravel()
-        # The same tables for the compiled prediction (`_shield_kernel._envelope`).
-        self.kernel_table = _shield_kernel.EnvelopeTable(
-            self.sq, self.dsq, self.limit, int(self.columns), int(self.last), float(self.ds)
-        )
-
-    def envelope_at(self, route: np.ndarray, arc: np.ndarray, deceleration: float) -> np.ndarray:
-        if float(deceleration) != self.deceleration:
-            return self.layout.envelope_at(route, arc, deceleration)
-        # Layout.envelope_at: u, i0, f as there; the limit's sample int(arc / ds) clipped to
-        # [0, last] is i0, or last where u reached it.
-        u = np.minimum(np.maximum(arc / self.ds, 0.0), self.last)
-        i0 = np.minimum(u.astype(np.int64), self.last - 1)
-        f = u - i0
-        flat = route * self.columns + i0
-        sq0 = self.sq.take(flat)
-        envelope = np.sqrt(sq0 + self.dsq.take(flat) * f)
-        return np.minimum(envelope, self.limit.take(flat + (u >= self.last)))
-
-    def __getattr__(self, name: str):
-        return getattr(self.layout, name)
-
-
-_PREDICTION_LAYOUTS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-
-
-def prediction_layout(layout, deceleration: float) -> _PredictionLayout:
-    """The (cached) :class:`_PredictionLayout` of a layout and governor deceleration."""
-    views = _PREDICTION_LAYOUTS.setdefault(layout, {})
+    tables = _ENVELOPES.setdefault(layout, {})
     key = float(deceleration)
-    if key not in views:
-        views[key] = _PredictionLayout(layout, key)
-    return views[key]
+    if key not in tables:
+        sq = layout.speed_envelope(key) ** 2
+        dsq = np.concatenate([sq[:, 1:] - sq[:, :-1], np.zeros((sq.shape[0], 1))], axis=1)
+        limit = np.ascontiguousarray(layout.speed_limit, dtype=float).ravel()
+        tables[key] = _shield_kernel.EnvelopeTable(
+            sq.ravel(), dsq.ravel(), limit, int(sq.shape[1]), int(sq.shape[1] - 1), float(layout.ds)
+        )
+    return tables[key]
