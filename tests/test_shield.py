@@ -12,9 +12,9 @@ from hypothesis import strategies as st
 
 from envs.evaluation import evaluation_env_kwargs, run_episode
 from envs.layouts import build_layout
-from envs.planners import Planner, make_planner, planner_name
+from envs.planners import Planner, _shield_kernel, make_planner, planner_name
 from envs.planners.adversarial import FullThrottle, RandomAccel
-from envs.planners.shield import Shield
+from envs.planners.shield import _STANDING, _STOP_SLACK, Shield
 from envs.scene import Scene
 from envs.simulation import Simulation
 from envs.traffic import generate_scenario
@@ -179,6 +179,18 @@ def _assert_prediction_is_numpy(shield: Shield, scene: Scene, command: np.ndarra
     expected = reference.conflicts_numpy(shield, scene, plan, arc, speed)
     for compiled, oracle in zip(shield._conflicts(scene, plan, arc, speed), expected):
         np.testing.assert_array_equal(compiled, oracle)
+    # The rules the liveness checks and the blame read on their own, at the end of the prediction.
+    a_max, end, v_end = float(scene.a_max), arc[-1], speed[-1]
+    go = shield.committed(plan, end, v_end, a_max)
+    np.testing.assert_array_equal(go, reference.committed(plan, end, v_end, a_max))
+    waits = _shield_kernel.waits(plan.kernel_arrays, end, v_end, go, a_max, _STANDING, _STOP_SLACK)
+    np.testing.assert_array_equal(waits, reference.waits(plan, end, v_end, go, a_max).reshape(-1, 2))
+    follower, ahead, _ = reference.leaders_now(shield, plan, end, go)
+    for compiled, oracle in zip(_shield_kernel.leaders(plan.kernel_arrays, end, go), (follower, ahead)):
+        np.testing.assert_array_equal(compiled, oracle)
+    x0 = plan.arc[plan.cross]
+    back = reference.less_far_through(x0, plan.cross_lo, plan.cross_hi, plan.vehicle_id[plan.cross])[:, 1]
+    np.testing.assert_array_equal(plan.cross_back, back.astype(np.int64))
 
 
 @pytest.mark.parametrize("layout", ["4way", "3way", "inD"])

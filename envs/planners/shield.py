@@ -45,12 +45,13 @@ proposed onwards (checked like any proposal). Before the line the planner decide
 An invalid proposal is a planner error (:mod:`envs.planners.errors`), answered with the fallback.
 
 Vectorized over vehicles and pairs; the only loops run over the horizon's time steps and over the
-few rounds of overrides. The prediction (step 2), the fallback and the scan of a prediction for
-conflicts (step 3) run compiled (:mod:`envs.planners._shield_kernel`, numba): the periods are
-sequential and the arrays small, so in NumPy the per-call overhead was most of the shield's cost.
-The kernels are the only implementation of these rules; ``tests/shield_reference.py`` holds their
-NumPy form (with :func:`envs.simulation.integrate` itself), the oracle that they match bit for bit.
-Who is blamed for a conflict is decided in NumPy.
+few rounds of overrides. The prediction (step 2), the fallback, the scan of a prediction for
+conflicts (step 3) and the rules that the liveness checks and the blame read (who is committed, who
+waits for whom, who follows whom) run compiled (:mod:`envs.planners._shield_kernel`, numba): the
+periods are sequential and the arrays small, so in NumPy the per-call overhead was most of the
+shield's cost. The kernels are the only implementation of these rules; ``tests/shield_reference.py``
+holds their NumPy form (with :func:`envs.simulation.integrate` itself), the oracle that they match
+bit for bit. Who is blamed for a conflict is decided in NumPy.
 """
 
 from __future__ import annotations
@@ -108,20 +109,19 @@ class _Plan:
     cross_stop: np.ndarray  # (c,) its arc now plus the stopping slack [m]
 
     def __post_init__(self) -> None:
-        # The columns of `follow` and their arcs now, contiguous: the fallback reads them every period.
-        self.follow_rows = (np.ascontiguousarray(self.follow[:, 0]), np.ascontiguousarray(self.follow[:, 1]))
-        self.follow_arc = (self.arc[self.follow_rows[0]], self.arc[self.follow_rows[1]])
-        # The compiled kernels' view, contiguous and of one dtype per field (one compiled signature).
+        # The compiled kernels' view, contiguous and of one dtype per field (one compiled signature);
+        # the columns of `follow` and their arcs now apart: the fallback reads them every period.
         i, f = partial(np.ascontiguousarray, dtype=_INT), partial(np.ascontiguousarray, dtype=float)
+        follower, ahead = i(self.follow[:, 0]), i(self.follow[:, 1])
         self.kernel_arrays = _shield_kernel.PlanArrays(
             route=i(self.route),
             hull_start=f(self.hull_start),
             hull_end=f(self.hull_end),
-            follower=i(self.follow_rows[0]),
-            ahead=i(self.follow_rows[1]),
+            follower=follower,
+            ahead=ahead,
             follow_gap=f(self.follow_gap),
-            follower_arc=f(self.follow_arc[0]),
-            ahead_arc=f(self.follow_arc[1]),
+            follower_arc=f(self.arc[follower]),
+            ahead_arc=f(self.arc[ahead]),
             follow_floor=f(self.follow_floor),
             cross=i(self.cross),
             cross_lo=f(self.cross_lo),
@@ -304,7 +304,8 @@ class Shield(Planner):
         return go & (acc < np.minimum(fallback, 0.0) - 1e-9) & self._slowed_to_a_crawl(scene, plan, acc)
 
     def _awaited_and_braked(self, scene: Scene, plan: _Plan, acc: np.ndarray, fallback: np.ndarray) -> np.ndarray:
-        """``(n,)`` bool: vehicles that another one waits for (:meth:`_waits`) and that the proposal brakes
+        """``(n,)`` bool: vehicles that another one waits for (:func:`envs.planners._shield_kernel.waits`:
+        the fallback holds a committed crossing vehicle for them) and that the proposal brakes
         below the fallback. They get the fallback: a planner that stops a vehicle in a zone while the
         fallback holds a crossing vehicle for it would otherwise keep both standing (a standoff of
         the planner's order of way against the shield's)."""
@@ -312,7 +313,9 @@ class Shield(Planner):
         if plan.cross.size:
             a_max = float(scene.a_max)
             go = self.committed(plan, plan.arc, plan.speed, a_max)
-            awaited[plan.cross[:, ::-1][self._waits(plan, plan.arc, plan.speed, go, a_max)]] = True
+            arc, speed = np.ascontiguousarray(plan.arc), np.ascontiguousarray(plan.speed)
+            waits = _shield_kernel.waits(plan.kernel_arrays, arc, speed, go, a_max, _STANDING, _STOP_SLACK)
+            awaited[plan.cross[:, ::-1][waits]] = True
         return awaited & (acc < np.minimum(fallback, 0.0) - 1e-9)
 
     # ------------------------------------------------------------------ scene -> plan
@@ -373,7 +376,8 @@ class Shield(Planner):
         # which brake everyone): it must not move (`stop`) while the other is in it, which may go on.
         # While `back` still moves, the pair counts as a conflict like any other.
         x0 = arc[cross]
-        back = _less_far_through(x0, cross_lo, cross_hi, np.asarray(scene.vehicle_id)[cross])[:, 1].astype(_INT)
+        ids = np.ascontiguousarray(np.asarray(scene.vehicle_id)[cross], dtype=_INT)
+        back = _shield_kernel.behind(np.ascontiguousarray(x0), cross_lo, cross_hi, ids)
         pair = np.arange(len(back))
         already = ((x0 > cross_lo) & (x0 < cross_hi)).all(axis=1) & (speed[cross[pair, back]] <= _STANDING)
         stop = x0[pair, back] + _STOP_SLACK
@@ -402,8 +406,9 @@ class Shield(Planner):
 
     # ------------------------------------------------------------------ the fallback
     def committed(self, plan: _Plan, arc: np.ndarray, speed: np.ndarray, a_max: float) -> np.ndarray:
-        """``(n,)`` bool: the vehicle can no longer stop before its first zone, or has cleared them all."""
-        return ~_can_stop_before(arc, speed, plan.hull_start, a_max) | (arc > plan.hull_end)
+        """``(n,)`` bool: the vehicle can no longer stop before its first zone, or has cleared them all (compiled)."""
+        arc, speed = np.ascontiguousarray(arc, dtype=float), np.ascontiguousarray(speed, dtype=float)
+        return _shield_kernel.committed(plan.kernel_arrays, arc, speed, float(a_max), _STANDING, _STOP_SLACK)
 
     def _fallback(self, scene: Scene, plan: _Plan, arc: np.ndarray, speed: np.ndarray) -> np.ndarray:
         """The fallback's accelerations in a state: brake, or proceed while keeping a safe gap.
@@ -422,43 +427,6 @@ class Shield(Planner):
             _STANDING,
             _STOP_SLACK,
         )
-
-    def _waits(self, plan: _Plan, arc: np.ndarray, speed: np.ndarray, go: np.ndarray, a_max: float) -> np.ndarray:
-        """``(c, 2)`` bool over the crossing pairs: this side waits for the other side.
-
-        Committed means past the point where a vehicle can stop before its *first* zone; a later zone,
-        shared with one crossing route, may still be far enough to stop before. The fallback does not
-        rely on timing there (timing rests on predicted leaders, and the leaders change when a vehicle
-        ahead turns off or merges in): a committed vehicle that can still stop before a pair's zone
-        waits while its partner can no longer stop before it (or is in it) and has not cleared it.
-        Waiting can form a cycle only in a gridlock (each vehicle in one zone and before another),
-        which the check rejects as it rejects any committed vehicle left standing. Two vehicles inside
-        one zone at once (only after an unresolved step) are separated by holding the one less far
-        through it.
-        """
-        x, lo, hi = arc[plan.cross], plan.cross_lo, plan.cross_hi
-        can_stop = _can_stop_before(x, speed[plan.cross], lo, a_max)
-        waits = go[plan.cross] & can_stop & ~can_stop[:, ::-1] & (x[:, ::-1] < hi[:, ::-1])
-        both = ((x > lo) & (x < hi)).all(axis=1)
-        return waits | (both[:, None] & _less_far_through(x, lo, hi, plan.vehicle_id[plan.cross]))
-
-    def _leaders_now(self, plan: _Plan, arc: np.ndarray, go: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``(follower, ahead, bumper gap)`` of every same-path pair, and of every pair on merging paths
-        whose vehicle ahead (along the common exit lane) proceeds (``go``) or has reached the merge."""
-        f, ahead = plan.follow_rows
-        gap = plan.follow_gap + (arc[ahead] - plan.follow_arc[1]) - (arc[f] - plan.follow_arc[0])
-        if plan.merge.size:
-            m0, m1 = plan.merge[:, 0], plan.merge[:, 1]
-            a0, a1 = arc[m0], arc[m1]
-            e0, e1 = a0 - plan.merge_exit[:, 0], a1 - plan.merge_exit[:, 1]
-            second = e0 >= e1  # vehicle 1 is behind along the common exit lane
-            first = np.where(second, m0, m1)
-            active = np.where(second, a0 > plan.merge_lo[:, 0], a1 > plan.merge_lo[:, 1]) | go[first]
-            mf, ma = np.where(second, m1, m0)[active], first[active]
-            # kept at gap_margin by the fallback: half a gap margin more than the check's distance
-            mgap = (np.abs(e0 - e1) - plan.merge_sep + 0.5 * self.gap_margin)[active]
-            f, ahead, gap = np.concatenate([f, mf]), np.concatenate([ahead, ma]), np.concatenate([gap, mgap])
-        return f, ahead, gap
 
     # ------------------------------------------------------------------ prediction and check
     def predict(self, scene: Scene, plan: _Plan, command: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -548,25 +516,11 @@ class Shield(Planner):
                 stuck_free[np.flatnonzero(stuck_free)[np.argmin(plan.rank[stuck_free])]] = False
             blamed |= stuck_free
             # A committed vehicle stuck behind a vehicle ahead: that one's command is to blame.
-            fl, ah, _ = self._leaders_now(plan, arc[-1], self.committed(plan, arc[-1], speed[-1], scene.a_max))
+            go = self.committed(plan, arc[-1], speed[-1], scene.a_max)
+            fl, ah = _shield_kernel.leaders(plan.kernel_arrays, np.ascontiguousarray(arc[-1]), go)
             culprit = ah[stuck[fl] & ~free[fl] & free[ah]]
             blamed[culprit] = True
         return blamed
-
-
-def _can_stop_before(arc: np.ndarray, speed: np.ndarray, line: np.ndarray, a_max: float) -> np.ndarray:
-    """Whether braking at ``a_max`` stops a vehicle's centre at or before ``line`` (elementwise).
-
-    A standing vehicle outside the line can always wait (the slack is for moving ones only).
-    """
-    return (arc <= line) & ((speed <= _STANDING) | (arc + speed**2 / (2 * a_max) + _STOP_SLACK <= line))
-
-
-def _less_far_through(x: np.ndarray, lo: np.ndarray, hi: np.ndarray, ids: np.ndarray) -> np.ndarray:
-    """``(c, 2)`` bool over crossing pairs: this side is less far through the pair's zone than the
-    other (ties: the higher id), the one to hold when both are in it."""
-    through = (x - lo) / (hi - lo)
-    return (through < through[:, ::-1]) | ((through == through[:, ::-1]) & (ids > ids[:, ::-1]))
 
 
 def _blame_pairs(blamed: np.ndarray, free: np.ndarray, second: np.ndarray, first: np.ndarray) -> None:
