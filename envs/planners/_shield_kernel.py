@@ -154,8 +154,9 @@ def _committed(
 
 
 @numba.njit(cache=True)
-def _less_far(x: float, lo: float, hi: float, vid: int, x_other: float, lo_other: float, hi_other: float,
-              vid_other: int) -> bool:  # fmt: skip
+def _less_far(
+    x: float, lo: float, hi: float, vid: int, x_other: float, lo_other: float, hi_other: float, vid_other: int
+) -> bool:
     """Whether a vehicle is less far through a crossing pair's zone than its partner (ties: the higher
     id): the one to hold when both are in it."""
     through = (x - lo) / (hi - lo)
@@ -165,9 +166,15 @@ def _less_far(x: float, lo: float, hi: float, vid: int, x_other: float, lo_other
 
 @numba.njit(cache=True)
 def _pair_waits(
-    plan: PlanArrays, p: int, arc: np.ndarray, speed: np.ndarray, go: np.ndarray, a_max: float, standing: float,
+    plan: PlanArrays,
+    p: int,
+    arc: np.ndarray,
+    speed: np.ndarray,
+    go: np.ndarray,
+    a_max: float,
+    standing: float,
     slack: float,
-) -> tuple[bool, bool]:  # fmt: skip
+) -> tuple[bool, bool]:
     """Whether each side of crossing pair ``p`` waits for the other (``yielding`` and ``waits``).
 
     Committed means past the point where a vehicle can stop before its *first* zone; a later zone,
