@@ -4,7 +4,8 @@ One *job* is one planner on one scenario file: the environment is reset onto the
 at every policy step the planner answers the scene the environment shows
 (``env.unwrapped.scene()``) with one acceleration per vehicle, which the environment turns into
 its action (``env.unwrapped.accelerations_to_action``). The step ``info`` events and the scenes
-go into a vehicle log (:class:`envs.metrics.VehicleLog`), reduced to one metrics row per job.
+go into a vehicle log (:class:`envs.metrics.VehicleLog`), reduced to one metrics row per job, with
+the counters the planner reports (:meth:`envs.planners.Planner.stats`: a shield's interventions).
 
 Every planner meets exactly the same traffic: the scenario file fixes every vehicle's appearance
 time, route and initial speed, and the environment's own randomness is seeded per scenario.
@@ -260,15 +261,11 @@ def run_job(job: Job, scenario: Any = None) -> tuple[dict[str, Any], pd.DataFram
         return row, pd.DataFrame({"planner": pd.Series(dtype=object), "run": pd.Series(dtype=np.int64)})
     duration = facts["duration"] if facts["duration"] > 0 else job.duration
     row.update(run_metrics(vehicles, duration))
-    if hasattr(planner, "interventions"):  # a shielded planner: its counters of this run
-        lines = [error.line(Path(job.scenario).name) for error in getattr(planner, "errors", [])]
-        row.update(
-            shield_interventions=planner.interventions,
-            shield_vehicle_steps=planner.vehicle_steps,
-            shield_unresolved=getattr(planner, "unresolved", 0),
-            planner_errors=getattr(planner, "planner_errors", 0),
-            planner_error="\n".join(lines) if lines else None,
-        )
+    stats = planner.stats()  # the planner's counters of this run (a shield: interventions, unresolved steps ...)
+    row.update(stats)
+    if "planner_errors" in stats:  # it answers planner errors itself (a shield): the first ones, one line each
+        lines = [error.line(Path(job.scenario).name) for error in planner.errors]
+        row["planner_error"] = "\n".join(lines) if lines else None
     row.update({key: value for key, value in facts.items() if key.startswith("return")})
     row.update(
         failed=False,

@@ -121,6 +121,32 @@ def test_run_episode_collision_when_nobody_yields():
     assert run_metrics(vehicles, facts["duration"])["collision_rate"] == 1.0
 
 
+def test_planner_counters_reach_the_metrics_row_through_stats(tmp_path):
+    """Any planner's :meth:`~envs.planners.Planner.stats` become columns of its runs; the planner-error
+    lines only come with a ``planner_errors`` counter (a shield's)."""
+    from envs.evaluation import Job, run_job
+    from envs.traffic import generate_scenario
+
+    (tmp_path / "counting.py").write_text(
+        "from envs.planners import FIFOPlanner\n\n\n"
+        "class Counting(FIFOPlanner):\n"
+        "    def reset(self, seed=None):\n        super().reset(seed)\n        self.answered = 0\n\n"
+        "    def act(self, scene):\n        self.answered += 1\n        return super().act(scene)\n\n"
+        "    def stats(self):\n        return {'answered_scenes': self.answered}\n"
+    )
+    scenario = tmp_path / "scenario_000.json"
+    generate_scenario("4way", 4.0, 0).save(scenario)
+    rows = {}
+    for spec in (f"{tmp_path / 'counting.py'}:Counting", "fifo", "fifo+shield"):
+        rows[spec] = run_job(Job(spec, spec, str(scenario), 0, "CoopIntersection4Way-v0", 4.0, 0))[0]
+    counting = rows[f"{tmp_path / 'counting.py'}:Counting"]
+    assert counting["answered_scenes"] == counting["steps"] == 20 and "planner_error" not in counting
+    assert not {"answered_scenes", "shield_interventions", "planner_error"} & set(rows["fifo"])
+    shielded = rows["fifo+shield"]
+    assert shielded["shield_vehicle_steps"] > 0 and shielded["planner_errors"] == 0
+    assert "planner_error" in shielded and shielded["planner_error"] is None
+
+
 def _fake_results():
     rng = np.random.default_rng(0)
     runs, vehicles = [], []

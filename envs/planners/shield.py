@@ -204,6 +204,16 @@ class Shield(Planner):
         """The first planner errors of the run (at most :data:`MAX_ERROR_LINES`), one line each."""
         return [error.line() for error in self.errors]
 
+    def stats(self) -> dict[str, float]:
+        """The counters of the run since the last reset: interventions and the vehicle-steps they are
+        a share of, unresolved steps (everyone braked) and planner errors (steps)."""
+        return {
+            "shield_interventions": self.interventions,
+            "shield_vehicle_steps": self.vehicle_steps,
+            "shield_unresolved": self.unresolved,
+            "planner_errors": self.planner_errors,
+        }
+
     @property
     def intervention_rate(self) -> float:
         """Share of vehicle-steps whose command the shield replaced since the last reset (``nan`` if none)."""
