@@ -47,10 +47,10 @@ import numpy as np
 import pandas as pd
 
 from envs.scene import MANEUVERS, PRIORITY_NAMES, STOP_SPEED, Scene
+from envs.step_record import StepRecord, step_record
 
 if TYPE_CHECKING:
     from envs.layouts import Layout
-    from envs.step_record import StepRecord
     from envs.traffic import Scenario
 
 VEHICLE_COLUMNS = (
@@ -162,11 +162,13 @@ class VehicleLog:
         """
         self.observe(scene, count=False)
 
-    def record(self, record: StepRecord) -> None:
+    def record(self, record: StepRecord | Mapping[str, Any]) -> None:
         """Register the events of one environment step.
 
-        :param record: the step's record (the environment's ``info["record"]``)
+        :param record: the step's record, or the step ``info`` that carries it (``info["record"]``)
         """
+        if not isinstance(record, StepRecord):
+            record = step_record(record)
         time = float(record.time)
         for vid in record.crossed.tolist():
             row = self._row(vid)

@@ -192,10 +192,10 @@ def test_governor_share_counts_held_back_vehicle_steps():
     r = lay.route_id("south->east")  # a right turn: 5.2 m/s in the curve
     base.place_vehicles([r, lay.route_id("west->east")], [lay.entry_arc[r] - 3.0, 20.0], [9.0, 2.0], [0, 1])
     log = VehicleLog(lay)
-    for _ in range(3):
+    for k in range(3):
         log.observe(base.scene())
         _, _, _, _, info = env.step(np.ones(env.action_space.shape, np.float32))  # full throttle
-        log.record(info["record"])
+        log.record(info["record"] if k else info)  # the record, or the info that carries it
     frame = log.frame()
     steps = frame.set_index("vehicle_id")
     # The turning vehicle is held back every step; the slow straight one accelerates freely.
