@@ -3,8 +3,10 @@
 One *job* is one planner on one scenario file: the environment is reset onto the scenario, and
 at every policy step the planner answers the scene the environment shows
 (``env.unwrapped.scene()``) with one acceleration per vehicle, which the environment turns into
-its action (``env.unwrapped.accelerations_to_action``). The step ``info`` events and the scenes
-go into a vehicle log (:class:`envs.metrics.VehicleLog`), reduced to one metrics row per job.
+its action (``env.unwrapped.accelerations_to_action``). The step records (``info["record"]``,
+:class:`envs.step_record.StepRecord`) and the scenes go into a vehicle log
+(:class:`envs.metrics.VehicleLog`), reduced to one metrics row per job, with the counters the planner
+reports (:meth:`envs.planners.Planner.stats`: a shield's interventions).
 
 Every planner meets exactly the same traffic: the scenario file fixes every vehicle's appearance
 time, route and initial speed, and the environment's own randomness is seeded per scenario.
@@ -36,6 +38,7 @@ import pandas as pd
 
 from envs.executors import JobExecutor, make_executor
 from envs.metrics import VehicleLog, run_metrics
+from envs.step_record import StepRecord, step_record
 
 SCENARIO_SUFFIX = ".json"
 
@@ -139,17 +142,18 @@ def run_episode(
     scenario: Any,
     duration: float,
     seed: int | None = None,
-    on_step: Callable[[Any, np.ndarray, dict, Any], None] | None = None,
+    on_step: Callable[[Any, np.ndarray, StepRecord, Any], None] | None = None,
 ) -> tuple[pd.DataFrame, dict]:
     """Run one planner through one scenario.
 
     :param env: the environment (a gymnasium env whose ``unwrapped`` provides ``scene()`` and
-        ``accelerations_to_action(acc)``)
+        ``accelerations_to_action(acc)``, and whose ``reset`` and ``step`` put a
+        :class:`~envs.step_record.StepRecord` into ``info["record"]``)
     :param planner: a :class:`envs.planners.Planner`
     :param scenario: the scenario object, passed as ``reset(options={"scenario": scenario})``
     :param duration: simulated seconds to run (less if the environment ends the episode)
     :param seed: seed of the environment's reset and of the planner
-    :param on_step: called after every policy step as ``on_step(scene, accelerations, info, next_scene)``
+    :param on_step: called after every policy step as ``on_step(scene, accelerations, record, next_scene)``
         (e.g. to draw the episode, :mod:`envs.rendering`); it must not change what it is handed
     :return: ``(vehicle log, facts)``: the log holds every vehicle scheduled within the run (see
         :mod:`envs.metrics`); facts ``return`` (the sum of the environment's rewards),
@@ -160,9 +164,10 @@ def run_episode(
     """
     base = env.unwrapped
     _, info = env.reset(seed=seed, options={"scenario": scenario})
+    record = step_record(info)
     planner.reset(seed)
     log = VehicleLog(layout=getattr(base, "layout", None))
-    log.record(info)
+    log.record(record)
     scene = base.scene()
     start = float(scene.time)
     now = start
@@ -174,20 +179,21 @@ def run_episode(
         log.observe(scene)
         acc = planned_accelerations(planner, scene)
         _, reward, terminated, truncated, info = env.step(base.accelerations_to_action(acc))
-        log.record(info)
+        record = step_record(info)
+        log.record(record)
         total += float(reward)
-        for key, value in info.get("reward_terms", {}).items():
+        for key, value in record.reward_terms.items():
             terms[key] = terms.get(key, 0.0) + float(value)
         steps += 1
         next_scene = base.scene()
         if on_step is not None:
-            on_step(scene, acc, info, next_scene)
+            on_step(scene, acc, record, next_scene)
         scene = next_scene
-        now = float(info.get("time", scene.time))
+        now = float(record.time)
     log.finish(scene)
     facts = {"duration": now - start, "steps": steps, "terminated": bool(terminated), "return": total}
     facts.update(preset_returns(terms))
-    facts["waiting_at_end"] = int(info.get("waiting", 0)) if steps else 0
+    facts["waiting_at_end"] = int(record.waiting) if steps else 0
     return log.frame(schedule=_schedule(scenario), end=now), facts
 
 
@@ -260,15 +266,11 @@ def run_job(job: Job, scenario: Any = None) -> tuple[dict[str, Any], pd.DataFram
         return row, pd.DataFrame({"planner": pd.Series(dtype=object), "run": pd.Series(dtype=np.int64)})
     duration = facts["duration"] if facts["duration"] > 0 else job.duration
     row.update(run_metrics(vehicles, duration))
-    if hasattr(planner, "interventions"):  # a shielded planner: its counters of this run
-        lines = [error.line(Path(job.scenario).name) for error in getattr(planner, "errors", [])]
-        row.update(
-            shield_interventions=planner.interventions,
-            shield_vehicle_steps=planner.vehicle_steps,
-            shield_unresolved=getattr(planner, "unresolved", 0),
-            planner_errors=getattr(planner, "planner_errors", 0),
-            planner_error="\n".join(lines) if lines else None,
-        )
+    stats = planner.stats()  # the planner's counters of this run (a shield: interventions, unresolved steps ...)
+    row.update(stats)
+    if "planner_errors" in stats:  # it answers planner errors itself (a shield): the first ones, one line each
+        lines = [error.line(Path(job.scenario).name) for error in planner.errors]
+        row["planner_error"] = "\n".join(lines) if lines else None
     row.update({key: value for key, value in facts.items() if key.startswith("return")})
     row.update(
         failed=False,

@@ -19,7 +19,8 @@ highway-env's :class:`~highway_env.envs.common.abstract.AbstractEnv` for its con
   ``info["collided"]``, takes both vehicles out of the scene at the end of the step (their ids are
   also in ``info["removed"]``) and goes on, so a run's flow and collision rate cover its whole
   duration. The collision reward term applies in both cases.
-- ``info``: the keys documented in :mod:`envs.scene`.
+- ``info``: the step's :class:`~envs.step_record.StepRecord` under ``"record"`` (what the metrics and
+  the evaluation harness read), and its fields under the keys documented in :mod:`envs.step_record`.
 
 Traffic: random training spawns with ``spawn_probability`` per lane and step (see
 :meth:`CoopIntersectionEnv.set_spawn_probability` for a curriculum), or an exact replay of an
@@ -59,6 +60,7 @@ from envs.rewards import (
 from envs.scene import MAJOR, MANEUVERS, Scene
 from envs.scene_graph import DEFAULT_S_SCALE, NUM_RELATIONS, build_observation, min_mahalanobis, num_node_features
 from envs.simulation import Simulation, StepEvents
+from envs.step_record import StepRecord
 from envs.traffic import Scenario, ScenarioTraffic, TrainingTraffic
 from sb3_graph.spaces import GraphSpace
 
@@ -209,7 +211,7 @@ class CoopIntersectionEnv(AbstractEnv):
         :param options: ``{"scenario": Scenario | path}`` replays an evaluation scenario in this
             episode (truncated at the scenario's duration; a later ``reset`` without it returns to
             training traffic); ``{"config": {...}}`` reconfigures first
-        :return: observation and info (the keys of :mod:`envs.scene`, events of time 0)
+        :return: observation and info (:mod:`envs.step_record`: the events of time 0)
         """
         gym.Env.reset(self, seed=seed)
         options = dict(options or {})
@@ -359,8 +361,9 @@ class CoopIntersectionEnv(AbstractEnv):
             info["shield_overridden"] = int(overridden.sum())
             info["shield_intervention_rate"] = float(overridden.mean()) if n else 0.0
             info["executed_action"] = self._executed_action(acc, base)
-        self._collided = set(info["collided"].tolist())
-        reward = float(sum(info["reward_weighted"].values()))
+        record = info["record"]
+        self._collided = set(record.collided.tolist())
+        reward = record.reward
         terminated = bool(collision) and not remove
         truncated = bool(self.time >= self._duration - 1e-9) and not terminated
         if self.render_mode == "human":
@@ -368,32 +371,34 @@ class CoopIntersectionEnv(AbstractEnv):
         return obs, reward, terminated, truncated, info
 
     def _make_info(self, events: StepEvents, entered: np.ndarray, terms: dict[str, float]) -> dict[str, Any]:
+        """The step's :class:`~envs.step_record.StepRecord` and the ``info`` that carries it."""
         lay, sim = self.layout, self.sim
-        rows = range(sim.num_vehicles - len(entered), sim.num_vehicles)  # new vehicles are the last rows
-        vehicles = {
+        record = StepRecord(
+            time=float(sim.time),
+            entered=np.asarray(entered, np.int64),
+            crossed=events.crossed,
+            removed=events.removed,
+            stopped=events.stopped,
+            governed=events.governed,
+            collisions=events.collisions,
+            num_vehicles=sim.num_vehicles,
+            waiting=int(self.traffic.waiting),
+            reward_terms=terms,
+            reward_weighted=weighted(terms, self.config["reward_weights"]),
+        )
+        info = record.info()
+        # For users only (the metrics read these facts from the scenes): the new vehicles are the last rows.
+        rows = range(sim.num_vehicles - len(entered), sim.num_vehicles)
+        info["vehicles"] = {
             int(sim.vehicle_id[r]): {
                 "route": lay.route_names[sim.route[r]],
                 "priority": int(lay.priority[sim.route[r]]),
                 "maneuver": MANEUVERS[lay.maneuver[sim.route[r]]],
                 "time": float(sim.appearance_time[r]),
             }
-            for r in rows  # only the vehicles that appeared in this step
+            for r in rows  # once per new vehicle
         }
-        return {
-            "reward_terms": terms,
-            "reward_weighted": weighted(terms, self.config["reward_weights"]),
-            "entered": np.asarray(entered, np.int64),
-            "crossed": events.crossed,
-            "removed": events.removed,
-            "stopped": events.stopped,
-            "governed": events.governed,
-            "collisions": events.collisions,
-            "vehicles": vehicles,
-            "time": float(sim.time),
-            "num_vehicles": sim.num_vehicles,
-            "waiting": int(self.traffic.waiting),
-            "collided": np.unique(events.collisions) if events.collisions.size else _EMPTY_IDS,
-        }
+        return info
 
     def _make_shield(self):
         from envs.planners.shield import Shield

@@ -268,6 +268,22 @@ def zone_hull(layout: Layout) -> tuple[np.ndarray, np.ndarray]:
     return _HULLS[layout]
 
 
+def body_hull(
+    layout: Layout, route: np.ndarray, length: np.ndarray, margin: float = ZONE_MARGIN
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(n,)`` centre arcs from which each body may touch its route's first conflict zone, and past
+    which it has left the last one, each zone padded by ``margin`` (``inf`` and ``-inf`` for a route
+    without any): where the shield's rules and the observation's zone features start and end.
+
+    :param layout: the intersection
+    :param route: ``(n,)`` route of each vehicle
+    :param length: ``(n,)`` vehicle lengths [m]
+    :param margin: padding of every zone on both ends [m]
+    """
+    first, last = zone_hull(layout)
+    return first[route] - margin - length / 2, last[route] + margin + length / 2
+
+
 def read_only(array: np.ndarray) -> np.ndarray:
     """A read-only copy of an array whose buffer is an immutable ``bytes`` object, so that neither
     ``setflags(write=True)`` on it nor on its base can make it writable again.

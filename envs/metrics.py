@@ -1,7 +1,8 @@
 """Traffic metrics of a run: flow rate, stop ratios, collision rate, delay and travel time.
 
 A run's vehicles are collected into a *vehicle log* (one row per vehicle, :data:`VEHICLE_COLUMNS`)
-from the environment's step ``info`` (see :mod:`envs.scene`), the scenes the planner saw and the
+from the scenes the planner saw (what each vehicle is: route, priority, maneuver, where it started),
+the environment's step records (what happened to it: :class:`envs.step_record.StepRecord`) and the
 scenario's schedule.
 
 Which vehicles count: **every scheduled vehicle**, the same set for every planner. A vehicle of
@@ -13,7 +14,7 @@ look better by keeping vehicles out of the scene.
 - **stop ratio** and **collision rate**: over all scheduled vehicles (including those still
   approaching, or still waiting to appear, when the run ends);
 - **flow rate** (the paper's): vehicles of that set that crossed the intersection (their centre
-  left its area, ``info["crossed"]``) during the run, divided by the simulated duration.
+  left its area, ``StepRecord.crossed``) during the run, divided by the simulated duration.
   ``offered_flow`` is the flow a perfect planner could reach on the same scenario: the scheduled
   vehicles that would cross before the end of the run in free flow, per simulated second;
 - **delay**: from the *scheduled* appearance time (not the first appearance), against the
@@ -46,6 +47,7 @@ import numpy as np
 import pandas as pd
 
 from envs.scene import MANEUVERS, PRIORITY_NAMES, STOP_SPEED, Scene
+from envs.step_record import StepRecord, step_record
 
 if TYPE_CHECKING:
     from envs.layouts import Layout
@@ -88,8 +90,10 @@ _FLOAT_COLUMNS = (
 class VehicleLog:
     """Collects one run's per-vehicle facts, step by step.
 
-    Call :meth:`observe` with every scene the planner sees, :meth:`record` with every step
-    ``info`` and :meth:`finish` with the last scene; :meth:`frame` returns the vehicle log.
+    Call :meth:`observe` with every scene the planner sees, :meth:`record` with the record of every
+    environment step (``reset`` included) and :meth:`finish` with the last scene; :meth:`frame`
+    returns the vehicle log. A vehicle's static facts come from the first scene it is in, its events
+    from the records: each fact has one source.
 
     :param layout: the intersection (needed for free-flow times and unspawned vehicles; without
         it the log falls back as described in the module docstring)
@@ -118,7 +122,8 @@ class VehicleLog:
         return row
 
     def observe(self, scene: Scene, count: bool = True) -> None:
-        """Register the vehicles of a scene (their static facts are taken the first time).
+        """Register the vehicles of a scene (their static facts, the only source of route, priority and
+        maneuver, are taken the first time).
 
         :param scene: the vehicles now
         :param count: count stops and speed-limit violations in this scene (a scene the planner answers)
@@ -136,7 +141,7 @@ class VehicleLog:
                 priority=PRIORITY_NAMES[int(scene.priority[k])],
                 maneuver=MANEUVERS[int(scene.maneuver[k])],
                 first_seen=float(scene.time),
-                # the centre crosses the exit (info "crossed"); dist_to_exit is from the rear
+                # the centre crosses the exit (StepRecord.crossed); dist_to_exit is from the rear
                 path_length=float(max(scene.dist_to_exit[k] - 0.5 * scene.length[k], 0.0)),
                 speed_limit=float(scene.speed_limit[k]),
                 route_index=int(scene.route[k]),
@@ -157,33 +162,25 @@ class VehicleLog:
         """
         self.observe(scene, count=False)
 
-    def record(self, info: Mapping[str, Any]) -> None:
+    def record(self, record: StepRecord | Mapping[str, Any]) -> None:
         """Register the events of one environment step.
 
-        :param info: the step ``info`` (keys documented in :mod:`envs.scene`)
+        :param record: the step's record, or the step ``info`` that carries it (``info["record"]``)
         """
-        time = float(info.get("time", np.nan))
-        meta = info.get("vehicles", {}) or {}
-        for vid in info.get("entered", ()):
-            row = self._row(int(vid))
-            facts = meta.get(vid, meta.get(int(vid), {}))
-            if facts and not row["route"]:
-                row["route"] = str(facts.get("route", ""))
-                priority = facts.get("priority", "")
-                row["priority"] = PRIORITY_NAMES[int(priority)] if not isinstance(priority, str) else priority
-                row["maneuver"] = str(facts.get("maneuver", ""))
-        for vid in info.get("crossed", ()):
-            row = self._row(int(vid))
+        if not isinstance(record, StepRecord):
+            record = step_record(record)
+        time = float(record.time)
+        for vid in record.crossed.tolist():
+            row = self._row(vid)
             if np.isnan(row["crossed"]):
                 row["crossed"] = time
-        for vid in info.get("removed", ()):
-            self._row(int(vid))["removed"] = time
-        for vid in info.get("stopped", ()):
-            self._row(int(vid))["stopped"] = True
-        self._governed.append(np.asarray(info.get("governed", ()), np.int64).reshape(-1))
-        collisions = np.asarray(info.get("collisions", np.zeros((0, 2))), dtype=np.int64).reshape(-1)
-        for vid in collisions.tolist():
-            self._row(int(vid))["collided"] = True
+        for vid in record.removed.tolist():
+            self._row(vid)["removed"] = time
+        for vid in record.stopped.tolist():
+            self._row(vid)["stopped"] = True
+        self._governed.append(record.governed)
+        for vid in record.collisions.reshape(-1).tolist():
+            self._row(vid)["collided"] = True
 
     def frame(self, schedule: Scenario | None = None, end: float | None = None) -> pd.DataFrame:
         """The vehicle log: one row per vehicle, columns :data:`VEHICLE_COLUMNS`.

@@ -6,7 +6,7 @@ shows the simulated time, the planner, the conflict zones and every vehicle colo
 
 - *moving*; *stopped* (speed below :data:`envs.scene.STOP_SPEED`);
 - *governor held*: the simulation's speed governor lowered the planner's command in that step
-  (``info["governed"]``);
+  (``StepRecord.governed``);
 - *shield overrode*: the safety shield replaced the planner's command in that step (a shielded
   planner's ``last_overridden``);
 - *collided*: the vehicles of a collision in that step, drawn where they were when it happened
@@ -37,6 +37,7 @@ from matplotlib.collections import PolyCollection  # noqa: E402
 from matplotlib.patches import Patch  # noqa: E402
 
 from envs.scene import STOP_SPEED, Scene  # noqa: E402
+from envs.step_record import StepRecord  # noqa: E402
 
 MOVING, STOPPED, GOVERNED, SHIELDED, COLLIDED = range(5)
 #: state -> (legend label, colour); a vehicle in several states shows the highest one
@@ -135,15 +136,15 @@ class EpisodeRecorder:
         self.collided = 0
         self._wrecks: list[tuple[float, np.ndarray]] = []  # (time of the collision, outlines)
 
-    def __call__(self, scene: Scene, acc: np.ndarray, info: dict, next_scene: Scene) -> None:
-        now = float(info.get("time", next_scene.time))
+    def __call__(self, scene: Scene, acc: np.ndarray, record: StepRecord, next_scene: Scene) -> None:
+        now = float(record.time)
         ids = next_scene.vehicle_id
         state = np.where(next_scene.speed < STOP_SPEED, STOPPED, MOVING)
-        state[np.isin(ids, np.asarray(info.get("governed", ()), dtype=np.int64))] = GOVERNED
+        state[np.isin(ids, record.governed)] = GOVERNED
         overridden = getattr(self.planner, "last_overridden", None)  # the shield's own record of this step
         if overridden is not None and len(overridden) == scene.num_vehicles:
             state[np.isin(ids, scene.vehicle_id[np.asarray(overridden, bool)])] = SHIELDED
-        collided = np.asarray(info.get("collided", ()), dtype=np.int64)
+        collided = record.collided
         corners = _scene_outlines(next_scene)
         if len(collided):
             self.collided += len(collided)
@@ -151,7 +152,7 @@ class EpisodeRecorder:
             if gone.any():  # removed by the harness: draw them where they were at the step's start
                 self._wrecks.append((now, _scene_outlines(scene, np.flatnonzero(gone))))
             state[np.isin(ids, collided)] = COLLIDED
-        self.crossed += len(info.get("crossed", ()))
+        self.crossed += len(record.crossed)
         self._wrecks = [(t, c) for t, c in self._wrecks if now - t < COLLIDED_SHOWN_S - 1e-9]
         if self._wrecks:
             wrecks = np.concatenate([c for _, c in self._wrecks])

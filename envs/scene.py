@@ -4,29 +4,8 @@ Row ``i`` of every array, vertex ``i`` of the graph observation and action slot 
 same vehicle. The snapshot is built by the simulation once per policy step; each planner is handed
 its own :meth:`Scene.copy`, so that what it does to the arrays reaches nothing else.
 
-Step ``info`` of the intersection environment (what the metrics read), all ids are
-``vehicle_id`` values:
-
-- ``"reward_terms"``: dict ``term -> unweighted value`` for velocity, action, idle, proximity,
-  collision; ``"reward_weighted"``: the same terms times their weights.
-- ``"entered"``: ids that appeared in the scene during the step.
-- ``"crossed"``: ids whose path coordinate ``s`` passed 0 (left the intersection area).
-- ``"removed"``: ids that left the scene (end of their route, or collided under
-  ``collision_handling="remove"``).
-- ``"stopped"``: ids whose speed was below ``STOP_SPEED`` at any simulation sub-step.
-- ``"governed"``: ids whose speed the speed governor lowered below what the planner commanded
-  (the lane limit, or braking for a lower limit ahead).
-- ``"collisions"``: ``(k, 2)`` int64 array of id pairs that collided during the step.
-- ``"vehicles"``: dict ``id -> {"route": str, "priority": int, "maneuver": str, "time": float}``
-  for the ids in ``"entered"``.
-- ``"time"``: simulated time in seconds at the end of the step.
-
-Added by the environment (all ids are ``vehicle_id`` values):
-
-- ``"num_vehicles"``: vehicles in the scene at the end of the step.
-- ``"waiting"``: scenario appearances whose time has come but whose spawn position is not free yet
-  (always 0 with training traffic).
-- ``"collided"``: ``(k,)`` int64 ids involved in ``"collisions"`` (distinct, sorted).
+What happened during a step (entries, crossings, stops, collisions) is not part of the scene: the
+environment reports it in a :class:`envs.step_record.StepRecord` (and in the step ``info``).
 """
 
 from __future__ import annotations

@@ -57,7 +57,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from envs.layouts import ZONE_MARGIN, zone_hull
+from envs.layouts import ZONE_MARGIN, body_hull
 from envs.scene import LEFT, MAJOR, RIGHT, STRAIGHT, Scene
 from sb3_graph.batching import GraphBatch
 from sb3_graph.spaces import GraphSpace
@@ -125,29 +125,29 @@ def num_node_features(vertex_feature_names: tuple[str, ...] | list[str] = ()) ->
 
 def zone_arc(scene: Scene) -> np.ndarray:
     """``(n,)`` centre arc at which each body reaches its route's first conflict zone, padded by
-    ``ZONE_MARGIN`` (as the shield's ``hull_start``); ``inf`` for a route without any.
+    ``ZONE_MARGIN`` (the shield's ``hull_start``); ``inf`` for a route without any.
 
     :raises ValueError: a scene without its layout or arcs (hand-built)
     """
+    _needs_layout(scene)
+    return body_hull(scene.layout, scene.route, scene.length)[0]
+
+
+def committed(scene: Scene) -> np.ndarray:
+    """``(n,)`` bool: the shield's rule (:func:`envs.planners.shield.committed_vehicles`): braking at
+    ``a_max`` can no longer stop the body before its first zone, or it has left its last one.
+
+    :raises ValueError: a scene without its layout or arcs (hand-built)
+    """
+    from envs.planners.shield import committed_vehicles  # compiled: loaded only when asked for
+
+    _needs_layout(scene)
+    return committed_vehicles(scene)
+
+
+def _needs_layout(scene: Scene) -> None:
     if scene.layout is None or scene.arc is None:
         raise ValueError("the zone features need the scene's layout and arcs (every simulated scene has them)")
-    first, _ = zone_hull(scene.layout)
-    return first[scene.route] - ZONE_MARGIN - scene.length / 2
-
-
-def committed(scene: Scene, zone: np.ndarray | None = None) -> np.ndarray:
-    """``(n,)`` bool: braking at ``a_max`` can no longer stop the body before its first zone, or the
-    vehicle has left its last one (the shield's rule, at its default margin).
-
-    :param scene: the vehicles (with their layout)
-    :param zone: precomputed :func:`zone_arc`
-    """
-    zone = zone_arc(scene) if zone is None else zone
-    _, last = zone_hull(scene.layout)
-    arc, speed = np.asarray(scene.arc, float), scene.speed
-    stopping = np.where(speed > 1e-6, speed**2 / (2 * scene.a_max), 0.0)
-    cleared = arc > last[scene.route] + ZONE_MARGIN + scene.length / 2
-    return (arc + stopping > zone) | cleared
 
 
 def _distance_feature(metres: np.ndarray, s_scale: float) -> np.ndarray:
@@ -178,7 +178,6 @@ def node_features(
     v = scene.speed / scene.speed_limit
     columns = [scene.s * s_scale, v, d]
     num_node_features(vertex_feature_names)
-    zone = None
     for name in vertex_feature_names:
         if name == "maneuver":
             columns += [scene.maneuver == LEFT, scene.maneuver == STRAIGHT, scene.maneuver == RIGHT]
@@ -188,13 +187,11 @@ def node_features(
             columns.append(scene.speed_limit * LIMIT_SCALE)
         elif name == "line":
             columns.append(_distance_feature(scene.dist_to_entry, s_scale))
-        elif name in ("zone", "committed"):
-            zone = zone_arc(scene) if zone is None else zone
-            if name == "zone":
-                with np.errstate(invalid="ignore"):  # inf - arc: a route without zones
-                    columns.append(_distance_feature(zone - scene.arc, s_scale))
-            else:
-                columns.append(committed(scene, zone))
+        elif name == "zone":
+            with np.errstate(invalid="ignore"):  # inf - arc: a route without zones
+                columns.append(_distance_feature(zone_arc(scene) - scene.arc, s_scale))
+        elif name == "committed":
+            columns.append(committed(scene))
     return np.stack(columns, axis=1).astype(np.float32)
 
 
@@ -259,8 +256,7 @@ def edge_features(
 def _pair_zone(scene: Scene, edge_index: np.ndarray, receiver: bool, s_scale: float) -> np.ndarray:
     """``(e,)`` distance feature from the receiver's (or sender's) centre to where its body reaches the
     conflict zone of the edge's two routes; 0 where the routes have none (same-lane edges)."""
-    if scene.layout is None or scene.arc is None:
-        raise ValueError("the zone edge features need the scene's layout and arcs (every simulated scene has them)")
+    _needs_layout(scene)
     src, dst = edge_index
     me, other = (dst, src) if receiver else (src, dst)
     start = scene.layout.zone_start[scene.route[me], scene.route[other]]

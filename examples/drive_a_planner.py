@@ -34,16 +34,18 @@ def main() -> None:
     planner = make_planner(args.planner)
     scenario = generate_scenario("4way", args.duration, args.seed)  # every vehicle's appearance, route, speed
     _, info = env.reset(seed=args.seed, options={"scenario": scenario})
+    record = info["record"]  # what the step did, typed (envs.step_record.StepRecord)
     planner.reset(args.seed)
     crossed = collided = 0
-    while info.get("time", 0.0) < args.duration - 1e-9:
+    while record.time < args.duration - 1e-9:
         scene = env.unwrapped.scene()
         acc = np.asarray(planner.act(scene), dtype=float)  # one acceleration per vehicle [m/s^2]
         _, _, terminated, truncated, info = env.step(env.unwrapped.accelerations_to_action(acc))
-        crossed, collided = crossed + len(info["crossed"]), collided + len(info.get("collided", ()))
+        record = info["record"]
+        crossed, collided = crossed + len(record.crossed), collided + len(record.collided)
         if terminated or truncated:
             break
-    print(f"{args.planner}: {crossed} vehicles crossed, {collided} collided in {info['time']:.1f} s")
+    print(f"{args.planner}: {crossed} vehicles crossed, {collided} collided in {record.time:.1f} s")
 
 
 if __name__ == "__main__":

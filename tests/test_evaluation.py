@@ -14,6 +14,7 @@ from envs.metrics import add_travel_times, run_metrics
 from envs.planners import FIFOPlanner, PriorityRulesPlanner
 from envs.report import FIGURES, REPORT_FILES, write_report
 from envs.scene import MAJOR, MINOR, STRAIGHT, Scene
+from envs.step_record import StepRecord
 
 SUMMARY_KEYS = {
     "runs", "vehicles", "vehicles_scheduled", "not_spawned", "flow_rate", "offered_flow", "stop_ratio",
@@ -25,7 +26,7 @@ SUMMARY_KEYS = {
 class CrossingStub:
     """Two vehicles on crossing paths, major 40 m and minor 15 m before their stop lines.
 
-    Kinematics from the commanded accelerations; the step info of envs.scene.
+    Kinematics from the commanded accelerations; the step record (envs.step_record) in the info.
     """
 
     dt = 0.2
@@ -41,7 +42,7 @@ class CrossingStub:
         self.speed = np.array([10.0, 10.0])
         self.ids = np.array([1, 2])
         self.done = np.zeros(2, bool)
-        return {}, {}
+        return {}, StepRecord(time=0.0, num_vehicles=2).info()
 
     def scene(self) -> Scene:
         keep = ~self.done
@@ -82,16 +83,8 @@ class CrossingStub:
         collisions = np.array([[1, 2]]) if inside.all() else np.zeros((0, 2), np.int64)
         stopped = self.ids[~self.done & (self.speed < 0.3)]
         self.done |= new_exit < -30.0
-        info = {
-            "time": self.time,
-            "entered": [],
-            "crossed": crossed.tolist(),
-            "removed": [],
-            "stopped": stopped.tolist(),
-            "collisions": collisions,
-            "vehicles": {},
-        }
-        return None, 0.0, bool(len(collisions)), False, info
+        record = StepRecord(time=self.time, crossed=crossed, stopped=stopped, collisions=collisions)
+        return None, 0.0, bool(len(collisions)), False, record.info()
 
 
 @pytest.mark.parametrize("planner, first", [(PriorityRulesPlanner(), 1), (FIFOPlanner(), 2)])
@@ -119,6 +112,42 @@ def test_run_episode_collision_when_nobody_yields():
     vehicles, facts = run_episode(SameTime(), Reckless(), scenario=None, duration=20.0)
     assert facts["terminated"] and facts["duration"] < 20.0
     assert run_metrics(vehicles, facts["duration"])["collision_rate"] == 1.0
+
+
+def test_run_episode_needs_the_step_record():
+    class Untyped(CrossingStub):
+        def reset(self, seed=None, options=None):
+            super().reset(seed, options)
+            return {}, {"time": 0.0, "crossed": []}  # the documented keys, but no record
+
+    with pytest.raises(TypeError, match="StepRecord under 'record'"):
+        run_episode(Untyped(), FIFOPlanner(), scenario=None, duration=1.0)
+
+
+def test_planner_counters_reach_the_metrics_row_through_stats(tmp_path):
+    """Any planner's :meth:`~envs.planners.Planner.stats` become columns of its runs; the planner-error
+    lines only come with a ``planner_errors`` counter (a shield's)."""
+    from envs.evaluation import Job, run_job
+    from envs.traffic import generate_scenario
+
+    (tmp_path / "counting.py").write_text(
+        "from envs.planners import FIFOPlanner\n\n\n"
+        "class Counting(FIFOPlanner):\n"
+        "    def reset(self, seed=None):\n        super().reset(seed)\n        self.answered = 0\n\n"
+        "    def act(self, scene):\n        self.answered += 1\n        return super().act(scene)\n\n"
+        "    def stats(self):\n        return {'answered_scenes': self.answered}\n"
+    )
+    scenario = tmp_path / "scenario_000.json"
+    generate_scenario("4way", 4.0, 0).save(scenario)
+    rows = {}
+    for spec in (f"{tmp_path / 'counting.py'}:Counting", "fifo", "fifo+shield"):
+        rows[spec] = run_job(Job(spec, spec, str(scenario), 0, "CoopIntersection4Way-v0", 4.0, 0))[0]
+    counting = rows[f"{tmp_path / 'counting.py'}:Counting"]
+    assert counting["answered_scenes"] == counting["steps"] == 20 and "planner_error" not in counting
+    assert not {"answered_scenes", "shield_interventions", "planner_error"} & set(rows["fifo"])
+    shielded = rows["fifo+shield"]
+    assert shielded["shield_vehicle_steps"] > 0 and shielded["planner_errors"] == 0
+    assert "planner_error" in shielded and shielded["planner_error"] is None
 
 
 def _fake_results():

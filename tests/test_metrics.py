@@ -1,4 +1,4 @@
-"""Metrics on hand-made vehicle logs and step infos with known stops, crossings and collisions."""
+"""Metrics on hand-made vehicle logs and step records with known stops, crossings and collisions."""
 
 from __future__ import annotations
 
@@ -9,7 +9,8 @@ import pytest
 
 import envs  # noqa: F401  (registers the environments)
 from envs.metrics import VehicleLog, add_travel_times, governor_share, run_metrics, summarize, vehicle_frame
-from envs.scene import MAJOR, MINOR, RIGHT, STRAIGHT, Scene
+from envs.scene import LEFT, MAJOR, MINOR, RIGHT, STRAIGHT, Scene
+from envs.step_record import StepRecord
 
 
 def _vehicle(
@@ -98,7 +99,7 @@ def _scene(ids, speeds, time, dist_to_exit):
         time=time,
         dt=0.5,
         vehicle_id=np.array(ids, dtype=np.int64),
-        route=np.zeros(n, dtype=np.int64),
+        route=np.array([0, 0, 1][:n], dtype=np.int64),
         s=np.zeros(n),
         position=np.zeros((n, 2)),
         heading=np.zeros(n),
@@ -108,60 +109,45 @@ def _scene(ids, speeds, time, dist_to_exit):
         dist_to_exit=np.array(dist_to_exit, float),
         leader=np.full(n, -1),
         gap=np.full(n, np.inf),
-        priority=np.array([MAJOR, MINOR][:n]),
-        maneuver=np.array([STRAIGHT, RIGHT][:n]),
+        priority=np.array([MAJOR, MINOR, MINOR][:n]),
+        maneuver=np.array([STRAIGHT, RIGHT, LEFT][:n]),
         length=np.full(n, 5.0),
-        route_names=("south->north",),
-        conflicts=np.zeros((1, 1), bool),
+        route_names=("south->north", "west->east"),
+        conflicts=np.zeros((2, 2), bool),
     )
 
 
-def test_vehicle_log_from_infos_and_scenes():
+def test_vehicle_log_from_records_and_scenes():
+    """What a vehicle is comes from the first scene it is in; what happened to it from the step records."""
     log = VehicleLog()
     log.observe(_scene([7, 8], [10.0, 5.0], 0.0, [52.5, 80.0]))  # centre 50 m before the exit
-    log.record(
-        {
-            "time": 0.5,
-            "entered": [9],
-            "vehicles": {9: {"route": "west->east", "priority": MINOR, "maneuver": "left", "time": 0.3}},
-            "crossed": [],
-            "removed": [],
-            "stopped": [8],
-            "collisions": np.zeros((0, 2), np.int64),
-        }
-    )
-    log.observe(_scene([7, 8], [10.0, 0.1], 0.5, [47.5, 80.0]))
-    log.record(
-        {
-            "time": 5.0,
-            "entered": [],
-            "crossed": [7],
-            "removed": [],
-            "stopped": [],
-            "collisions": np.array([[8, 9]]),
-        }
-    )
-    log.record(
-        {
-            "time": 6.0,
-            "entered": [],
-            "crossed": [7],
-            "removed": [7],
-            "stopped": [],
-            "collisions": np.zeros((0, 2), np.int64),
-        }
-    )
+    log.record(StepRecord(time=0.5, entered=[9], stopped=[8]))
+    log.observe(_scene([7, 8, 9], [10.0, 0.1, 8.0], 0.5, [47.5, 80.0, 90.0]))
+    log.record(StepRecord(time=5.0, crossed=[7], collisions=np.array([[8, 9]])))
+    log.record(StepRecord(time=6.0, crossed=[7], removed=[7]))
     frame = log.frame().set_index("vehicle_id")
     assert list(frame.index) == [7, 8, 9]
     assert frame.loc[7, "crossed"] == 5.0  # the first crossing counts
     assert frame.loc[7, "removed"] == 6.0
     assert frame.loc[7, "path_length"] == 50.0 and frame.loc[7, "priority"] == "major"
     assert not frame.loc[7, "stopped"] and frame.loc[8, "stopped"]
+    assert frame.loc[9, "route"] == "west->east" and frame.loc[9, "first_seen"] == 0.5
     assert frame.loc[9, "priority"] == "minor" and frame.loc[9, "maneuver"] == "left"
     assert frame.loc[8, "collided"] and frame.loc[9, "collided"] and not frame.loc[7, "collided"]
     row = run_metrics(log.frame(), duration=6.0)
     assert row["crossed"] == 1 and row["collision_rate"] == pytest.approx(2 / 3)
     assert row["delay_mean"] == pytest.approx(0.0)  # 50 m at 10 m/s, crossed after 5 s
+
+
+def test_step_record_coerces_hand_built_ids_and_names_the_collided():
+    record = StepRecord(time=1.0, crossed=[3, 4], collisions=[[9, 2], [2, 5]])
+    assert record.crossed.dtype == np.int64 and record.stopped.shape == (0,)
+    assert record.collisions.shape == (2, 2) and record.collided.tolist() == [2, 5, 9]
+    info = record.info()
+    assert info["record"] is record and info["collided"] is record.collided and info["time"] == 1.0
+    # equal by value (gymnasium's checker compares two runs of one seeded step)
+    assert record == StepRecord(time=1.0, crossed=np.array([3, 4]), collisions=np.array([[9, 2], [2, 5]]))
+    assert record != StepRecord(time=1.0, crossed=[3, 4]) and record != info
 
 
 def test_delay_from_the_scheduled_time_and_unspawned_vehicles_count():
@@ -206,10 +192,10 @@ def test_governor_share_counts_held_back_vehicle_steps():
     r = lay.route_id("south->east")  # a right turn: 5.2 m/s in the curve
     base.place_vehicles([r, lay.route_id("west->east")], [lay.entry_arc[r] - 3.0, 20.0], [9.0, 2.0], [0, 1])
     log = VehicleLog(lay)
-    for _ in range(3):
+    for k in range(3):
         log.observe(base.scene())
         _, _, _, _, info = env.step(np.ones(env.action_space.shape, np.float32))  # full throttle
-        log.record(info)
+        log.record(info["record"] if k else info)  # the record, or the info that carries it
     frame = log.frame()
     steps = frame.set_index("vehicle_id")
     # The turning vehicle is held back every step; the slow straight one accelerates freely.

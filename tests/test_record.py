@@ -12,6 +12,7 @@ from PIL import Image
 
 from envs.layouts import LAYOUT_NAMES
 from envs.rendering import COLLIDED, MOVING, STOPPED, EpisodeRecorder, outlines
+from envs.step_record import StepRecord
 from sb3_graph.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -131,19 +132,19 @@ class _Scene:
 
 def test_recorder_states_and_collided_vehicles_stay_drawn():
     class Shielded:
-        last_overridden = np.array([False, True, False])
+        last_overridden = np.array([False, True, False, False])
 
     recorder = EpisodeRecorder(Shielded())
-    before = _Scene([1, 2, 3], [5.0, 5.0, 0.0])
-    after = _Scene([1, 2], [5.0, 5.0])  # 3 collided and was removed
-    recorder(before, np.zeros(3), {"time": 0.2, "governed": [], "collided": np.array([3]), "crossed": []}, after)
+    before = _Scene([1, 2, 3, 4], [5.0, 5.0, 0.0, 3.0])
+    after = _Scene([1, 2], [5.0, 5.0])  # 3 and 4 collided and were removed
+    recorder(before, np.zeros(4), StepRecord(time=0.2, collisions=[[3, 4]]), after)
     frame = recorder.frames[-1]
-    assert list(frame.state) == [MOVING, 3, COLLIDED] and frame.collided == 1 and frame.in_scene == 2
+    assert list(frame.state) == [MOVING, 3, COLLIDED, COLLIDED] and frame.collided == 2 and frame.in_scene == 2
     recorder.planner = object()
     still = _Scene([1, 2], [0.1, 5.0])
-    recorder(after, np.zeros(2), {"time": 0.4, "governed": [2], "crossed": [1]}, still)
-    assert list(recorder.frames[-1].state) == [STOPPED, 2, COLLIDED] and recorder.frames[-1].crossed == 1
-    recorder(still, np.zeros(2), {"time": 2.4, "governed": []}, still)  # 2 s after: the wreck is gone
+    recorder(after, np.zeros(2), StepRecord(time=0.4, governed=[2], crossed=[1]), still)
+    assert list(recorder.frames[-1].state) == [STOPPED, 2, COLLIDED, COLLIDED] and recorder.frames[-1].crossed == 1
+    recorder(still, np.zeros(2), StepRecord(time=2.4), still)  # 2 s after: the wrecks are gone
     assert len(recorder.frames[-1].state) == 2
 
 

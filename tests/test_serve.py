@@ -361,3 +361,24 @@ def test_openapi_schema_documents_the_scene_in_physical_units(client):
     step = schema["paths"]["/streams/{stream}/step"]["post"]
     assert step["requestBody"]["content"]["application/json"]["schema"]["$ref"].endswith("/SceneIn")
     assert {"401", "404", "413", "422", "429"} <= set(step["responses"])
+
+
+@needs_server
+def test_evaluate_behind_a_shielding_server_reports_its_counters(tmp_path, monkeypatch):
+    """A server started with ``--shield``: the client reports the server's shield counters
+    (:meth:`~envs.serve.client.RemotePlanner.stats`) in the metrics, as an in-process shield does."""
+    token_file = tmp_path / "token"
+    token_file.write_text(TOKEN + "\n")
+    monkeypatch.setenv(TOKEN_FILE_VARIABLE, str(token_file))
+    process, url = start_server("aim", "--shield", "--token-file", str(token_file))
+    try:
+        out = tmp_path / "report"
+        args = ["evaluate", "--out", str(out), "--scenarios", "1", "--duration", "20", "--seed", "5", "--jobs", "1",
+                "--no-progress", "--planner", "aim+shield", "--planner", url]  # fmt: skip
+        assert main(args) == 0
+    finally:
+        stop_server(process)
+    metrics = pd.read_csv(out / "metrics.csv").set_index("planner")
+    local, far = metrics.loc["AIM+shield"], metrics.drop(index="AIM+shield").iloc[0]
+    columns = ["shield_interventions", "shield_vehicle_steps", "shield_unresolved", "planner_errors", "crossed"]
+    assert far[columns].tolist() == local[columns].tolist() and local["shield_vehicle_steps"] > 0

@@ -6,14 +6,15 @@ from __future__ import annotations
 import gymnasium as gym
 import numpy as np
 import pytest
+import shield_reference as reference
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from envs.evaluation import evaluation_env_kwargs, run_episode
 from envs.layouts import build_layout
-from envs.planners import Planner, make_planner, planner_name
+from envs.planners import Planner, _shield_kernel, make_planner, planner_name
 from envs.planners.adversarial import FullThrottle, RandomAccel
-from envs.planners.shield import Shield
+from envs.planners.shield import _STANDING, _STOP_SLACK, Shield
 from envs.scene import Scene
 from envs.simulation import Simulation
 from envs.traffic import generate_scenario
@@ -146,12 +147,12 @@ def test_random_scenes_under_random_proposals_never_collide(seed, count, full):
 
 @pytest.mark.parametrize("layout", ["4way", "3way", "inD"])
 def test_prediction_layout_is_bitwise_the_layout(layout):
-    """The shield's layout view answers the speed envelope exactly as the layout (and so integrate)."""
-    from envs.planners.shield import prediction_layout
+    """The envelope tables of the compiled prediction, read as the oracle reads them, answer the speed
+    envelope exactly as the layout (and so integrate)."""
     from envs.simulation import integrate
 
     lay = build_layout(layout)
-    view = prediction_layout(lay, 3.0)
+    view = reference.prediction_layout(lay, 3.0)
     routes, samples = lay.speed_limit.shape
     rng = np.random.default_rng(0)
     route = rng.integers(0, routes, 5000)
@@ -168,15 +169,28 @@ def test_prediction_layout_is_bitwise_the_layout(layout):
 
 
 def _assert_prediction_is_numpy(shield: Shield, scene: Scene, command: np.ndarray) -> None:
+    """The shield's compiled fallback, prediction and check are the oracle's (``tests/shield_reference.py``)."""
     plan = shield._plan(scene)
     fallback = shield._fallback(scene, plan, plan.arc, plan.speed)
-    np.testing.assert_array_equal(fallback, shield._fallback_numpy(scene, plan, plan.arc, plan.speed))
+    np.testing.assert_array_equal(fallback, reference.fallback_numpy(shield, scene, plan, plan.arc, plan.speed))
     arc, speed = shield.predict(scene, plan, command)
-    for compiled, reference in zip((arc, speed), shield.predict_numpy(scene, plan, command)):
-        np.testing.assert_array_equal(compiled, reference)  # same shape: the same early stop
-    reference = shield._conflicts_numpy(scene, plan, arc, speed)
-    for compiled, expected in zip(shield._conflicts(scene, plan, arc, speed), reference):
-        np.testing.assert_array_equal(compiled, expected)
+    for compiled, expected in zip((arc, speed), reference.predict_numpy(shield, scene, plan, command)):
+        np.testing.assert_array_equal(compiled, expected)  # same shape: the same early stop
+    expected = reference.conflicts_numpy(shield, scene, plan, arc, speed)
+    for compiled, oracle in zip(shield._conflicts(scene, plan, arc, speed), expected):
+        np.testing.assert_array_equal(compiled, oracle)
+    # The rules the liveness checks and the blame read on their own, at the end of the prediction.
+    a_max, end, v_end = float(scene.a_max), arc[-1], speed[-1]
+    go = shield.committed(plan, end, v_end, a_max)
+    np.testing.assert_array_equal(go, reference.committed(plan, end, v_end, a_max))
+    waits = _shield_kernel.waits(plan.kernel_arrays, end, v_end, go, a_max, _STANDING, _STOP_SLACK)
+    np.testing.assert_array_equal(waits, reference.waits(plan, end, v_end, go, a_max).reshape(-1, 2))
+    follower, ahead, _ = reference.leaders_now(shield, plan, end, go)
+    for compiled, oracle in zip(_shield_kernel.leaders(plan.kernel_arrays, end, go), (follower, ahead)):
+        np.testing.assert_array_equal(compiled, oracle)
+    x0 = plan.arc[plan.cross]
+    back = reference.less_far_through(x0, plan.cross_lo, plan.cross_hi, plan.vehicle_id[plan.cross])[:, 1]
+    np.testing.assert_array_equal(plan.cross_back, back.astype(np.int64))
 
 
 @pytest.mark.parametrize("layout", ["4way", "3way", "inD"])
@@ -233,7 +247,7 @@ def test_a_committed_vehicle_waits_before_a_later_zone_that_a_crossing_vehicle_o
     plan = shield._plan(scene)
     go = shield.committed(plan, plan.arc, plan.speed, scene.a_max)
     assert go.all()
-    np.testing.assert_array_equal(shield._yielding(plan, plan.arc, plan.speed, go, scene.a_max), [True, False])
+    np.testing.assert_array_equal(reference.yielding(plan, plan.arc, plan.speed, go, scene.a_max), [True, False])
     np.testing.assert_allclose(shield._fallback(scene, plan, plan.arc, plan.speed), [-5.0, 3.0])
     collided, _ = _run(sim, shield, steps=40)
     assert not collided and shield.unresolved == 0

@@ -9,17 +9,19 @@ per policy step, with 13-60 predicted periods per step), a period may cost about
 per-call overhead of some 20 NumPy calls, less than ``integrate`` alone makes, so no vectorization
 gets there (benchmarks/README.md, "The shield compiled (numba)").
 
-Every function here is the scalar form of a NumPy one, with the same floating-point operations in
-the same order (no ``fastmath``, so no reassociation or fused multiply-add), so that the prediction
-is bitwise the NumPy one (``tests/test_shield.py`` checks it against
-:meth:`~envs.planners.shield.Shield.predict_numpy`, which calls :func:`envs.simulation.integrate`):
+These kernels are the only implementation of the shield's prediction, fallback and check.
+``tests/shield_reference.py`` holds the same rules in NumPy, with :func:`envs.simulation.integrate`
+itself: every function here performs the same floating-point operations in the same order as its
+NumPy form (no ``fastmath``, so no reassociation or fused multiply-add), so that
+``tests/test_shield.py`` can require the results to be bitwise equal:
 
-- :func:`_envelope`: :meth:`envs.planners.shield._PredictionLayout.envelope_at` for one vehicle,
+- :func:`_envelope`: :meth:`envs.layouts.Layout.envelope_at` for one vehicle, from the tables of
+  :func:`envs.planners.shield.envelope_table`,
 - :func:`_integrate`: :func:`envs.simulation.integrate` for one policy period,
-- :func:`_committed`, :func:`_fallback`: ``Shield.committed`` and ``Shield._fallback_given``
-  (with ``_yielding``, ``_leaders_now`` and ``_safe_gap_after``),
-- :func:`predict`: the loop of ``Shield.predict_numpy``; :func:`fallback`: the fallback in one state,
-- :func:`conflicts`: ``Shield._conflicts_numpy``, the check of a prediction (its blame stays in NumPy).
+- :func:`_committed`, :func:`_fallback`: the reference's ``committed`` and ``fallback_given``
+  (with ``yielding``, ``leaders_now`` and ``safe_gap_after``),
+- :func:`predict`: the reference's ``predict_numpy``; :func:`fallback`: ``fallback_numpy``,
+- :func:`conflicts`: ``conflicts_numpy``, the check of a prediction (its blame stays in NumPy).
 
 The first call compiles the kernels (about 6 s on the loaded 2-core development machine);
 ``cache=True`` stores the machine code next to this file (``__pycache__``, or numba's cache
@@ -62,7 +64,7 @@ class PlanArrays(NamedTuple):
 
 
 class EnvelopeTable(NamedTuple):
-    """The governor's speed envelope as :class:`envs.planners.shield._PredictionLayout` holds it."""
+    """The governor's speed envelope in flat tables (:func:`envs.planners.shield.envelope_table`)."""
 
     sq: np.ndarray  # flat (R * S,) squared envelope
     dsq: np.ndarray  # flat differences of the squared envelope to the next sample (0 at the last)
@@ -74,7 +76,7 @@ class EnvelopeTable(NamedTuple):
 
 @numba.njit(cache=True)
 def _envelope(table: EnvelopeTable, route: int, arc: float) -> float:
-    """The governor's speed envelope at one point: ``_PredictionLayout.envelope_at``'s arithmetic.
+    """The governor's speed envelope at one point: :meth:`envs.layouts.Layout.envelope_at`'s arithmetic.
 
     :param table: the envelope's tables
     :param route: route index
@@ -135,19 +137,107 @@ def _integrate(
 
 
 @numba.njit(cache=True)
+def _can_stop(arc: float, speed: float, line: float, a_max: float, standing: float, slack: float) -> bool:
+    """Whether braking at ``a_max`` stops a vehicle's centre at or before ``line``.
+
+    A standing vehicle outside the line can always wait (the slack is for moving ones only).
+    """
+    return arc <= line and (speed <= standing or arc + speed * speed / (2 * a_max) + slack <= line)
+
+
+@numba.njit(cache=True)
 def _committed(
     arc: float, speed: float, hull_start: float, hull_end: float, a_max: float, standing: float, slack: float
 ) -> bool:
-    """``Shield.committed`` of one vehicle: it can no longer stop before its first zone, or has cleared them all."""
-    cannot_stop = arc > hull_start or (speed > standing and arc + speed * speed / (2 * a_max) + slack > hull_start)
-    return cannot_stop or arc > hull_end
+    """``committed`` of one vehicle: it can no longer stop before its first zone, or has cleared them all."""
+    return not _can_stop(arc, speed, hull_start, a_max, standing, slack) or arc > hull_end
+
+
+@numba.njit(cache=True)
+def _less_far(
+    x: float, lo: float, hi: float, vid: int, x_other: float, lo_other: float, hi_other: float, vid_other: int
+) -> bool:
+    """Whether a vehicle is less far through a crossing pair's zone than its partner (ties: the higher
+    id): the one to hold when both are in it."""
+    through = (x - lo) / (hi - lo)
+    through_other = (x_other - lo_other) / (hi_other - lo_other)
+    return through < through_other or (through == through_other and vid > vid_other)
+
+
+@numba.njit(cache=True)
+def _pair_waits(
+    plan: PlanArrays,
+    p: int,
+    arc: np.ndarray,
+    speed: np.ndarray,
+    go: np.ndarray,
+    a_max: float,
+    standing: float,
+    slack: float,
+) -> tuple[bool, bool]:
+    """Whether each side of crossing pair ``p`` waits for the other (``yielding`` and ``waits``).
+
+    Committed means past the point where a vehicle can stop before its *first* zone; a later zone,
+    shared with one crossing route, may still be far enough to stop before. The fallback does not
+    rely on timing there (timing rests on predicted leaders, and the leaders change when a vehicle
+    ahead turns off or merges in): a committed vehicle that can still stop before a pair's zone
+    waits while its partner can no longer stop before it (or is in it) and has not cleared it.
+    Waiting can form a cycle only in a gridlock (each vehicle in one zone and before another),
+    which the check rejects as it rejects any committed vehicle left standing. Two vehicles inside
+    one zone at once (only after an unresolved step) are separated by holding the one less far
+    through it.
+    """
+    lo, hi, vid = plan.cross_lo, plan.cross_hi, plan.vehicle_id
+    i, j = plan.cross[p, 0], plan.cross[p, 1]
+    xi, xj = arc[i], arc[j]
+    stop_i = _can_stop(xi, speed[i], lo[p, 0], a_max, standing, slack)
+    stop_j = _can_stop(xj, speed[j], lo[p, 1], a_max, standing, slack)
+    wait_i = go[i] and stop_i and not stop_j and xj < hi[p, 1]
+    wait_j = go[j] and stop_j and not stop_i and xi < hi[p, 0]
+    if lo[p, 0] < xi < hi[p, 0] and lo[p, 1] < xj < hi[p, 1]:
+        if _less_far(xi, lo[p, 0], hi[p, 0], vid[i], xj, lo[p, 1], hi[p, 1], vid[j]):
+            wait_i = True
+        if _less_far(xj, lo[p, 1], hi[p, 1], vid[j], xi, lo[p, 0], hi[p, 0], vid[i]):
+            wait_j = True
+    return wait_i, wait_j
+
+
+@numba.njit(cache=True)
+def _merge_leader(plan: PlanArrays, g: int, arc: np.ndarray, go: np.ndarray) -> tuple[int, int, bool, float]:
+    """Merging pair ``g`` as a leader relation: ``(follower, ahead, active, distance)``, the one behind
+    along the common exit lane following the one ahead while that one proceeds (``go``) or has reached
+    the merge; ``distance``: how far apart along the exit lane, less their separation [m]."""
+    m0, m1 = plan.merge[g, 0], plan.merge[g, 1]
+    a0, a1 = arc[m0], arc[m1]
+    e0, e1 = a0 - plan.merge_exit[g, 0], a1 - plan.merge_exit[g, 1]
+    distance = abs(e0 - e1) - plan.merge_sep[g]
+    if e0 >= e1:  # vehicle 1 is behind along the common exit lane
+        return m1, m0, a0 > plan.merge_lo[g, 0] or go[m0], distance
+    return m0, m1, a1 > plan.merge_lo[g, 1] or go[m1], distance
+
+
+@numba.njit(cache=True)
+def committed_rows(
+    arc: np.ndarray,
+    speed: np.ndarray,
+    hull_start: np.ndarray,
+    hull_end: np.ndarray,
+    a_max: float,
+    standing: float,
+    slack: float,
+) -> np.ndarray:
+    """``(n,)`` bool ``committed`` of vehicles given their hulls, without a plan (the observation)."""
+    go = np.zeros(arc.shape[0], np.bool_)
+    for i in range(arc.shape[0]):
+        go[i] = _committed(arc[i], speed[i], hull_start[i], hull_end[i], a_max, standing, slack)
+    return go
 
 
 @numba.njit(cache=True)
 def _all_committed(
     plan: PlanArrays, arc: np.ndarray, speed: np.ndarray, go: np.ndarray, a_max: float, standing: float, slack: float
 ) -> bool:
-    """``Shield.committed`` of every vehicle, into ``go``; whether all are settled (``Shield._settled``)."""
+    """``committed`` of every vehicle, into ``go``; whether all are settled (the reference's ``settled``)."""
     settled = True
     for i in range(arc.shape[0]):
         go[i] = _committed(arc[i], speed[i], plan.hull_start[i], plan.hull_end[i], a_max, standing, slack)
@@ -158,7 +248,7 @@ def _all_committed(
 
 @numba.njit(cache=True)
 def _travel(speed: float, acc: float, dt: float) -> tuple[float, float]:
-    """``shield._travel`` of one vehicle: distance and end speed after ``dt`` at ``acc``, stopping at 0."""
+    """``travel`` of one vehicle: distance and end speed after ``dt`` at ``acc``, stopping at 0."""
     end = speed + acc * dt
     if end < 0:
         return speed * speed / (2 * max(-acc, 1e-12)), 0.0
@@ -169,7 +259,7 @@ def _travel(speed: float, acc: float, dt: float) -> tuple[float, float]:
 def _unsafe(
     gap: float, v_follower: float, v_ahead: float, proceed: float, a_max: float, dt: float, margin: float
 ) -> bool:
-    """Not ``shield._safe_gap_after``: the follower could not stop behind a leader braking at ``a_max``."""
+    """Not ``safe_gap_after``: the follower could not stop behind a leader braking at ``a_max``."""
     travel_f, v_f = _travel(v_follower, proceed, dt)
     travel_a, v_a = _travel(v_ahead, -a_max, dt)
     after = gap + travel_a - travel_f
@@ -191,7 +281,7 @@ def _fallback(
     standing: float,
     slack: float,
 ) -> None:
-    """``Shield._fallback_given``: the fallback's accelerations in a state, written into ``acc``.
+    """``fallback_given``: the fallback's accelerations in a state, written into ``acc``.
 
     :param plan: the scene's arrays
     :param arc: ``(n,)`` arcs [m]
@@ -200,29 +290,18 @@ def _fallback(
     :param hold: ``(n,)`` scratch for the yielding vehicles
     :param acc: ``(n,)`` output [m/s^2]
     """
-    cross, lo, hi, vid = plan.cross, plan.cross_lo, plan.cross_hi, plan.vehicle_id
     hold[:] = False
-    # _yielding: a committed vehicle waits before a pair's zone that it can still stop before while
+    # yielding: a committed vehicle waits before a pair's zone that it can still stop before while
     # its partner cannot (or is in it) and has not cleared it; two inside one zone: the one less far through.
-    for p in range(cross.shape[0]):
-        i, j = cross[p, 0], cross[p, 1]
-        xi, xj, vi, vj = arc[i], arc[j], speed[i], speed[j]
-        stop_i = xi <= lo[p, 0] and (vi <= standing or xi + vi * vi / (2 * a_max) + slack <= lo[p, 0])
-        stop_j = xj <= lo[p, 1] and (vj <= standing or xj + vj * vj / (2 * a_max) + slack <= lo[p, 1])
-        if go[i] and stop_i and not stop_j and xj < hi[p, 1]:
-            hold[i] = True
-        if go[j] and stop_j and not stop_i and xi < hi[p, 0]:
-            hold[j] = True
-        if lo[p, 0] < xi < hi[p, 0] and lo[p, 1] < xj < hi[p, 1]:
-            through_i = (xi - lo[p, 0]) / (hi[p, 0] - lo[p, 0])
-            through_j = (xj - lo[p, 1]) / (hi[p, 1] - lo[p, 1])
-            if through_i < through_j or (through_i == through_j and vid[i] > vid[j]):
-                hold[i] = True
-            if through_j < through_i or (through_j == through_i and vid[j] > vid[i]):
-                hold[j] = True
+    for p in range(plan.cross.shape[0]):
+        wait_i, wait_j = _pair_waits(plan, p, arc, speed, go, a_max, standing, slack)
+        if wait_i:
+            hold[plan.cross[p, 0]] = True
+        if wait_j:
+            hold[plan.cross[p, 1]] = True
     for i in range(arc.shape[0]):
         acc[i] = proceed if go[i] and not hold[i] else -a_max
-    # _leaders_now and _safe_gap_after: a committed follower too close to its leader brakes.
+    # leaders_now and safe_gap_after: a committed follower too close to its leader brakes.
     slow = min(proceed, -a_max)
     for k in range(plan.follower.shape[0]):
         f, ahead = plan.follower[k], plan.ahead[k]
@@ -230,18 +309,68 @@ def _fallback(
         if go[f] and _unsafe(gap, speed[f], speed[ahead], proceed, a_max, dt, gap_margin):
             acc[f] = slow
     for g in range(plan.merge.shape[0]):
-        m0, m1 = plan.merge[g, 0], plan.merge[g, 1]
-        a0, a1 = arc[m0], arc[m1]
-        e0, e1 = a0 - plan.merge_exit[g, 0], a1 - plan.merge_exit[g, 1]
-        if e0 >= e1:  # vehicle 1 is behind along the common exit lane
-            f, ahead, active = m1, m0, a0 > plan.merge_lo[g, 0] or go[m0]
-        else:
-            f, ahead, active = m0, m1, a1 > plan.merge_lo[g, 1] or go[m1]
+        f, ahead, active, distance = _merge_leader(plan, g, arc, go)
         if not active:
             continue
-        gap = abs(e0 - e1) - plan.merge_sep[g] + 0.5 * gap_margin
+        gap = distance + 0.5 * gap_margin  # kept at gap_margin: half a margin more than the check's distance
         if go[f] and _unsafe(gap, speed[f], speed[ahead], proceed, a_max, dt, gap_margin):
             acc[f] = slow
+
+
+@numba.njit(cache=True)
+def committed(
+    plan: PlanArrays, arc: np.ndarray, speed: np.ndarray, a_max: float, standing: float, slack: float
+) -> np.ndarray:
+    """``(n,)`` bool: the vehicles that can no longer stop before their first zone, or have cleared them all."""
+    go = np.zeros(arc.shape[0], np.bool_)
+    _all_committed(plan, arc, speed, go, a_max, standing, slack)
+    return go
+
+
+@numba.njit(cache=True)
+def waits(
+    plan: PlanArrays, arc: np.ndarray, speed: np.ndarray, go: np.ndarray, a_max: float, standing: float, slack: float
+) -> np.ndarray:
+    """``(c, 2)`` bool over the crossing pairs: this side waits for the other (:func:`_pair_waits`).
+
+    :param go: ``(n,)`` the committed vehicles (:func:`committed`)
+    """
+    out = np.zeros((plan.cross.shape[0], 2), np.bool_)
+    for p in range(plan.cross.shape[0]):
+        out[p, 0], out[p, 1] = _pair_waits(plan, p, arc, speed, go, a_max, standing, slack)
+    return out
+
+
+@numba.njit(cache=True)
+def leaders(plan: PlanArrays, arc: np.ndarray, go: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(follower, ahead)`` rows of every leader relation that the fallback keeps a gap in: every
+    follow pair, and every active merging pair (:func:`_merge_leader`)."""
+    k, g_all = plan.follower.shape[0], plan.merge.shape[0]
+    follower, ahead = np.empty(k + g_all, np.int64), np.empty(k + g_all, np.int64)
+    follower[:k], ahead[:k] = plan.follower, plan.ahead
+    rows = k
+    for g in range(g_all):
+        f, a, active, _ = _merge_leader(plan, g, arc, go)
+        if active:
+            follower[rows], ahead[rows] = f, a
+            rows += 1
+    return follower[:rows], ahead[:rows]
+
+
+@numba.njit(cache=True)
+def behind(x: np.ndarray, lo: np.ndarray, hi: np.ndarray, vid: np.ndarray) -> np.ndarray:
+    """``(c,)`` int64 over crossing pairs: the column (0 or 1) of the one less far through the pair's zone.
+
+    :param x: ``(c, 2)`` centre arcs
+    :param lo: ``(c, 2)`` where each one's occupancy of the zone starts
+    :param hi: ``(c, 2)`` and ends
+    :param vid: ``(c, 2)`` vehicle ids
+    """
+    out = np.zeros(x.shape[0], np.int64)
+    for p in range(x.shape[0]):
+        if _less_far(x[p, 1], lo[p, 1], hi[p, 1], vid[p, 1], x[p, 0], lo[p, 0], hi[p, 0], vid[p, 0]):
+            out[p] = 1
+    return out
 
 
 @numba.njit(cache=True)
@@ -256,7 +385,7 @@ def fallback(
     standing: float,
     slack: float,
 ) -> np.ndarray:
-    """``Shield._fallback_numpy``: the fallback's ``(n,)`` accelerations in a state (see :func:`predict`)."""
+    """``fallback_numpy``: the fallback's ``(n,)`` accelerations in a state (see :func:`predict`)."""
     n = arc.shape[0]
     go, hold, acc = np.zeros(n, np.bool_), np.zeros(n, np.bool_), np.empty(n)
     _all_committed(plan, arc, speed, go, a_max, standing, slack)
@@ -282,7 +411,7 @@ def predict(
     standing: float,
     slack: float,
 ) -> int:
-    """``Shield.predict_numpy``: ``command`` for one period, then the fallback until all settle or ``steps`` periods.
+    """``predict_numpy``: ``command`` for one period, then the fallback until all settle or ``steps`` periods.
 
     :param plan: the scene's arrays
     :param table: the governor's envelope
@@ -318,7 +447,7 @@ def predict(
 def conflicts(
     plan: PlanArrays, arcs: np.ndarray, speed: np.ndarray, a_max: float, standing: float, slack: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """``Shield._conflicts_numpy``: the conflicts of a prediction, in one pass over its sub-steps.
+    """``conflicts_numpy``: the conflicts of a prediction, in one pass over its sub-steps.
 
     :param plan: the scene's arrays
     :param arcs: ``(T + 1, n)`` predicted arcs (row 0: now)

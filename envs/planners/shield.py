@@ -45,12 +45,13 @@ proposed onwards (checked like any proposal). Before the line the planner decide
 An invalid proposal is a planner error (:mod:`envs.planners.errors`), answered with the fallback.
 
 Vectorized over vehicles and pairs; the only loops run over the horizon's time steps and over the
-few rounds of overrides. The prediction (step 2), the fallback and the scan of a prediction for
-conflicts (step 3) run compiled (:mod:`envs.planners._shield_kernel`, numba): the periods are
-sequential and the arrays small, so in NumPy the per-call overhead was most of the shield's cost.
-They compute bit for bit what :meth:`Shield.predict_numpy` (with :func:`envs.simulation.integrate`),
-:meth:`Shield._fallback_numpy` and :meth:`Shield._conflicts_numpy` compute; who is blamed for a
-conflict is decided in NumPy.
+few rounds of overrides. The prediction (step 2), the fallback, the scan of a prediction for
+conflicts (step 3) and the rules that the liveness checks and the blame read (who is committed, who
+waits for whom, who follows whom) run compiled (:mod:`envs.planners._shield_kernel`, numba): the
+periods are sequential and the arrays small, so in NumPy the per-call overhead was most of the
+shield's cost. The kernels are the only implementation of these rules; ``tests/shield_reference.py``
+holds their NumPy form (with :func:`envs.simulation.integrate` itself), the oracle that they match
+bit for bit. Who is blamed for a conflict is decided in NumPy.
 """
 
 from __future__ import annotations
@@ -61,12 +62,11 @@ from functools import partial
 
 import numpy as np
 
-from envs.layouts import CONFLICT_DISTANCE, ZONE_MARGIN, zone_hull
+from envs.layouts import CONFLICT_DISTANCE, ZONE_MARGIN, body_hull
 from envs.planners import _shield_kernel
 from envs.planners.base import Planner
 from envs.planners.errors import PlannerError, checked_accelerations
 from envs.scene import Scene
-from envs.simulation import integrate
 
 _INT = np.int64
 # A vehicle counts as standing below this speed [m/s] (speeds are clipped to exactly 0 when braking).
@@ -109,20 +109,19 @@ class _Plan:
     cross_stop: np.ndarray  # (c,) its arc now plus the stopping slack [m]
 
     def __post_init__(self) -> None:
-        # The columns of `follow` and their arcs now, contiguous: the fallback reads them every period.
-        self.follow_rows = (np.ascontiguousarray(self.follow[:, 0]), np.ascontiguousarray(self.follow[:, 1]))
-        self.follow_arc = (self.arc[self.follow_rows[0]], self.arc[self.follow_rows[1]])
-        # The compiled kernels' view, contiguous and of one dtype per field (one compiled signature).
+        # The compiled kernels' view, contiguous and of one dtype per field (one compiled signature);
+        # the columns of `follow` and their arcs now apart: the fallback reads them every period.
         i, f = partial(np.ascontiguousarray, dtype=_INT), partial(np.ascontiguousarray, dtype=float)
+        follower, ahead = i(self.follow[:, 0]), i(self.follow[:, 1])
         self.kernel_arrays = _shield_kernel.PlanArrays(
             route=i(self.route),
             hull_start=f(self.hull_start),
             hull_end=f(self.hull_end),
-            follower=i(self.follow_rows[0]),
-            ahead=i(self.follow_rows[1]),
+            follower=follower,
+            ahead=ahead,
             follow_gap=f(self.follow_gap),
-            follower_arc=f(self.follow_arc[0]),
-            ahead_arc=f(self.follow_arc[1]),
+            follower_arc=f(self.arc[follower]),
+            ahead_arc=f(self.arc[ahead]),
             follow_floor=f(self.follow_floor),
             cross=i(self.cross),
             cross_lo=f(self.cross_lo),
@@ -136,6 +135,26 @@ class _Plan:
             merge_exit=f(self.merge_exit),
             merge_sep=f(self.merge_sep),
         )
+
+
+def committed_vehicles(scene: Scene, zone_margin: float = ZONE_MARGIN) -> np.ndarray:
+    """``(n,)`` bool: the vehicles of a scene that can no longer stop before their first conflict zone,
+    or have left their last one: :meth:`Shield.committed`, from the scene alone (the observation's
+    ``committed`` feature reads it).
+
+    :param scene: a scene with its layout and arcs
+    :param zone_margin: padding of every zone [m] (the shield's default)
+    """
+    hull_start, hull_end = body_hull(scene.layout, scene.route, scene.length, zone_margin)
+    return _shield_kernel.committed_rows(
+        np.ascontiguousarray(scene.arc, dtype=float),
+        np.ascontiguousarray(scene.speed, dtype=float),
+        np.ascontiguousarray(hull_start, dtype=float),
+        np.ascontiguousarray(hull_end, dtype=float),
+        float(scene.a_max),
+        _STANDING,
+        _STOP_SLACK,
+    )
 
 
 class Shield(Planner):
@@ -204,6 +223,16 @@ class Shield(Planner):
     def error_lines(self) -> list[str]:
         """The first planner errors of the run (at most :data:`MAX_ERROR_LINES`), one line each."""
         return [error.line() for error in self.errors]
+
+    def stats(self) -> dict[str, float]:
+        """The counters of the run since the last reset: interventions and the vehicle-steps they are
+        a share of, unresolved steps (everyone braked) and planner errors (steps)."""
+        return {
+            "shield_interventions": self.interventions,
+            "shield_vehicle_steps": self.vehicle_steps,
+            "shield_unresolved": self.unresolved,
+            "planner_errors": self.planner_errors,
+        }
 
     @property
     def intervention_rate(self) -> float:
@@ -305,7 +334,8 @@ class Shield(Planner):
         return go & (acc < np.minimum(fallback, 0.0) - 1e-9) & self._slowed_to_a_crawl(scene, plan, acc)
 
     def _awaited_and_braked(self, scene: Scene, plan: _Plan, acc: np.ndarray, fallback: np.ndarray) -> np.ndarray:
-        """``(n,)`` bool: vehicles that another one waits for (:meth:`_waits`) and that the proposal brakes
+        """``(n,)`` bool: vehicles that another one waits for (:func:`envs.planners._shield_kernel.waits`:
+        the fallback holds a committed crossing vehicle for them) and that the proposal brakes
         below the fallback. They get the fallback: a planner that stops a vehicle in a zone while the
         fallback holds a crossing vehicle for it would otherwise keep both standing (a standoff of
         the planner's order of way against the shield's)."""
@@ -313,7 +343,9 @@ class Shield(Planner):
         if plan.cross.size:
             a_max = float(scene.a_max)
             go = self.committed(plan, plan.arc, plan.speed, a_max)
-            awaited[plan.cross[:, ::-1][self._waits(plan, plan.arc, plan.speed, go, a_max)]] = True
+            arc, speed = np.ascontiguousarray(plan.arc), np.ascontiguousarray(plan.speed)
+            waits = _shield_kernel.waits(plan.kernel_arrays, arc, speed, go, a_max, _STANDING, _STOP_SLACK)
+            awaited[plan.cross[:, ::-1][waits]] = True
         return awaited & (acc < np.minimum(fallback, 0.0) - 1e-9)
 
     # ------------------------------------------------------------------ scene -> plan
@@ -321,9 +353,7 @@ class Shield(Planner):
         lay, route, length = scene.layout, scene.route, scene.length
         arc, speed = np.asarray(scene.arc, float), np.asarray(scene.speed, float)
         m = self.zone_margin
-        first, last = zone_hull(lay)
-        hull_start = first[route] - m - length / 2
-        hull_end = last[route] + m + length / 2
+        hull_start, hull_end = body_hull(lay, route, length, m)
         # Same path: the leader and the leader's leader (a leader that turns off a shared lane
         # uncovers the next one).
         lead = scene.leader
@@ -374,7 +404,8 @@ class Shield(Planner):
         # which brake everyone): it must not move (`stop`) while the other is in it, which may go on.
         # While `back` still moves, the pair counts as a conflict like any other.
         x0 = arc[cross]
-        back = _less_far_through(x0, cross_lo, cross_hi, np.asarray(scene.vehicle_id)[cross])[:, 1].astype(_INT)
+        ids = np.ascontiguousarray(np.asarray(scene.vehicle_id)[cross], dtype=_INT)
+        back = _shield_kernel.behind(np.ascontiguousarray(x0), cross_lo, cross_hi, ids)
         pair = np.arange(len(back))
         already = ((x0 > cross_lo) & (x0 < cross_hi)).all(axis=1) & (speed[cross[pair, back]] <= _STANDING)
         stop = x0[pair, back] + _STOP_SLACK
@@ -403,13 +434,14 @@ class Shield(Planner):
 
     # ------------------------------------------------------------------ the fallback
     def committed(self, plan: _Plan, arc: np.ndarray, speed: np.ndarray, a_max: float) -> np.ndarray:
-        """``(n,)`` bool: the vehicle can no longer stop before its first zone, or has cleared them all."""
-        return ~_can_stop_before(arc, speed, plan.hull_start, a_max) | (arc > plan.hull_end)
+        """``(n,)`` bool: the vehicle can no longer stop before its first zone, or has cleared them all (compiled)."""
+        arc, speed = np.ascontiguousarray(arc, dtype=float), np.ascontiguousarray(speed, dtype=float)
+        return _shield_kernel.committed(plan.kernel_arrays, arc, speed, float(a_max), _STANDING, _STOP_SLACK)
 
     def _fallback(self, scene: Scene, plan: _Plan, arc: np.ndarray, speed: np.ndarray) -> np.ndarray:
         """The fallback's accelerations in a state: brake, or proceed while keeping a safe gap.
 
-        Compiled, as the prediction; bitwise :meth:`_fallback_numpy`.
+        Compiled, as the prediction.
         """
         a_max = float(scene.a_max)
         return _shield_kernel.fallback(
@@ -424,73 +456,12 @@ class Shield(Planner):
             _STOP_SLACK,
         )
 
-    def _fallback_numpy(self, scene: Scene, plan: _Plan, arc: np.ndarray, speed: np.ndarray) -> np.ndarray:
-        """:meth:`_fallback` in NumPy (the reference of the compiled one, as :meth:`predict_numpy`)."""
-        go = self.committed(plan, arc, speed, float(scene.a_max))
-        return self._fallback_given(plan, arc, speed, go, float(scene.a_max), float(scene.dt))
-
-    def _fallback_given(
-        self, plan: _Plan, arc: np.ndarray, speed: np.ndarray, go: np.ndarray, a_max: float, dt: float
-    ) -> np.ndarray:
-        """:meth:`_fallback` with the committed vehicles (``go``) already known (the prediction needs them twice)."""
-        proceed = min(self.proceed_acceleration, a_max)
-        acc = np.where(go & ~self._yielding(plan, arc, speed, go, a_max), proceed, -a_max)
-        f, ahead, gap = self._leaders_now(plan, arc, go)
-        if f.size:
-            ok = _safe_gap_after(gap, speed[f], speed[ahead], proceed, a_max, dt, self.gap_margin)
-            acc[f[~ok & go[f]]] = min(proceed, -a_max)
-        return acc
-
-    def _yielding(self, plan: _Plan, arc: np.ndarray, speed: np.ndarray, go: np.ndarray, a_max: float) -> np.ndarray:
-        """``(n,)`` bool: committed vehicles that the fallback holds for a crossing partner (:meth:`_waits`)."""
-        hold = np.zeros(len(arc), bool)
-        if plan.cross.size:
-            hold[plan.cross[self._waits(plan, arc, speed, go, a_max)]] = True
-        return hold
-
-    def _waits(self, plan: _Plan, arc: np.ndarray, speed: np.ndarray, go: np.ndarray, a_max: float) -> np.ndarray:
-        """``(c, 2)`` bool over the crossing pairs: this side waits for the other side.
-
-        Committed means past the point where a vehicle can stop before its *first* zone; a later zone,
-        shared with one crossing route, may still be far enough to stop before. The fallback does not
-        rely on timing there (timing rests on predicted leaders, and the leaders change when a vehicle
-        ahead turns off or merges in): a committed vehicle that can still stop before a pair's zone
-        waits while its partner can no longer stop before it (or is in it) and has not cleared it.
-        Waiting can form a cycle only in a gridlock (each vehicle in one zone and before another),
-        which the check rejects as it rejects any committed vehicle left standing. Two vehicles inside
-        one zone at once (only after an unresolved step) are separated by holding the one less far
-        through it.
-        """
-        x, lo, hi = arc[plan.cross], plan.cross_lo, plan.cross_hi
-        can_stop = _can_stop_before(x, speed[plan.cross], lo, a_max)
-        waits = go[plan.cross] & can_stop & ~can_stop[:, ::-1] & (x[:, ::-1] < hi[:, ::-1])
-        both = ((x > lo) & (x < hi)).all(axis=1)
-        return waits | (both[:, None] & _less_far_through(x, lo, hi, plan.vehicle_id[plan.cross]))
-
-    def _leaders_now(self, plan: _Plan, arc: np.ndarray, go: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``(follower, ahead, bumper gap)`` of every same-path pair, and of every pair on merging paths
-        whose vehicle ahead (along the common exit lane) proceeds (``go``) or has reached the merge."""
-        f, ahead = plan.follow_rows
-        gap = plan.follow_gap + (arc[ahead] - plan.follow_arc[1]) - (arc[f] - plan.follow_arc[0])
-        if plan.merge.size:
-            m0, m1 = plan.merge[:, 0], plan.merge[:, 1]
-            a0, a1 = arc[m0], arc[m1]
-            e0, e1 = a0 - plan.merge_exit[:, 0], a1 - plan.merge_exit[:, 1]
-            second = e0 >= e1  # vehicle 1 is behind along the common exit lane
-            first = np.where(second, m0, m1)
-            active = np.where(second, a0 > plan.merge_lo[:, 0], a1 > plan.merge_lo[:, 1]) | go[first]
-            mf, ma = np.where(second, m1, m0)[active], first[active]
-            # kept at gap_margin by the fallback: half a gap margin more than the check's distance
-            mgap = (np.abs(e0 - e1) - plan.merge_sep + 0.5 * self.gap_margin)[active]
-            f, ahead, gap = np.concatenate([f, mf]), np.concatenate([ahead, ma]), np.concatenate([gap, mgap])
-        return f, ahead, gap
-
     # ------------------------------------------------------------------ prediction and check
     def predict(self, scene: Scene, plan: _Plan, command: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Arcs at every simulation sub-step: ``command`` for one period, then the fallback.
 
         Compiled (:mod:`envs.planners._shield_kernel`): the periods are sequential and the arrays
-        small, so NumPy's per-call overhead made most of the shield's cost; bitwise :meth:`predict_numpy`.
+        small, so NumPy's per-call overhead made most of the shield's cost.
 
         :return: ``(T + 1, n)`` arcs (row 0: now) and ``(T + 1, n)`` speeds
         """
@@ -502,7 +473,7 @@ class Shield(Planner):
         arcs[0], speeds[0] = plan.arc, plan.speed
         rows = _shield_kernel.predict(
             plan.kernel_arrays,
-            prediction_layout(scene.layout, self.governor_deceleration).kernel_table,
+            envelope_table(scene.layout, self.governor_deceleration),
             np.ascontiguousarray(command, dtype=float),
             arcs,
             speeds,
@@ -519,46 +490,10 @@ class Shield(Planner):
         )
         return arcs[:rows], speeds[:rows]
 
-    def predict_numpy(self, scene: Scene, plan: _Plan, command: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """:meth:`predict` in NumPy, with :func:`envs.simulation.integrate` itself: the reference that
-        the compiled prediction is tested against (bitwise, ``tests/test_shield.py``)."""
-        dt = float(scene.dt)
-        substeps = max(1, int(round(self.simulation_frequency * dt)))
-        h = dt / substeps
-        steps = max(1, int(np.ceil(self.horizon / dt - 1e-9)))
-        arcs, speeds = [plan.arc[None]], [plan.speed[None]]
-        arc, speed, acc = plan.arc, plan.speed, command
-        a_max = float(scene.a_max)
-        view = prediction_layout(scene.layout, self.governor_deceleration)
-        for _ in range(steps):
-            v, x, _ = integrate(
-                view,
-                plan.route,
-                arc,
-                speed,
-                acc,
-                substeps,
-                h,
-                self.max_speed,
-                self.governor_deceleration,
-            )
-            arcs.append(x[1:])
-            speeds.append(v[1:])
-            arc, speed = x[-1], v[-1]
-            go = self.committed(plan, arc, speed, a_max)
-            if (((speed <= _STANDING) & ~go) | (arc > plan.hull_end)).all():  # `_settled`, sharing `go`
-                break  # everyone stands before its zones or has left them: the fallback keeps it so
-            acc = self._fallback_given(plan, arc, speed, go, a_max, dt)
-        return np.concatenate(arcs), np.concatenate(speeds)
-
-    def _settled(self, plan: _Plan, arc: np.ndarray, speed: np.ndarray, a_max: float) -> np.ndarray:
-        standing = (speed <= _STANDING) & ~self.committed(plan, arc, speed, a_max)
-        return standing | (arc > plan.hull_end)
-
     def _conflicts(
         self, scene: Scene, plan: _Plan, arc: np.ndarray, speed: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """The conflicts of a prediction (compiled; bitwise :meth:`_conflicts_numpy`).
+        """The conflicts of a prediction (compiled).
 
         :param arc: ``(T + 1, n)`` predicted arcs (row 0: now), as :meth:`predict` returns them
         :param speed: ``(T + 1, n)`` predicted speeds
@@ -567,31 +502,6 @@ class Shield(Planner):
             ``(n,)`` bool: vehicles that at the end neither stand before their zones nor have cleared them
         """
         return _shield_kernel.conflicts(plan.kernel_arrays, arc, speed[-1], float(scene.a_max), _STANDING, _STOP_SLACK)
-
-    def _conflicts_numpy(
-        self, scene: Scene, plan: _Plan, arc: np.ndarray, speed: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """:meth:`_conflicts` in NumPy (the reference of the compiled one, as :meth:`predict_numpy`)."""
-        later = arc[1:]
-        # Same path and merged: the gap to the vehicle ahead must stay open.
-        f, ahead = plan.follow[:, 0], plan.follow[:, 1]
-        gap = plan.follow_gap + (later[:, ahead] - plan.arc[ahead]) - (later[:, f] - plan.arc[f])
-        bad_follow = (gap < plan.follow_floor).any(axis=0)
-        # Crossing: never both in the pair's zone.
-        x = later[:, plan.cross]  # (T, c, 2)
-        both = ((x > plan.cross_lo) & (x < plan.cross_hi)).all(axis=2)
-        if plan.cross_already.any():
-            moved = x[:, np.arange(len(plan.cross)), plan.cross_back] > plan.cross_stop
-            both = np.where(plan.cross_already, both & moved, both)
-        bad_cross = both.any(axis=0)
-        # Merging: a separation along the common exit lane once both have reached the merge.
-        x = later[:, plan.merge]
-        reached = (x > plan.merge_lo).all(axis=2)
-        e = x - plan.merge_exit
-        bad_merge = (reached & (np.abs(e[..., 0] - e[..., 1]) < plan.merge_sep)).any(axis=0)
-        # At the end, everyone stands before its zones or has cleared them.
-        stuck = ~self._settled(plan, arc[-1], speed[-1], scene.a_max)
-        return bad_follow, bad_cross, bad_merge, stuck
 
     def _blame(self, scene: Scene, plan: _Plan, command: np.ndarray, free: np.ndarray) -> np.ndarray | None:
         """Vehicles to override so that the plan gets through, ``None`` if it passes as it is.
@@ -634,25 +544,11 @@ class Shield(Planner):
                 stuck_free[np.flatnonzero(stuck_free)[np.argmin(plan.rank[stuck_free])]] = False
             blamed |= stuck_free
             # A committed vehicle stuck behind a vehicle ahead: that one's command is to blame.
-            fl, ah, _ = self._leaders_now(plan, arc[-1], self.committed(plan, arc[-1], speed[-1], scene.a_max))
+            go = self.committed(plan, arc[-1], speed[-1], scene.a_max)
+            fl, ah = _shield_kernel.leaders(plan.kernel_arrays, np.ascontiguousarray(arc[-1]), go)
             culprit = ah[stuck[fl] & ~free[fl] & free[ah]]
             blamed[culprit] = True
         return blamed
-
-
-def _can_stop_before(arc: np.ndarray, speed: np.ndarray, line: np.ndarray, a_max: float) -> np.ndarray:
-    """Whether braking at ``a_max`` stops a vehicle's centre at or before ``line`` (elementwise).
-
-    A standing vehicle outside the line can always wait (the slack is for moving ones only).
-    """
-    return (arc <= line) & ((speed <= _STANDING) | (arc + speed**2 / (2 * a_max) + _STOP_SLACK <= line))
-
-
-def _less_far_through(x: np.ndarray, lo: np.ndarray, hi: np.ndarray, ids: np.ndarray) -> np.ndarray:
-    """``(c, 2)`` bool over crossing pairs: this side is less far through the pair's zone than the
-    other (ties: the higher id), the one to hold when both are in it."""
-    through = (x - lo) / (hi - lo)
-    return (through < through[:, ::-1]) | ((through == through[:, ::-1]) & (ids > ids[:, ::-1]))
 
 
 def _blame_pairs(blamed: np.ndarray, free: np.ndarray, second: np.ndarray, first: np.ndarray) -> None:
@@ -661,32 +557,6 @@ def _blame_pairs(blamed: np.ndarray, free: np.ndarray, second: np.ndarray, first
     blamed[pick[free[pick]]] = True
 
 
-def _safe_gap_after(
-    gap: np.ndarray,
-    v_follower: np.ndarray,
-    v_ahead: np.ndarray,
-    acc: float,
-    a_max: float,
-    dt: float,
-    margin: float,
-) -> np.ndarray:
-    """Whether after ``dt`` at ``acc`` the follower can still stop behind a vehicle that brakes at ``a_max`` now.
-
-    Responsibility-sensitive safety with equal braking: the gap left once both have stopped,
-    ``gap - max(0, v_f^2 - v_a^2) / (2 a_max)``, must stay above ``margin`` (the speed cap and the
-    governor only lower the follower's speed, which makes the test conservative).
-    """
-    travel_f, v_f = _travel(v_follower, acc, dt)
-    travel_a, v_a = _travel(v_ahead, -a_max, dt)
-    after = gap + travel_a - travel_f
-    return after - np.maximum(v_f**2 - v_a**2, 0.0) / (2 * a_max) >= margin
-
-
-def _travel(speed: np.ndarray, acc: float, dt: float) -> tuple[np.ndarray, np.ndarray]:
-    """Distance and end speed after ``dt`` at constant ``acc``, stopping at 0."""
-    end = speed + acc * dt
-    to_stop = speed**2 / (2 * max(-acc, 1e-12))
-    return np.where(end < 0, to_stop, 0.5 * (speed + end) * dt), np.maximum(end, 0.0)
 
 
 _PARTING: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
@@ -720,60 +590,27 @@ def _merging_routes(layout) -> np.ndarray:
     return _MERGING[layout]
 
 
-class _PredictionLayout:
-    """The layout as :func:`envs.simulation.integrate` sees it in the shield's predictions.
+_ENVELOPES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
-    ``integrate`` asks the layout for the speed envelope six times per policy period, which is
-    most of a prediction's cost; this view answers :meth:`envelope_at` for the simulation's
-    governor deceleration from tables built once (the squared envelope, its differences and the
-    limits, read by flat index), with exactly :meth:`envs.layouts.Layout.envelope_at`'s arithmetic,
-    so the prediction stays bitwise the simulation's (``tests/test_shield.py`` checks it). Every other
-    attribute is the layout's.
+
+def envelope_table(layout, deceleration: float) -> _shield_kernel.EnvelopeTable:
+    """The governor's speed envelope of a layout as the compiled prediction reads it (cached).
+
+    ``integrate`` asks the layout for the envelope six times per policy period; the kernel reads
+    it from these flat tables instead (the squared envelope, its differences to the next sample and
+    the limits, by flat index), with exactly :meth:`envs.layouts.Layout.envelope_at`'s arithmetic,
+    so the prediction stays bitwise the simulation's (``tests/test_shield.py`` checks it).
 
     :param layout: the intersection
-    :param deceleration: the governor deceleration the tables are built for [m/s^2]
+    :param deceleration: the simulation's governor deceleration [m/s^2]
     """
-
-    def __init__(self, layout, deceleration: float) -> None:
-        self.layout = weakref.proxy(layout)  # the cache below is keyed weakly by the layout
-        self.deceleration = float(deceleration)
-        env = layout.speed_envelope(self.deceleration)
-        sq = env**2
-        self.columns = env.shape[1]
-        self.last = env.shape[1] - 1
-        self.ds = layout.ds
-        self.sq = sq.ravel()
-        self.dsq = np.concatenate([sq[:, 1:] - sq[:, :-1], np.zeros((sq.shape[0], 1))], axis=1).ravel()
-        self.limit = np.ascontiguousarray(layout.speed_limit, dtype=float).ravel()
-        # The same tables for the compiled prediction (`_shield_kernel._envelope`).
-        self.kernel_table = _shield_kernel.EnvelopeTable(
-            self.sq, self.dsq, self.limit, int(self.columns), int(self.last), float(self.ds)
-        )
-
-    def envelope_at(self, route: np.ndarray, arc: np.ndarray, deceleration: float) -> np.ndarray:
-        if float(deceleration) != self.deceleration:
-            return self.layout.envelope_at(route, arc, deceleration)
-        # Layout.envelope_at: u, i0, f as there; the limit's sample int(arc / ds) clipped to
-        # [0, last] is i0, or last where u reached it.
-        u = np.minimum(np.maximum(arc / self.ds, 0.0), self.last)
-        i0 = np.minimum(u.astype(np.int64), self.last - 1)
-        f = u - i0
-        flat = route * self.columns + i0
-        sq0 = self.sq.take(flat)
-        envelope = np.sqrt(sq0 + self.dsq.take(flat) * f)
-        return np.minimum(envelope, self.limit.take(flat + (u >= self.last)))
-
-    def __getattr__(self, name: str):
-        return getattr(self.layout, name)
-
-
-_PREDICTION_LAYOUTS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-
-
-def prediction_layout(layout, deceleration: float) -> _PredictionLayout:
-    """The (cached) :class:`_PredictionLayout` of a layout and governor deceleration."""
-    views = _PREDICTION_LAYOUTS.setdefault(layout, {})
+    tables = _ENVELOPES.setdefault(layout, {})
     key = float(deceleration)
-    if key not in views:
-        views[key] = _PredictionLayout(layout, key)
-    return views[key]
+    if key not in tables:
+        sq = layout.speed_envelope(key) ** 2
+        dsq = np.concatenate([sq[:, 1:] - sq[:, :-1], np.zeros((sq.shape[0], 1))], axis=1)
+        limit = np.ascontiguousarray(layout.speed_limit, dtype=float).ravel()
+        tables[key] = _shield_kernel.EnvelopeTable(
+            sq.ravel(), dsq.ravel(), limit, int(sq.shape[1]), int(sq.shape[1] - 1), float(layout.ds)
+        )
+    return tables[key]

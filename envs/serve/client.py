@@ -222,7 +222,8 @@ class RemotePlanner(Planner):
     :param name: report name (default: ``<server's planner name>@HOST:PORT``)
 
     Behind a server started with ``--shield`` it keeps the shield's counters (``interventions``,
-    ``vehicle_steps``, ``unresolved``) from the server's answers, as a local shield does.
+    ``vehicle_steps``, ``unresolved``) from the server's answers and reports them in :meth:`stats`,
+    as a local shield does.
     """
 
     def __init__(self, url: str, token: str | None = None, name: str | None = None) -> None:
@@ -233,8 +234,8 @@ class RemotePlanner(Planner):
         self._seed: int | None = None
         self._fresh = True
         self._finalizer: weakref.finalize | None = None
-        if self.info.get("shield"):  # the server shields: its counters, as a local Shield keeps them
-            self.interventions = self.vehicle_steps = self.unresolved = 0
+        self.shielded = bool(self.info.get("shield"))  # the server shields: its counters, as a local Shield's
+        self.interventions = self.vehicle_steps = self.unresolved = 0
 
     def check_capacity(self, max_vehicles: int, source: str = "planner") -> None:
         """Refuse an environment whose scenes can hold more vehicles than the server takes.
@@ -249,8 +250,7 @@ class RemotePlanner(Planner):
 
     def reset(self, seed: int | None = None) -> None:
         self._seed, self._fresh = seed, True
-        if hasattr(self, "interventions"):
-            self.interventions = self.vehicle_steps = self.unresolved = 0
+        self.interventions = self.vehicle_steps = self.unresolved = 0
 
     def act(self, scene: Scene) -> np.ndarray:
         wire = scene_to_wire(scene)
@@ -262,11 +262,25 @@ class RemotePlanner(Planner):
         self._fresh = False
         acc = self.client.step(self.stream, wire)
         report = self.client.last_shield
-        if report is not None and hasattr(self, "interventions"):
+        if report is not None and self.shielded:
             self.interventions += sum(map(bool, report["overridden"]))
             self.vehicle_steps += len(report["overridden"])
             self.unresolved += bool(report["unresolved"])
         return acc
+
+    def stats(self) -> dict[str, float]:
+        """The server's shield's counters of the run (none when the server does not shield).
+
+        The server's answers carry no planner errors: ``planner_errors`` is 0.
+        """
+        if not self.shielded:
+            return {}
+        return {
+            "shield_interventions": self.interventions,
+            "shield_vehicle_steps": self.vehicle_steps,
+            "shield_unresolved": self.unresolved,
+            "planner_errors": 0,
+        }
 
     def close(self) -> None:
         """Close the stream now."""

@@ -1,0 +1,222 @@
+"""The shield's rules in NumPy: the oracle that the compiled kernels (``envs/planners/_shield_kernel.py``,
+the only implementation the shield runs) match bit for bit.
+
+:func:`fallback_numpy`, :func:`predict_numpy` and :func:`conflicts_numpy` compute what
+``Shield._fallback``, ``Shield.predict`` and ``Shield._conflicts`` compute, from the same plan
+(``Shield._plan``): the prediction with :func:`envs.simulation.integrate` itself, on a NumPy view
+(:class:`PredictionLayout`) of the speed-envelope tables that the kernels read. The helpers below
+(:func:`committed`, :func:`waits`, :func:`leaders_now`, ...) are the rules the kernels implement
+once for the shield and the fallback. A change to a rule is made in the kernel; these functions
+change with it only if the test that compares them says that the rule, not a rounding, changed.
+"""
+
+from __future__ import annotations
+
+import weakref
+
+import numpy as np
+
+from envs.planners.shield import _STANDING, _STOP_SLACK, Shield, _Plan, envelope_table
+from envs.scene import Scene
+from envs.simulation import integrate
+
+
+def can_stop_before(arc: np.ndarray, speed: np.ndarray, line: np.ndarray, a_max: float) -> np.ndarray:
+    """Whether braking at ``a_max`` stops a vehicle's centre at or before ``line`` (elementwise).
+
+    A standing vehicle outside the line can always wait (the slack is for moving ones only).
+    """
+    return (arc <= line) & ((speed <= _STANDING) | (arc + speed**2 / (2 * a_max) + _STOP_SLACK <= line))
+
+
+def less_far_through(x: np.ndarray, lo: np.ndarray, hi: np.ndarray, ids: np.ndarray) -> np.ndarray:
+    """``(c, 2)`` bool over crossing pairs: this side is less far through the pair's zone than the
+    other (ties: the higher id), the one to hold when both are in it."""
+    through = (x - lo) / (hi - lo)
+    return (through < through[:, ::-1]) | ((through == through[:, ::-1]) & (ids > ids[:, ::-1]))
+
+
+def committed(plan: _Plan, arc: np.ndarray, speed: np.ndarray, a_max: float) -> np.ndarray:
+    """``(n,)`` bool: the vehicle can no longer stop before its first zone, or has cleared them all."""
+    return ~can_stop_before(arc, speed, plan.hull_start, a_max) | (arc > plan.hull_end)
+
+
+def settled(plan: _Plan, arc: np.ndarray, speed: np.ndarray, a_max: float) -> np.ndarray:
+    """``(n,)`` bool: the vehicle stands before its zones, or has cleared them."""
+    standing = (speed <= _STANDING) & ~committed(plan, arc, speed, a_max)
+    return standing | (arc > plan.hull_end)
+
+
+def waits(plan: _Plan, arc: np.ndarray, speed: np.ndarray, go: np.ndarray, a_max: float) -> np.ndarray:
+    """``(c, 2)`` bool over the crossing pairs: this side waits for the other side (a committed vehicle
+    that can still stop before the pair's zone, while its partner cannot or is in it and has not
+    cleared it; two inside one zone: the one less far through)."""
+    x, lo, hi = arc[plan.cross], plan.cross_lo, plan.cross_hi
+    can_stop = can_stop_before(x, speed[plan.cross], lo, a_max)
+    wait = go[plan.cross] & can_stop & ~can_stop[:, ::-1] & (x[:, ::-1] < hi[:, ::-1])
+    both = ((x > lo) & (x < hi)).all(axis=1)
+    return wait | (both[:, None] & less_far_through(x, lo, hi, plan.vehicle_id[plan.cross]))
+
+
+def yielding(plan: _Plan, arc: np.ndarray, speed: np.ndarray, go: np.ndarray, a_max: float) -> np.ndarray:
+    """``(n,)`` bool: committed vehicles that the fallback holds for a crossing partner (:func:`waits`)."""
+    hold = np.zeros(len(arc), bool)
+    if plan.cross.size:
+        hold[plan.cross[waits(plan, arc, speed, go, a_max)]] = True
+    return hold
+
+
+def leaders_now(
+    shield: Shield, plan: _Plan, arc: np.ndarray, go: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(follower, ahead, bumper gap)`` of every same-path pair, and of every pair on merging paths
+    whose vehicle ahead (along the common exit lane) proceeds (``go``) or has reached the merge."""
+    f, ahead = plan.follow[:, 0], plan.follow[:, 1]
+    gap = plan.follow_gap + (arc[ahead] - plan.arc[ahead]) - (arc[f] - plan.arc[f])
+    if plan.merge.size:
+        m0, m1 = plan.merge[:, 0], plan.merge[:, 1]
+        a0, a1 = arc[m0], arc[m1]
+        e0, e1 = a0 - plan.merge_exit[:, 0], a1 - plan.merge_exit[:, 1]
+        second = e0 >= e1  # vehicle 1 is behind along the common exit lane
+        first = np.where(second, m0, m1)
+        active = np.where(second, a0 > plan.merge_lo[:, 0], a1 > plan.merge_lo[:, 1]) | go[first]
+        mf, ma = np.where(second, m1, m0)[active], first[active]
+        # kept at gap_margin by the fallback: half a gap margin more than the check's distance
+        mgap = (np.abs(e0 - e1) - plan.merge_sep + 0.5 * shield.gap_margin)[active]
+        f, ahead, gap = np.concatenate([f, mf]), np.concatenate([ahead, ma]), np.concatenate([gap, mgap])
+    return f, ahead, gap
+
+
+def travel(speed: np.ndarray, acc: float, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """Distance and end speed after ``dt`` at constant ``acc``, stopping at 0."""
+    end = speed + acc * dt
+    to_stop = speed**2 / (2 * max(-acc, 1e-12))
+    return np.where(end < 0, to_stop, 0.5 * (speed + end) * dt), np.maximum(end, 0.0)
+
+
+def safe_gap_after(
+    gap: np.ndarray, v_follower: np.ndarray, v_ahead: np.ndarray, acc: float, a_max: float, dt: float, margin: float
+) -> np.ndarray:
+    """Whether after ``dt`` at ``acc`` the follower can still stop behind a vehicle that brakes at
+    ``a_max`` now (responsibility-sensitive safety with equal braking)."""
+    travel_f, v_f = travel(v_follower, acc, dt)
+    travel_a, v_a = travel(v_ahead, -a_max, dt)
+    after = gap + travel_a - travel_f
+    return after - np.maximum(v_f**2 - v_a**2, 0.0) / (2 * a_max) >= margin
+
+
+def fallback_given(
+    shield: Shield, plan: _Plan, arc: np.ndarray, speed: np.ndarray, go: np.ndarray, a_max: float, dt: float
+) -> np.ndarray:
+    """The fallback's accelerations in a state, with the committed vehicles (``go``) known."""
+    proceed = min(shield.proceed_acceleration, a_max)
+    acc = np.where(go & ~yielding(plan, arc, speed, go, a_max), proceed, -a_max)
+    f, ahead, gap = leaders_now(shield, plan, arc, go)
+    if f.size:
+        ok = safe_gap_after(gap, speed[f], speed[ahead], proceed, a_max, dt, shield.gap_margin)
+        acc[f[~ok & go[f]]] = min(proceed, -a_max)
+    return acc
+
+
+def fallback_numpy(shield: Shield, scene: Scene, plan: _Plan, arc: np.ndarray, speed: np.ndarray) -> np.ndarray:
+    """``Shield._fallback``: brake, or proceed while keeping a safe gap."""
+    go = committed(plan, arc, speed, float(scene.a_max))
+    return fallback_given(shield, plan, arc, speed, go, float(scene.a_max), float(scene.dt))
+
+
+def predict_numpy(shield: Shield, scene: Scene, plan: _Plan, command: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``Shield.predict``: ``command`` for one period, then the fallback, with :func:`envs.simulation.integrate`.
+
+    :return: ``(T + 1, n)`` arcs (row 0: now) and ``(T + 1, n)`` speeds
+    """
+    dt = float(scene.dt)
+    substeps = max(1, int(round(shield.simulation_frequency * dt)))
+    h = dt / substeps
+    steps = max(1, int(np.ceil(shield.horizon / dt - 1e-9)))
+    arcs, speeds = [plan.arc[None]], [plan.speed[None]]
+    arc, speed, acc = plan.arc, plan.speed, command
+    a_max = float(scene.a_max)
+    b = shield.governor_deceleration
+    view = prediction_layout(scene.layout, b)
+    for _ in range(steps):
+        v, x, _ = integrate(view, plan.route, arc, speed, acc, substeps, h, shield.max_speed, b)
+        arcs.append(x[1:])
+        speeds.append(v[1:])
+        arc, speed = x[-1], v[-1]
+        go = committed(plan, arc, speed, a_max)
+        if (((speed <= _STANDING) & ~go) | (arc > plan.hull_end)).all():  # `settled`, sharing `go`
+            break  # everyone stands before its zones or has left them: the fallback keeps it so
+        acc = fallback_given(shield, plan, arc, speed, go, a_max, dt)
+    return np.concatenate(arcs), np.concatenate(speeds)
+
+
+def conflicts_numpy(
+    shield: Shield, scene: Scene, plan: _Plan, arc: np.ndarray, speed: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``Shield._conflicts``: follow pairs whose gap closes, crossing pairs in their zone at once,
+    merging pairs too close after the merge, and vehicles that end neither settled nor cleared."""
+    del shield  # the check reads the plan only
+    later = arc[1:]
+    # Same path and merged: the gap to the vehicle ahead must stay open.
+    f, ahead = plan.follow[:, 0], plan.follow[:, 1]
+    gap = plan.follow_gap + (later[:, ahead] - plan.arc[ahead]) - (later[:, f] - plan.arc[f])
+    bad_follow = (gap < plan.follow_floor).any(axis=0)
+    # Crossing: never both in the pair's zone.
+    x = later[:, plan.cross]  # (T, c, 2)
+    both = ((x > plan.cross_lo) & (x < plan.cross_hi)).all(axis=2)
+    if plan.cross_already.any():
+        moved = x[:, np.arange(len(plan.cross)), plan.cross_back] > plan.cross_stop
+        both = np.where(plan.cross_already, both & moved, both)
+    bad_cross = both.any(axis=0)
+    # Merging: a separation along the common exit lane once both have reached the merge.
+    x = later[:, plan.merge]
+    reached = (x > plan.merge_lo).all(axis=2)
+    e = x - plan.merge_exit
+    bad_merge = (reached & (np.abs(e[..., 0] - e[..., 1]) < plan.merge_sep)).any(axis=0)
+    # At the end, everyone stands before its zones or has cleared them.
+    stuck = ~settled(plan, arc[-1], speed[-1], scene.a_max)
+    return bad_follow, bad_cross, bad_merge, stuck
+
+
+class PredictionLayout:
+    """The layout as :func:`envs.simulation.integrate` sees it in :func:`predict_numpy`: the governor's
+    speed envelope read in NumPy from the tables that the compiled prediction reads
+    (:func:`envs.planners.shield.envelope_table`), with :meth:`envs.layouts.Layout.envelope_at`'s
+    arithmetic. Every other attribute is the layout's.
+
+    :param layout: the intersection
+    :param deceleration: the governor deceleration the tables are built for [m/s^2]
+    """
+
+    def __init__(self, layout, deceleration: float) -> None:
+        self.layout = weakref.proxy(layout)  # the cache below is keyed weakly by the layout
+        self.deceleration = float(deceleration)
+        self.table = envelope_table(layout, self.deceleration)
+
+    def envelope_at(self, route: np.ndarray, arc: np.ndarray, deceleration: float) -> np.ndarray:
+        if float(deceleration) != self.deceleration:
+            return self.layout.envelope_at(route, arc, deceleration)
+        # Layout.envelope_at: u, i0, f as there; the limit's sample int(arc / ds) clipped to
+        # [0, last] is i0, or last where u reached it.
+        t = self.table
+        u = np.minimum(np.maximum(arc / t.ds, 0.0), t.last)
+        i0 = np.minimum(u.astype(np.int64), t.last - 1)
+        f = u - i0
+        flat = route * t.columns + i0
+        envelope = np.sqrt(t.sq.take(flat) + t.dsq.take(flat) * f)
+        return np.minimum(envelope, t.limit.take(flat + (u >= t.last)))
+
+    def __getattr__(self, name: str):
+        return getattr(self.layout, name)
+
+
+_VIEWS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def prediction_layout(layout, deceleration: float) -> PredictionLayout:
+    """The (cached) :class:`PredictionLayout` of a layout and governor deceleration."""
+    views = _VIEWS.setdefault(layout, {})
+    key = float(deceleration)
+    if key not in views:
+        views[key] = PredictionLayout(layout, key)
+    return views[key]
