@@ -85,7 +85,7 @@ def _read_cost(duration: float) -> str:
 
     sys.path.insert(0, str(HERE))
     from envs.evaluation import generate_scenarios
-    from envs.traffic import Scenario
+    from envs.simulation.traffic import Scenario
 
     with tempfile.TemporaryDirectory() as folder:
         path = generate_scenarios(folder, 1, duration, 0, "4way")[0]

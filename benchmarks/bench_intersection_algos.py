@@ -31,8 +31,8 @@ from envs.evaluation import evaluation_env_kwargs, generate_scenarios, run_episo
 from envs.metrics import run_metrics
 from envs.planners import make_planner
 from envs.planners.base import Planner
-from envs.scene_graph import build_observation
-from envs.traffic import Scenario
+from envs.simulation.graph import build_observation
+from envs.simulation.traffic import Scenario
 from sb3_graph.cli import main as cli
 from sb3_graph.commands.train import ALGORITHMS
 

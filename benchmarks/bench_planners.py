@@ -42,8 +42,8 @@ from envs.planners import make_planner
 from envs.planners.adversarial import FullThrottle
 from envs.planners.base import Planner
 from envs.planners.shield import Shield
-from envs.scene import Scene
-from envs.traffic import generate_scenario
+from envs.simulation.scene import Scene
+from envs.simulation.traffic import generate_scenario
 
 GNN = str(Path(__file__).resolve().parents[1] / "envs" / "pretrained" / "coop_4way" / "best_model.safetensors")
 PLANNERS = (

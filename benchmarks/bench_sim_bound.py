@@ -15,8 +15,8 @@ Per policy step (15 Hz simulation, 5 Hz policy: 3 sub-steps), both sides do:
 
 The bound (:func:`bound_step`) is that work written as one flat NumPy function over precomputed
 layout tables, state carried in plain arrays between steps (no objects, no caches, no events).
-"Ours" is :class:`envs.simulation.Simulation` (``step``, ``scene``) plus
-:func:`envs.scene_graph.build_observation`, as the environment calls them, and the whole
+"Ours" is :class:`envs.simulation.engine.Simulation` (``step``, ``scene``) plus
+:func:`envs.simulation.graph.build_observation`, as the environment calls them, and the whole
 ``env.step`` (adds reward terms, spawning and ``info``). Stock highway-env ``intersection-v0`` is
 topped up to the same vehicle counts before every step (see :func:`_time_stock`) and steps IDLE at
 its 1 Hz policy with 15 Hz simulation.
@@ -32,8 +32,9 @@ stock runs at least one step and ``--seconds`` / 6. Units: simulated s per wall 
 is 0.2 simulated s), policy steps per wall s, ms per policy step, and ours / bound (bound's time
 over ours: 1 = as fast); with ``--clock cpu``, per CPU second of this process instead.
 
-With ``--baseline DIR`` the simulation of another checkout (``DIR/envs/simulation.py`` and
-``layouts.py``) runs the same episodes too: a before/after comparison in one process.
+With ``--baseline DIR`` the simulation of another checkout (``DIR/envs/simulation/engine.py`` and
+``layouts.py``, or a flat ``envs/simulation.py`` from before) runs the same episodes too: a before/after
+comparison in one process.
 
 Run: ``python benchmarks/bench_sim_bound.py [--seconds 6] [--repeats 3] [--clock cpu] [--no-stock]
 [--baseline DIR]``
@@ -54,9 +55,9 @@ from pathlib import Path
 
 import numpy as np
 
-from envs.layouts import Layout, build_layout
-from envs.scene_graph import NODE_FEATURES, NUM_RELATIONS, build_observation, min_mahalanobis
-from envs.simulation import SPLIT_CLEARANCE, Simulation
+from envs.simulation.engine import SPLIT_CLEARANCE, Simulation
+from envs.simulation.graph import NODE_FEATURES, NUM_RELATIONS, build_observation, min_mahalanobis
+from envs.simulation.layouts import Layout, build_layout
 from sb3_graph.spaces import GraphSpace
 
 COUNTS = (10, 20, 50, 100)
@@ -326,8 +327,11 @@ def load_baseline(checkout: Path) -> tuple[type, Layout]:
     """The simulation and 4-way layout of another checkout (e.g. ``git worktree add /tmp/old <commit>``),
     imported as separate modules so that both versions run in this process."""
     modules = {}
-    for name in ("layouts", "simulation"):
-        spec = importlib.util.spec_from_file_location(f"baseline_{name}", checkout / "envs" / f"{name}.py")
+    for name, grouped in (("layouts", "layouts"), ("simulation", "engine")):
+        path = checkout / "envs" / "simulation" / f"{grouped}.py"  # envs/ grouped by question (issue #25)
+        if not path.is_file():
+            path = checkout / "envs" / f"{name}.py"  # a checkout from before
+        spec = importlib.util.spec_from_file_location(f"baseline_{name}", path)
         modules[name] = importlib.util.module_from_spec(spec)
         sys.modules[spec.name] = modules[name]  # dataclasses look their module up
         spec.loader.exec_module(modules[name])
@@ -387,7 +391,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--no-stock", action="store_true", help="leave out stock intersection-v0")
     parser.add_argument(
-        "--baseline", type=Path, help="another checkout whose envs/simulation.py is timed too, interleaved"
+        "--baseline", type=Path, help="another checkout whose simulation engine is timed too, interleaved"
     )
     args = parser.parse_args(argv)
     warnings.filterwarnings("ignore")

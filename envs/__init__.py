@@ -12,9 +12,9 @@ from __future__ import annotations
 from gymnasium.envs.registration import register, registry
 
 ENV_IDS = {
-    "CoopIntersection4Way-v0": "envs.intersection_env:CoopIntersection4WayEnv",
-    "CoopIntersection3Way-v0": "envs.intersection_env:CoopIntersection3WayEnv",
-    "CoopIntersectionInD-v0": "envs.intersection_env:CoopIntersectionInDEnv",
+    "CoopIntersection4Way-v0": "envs.simulation.env:CoopIntersection4WayEnv",
+    "CoopIntersection3Way-v0": "envs.simulation.env:CoopIntersection3WayEnv",
+    "CoopIntersectionInD-v0": "envs.simulation.env:CoopIntersectionInDEnv",
 }
 
 for _env_id, _entry_point in ENV_IDS.items():

@@ -4,7 +4,7 @@ One *job* is one planner on one scenario file: the environment is reset onto the
 at every policy step the planner answers the scene the environment shows
 (``env.unwrapped.scene()``) with one acceleration per vehicle, which the environment turns into
 its action (``env.unwrapped.accelerations_to_action``). The step records (``info["record"]``,
-:class:`envs.step_record.StepRecord`) and the scenes go into a vehicle log
+:class:`envs.simulation.step_record.StepRecord`) and the scenes go into a vehicle log
 (:class:`envs.metrics.VehicleLog`), reduced to one metrics row per job, with the counters the planner
 reports (:meth:`envs.planners.Planner.stats`: a shield's interventions).
 
@@ -38,7 +38,7 @@ import pandas as pd
 
 from envs.executors import JobExecutor, make_executor
 from envs.metrics import VehicleLog, run_metrics
-from envs.step_record import StepRecord, step_record
+from envs.simulation.step_record import StepRecord, step_record
 
 SCENARIO_SUFFIX = ".json"
 
@@ -148,16 +148,16 @@ def run_episode(
 
     :param env: the environment (a gymnasium env whose ``unwrapped`` provides ``scene()`` and
         ``accelerations_to_action(acc)``, and whose ``reset`` and ``step`` put a
-        :class:`~envs.step_record.StepRecord` into ``info["record"]``)
+        :class:`~envs.simulation.step_record.StepRecord` into ``info["record"]``)
     :param planner: a :class:`envs.planners.Planner`
     :param scenario: the scenario object, passed as ``reset(options={"scenario": scenario})``
     :param duration: simulated seconds to run (less if the environment ends the episode)
     :param seed: seed of the environment's reset and of the planner
     :param on_step: called after every policy step as ``on_step(scene, accelerations, record, next_scene)``
-        (e.g. to draw the episode, :mod:`envs.rendering`); it must not change what it is handed
+        (e.g. to draw the episode, :mod:`envs.simulation.rendering`); it must not change what it is handed
     :return: ``(vehicle log, facts)``: the log holds every vehicle scheduled within the run (see
         :mod:`envs.metrics`); facts ``return`` (the sum of the environment's rewards),
-        ``return_<preset>`` (the same run's return under each reward preset of :mod:`envs.rewards`),
+        ``return_<preset>`` (the same run's return under each reward preset of :mod:`envs.simulation.rewards`),
         ``duration`` (simulated seconds actually run),
         ``steps``, ``terminated`` (the environment ended the episode, e.g. on a collision with
         ``collision_handling="terminate"``; the harness's own environments go on instead)
@@ -201,9 +201,9 @@ def preset_returns(terms: dict[str, float]) -> dict[str, float]:
     """A run's return under each reward preset, from the sums of its unweighted terms.
 
     :param terms: ``term -> sum over the run's steps``
-    :return: ``{"return_<preset>": value}`` for every preset of :data:`envs.rewards.REWARD_PRESETS`
+    :return: ``{"return_<preset>": value}`` for every preset of :data:`envs.simulation.rewards.REWARD_PRESETS`
     """
-    from envs.rewards import REWARD_PRESETS
+    from envs.simulation.rewards import REWARD_PRESETS
 
     return {
         f"return_{name}": float(sum(weight * terms.get(key, 0.0) for key, weight in weights.items()))
@@ -233,8 +233,8 @@ def planned_accelerations(planner, scene) -> np.ndarray:
 
 
 def _schedule(scenario: Any):
-    """The :class:`envs.traffic.Scenario` behind a ``reset`` option (``None`` for none)."""
-    from envs.traffic import Scenario
+    """The :class:`envs.simulation.traffic.Scenario` behind a ``reset`` option (``None`` for none)."""
+    from envs.simulation.traffic import Scenario
 
     if isinstance(scenario, (str, Path)):
         return Scenario.load(scenario)
@@ -245,11 +245,11 @@ def run_job(job: Job, scenario: Any = None) -> tuple[dict[str, Any], pd.DataFram
     """Run one job (in whichever process calls it).
 
     :param job: what to run
-    :param scenario: the loaded :class:`envs.traffic.Scenario` of ``job.scenario`` (default: read the file)
+    :param scenario: the loaded :class:`envs.simulation.traffic.Scenario` of ``job.scenario`` (default: read the file)
     :return: ``(metrics row, vehicle log)``, both tagged with planner, run and scenario
     """
     from envs.planners.errors import PlannerError
-    from envs.traffic import Scenario
+    from envs.simulation.traffic import Scenario
 
     tic = time.perf_counter()
     env = _env(job.env_id, job.env_kwargs)
@@ -326,10 +326,10 @@ def generate_scenarios(
     :param seed: base seed
     :param layout: name of the intersection layout (see :func:`layout_of`)
     :param demand: arrival rate per major-road lane [veh/s] (minor lanes get half); default: a
-        rate drawn per scenario from the paper's range (:func:`envs.traffic.generate_scenario`)
+        rate drawn per scenario from the paper's range (:func:`envs.simulation.traffic.generate_scenario`)
     :return: the files, in order
     """
-    from envs.traffic import demand_scenario, generate_scenario
+    from envs.simulation.traffic import demand_scenario, generate_scenario
 
     if count < 1:
         raise ValueError(f"count (--scenarios) must be at least 1, got {count}")
@@ -394,7 +394,7 @@ def check_scenarios(paths: Sequence[str | Path], layout: str) -> None:
     :param layout: the environment's layout name
     :raises ValueError: an unreadable or invalid file, or one for another layout (naming the file)
     """
-    from envs.traffic import Scenario
+    from envs.simulation.traffic import Scenario
 
     for path in paths:
         scenario = Scenario.load(path)
@@ -442,7 +442,7 @@ def evaluate(
     :return: ``(runs, vehicles)``: one row per planner and run, one row per vehicle and run;
         sorted by planner (given order) and scenario, whatever order the workers finished in
     """
-    from envs.traffic import Scenario
+    from envs.simulation.traffic import Scenario
 
     if jobs < 1:
         raise ValueError(f"jobs must be at least 1, got {jobs}")

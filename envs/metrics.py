@@ -2,7 +2,7 @@
 
 A run's vehicles are collected into a *vehicle log* (one row per vehicle, :data:`VEHICLE_COLUMNS`)
 from the scenes the planner saw (what each vehicle is: route, priority, maneuver, where it started),
-the environment's step records (what happened to it: :class:`envs.step_record.StepRecord`) and the
+the environment's step records (what happened to it: :class:`envs.simulation.step_record.StepRecord`) and the
 scenario's schedule.
 
 Which vehicles count: **every scheduled vehicle**, the same set for every planner. A vehicle of
@@ -18,7 +18,7 @@ look better by keeping vehicles out of the scene.
   ``offered_flow`` is the flow a perfect planner could reach on the same scenario: the scheduled
   vehicles that would cross before the end of the run in free flow, per simulated second;
 - **delay**: from the *scheduled* appearance time (not the first appearance), against the
-  free-flow time of :mod:`envs.free_flow` (lane speed limits along the route, the environment's
+  free-flow time of :mod:`envs.simulation.free_flow` (lane speed limits along the route, the environment's
   acceleration bounds, from the scheduled initial speed at the spawn point). For a vehicle that
   crossed: ``crossed - scheduled - free_flow``. A vehicle that had not crossed when its record
   ended (end of the run, or removal after a collision: ``censored``) gets the delay it has
@@ -46,12 +46,12 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import pandas as pd
 
-from envs.scene import MANEUVERS, PRIORITY_NAMES, STOP_SPEED, Scene
-from envs.step_record import StepRecord, step_record
+from envs.simulation.scene import MANEUVERS, PRIORITY_NAMES, STOP_SPEED, Scene
+from envs.simulation.step_record import StepRecord, step_record
 
 if TYPE_CHECKING:
-    from envs.layouts import Layout
-    from envs.traffic import Scenario
+    from envs.simulation.layouts import Layout
+    from envs.simulation.traffic import Scenario
 
 VEHICLE_COLUMNS = (
     "vehicle_id",
@@ -252,7 +252,7 @@ class VehicleLog:
             rows["censored"] = np.where(not_crossed, rows["removed"].fillna(float(end)), np.nan)
         known = (rows["route_index"] >= 0) & rows["start_arc"].notna() & rows["start_speed"].notna()
         if self.layout is not None and known.any():
-            from envs.free_flow import free_flow_table, time_at
+            from envs.simulation.free_flow import free_flow_table, time_at
 
             lay, sub = self.layout, rows[known]
             route = sub["route_index"].to_numpy(np.int64)

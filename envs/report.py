@@ -32,7 +32,7 @@ import pandas as pd  # noqa: E402
 
 from envs.comparison import CONFIDENCE, PAIRED_METRICS, paired_differences  # noqa: E402
 from envs.metrics import PRIORITIES, SPEED_TOLERANCE, stop_counts, summarize  # noqa: E402
-from envs.scene import MANEUVERS  # noqa: E402
+from envs.simulation.scene import MANEUVERS  # noqa: E402
 
 NOTES = (
     "- Vehicles counted: every vehicle the scenario schedules within the run, the same set for every "

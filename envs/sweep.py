@@ -1,7 +1,7 @@
 """Demand sweep: planners against the arrival rate, each planner's capacity, and the figure.
 
 The sweep runs every planner on scenarios drawn at several demand levels (arrivals per second and
-major-road lane; minor-road lanes get half: :func:`envs.traffic.demand_scenario`) with the
+major-road lane; minor-road lanes get half: :func:`envs.simulation.traffic.demand_scenario`) with the
 evaluation harness, and reduces each level's ``summary.json`` (:func:`envs.metrics.summarize`)
 to one row per planner and level (:data:`SWEEP_COLUMNS`):
 

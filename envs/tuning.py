@@ -27,7 +27,7 @@ training config describes (:func:`trial_planner`): a ``residual_base`` config ma
 :class:`~envs.planners.residual.ResidualPlanner` on that base with the config's ``residual_scale``,
 a ``shield: true`` config puts it behind the safety :class:`~envs.planners.shield.Shield` (as
 ``sb3-graph evaluate --planner FILE+shield``). It runs :func:`envs.evaluation.run_episode` on a
-few validation scenarios, drawn in memory with :func:`envs.traffic.generate_scenario` exactly
+few validation scenarios, drawn in memory with :func:`envs.simulation.traffic.generate_scenario` exactly
 like the evaluation scenarios (the same seeds for every trial), in the harness's environment
 (the study's config without ``shield`` and ``residual_base``, which the planner applies, and with
 the harness's ``collision_handling``), and :func:`envs.metrics.summarize` turns the vehicle logs
@@ -48,7 +48,7 @@ from envs.evaluation import EVALUATION_CONFIG, run_episode
 from envs.metrics import run_metrics, summarize
 from envs.planners.base import Planner
 from envs.planners.gnn import GNNPlanner
-from envs.traffic import Scenario, generate_scenario
+from envs.simulation.traffic import Scenario, generate_scenario
 
 PRESET_NAME = "tuning"
 TUNING_PRESET: dict[str, Any] = {"duration": 20.0, "max_vehicles": 16, "max_edges": 192}

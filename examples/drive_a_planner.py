@@ -1,6 +1,6 @@
 """Drive a planner yourself: the evaluation harness's loop (``envs.evaluation.run_episode``) by hand.
 
-The environment shows a scene (every vehicle as arrays, ``envs.scene.Scene``), the planner answers
+The environment shows a scene (every vehicle as arrays, ``envs.simulation.scene.Scene``), the planner answers
 one acceleration per vehicle, and the environment turns them into its action::
 
     python examples/drive_a_planner.py --planner aim --seed 3 --duration 30
@@ -19,7 +19,7 @@ import numpy as np
 
 import envs  # noqa: F401  (registers the environments)
 from envs.planners import make_planner
-from envs.traffic import generate_scenario
+from envs.simulation.traffic import generate_scenario
 
 
 def main() -> None:
@@ -34,7 +34,7 @@ def main() -> None:
     planner = make_planner(args.planner)
     scenario = generate_scenario("4way", args.duration, args.seed)  # every vehicle's appearance, route, speed
     _, info = env.reset(seed=args.seed, options={"scenario": scenario})
-    record = info["record"]  # what the step did, typed (envs.step_record.StepRecord)
+    record = info["record"]  # what the step did, typed (envs.simulation.step_record.StepRecord)
     planner.reset(args.seed)
     crossed = collided = 0
     while record.time < args.duration - 1e-9:

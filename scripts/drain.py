@@ -19,7 +19,7 @@ import gymnasium as gym
 import envs  # noqa: F401 - registers the environments
 from envs.evaluation import evaluation_env_kwargs, run_episode, run_seed
 from envs.planners import make_planner
-from envs.traffic import Scenario
+from envs.simulation.traffic import Scenario
 
 
 def drain(scenario: Scenario, planner_spec: str, seed: int, until: float, env_id: str) -> dict[str, float]:

@@ -24,7 +24,7 @@ from envs.planners import make_planner
 from envs.planners.adversarial import FullThrottle
 from envs.planners.base import Planner
 from envs.planners.shield import Shield
-from envs.traffic import generate_scenario
+from envs.simulation.traffic import generate_scenario
 
 # Scene arrays stored per vehicle (everything a Scene holds besides the layout's tables).
 FIELDS = (

@@ -25,8 +25,8 @@ import numpy as np
 import envs  # noqa: F401  (registers the environments)
 from envs.planners import make_planner
 from envs.planners.adversarial import FullThrottle, RandomAccel
-from envs.rewards import PAPER_TERMS
-from envs.traffic import generate_scenario
+from envs.simulation.rewards import PAPER_TERMS
+from envs.simulation.traffic import generate_scenario
 
 DEFAULT_OUT = Path(__file__).resolve().parents[1] / "tests" / "data" / "simulation_regression.npz"
 # name -> (env id, planner, traffic: scenario seed or None for training traffic, steps, config)

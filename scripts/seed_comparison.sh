@@ -16,7 +16,7 @@ if [ $# -gt 1 ]; then SEEDS=("${@:2}"); fi
 # trial 0 of weights_fair) and the full environment's graph sizes, read where they are defined.
 read -r PRESET TUNED FULL_NODES FULL_EDGES < <(python -c "
 import json, yaml
-from envs.intersection_env import CoopIntersectionEnv
+from envs.simulation.env import CoopIntersectionEnv
 from envs.tuning import TUNING_PRESET
 entry = yaml.safe_load(open('examples/weight_study/best_params.yml'))['CoopIntersection4Way-v0']
 full = CoopIntersectionEnv.default_config()

@@ -30,7 +30,7 @@ from envs.planners.fifo import FIFO_CROSSING, FIFOPlanner
 from envs.planners.idm import CrossingParams
 from envs.planners.priority_rules import PriorityRulesPlanner
 from envs.planners.signal import SignalParams, SignalPlanner
-from envs.traffic import generate_scenario
+from envs.simulation.traffic import generate_scenario
 
 # planner -> (search space name -> (low, high), builder from the sampled values)
 SPACES = {

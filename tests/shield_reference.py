@@ -3,7 +3,7 @@ the only implementation the shield runs) match bit for bit.
 
 :func:`fallback_numpy`, :func:`predict_numpy` and :func:`conflicts_numpy` compute what
 ``Shield._fallback``, ``Shield.predict`` and ``Shield._conflicts`` compute, from the same plan
-(``Shield._plan``): the prediction with :func:`envs.simulation.integrate` itself, on a NumPy view
+(``Shield._plan``): the prediction with :func:`envs.simulation.engine.integrate` itself, on a NumPy view
 (:class:`PredictionLayout`) of the speed-envelope tables that the kernels read. The helpers below
 (:func:`committed`, :func:`waits`, :func:`leaders_now`, ...) are the rules the kernels implement
 once for the shield and the fallback. A change to a rule is made in the kernel; these functions
@@ -17,8 +17,8 @@ import weakref
 import numpy as np
 
 from envs.planners.shield import _STANDING, _STOP_SLACK, Shield, _Plan, envelope_table
-from envs.scene import Scene
-from envs.simulation import integrate
+from envs.simulation.engine import integrate
+from envs.simulation.scene import Scene
 
 
 def can_stop_before(arc: np.ndarray, speed: np.ndarray, line: np.ndarray, a_max: float) -> np.ndarray:
@@ -125,7 +125,7 @@ def fallback_numpy(shield: Shield, scene: Scene, plan: _Plan, arc: np.ndarray, s
 
 
 def predict_numpy(shield: Shield, scene: Scene, plan: _Plan, command: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``Shield.predict``: ``command`` for one period, then the fallback, with :func:`envs.simulation.integrate`.
+    """``Shield.predict``: ``command`` for one period, then the fallback, with :func:`envs.simulation.engine.integrate`.
 
     :return: ``(T + 1, n)`` arcs (row 0: now) and ``(T + 1, n)`` speeds
     """
@@ -179,9 +179,9 @@ def conflicts_numpy(
 
 
 class PredictionLayout:
-    """The layout as :func:`envs.simulation.integrate` sees it in :func:`predict_numpy`: the governor's
+    """The layout as :func:`envs.simulation.engine.integrate` sees it in :func:`predict_numpy`: the governor's
     speed envelope read in NumPy from the tables that the compiled prediction reads
-    (:func:`envs.planners.shield.envelope_table`), with :meth:`envs.layouts.Layout.envelope_at`'s
+    (:func:`envs.planners.shield.envelope_table`), with :meth:`envs.simulation.layouts.Layout.envelope_at`'s
     arithmetic. Every other attribute is the layout's.
 
     :param layout: the intersection

@@ -146,7 +146,7 @@ def _nested(depth: int) -> list:
 
 
 def _scenario(folder: Path, name: str, **changes) -> Path:
-    from envs.traffic import generate_scenario
+    from envs.simulation.traffic import generate_scenario
 
     folder.mkdir(exist_ok=True)
     data = generate_scenario("4way", 5.0, 0).to_dict()

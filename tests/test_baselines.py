@@ -11,7 +11,7 @@ import envs  # noqa: F401  (registers the environments)
 from envs.evaluation import evaluation_env_kwargs, run_episode
 from envs.planners import AIMPlanner, PriorityRulesPlanner, make_planner
 from envs.planners.signal import ALL_RED, GREEN, YELLOW, SignalController, SignalParams
-from envs.traffic import generate_scenario
+from envs.simulation.traffic import generate_scenario
 
 EMPTY = {"spawn_probability": 0.0, "initial_spawn_probability": 0.0}
 

@@ -6,7 +6,7 @@ import gymnasium as gym
 import pytest
 
 import envs  # noqa: F401
-from envs.intersection_env import CoopIntersection3WayEnv, CoopIntersectionEnv
+from envs.simulation.env import CoopIntersection3WayEnv, CoopIntersectionEnv
 
 
 def test_defaults_and_merge():
@@ -78,7 +78,7 @@ def test_error_lists_what_is_allowed():
 
 
 def test_spawn_probability_range_draws_per_episode():
-    from envs.intersection_env import CoopIntersectionEnv
+    from envs.simulation.env import CoopIntersectionEnv
 
     env = CoopIntersectionEnv(config={"spawn_probability_range": [0.01, 0.06]})
     drawn = set()

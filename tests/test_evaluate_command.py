@@ -113,7 +113,7 @@ def test_saved_model_runs_as_a_planner(tmp_path):
 
 
 def test_scenarios_of_another_layout_are_refused(tmp_path, capsys):
-    from envs.traffic import generate_scenario
+    from envs.simulation.traffic import generate_scenario
 
     folder = tmp_path / "scenarios"
     folder.mkdir()
@@ -152,7 +152,7 @@ def test_default_planners_are_the_baselines_and_the_shipped_model():
 
 
 def test_report_states_the_simulated_duration_of_shorter_scenario_files(tmp_path):
-    from envs.traffic import generate_scenario
+    from envs.simulation.traffic import generate_scenario
 
     folder = tmp_path / "scenarios"
     folder.mkdir()

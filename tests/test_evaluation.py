@@ -13,8 +13,8 @@ from envs.evaluation import run_episode
 from envs.metrics import add_travel_times, run_metrics
 from envs.planners import FIFOPlanner, PriorityRulesPlanner
 from envs.report import FIGURES, REPORT_FILES, write_report
-from envs.scene import MAJOR, MINOR, STRAIGHT, Scene
-from envs.step_record import StepRecord
+from envs.simulation.scene import MAJOR, MINOR, STRAIGHT, Scene
+from envs.simulation.step_record import StepRecord
 
 SUMMARY_KEYS = {
     "runs", "vehicles", "vehicles_scheduled", "not_spawned", "flow_rate", "offered_flow", "stop_ratio",
@@ -26,7 +26,7 @@ SUMMARY_KEYS = {
 class CrossingStub:
     """Two vehicles on crossing paths, major 40 m and minor 15 m before their stop lines.
 
-    Kinematics from the commanded accelerations; the step record (envs.step_record) in the info.
+    Kinematics from the commanded accelerations; the step record (envs.simulation.step_record) in the info.
     """
 
     dt = 0.2
@@ -128,7 +128,7 @@ def test_planner_counters_reach_the_metrics_row_through_stats(tmp_path):
     """Any planner's :meth:`~envs.planners.Planner.stats` become columns of its runs; the planner-error
     lines only come with a ``planner_errors`` counter (a shield's)."""
     from envs.evaluation import Job, run_job
-    from envs.traffic import generate_scenario
+    from envs.simulation.traffic import generate_scenario
 
     (tmp_path / "counting.py").write_text(
         "from envs.planners import FIFOPlanner\n\n\n"
@@ -220,7 +220,7 @@ def test_baselines_collision_free_and_live_on_dense_traffic(name):
 
     import envs  # noqa: F401
     from envs.planners import make_planner
-    from envs.traffic import generate_scenario
+    from envs.simulation.traffic import generate_scenario
 
     env = gym.make("CoopIntersection4Way-v0")
     for seed in range(2):
@@ -235,7 +235,7 @@ def test_harness_runs_go_on_after_collisions():
     """The harness's environments remove crashed vehicles instead of ending the run, so a planner
     that never yields is measured over the whole duration; the user's own setting still wins."""
     from envs import evaluation
-    from envs.traffic import generate_scenario
+    from envs.simulation.traffic import generate_scenario
 
     kwargs = evaluation.evaluation_env_kwargs({"config": {"max_vehicles": 32}})
     assert kwargs["config"] == {"collision_handling": "remove", "max_vehicles": 32}
@@ -269,7 +269,7 @@ def test_baselines_collision_free_on_ind_and_3way(env_id, layout, name):
 
     import envs  # noqa: F401
     from envs.planners import make_planner
-    from envs.traffic import generate_scenario
+    from envs.simulation.traffic import generate_scenario
 
     env = gym.make(env_id)
     crossed = 0
@@ -286,7 +286,7 @@ def test_every_scheduled_vehicle_counts_even_if_it_never_appeared():
     could not appear are still in the log (stopped, delayed from their scheduled time to the end),
     so both planners are measured on the same scheduled set."""
     from envs import evaluation
-    from envs.traffic import demand_scenario
+    from envs.simulation.traffic import demand_scenario
 
     class Stopper(PriorityRulesPlanner):
         def act(self, scene):

@@ -7,8 +7,8 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from envs.free_flow import free_flow_table, time_at
-from envs.layouts import build_layout
+from envs.simulation.free_flow import free_flow_table, time_at
+from envs.simulation.layouts import build_layout
 
 DS = 0.5
 

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 import envs  # noqa: F401
-from envs.layouts import build_layout
+from envs.simulation.layouts import build_layout
 
 
 @pytest.mark.parametrize("layout", ["4way", "3way", "inD"])

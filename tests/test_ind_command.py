@@ -106,7 +106,7 @@ def test_user_errors_are_one_line_and_name_the_problem(data, tmp_path, capsys):
 
 
 def test_scenario_files_hold_the_mapped_vehicles(data, tmp_path):
-    traffic = pytest.importorskip("envs.traffic")
+    traffic = pytest.importorskip("envs.simulation.traffic")
     from envs.commands import ind
 
     folder, written = data
@@ -154,7 +154,7 @@ def _replay_ready() -> bool:
 
         import envs  # noqa: F401
         import envs.evaluation  # noqa: F401
-        import envs.traffic  # noqa: F401
+        import envs.simulation.traffic  # noqa: F401
 
         return "CoopIntersectionInD-v0" in gym.registry
     except Exception:
@@ -163,7 +163,7 @@ def _replay_ready() -> bool:
 
 @pytest.mark.skipif(not _replay_ready(), reason="the environment and the evaluation harness are not ready")
 def test_replay_end_to_end(tmp_path, capsys, monkeypatch):
-    import envs.traffic as traffic
+    import envs.simulation.traffic as traffic
 
     # The harness reads scenario files with load_scenario; --jobs 1 runs in this process.
     if not hasattr(traffic, "load_scenario"):

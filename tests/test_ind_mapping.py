@@ -217,7 +217,7 @@ def test_recordings_of_one_site_are_mapped_together_with_their_own_times(tmp_pat
 
 
 def test_routes_and_maneuvers_agree_with_the_simulated_ind_layout(site_a, tmp_path):
-    layouts = pytest.importorskip("envs.layouts")
+    layouts = pytest.importorskip("envs.simulation.layouts")
     layout = layouts.build_layout("inD")
     arms = m.layout_arms(layout)
     assert arms.angles["north"] == pytest.approx(np.pi / 2)  # y flipped into the inD frame
@@ -279,7 +279,7 @@ def _uneven(tmp_path, vehicles=None):
 
 
 def test_arrival_timing_reaches_the_stop_line_when_the_recorded_vehicle_entered(tmp_path):
-    from envs.layouts import build_layout
+    from envs.simulation.layouts import build_layout
 
     written, recording = _uneven(tmp_path)
     routes = m.layout_arms(build_layout("inD")).routes
@@ -312,7 +312,7 @@ def test_arrival_timing_reaches_the_stop_line_when_the_recorded_vehicle_entered(
 
 
 def test_arrival_timing_is_never_before_time_zero_and_falls_back_to_the_centre(tmp_path):
-    from envs.layouts import build_layout
+    from envs.simulation.layouts import build_layout
 
     vehicles = [
         SyntheticVehicle("north", "south", 0.5, 8.0),  # short arm: would have to appear before 0

@@ -12,8 +12,8 @@ from gymnasium.utils.env_checker import check_env as gym_check_env
 from stable_baselines3.common.env_checker import check_env as sb3_check_env
 
 import envs
-from envs.scene_graph import build_observation
-from envs.traffic import Scenario, generate_scenario
+from envs.simulation.graph import build_observation
+from envs.simulation.traffic import Scenario, generate_scenario
 
 torch.set_num_threads(1)
 

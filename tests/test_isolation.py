@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from envs.evaluation import Job, generate_scenarios, run_job
-from envs.layouts import LAYOUT_NAMES, build_layout
 from envs.planners.hostile import LayoutEditor
-from envs.simulation import Simulation
+from envs.simulation.engine import Simulation
+from envs.simulation.layouts import LAYOUT_NAMES, build_layout
 
 ROOT = Path(__file__).resolve().parents[1]
 ENV = "CoopIntersection4Way-v0"

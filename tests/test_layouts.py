@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from envs.layouts import ARM_ANGLES, KINK_REACH, LAYOUT_NAMES, build_layout
-from envs.scene import LEFT, MAJOR, MINOR, RIGHT, STRAIGHT
+from envs.simulation.layouts import ARM_ANGLES, KINK_REACH, LAYOUT_NAMES, build_layout
+from envs.simulation.scene import LEFT, MAJOR, MINOR, RIGHT, STRAIGHT
 
 
 @pytest.fixture(params=LAYOUT_NAMES)

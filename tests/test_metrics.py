@@ -9,8 +9,8 @@ import pytest
 
 import envs  # noqa: F401  (registers the environments)
 from envs.metrics import VehicleLog, add_travel_times, governor_share, run_metrics, summarize, vehicle_frame
-from envs.scene import LEFT, MAJOR, MINOR, RIGHT, STRAIGHT, Scene
-from envs.step_record import StepRecord
+from envs.simulation.scene import LEFT, MAJOR, MINOR, RIGHT, STRAIGHT, Scene
+from envs.simulation.step_record import StepRecord
 
 
 def _vehicle(

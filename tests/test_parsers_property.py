@@ -13,12 +13,12 @@ import pytest
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
-from envs.config import RULES, validate_config
 from envs.ind.format import IndDataError, parse_recordings, recording_file
 from envs.ind.loader import load_recording
 from envs.ind.synthetic import SyntheticSite, default_vehicles, make_recording, write_recording
-from envs.intersection_env import CoopIntersectionEnv
-from envs.traffic import Scenario
+from envs.simulation.config import RULES, validate_config
+from envs.simulation.env import CoopIntersectionEnv
+from envs.simulation.traffic import Scenario
 from sb3_graph.experiment import ExperimentError, check_entry, resolve_object
 from sb3_graph.safe_values import UnsafeValueError, parse_value
 from sb3_graph.weights import PolicyDescription, PolicyFileError, space_from_json

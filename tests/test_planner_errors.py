@@ -12,7 +12,7 @@ from envs.evaluation import evaluate, evaluation_env_kwargs, generate_scenarios,
 from envs.planners.base import Planner
 from envs.planners.errors import PlannerError, checked_accelerations
 from envs.planners.shield import Shield
-from envs.traffic import Scenario
+from envs.simulation.traffic import Scenario
 from sb3_graph.cli import main
 
 ENV = "CoopIntersection4Way-v0"

@@ -17,7 +17,7 @@ import pytest
 import envs  # noqa: F401  (registers the environments)
 from envs.planners import AIMPlanner, SignalPlanner
 from envs.planners.shield import Shield
-from envs.scene import Scene
+from envs.simulation.scene import Scene
 
 DATA = Path(__file__).parent / "data" / "planner_scenes.npz"
 FIELDS = (
@@ -88,7 +88,7 @@ def test_planner_answers_as_recorded(data, run, planner):
 def test_gnn_predict_is_sb3_predict(data):
     """The GNN planner's direct inference answers exactly as the policy's SB3 ``predict``."""
     from envs.planners.gnn import GNNPlanner
-    from envs.scene_graph import build_observation
+    from envs.simulation.graph import build_observation
 
     path = Path(__file__).parents[1] / "envs" / "pretrained" / "coop_4way" / "best_model.safetensors"
     planner = GNNPlanner(path)
@@ -162,7 +162,7 @@ def test_gnn_scene_batch_is_the_padded_observation(data):
     import torch
 
     from envs.planners.gnn import GNNPlanner
-    from envs.scene_graph import build_graph_batch, build_observation
+    from envs.simulation.graph import build_graph_batch, build_observation
     from sb3_graph.batching import padded_to_batch
 
     path = Path(__file__).parents[1] / "envs" / "pretrained" / "coop_4way" / "best_model.safetensors"

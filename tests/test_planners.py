@@ -8,7 +8,7 @@ import pytest
 from envs.planners import FIFOPlanner, PriorityRulesPlanner, check_planner_spec, make_planner, planner_name
 from envs.planners.idm import IDMParams, idm_acceleration, leader_chain_max, travel_time
 from envs.planners.priority_rules import maneuver_priority
-from envs.scene import LEFT, MAJOR, MINOR, RIGHT, STRAIGHT, Scene
+from envs.simulation.scene import LEFT, MAJOR, MINOR, RIGHT, STRAIGHT, Scene
 
 # Three routes: south->north (major, straight), west->east (minor, straight),
 # north->south (major, straight). Only the two straights across each other conflict.
@@ -242,12 +242,12 @@ def test_gnn_planner_scales_the_model_action(monkeypatch, tmp_path):
         assert names == {"vertex_feature_names": (), "edge_feature_names": ()}  # a file without a planner config
         return {"n": scene.num_vehicles}
 
-    import envs.scene_graph as real
+    import envs.simulation.graph as real
 
     fake = types.SimpleNamespace(
         build_observation=build_observation, EDGE_FEATURES=real.EDGE_FEATURES, VERTEX_FEATURES=real.VERTEX_FEATURES
     )
-    monkeypatch.setitem(sys.modules, "envs.scene_graph", fake)
+    monkeypatch.setitem(sys.modules, "envs.simulation.graph", fake)
     monkeypatch.setattr(gnn, "load_model", lambda path, device="cpu", **kwargs: FakeModel())
     planner = gnn.GNNPlanner(tmp_path / "run" / "best_model.zip")
     assert planner.name == "RL:run"

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from envs.layouts import LAYOUT_NAMES
-from envs.rendering import COLLIDED, MOVING, STOPPED, EpisodeRecorder, outlines
-from envs.step_record import StepRecord
+from envs.simulation.layouts import LAYOUT_NAMES
+from envs.simulation.rendering import COLLIDED, MOVING, STOPPED, EpisodeRecorder, outlines
+from envs.simulation.step_record import StepRecord
 from sb3_graph.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]

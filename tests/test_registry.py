@@ -11,7 +11,7 @@ import torch
 import envs  # noqa: F401  (registers the environments)
 import sb3_graph
 from envs.planners.gnn import GNNPlanner
-from envs.scene_graph import build_observation
+from envs.simulation.graph import build_observation
 from sb3_graph.cli import main
 from sb3_graph.registry import ALGORITHMS, algorithm_entry, entry_of_policy
 from sb3_graph.weights import POLICY_REGISTRY, load_policy

@@ -6,7 +6,7 @@ import pandas as pd
 import pytest
 
 from envs.evaluation import preset_returns
-from envs.rewards import PAPER_REWARD_WEIGHTS, REWARD_PRESETS, TASK_REWARD_WEIGHTS
+from envs.simulation.rewards import PAPER_REWARD_WEIGHTS, REWARD_PRESETS, TASK_REWARD_WEIGHTS
 from sb3_graph.cli import main
 
 

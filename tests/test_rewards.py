@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import envs  # noqa: F401  (registers the environments)
-from envs.rewards import (
+from envs.simulation.rewards import (
     PAPER_REWARD_WEIGHTS,
     PAPER_TERMS,
     REWARD_TERMS,
@@ -16,7 +16,7 @@ from envs.rewards import (
     reward_terms,
     velocity_reward,
 )
-from envs.scene import STOP_SPEED
+from envs.simulation.scene import STOP_SPEED
 
 
 def _empty_env(**config):

@@ -5,9 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from envs.layouts import LAYOUT_NAMES, build_layout
-from envs.scene import Scene
-from envs.scene_graph import (
+from envs.simulation.engine import Simulation
+from envs.simulation.graph import (
     CROSSING,
     DEFAULT_S_SCALE,
     SAME_LANE,
@@ -17,7 +16,8 @@ from envs.scene_graph import (
     mahalanobis_matrix,
     node_features,
 )
-from envs.simulation import Simulation
+from envs.simulation.layouts import LAYOUT_NAMES, build_layout
+from envs.simulation.scene import Scene
 from sb3_graph.spaces import GraphSpace
 
 
@@ -153,7 +153,7 @@ def _manual_scene(pos, heading, speed):
 
 
 def test_edge_features_distance_and_bearing():
-    from envs.scene_graph import edge_features
+    from envs.simulation.graph import edge_features
 
     sim = _sim()
     rid = sim.layout.route_id

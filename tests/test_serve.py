@@ -27,9 +27,9 @@ import pytest
 import envs  # noqa: F401  (registers the environments)
 from envs.planners import AIMPlanner, check_planner_spec, make_planner, planner_name
 from envs.planners.shield import Shield
-from envs.scene import Scene
 from envs.serve.client import TOKEN_FILE_VARIABLE, PlannerClient, RemotePlannerError
 from envs.serve.wire import SceneBuilder, WireError, scene_to_wire
+from envs.simulation.scene import Scene
 from sb3_graph.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -11,13 +11,13 @@ from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from envs.evaluation import evaluation_env_kwargs, run_episode
-from envs.layouts import build_layout
 from envs.planners import Planner, _shield_kernel, make_planner, planner_name
 from envs.planners.adversarial import FullThrottle, RandomAccel
 from envs.planners.shield import _STANDING, _STOP_SLACK, Shield
-from envs.scene import Scene
-from envs.simulation import Simulation
-from envs.traffic import generate_scenario
+from envs.simulation.engine import Simulation
+from envs.simulation.layouts import build_layout
+from envs.simulation.scene import Scene
+from envs.simulation.traffic import generate_scenario
 
 
 class Fixed(Planner):
@@ -149,7 +149,7 @@ def test_random_scenes_under_random_proposals_never_collide(seed, count, full):
 def test_prediction_layout_is_bitwise_the_layout(layout):
     """The envelope tables of the compiled prediction, read as the oracle reads them, answer the speed
     envelope exactly as the layout (and so integrate)."""
-    from envs.simulation import integrate
+    from envs.simulation.engine import integrate
 
     lay = build_layout(layout)
     view = reference.prediction_layout(lay, 3.0)

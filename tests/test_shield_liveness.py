@@ -10,7 +10,7 @@ from envs.evaluation import evaluation_env_kwargs, run_episode
 from envs.metrics import STANDSTILL_LIMIT, run_metrics, standstill
 from envs.planners.hostile import BoxParker, LineHolder
 from envs.planners.shield import Shield
-from envs.traffic import generate_scenario
+from envs.simulation.traffic import generate_scenario
 
 ENVS = {"4way": "CoopIntersection4Way-v0", "3way": "CoopIntersection3Way-v0", "inD": "CoopIntersectionInD-v0"}
 

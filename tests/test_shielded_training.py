@@ -14,7 +14,7 @@ from envs.planners.base import Planner
 from envs.planners.gnn import check_planner_config
 from envs.planners.residual import ResidualPlanner
 from envs.planners.shield import Shield
-from envs.traffic import generate_scenario
+from envs.simulation.traffic import generate_scenario
 from sb3_graph import TD3
 from sb3_graph.callbacks import ActorWarmupCallback
 

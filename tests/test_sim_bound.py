@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from envs.layouts import build_layout
-from envs.scene_graph import NODE_FEATURES, NUM_RELATIONS, build_observation, min_mahalanobis
-from envs.simulation import Simulation
+from envs.simulation.engine import Simulation
+from envs.simulation.graph import NODE_FEATURES, NUM_RELATIONS, build_observation, min_mahalanobis
+from envs.simulation.layouts import build_layout
 from sb3_graph.spaces import GraphSpace
 
 _path = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_sim_bound.py"

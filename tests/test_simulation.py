@@ -7,9 +7,9 @@ import pytest
 from highway_env import utils as hw_utils
 from highway_env.vehicle.kinematics import Vehicle
 
-from envs.layouts import build_layout
-from envs.scene import STOP_SPEED
-from envs.simulation import Simulation, overlapping_pairs
+from envs.simulation.engine import Simulation, overlapping_pairs
+from envs.simulation.layouts import build_layout
+from envs.simulation.scene import STOP_SPEED
 
 
 @pytest.fixture

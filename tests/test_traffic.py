@@ -7,9 +7,9 @@ import json
 import numpy as np
 import pytest
 
-from envs.layouts import build_layout
-from envs.simulation import Simulation
-from envs.traffic import Scenario, ScenarioTraffic, TrainingTraffic, generate_scenario
+from envs.simulation.engine import Simulation
+from envs.simulation.layouts import build_layout
+from envs.simulation.traffic import Scenario, ScenarioTraffic, TrainingTraffic, generate_scenario
 
 
 def test_generated_scenario_follows_the_rates_and_headways():

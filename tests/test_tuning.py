@@ -10,7 +10,7 @@ import torch as th
 import yaml
 from optuna.trial import TrialState
 
-from envs.intersection_env import CoopIntersectionEnv
+from envs.simulation.env import CoopIntersectionEnv
 from sb3_graph.cli import main
 from sb3_graph.tuning.objectives import COLLISION, DELAY, FLOW, STOP, check_metrics, make_objective
 from sb3_graph.tuning.pruners import evaluation_steps

@@ -10,7 +10,7 @@ import torch as th
 import yaml
 from optuna.trial import TrialState
 
-from envs.rewards import PAPER_REWARD_WEIGHTS, TASK_REWARD_WEIGHTS
+from envs.simulation.rewards import PAPER_REWARD_WEIGHTS, TASK_REWARD_WEIGHTS
 from sb3_graph.cli import main
 from sb3_graph.commands import UserError
 from sb3_graph.registry import ALGORITHMS

@@ -14,7 +14,7 @@ from envs.planners import make_planner
 from envs.planners.adversarial import FullThrottle
 from envs.planners.gnn import GNNPlanner
 from envs.planners.shield import Shield
-from envs.scene_graph import (
+from envs.simulation.graph import (
     DEFAULT_S_SCALE,
     VERTEX_FEATURES,
     build_observation,
@@ -81,7 +81,7 @@ def test_committed_is_the_shields_rule():
 def test_zone_edge_features_mirror_on_reversed_edges():
     for scene in _busy_scenes(seed=1):
         edge_index, edge_type = edges(scene)
-        from envs.scene_graph import edge_features
+        from envs.simulation.graph import edge_features
 
         attr = edge_features(scene, edge_index, ZONE_EDGES)
         crossing = edge_type == 1

@@ -50,7 +50,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from envs.traffic import MAX_DURATION
+from envs.simulation.traffic import MAX_DURATION
 from sb3_graph.commands import UserError
 from sb3_graph.commands.arguments import finite_float, json_object, seed_value
 

@@ -205,7 +205,7 @@ def load_and_map(args: argparse.Namespace):
     except (FileNotFoundError, IndDataError) as error:
         raise UserError(str(error)) from None
     try:
-        from envs.layouts import build_layout
+        from envs.simulation.layouts import build_layout
 
         layout = layout_arms(build_layout(DEFAULT_LAYOUT))
     except ImportError:
@@ -292,7 +292,7 @@ def write_scenarios(mapped, recordings: Sequence, folder: Path, layout: str = DE
     :return: the files, in recording order
     """
     from envs.ind.mapping import DEFAULT_VEHICLE_LENGTH, DEFAULT_VEHICLE_WIDTH, scenario_records
-    from envs.traffic import Scenario
+    from envs.simulation.traffic import Scenario
 
     folder.mkdir(parents=True, exist_ok=False)
     paths = []

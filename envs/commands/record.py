@@ -183,7 +183,7 @@ def _settings(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def _check_outputs(args: argparse.Namespace) -> None:
-    from envs.rendering import check_format
+    from envs.simulation.rendering import check_format
 
     for flag, path in (("--out", args.out), ("--still", args.still)):
         if path is not None and (Path(path).exists() or Path(path).is_symlink()):
@@ -203,7 +203,7 @@ def _check_outputs(args: argparse.Namespace) -> None:
 
 
 def _scenario(settings: dict[str, Any], layout: str):
-    from envs.traffic import Scenario, generate_scenario
+    from envs.simulation.traffic import Scenario, generate_scenario
 
     if settings.get("scenario") is None:
         return generate_scenario(layout, settings["duration"], settings["seed"])
@@ -224,7 +224,7 @@ def run(args: argparse.Namespace) -> int:
     from envs.commands.evaluate import check_env_id, checked_env, checked_planners, load_model_planners
     from envs.evaluation import evaluation_env_kwargs
     from envs.planners import make_planner
-    from envs.rendering import record_episode, write_animation
+    from envs.simulation.rendering import record_episode, write_animation
     from sb3_graph.outputs import OutputError, write_file_atomically
 
     _check_outputs(args)
@@ -278,7 +278,7 @@ def _write_png(episodes, path: Path, index: int, view: float) -> None:
     import shutil
     import tempfile
 
-    from envs.rendering import write_frame
+    from envs.simulation.rendering import write_frame
 
     with tempfile.TemporaryDirectory(prefix=".record-", dir=Path(path).parent) as folder:
         target = Path(folder) / "frame.png"

@@ -15,7 +15,7 @@ import pandas as pd
 
 from envs.ind.loader import Recording
 from envs.ind.mapping import MappedTracks
-from envs.scene import MANEUVERS, PRIORITY_NAMES
+from envs.simulation.scene import MANEUVERS, PRIORITY_NAMES
 
 CATEGORIES: tuple[str, ...] = (
     "all",

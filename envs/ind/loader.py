@@ -24,7 +24,7 @@ from envs.ind.format import (
     IndDataError,
     recording_file,
 )
-from envs.traffic import MAX_DURATION
+from envs.simulation.traffic import MAX_DURATION
 
 SPEED_SOURCES = ("norm", "lon")
 

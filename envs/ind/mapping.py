@@ -38,7 +38,7 @@ import numpy as np
 import pandas as pd
 
 from envs.ind.loader import Recording
-from envs.scene import MAJOR, MANEUVERS, STOP_SPEED
+from envs.simulation.scene import MAJOR, MANEUVERS, STOP_SPEED
 
 COMPASS: tuple[str, ...] = ("east", "north", "west", "south")  # counter-clockwise from +x
 
@@ -143,17 +143,17 @@ class LayoutArms:
             raise ValueError(f"major must be two of the arms {sorted(self.angles)}, got {self.major!r}")
 
 
-# The simulated four-way when envs.layouts cannot say: compass arms, east-west priority road.
+# The simulated four-way when envs.simulation.layouts cannot say: compass arms, east-west priority road.
 DEFAULT_LAYOUT = LayoutArms(angles={n: k * np.pi / 2 for k, n in enumerate(COMPASS)}, major=("east", "west"))
 
 
 def layout_arms(layout: Any) -> LayoutArms:
-    """The alignment interface of a simulated layout (an :class:`envs.layouts.Layout`).
+    """The alignment interface of a simulated layout (an :class:`envs.simulation.layouts.Layout`).
 
     The layouts use highway-env's frame (``y`` south, arm angles ``atan2(y, x)`` there), inD a
     right-handed frame with ``y`` north: the angles change sign, which keeps left turns left.
 
-    :param layout: an :class:`envs.layouts.Layout` (centred on the origin); the arms need
+    :param layout: an :class:`envs.simulation.layouts.Layout` (centred on the origin); the arms need
         ``arm_angle`` (arm -> outward angle [rad], ``y`` south), ``entry_arm`` and ``priority``
         (per route); the route geometry of the arrival timing is read when the layout has
         ``route_names``, ``entry_arc``, ``exit_arc``, ``xy``, ``ds`` and ``speed_limit``
@@ -431,14 +431,14 @@ def map_recordings(
     :param recordings: loaded recordings, all of one site (they share the local frame)
     :param options: mapping options
     :param layout: the simulated layout's arms and route geometry (default: those of the
-        ``"inD"`` layout of :mod:`envs.layouts`, the one the replay runs on)
+        ``"inD"`` layout of :mod:`envs.simulation.layouts`, the one the replay runs on)
     :return: the mapping of every track
     :raises ValueError: recordings of several sites, nothing to map, or ``arrival_timing`` with a
         layout that has no route geometry
     """
     options = options or MappingOptions()
     if layout is None:
-        from envs.layouts import build_layout
+        from envs.simulation.layouts import build_layout
 
         layout = layout_arms(build_layout("inD"))
     if options.arrival_timing and layout.routes is None:

@@ -10,14 +10,14 @@ per-call overhead of some 20 NumPy calls, less than ``integrate`` alone makes, s
 gets there (benchmarks/README.md, "The shield compiled (numba)").
 
 These kernels are the only implementation of the shield's prediction, fallback and check.
-``tests/shield_reference.py`` holds the same rules in NumPy, with :func:`envs.simulation.integrate`
+``tests/shield_reference.py`` holds the same rules in NumPy, with :func:`envs.simulation.engine.integrate`
 itself: every function here performs the same floating-point operations in the same order as its
 NumPy form (no ``fastmath``, so no reassociation or fused multiply-add), so that
 ``tests/test_shield.py`` can require the results to be bitwise equal:
 
-- :func:`_envelope`: :meth:`envs.layouts.Layout.envelope_at` for one vehicle, from the tables of
+- :func:`_envelope`: :meth:`envs.simulation.layouts.Layout.envelope_at` for one vehicle, from the tables of
   :func:`envs.planners.shield.envelope_table`,
-- :func:`_integrate`: :func:`envs.simulation.integrate` for one policy period,
+- :func:`_integrate`: :func:`envs.simulation.engine.integrate` for one policy period,
 - :func:`_committed`, :func:`_fallback`: the reference's ``committed`` and ``fallback_given``
   (with ``yielding``, ``leaders_now`` and ``safe_gap_after``),
 - :func:`predict`: the reference's ``predict_numpy``; :func:`fallback`: ``fallback_numpy``,
@@ -76,7 +76,7 @@ class EnvelopeTable(NamedTuple):
 
 @numba.njit(cache=True)
 def _envelope(table: EnvelopeTable, route: int, arc: float) -> float:
-    """The governor's speed envelope at one point: :meth:`envs.layouts.Layout.envelope_at`'s arithmetic.
+    """The governor's speed envelope at one point: :meth:`envs.simulation.layouts.Layout.envelope_at`'s arithmetic.
 
     :param table: the envelope's tables
     :param route: route index
@@ -104,7 +104,7 @@ def _integrate(
     h: float,
     max_speed: float,
 ) -> None:
-    """One policy period of :func:`envs.simulation.integrate`, written into ``arcs`` and ``speeds``.
+    """One policy period of :func:`envs.simulation.engine.integrate`, written into ``arcs`` and ``speeds``.
 
     Vehicles are independent in the model, so each runs its sub-steps on its own.
 

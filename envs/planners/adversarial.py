@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from envs.planners.base import Planner
-from envs.scene import Scene
+from envs.simulation.scene import Scene
 
 
 class FullThrottle(Planner):

@@ -1,7 +1,7 @@
 """Reservation per conflict zone in the spirit of Dresner & Stone's AIM (autonomous intersection management).
 
 Every route pair that crosses or merges has a conflict zone on each of the two routes
-(:attr:`envs.layouts.Layout.zone_start`, :attr:`~envs.layouts.Layout.zone_end`). A vehicle's body
+(:attr:`envs.simulation.layouts.Layout.zone_start`, :attr:`~envs.simulation.layouts.Layout.zone_end`). A vehicle's body
 occupies a zone from the moment its front bumper reaches the zone's start until its rear bumper
 leaves the zone's end. Each policy step the planner re-plans every vehicle that has not left the
 intersection:
@@ -51,7 +51,7 @@ from envs.planners.idm import (
     leader_chain_max,
 )
 from envs.planners.vehicle_model import inner_limit, line_speed
-from envs.scene import Scene
+from envs.simulation.scene import Scene
 
 
 @dataclass(frozen=True)

@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from envs.scene import Scene
+from envs.simulation.scene import Scene
 
 if TYPE_CHECKING:
     from envs.planners.errors import PlannerError

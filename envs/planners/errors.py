@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from envs.scene import Scene
+from envs.simulation.scene import Scene
 
 # How far outside [a_min, a_max] an acceleration may lie and still count as the bound [m/s^2]
 # (rounding of a planner that computes its bound in float32 or through a tanh).

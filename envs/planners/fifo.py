@@ -19,7 +19,7 @@ import numpy as np
 from envs.planners.idm import DEFAULT_IDM, CrossingParams, IDMParams, blocked_by_rank
 from envs.planners.vehicle_model import model_crossing_times
 from envs.planners.yielding import YieldingPlanner, rank_by
-from envs.scene import Scene
+from envs.simulation.scene import Scene
 
 # Tuned with Optuna under a zero-collision constraint (docs/baselines.md): the clearing acceleration
 # of IDM's crossings and the margins [s].

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from envs.planners.base import Planner
-from envs.scene import Scene
+from envs.simulation.scene import Scene
 
 
 def load_model(path: str | Path, device: str = "cpu", trust_files: bool = False):
@@ -45,7 +45,7 @@ def check_planner_config(config: Any, source: str) -> dict[str, Any]:
     """A policy file's planner configuration, checked and completed.
 
     :param config: ``None`` or a dict with keys among :data:`PLANNER_CONFIG_KEYS`: ``residual_base``
-        (a planner of ``envs.config.RESIDUAL_BASES``) and ``residual_scale`` (in ``(0, 2]``, default 0.5)
+        (a planner of ``envs.simulation.config.RESIDUAL_BASES``) and ``residual_scale`` (in ``(0, 2]``, default 0.5)
         for a residual policy; ``vertex_features`` and ``edge_features``, the observation's feature
         names (the environment config's keys of the same names)
     :param source: what to name in errors (the file)
@@ -53,8 +53,8 @@ def check_planner_config(config: Any, source: str) -> dict[str, Any]:
         and ``residual_scale`` for a residual policy
     :raises ValueError: an unknown key, base or feature name, or a scale outside ``(0, 2]``
     """
-    from envs.config import RESIDUAL_BASES
-    from envs.scene_graph import EDGE_FEATURES, VERTEX_FEATURES
+    from envs.simulation.config import RESIDUAL_BASES
+    from envs.simulation.graph import EDGE_FEATURES, VERTEX_FEATURES
 
     config = {} if config is None else config
     if not isinstance(config, dict) or set(config) - set(PLANNER_CONFIG_KEYS):
@@ -107,7 +107,7 @@ class GNNPlanner(Planner):
     """A trained model answering for every vehicle at once.
 
     The scene is turned into the model's own graph observation (its ``observation_space``, a
-    ``GraphSpace``) by ``envs.scene_graph.build_observation``; the deterministic action of
+    ``GraphSpace``) by ``envs.simulation.graph.build_observation``; the deterministic action of
     vertex ``i`` in ``[-1, 1]`` times ``scene.a_max`` is the acceleration of vehicle ``i``.
 
     :param path: the policy file (``.safetensors``) or saved model (``.zip``)
@@ -150,7 +150,7 @@ class GNNPlanner(Planner):
         :param max_vehicles: the environment's ``max_vehicles``
         :raises ValueError: naming the model's ``max_nodes``
         """
-        from envs.scene_graph import num_node_features
+        from envs.simulation.graph import num_node_features
 
         max_nodes = getattr(self.space, "max_nodes", None)
         if max_nodes is None or getattr(self.space, "node_features", None) != num_node_features(self.vertex_features):
@@ -170,7 +170,7 @@ class GNNPlanner(Planner):
         node, edge = getattr(self.space, "node_features", None), getattr(self.space, "edge_features", None)
         if node is None:
             return  # not a graph model: check_capacity says so
-        from envs.scene_graph import num_node_features
+        from envs.simulation.graph import num_node_features
 
         if node != num_node_features(self.vertex_features) or edge != len(self.edge_features):
             raise ValueError(
@@ -185,7 +185,7 @@ class GNNPlanner(Planner):
         return {"vertex_feature_names": self.vertex_features, "edge_feature_names": self.edge_features}
 
     def act(self, scene: Scene) -> np.ndarray:
-        from envs.scene_graph import build_observation
+        from envs.simulation.graph import build_observation
 
         n = scene.num_vehicles
         if n == 0:
@@ -212,7 +212,7 @@ class GNNPlanner(Planner):
             return [self.act(scene) for scene in scenes]
         import torch
 
-        from envs.scene_graph import build_graph_batch
+        from envs.simulation.graph import build_graph_batch
         from sb3_graph.batching import concat_graph_batches
         from sb3_graph.registry import deterministic_vertex_actions
 
@@ -236,7 +236,7 @@ class GNNPlanner(Planner):
 
     def vertex_actions(self, scene: Scene) -> np.ndarray:
         """The policy's deterministic action of each vehicle: :meth:`predict` of
-        :func:`~envs.scene_graph.build_observation`'s observation, first ``n`` slots, without the
+        :func:`~envs.simulation.graph.build_observation`'s observation, first ``n`` slots, without the
         padded observation.
 
         The graph batch comes straight from the scene (``build_graph_batch``): no padding to
@@ -249,7 +249,7 @@ class GNNPlanner(Planner):
         """
         import torch
 
-        from envs.scene_graph import build_graph_batch
+        from envs.simulation.graph import build_graph_batch
         from sb3_graph.registry import deterministic_vertex_actions
 
         policy = self.model

@@ -24,7 +24,7 @@ from dataclasses import fields
 import numpy as np
 
 from envs.planners.base import Planner
-from envs.scene import Scene
+from envs.simulation.scene import Scene
 
 
 def _inside(scene: Scene) -> np.ndarray:

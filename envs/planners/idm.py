@@ -32,7 +32,7 @@ import numpy as np
 from highway_env.vehicle.behavior import IDMVehicle
 from highway_env.vehicle.kinematics import Vehicle
 
-from envs.scene import Scene
+from envs.simulation.scene import Scene
 
 
 @dataclass(frozen=True)

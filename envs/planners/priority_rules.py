@@ -29,7 +29,7 @@ import numpy as np
 
 from envs.planners.idm import crossing_times
 from envs.planners.yielding import YieldingPlanner, rank_by
-from envs.scene import LEFT, MAJOR, Scene
+from envs.simulation.scene import LEFT, MAJOR, Scene
 
 
 def maneuver_priority(priority: np.ndarray, maneuver: np.ndarray) -> np.ndarray:

@@ -4,7 +4,7 @@
 planner's own command (its action times ``a_max``). A zero correction reproduces the base planner
 exactly, so a residual policy starts where its base planner is and learns only what improves on it.
 It is what the environment applies with ``residual_base`` and ``residual_scale`` in training
-(:class:`envs.intersection_env.CoopIntersectionEnv`); a policy file trained that way carries both
+(:class:`envs.simulation.env.CoopIntersectionEnv`); a policy file trained that way carries both
 in its header (``sb3-graph export --planner-config``), and ``make_planner`` wraps it in this class.
 """
 
@@ -15,7 +15,7 @@ import math
 import numpy as np
 
 from envs.planners.base import Planner
-from envs.scene import Scene
+from envs.simulation.scene import Scene
 
 
 class ResidualPlanner(Planner):
@@ -49,7 +49,7 @@ class ResidualPlanner(Planner):
 def make_residual_base(name: str | None):
     """The base planner of a residual policy (``residual_base``), or ``None``.
 
-    :param name: ``None`` or one of :data:`envs.config.RESIDUAL_BASES`
+    :param name: ``None`` or one of :data:`envs.simulation.config.RESIDUAL_BASES`
     """
     if name is None:
         return None

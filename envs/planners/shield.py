@@ -11,7 +11,7 @@ How it decides, every policy step:
 1. The planner proposes one acceleration per vehicle.
 2. The proposal is applied for one period, then every vehicle follows the *fallback* for the rest
    of the horizon, all predicted with the simulation's own vehicle model
-   (:func:`envs.simulation.integrate`: sub-steps, the ±a_max clip, the speed governor).
+   (:func:`envs.simulation.engine.integrate`: sub-steps, the ±a_max clip, the speed governor).
 3. The prediction must be free of conflicts: every follower keeps a gap to the vehicles ahead on
    its path; two vehicles on crossing paths never occupy their conflict zone at the same time;
    two vehicles on merging paths stay a vehicle length apart once they merge. At the end, every
@@ -50,7 +50,7 @@ conflicts (step 3) and the rules that the liveness checks and the blame read (wh
 waits for whom, who follows whom) run compiled (:mod:`envs.planners._shield_kernel`, numba): the
 periods are sequential and the arrays small, so in NumPy the per-call overhead was most of the
 shield's cost. The kernels are the only implementation of these rules; ``tests/shield_reference.py``
-holds their NumPy form (with :func:`envs.simulation.integrate` itself), the oracle that they match
+holds their NumPy form (with :func:`envs.simulation.engine.integrate` itself), the oracle that they match
 bit for bit. Who is blamed for a conflict is decided in NumPy.
 """
 
@@ -62,11 +62,11 @@ from functools import partial
 
 import numpy as np
 
-from envs.layouts import CONFLICT_DISTANCE, ZONE_MARGIN, body_hull
 from envs.planners import _shield_kernel
 from envs.planners.base import Planner
 from envs.planners.errors import PlannerError, checked_accelerations
-from envs.scene import Scene
+from envs.simulation.layouts import CONFLICT_DISTANCE, ZONE_MARGIN, body_hull
+from envs.simulation.scene import Scene
 
 _INT = np.int64
 # A vehicle counts as standing below this speed [m/s] (speeds are clipped to exactly 0 when braking).
@@ -598,7 +598,7 @@ def envelope_table(layout, deceleration: float) -> _shield_kernel.EnvelopeTable:
 
     ``integrate`` asks the layout for the envelope six times per policy period; the kernel reads
     it from these flat tables instead (the squared envelope, its differences to the next sample and
-    the limits, by flat index), with exactly :meth:`envs.layouts.Layout.envelope_at`'s arithmetic,
+    the limits, by flat index), with exactly :meth:`envs.simulation.layouts.Layout.envelope_at`'s arithmetic,
     so the prediction stays bitwise the simulation's (``tests/test_shield.py`` checks it).
 
     :param layout: the intersection

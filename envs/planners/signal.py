@@ -26,7 +26,7 @@ from envs.planners.idm import DEFAULT_IDM, CrossingParams, IDMParams, accelerati
 from envs.planners.priority_rules import maneuver_priority
 from envs.planners.vehicle_model import model_crossing_times
 from envs.planners.yielding import rank_by
-from envs.scene import MAJOR, Scene
+from envs.simulation.scene import MAJOR, Scene
 
 GREEN, YELLOW, ALL_RED = "green", "yellow", "all_red"
 

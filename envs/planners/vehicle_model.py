@@ -2,7 +2,7 @@
 
 The simulation's vehicle moves along its path with the commanded acceleration (at most ``a_max``)
 under the speed governor: never above the braking envelope of the lane limits ahead
-(:meth:`envs.layouts.Layout.envelope_at`). The profiles here use the same model, vectorized over
+(:meth:`envs.simulation.layouts.Layout.envelope_at`). The profiles here use the same model, vectorized over
 vehicles (and candidate plans), with closed forms per phase:
 
 - the *earliest arrival* at the stop line: accelerate, cruise at the road's limit, brake at the
@@ -15,8 +15,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from envs.layouts import Layout
 from envs.planners.idm import CrossingParams, leader_chain_max, travel_time
+from envs.simulation.layouts import Layout
 
 _INNER_LIMITS: dict[int, np.ndarray] = {}
 

@@ -14,7 +14,7 @@ from envs.planners.idm import (
     accelerations_with_stops,
     blocked_by_rank,
 )
-from envs.scene import Scene
+from envs.simulation.scene import Scene
 
 
 def rank_by(*keys: np.ndarray) -> np.ndarray:

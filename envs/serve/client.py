@@ -29,8 +29,8 @@ from urllib.parse import urlsplit
 import numpy as np
 
 from envs.planners.base import Planner
-from envs.scene import Scene
 from envs.serve.wire import scene_to_wire
+from envs.simulation.scene import Scene
 
 TOKEN_FILE_VARIABLE = "SB3_GRAPH_TOKEN_FILE"
 REMOTE_SCHEMES = ("http://",)

@@ -1,4 +1,4 @@
-"""The scene on the wire, and its one mapping to and from the in-process :class:`envs.scene.Scene`.
+"""The scene on the wire, and its one mapping to and from the in-process :class:`envs.simulation.scene.Scene`.
 
 A scene crosses the wire in physical units, as the vehicles themselves know it:
 
@@ -10,7 +10,7 @@ A scene crosses the wire in physical units, as the vehicles themselves know it:
 
 Everything else a planner reads (pose, path coordinate ``s``, lane limits, distances to the
 intersection, leaders and gaps, priority, maneuver, conflicts) is derived on the server by the
-simulation's own code (:meth:`envs.simulation.Simulation.scene`), so a planner behind the server sees
+simulation's own code (:meth:`envs.simulation.engine.Simulation.scene`), so a planner behind the server sees
 the scene that it would see in process, to the bit. Row ``i`` of the scene is ``vehicles[i]``, and
 the answer's acceleration ``i`` is that vehicle's.
 
@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from envs.scene import Scene
+from envs.simulation.scene import Scene
 
 # Version of the wire schema; a change that old clients cannot read increments it.
 SCHEMA_VERSION = 1
@@ -89,8 +89,8 @@ class SceneBuilder:
     """
 
     def __init__(self, config: dict[str, Any]) -> None:
-        from envs.layouts import build_layout
-        from envs.simulation import Simulation
+        from envs.simulation.engine import Simulation
+        from envs.simulation.layouts import build_layout
 
         self.config = dict(config)
         self.layout = build_layout(config["layout"], lateral_acceleration=float(config["lateral_acceleration"]))

@@ -29,7 +29,7 @@ import numpy as np
 from highway_env.road.lane import AbstractLane, CircularLane, LineType, StraightLane
 from highway_env.road.road import RoadNetwork
 
-from envs.scene import LEFT, MAJOR, MINOR, RIGHT, STRAIGHT
+from envs.simulation.scene import LEFT, MAJOR, MINOR, RIGHT, STRAIGHT
 
 LAYOUT_NAMES = ("4way", "3way", "inD")
 ARM_ANGLES = {"east": 0.0, "south": np.pi / 2, "west": np.pi, "north": -np.pi / 2}
@@ -47,7 +47,7 @@ DEFAULT_LATERAL_ACCELERATION = 3.0
 # stay apart, crossing paths reach 0.
 CONFLICT_DISTANCE = 2.5
 # Padding of every conflict zone on both ends [m]: the shield's default, which the observation's
-# zone features use too (envs.scene_graph).
+# zone features use too (envs.simulation.graph).
 ZONE_MARGIN = 1.5
 
 

@@ -16,9 +16,9 @@ from typing import Any
 
 import numpy as np
 
-from envs.layouts import LAYOUT_NAMES
-from envs.rewards import REWARD_PRESETS, REWARD_TERMS, preset_weights
-from envs.scene_graph import EDGE_FEATURES, VERTEX_FEATURES
+from envs.simulation.graph import EDGE_FEATURES, VERTEX_FEATURES
+from envs.simulation.layouts import LAYOUT_NAMES
+from envs.simulation.rewards import REWARD_PRESETS, REWARD_TERMS, preset_weights
 
 # What a collision does: "terminate" ends the episode (training, as in the paper); "remove" takes
 # the vehicles involved out of the scene and goes on (evaluation: collision rate over a whole run).

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from envs.layouts import Layout
+from envs.simulation.layouts import Layout
 
 
 def free_flow_table(

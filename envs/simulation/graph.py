@@ -1,6 +1,6 @@
 """The paper's graph input representation: vertex features ``[s, v, d]``, same-lane and crossing edges.
 
-Vertices are the vehicles of a :class:`~envs.scene.Scene` in row order (row ``i`` = vertex ``i`` =
+Vertices are the vehicles of a :class:`~envs.simulation.scene.Scene` in row order (row ``i`` = vertex ``i`` =
 action slot ``i``). Features (paper, "Input Representation"):
 
 - ``s``: path coordinate [m] (``Scene.s``): 0 where the path leaves the intersection area,
@@ -57,8 +57,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from envs.layouts import ZONE_MARGIN, body_hull
-from envs.scene import LEFT, MAJOR, RIGHT, STRAIGHT, Scene
+from envs.simulation.layouts import ZONE_MARGIN, body_hull
+from envs.simulation.scene import LEFT, MAJOR, RIGHT, STRAIGHT, Scene
 from sb3_graph.batching import GraphBatch
 from sb3_graph.spaces import GraphSpace
 

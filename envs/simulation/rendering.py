@@ -4,7 +4,7 @@ One frame per policy step, drawn with matplotlib from the simulation's arrays (t
 step) and the layout's geometry (its routes and conflict zones); no display, no pygame. A frame
 shows the simulated time, the planner, the conflict zones and every vehicle coloured by its state:
 
-- *moving*; *stopped* (speed below :data:`envs.scene.STOP_SPEED`);
+- *moving*; *stopped* (speed below :data:`envs.simulation.scene.STOP_SPEED`);
 - *governor held*: the simulation's speed governor lowered the planner's command in that step
   (``StepRecord.governed``);
 - *shield overrode*: the safety shield replaced the planner's command in that step (a shielded
@@ -36,8 +36,8 @@ from matplotlib import animation  # noqa: E402
 from matplotlib.collections import PolyCollection  # noqa: E402
 from matplotlib.patches import Patch  # noqa: E402
 
-from envs.scene import STOP_SPEED, Scene  # noqa: E402
-from envs.step_record import StepRecord  # noqa: E402
+from envs.simulation.scene import STOP_SPEED, Scene  # noqa: E402
+from envs.simulation.step_record import StepRecord  # noqa: E402
 
 MOVING, STOPPED, GOVERNED, SHIELDED, COLLIDED = range(5)
 #: state -> (legend label, colour); a vehicle in several states shows the highest one
@@ -82,7 +82,7 @@ class Episode:
     """One planner's recorded run.
 
     :param name: the planner's report name (the panel's title)
-    :param layout: the intersection (:class:`envs.layouts.Layout`)
+    :param layout: the intersection (:class:`envs.simulation.layouts.Layout`)
     :param frames: one :class:`Frame` per policy step
     :param facts: :func:`envs.evaluation.run_episode`'s facts, and ``crossed``, ``collided``
     """
@@ -178,7 +178,7 @@ def record_episode(
     :param env: the harness's environment (:func:`envs.evaluation.evaluation_env_kwargs`)
     :param planner: a :class:`envs.planners.Planner`
     :param name: its report name
-    :param scenario: a :class:`envs.traffic.Scenario` (or a file)
+    :param scenario: a :class:`envs.simulation.traffic.Scenario` (or a file)
     :param duration: simulated seconds
     :param seed: seed of the environment's reset and of the planner (the harness's ``seed + index``)
     :param tick: called once per policy step (progress)
@@ -208,7 +208,7 @@ def _route_samples(layout, route: int) -> np.ndarray:
 
 def zone_outlines(layout, half_width: float = 1.0) -> list[np.ndarray]:
     """The conflict zones as polygons: on each route, the stretches of its centre line that lie in a
-    zone with a conflicting route (:attr:`envs.layouts.Layout.zone_start`), ``half_width`` either side.
+    zone with a conflicting route (:attr:`envs.simulation.layouts.Layout.zone_start`), ``half_width`` either side.
 
     :param layout: the intersection
     :param half_width: half the drawn width [m] (a vehicle's half width)
@@ -231,7 +231,7 @@ def zone_outlines(layout, half_width: float = 1.0) -> list[np.ndarray]:
 
 
 def _draw_background(ax, layout, view: float) -> None:
-    from envs.layouts import LANE_WIDTH
+    from envs.simulation.layouts import LANE_WIDTH
 
     roads = [_band(_route_samples(layout, r), LANE_WIDTH / 2) for r in range(layout.num_routes)]
     ax.add_collection(PolyCollection(roads, facecolors=ROAD_COLOR, edgecolors="none", zorder=0))

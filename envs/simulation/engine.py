@@ -28,8 +28,8 @@ from typing import Any
 
 import numpy as np
 
-from envs.layouts import Layout
-from envs.scene import STOP_SPEED, Scene
+from envs.simulation.layouts import Layout
+from envs.simulation.scene import STOP_SPEED, Scene
 
 # Metres behind a vehicle's rear over which diverging paths still overlap a vehicle's width
 # (the inD through lane leaves its left-turn pocket at 7.6 deg: 2 m apart after ~15 m).
@@ -219,7 +219,7 @@ class Simulation:
         """Apply the commanded accelerations for one policy period.
 
         Each sub-step, the speed governor caps the speed at the braking envelope of the lane
-        limits (:meth:`envs.layouts.Layout.speed_envelope` for ``governor_deceleration``): whatever
+        limits (:meth:`envs.simulation.layouts.Layout.speed_envelope` for ``governor_deceleration``): whatever
         a planner commands, no vehicle exceeds the limit of the lane it is on, and it slows down
         for a lower limit ahead within that deceleration.
 

@@ -43,7 +43,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from envs.scene import STOP_SPEED
+from envs.simulation.scene import STOP_SPEED
 
 PAPER_TERMS = ("velocity", "action", "idle", "proximity", "collision")
 TASK_TERMS = ("throughput", "delay", "stop", "shield")

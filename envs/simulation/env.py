@@ -3,15 +3,15 @@
 A fast variant of highway-env's intersection (paper, section "Experiments"). It subclasses
 highway-env's :class:`~highway_env.envs.common.abstract.AbstractEnv` for its configuration habit
 (``default_config()`` merged with the user's dict) and its viewer, but overrides ``reset`` and
-``step`` entirely: the state lives in :class:`~envs.simulation.Simulation` arrays, and highway-env
+``step`` entirely: the state lives in :class:`~envs.simulation.engine.Simulation` arrays, and highway-env
 ``Vehicle`` objects are made only to render.
 
 - Observation: :class:`sb3_graph.GraphSpace` (``max_vehicles`` vertices, 3 features ``[s, v, d]``,
   ``max_edges`` edges, 2 relations: 0 same lane, 1 crossing), built by
-  :func:`envs.scene_graph.build_observation` from :meth:`CoopIntersectionEnv.scene`.
+  :func:`envs.simulation.graph.build_observation` from :meth:`CoopIntersectionEnv.scene`.
 - Action: ``Box(-1, 1, (max_vehicles,))``; slot ``i`` commands vehicle ``i`` (vertex ``i``) with
   ``action * max_acceleration`` m/s^2; slots beyond the vehicles present are ignored.
-- Reward: :mod:`envs.rewards`; the episode is truncated after ``duration`` seconds (or the
+- Reward: :mod:`envs.simulation.rewards`; the episode is truncated after ``duration`` seconds (or the
   replayed scenario's duration).
 - Collisions (``collision_handling``): ``"terminate"`` (default, training, as in the paper) ends
   the episode (``terminated``) with the vehicles where they collided; ``"remove"`` (evaluation:
@@ -19,18 +19,18 @@ highway-env's :class:`~highway_env.envs.common.abstract.AbstractEnv` for its con
   ``info["collided"]``, takes both vehicles out of the scene at the end of the step (their ids are
   also in ``info["removed"]``) and goes on, so a run's flow and collision rate cover its whole
   duration. The collision reward term applies in both cases.
-- ``info``: the step's :class:`~envs.step_record.StepRecord` under ``"record"`` (what the metrics and
-  the evaluation harness read), and its fields under the keys documented in :mod:`envs.step_record`.
+- ``info``: the step's :class:`~envs.simulation.step_record.StepRecord` under ``"record"`` (what the metrics and
+  the evaluation harness read), and its fields under the keys documented in :mod:`envs.simulation.step_record`.
 
 Traffic: random training spawns with ``spawn_probability`` per lane and step (see
 :meth:`CoopIntersectionEnv.set_spawn_probability` for a curriculum), or an exact replay of an
 evaluation scenario with ``reset(options={"scenario": scenario_or_path})``.
 
 Public helpers on ``env.unwrapped``: :meth:`~CoopIntersectionEnv.scene` (the current
-:class:`~envs.scene.Scene`), :meth:`~CoopIntersectionEnv.accelerations_to_action` (a planner's
+:class:`~envs.simulation.scene.Scene`), :meth:`~CoopIntersectionEnv.accelerations_to_action` (a planner's
 accelerations in m/s^2 -> padded action), :meth:`~CoopIntersectionEnv.set_spawn_probability`,
 :meth:`~CoopIntersectionEnv.place_vehicles` (hand-built situations), and the attributes
-``layout`` (:class:`~envs.layouts.Layout`) and ``sim`` (:class:`~envs.simulation.Simulation`).
+``layout`` (:class:`~envs.simulation.layouts.Layout`) and ``sim`` (:class:`~envs.simulation.engine.Simulation`).
 """
 
 from __future__ import annotations
@@ -46,9 +46,11 @@ from highway_env.road.road import Road
 from highway_env.vehicle.graphics import VehicleGraphics
 from highway_env.vehicle.kinematics import Vehicle
 
-from envs.config import validate_config
-from envs.layouts import Layout, build_layout
-from envs.rewards import (
+from envs.simulation.config import validate_config
+from envs.simulation.engine import Simulation, StepEvents
+from envs.simulation.graph import DEFAULT_S_SCALE, NUM_RELATIONS, build_observation, min_mahalanobis, num_node_features
+from envs.simulation.layouts import Layout, build_layout
+from envs.simulation.rewards import (
     DEFAULT_PROXIMITY_THRESHOLD,
     DEFAULT_REWARD,
     DEFAULT_REWARD_WEIGHTS,
@@ -57,11 +59,9 @@ from envs.rewards import (
     task_reward_terms,
     weighted,
 )
-from envs.scene import MAJOR, MANEUVERS, Scene
-from envs.scene_graph import DEFAULT_S_SCALE, NUM_RELATIONS, build_observation, min_mahalanobis, num_node_features
-from envs.simulation import Simulation, StepEvents
-from envs.step_record import StepRecord
-from envs.traffic import Scenario, ScenarioTraffic, TrainingTraffic
+from envs.simulation.scene import MAJOR, MANEUVERS, Scene
+from envs.simulation.step_record import StepRecord
+from envs.simulation.traffic import Scenario, ScenarioTraffic, TrainingTraffic
 from sb3_graph.spaces import GraphSpace
 
 _EMPTY_IDS = np.zeros(0, np.int64)
@@ -70,7 +70,7 @@ _EMPTY_IDS = np.zeros(0, np.int64)
 class CoopIntersectionEnv(AbstractEnv):
     """Centralized planning of all vehicles at an intersection (see the module docstring).
 
-    :param config: settings merged into :meth:`default_config` (validated; see :mod:`envs.config`)
+    :param config: settings merged into :meth:`default_config` (validated; see :mod:`envs.simulation.config`)
     :param render_mode: ``None``, ``"rgb_array"`` or ``"human"``
     """
 
@@ -91,13 +91,13 @@ class CoopIntersectionEnv(AbstractEnv):
     def default_config(cls) -> dict:
         """All settings with their defaults.
 
-        - ``layout``: ``"4way"``, ``"3way"`` or ``"inD"`` (see :func:`envs.layouts.build_layout`)
+        - ``layout``: ``"4way"``, ``"3way"`` or ``"inD"`` (see :func:`envs.simulation.layouts.build_layout`)
         - ``simulation_frequency`` [Hz] 15, ``policy_frequency`` [Hz] 5 (a 0.2 s step)
         - ``duration`` [s]: training episode length (a scenario brings its own)
         - ``max_vehicles``: vertices/action slots; spawning waits while the scene is full
         - ``max_edges``: edge slots of the observation
         - ``edge_features``: edge features of the observation, any of ``["distance", "bearing",
-          "zone_receiver", "zone_sender"]`` (default none; see :mod:`envs.scene_graph`)
+          "zone_receiver", "zone_sender"]`` (default none; see :mod:`envs.simulation.graph`)
         - ``vertex_features``: vertex features after the paper's ``[s, v, d]``, any of
           ``["maneuver", "priority", "limit", "line", "zone", "committed"]`` (default none: the paper's)
         - ``spawn_probability``: training spawn probability per lane and step (paper: up to 0.05)
@@ -120,7 +120,7 @@ class CoopIntersectionEnv(AbstractEnv):
         - ``d_max``: clip of the inverse Mahalanobis distance feature
         - ``proximity_threshold``: Mahalanobis distance where the proximity penalty starts
         - ``reward``: the reward preset, ``"task"`` (default: throughput, delay of every scheduled
-          vehicle, new stops, collisions, shield overrides) or ``"paper"`` (Table I); see :mod:`envs.rewards`
+          vehicle, new stops, collisions, shield overrides) or ``"paper"`` (Table I); see :mod:`envs.simulation.rewards`
         - ``reward_weights``: weights of the reward terms (default: the preset's); the given ones
           replace the preset's
         - ``shield``: train behind the safety shield (:class:`envs.planners.shield.Shield`): the
@@ -211,7 +211,7 @@ class CoopIntersectionEnv(AbstractEnv):
         :param options: ``{"scenario": Scenario | path}`` replays an evaluation scenario in this
             episode (truncated at the scenario's duration; a later ``reset`` without it returns to
             training traffic); ``{"config": {...}}`` reconfigures first
-        :return: observation and info (:mod:`envs.step_record`: the events of time 0)
+        :return: observation and info (:mod:`envs.simulation.step_record`: the events of time 0)
         """
         gym.Env.reset(self, seed=seed)
         options = dict(options or {})
@@ -371,7 +371,7 @@ class CoopIntersectionEnv(AbstractEnv):
         return obs, reward, terminated, truncated, info
 
     def _make_info(self, events: StepEvents, entered: np.ndarray, terms: dict[str, float]) -> dict[str, Any]:
-        """The step's :class:`~envs.step_record.StepRecord` and the ``info`` that carries it."""
+        """The step's :class:`~envs.simulation.step_record.StepRecord` and the ``info`` that carries it."""
         lay, sim = self.layout, self.sim
         record = StepRecord(
             time=float(sim.time),

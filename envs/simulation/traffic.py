@@ -24,8 +24,8 @@ from typing import Any
 
 import numpy as np
 
-from envs.layouts import LAYOUT_NAMES, Layout, build_layout
-from envs.simulation import Simulation
+from envs.simulation.engine import Simulation
+from envs.simulation.layouts import LAYOUT_NAMES, Layout, build_layout
 
 SCENARIO_FORMAT = "sb3-graph-scenario"
 SCENARIO_VERSION = 1
@@ -42,7 +42,7 @@ VEHICLE_BOUNDS = {"time": MAX_DURATION, "speed": 100.0, "length": 30.0, "width":
 class Scenario:
     """An evaluation scenario: who appears where and when.
 
-    :param layout: layout name (one of ``envs.layouts.LAYOUT_NAMES``)
+    :param layout: layout name (one of ``envs.simulation.layouts.LAYOUT_NAMES``)
     :param duration: episode length [s]; the episode is truncated when it is reached
     :param seed: seed the scenario was generated from (informative), or ``None``
     :param vehicle_id: ``(k,)`` int64 unique ids

@@ -3,14 +3,14 @@
 The environment builds one record per ``reset`` and ``step``; the metrics (:class:`envs.metrics.VehicleLog`),
 the evaluation harness (:func:`envs.evaluation.run_episode`) and the renderer read it, and nothing
 else of the step. What a vehicle *is* (route, priority, maneuver, length) comes from the scenes
-(:class:`envs.scene.Scene`), what *happened* to it from the records.
+(:class:`envs.simulation.scene.Scene`), what *happened* to it from the records.
 
 For gymnasium users the record also travels in the step ``info``, which keeps its keys (all ids are
 ``vehicle_id`` values):
 
 - ``"record"``: the :class:`StepRecord` itself.
 - ``"reward_terms"``: dict ``term -> unweighted value`` for velocity, action, idle, proximity,
-  collision (and the task terms of :mod:`envs.rewards`); ``"reward_weighted"``: the same terms
+  collision (and the task terms of :mod:`envs.simulation.rewards`); ``"reward_weighted"``: the same terms
   times their weights.
 - ``"entered"``: ids that appeared in the scene during the step.
 - ``"crossed"``: ids whose path coordinate ``s`` passed 0 (left the intersection area).
@@ -28,7 +28,7 @@ For gymnasium users the record also travels in the step ``info``, which keeps it
 - ``"vehicles"``: dict ``id -> {"route": str, "priority": int, "maneuver": str, "time": float}``
   for the ids in ``"entered"`` (for users; the metrics read these facts from the scenes).
 - With ``shield=True``: ``"shield_overridden"``, ``"shield_intervention_rate"`` and
-  ``"executed_action"`` (:class:`envs.intersection_env.CoopIntersectionEnv`).
+  ``"executed_action"`` (:class:`envs.simulation.env.CoopIntersectionEnv`).
 """
 
 from __future__ import annotations
@@ -135,7 +135,7 @@ def step_record(info: Mapping[str, Any]) -> StepRecord:
     record = info.get("record")
     if not isinstance(record, StepRecord):
         raise TypeError(
-            "the environment's step info carries no envs.step_record.StepRecord under 'record' "
+            "the environment's step info carries no envs.simulation.step_record.StepRecord under 'record' "
             f"(got {type(record).__name__}); the harness and the metrics read the step from it"
         )
     return record

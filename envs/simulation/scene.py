@@ -5,7 +5,7 @@ same vehicle. The snapshot is built by the simulation once per policy step; each
 its own :meth:`Scene.copy`, so that what it does to the arrays reaches nothing else.
 
 What happened during a step (entries, crossings, stops, collisions) is not part of the scene: the
-environment reports it in a :class:`envs.step_record.StepRecord` (and in the step ``info``).
+environment reports it in a :class:`envs.simulation.step_record.StepRecord` (and in the step ``info``).
 """
 
 from __future__ import annotations
@@ -56,7 +56,7 @@ class Scene:
     :param s_ref: the common reference length of the paths inside the intersection [m]
     :param arc: ``(n,)`` arc length of the vehicle centre along its route from the route's start [m];
         ``None`` when unknown (hand-built scenes)
-    :param layout: the intersection (:class:`envs.layouts.Layout`: route geometry, speed-limit
+    :param layout: the intersection (:class:`envs.simulation.layouts.Layout`: route geometry, speed-limit
         profiles, conflict zones); ``None`` when unknown (hand-built scenes)
     """
 
