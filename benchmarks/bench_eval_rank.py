@@ -1,6 +1,6 @@
 """Does a study's cheap validation rank trained planners like the full evaluation? Rank correlation.
 
-A trial of ``sb3-graph tune`` is scored by ``envs.tuning.evaluate_model``: a few short validation
+A trial of ``sb3-graph tune`` is scored by ``envs.evaluation.tuning.evaluate_model``: a few short validation
 scenarios (``--episodes``, default 6, 40 s each, seed ``--eval-seed`` 500) on the reduced "tuning"
 preset. The results in the README come from ``sb3-graph evaluate``: 100 s scenarios of the full
 environment, every scheduled vehicle counted. This script scores the same trained models both ways
@@ -26,7 +26,7 @@ from graph_bench_utils import machine_line, markdown_table
 from scipy.stats import kendalltau, spearmanr
 
 import envs  # noqa: F401 - registers the environments
-from envs.tuning import evaluate_model, tuning_env_kwargs
+from envs.evaluation.tuning import evaluate_model, tuning_env_kwargs
 from sb3_graph import TD3
 
 ENV_ID = "CoopIntersection4Way-v0"

@@ -79,12 +79,17 @@ def _measure(checkout: Path, kind: str, args: argparse.Namespace, executor: str,
     return row
 
 
+def _has_executors(checkout: Path) -> bool:
+    """Whether a checkout's harness takes an executor (envs/ grouped by question since issue #25, flat before)."""
+    return any((checkout / "envs" / sub / "executors.py").is_file() for sub in ("evaluation", "."))
+
+
 def _read_cost(duration: float) -> str:
     """What a run paid before the table was shared: reading its scenario file (this tree's code)."""
     import pickle
 
     sys.path.insert(0, str(HERE))
-    from envs.evaluation import generate_scenarios
+    from envs.evaluation.harness import generate_scenarios
     from envs.simulation.traffic import Scenario
 
     with tempfile.TemporaryDirectory() as folder:
@@ -129,7 +134,7 @@ def main() -> None:
             for kind in jobs:
                 for checkout in checkouts:
                     for executor in ["local", *args.executor]:
-                        if executor != "local" and not (checkout / "envs" / "executors.py").is_file():
+                        if executor != "local" and not _has_executors(checkout):
                             continue
                         rows.append(_measure(checkout, kind, args, executor, Path(scratch)))
                         print(_line(rows[-1]), flush=True)

@@ -27,8 +27,8 @@ from graph_bench_utils import machine_line, markdown_table
 
 import envs  # noqa: F401 - registers the environments
 import sb3_graph
-from envs.evaluation import evaluation_env_kwargs, generate_scenarios, run_episode
-from envs.metrics import run_metrics
+from envs.evaluation.harness import evaluation_env_kwargs, generate_scenarios, run_episode
+from envs.evaluation.metrics import run_metrics
 from envs.planners import make_planner
 from envs.planners.base import Planner
 from envs.simulation.graph import build_observation

@@ -3,9 +3,9 @@
 Draws ``--configs`` sets of the five reward weights the way ``sb3-graph tune`` samples them
 (log-uniform within ``--weight-spread`` of Table I, sampler seed ``--seed``), and puts each set
 through two trials of ``sb3_graph.tuning.runner.run_trial`` with the same training seed: one on the
-reduced "tuning" preset (``envs.tuning.TUNING_PRESET``), one on the full environment of
+reduced "tuning" preset (``envs.evaluation.tuning.TUNING_PRESET``), one on the full environment of
 ``zoo_configs/td3.yml``, each trained for ``--timesteps`` steps and scored with the task metrics of
-``envs.tuning.evaluate_model`` on the same validation scenarios. Prints both flow rates, collision
+``envs.evaluation.tuning.evaluate_model`` on the same validation scenarios. Prints both flow rates, collision
 rates and wall times per set, and Spearman's rho and Kendall's tau between the two rankings of
 the flow rate (a rho near 1: the cheap evaluation ranks weights like the full one).
 
@@ -25,7 +25,7 @@ from graph_bench_utils import machine_line, markdown_table
 from scipy.stats import kendalltau, spearmanr
 
 import envs  # noqa: F401 - registers the environments
-from envs.tuning import evaluate_model, tuning_env_kwargs
+from envs.evaluation.tuning import evaluate_model, tuning_env_kwargs
 from sb3_graph.experiment import check_entry, merge_env_kwargs, read_experiment
 from sb3_graph.tuning.objectives import make_objective
 from sb3_graph.tuning.runner import TrialSettings, run_trial

@@ -11,7 +11,7 @@ Variants (``today`` is the entry as it is; the others change one thing at a time
 
 - ``today``: full environment (60 s episodes, 64 vehicle slots), 1 env, ``train_freq 1``,
   ``gradient_steps 1``: one gradient step per environment step.
-- ``preset``: the reduced "tuning" environment of ``envs.tuning`` (20 s, 16 slots, 192 edges).
+- ``preset``: the reduced "tuning" environment of ``envs.evaluation.tuning`` (20 s, 16 slots, 192 edges).
 - ``freq4``: ``train_freq 4, gradient_steps 4``: the same gradient steps per environment step,
   in fewer, larger calls of ``train``.
 - ``utd½``: ``train_freq 2, gradient_steps 1``: half the gradient steps per environment step
@@ -43,7 +43,7 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
 import envs  # noqa: F401 - registers the environments
-from envs.tuning import tuning_env_kwargs
+from envs.evaluation.tuning import tuning_env_kwargs
 from sb3_graph import TD3
 from sb3_graph.experiment import (
     build_algorithm_kwargs,

@@ -18,5 +18,5 @@ COMMANDS: dict[str, tuple[str, str]] = {
 
 #: ``sb3-graph tune``: env id prefix -> (metric evaluator, reduced env kwargs of the trials)
 TUNING: dict[str, tuple[str, str]] = {
-    "CoopIntersection": ("envs.tuning:evaluate_model", "envs.tuning:tuning_env_kwargs"),
+    "CoopIntersection": ("envs.evaluation.tuning:evaluate_model", "envs.evaluation.tuning:tuning_env_kwargs"),
 }

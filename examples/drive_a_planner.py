@@ -1,4 +1,4 @@
-"""Drive a planner yourself: the evaluation harness's loop (``envs.evaluation.run_episode``) by hand.
+"""Drive a planner yourself: the evaluation harness's loop (``envs.evaluation.harness.run_episode``) by hand.
 
 The environment shows a scene (every vehicle as arrays, ``envs.simulation.scene.Scene``), the planner answers
 one acceleration per vehicle, and the environment turns them into its action::

@@ -19,8 +19,8 @@ from pathlib import Path
 
 import pandas as pd
 
-from envs.evaluation import evaluate, generate_scenarios, layout_of
-from envs.metrics import summarize
+from envs.evaluation.harness import evaluate, generate_scenarios, layout_of
+from envs.evaluation.metrics import summarize
 
 CHECKPOINT = re.compile(r"model_(\d+)_steps\.zip$")
 

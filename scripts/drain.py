@@ -17,7 +17,7 @@ from pathlib import Path
 import gymnasium as gym
 
 import envs  # noqa: F401 - registers the environments
-from envs.evaluation import evaluation_env_kwargs, run_episode, run_seed
+from envs.evaluation.harness import evaluation_env_kwargs, run_episode, run_seed
 from envs.planners import make_planner
 from envs.simulation.traffic import Scenario
 

@@ -18,8 +18,8 @@ from pathlib import Path
 
 import pandas as pd
 
-from envs.evaluation import evaluate, generate_scenarios
-from envs.metrics import STANDSTILL_LIMIT
+from envs.evaluation.harness import evaluate, generate_scenarios
+from envs.evaluation.metrics import STANDSTILL_LIMIT
 
 LAYOUTS = {"4way": "CoopIntersection4Way-v0", "3way": "CoopIntersection3Way-v0", "inD": "CoopIntersectionInD-v0"}
 ATTACKS = (

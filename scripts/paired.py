@@ -1,7 +1,7 @@
 """Paired per-scenario differences between planners of *different* ``sb3-graph evaluate`` reports.
 
 The reports must have run the same scenario files (checked byte for byte); their ``metrics.csv``
-rows are joined and :func:`envs.comparison.paired_differences` is taken against ``--baseline``::
+rows are joined and :func:`envs.evaluation.comparison.paired_differences` is taken against ``--baseline``::
 
     python scripts/paired.py reports/main100 reports/shield100_adversarial --baseline FullThrottle+shield
 """
@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from envs.comparison import paired_differences
+from envs.evaluation.comparison import paired_differences
 
 
 def scenario_digests(report: Path) -> dict[str, str]:

@@ -19,7 +19,7 @@ import gymnasium as gym
 import numpy as np
 
 import envs  # noqa: F401  (registers the environments)
-from envs.evaluation import evaluation_env_kwargs
+from envs.evaluation.harness import evaluation_env_kwargs
 from envs.planners import make_planner
 from envs.planners.adversarial import FullThrottle
 from envs.planners.base import Planner

@@ -12,12 +12,12 @@ cd "$(dirname "$0")/.."
 STEPS=${1:-54000}
 SEEDS=(0 1 2)
 if [ $# -gt 1 ]; then SEEDS=("${@:2}"); fi
-# The tuning preset (envs.tuning.TUNING_PRESET), the study's best weights (examples/weight_study,
+# The tuning preset (envs.evaluation.tuning.TUNING_PRESET), the study's best weights (examples/weight_study,
 # trial 0 of weights_fair) and the full environment's graph sizes, read where they are defined.
 read -r PRESET TUNED FULL_NODES FULL_EDGES < <(python -c "
 import json, yaml
 from envs.simulation.env import CoopIntersectionEnv
-from envs.tuning import TUNING_PRESET
+from envs.evaluation.tuning import TUNING_PRESET
 entry = yaml.safe_load(open('examples/weight_study/best_params.yml'))['CoopIntersection4Way-v0']
 full = CoopIntersectionEnv.default_config()
 print(json.dumps(TUNING_PRESET, separators=(',', ':'))[1:-1],

@@ -23,8 +23,8 @@ import numpy as np
 import optuna
 
 import envs  # noqa: F401  (registers the environments)
-from envs.evaluation import evaluation_env_kwargs, run_episode
-from envs.metrics import run_metrics
+from envs.evaluation.harness import evaluation_env_kwargs, run_episode
+from envs.evaluation.metrics import run_metrics
 from envs.planners.aim import AIMParams, AIMPlanner
 from envs.planners.fifo import FIFO_CROSSING, FIFOPlanner
 from envs.planners.idm import CrossingParams

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import envs  # noqa: F401  (registers the environments)
-from envs.evaluation import evaluation_env_kwargs, run_episode
+from envs.evaluation.harness import evaluation_env_kwargs, run_episode
 from envs.planners import AIMPlanner, PriorityRulesPlanner, make_planner
 from envs.planners.signal import ALL_RED, GREEN, YELLOW, SignalController, SignalParams
 from envs.simulation.traffic import generate_scenario

@@ -6,7 +6,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from envs.comparison import PAIRED_COLUMNS, paired_differences, strongest_baseline
+from envs.evaluation.comparison import PAIRED_COLUMNS, paired_differences, strongest_baseline
 from sb3_graph.aggregate import bootstrap_interval
 
 
@@ -73,7 +73,7 @@ def test_a_flow_tie_goes_to_the_baseline_with_less_delay():
 def test_the_paired_interval_is_the_plain_percentile_bootstrap_bit_for_bit():
     # The reports' figures stay as they were when comparison.py had its own bootstrap: the shared
     # one (sb3_graph.aggregate) gives the same bounds, bit for bit, as that code written out here.
-    from envs.comparison import CONFIDENCE, RESAMPLES
+    from envs.evaluation.comparison import CONFIDENCE, RESAMPLES
 
     d = np.random.default_rng(5).normal(size=(37, 3))
     index = np.random.default_rng(0).integers(0, 37, (RESAMPLES, 37))

@@ -3,7 +3,7 @@
 import importlib.util
 from pathlib import Path
 
-from envs.evaluation import Job, run_seed
+from envs.evaluation.harness import Job, run_seed
 
 SCRIPT = Path(__file__).parents[1] / "scripts" / "drain.py"
 spec = importlib.util.spec_from_file_location("drain", SCRIPT)

@@ -7,7 +7,7 @@ import json
 import pandas as pd
 import pytest
 
-from envs.report import REPORT_FILES
+from envs.evaluation.report import REPORT_FILES
 from sb3_graph.cli import main
 
 SUMMARY_KEYS = {

@@ -9,10 +9,10 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from envs.evaluation import run_episode
-from envs.metrics import add_travel_times, run_metrics
+from envs.evaluation.harness import run_episode
+from envs.evaluation.metrics import add_travel_times, run_metrics
+from envs.evaluation.report import FIGURES, REPORT_FILES, write_report
 from envs.planners import FIFOPlanner, PriorityRulesPlanner
-from envs.report import FIGURES, REPORT_FILES, write_report
 from envs.simulation.scene import MAJOR, MINOR, STRAIGHT, Scene
 from envs.simulation.step_record import StepRecord
 
@@ -127,7 +127,7 @@ def test_run_episode_needs_the_step_record():
 def test_planner_counters_reach_the_metrics_row_through_stats(tmp_path):
     """Any planner's :meth:`~envs.planners.Planner.stats` become columns of its runs; the planner-error
     lines only come with a ``planner_errors`` counter (a shield's)."""
-    from envs.evaluation import Job, run_job
+    from envs.evaluation.harness import Job, run_job
     from envs.simulation.traffic import generate_scenario
 
     (tmp_path / "counting.py").write_text(
@@ -234,7 +234,7 @@ def test_baselines_collision_free_and_live_on_dense_traffic(name):
 def test_harness_runs_go_on_after_collisions():
     """The harness's environments remove crashed vehicles instead of ending the run, so a planner
     that never yields is measured over the whole duration; the user's own setting still wins."""
-    from envs import evaluation
+    from envs.evaluation import harness as evaluation
     from envs.simulation.traffic import generate_scenario
 
     kwargs = evaluation.evaluation_env_kwargs({"config": {"max_vehicles": 32}})
@@ -285,7 +285,7 @@ def test_every_scheduled_vehicle_counts_even_if_it_never_appeared():
     """A planner that stops everybody jams the lanes back to the spawn points: the vehicles that
     could not appear are still in the log (stopped, delayed from their scheduled time to the end),
     so both planners are measured on the same scheduled set."""
-    from envs import evaluation
+    from envs.evaluation import harness as evaluation
     from envs.simulation.traffic import demand_scenario
 
     class Stopper(PriorityRulesPlanner):

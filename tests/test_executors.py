@@ -1,4 +1,4 @@
-"""Where the harness's runs execute (:mod:`envs.executors`): local processes, a Dask cluster, one's own."""
+"""Where the harness's runs execute (:mod:`envs.evaluation.executors`): local processes, a Dask cluster, one's own."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import sys
 import pandas as pd
 import pytest
 
-from envs.executors import ExecutorError, JobExecutor, LocalExecutor, check_executor, make_executor
+from envs.evaluation.executors import ExecutorError, JobExecutor, LocalExecutor, check_executor, make_executor
 from sb3_graph.cli import main
 
 TINY = ["--planner", "pr", "--planner", "fifo", "--scenarios", "2", "--duration", "10", "--seed", "1"]
@@ -51,7 +51,7 @@ class _Recording(JobExecutor):
 
 
 def test_an_executor_of_ones_own_gives_the_local_numbers(tmp_path):
-    from envs.evaluation import evaluate, generate_scenarios
+    from envs.evaluation.harness import evaluate, generate_scenarios
 
     scenarios = generate_scenarios(tmp_path / "s", 2, 10.0, 1, "4way")
     planners = [("pr", "PR"), ("fifo", "FIFO")]
@@ -124,7 +124,7 @@ def test_ray_gives_the_same_summary_as_local_processes(tmp_path):
 
 
 def test_progress_bar_shows_runs_per_second_even_when_slow(monkeypatch):
-    from envs.evaluation import _progress
+    from envs.evaluation.harness import _progress
 
     monkeypatch.delenv("SB3_GRAPH_NO_PROGRESS", raising=False)
     bar = _progress(20, True)
@@ -137,7 +137,7 @@ def test_progress_bar_shows_runs_per_second_even_when_slow(monkeypatch):
 
 def test_unreachable_dask_scheduler_is_a_clear_error():
     pytest.importorskip("distributed")
-    from envs.executors import DaskExecutor
+    from envs.evaluation.executors import DaskExecutor
 
     # Port 1 on the loopback: nothing listens there; the client gives up after the timeout.
     with pytest.raises(ExecutorError, match="--scheduler-address: cannot reach the Dask scheduler"):

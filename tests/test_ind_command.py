@@ -153,7 +153,7 @@ def _replay_ready() -> bool:
         import gymnasium as gym
 
         import envs  # noqa: F401
-        import envs.evaluation  # noqa: F401
+        import envs.evaluation.harness  # noqa: F401
         import envs.simulation.traffic  # noqa: F401
 
         return "CoopIntersectionInD-v0" in gym.registry

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from envs.evaluation import Job, generate_scenarios, run_job
+from envs.evaluation.harness import Job, generate_scenarios, run_job
 from envs.planners.hostile import LayoutEditor
 from envs.simulation.engine import Simulation
 from envs.simulation.layouts import LAYOUT_NAMES, build_layout
@@ -94,7 +94,7 @@ def test_a_planner_that_writes_into_its_scene_and_layout_changes_no_shield_decis
 
 _FRESH = """
 import json, sys
-from envs.evaluation import Job, run_job
+from envs.evaluation.harness import Job, run_job
 row, vehicles = run_job(Job("pr", "pr", sys.argv[1], 0, sys.argv[2], float(sys.argv[3]), int(sys.argv[4])))
 row.pop("wall_s")
 print(json.dumps({"row": row, "vehicles": vehicles.to_json()}, default=str))

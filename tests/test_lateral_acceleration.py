@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 import envs  # noqa: F401
-from envs.evaluation import evaluation_env_kwargs
+from envs.evaluation.harness import evaluation_env_kwargs
 from envs.simulation.traffic import generate_scenario
 
 ENVS = {"4way": "CoopIntersection4Way-v0", "3way": "CoopIntersection3Way-v0", "inD": "CoopIntersectionInD-v0"}

@@ -8,7 +8,7 @@ import pandas as pd
 import pytest
 
 import envs  # noqa: F401  (registers the environments)
-from envs.metrics import VehicleLog, add_travel_times, governor_share, run_metrics, summarize, vehicle_frame
+from envs.evaluation.metrics import VehicleLog, add_travel_times, governor_share, run_metrics, summarize, vehicle_frame
 from envs.simulation.scene import LEFT, MAJOR, MINOR, RIGHT, STRAIGHT, Scene
 from envs.simulation.step_record import StepRecord
 

@@ -8,7 +8,7 @@ import pandas as pd
 import pytest
 
 import envs  # noqa: F401
-from envs.evaluation import evaluate, evaluation_env_kwargs, generate_scenarios, run_episode
+from envs.evaluation.harness import evaluate, evaluation_env_kwargs, generate_scenarios, run_episode
 from envs.planners.base import Planner
 from envs.planners.errors import PlannerError, checked_accelerations
 from envs.planners.shield import Shield

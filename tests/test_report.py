@@ -6,8 +6,8 @@ import matplotlib.image
 import numpy as np
 import pandas as pd
 
-from envs.metrics import run_metrics
-from envs.report import FIGURES, collided_text, write_report
+from envs.evaluation.metrics import run_metrics
+from envs.evaluation.report import FIGURES, collided_text, write_report
 
 
 def _results(collided_in_fifo: int) -> tuple[pd.DataFrame, pd.DataFrame]:

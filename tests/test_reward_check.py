@@ -5,7 +5,7 @@ from __future__ import annotations
 import pandas as pd
 import pytest
 
-from envs.evaluation import preset_returns
+from envs.evaluation.harness import preset_returns
 from envs.simulation.rewards import PAPER_REWARD_WEIGHTS, REWARD_PRESETS, TASK_REWARD_WEIGHTS
 from sb3_graph.cli import main
 

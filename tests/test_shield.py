@@ -10,7 +10,7 @@ import shield_reference as reference
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
-from envs.evaluation import evaluation_env_kwargs, run_episode
+from envs.evaluation.harness import evaluation_env_kwargs, run_episode
 from envs.planners import Planner, _shield_kernel, make_planner, planner_name
 from envs.planners.adversarial import FullThrottle, RandomAccel
 from envs.planners.shield import _STANDING, _STOP_SLACK, Shield

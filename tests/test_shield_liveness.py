@@ -6,8 +6,8 @@ import pandas as pd
 import pytest
 
 import envs  # noqa: F401
-from envs.evaluation import evaluation_env_kwargs, run_episode
-from envs.metrics import STANDSTILL_LIMIT, run_metrics, standstill
+from envs.evaluation.harness import evaluation_env_kwargs, run_episode
+from envs.evaluation.metrics import STANDSTILL_LIMIT, run_metrics, standstill
 from envs.planners.hostile import BoxParker, LineHolder
 from envs.planners.shield import Shield
 from envs.simulation.traffic import generate_scenario

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import envs  # noqa: F401  (registers the environments)
-from envs.evaluation import run_episode
+from envs.evaluation.harness import run_episode
 from envs.planners import AIMPlanner, make_planner
 from envs.planners.adversarial import FullThrottle
 from envs.planners.base import Planner

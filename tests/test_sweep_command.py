@@ -8,8 +8,8 @@ import matplotlib.image
 import pandas as pd
 import pytest
 
-from envs.report import REPORT_FILES
-from envs.sweep import capacities, capacity_text
+from envs.evaluation.report import REPORT_FILES
+from envs.evaluation.sweep import capacities, capacity_text
 from sb3_graph.cli import main
 
 TINY = ["--scenarios", "1", "--duration", "10", "--seed", "2", "--jobs", "1", "--no-progress"]

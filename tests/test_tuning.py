@@ -139,7 +139,7 @@ def test_tuning_preset_and_evaluator_give_task_metrics():
     import gymnasium as gym
 
     import envs  # noqa: F401
-    from envs.tuning import PRESET_NAME, evaluate_model, tuning_env_kwargs
+    from envs.evaluation.tuning import PRESET_NAME, evaluate_model, tuning_env_kwargs
     from sb3_graph import TD3
 
     kwargs = tuning_env_kwargs()

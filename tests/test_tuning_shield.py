@@ -90,7 +90,7 @@ def test_tune_config_samples_the_residual_scale_within_what_the_env_accepts(tmp_
 
 
 def test_the_shipped_shield_configs_tune_behind_the_shield_and_can_fine_tune_the_shipped_planner():
-    from envs.tuning import TUNING_PRESET
+    from envs.evaluation.tuning import TUNING_PRESET
 
     shield, _ = commands.prepare(parse("zoo_configs/td3_shield.yml", "--timesteps", "3000"))
     config = shield.entry["env_kwargs"]["config"]
@@ -108,19 +108,19 @@ def test_the_shipped_shield_configs_tune_behind_the_shield_and_can_fine_tune_the
 def test_a_shielded_trial_trains_behind_the_shield_and_scores_the_shielded_planner_on_task_metrics(monkeypatch):
     import stable_baselines3.common.env_util as env_util
 
-    import envs.tuning
+    from envs.evaluation import tuning
     from envs.planners.residual import ResidualPlanner
     from envs.planners.shield import Shield
 
     made, planners, seen = [], [], []
     make_vec_env = env_util.make_vec_env
     monkeypatch.setattr(env_util, "make_vec_env", lambda *a, **k: made.append(make_vec_env(*a, **k)) or made[-1])
-    trial_planner = envs.tuning.trial_planner
-    monkeypatch.setattr(envs.tuning, "trial_planner", lambda *a: planners.append(trial_planner(*a)) or planners[-1])
+    trial_planner = tuning.trial_planner
+    monkeypatch.setattr(tuning, "trial_planner", lambda *a: planners.append(trial_planner(*a)) or planners[-1])
 
     def evaluator(model, **kwargs):  # the domain's evaluator, on a short validation episode
         seen.append(kwargs["env_kwargs"])
-        return envs.tuning.evaluate_model(model, duration=10.0, **kwargs)
+        return tuning.evaluate_model(model, duration=10.0, **kwargs)
 
     settings = TrialSettings(
         env_id=INTERSECTION,
@@ -156,9 +156,9 @@ def test_a_zero_residual_actor_behind_the_shield_scores_as_its_base_behind_the_s
     import gymnasium as gym
 
     import envs  # noqa: F401
+    from envs.evaluation.tuning import evaluate_model, evaluate_planner
     from envs.planners.adversarial import FullThrottle
     from envs.planners.shield import Shield
-    from envs.tuning import evaluate_model, evaluate_planner
     from sb3_graph import TD3
 
     kwargs = {"config": {**SHIELDED, "duration": 20.0}}

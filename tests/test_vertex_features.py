@@ -150,7 +150,7 @@ def test_a_planner_file_with_features_acts_as_the_model(tmp_path):
 
 
 def test_a_tuning_trial_sees_the_training_features():
-    from envs.tuning import trial_planner
+    from envs.evaluation.tuning import trial_planner
 
     config = {**SMALL, "vertex_features": ["line", "zone"], "edge_features": ["zone_sender"]}
     env = gym.make("CoopIntersection4Way-v0", config=config)

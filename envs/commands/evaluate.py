@@ -16,7 +16,7 @@ vehicle-steps as ``shield_interventions`` in ``summary.json``), e.g. the shield'
 
 The report folder receives ``scenarios/`` (the generated scenario files, reusable with
 ``--scenario-dir``), ``metrics.csv``, ``vehicles.csv``, ``summary.json``, ``report.md``, the
-figures (see :mod:`envs.report`) and ``run.json`` (runs, wall time, runs per second, executor).
+figures (see :mod:`envs.evaluation.report`) and ``run.json`` (runs, wall time, runs per second, executor).
 An existing ``--out`` is refused, never overwritten; without ``--out`` a fresh
 ``reports/synthetic-<date>-<time>`` folder is made. The report is written into a hidden temporary
 folder that becomes ``--out`` only when the run succeeds, so a failed or interrupted run leaves
@@ -132,7 +132,7 @@ def add_run_arguments(parser: argparse.ArgumentParser, scenarios: int, out: str,
 
 def add_executor_arguments(parser: argparse.ArgumentParser) -> None:
     """``--jobs``, ``--executor`` and ``--scheduler-address`` (shared by the commands that run planners)."""
-    from envs.executors import EXECUTORS
+    from envs.evaluation.executors import EXECUTORS
 
     parser.add_argument(
         "--jobs",
@@ -162,7 +162,7 @@ def check_executor_arguments(args: argparse.Namespace) -> None:
 
     :raises UserError: naming the flag
     """
-    from envs.executors import ExecutorError, check_executor
+    from envs.evaluation.executors import ExecutorError, check_executor
 
     if args.jobs < 1:
         raise UserError(f"--jobs must be at least 1, got {args.jobs}")
@@ -217,7 +217,7 @@ def checked_env(env_id: str, env_kwargs: dict[str, Any] | None) -> dict[str, Any
 
     :raises UserError: naming ``--env-kwargs``
     """
-    from envs.evaluation import env_config
+    from envs.evaluation.harness import env_config
 
     try:
         return env_config(env_id, env_kwargs)
@@ -275,8 +275,8 @@ def duration_text(runs, requested: float) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from envs.evaluation import check_scenarios, find_scenarios, generate_scenarios
-    from envs.report import write_report
+    from envs.evaluation.harness import check_scenarios, find_scenarios, generate_scenarios
+    from envs.evaluation.report import write_report
     from sb3_graph.outputs import OutputError, staged_folder
 
     planners = _check(args)
@@ -334,7 +334,7 @@ def run(args: argparse.Namespace) -> int:
 
 def print_summary(summary: dict[str, dict[str, Any]]) -> None:
     """One line per planner on the console, the shield's counters and the planner errors after it."""
-    from envs.report import collided_text, format_number
+    from envs.evaluation.report import collided_text, format_number
 
     width = max([10, *(len(name) for name in summary)])
     for name, s in summary.items():
@@ -360,12 +360,12 @@ def print_summary(summary: dict[str, dict[str, Any]]) -> None:
 
 
 def run_harness(args: argparse.Namespace, planners: Sequence[tuple[str, str]], scenarios: Sequence[Path]):
-    """Every planner on every scenario with the command's settings (:func:`envs.evaluation.evaluate`).
+    """Every planner on every scenario with the command's settings (:func:`envs.evaluation.harness.evaluate`).
 
     :param args: the parsed ``evaluate``/``sweep`` arguments
     :param planners: ``(planner spec, report name)`` pairs
     :param scenarios: scenario files
-    :return: ``(runs, vehicles, stats)``, stats as :func:`envs.evaluation.evaluate` fills them
+    :return: ``(runs, vehicles, stats)``, stats as :func:`envs.evaluation.harness.evaluate` fills them
     """
     return harness(args, planners, scenarios, args.duration)
 
@@ -409,14 +409,14 @@ def announce_runs(args: argparse.Namespace, planners: Sequence[tuple[str, str]],
 
 
 def harness(args: argparse.Namespace, planners: Sequence[tuple[str, str]], scenarios: Sequence[Path], duration):
-    """:func:`envs.evaluation.evaluate` with a command's ``--jobs``, ``--executor``, ``--scheduler-address``,
+    """:func:`envs.evaluation.harness.evaluate` with a command's ``--jobs``, ``--executor``, ``--scheduler-address``,
     ``--seed``, ``--env``, ``--env-kwargs`` and ``--no-progress``.
 
     :return: ``(runs, vehicles, stats)``
     :raises UserError: the executor cannot start (naming its flag)
     """
-    from envs.evaluation import evaluate
-    from envs.executors import ExecutorError
+    from envs.evaluation.executors import ExecutorError
+    from envs.evaluation.harness import evaluate
 
     each = f"up to {duration:g}" if getattr(args, "command", None) == "ind" else f"{duration:g}"  # ind: per recording
     announce_runs(args, planners, len(scenarios), each)
@@ -445,7 +445,7 @@ def harness(args: argparse.Namespace, planners: Sequence[tuple[str, str]], scena
 def harness_meta(stats: dict[str, Any]) -> dict[str, str]:
     """The report's lines on the harness: where the runs executed and how fast.
 
-    :param stats: :func:`envs.evaluation.evaluate`'s stats
+    :param stats: :func:`envs.evaluation.harness.evaluate`'s stats
     """
     rate = stats.get("runs_per_s")
     rate_text = "n/a" if rate is None else f"{rate:.3g} runs/s"
@@ -466,7 +466,7 @@ def write_run_info(out: Path, stats: dict[str, Any], wall: float, replay: dict[s
     ``summary.json``, whose keys are the planners and whose numbers do not depend on where they ran).
 
     :param out: the report folder
-    :param stats: :func:`envs.evaluation.evaluate`'s stats
+    :param stats: :func:`envs.evaluation.harness.evaluate`'s stats
     :param wall: the command's wall time so far [s] (scenario generation, runs and report)
     :param replay: what ``sb3-graph record --report`` needs to run a run again (``env``, ``env_kwargs``,
         ``seed``, ``duration``, ``planners`` as ``[spec, name]`` pairs, ``trust_planner_files``)

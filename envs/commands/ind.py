@@ -10,7 +10,7 @@ modelled), map every vehicle track to an entry and exit arm, a maneuver and a ro
 ``CoopIntersectionInD-v0`` layout (:mod:`envs.ind.mapping`), measure the recorded drivers' stops
 (:mod:`envs.ind.dataset_metrics`), write one scenario file per recording (each vehicle timed to
 reach the stop line when the recorded one entered the intersection, ``--arrival-timing``) and
-run every planner on it with the evaluation harness (:mod:`envs.evaluation`; a collision removes
+run every planner on it with the evaluation harness (:mod:`envs.evaluation.harness`; a collision removes
 the vehicles involved and the run goes on). The report folder holds the files of
 ``sb3-graph evaluate`` (``metrics.csv``, ``vehicles.csv``, ``summary.json``, ``report.md``, the
 figures) with the dataset ``inD`` as the first column, plus ``tracks.csv`` (every track, mapped
@@ -218,7 +218,7 @@ def load_and_map(args: argparse.Namespace):
 
 
 def dataset_vehicle_log(mapped, recording: int | None = None) -> pd.DataFrame:
-    """The recorded drivers as a vehicle log of the evaluation harness (:mod:`envs.metrics`).
+    """The recorded drivers as a vehicle log of the evaluation harness (:mod:`envs.evaluation.metrics`).
 
     ``first_seen`` is the appearance time, ``crossed`` the time the vehicle passed closest to the
     centre, ``removed`` its last frame; path length and speed limit are unknown, so no delay.
@@ -227,7 +227,7 @@ def dataset_vehicle_log(mapped, recording: int | None = None) -> pd.DataFrame:
     :param recording: keep one recording
     :return: vehicle log rows with ``planner = "inD"`` and ``scenario``
     """
-    from envs.metrics import vehicle_frame
+    from envs.evaluation.metrics import vehicle_frame
 
     rows = mapped.mapped
     if recording is not None:
@@ -262,7 +262,7 @@ def dataset_runs(mapped, recordings: Sequence) -> tuple[pd.DataFrame, pd.DataFra
     :param recordings: the recordings
     :return: ``(runs, vehicles)`` in the harness's schema, planner ``"inD"``
     """
-    from envs.metrics import run_metrics
+    from envs.evaluation.metrics import run_metrics
 
     runs, logs = [], []
     for recording in recordings:
@@ -416,7 +416,7 @@ def run(args: argparse.Namespace) -> int:
             summary = _write(args, stage, recordings, mapped, planners, tic)
     except OutputError as error:
         raise UserError(str(error)) from None
-    from envs.report import format_number
+    from envs.evaluation.report import format_number
 
     for name, s in summary.items():
         sr = s["stop_ratio"]
@@ -457,7 +457,7 @@ def _write(args: argparse.Namespace, out: Path, recordings, mapped, planners, ti
         runs = runs.reset_index(drop=True)
 
     from envs.commands.evaluate import harness_meta, write_run_info
-    from envs.report import markdown_report, write_report
+    from envs.evaluation.report import markdown_report, write_report
 
     wall = time.perf_counter() - tic
     meta = {

@@ -16,7 +16,7 @@ The scenario is one generated with ``--seed`` (the scenario and environment seed
 ``sb3-graph evaluate --seed S``'s first run), a scenario file (``--scenario``), or a run of an
 ``evaluate`` report (``--report DIR --run N``: its scenario file, environment, seed and planners),
 so that a stuck or colliding run of a report can be watched; the episode runs through the evaluation
-harness's own loop and environment (:func:`envs.evaluation.run_episode`), and a replayed run prints
+harness's own loop and environment (:func:`envs.evaluation.harness.run_episode`), and a replayed run prints
 its crossed and collided vehicles beside the report's.
 
 ``.gif`` needs Pillow (installed with matplotlib), ``.html`` nothing more (frames embedded, one
@@ -222,7 +222,7 @@ def run(args: argparse.Namespace) -> int:
     from tqdm.auto import tqdm
 
     from envs.commands.evaluate import check_env_id, checked_env, checked_planners, load_model_planners
-    from envs.evaluation import evaluation_env_kwargs
+    from envs.evaluation.harness import evaluation_env_kwargs
     from envs.planners import make_planner
     from envs.simulation.rendering import record_episode, write_animation
     from sb3_graph.outputs import OutputError, write_file_atomically

@@ -11,7 +11,7 @@ in the paper). For each level, ``--scenarios`` scenario files are drawn into
 ``<out>/demand_<level>/scenarios`` (scenario ``i`` of every level with seed ``seed + i``), and every
 planner runs on all of them in one pool of ``--jobs`` workers with one progress bar (the harness of
 ``evaluate``). The folder receives ``sweep.csv`` (one row per planner and level, columns of
-:data:`envs.sweep.SWEEP_COLUMNS`), ``sweep.png``, ``sweep.md`` (capacities, the table, the paired
+:data:`envs.evaluation.sweep.SWEEP_COLUMNS`), ``sweep.png``, ``sweep.md`` (capacities, the table, the paired
 differences against the strongest baseline of each level) and, per level, the full ``evaluate``
 report in ``demand_<level>/``, and ``run.json`` (runs, wall time, runs per second, executor). The
 runs execute where ``--executor`` says, as for ``evaluate`` (``--executor dask
@@ -75,7 +75,7 @@ def checked_demand(values: Sequence[float]) -> list[float]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from envs.sweep import capacities, capacity_text
+    from envs.evaluation.sweep import capacities, capacity_text
     from sb3_graph.outputs import OutputError, staged_folder
 
     demand = checked_demand(args.demand)
@@ -102,10 +102,10 @@ def run(args: argparse.Namespace) -> int:
 def _sweep(args, planners, demand, layout, out, tic):
     """Run every level into ``out`` (the staging folder); return the sweep table, the wall time and the
     harness's stats."""
-    from envs.comparison import paired_differences
-    from envs.evaluation import generate_scenarios
-    from envs.report import write_report
-    from envs.sweep import level_folder, write_sweep
+    from envs.evaluation.comparison import paired_differences
+    from envs.evaluation.harness import generate_scenarios
+    from envs.evaluation.report import write_report
+    from envs.evaluation.sweep import level_folder, write_sweep
 
     scenarios = [
         path

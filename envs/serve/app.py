@@ -122,7 +122,7 @@ class PlannerService:
         stream_timeout: float = 600.0,
         max_body: int = 1 << 20,
     ) -> None:
-        from envs.evaluation import env_config
+        from envs.evaluation.harness import env_config
         from envs.planners import SHIELD_SUFFIX, check_planner_spec, make_planner
 
         key = check_planner_spec(spec)

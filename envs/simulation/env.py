@@ -15,7 +15,7 @@ highway-env's :class:`~highway_env.envs.common.abstract.AbstractEnv` for its con
   replayed scenario's duration).
 - Collisions (``collision_handling``): ``"terminate"`` (default, training, as in the paper) ends
   the episode (``terminated``) with the vehicles where they collided; ``"remove"`` (evaluation:
-  :mod:`envs.evaluation` uses it) reports the pair once in ``info["collisions"]`` and
+  :mod:`envs.evaluation.harness` uses it) reports the pair once in ``info["collisions"]`` and
   ``info["collided"]``, takes both vehicles out of the scene at the end of the step (their ids are
   also in ``info["removed"]``) and goes on, so a run's flow and collision rate cover its whole
   duration. The collision reward term applies in both cases.

@@ -1,6 +1,6 @@
 """Free-flow travel times: the fastest trip along a route that the lane speed limits allow.
 
-The reference a vehicle's delay is measured against (see :mod:`envs.metrics`). A lone vehicle
+The reference a vehicle's delay is measured against (see :mod:`envs.evaluation.metrics`). A lone vehicle
 starts at its spawn point with its scheduled initial speed, accelerates at ``acceleration`` up to
 the lane limit, never exceeds the limit sampled along the route (``Layout.speed_limit``, every
 ``Layout.ds`` metres: the road's limit on straight lanes, lower ones on curves where the layout

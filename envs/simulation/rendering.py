@@ -12,7 +12,7 @@ shows the simulated time, the planner, the conflict zones and every vehicle colo
 - *collided*: the vehicles of a collision in that step, drawn where they were when it happened
   (the harness removes them from the scene) for :data:`COLLIDED_SHOWN_S` seconds.
 
-:func:`record_episode` runs the evaluation harness's loop (:func:`envs.evaluation.run_episode`),
+:func:`record_episode` runs the evaluation harness's loop (:func:`envs.evaluation.harness.run_episode`),
 so that a recorded run is the run of the report; :func:`write_animation` draws one or several
 recorded episodes side by side (the same scenario under different planners).
 """
@@ -84,7 +84,7 @@ class Episode:
     :param name: the planner's report name (the panel's title)
     :param layout: the intersection (:class:`envs.simulation.layouts.Layout`)
     :param frames: one :class:`Frame` per policy step
-    :param facts: :func:`envs.evaluation.run_episode`'s facts, and ``crossed``, ``collided``
+    :param facts: :func:`envs.evaluation.harness.run_episode`'s facts, and ``crossed``, ``collided``
     """
 
     name: str
@@ -122,7 +122,7 @@ def _scene_outlines(scene: Scene, rows: np.ndarray | None = None) -> np.ndarray:
 
 
 class EpisodeRecorder:
-    """The ``on_step`` of :func:`envs.evaluation.run_episode` that keeps one :class:`Frame` per step.
+    """The ``on_step`` of :func:`envs.evaluation.harness.run_episode` that keeps one :class:`Frame` per step.
 
     :param planner: the planner that drives the run (a shielded one reports the vehicles it overrode)
     :param tick: called once per step (a progress bar's ``update``)
@@ -175,7 +175,7 @@ def record_episode(
 ) -> Episode:
     """Run one planner through one scenario with the harness's loop, keeping a frame per policy step.
 
-    :param env: the harness's environment (:func:`envs.evaluation.evaluation_env_kwargs`)
+    :param env: the harness's environment (:func:`envs.evaluation.harness.evaluation_env_kwargs`)
     :param planner: a :class:`envs.planners.Planner`
     :param name: its report name
     :param scenario: a :class:`envs.simulation.traffic.Scenario` (or a file)
@@ -184,7 +184,7 @@ def record_episode(
     :param tick: called once per policy step (progress)
     :return: the episode, its facts with the run's ``crossed`` and ``collided`` vehicles
     """
-    from envs.evaluation import run_episode
+    from envs.evaluation.harness import run_episode
 
     recorder = EpisodeRecorder(planner, tick)
     vehicles, facts = run_episode(env, planner, scenario, duration, seed=seed, on_step=recorder)

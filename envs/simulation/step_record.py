@@ -1,7 +1,7 @@
 """What one step of the intersection environment did, typed: :class:`StepRecord`.
 
-The environment builds one record per ``reset`` and ``step``; the metrics (:class:`envs.metrics.VehicleLog`),
-the evaluation harness (:func:`envs.evaluation.run_episode`) and the renderer read it, and nothing
+The environment builds one record per ``reset`` and ``step``; the metrics (:class:`envs.evaluation.metrics.VehicleLog`),
+the evaluation harness (:func:`envs.evaluation.harness.run_episode`) and the renderer read it, and nothing
 else of the step. What a vehicle *is* (route, priority, maneuver, length) comes from the scenes
 (:class:`envs.simulation.scene.Scene`), what *happened* to it from the records.
 

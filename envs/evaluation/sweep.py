@@ -2,7 +2,7 @@
 
 The sweep runs every planner on scenarios drawn at several demand levels (arrivals per second and
 major-road lane; minor-road lanes get half: :func:`envs.simulation.traffic.demand_scenario`) with the
-evaluation harness, and reduces each level's ``summary.json`` (:func:`envs.metrics.summarize`)
+evaluation harness, and reduces each level's ``summary.json`` (:func:`envs.evaluation.metrics.summarize`)
 to one row per planner and level (:data:`SWEEP_COLUMNS`):
 
 - ``flow_rate``: mean over the level's runs [veh/s];
@@ -52,7 +52,7 @@ def sweep_rows(demand: float, summary: Mapping[str, Mapping[str, Any]]) -> list[
     """The ``sweep.csv`` rows of one demand level (plus ``offered_flow``, used for the capacity).
 
     :param demand: the level [veh/s per major-road lane]
-    :param summary: that level's :func:`envs.metrics.summarize` output
+    :param summary: that level's :func:`envs.evaluation.metrics.summarize` output
     :return: one row per planner
     """
     return [
@@ -139,12 +139,12 @@ def sweep_markdown(
 
     :param table: sweep rows (with ``offered_flow``)
     :param capacity: :func:`capacities` output
-    :param paired: every level's :func:`envs.comparison.paired_differences` with a ``demand`` column
+    :param paired: every level's :func:`envs.evaluation.comparison.paired_differences` with a ``demand`` column
     :param meta: settings shown as a list
     :return: Markdown text
     """
-    from envs.comparison import PAIRED_METRICS
-    from envs.report import format_number
+    from envs.evaluation.comparison import PAIRED_METRICS
+    from envs.evaluation.report import format_number
 
     top = table["demand"].max()
     lines = ["# Demand sweep", "", *(f"- {key}: {value}" for key, value in meta.items()), ""]

@@ -26,11 +26,11 @@ The environment id and layout come from the study (``--env``), so the preset app
 training config describes (:func:`trial_planner`): a ``residual_base`` config makes it a
 :class:`~envs.planners.residual.ResidualPlanner` on that base with the config's ``residual_scale``,
 a ``shield: true`` config puts it behind the safety :class:`~envs.planners.shield.Shield` (as
-``sb3-graph evaluate --planner FILE+shield``). It runs :func:`envs.evaluation.run_episode` on a
+``sb3-graph evaluate --planner FILE+shield``). It runs :func:`envs.evaluation.harness.run_episode` on a
 few validation scenarios, drawn in memory with :func:`envs.simulation.traffic.generate_scenario` exactly
 like the evaluation scenarios (the same seeds for every trial), in the harness's environment
 (the study's config without ``shield`` and ``residual_base``, which the planner applies, and with
-the harness's ``collision_handling``), and :func:`envs.metrics.summarize` turns the vehicle logs
+the harness's ``collision_handling``), and :func:`envs.evaluation.metrics.summarize` turns the vehicle logs
 into the task metrics: flow rate, collision rate, stop ratio, delay. The training reward is not used.
 """
 
@@ -44,8 +44,8 @@ import gymnasium as gym
 import numpy as np
 import pandas as pd
 
-from envs.evaluation import EVALUATION_CONFIG, run_episode
-from envs.metrics import run_metrics, summarize
+from envs.evaluation.harness import EVALUATION_CONFIG, run_episode
+from envs.evaluation.metrics import run_metrics, summarize
 from envs.planners.base import Planner
 from envs.planners.gnn import GNNPlanner
 from envs.simulation.traffic import Scenario, generate_scenario
@@ -116,7 +116,7 @@ def trial_planner(model: Any, config: dict[str, Any]) -> Planner:
 def harness_env_kwargs(env_kwargs: dict[str, Any]) -> dict[str, Any]:
     """The validation environment's ``gym.make`` kwargs: the study's, without the training-side
     ``shield`` and ``residual_base`` (the planner of :func:`trial_planner` applies them) and with the
-    evaluation harness's collision handling (:data:`envs.evaluation.EVALUATION_CONFIG`)."""
+    evaluation harness's collision handling (:data:`envs.evaluation.harness.EVALUATION_CONFIG`)."""
     kwargs = dict(env_kwargs or {})
     config = dict(kwargs.get("config") or {})
     config.update(shield=False, residual_base=None, **EVALUATION_CONFIG)

@@ -5,14 +5,14 @@ at every policy step the planner answers the scene the environment shows
 (``env.unwrapped.scene()``) with one acceleration per vehicle, which the environment turns into
 its action (``env.unwrapped.accelerations_to_action``). The step records (``info["record"]``,
 :class:`envs.simulation.step_record.StepRecord`) and the scenes go into a vehicle log
-(:class:`envs.metrics.VehicleLog`), reduced to one metrics row per job, with the counters the planner
+(:class:`envs.evaluation.metrics.VehicleLog`), reduced to one metrics row per job, with the counters the planner
 reports (:meth:`envs.planners.Planner.stats`: a shield's interventions).
 
 Every planner meets exactly the same traffic: the scenario file fixes every vehicle's appearance
 time, route and initial speed, and the environment's own randomness is seeded per scenario.
 
 The harness reads every scenario file once, into a table that goes to each worker once (not once per
-run), and hands the jobs to an executor (:mod:`envs.executors`): processes on this machine
+run), and hands the jobs to an executor (:mod:`envs.evaluation.executors`): processes on this machine
 (``local``, the default), or an existing Dask or Ray cluster; the results are the same wherever
 they ran.
 
@@ -36,8 +36,8 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from envs.executors import JobExecutor, make_executor
-from envs.metrics import VehicleLog, run_metrics
+from envs.evaluation.executors import JobExecutor, make_executor
+from envs.evaluation.metrics import VehicleLog, run_metrics
 from envs.simulation.step_record import StepRecord, step_record
 
 SCENARIO_SUFFIX = ".json"
@@ -156,7 +156,7 @@ def run_episode(
     :param on_step: called after every policy step as ``on_step(scene, accelerations, record, next_scene)``
         (e.g. to draw the episode, :mod:`envs.simulation.rendering`); it must not change what it is handed
     :return: ``(vehicle log, facts)``: the log holds every vehicle scheduled within the run (see
-        :mod:`envs.metrics`); facts ``return`` (the sum of the environment's rewards),
+        :mod:`envs.evaluation.metrics`); facts ``return`` (the sum of the environment's rewards),
         ``return_<preset>`` (the same run's return under each reward preset of :mod:`envs.simulation.rewards`),
         ``duration`` (simulated seconds actually run),
         ``steps``, ``terminated`` (the environment ended the episode, e.g. on a collision with
@@ -432,7 +432,7 @@ def evaluate(
     :param progress: show a progress bar (with the runs per second)
     :param trust_planner_files: load model ``.zip`` files with SB3's full ``load`` (runs their pickles)
     :param executor: where the runs execute: ``"local"``, ``"dask"``, ``"ray"``
-        (:mod:`envs.executors`), or a :class:`envs.executors.JobExecutor` of one's own, which is
+        (:mod:`envs.evaluation.executors`), or a :class:`envs.evaluation.executors.JobExecutor` of one's own, which is
         used as it is and not closed here
     :param scheduler_address: address of an existing Dask scheduler or Ray cluster
     :param stats: if given, filled with the harness's facts: ``runs``, ``wall_s`` (from the start of

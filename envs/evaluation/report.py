@@ -2,9 +2,9 @@
 
 Files written into the report folder:
 
-- ``metrics.csv``: one row per planner and run (:func:`envs.metrics.run_metrics` columns);
+- ``metrics.csv``: one row per planner and run (:func:`envs.evaluation.metrics.run_metrics` columns);
 - ``vehicles.csv``: every vehicle of every run (the vehicle log, for re-analysis);
-- ``summary.json``: per planner, :func:`envs.metrics.summarize`;
+- ``summary.json``: per planner, :func:`envs.evaluation.metrics.summarize`;
 - ``report.md``: the tables;
 - ``flow_rate.png``: flow-rate distribution per planner (box plot, paper Fig. "flow rate"), with the
   offered flow (what a perfect planner reaches) as a dashed line;
@@ -12,7 +12,7 @@ Files written into the report folder:
 - ``stops_by_priority.png``: vehicles from the major and minor road and the share that stopped;
 - ``stops_by_maneuver.png``: the same by maneuver;
 - ``paired.csv``: per-scenario differences of every planner against the strongest baseline, with
-  bootstrap 95 % intervals (:mod:`envs.comparison`; no rows when no planner is a baseline).
+  bootstrap 95 % intervals (:mod:`envs.evaluation.comparison`; no rows when no planner is a baseline).
 """
 
 from __future__ import annotations
@@ -30,8 +30,8 @@ import matplotlib.ticker  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
-from envs.comparison import CONFIDENCE, PAIRED_METRICS, paired_differences  # noqa: E402
-from envs.metrics import PRIORITIES, SPEED_TOLERANCE, stop_counts, summarize  # noqa: E402
+from envs.evaluation.comparison import CONFIDENCE, PAIRED_METRICS, paired_differences  # noqa: E402
+from envs.evaluation.metrics import PRIORITIES, SPEED_TOLERANCE, stop_counts, summarize  # noqa: E402
 from envs.simulation.scene import MANEUVERS  # noqa: E402
 
 NOTES = (
@@ -87,11 +87,11 @@ def markdown_report(
 ) -> str:
     """The Markdown report: settings, flow rate, stops, collisions and delay tables, reading notes.
 
-    :param summary: :func:`envs.metrics.summarize` output
+    :param summary: :func:`envs.evaluation.metrics.summarize` output
     :param runs: ``metrics.csv`` rows
     :param vehicles: all vehicle logs with a ``planner`` column
     :param meta: settings of the evaluation (env, scenarios, duration, seed, ...), shown as a list
-    :param paired: :func:`envs.comparison.paired_differences` output (a section when not empty)
+    :param paired: :func:`envs.evaluation.comparison.paired_differences` output (a section when not empty)
     :return: Markdown text
     """
     lines = ["# Planner evaluation", ""]
@@ -282,7 +282,7 @@ def add_collided_counts(summary: dict, vehicles: pd.DataFrame) -> None:
     """Add ``collided`` (vehicles involved in a collision, over all runs; ``None`` where the log has no
     collision column, e.g. recorded drivers) to every planner's summary (in place).
 
-    :param summary: :func:`envs.metrics.summarize` output
+    :param summary: :func:`envs.evaluation.metrics.summarize` output
     :param vehicles: all vehicle logs with a ``planner`` column
     """
     for name, s in summary.items():
@@ -295,7 +295,7 @@ def add_shield_interventions(summary: dict, runs: pd.DataFrame) -> None:
     """Add ``shield_interventions`` (share of vehicle-steps whose command the shield replaced, over
     all runs) to the summary of every shielded planner (in place).
 
-    :param summary: :func:`envs.metrics.summarize` output
+    :param summary: :func:`envs.evaluation.metrics.summarize` output
     :param runs: ``metrics.csv`` rows; shielded runs carry ``shield_interventions`` and ``shield_vehicle_steps``
     """
     if "shield_interventions" not in runs:
@@ -314,7 +314,7 @@ def add_failures(summary: dict, runs: pd.DataFrame) -> None:
     """Add ``failed_runs`` and the planner-error lines to the summary of every planner with a planner
     error (in place); a planner all of whose runs failed gets an entry of its own.
 
-    :param summary: :func:`envs.metrics.summarize` output of the runs that did not fail
+    :param summary: :func:`envs.evaluation.metrics.summarize` output of the runs that did not fail
     :param runs: every ``metrics.csv`` row, with ``failed`` and ``planner_error``
     """
     if "planner_error" not in runs:

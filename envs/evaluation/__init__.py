@@ -1,0 +1,55 @@
+"""How planners are compared: like-for-like runs on scenario files, their metrics and reports.
+
+- :mod:`~envs.evaluation.harness`: jobs (one planner on one scenario file), episodes, :func:`evaluate`,
+- :mod:`~envs.evaluation.executors`: where the jobs run (local processes, Dask, Ray),
+- :mod:`~envs.evaluation.metrics`: a run's vehicle log and its metrics row, the summaries,
+- :mod:`~envs.evaluation.comparison`: paired differences between planners with intervals,
+- :mod:`~envs.evaluation.report`: ``evaluate``'s report (``report.md``, the figures, the CSV files),
+- :mod:`~envs.evaluation.sweep`: planners across demand levels, with their capacity,
+- :mod:`~envs.evaluation.tuning`: the objective of ``sb3-graph tune`` (a trained model on validation scenarios).
+
+This package re-exports the harness's names (``from envs.evaluation import evaluate, run_episode``);
+the other modules load only when imported (the report and the sweep pull in matplotlib).
+"""
+
+from __future__ import annotations
+
+from envs.evaluation.harness import (
+    EVALUATION_CONFIG,
+    SCENARIO_SUFFIX,
+    Job,
+    check_scenarios,
+    env_config,
+    evaluate,
+    evaluation_env_kwargs,
+    find_scenarios,
+    generate_scenarios,
+    is_baseline,
+    layout_of,
+    planned_accelerations,
+    preset_returns,
+    run_episode,
+    run_job,
+    run_seed,
+    run_shared_job,
+)
+
+__all__ = [
+    "EVALUATION_CONFIG",
+    "SCENARIO_SUFFIX",
+    "Job",
+    "check_scenarios",
+    "env_config",
+    "evaluate",
+    "evaluation_env_kwargs",
+    "find_scenarios",
+    "generate_scenarios",
+    "is_baseline",
+    "layout_of",
+    "planned_accelerations",
+    "preset_returns",
+    "run_episode",
+    "run_job",
+    "run_seed",
+    "run_shared_job",
+]
