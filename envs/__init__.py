@@ -1,4 +1,11 @@
-"""The cooperative intersection domain: layouts, simulation, traffic, graph observation, planners.
+"""The cooperative intersection domain, one folder per question.
+
+- :mod:`envs.simulation`: how the world moves and what the learner sees (layouts, engine, traffic,
+  scene, graph observation, rewards, config, the environments),
+- :mod:`envs.planners`: who decides the accelerations (``envs.planners.Planner``, baselines, shield),
+- :mod:`envs.evaluation`: how planners are compared (harness, executors, metrics, reports, sweeps, tuning),
+- :mod:`envs.ind`: real-world traffic (inD), :mod:`envs.serve`: the planner as an edge server,
+  :mod:`envs.commands`: the ``sb3-graph`` commands, ``envs/pretrained/``: the shipped planners.
 
 Importing ``envs`` registers the gymnasium environments (their modules load only on ``gym.make``):
 
