@@ -443,7 +443,9 @@ def test_the_shipped_weight_study_holds_24_finished_trials_and_reports(tmp_path)
     )
     shipped = yaml.safe_load((folder / "best_params.yml").read_text())
     again = yaml.safe_load((tmp_path / "r" / "best_params.yml").read_text())
-    assert shipped == again
+    # The shipped file predates the report's merge of the trials' --trial-hyperparams into the entry.
+    env_id = "CoopIntersection4Way-v0"
+    assert again[env_id] == {**shipped[env_id], **study.user_attrs["trial_hyperparams"]}
     weights = shipped["CoopIntersection4Way-v0"]["env_kwargs"]["config"]["reward_weights"]
     best = study.trials[0].params
     assert weights == {k.split(".", 1)[1]: v for k, v in best.items()}
@@ -465,3 +467,20 @@ def test_tune_trains_the_chosen_algorithm_with_its_search_space(config, tmp_path
     assert read_sb3_zip(models / "trial_0.zip")[0].algorithm == "SAC"
     assert tune(config, "sac", *base, "--eval-episodes", "1") == 2  # default --algo td3: another study
     assert "created with algo 'sac', not 'td3'" in capsys.readouterr().err
+
+
+def test_the_shipped_shield_study_reports_what_its_trials_trained_with(tmp_path):
+    # examples/weight_study/shield_fine.log: issue #23's study behind the shield, fine-tuning the shipped planner.
+    from pathlib import Path
+
+    folder = Path(__file__).resolve().parents[1] / "examples" / "weight_study"
+    storage = f"journal://{folder / 'shield_fine.log'}"
+    study = optuna.load_study(study_name="shield_fine", storage=optuna.storages.JournalStorage(
+        optuna.storages.journal.JournalFileBackend(str(folder / "shield_fine.log"))))  # fmt: skip
+    assert len([t for t in study.trials if t.state in (TrialState.COMPLETE, TrialState.PRUNED)]) >= 24
+    assert study.user_attrs["init_weights"].endswith("coop_4way_fair/best_model.safetensors")
+    assert main(["tune-report", "--study-name", "shield_fine", "--storage", storage, "--out", str(tmp_path / "r")]) == 0
+    entry = yaml.safe_load((tmp_path / "r" / "best_params.yml").read_text())["CoopIntersection4Way-v0"]
+    assert entry["learning_starts"] == 500  # the trials' --trial-hyperparams, not the file's 2000
+    assert entry["env_kwargs"]["config"]["shield"] is True
+    assert entry == yaml.safe_load((folder / "shield_fine" / "best_params.yml").read_text())["CoopIntersection4Way-v0"]

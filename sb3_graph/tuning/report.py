@@ -196,8 +196,9 @@ def best_trial(study: optuna.Study) -> tuple[FrozenTrial | None, bool]:
 
 
 def best_entry(study: optuna.Study, trial: FrozenTrial) -> dict[str, Any]:
-    """``{env_id: entry}`` with the trial's parameters in the study's experiment entry."""
-    entry = dict(study.user_attrs.get("entry") or {})
+    """``{env_id: entry}`` with the trial's parameters in the study's experiment entry, and the
+    study's ``--trial-hyperparams`` that every trial trained with (e.g. a fine-tune's ``learning_starts``)."""
+    entry = {**(study.user_attrs.get("entry") or {}), **(study.user_attrs.get("trial_hyperparams") or {})}
     env_id = study.user_attrs.get("env", "ENV_ID")
     return {env_id: entry_with_params(entry, trial.params)}
 
