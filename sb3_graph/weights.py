@@ -566,12 +566,11 @@ def _rebuilt_space(value: Any, key: str, source: str) -> dict[str, Any]:
         raise PolicyFileError(f"{source}: field {key!r} is not a space saved by SB3")
     kind = value[":type:"]
     if kind == "<class 'sb3_graph.spaces.GraphSpace'>":
+        names = ["max_nodes", "node_features", "max_edges", "num_relations", "low", "high"]
+        names += ["edge_features", "edge_low", "edge_high"] if value.get("edge_features") else []
         rebuilt = {"type": "GraphSpace"}
-        for name in ("max_nodes", "node_features", "max_edges", "num_relations", "low", "high"):
+        for name in names:
             rebuilt[name] = _float_json(value[name]) if isinstance(value.get(name), float) else value.get(name)
-        if value.get("edge_features"):
-            for name in ("edge_features", "edge_low", "edge_high"):
-                rebuilt[name] = _float_json(value[name]) if isinstance(value.get(name), float) else value.get(name)
         return rebuilt
     if kind == "<class 'gymnasium.spaces.box.Box'>":
         shape = value.get("_shape")

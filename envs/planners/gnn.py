@@ -11,7 +11,6 @@ Planner files are what people share, so they load without running code: a weight
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -39,6 +38,7 @@ def load_model(path: str | Path, device: str = "cpu", trust_files: bool = False)
 #: Keys of a policy file's planner configuration (``source["planner"]`` of its header): what the
 #: environment did around the policy in training, which the planner must do again.
 PLANNER_CONFIG_KEYS = ("residual_base", "residual_scale", "vertex_features", "edge_features")
+_PLANNER_CONFIG_DEFAULTS = {"residual_base": None, "residual_scale": 0.5, "vertex_features": [], "edge_features": []}
 
 
 def check_planner_config(config: Any, source: str) -> dict[str, Any]:
@@ -51,34 +51,25 @@ def check_planner_config(config: Any, source: str) -> dict[str, Any]:
     :param source: what to name in errors (the file)
     :return: ``vertex_features`` and ``edge_features`` (tuples, default empty), plus ``residual_base``
         and ``residual_scale`` for a residual policy
-    :raises ValueError: an unknown key, base or feature name, or a scale outside ``(0, 2]``
+    :raises ValueError: an unknown key, base or feature name, or a scale outside ``(0, 2]`` (as the
+        environment config's rules of the same keys)
     """
-    from envs.simulation.config import RESIDUAL_BASES
-    from envs.simulation.graph import EDGE_FEATURES, VERTEX_FEATURES
+    from envs.simulation.config import RULES
 
     config = {} if config is None else config
     if not isinstance(config, dict) or set(config) - set(PLANNER_CONFIG_KEYS):
         raise ValueError(
             f"{source}: planner config must be a dict with keys among {list(PLANNER_CONFIG_KEYS)}, got {config!r}"
         )
-    checked: dict[str, Any] = {}
-    for key, allowed in (("vertex_features", VERTEX_FEATURES), ("edge_features", EDGE_FEATURES)):
-        names = config.get(key, [])
-        distinct = isinstance(names, list) and all(isinstance(n, str) and n in allowed for n in names)
-        if not (distinct and len(set(names)) == len(names)):
-            raise ValueError(
-                f"{source}: planner config {key} must be a list of distinct names from {list(allowed)}, got {names!r}"
-            )
-        checked[key] = tuple(names)
-    base = config.get("residual_base")
-    if base is None:
+    # Each key means what the environment config's key of the same name means: its rule checks it.
+    values = {**_PLANNER_CONFIG_DEFAULTS, **config}
+    for key in PLANNER_CONFIG_KEYS:
+        if not RULES[key].check(values[key]):
+            raise ValueError(f"{source}: planner config {key} must be {RULES[key].allowed}, got {values[key]!r}")
+    checked: dict[str, Any] = {key: tuple(values[key]) for key in ("vertex_features", "edge_features")}
+    if values["residual_base"] is None:
         return checked
-    if base not in RESIDUAL_BASES:
-        raise ValueError(f"{source}: planner config residual_base must be one of {RESIDUAL_BASES}, got {base!r}")
-    scale = config.get("residual_scale", 0.5)
-    if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not (math.isfinite(scale) and 0 < scale <= 2):
-        raise ValueError(f"{source}: planner config residual_scale must be a number in (0, 2], got {scale!r}")
-    return {**checked, "residual_base": base, "residual_scale": float(scale)}
+    return {**checked, "residual_base": values["residual_base"], "residual_scale": float(values["residual_scale"])}
 
 
 def planner_config_of(path: str | Path) -> dict:
