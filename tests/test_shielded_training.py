@@ -84,6 +84,30 @@ def test_the_replay_buffer_holds_the_executed_actions_of_a_shielded_env():
     assert differs > 0  # the shield changed some of the random proposals, and those changes were stored
 
 
+def test_a_clipped_residual_correction_is_stored_as_proposed_where_the_shield_keeps_it():
+    # Over full throttle every positive correction clips to +5 m/s^2; stored clipped (0), the critic
+    # would never see one and would extrapolate into them.
+    config = {**SMALL, "shield": True, "residual_base": "fullthrottle", "residual_scale": 2.0}
+    env = gym.make("CoopIntersection4Way-v0", config=config).unwrapped
+    env.reset(seed=3)
+    kept = overridden = 0
+    for _ in range(60):
+        scene = env.scene()
+        n = scene.num_vehicles
+        expected = Shield(FullThrottle()).check(scene, np.full(n, scene.a_max))
+        action = np.full(env.action_space.shape, 0.7, np.float32)
+        _, _, _, _, info = env.step(action)
+        executed = info["executed_action"][:n]
+        changed = np.abs(expected - scene.a_max) > 1e-9
+        np.testing.assert_allclose(executed[~changed], 0.7, atol=1e-6)
+        shielded = (expected[changed] - scene.a_max) / (2.0 * scene.a_max)
+        np.testing.assert_allclose(executed[changed], shielded, atol=1e-6)
+        assert info["reward_terms"]["shield"] == pytest.approx(-np.abs(expected - scene.a_max).sum() / scene.a_max)
+        kept += int((~changed).sum())
+        overridden += int(changed.sum())
+    assert kept > 0 and overridden > 0
+
+
 def test_a_residual_planner_with_a_zero_correction_is_its_base_planner():
     env = gym.make("CoopIntersection4Way-v0", config={"collision_handling": "remove"})
     env.reset(seed=0)

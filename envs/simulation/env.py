@@ -126,7 +126,8 @@ class CoopIntersectionEnv(AbstractEnv):
         - ``shield``: train behind the safety shield (:class:`envs.planners.shield.Shield`): the
           policy's proposal is checked as in evaluation, the executed command is applied, rewarded
           and reported in ``info["executed_action"]`` (the graph algorithms store it in the replay
-          buffer), and the override enters the ``shield`` reward term
+          buffer: the policy's action where the shield kept the proposal, the action of the shield's
+          command where it overrode it), and the override enters the ``shield`` reward term
         - ``spawn_queue``: training spawns that find their spawn point blocked wait, up to this many
           per lane (0: dropped); waiting vehicles count in the delay term
         - ``residual_base``: ``None``, or a planner (``"fullthrottle"``, ``"aim"``, ``"fifo"``,
@@ -360,7 +361,7 @@ class CoopIntersectionEnv(AbstractEnv):
             overridden = self._shield.last_overridden
             info["shield_overridden"] = int(overridden.sum())
             info["shield_intervention_rate"] = float(overridden.mean()) if n else 0.0
-            info["executed_action"] = self._executed_action(acc, base)
+            info["executed_action"] = self._executed_action(acc, base, correction, overridden)
         record = info["record"]
         self._collided = set(record.collided.tolist())
         reward = record.reward
@@ -411,14 +412,24 @@ class CoopIntersectionEnv(AbstractEnv):
             governor_deceleration=cfg["governor_deceleration"],
         )
 
-    def _executed_action(self, acc: np.ndarray, base: np.ndarray | None) -> np.ndarray:
-        """The padded action that would have commanded ``acc`` (clipped to the action bounds)."""
+    def _executed_action(
+        self, acc: np.ndarray, base: np.ndarray | None, correction: np.ndarray, overridden: np.ndarray
+    ) -> np.ndarray:
+        """The padded action to store for this step: the policy's own where the shield kept its
+        proposal, and where it overrode it the action that would have commanded the shield's ``acc``.
+
+        A residual correction that the acceleration bounds clip (any positive one over full throttle)
+        is stored as proposed, as SB3 stores an action that an environment clips: storing the clipped
+        value would hide those actions from the critic, which then extrapolates into them and drives
+        the actor there (the feature-trained residual policies of issue #22 saturated at +1 so).
+        """
         a_max = self.config["max_acceleration"]
         action = np.zeros(self.action_space.shape, np.float32)
         if base is None:
-            action[: acc.size] = np.clip(acc / a_max, -1.0, 1.0)
+            shield = acc / a_max
         else:
-            action[: acc.size] = np.clip((acc - base) / (self.config["residual_scale"] * a_max), -1.0, 1.0)
+            shield = (acc - base) / (self.config["residual_scale"] * a_max)
+        action[: acc.size] = np.clip(np.where(overridden, shield, correction), -1.0, 1.0)
         return action
 
     # ------------------------------------------------------------------ public helpers
