@@ -4,18 +4,27 @@ The reports must have run the same scenario files (checked byte for byte); their
 rows are joined and :func:`envs.evaluation.comparison.paired_differences` is taken against ``--baseline``::
 
     python scripts/paired.py reports/main100 reports/shield100_adversarial --baseline FullThrottle+shield
+
+``LABEL=REPORT`` prefixes that report's planner names with ``LABEL:`` (two reports whose planners share
+names, e.g. the seeds of two weight sets), and ``--pool-seeds`` turns a planner's training seeds into
+one planner: its metrics are averaged per scenario over the seeds (``seed_0`` ... -> ``seed_*``), so
+that a set of seeds is compared with another per scenario::
+
+    python scripts/paired.py default=reports/w/default tuned=reports/w/tuned --pool-seeds \
+        --baseline 'default:RL:seed_*+shield'
 """
 
 from __future__ import annotations
 
 import argparse
 import hashlib
+import re
 import sys
 from pathlib import Path
 
 import pandas as pd
 
-from envs.evaluation.comparison import paired_differences
+from envs.evaluation.comparison import PAIRED_METRICS, paired_differences
 
 
 def scenario_digests(report: Path) -> dict[str, str]:
@@ -23,37 +32,66 @@ def scenario_digests(report: Path) -> dict[str, str]:
     return {f.name: hashlib.sha256(f.read_bytes()).hexdigest() for f in sorted((report / "scenarios").glob("*.json"))}
 
 
-def joined_runs(reports: list[Path]) -> pd.DataFrame:
+def joined_runs(reports: list[Path], labels: list[str] | None = None) -> pd.DataFrame:
     """The ``metrics.csv`` rows of every report, after checking that they share their scenarios.
 
     :param reports: ``sb3-graph evaluate`` report folders
+    :param labels: one per report: ``""`` or a prefix for its planner names (``LABEL:planner``)
     :return: the rows, one per planner and run
     :raises ValueError: naming a report whose scenarios differ from the first one's
     """
+    labels = labels or [""] * len(reports)
     first = scenario_digests(reports[0])
     frames = []
-    for report in reports:
+    for report, label in zip(reports, labels):
         digests = scenario_digests(report)
         shared = set(first) & set(digests)
         if not shared or any(first[k] != digests[k] for k in shared):
             raise ValueError(f"{report}: its scenario files differ from those of {reports[0]}")
-        frames.append(pd.read_csv(report / "metrics.csv"))
+        frame = pd.read_csv(report / "metrics.csv")
+        if label:
+            frame["planner"] = label + ":" + frame["planner"].astype(str)
+        frames.append(frame)
     runs = pd.concat(frames, ignore_index=True)
     return runs.drop_duplicates(subset=["planner", "scenario"], keep="first")
 
 
+def pool_seeds(runs: pd.DataFrame, pattern: str = r"seed_\d+") -> pd.DataFrame:
+    """One planner per set of training seeds: names with ``pattern`` -> ``seed_*``, metrics averaged
+    per scenario over the seeds.
+
+    :param runs: rows of :func:`joined_runs`
+    :param pattern: regular expression of the seed token in a planner name
+    :return: one row per pooled planner and scenario (the paired metrics only)
+    """
+    named = runs.assign(planner=runs["planner"].astype(str).str.replace(pattern, "seed_*", regex=True))
+    return named.groupby(["planner", "scenario"], as_index=False)[list(PAIRED_METRICS)].mean()
+
+
+def _labelled(item: str) -> tuple[str, Path]:
+    """``[LABEL=]REPORT`` -> ``(label, report)``."""
+    label, sep, path = item.partition("=")
+    if not sep or not re.fullmatch(r"[A-Za-z0-9_.-]+", label):
+        return "", Path(item)
+    return label, Path(path)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("reports", type=Path, nargs="+", help="sb3-graph evaluate report folders")
+    parser.add_argument("reports", nargs="+", help="sb3-graph evaluate report folders, each [LABEL=]REPORT")
     parser.add_argument("--baseline", required=True, help="report name of the reference planner")
+    parser.add_argument("--pool-seeds", action="store_true", help="average each planner's training seeds per scenario")
     args = parser.parse_args(argv)
-    for report in args.reports:
+    labels, reports = zip(*(_labelled(item) for item in args.reports))
+    for report in reports:
         if not (report / "metrics.csv").is_file():
             parser.error(f"reports: {report / 'metrics.csv'} does not exist (an sb3-graph evaluate report folder?)")
     try:
-        runs = joined_runs(args.reports)
+        runs = joined_runs(list(reports), list(labels))
     except ValueError as err:
         parser.error(str(err))
+    if args.pool_seeds:
+        runs = pool_seeds(runs)
     names = sorted(runs["planner"].unique())
     if args.baseline not in names:
         parser.error(f"--baseline: {args.baseline!r} is not a planner of these reports; allowed: {names}")

@@ -41,3 +41,29 @@ def test_reports_of_other_scenarios_or_an_unknown_baseline_are_refused(tmp_path,
     with pytest.raises(SystemExit):
         paired.main([str(a), "--baseline", "Z"])
     assert "allowed: ['A']" in capsys.readouterr().err
+
+
+def seeds_report(folder: Path, flows_per_seed: dict[int, list[float]]) -> Path:
+    (folder / "scenarios").mkdir(parents=True)
+    rows = []
+    for seed, flows in flows_per_seed.items():
+        for i, flow in enumerate(flows):
+            (folder / "scenarios" / f"scenario_{i:03d}.json").write_text("{}")
+            rows.append({"planner": f"RL:seed_{seed}+shield", "scenario": f"scenario_{i:03d}.json",
+                         "flow_rate": flow, "delay_mean": 1.0, "stop_ratio_all": 0.5})
+    pd.DataFrame(rows).to_csv(folder / "metrics.csv", index=False)
+    return folder
+
+
+def test_labelled_reports_with_pooled_seeds_compare_sets_per_scenario(tmp_path, capsys):
+    # Both sets name their planners RL:seed_N+shield; the labels keep them apart, and pooling
+    # averages the seeds per scenario: tuned - default = mean(0.6, 0.8) - mean(0.4, 0.4) = 0.3.
+    default = seeds_report(tmp_path / "d", {0: [0.4, 0.4], 1: [0.4, 0.4]})
+    tuned = seeds_report(tmp_path / "t", {0: [0.6, 0.6], 1: [0.8, 0.8]})
+    assert paired.main([f"default={default}", f"tuned={tuned}", "--pool-seeds", "--baseline",
+                        "default:RL:seed_*+shield"]) == 0
+    flow = [line for line in capsys.readouterr().out.splitlines() if "flow_rate" in line]
+    assert len(flow) == 1
+    fields = flow[0].split()
+    assert fields[:2] == ["tuned:RL:seed_*+shield", "default:RL:seed_*+shield"]
+    assert float(fields[3]) == 2 and float(fields[4]) == pytest.approx(0.3)
