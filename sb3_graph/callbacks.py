@@ -1,6 +1,6 @@
 """Training callbacks that any graph environment can use (SB3 ``BaseCallback`` subclasses).
 
-Both are referenced from rl-zoo3 style YAML by dotted name, e.g.::
+They are referenced from rl-zoo3 style YAML by dotted name, e.g.::
 
     callback:
       - sb3_graph.callbacks.LinearScheduleCallback:
@@ -20,6 +20,10 @@ from typing import Any
 
 import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback
+
+#: ``info`` key of an environment whose vertices come and go: for each vertex of the new observation,
+#: its slot in the previous one (``-1`` for a new vertex), see :class:`VertexNoiseCallback`
+VERTEX_ORIGIN = "vertex_origin"
 
 
 class LinearScheduleCallback(BaseCallback):
@@ -180,4 +184,45 @@ class ActorWarmupCallback(BaseCallback):
     def _on_step(self) -> bool:
         if self.frozen and self.model.num_timesteps >= self.steps:
             self._set_frozen(False)
+        return True
+
+
+class VertexNoiseCallback(BaseCallback):
+    """Keep each vertex's exploration noise with its vertex when vertices leave or join.
+
+    Time-correlated action noise (SB3's ``OrnsteinUhlenbeckActionNoise``) keeps one state per
+    action slot, and a graph's slot ``i`` is vertex ``i`` of the observation. When a vertex leaves,
+    the vertices after it move up one slot: without this callback each of them inherits the state
+    of its predecessor, and a vertex that joins inherits a state built up for another one, so the
+    noise of a vertex is correlated in time only while the graph keeps its vertices. An
+    environment that reports :data:`VERTEX_ORIGIN` in ``info`` (for each vertex of the new
+    observation its previous slot, ``-1`` for a new vertex) lets this callback move every state
+    to its vertex's new slot after each step and start new vertices at the process's initial
+    state (zero unless ``initial_noise`` was given); slots without a vertex are reset the same way.
+    Noise without a state (``NormalActionNoise``) and steps without the key are left alone.
+
+    :param verbose: verbosity level
+    """
+
+    def _on_step(self) -> bool:
+        noise = self.model.action_noise
+        if noise is None:
+            return True
+        processes = getattr(noise, "noises", [noise])  # VectorizedActionNoise: one per environment
+        for info, process in zip(self.locals.get("infos", []), processes):
+            origin = info.get(VERTEX_ORIGIN)
+            if origin is None or not hasattr(process, "noise_prev"):
+                continue
+            origin = np.asarray(origin, dtype=np.int64).reshape(-1)
+            state = np.asarray(process.noise_prev)
+            if origin.size > state.shape[0] or (origin >= state.shape[0]).any():
+                raise ValueError(
+                    f"info[{VERTEX_ORIGIN!r}] names {origin.size} vertices or a slot past {state.shape[0] - 1}, "
+                    f"but the action noise has {state.shape[0]} slots"
+                )
+            initial = getattr(process, "initial_noise", None)
+            moved = np.zeros_like(state) if initial is None else np.array(initial, dtype=state.dtype, copy=True)
+            known = origin >= 0
+            moved[: origin.size][known] = state[origin[known]]
+            process.noise_prev = moved
         return True

@@ -190,3 +190,24 @@ def test_the_actor_warmup_starts_at_zero_and_holds_the_actor_until_its_step():
     assert any(not bool((a == b).all()) for a, b in zip(critic_before, model.critic.parameters()))
     with pytest.raises(ValueError, match="steps"):
         ActorWarmupCallback(steps=-1)
+
+
+def test_vertex_origin_names_each_vehicles_previous_slot():
+    env = gym.make("CoopIntersection4Way-v0", config={**SMALL, "duration": 40.0, "shield": True}).unwrapped
+    env.reset(seed=2)
+    left = joined = shifted = 0
+    for _ in range(150):
+        before = env.scene().vehicle_id.copy()
+        _, _, terminated, truncated, info = env.step(np.ones(env.action_space.shape, np.float32))
+        after = env.scene().vehicle_id
+        origin = info["vertex_origin"]
+        assert origin.shape == after.shape
+        known = origin >= 0
+        np.testing.assert_array_equal(before[origin[known]], after[known])
+        assert not np.isin(after[~known], before).any()
+        left += before.size - int(known.sum())
+        joined += int((~known).sum())
+        shifted += int((origin[known] != np.flatnonzero(known)).sum())
+        if terminated or truncated:
+            break
+    assert left > 0 and joined > 0 and shifted > 0

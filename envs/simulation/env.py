@@ -62,6 +62,7 @@ from envs.simulation.rewards import (
 from envs.simulation.scene import MAJOR, MANEUVERS, Scene
 from envs.simulation.step_record import StepRecord
 from envs.simulation.traffic import Scenario, ScenarioTraffic, TrainingTraffic
+from sb3_graph.callbacks import VERTEX_ORIGIN
 from sb3_graph.spaces import GraphSpace
 
 _EMPTY_IDS = np.zeros(0, np.int64)
@@ -357,6 +358,8 @@ class CoopIntersectionEnv(AbstractEnv):
             )
         )
         info = self._make_info(events, entered, terms)
+        # Survivors keep their order and lead the rows, new vehicles follow: where each vertex was before.
+        info[VERTEX_ORIGIN] = np.concatenate([np.flatnonzero(kept), np.full(len(entered), -1)])
         if self._shield is not None:
             overridden = self._shield.last_overridden
             info["shield_overridden"] = int(overridden.sum())

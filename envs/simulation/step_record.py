@@ -27,6 +27,9 @@ For gymnasium users the record also travels in the step ``info``, which keeps it
   (always 0 with training traffic).
 - ``"vehicles"``: dict ``id -> {"route": str, "priority": int, "maneuver": str, "time": float}``
   for the ids in ``"entered"`` (for users; the metrics read these facts from the scenes).
+- ``"vertex_origin"``: for each vertex of the new observation, its slot in the previous one (``-1``
+  for a vehicle that entered), so that per-vertex state such as correlated exploration noise
+  follows its vehicle (``sb3_graph.callbacks.VertexNoiseCallback``); set by ``step`` only.
 - With ``shield=True``: ``"shield_overridden"``, ``"shield_intervention_rate"`` and
   ``"executed_action"`` (:class:`envs.simulation.env.CoopIntersectionEnv`).
 """
