@@ -42,12 +42,19 @@ class SegmentMax(torch.autograd.Function):
     (``None``: ``values`` are the messages themselves, ``E = V``), ``target`` ``(E,)`` long
     segment ids, ``num_segments`` ``S`` and ``num_nonempty``, the number of distinct targets.
     Output: ``(S, C)``.
+
+    Without ``source`` (critic max pooling, a convolution with edge features), CPU tensors run in
+    the compiled kernels of :class:`_RelationalMax` (one relation, no root term, no bias): the same
+    maxima and, since each row is read once, the same gradients to the bit.
     """
 
     @staticmethod
     def forward(  # type: ignore[override]
         ctx: Any, values: Tensor, source: Tensor | None, target: Tensor, num_segments: int, num_nonempty: int
     ) -> Tensor:
+        ctx.compiled = source is None and _compiled_path(values)
+        if ctx.compiled:
+            return _compiled_segment_max(ctx, values, target, num_segments)
         messages = values if source is None else values.index_select(0, source)
         out = values.new_zeros(num_segments, values.size(1))
         out.scatter_reduce_(0, target.unsqueeze(-1).expand_as(messages), messages, "amax", include_self=False)
@@ -57,9 +64,11 @@ class SegmentMax(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx: Any, grad_out: Tensor) -> tuple[Tensor | None, None, None, None, None]:  # type: ignore[override]
-        messages, out, source, target = ctx.saved_tensors
         if not ctx.needs_input_grad[0]:
             return None, None, None, None, None
+        if ctx.compiled:
+            return _compiled_segment_max_backward(ctx, grad_out), None, None, None, None
+        messages, out, source, target = ctx.saved_tensors
         grad = _max_gradient(messages, out, target, grad_out.index_select(0, target), ctx.num_nonempty)
         if source is None:
             return grad, None, None, None, None
@@ -225,6 +234,40 @@ def _compiled_backward(ctx: Any, grad_out: Tensor) -> tuple[Tensor, Tensor | Non
         copies = 1 if len(ctx.bias_shape) == 1 else ctx.bias_shape[0]
         grad_bias = grad_out.view(copies, -1, grad_out.size(1)).sum(dim=1).view(ctx.bias_shape)
     return grad_rows, grad_bias
+
+
+def _compiled_segment_max(ctx: Any, values: Tensor, target: Tensor, num_segments: int) -> Tensor:
+    """:class:`SegmentMax`'s forward pass over all rows in order (critic max pooling, the messages of
+    a convolution with edge features) with the relational kernels: every row is a segment's only
+    relation (``R = 1``, no root term, no bias), so the output is the maxima themselves."""
+    kernels = _COMPILED["kernels"]
+    values = values.detach().contiguous()
+    target = target.contiguous()
+    source = torch.arange(values.size(0), device=values.device)
+    out = values.new_empty(num_segments, values.size(1))
+    maxima = values.new_empty(num_segments, values.size(1))
+    seen = torch.zeros(num_segments, dtype=torch.bool)
+    ctx.num_nonempty = kernels.relational_max_forward(
+        values.numpy(), source.numpy(), target.numpy(), 1, 1, values.new_empty(0, 0).numpy(), num_segments,
+        out.numpy(), maxima.numpy(), seen.numpy(),
+    )  # fmt: skip
+    ctx.save_for_backward(values, source, target, maxima)
+    return out
+
+
+def _compiled_segment_max_backward(ctx: Any, grad_out: Tensor) -> Tensor:
+    """:class:`SegmentMax`'s backward pass with the kernels: each row equal to its segment's maximum
+    gets the segment's gradient (split evenly among tied rows, PyTorch's rule)."""
+    kernels = _COMPILED["kernels"]
+    values, source, target, maxima = ctx.saved_tensors
+    grad_out = grad_out.contiguous().to(values.dtype)
+    grad_values = values.new_zeros(values.shape)
+    arrays = (values.numpy(), source.numpy(), target.numpy(), maxima.numpy(), 1, 1)
+    winners = kernels.relational_max_backward(grad_out.numpy(), *arrays, grad_values.numpy())
+    if winners != ctx.num_nonempty * values.size(1):
+        grad_values.zero_()
+        kernels.relational_max_backward_ties(grad_out.numpy(), *arrays, grad_values.numpy())
+    return grad_values
 
 
 class RelationalLayout(NamedTuple):

@@ -400,3 +400,35 @@ def test_compiled_kernels_can_be_switched_off():
         assert use_compiled_kernels(False) is False
     finally:
         use_compiled_kernels(True)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_compiled_segment_max_equals_the_pytorch_formulation(dtype):
+    """``segment_max`` over all rows in order (critic max pooling, edge-feature messages) in the
+    kernels: the same maxima and gradients bit for bit, with ties (split evenly), a NaN row,
+    rows of zeros, empty segments and segments in any order."""
+    g = torch.Generator().manual_seed(0)
+    values = torch.randn(40, 5, generator=g).to(dtype)
+    values[3] = values[4]  # a tie in segment 13
+    values[10:14] = 0.0  # rows of zeros, as after a dead ReLU: ties in segment 2
+    values[20, 1] = float("nan")  # a NaN maximum passes no gradient
+    target = torch.randint(0, 12, (40,), generator=g)
+    target[3] = target[4] = 13
+    target[10:14] = 2
+    grad = torch.randn(16, 5, generator=g).to(dtype)
+    results = []
+    for compiled in (True, False):
+        previous = use_compiled_kernels(compiled)
+        try:
+            v = values.clone().requires_grad_(True)
+            out = segment_max(v, None, target, 16, len(torch.unique(target)))
+            out.backward(grad)
+            results.append((out.detach(), v.grad))
+        finally:
+            use_compiled_kernels(previous)
+    (out, grad_values), (reference, reference_grad) = results
+    torch.testing.assert_close(out, reference, rtol=0, atol=0, equal_nan=True)
+    torch.testing.assert_close(grad_values, reference_grad, rtol=0, atol=0)
+    assert torch.all(out[[12, 14, 15]] == 0)
+    torch.testing.assert_close(grad_values[3], grad[13] / 2)
+    assert bool(torch.isnan(out[target[20], 1]))
