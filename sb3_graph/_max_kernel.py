@@ -104,6 +104,22 @@ def relational_max_forward(
 
 
 @numba.njit(cache=True)
+def _root_gradients(grad_out: np.ndarray, num_relations: int, stride: int, grad_rows: np.ndarray) -> None:
+    """Start of the backward passes, one write per row in place of zeroing ``grad_rows`` first:
+    ``grad_out[i]`` into the root row ``i * stride + R`` of each vertex (when ``stride > R``), 0 into
+    every other row (the relation rows, which the edges then accumulate into)."""
+    channels = grad_out.shape[1]
+    for row in range(grad_rows.shape[0]):
+        i, r = row // stride, row % stride
+        if r == num_relations and i < grad_out.shape[0]:
+            for c in range(channels):
+                grad_rows[row, c] = grad_out[i, c]
+        else:
+            for c in range(channels):
+                grad_rows[row, c] = 0.0
+
+
+@numba.njit(cache=True)
 def relational_max_backward(
     grad_out: np.ndarray,
     rows: np.ndarray,
@@ -124,17 +140,13 @@ def relational_max_backward(
     :param maxima: ``(M * R, C)`` the forward pass's maxima
     :param num_relations: ``R``
     :param stride: rows per vertex
-    :param grad_rows: ``(M * stride, C)`` zeros, written
+    :param grad_rows: ``(M * stride, C)``, written (every row: no need to zero it first)
     :return: the number of (edge, channel) pairs equal to their maximum: when it exceeds the
         number of non-empty (segment, channel) pairs, a maximum is tied (or a NaN took none) and the
         gradient must come from :func:`relational_max_backward_ties`
     """
+    _root_gradients(grad_out, num_relations, stride, grad_rows)
     channels = grad_out.shape[1]
-    if stride > num_relations:
-        for i in range(grad_out.shape[0]):
-            root = i * stride + num_relations
-            for c in range(channels):
-                grad_rows[root, c] = grad_out[i, c]
     winners = 0
     for e in range(source.shape[0]):
         s, t = source[e], target[e]
@@ -167,7 +179,7 @@ def relational_max_backward_ties(
     :param maxima: ``(M * R, C)`` the forward pass's maxima
     :param num_relations: ``R``
     :param stride: rows per vertex
-    :param grad_rows: ``(M * stride, C)`` zeros, written
+    :param grad_rows: ``(M * stride, C)``, written (every row: no need to zero it first)
     """
     channels = grad_out.shape[1]
     counts = np.zeros_like(maxima)  # float: the division stays in the rows' precision
@@ -176,11 +188,7 @@ def relational_max_backward_ties(
         for c in range(channels):
             if rows[s, c] == maxima[t, c]:
                 counts[t, c] += 1
-    if stride > num_relations:
-        for i in range(grad_out.shape[0]):
-            root = i * stride + num_relations
-            for c in range(channels):
-                grad_rows[root, c] = grad_out[i, c]
+    _root_gradients(grad_out, num_relations, stride, grad_rows)
     for e in range(source.shape[0]):
         s, t = source[e], target[e]
         i = t // num_relations

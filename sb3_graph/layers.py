@@ -223,11 +223,10 @@ def _compiled_backward(ctx: Any, grad_out: Tensor) -> tuple[Tensor, Tensor | Non
         raise RuntimeError("_RelationalMax: a forward-only layout (derived without autograd) in a backward pass")
     rows, maxima = ctx.saved_tensors
     grad_out = grad_out.reshape(num_vertices, rows.size(1)).contiguous().to(rows.dtype)
-    grad_rows = rows.new_zeros(rows.shape)
+    grad_rows = rows.new_empty(rows.shape)  # the kernels write every row
     arrays = (rows.numpy(), layout.source.numpy(), layout.target.numpy(), maxima.numpy(), num_relations, stride)
     winners = kernels.relational_max_backward(grad_out.numpy(), *arrays, grad_rows.numpy())
     if winners != ctx.num_nonempty * rows.size(1):
-        grad_rows.zero_()
         kernels.relational_max_backward_ties(grad_out.numpy(), *arrays, grad_rows.numpy())
     grad_bias = None
     if ctx.bias_shape is not None and ctx.needs_input_grad[1]:
@@ -247,7 +246,7 @@ def _compiled_segment_max(ctx: Any, values: Tensor, target: Tensor, num_segments
     out = values.new_empty(num_segments, values.size(1))
     maxima = values.new_empty(num_segments, values.size(1))
     seen = torch.zeros(num_segments, dtype=torch.bool)
-    ctx.num_nonempty = kernels.relational_max_forward(
+    kernels.relational_max_forward(
         values.numpy(), source.numpy(), target.numpy(), 1, 1, values.new_empty(0, 0).numpy(), num_segments,
         out.numpy(), maxima.numpy(), seen.numpy(),
     )  # fmt: skip
@@ -261,12 +260,11 @@ def _compiled_segment_max_backward(ctx: Any, grad_out: Tensor) -> Tensor:
     kernels = _COMPILED["kernels"]
     values, source, target, maxima = ctx.saved_tensors
     grad_out = grad_out.contiguous().to(values.dtype)
-    grad_values = values.new_zeros(values.shape)
+    grad_values = values.new_empty(values.shape)  # the kernel writes every row
+    # Straight to the tie rule: after a ReLU, max pooling nearly always ties (a channel at 0 in
+    # several vertices of a graph), and without ties it gives the same gradient (each count is 1).
     arrays = (values.numpy(), source.numpy(), target.numpy(), maxima.numpy(), 1, 1)
-    winners = kernels.relational_max_backward(grad_out.numpy(), *arrays, grad_values.numpy())
-    if winners != ctx.num_nonempty * values.size(1):
-        grad_values.zero_()
-        kernels.relational_max_backward_ties(grad_out.numpy(), *arrays, grad_values.numpy())
+    kernels.relational_max_backward_ties(grad_out.numpy(), *arrays, grad_values.numpy())
     return grad_values
 
 

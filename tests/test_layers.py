@@ -432,3 +432,35 @@ def test_compiled_segment_max_equals_the_pytorch_formulation(dtype):
     assert torch.all(out[[12, 14, 15]] == 0)
     torch.testing.assert_close(grad_values[3], grad[13] / 2)
     assert bool(torch.isnan(out[target[20], 1]))
+
+
+@pytest.mark.parametrize(
+    "stride,num_relations,rows,vertices", [(3, 2, 18, 6), (2, 2, 12, 6), (1, 1, 9, 4), (1, 1, 3, 7)]
+)
+def test_backward_kernels_write_every_row(stride, num_relations, rows, vertices):
+    """The backward kernels fill their output themselves (it comes from ``new_empty``): the same
+    gradient into rows of NaN as into zeros, also where the output has more rows than the vertices'
+    (max pooling: more vertices than graphs) or fewer (more graphs than vertices)."""
+    from sb3_graph import _max_kernel
+
+    g = torch.Generator().manual_seed(0)
+    values = torch.randn(rows, 4, generator=g)
+    values[1] = values[0]  # a tie
+    source = torch.arange(rows)
+    source = source[source % stride < num_relations]  # edges read relation rows, never root rows
+    target = torch.randint(0, vertices * num_relations, (len(source),), generator=g)
+    target[1] = target[0]
+    maxima = torch.full((vertices * num_relations, 4), -torch.inf)
+    maxima = maxima.scatter_reduce(0, target.unsqueeze(-1).expand(-1, 4), values[source], "amax")
+    grad_out = torch.randn(vertices, 4, generator=g)
+    arrays = (values.numpy(), source.numpy(), target.numpy(), maxima.numpy(), num_relations, stride)
+    for kernel in (_max_kernel.relational_max_backward, _max_kernel.relational_max_backward_ties):
+        outputs = []
+        for fill in (0.0, float("nan")):
+            grad_rows = torch.full((rows, 4), fill)
+            kernel(grad_out.numpy(), *arrays, grad_rows.numpy())
+            outputs.append(grad_rows)
+        assert not torch.isnan(outputs[1]).any()
+        torch.testing.assert_close(outputs[1], outputs[0], rtol=0, atol=0)
+        if stride > num_relations:  # each root row holds its vertex's output gradient
+            torch.testing.assert_close(outputs[0].view(-1, stride, 4)[:, num_relations], grad_out)
