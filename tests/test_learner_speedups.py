@@ -1,5 +1,6 @@
-"""The graph critics leave their own weights out of the policy loss's autograd graph during the
-graph algorithms' ``train`` (issue #27): SB3 discards those gradients, so the updates are the same."""
+"""What the graph algorithms' ``train`` adds to SB3's for speed (issue #27), with the same updates:
+the graph critics leave their own weights out of the policy loss's autograd graph (SB3 discards
+those gradients)."""
 
 import copy
 import warnings
@@ -102,3 +103,4 @@ def test_constant_parameters_restores_the_flags_after_an_error():
             raise RuntimeError("inside")
     assert all(p.requires_grad for p in layer.parameters())
     assert fixed.weight.requires_grad and not fixed.bias.requires_grad  # a frozen parameter stays frozen
+
