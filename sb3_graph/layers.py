@@ -52,7 +52,7 @@ class SegmentMax(torch.autograd.Function):
     def forward(  # type: ignore[override]
         ctx: Any, values: Tensor, source: Tensor | None, target: Tensor, num_segments: int, num_nonempty: int
     ) -> Tensor:
-        ctx.compiled = source is None and _compiled_path(values)
+        ctx.compiled = source is None and _COMPILED["segment_max"] and _compiled_path(values)
         if ctx.compiled:
             return _compiled_segment_max(ctx, values, target, num_segments)
         messages = values if source is None else values.index_select(0, source)
@@ -155,7 +155,9 @@ class _RelationalMax(torch.autograd.Function):
         return grad_rows.index_add_(0, layout.sorted_source, grad), None, None, None, None, None
 
 
-_COMPILED = {"enabled": True, "kernels": None}
+# "segment_max": the kernels also serve SegmentMax (benchmarks switch that alone off to time the
+# learner without it, benchmarks/bench_learner.py).
+_COMPILED = {"enabled": True, "kernels": None, "segment_max": True}
 
 
 def use_compiled_kernels(enabled: bool) -> bool:
