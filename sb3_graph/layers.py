@@ -6,6 +6,7 @@ import math
 from collections.abc import Sequence
 from typing import Any, NamedTuple
 
+import numpy as np
 import torch
 from torch import Tensor, nn
 from torch_geometric.nn import MessagePassing
@@ -23,8 +24,9 @@ def _max_gradient(messages: Tensor, maxima: Tensor, target: Tensor, grad: Tensor
     # times slower than float arithmetic on CPU.
     is_max = torch.eq(messages, maxima.index_select(0, target), out=torch.empty_like(messages))
     grad.mul_(is_max)
-    # Each non-empty (segment, channel) has at least one maximum: more winners mean ties.
-    if int(is_max.sum()) != num_nonempty * messages.size(1):
+    # Each non-empty (segment, channel) has one maximum unless tied or NaN (no row equals a NaN
+    # maximum, so a tie elsewhere in the batch could make up the count): else split the gradient.
+    if int(is_max.sum()) != num_nonempty * messages.size(1) or bool(torch.isnan(maxima).any()):
         winners = torch.zeros_like(maxima).index_add_(0, target, is_max)
         grad.div_(winners.index_select(0, target).clamp_(min=1))
     return grad
@@ -206,13 +208,19 @@ def _compiled_forward(
     seen = torch.zeros(num_vertices * num_relations, dtype=torch.bool)
     ctx.bias_shape = None if bias is None else bias.shape
     bias_rows = rows.new_empty(0, 0) if bias is None else bias.detach().reshape(-1, channels).to(rows.dtype)
-    ctx.num_nonempty = kernels.relational_max_forward(
+    # The backward pass reads which rows won (recorded on the full layout, sorted by target), not
+    # the rows and maxima: far fewer bytes.
+    record = layout.target_vertex is not None and any(ctx.needs_input_grad[:2])
+    wins = torch.empty((len(layout.source), channels) if record else (0, 0), dtype=torch.uint8)
+    _, unique = kernels.relational_max_forward(
         rows.numpy(), layout.source.numpy(), layout.target.numpy(), num_relations, stride,
         bias_rows.contiguous().numpy(), shape[-2], out.view(num_vertices, channels).numpy(), maxima.numpy(),
-        seen.numpy(),
+        seen.numpy(), wins.numpy(),
     )  # fmt: skip
-    if layout.target_vertex is not None and any(ctx.needs_input_grad[:2]):
-        ctx.save_for_backward(rows, maxima)
+    if record:
+        ctx.save_for_backward(wins)
+        ctx.rows_shape, ctx.dtype = rows.shape, rows.dtype
+        ctx.ties = not unique  # a tie, or a NaN maximum that no row equals
     return out
 
 
@@ -223,13 +231,13 @@ def _compiled_backward(ctx: Any, grad_out: Tensor) -> tuple[Tensor, Tensor | Non
     layout, (num_vertices, num_relations, stride) = ctx.layout, ctx.shape
     if layout.target_vertex is None:
         raise RuntimeError("_RelationalMax: a forward-only layout (derived without autograd) in a backward pass")
-    rows, maxima = ctx.saved_tensors
-    grad_out = grad_out.reshape(num_vertices, rows.size(1)).contiguous().to(rows.dtype)
-    grad_rows = rows.new_empty(rows.shape)  # the kernels write every row
-    arrays = (rows.numpy(), layout.source.numpy(), layout.target.numpy(), maxima.numpy(), num_relations, stride)
-    winners = kernels.relational_max_backward(grad_out.numpy(), *arrays, grad_rows.numpy())
-    if winners != ctx.num_nonempty * rows.size(1):
-        kernels.relational_max_backward_ties(grad_out.numpy(), *arrays, grad_rows.numpy())
+    (wins,) = ctx.saved_tensors
+    grad_out = grad_out.reshape(num_vertices, ctx.rows_shape[1]).contiguous().to(ctx.dtype)
+    grad_rows = grad_out.new_empty(ctx.rows_shape)  # the kernel writes every row
+    kernels.relational_max_backward(
+        grad_out.numpy(), layout.source.numpy(), layout.target.numpy(), wins.numpy(), num_relations, stride,
+        ctx.ties, grad_rows.numpy(),
+    )  # fmt: skip
     grad_bias = None
     if ctx.bias_shape is not None and ctx.needs_input_grad[1]:
         copies = 1 if len(ctx.bias_shape) == 1 else ctx.bias_shape[0]
@@ -250,7 +258,7 @@ def _compiled_segment_max(ctx: Any, values: Tensor, target: Tensor, num_segments
     seen = torch.zeros(num_segments, dtype=torch.bool)
     kernels.relational_max_forward(
         values.numpy(), source.numpy(), target.numpy(), 1, 1, values.new_empty(0, 0).numpy(), num_segments,
-        out.numpy(), maxima.numpy(), seen.numpy(),
+        out.numpy(), maxima.numpy(), seen.numpy(), np.empty((0, 0), dtype=np.uint8),
     )  # fmt: skip
     ctx.save_for_backward(values, source, target, maxima)
     return out
