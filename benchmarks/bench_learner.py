@@ -13,10 +13,11 @@ PPO: one epoch over a rollout of 2,048 transitions in minibatches of 256 (a "ste
 minibatch update). The graph learners use the graph buffers (ragged storage); the MLP learners
 SB3's buffers. Per algorithm, four learners are timed in turns (best of 3 runs each), so that a
 change of the machine's load hits all of them: the graph learner; the same graph learner as after
-the first round of issue #27 (only the relational layers' compiled kernels: the critics' max
-pooling in PyTorch, and SB3's own ``train``, whose policy loss also differentiates the critics'
-weights); the reference, the learner before issue #27 (``use_compiled_kernels(False)``: the PyTorch
-formulation, and SB3's own ``train``); and the MLP learner. Target (TD3): the graph learner within 1.5x of
+the first round of issue #27 (commit de36e62: that commit's relational kernels, kept in
+``previous_kernels.py``, the critics' max pooling in PyTorch, and SB3's own ``train``, whose policy
+loss also differentiates the critics' weights); the reference, the learner before issue #27
+(``use_compiled_kernels(False)``: the PyTorch formulation, and SB3's own ``train``); and the MLP
+learner. Target (TD3): the graph learner within 1.5x of
 the MLP learner. Also times the TD3 graph learner with 1 and 2 torch threads (``--threads``);
 ``--profile`` adds the operator breakdown of the TD3 and SAC graph learners (torch.profiler, self
 CPU time of 10 gradient steps).
@@ -44,9 +45,9 @@ from graph_bench_utils import (
 )
 from gymnasium.spaces.utils import flatten, flatten_space
 from gymnasium.wrappers import FlattenObservation
+from previous_kernels import previous_kernels
 
 import sb3_graph
-from sb3_graph import layers
 from sb3_graph.algorithm import GraphAlgorithmMixin
 from sb3_graph.layers import use_compiled_kernels
 
@@ -90,22 +91,25 @@ def sb3_train_call(model) -> Callable:
     return lambda: super(GraphAlgorithmMixin, model).train(gradient_steps=2, batch_size=BATCH)
 
 
-def reference_call(call: Callable, segment_max_only: bool = False) -> Callable:
-    """``call`` with the compiled kernels off: the PyTorch formulation of the relational layers
-    (``segment_max_only``: of ``SegmentMax`` alone, the critics' max pooling)."""
+def reference_call(call: Callable) -> Callable:
+    """``call`` with the compiled kernels off: the PyTorch formulation of the relational layers."""
 
     def run() -> None:
-        if segment_max_only:
-            layers._COMPILED["segment_max"] = False
-        else:
-            previous = use_compiled_kernels(False)
+        previous = use_compiled_kernels(False)
         try:
             call()
         finally:
-            if segment_max_only:
-                layers._COMPILED["segment_max"] = True
-            else:
-                use_compiled_kernels(previous)
+            use_compiled_kernels(previous)
+
+    return run
+
+
+def first_round_call(call: Callable) -> Callable:
+    """``call`` with the kernels of issue #27's first round (commit de36e62, ``previous_kernels``)."""
+
+    def run() -> None:
+        with previous_kernels():
+            call()
 
     return run
 
@@ -120,13 +124,15 @@ def steps_per_second(
 ) -> list[float]:
     """Gradient steps per second of each model, timed in turns (see ``interleaved_rates``); the
     models at the positions in ``reference`` run as the learner before issue #27 (compiled kernels
-    off, SB3's own ``train``), those in ``earlier`` as after its first round (only the relational
-    layers' kernels, SB3's own ``train``)."""
+    off, SB3's own ``train``), those in ``earlier`` as after its first round (commit de36e62: its
+    relational kernels, max pooling in PyTorch, SB3's own ``train``)."""
     calls = [training_call(m) for m in models]
     functions = []
     for k, (call, _) in enumerate(calls):
-        if k in reference or k in earlier:
-            call = reference_call(sb3_train_call(models[k]), segment_max_only=k in earlier)
+        if k in reference:
+            call = reference_call(sb3_train_call(models[k]))
+        elif k in earlier:
+            call = first_round_call(sb3_train_call(models[k]))
         functions.append(call)
     rates = interleaved_rates(functions, min_seconds, repeats, clock)
     return [r * steps for r, (_, steps) in zip(rates, calls)]
