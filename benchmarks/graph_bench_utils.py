@@ -164,7 +164,7 @@ class IntersectionRecording:
     60 s episodes, spawn probability drawn from [0.01, 0.07], blocked spawns dropped, a collision
     ends the episode), driven by the shipped
     planner (``envs/pretrained/coop_4way_fair``) with the config's Gaussian action noise (0.1).
-    About 14 vehicles and 54 edges per observation, in ``GraphSpace(max_nodes=64, max_edges=1024)``.
+    About 15 vehicles and 62 edges per observation, in ``GraphSpace(max_nodes=64, max_edges=1024)``.
 
     :param count: transitions to record
     :param seed: seed of the environment and of the noise
