@@ -11,10 +11,13 @@ noise; about 15 vehicles and 62 edges per observation, see ``IntersectionRecordi
 (defaults). Batch 256 for the off-policy algorithms, from a replay buffer of 2,000 transitions.
 PPO: one epoch over a rollout of 2,048 transitions in minibatches of 256 (a "step" is one
 minibatch update). The graph learners use the graph buffers (ragged storage); the MLP learners
-SB3's buffers. Per algorithm, three learners are timed in turns (best of 3 runs each), so that a
-change of the machine's load hits all of them: the graph learner, the same graph learner with the
-compiled kernels of the relational layers off (``use_compiled_kernels(False)``: the PyTorch
-formulation, the reference), and the MLP learner. Target (TD3): the graph learner within 1.5x of
+SB3's buffers. Per algorithm, four learners are timed in turns (best of 3 runs each), so that a
+change of the machine's load hits all of them: the graph learner; the same graph learner as after
+the first round of issue #27 (commit de36e62: that commit's relational kernels, kept in
+``previous_kernels.py``, the critics' max pooling in PyTorch, and SB3's own ``train``, whose policy
+loss also differentiates the critics' weights); the reference, the learner before issue #27
+(``use_compiled_kernels(False)``: the PyTorch formulation, and SB3's own ``train``); and the MLP
+learner. Target (TD3): the graph learner within 1.5x of
 the MLP learner. Also times the TD3 graph learner with 1 and 2 torch threads (``--threads``);
 ``--profile`` adds the operator breakdown of the TD3 and SAC graph learners (torch.profiler, self
 CPU time of 10 gradient steps).
@@ -42,8 +45,10 @@ from graph_bench_utils import (
 )
 from gymnasium.spaces.utils import flatten, flatten_space
 from gymnasium.wrappers import FlattenObservation
+from previous_kernels import previous_kernels
 
 import sb3_graph
+from sb3_graph.algorithm import GraphAlgorithmMixin
 from sb3_graph.layers import use_compiled_kernels
 
 FILL = 2000
@@ -77,6 +82,15 @@ def training_call(model) -> tuple:
     return (lambda: model.train(gradient_steps=2, batch_size=BATCH)), 2
 
 
+def sb3_train_call(model) -> Callable:
+    """A call that trains ``model`` with SB3's own ``train``, without what the graph algorithms add
+    around it (the critics' weights stay in the policy loss's autograd graph)."""
+    model.set_logger(_null_logger())
+    if hasattr(model, "rollout_buffer"):
+        return lambda: super(GraphAlgorithmMixin, model).train()
+    return lambda: super(GraphAlgorithmMixin, model).train(gradient_steps=2, batch_size=BATCH)
+
+
 def reference_call(call: Callable) -> Callable:
     """``call`` with the compiled kernels off: the PyTorch formulation of the relational layers."""
 
@@ -90,13 +104,36 @@ def reference_call(call: Callable) -> Callable:
     return run
 
 
+def first_round_call(call: Callable) -> Callable:
+    """``call`` with the kernels of issue #27's first round (commit de36e62, ``previous_kernels``)."""
+
+    def run() -> None:
+        with previous_kernels():
+            call()
+
+    return run
+
+
 def steps_per_second(
-    models: list, min_seconds: float, reference: tuple[int, ...] = (), repeats: int = 3, clock=time.perf_counter
+    models: list,
+    min_seconds: float,
+    reference: tuple[int, ...] = (),
+    repeats: int = 3,
+    clock=time.perf_counter,
+    earlier: tuple[int, ...] = (),
 ) -> list[float]:
     """Gradient steps per second of each model, timed in turns (see ``interleaved_rates``); the
-    models at the positions in ``reference`` run with the compiled kernels off."""
+    models at the positions in ``reference`` run as the learner before issue #27 (compiled kernels
+    off, SB3's own ``train``), those in ``earlier`` as after its first round (commit de36e62: its
+    relational kernels, max pooling in PyTorch, SB3's own ``train``)."""
     calls = [training_call(m) for m in models]
-    functions = [reference_call(call) if k in reference else call for k, (call, _) in enumerate(calls)]
+    functions = []
+    for k, (call, _) in enumerate(calls):
+        if k in reference:
+            call = reference_call(sb3_train_call(models[k]))
+        elif k in earlier:
+            call = first_round_call(sb3_train_call(models[k]))
+        functions.append(call)
     rates = interleaved_rates(functions, min_seconds, repeats, clock)
     return [r * steps for r, (_, steps) in zip(rates, calls)]
 
@@ -171,14 +208,15 @@ def main() -> None:
     for name in args.algos:
         graph, mlp = make_learners(name, data)
         clock = time.process_time if args.clock == "cpu" else time.perf_counter
-        ours, reference, mlp_rate = steps_per_second(
-            [graph, graph, mlp], args.seconds, reference=(1,), repeats=args.repeats, clock=clock
+        ours, earlier, reference, mlp_rate = steps_per_second(
+            [graph, graph, graph, mlp], args.seconds, reference=(2,), repeats=args.repeats, clock=clock, earlier=(1,)
         )
         rows.append(
-            [name, f"{ours:.1f}", f"{reference:.1f}", f"{ours / reference:.2f}", f"{mlp_rate:.1f}",
-             f"{mlp_rate / ours:.2f}", f"{mlp_rate / reference:.2f}"]
+            [name, f"{ours:.1f}", f"{earlier:.1f}", f"{reference:.1f}", f"{ours / reference:.2f}", f"{mlp_rate:.1f}",
+             f"{mlp_rate / ours:.2f}", f"{mlp_rate / earlier:.2f}", f"{mlp_rate / reference:.2f}"]
         )  # fmt: skip
-        print(f"{name}: graph {ours:.1f} (reference {reference:.1f}), MLP {mlp_rate:.1f} steps/s", flush=True)
+        rates = f"graph {ours:.1f} (first round {earlier:.1f}, reference {reference:.1f}), MLP {mlp_rate:.1f}"
+        print(f"{name}: {rates} steps/s", flush=True)
     nodes, edges = data.mean_size()
     inputs = flatten_space(data.env().observation_space).shape[0]
     print(f"\n## Learner speed ({args.data} data: {nodes:.1f} vertices / {edges:.1f} edges per graph; batch {BATCH}, ")
@@ -186,10 +224,12 @@ def main() -> None:
     header = [
         "algorithm",
         "graph policy, steps/s",
-        "graph policy, PyTorch reference, steps/s",
-        "speed-up",
+        "graph, first round, steps/s",
+        "graph, PyTorch reference, steps/s",
+        "speed-up vs reference",
         f"MlpPolicy [64, 64] on {inputs} inputs, steps/s",
         "x slower than MLP",
+        "first round: x slower than MLP",
         "reference: x slower than MLP",
     ]
     print(markdown_table(header, rows))

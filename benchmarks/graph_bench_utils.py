@@ -160,23 +160,30 @@ def machine_line() -> str:
 
 class IntersectionRecording:
     """Transitions of the intersection environment as the shipped config trains on it
-    (``CoopIntersection4Way-v0`` with ``zoo_configs/td3_fair.yml``'s ``env_kwargs``: 60 s episodes,
-    spawn probability drawn from [0.01, 0.07], a collision ends the episode), driven by the shipped
+    (``CoopIntersection4Way-v0`` with ``zoo_configs/td3_fair.yml``'s ``env_kwargs``, read from the file:
+    60 s episodes, spawn probability drawn from [0.01, 0.07], blocked spawns dropped, a collision
+    ends the episode), driven by the shipped
     planner (``envs/pretrained/coop_4way_fair``) with the config's Gaussian action noise (0.1).
-    About 14 vehicles and 54 edges per observation, in ``GraphSpace(max_nodes=64, max_edges=1024)``.
+    About 15 vehicles and 62 edges per observation, in ``GraphSpace(max_nodes=64, max_edges=1024)``.
 
     :param count: transitions to record
     :param seed: seed of the environment and of the noise
     """
 
     MODEL = "envs/pretrained/coop_4way_fair/best_model.safetensors"
+    CONFIG = "zoo_configs/td3_fair.yml"
+    ENV_ID = "CoopIntersection4Way-v0"
 
     def __init__(self, count: int, seed: int = 0) -> None:
         import envs  # noqa: F401 - registers the environments
         from envs.planners import make_planner
+        from sb3_graph.experiment import read_experiment
 
         root = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..")
-        env = gym.make("CoopIntersection4Way-v0", config=dict(duration=60.0, spawn_probability_range=[0.01, 0.07]))
+        # The config's own env_kwargs, not a copy: its traffic settings (e.g. spawn_queue: 0, blocked
+        # spawns dropped, against the environment's default queue of 10) set the graph sizes.
+        env_kwargs = read_experiment(os.path.join(root, self.CONFIG), self.ENV_ID).get("env_kwargs") or {}
+        env = gym.make(self.ENV_ID, **env_kwargs)
         planner = make_planner(os.path.join(root, self.MODEL))
         base = env.unwrapped
         rng = np.random.default_rng(seed)

@@ -13,7 +13,8 @@
   action, not the proposal, is stored in the replay buffer, so the critics learn the value of
   what happened (:data:`EXECUTED_ACTION`).
 
-Training itself is SB3's (or sb3-contrib's) own ``train``.
+Training itself is SB3's (or sb3-contrib's) own ``train``; around it, a graph critic leaves its own
+weights out of the policy loss's autograd graph (SB3 discards those gradients; same updates).
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ import numpy as np
 from gymnasium import spaces
 from stable_baselines3.common.vec_env import VecEnv, VecNormalize
 
+from sb3_graph.networks import GraphCritic
 from sb3_graph.spaces import EDGE_ATTR, GRAPH_KEYS, GraphSpace
 
 #: ``info`` key of an environment's applied action when it differs from the agent's (a shield).
@@ -96,6 +98,19 @@ class GraphAlgorithmMixin:
             super()._setup_model()  # type: ignore[misc]
         finally:
             self.n_steps = n_steps
+
+    def train(self, *args: Any, **kwargs: Any) -> None:
+        """SB3's ``train``; a graph critic (TD3, DDPG, SAC, TQC) computes no weight gradients in the
+        policy loss, which SB3 discards (see :class:`~sb3_graph.networks.GraphCritic`)."""
+        critic = getattr(getattr(self, "policy", None), "critic", None)
+        if not isinstance(critic, GraphCritic):
+            super().train(*args, **kwargs)  # type: ignore[misc]
+            return
+        critic.policy_loss_without_weight_gradients = True
+        try:
+            super().train(*args, **kwargs)  # type: ignore[misc]
+        finally:
+            critic.policy_loss_without_weight_gradients = False
 
     def set_env(self, env: Any, force_reset: bool = True) -> None:
         super().set_env(env, force_reset)  # type: ignore[misc]

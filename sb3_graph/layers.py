@@ -6,6 +6,7 @@ import math
 from collections.abc import Sequence
 from typing import Any, NamedTuple
 
+import numpy as np
 import torch
 from torch import Tensor, nn
 from torch_geometric.nn import MessagePassing
@@ -23,8 +24,11 @@ def _max_gradient(messages: Tensor, maxima: Tensor, target: Tensor, grad: Tensor
     # times slower than float arithmetic on CPU.
     is_max = torch.eq(messages, maxima.index_select(0, target), out=torch.empty_like(messages))
     grad.mul_(is_max)
-    # Each non-empty (segment, channel) has at least one maximum: more winners mean ties.
-    if int(is_max.sum()) != num_nonempty * messages.size(1):
+    # Each non-empty (segment, channel) has one maximum unless tied or NaN (no row equals a NaN
+    # maximum, so a tie elsewhere in the batch could make up the count): else split the gradient.
+    # A NaN anywhere makes the sum NaN (20x cheaper than isnan().any(); inf - inf only costs the
+    # split's extra work).
+    if int(is_max.sum()) != num_nonempty * messages.size(1) or bool(maxima.sum().isnan()):
         winners = torch.zeros_like(maxima).index_add_(0, target, is_max)
         grad.div_(winners.index_select(0, target).clamp_(min=1))
     return grad
@@ -42,12 +46,19 @@ class SegmentMax(torch.autograd.Function):
     (``None``: ``values`` are the messages themselves, ``E = V``), ``target`` ``(E,)`` long
     segment ids, ``num_segments`` ``S`` and ``num_nonempty``, the number of distinct targets.
     Output: ``(S, C)``.
+
+    Without ``source`` (critic max pooling, a convolution with edge features), CPU tensors run in
+    the compiled kernels of :class:`_RelationalMax` (one relation, no root term, no bias): the same
+    maxima and, since each row is read once, the same gradients to the bit.
     """
 
     @staticmethod
     def forward(  # type: ignore[override]
         ctx: Any, values: Tensor, source: Tensor | None, target: Tensor, num_segments: int, num_nonempty: int
     ) -> Tensor:
+        ctx.compiled = source is None and _COMPILED["segment_max"] and _compiled_path(values)
+        if ctx.compiled:
+            return _compiled_segment_max(ctx, values, target, num_segments)
         messages = values if source is None else values.index_select(0, source)
         out = values.new_zeros(num_segments, values.size(1))
         out.scatter_reduce_(0, target.unsqueeze(-1).expand_as(messages), messages, "amax", include_self=False)
@@ -57,9 +68,11 @@ class SegmentMax(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx: Any, grad_out: Tensor) -> tuple[Tensor | None, None, None, None, None]:  # type: ignore[override]
-        messages, out, source, target = ctx.saved_tensors
         if not ctx.needs_input_grad[0]:
             return None, None, None, None, None
+        if ctx.compiled:
+            return _compiled_segment_max_backward(ctx, grad_out), None, None, None, None
+        messages, out, source, target = ctx.saved_tensors
         grad = _max_gradient(messages, out, target, grad_out.index_select(0, target), ctx.num_nonempty)
         if source is None:
             return grad, None, None, None, None
@@ -146,7 +159,9 @@ class _RelationalMax(torch.autograd.Function):
         return grad_rows.index_add_(0, layout.sorted_source, grad), None, None, None, None, None
 
 
-_COMPILED = {"enabled": True, "kernels": None}
+# "segment_max": the kernels also serve SegmentMax (benchmarks switch that alone off to time the
+# learner without it, benchmarks/bench_learner.py).
+_COMPILED = {"enabled": True, "kernels": None, "segment_max": True}
 
 
 def use_compiled_kernels(enabled: bool) -> bool:
@@ -195,13 +210,19 @@ def _compiled_forward(
     seen = torch.zeros(num_vertices * num_relations, dtype=torch.bool)
     ctx.bias_shape = None if bias is None else bias.shape
     bias_rows = rows.new_empty(0, 0) if bias is None else bias.detach().reshape(-1, channels).to(rows.dtype)
-    ctx.num_nonempty = kernels.relational_max_forward(
+    # The backward pass reads which rows won (recorded on the full layout, sorted by target), not
+    # the rows and maxima: far fewer bytes.
+    record = layout.target_vertex is not None and any(ctx.needs_input_grad[:2])
+    wins = torch.empty((len(layout.source), channels) if record else (0, 0), dtype=torch.uint8)
+    _, unique = kernels.relational_max_forward(
         rows.numpy(), layout.source.numpy(), layout.target.numpy(), num_relations, stride,
         bias_rows.contiguous().numpy(), shape[-2], out.view(num_vertices, channels).numpy(), maxima.numpy(),
-        seen.numpy(),
+        seen.numpy(), wins.numpy(),
     )  # fmt: skip
-    if layout.target_vertex is not None and any(ctx.needs_input_grad[:2]):
-        ctx.save_for_backward(rows, maxima)
+    if record:
+        ctx.save_for_backward(wins)
+        ctx.rows_shape, ctx.dtype = rows.shape, rows.dtype
+        ctx.ties = not unique  # a tie, or a NaN maximum that no row equals
     return out
 
 
@@ -212,19 +233,51 @@ def _compiled_backward(ctx: Any, grad_out: Tensor) -> tuple[Tensor, Tensor | Non
     layout, (num_vertices, num_relations, stride) = ctx.layout, ctx.shape
     if layout.target_vertex is None:
         raise RuntimeError("_RelationalMax: a forward-only layout (derived without autograd) in a backward pass")
-    rows, maxima = ctx.saved_tensors
-    grad_out = grad_out.reshape(num_vertices, rows.size(1)).contiguous().to(rows.dtype)
-    grad_rows = rows.new_zeros(rows.shape)
-    arrays = (rows.numpy(), layout.source.numpy(), layout.target.numpy(), maxima.numpy(), num_relations, stride)
-    winners = kernels.relational_max_backward(grad_out.numpy(), *arrays, grad_rows.numpy())
-    if winners != ctx.num_nonempty * rows.size(1):
-        grad_rows.zero_()
-        kernels.relational_max_backward_ties(grad_out.numpy(), *arrays, grad_rows.numpy())
+    (wins,) = ctx.saved_tensors
+    grad_out = grad_out.reshape(num_vertices, ctx.rows_shape[1]).contiguous().to(ctx.dtype)
+    grad_rows = grad_out.new_empty(ctx.rows_shape)  # the kernel writes every row
+    kernels.relational_max_backward(
+        grad_out.numpy(), layout.source.numpy(), layout.target.numpy(), wins.numpy(), num_relations, stride,
+        ctx.ties, grad_rows.numpy(),
+    )  # fmt: skip
     grad_bias = None
     if ctx.bias_shape is not None and ctx.needs_input_grad[1]:
         copies = 1 if len(ctx.bias_shape) == 1 else ctx.bias_shape[0]
         grad_bias = grad_out.view(copies, -1, grad_out.size(1)).sum(dim=1).view(ctx.bias_shape)
     return grad_rows, grad_bias
+
+
+def _compiled_segment_max(ctx: Any, values: Tensor, target: Tensor, num_segments: int) -> Tensor:
+    """:class:`SegmentMax`'s forward pass over all rows in order (critic max pooling, the messages of
+    a convolution with edge features) with the relational kernels: every row is a segment's only
+    relation (``R = 1``, no root term, no bias), so the output is the maxima themselves."""
+    kernels = _COMPILED["kernels"]
+    values = values.detach().contiguous()
+    target = target.contiguous()
+    source = torch.arange(values.size(0), device=values.device)
+    out = values.new_empty(num_segments, values.size(1))
+    maxima = values.new_empty(num_segments, values.size(1))
+    seen = torch.zeros(num_segments, dtype=torch.bool)
+    kernels.relational_max_forward(
+        values.numpy(), source.numpy(), target.numpy(), 1, 1, values.new_empty(0, 0).numpy(), num_segments,
+        out.numpy(), maxima.numpy(), seen.numpy(), np.empty((0, 0), dtype=np.uint8),
+    )  # fmt: skip
+    ctx.save_for_backward(values, source, target, maxima)
+    return out
+
+
+def _compiled_segment_max_backward(ctx: Any, grad_out: Tensor) -> Tensor:
+    """:class:`SegmentMax`'s backward pass with the kernels: each row equal to its segment's maximum
+    gets the segment's gradient (split evenly among tied rows, PyTorch's rule)."""
+    kernels = _COMPILED["kernels"]
+    values, source, target, maxima = ctx.saved_tensors
+    grad_out = grad_out.contiguous().to(values.dtype)
+    grad_values = values.new_empty(values.shape)  # the kernel writes every row
+    # Straight to the tie rule: after a ReLU, max pooling nearly always ties (a channel at 0 in
+    # several vertices of a graph), and without ties it gives the same gradient (each count is 1).
+    arrays = (values.numpy(), source.numpy(), target.numpy(), maxima.numpy(), 1, 1)
+    kernels.relational_max_backward_ties(grad_out.numpy(), *arrays, grad_values.numpy())
+    return grad_values
 
 
 class RelationalLayout(NamedTuple):

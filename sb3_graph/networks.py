@@ -15,7 +15,8 @@ padded ``(B, max_nodes)`` at this boundary.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+import contextlib
+from collections.abc import Iterator, Mapping, Sequence
 from typing import Any
 
 import torch
@@ -32,6 +33,7 @@ POOLINGS = {"max": global_max_pool, "mean": global_mean_pool, "sum": global_add_
 
 __all__ = [
     "POOLINGS",
+    "constant_parameters",
     "GraphCritic",
     "GraphQNetwork",
     "GraphTrunk",
@@ -326,7 +328,16 @@ class GraphCritic(BaseModel):
     :param share_features_extractor: unused (no features extractor), kept for SB3's signature
     :param edge_dim: edge features read by the convolutions (0: none)
     :param n_outputs: outputs of each network's head (1: a Q value)
+
+    While :attr:`policy_loss_without_weight_gradients` is set (the graph algorithms set it for the
+    duration of their ``train``, see :class:`~sb3_graph.algorithm.GraphAlgorithmMixin`), a call on
+    actions that carry a gradient (the actor's: a policy loss) treats the critics' own parameters
+    as constants: the actor's gradients are the same, and the critics' weight gradients, which the
+    algorithm discards (its next critic update starts with ``zero_grad``), are not computed.
     """
+
+    #: In a call on actions that require a gradient, leave the critics' parameters out of autograd.
+    policy_loss_without_weight_gradients: bool = False
 
     def __init__(
         self,
@@ -373,7 +384,8 @@ class GraphCritic(BaseModel):
         vertex_actions = gather_vertex_values(actions, graphs)
         # One network at a time: on CPU, stacked_q_forward over all critics (batched matmuls) was
         # measured slightly slower; the aggregation indices are shared through the cache anyway.
-        return tuple(q_net(graphs, vertex_actions) for q_net in self.q_networks)
+        with self._policy_loss_scope(self.q_networks, actions):
+            return tuple(q_net(graphs, vertex_actions) for q_net in self.q_networks)
 
     def q1_forward(self, obs: GraphBatch | Mapping[str, Tensor], actions: Tensor) -> Tensor:
         """Q value of the first critic only (TD3's actor loss).
@@ -383,4 +395,30 @@ class GraphCritic(BaseModel):
         :return: ``(B, n_outputs)``
         """
         graphs = as_graph_batch(obs)
-        return self.q_networks[0](graphs, gather_vertex_values(actions, graphs))
+        with self._policy_loss_scope(self.q_networks[:1], actions):
+            return self.q_networks[0](graphs, gather_vertex_values(actions, graphs))
+
+    def _policy_loss_scope(self, networks: Sequence[nn.Module], actions: Tensor) -> contextlib.AbstractContextManager:
+        """Parameters of ``networks`` out of autograd for a policy loss (see the class docstring),
+        else nothing."""
+        if self.policy_loss_without_weight_gradients and actions.requires_grad and torch.is_grad_enabled():
+            return constant_parameters(networks)
+        return contextlib.nullcontext()
+
+
+@contextlib.contextmanager
+def constant_parameters(modules: Sequence[nn.Module]) -> Iterator[None]:
+    """Within the block, the parameters of ``modules`` that require gradients do not: operations
+    record no gradient path to them (autograd neither computes nor accumulates their gradients),
+    while gradients still flow through the modules to their inputs.
+
+    :param modules: the modules whose parameters are constants in the block
+    """
+    parameters = [p for module in modules for p in module.parameters() if p.requires_grad]
+    for parameter in parameters:
+        parameter.requires_grad_(False)
+    try:
+        yield
+    finally:
+        for parameter in parameters:
+            parameter.requires_grad_(True)

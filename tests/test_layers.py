@@ -400,3 +400,108 @@ def test_compiled_kernels_can_be_switched_off():
         assert use_compiled_kernels(False) is False
     finally:
         use_compiled_kernels(True)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_compiled_segment_max_equals_the_pytorch_formulation(dtype):
+    """``segment_max`` over all rows in order (critic max pooling, edge-feature messages) in the
+    kernels: the same maxima and gradients bit for bit, with ties (split evenly), a NaN row,
+    rows of zeros, empty segments and segments in any order."""
+    g = torch.Generator().manual_seed(0)
+    values = torch.randn(40, 5, generator=g).to(dtype)
+    values[3] = values[4]  # a tie in segment 13
+    values[10:14] = 0.0  # rows of zeros, as after a dead ReLU: ties in segment 2
+    values[20, 1] = float("nan")  # a NaN maximum passes no gradient
+    target = torch.randint(0, 12, (40,), generator=g)
+    target[3] = target[4] = 13
+    target[10:14] = 2
+    grad = torch.randn(16, 5, generator=g).to(dtype)
+    results = []
+    for compiled in (True, False):
+        previous = use_compiled_kernels(compiled)
+        try:
+            v = values.clone().requires_grad_(True)
+            out = segment_max(v, None, target, 16, len(torch.unique(target)))
+            out.backward(grad)
+            results.append((out.detach(), v.grad))
+        finally:
+            use_compiled_kernels(previous)
+    (out, grad_values), (reference, reference_grad) = results
+    torch.testing.assert_close(out, reference, rtol=0, atol=0, equal_nan=True)
+    torch.testing.assert_close(grad_values, reference_grad, rtol=0, atol=0)
+    assert torch.all(out[[12, 14, 15]] == 0)
+    torch.testing.assert_close(grad_values[3], grad[13] / 2)
+    assert bool(torch.isnan(out[target[20], 1]))
+
+
+@pytest.mark.parametrize(
+    "stride,num_relations,rows,vertices", [(3, 2, 18, 6), (2, 2, 12, 6), (1, 1, 9, 4), (1, 1, 3, 7)]
+)
+@pytest.mark.parametrize("ties", [False, True])
+def test_backward_kernels_write_every_row(stride, num_relations, rows, vertices, ties):
+    """The backward kernels fill their output themselves (it comes from ``new_empty``): the same
+    gradient into rows of NaN as into zeros, also where the output has more rows than the vertices'
+    (max pooling: more vertices than graphs) or fewer (more graphs than vertices)."""
+    from sb3_graph import _max_kernel
+
+    g = torch.Generator().manual_seed(0)
+    values = torch.randn(rows, 4, generator=g)
+    values[1] = values[0]  # a tie
+    source = torch.arange(rows)
+    source = source[source % stride < num_relations]  # edges read relation rows, never root rows
+    target = torch.randint(0, vertices * num_relations, (len(source),), generator=g)
+    target[1] = target[0]
+    target, order = torch.sort(target, stable=True)
+    source = source[order]
+    maxima = torch.full((vertices * num_relations, 4), -torch.inf)
+    maxima = maxima.scatter_reduce(0, target.unsqueeze(-1).expand(-1, 4), values[source], "amax")
+    wins = (values[source] == maxima[target]).to(torch.uint8)
+    grad_out = torch.randn(vertices, 4, generator=g)
+    rows_based = (values.numpy(), source.numpy(), target.numpy(), maxima.numpy(), num_relations, stride)
+    kernels = {
+        "wins": lambda out: _max_kernel.relational_max_backward(
+            grad_out.numpy(), source.numpy(), target.numpy(), wins.numpy(), num_relations, stride, ties, out
+        ),
+        "rows": lambda out: _max_kernel.relational_max_backward_ties(grad_out.numpy(), *rows_based, out),
+    }
+    results = {}
+    for name, kernel in kernels.items():
+        outputs = []
+        for fill in (0.0, float("nan")):
+            grad_rows = torch.full((rows, 4), fill)
+            kernel(grad_rows.numpy())
+            outputs.append(grad_rows)
+        assert not torch.isnan(outputs[1]).any()
+        torch.testing.assert_close(outputs[1], outputs[0], rtol=0, atol=0)
+        if stride > num_relations:  # each root row holds its vertex's output gradient
+            torch.testing.assert_close(outputs[0].view(-1, stride, 4)[:, num_relations], grad_out)
+        results[name] = outputs[0]
+    if ties:  # the tie rule from the record equals the one from the rows and maxima
+        torch.testing.assert_close(results["wins"], results["rows"], rtol=0, atol=0)
+
+
+def test_compiled_kernels_with_a_nan_maximum_and_a_tie_in_one_batch():
+    """A NaN maximum (no winner) and a tie (two winners) in one batch: the winners add up to one
+    per (segment, channel), yet the tie must still be split (as PyTorch's ``scatter_reduce`` does)
+    and the NaN pass none, in the kernels and in the PyTorch formulation (which split no tie here
+    before issue #27's second round)."""
+    conv = RelationalMaxConv(1, 1, num_relations=1, root_weight=False, bias=False)
+    with torch.no_grad():
+        conv.weight.fill_(1.0)
+    # Vertex 2 reads the tied vertices 0 and 1; vertex 5 reads vertices 3 (NaN) and 4.
+    x = torch.tensor([[1.0], [1.0], [0.0], [float("nan")], [2.0], [0.0]])
+    edge_index = torch.tensor([[0, 1, 3, 4], [2, 2, 5, 5]])
+    edge_type = torch.zeros(4, dtype=torch.long)
+    grads = []
+    for compiled in (True, False):
+        previous = use_compiled_kernels(compiled)
+        try:
+            derived_indices.clear()
+            inputs = x.clone().requires_grad_(True)
+            conv(inputs, edge_index, edge_type).backward(torch.ones(6, 1))
+            grads.append(inputs.grad)
+        finally:
+            use_compiled_kernels(previous)
+    torch.testing.assert_close(grads[0], grads[1], rtol=0, atol=0, equal_nan=True)
+    torch.testing.assert_close(grads[0][:2], torch.full((2, 1), 0.5))  # the tie is split
+    assert torch.all(grads[0][3:5] == 0)  # the NaN maximum passes no gradient

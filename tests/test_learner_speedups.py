@@ -1,0 +1,106 @@
+"""What the graph algorithms' ``train`` adds to SB3's for speed (issue #27), with the same updates:
+the graph critics leave their own weights out of the policy loss's autograd graph (SB3 discards
+those gradients)."""
+
+import copy
+import warnings
+
+import numpy as np
+import pytest
+import stable_baselines3
+import torch
+from sb3_contrib import TQC as ContribTQC
+from stable_baselines3.common.logger import configure
+
+import sb3_graph
+from sb3_graph.batching import derived_indices
+from sb3_graph.networks import GraphCritic, constant_parameters
+from sb3_graph.toy_envs import MaxNeighbourEnv
+
+torch.set_num_threads(1)
+SMALL = dict(encoder_dim=16, conv_dims=[16, 16])
+STOCK = {"TD3": stable_baselines3.TD3, "DDPG": stable_baselines3.DDPG, "SAC": stable_baselines3.SAC, "TQC": ContribTQC}
+
+
+def filled_learner(name: str):
+    env = MaxNeighbourEnv(min_nodes=0)
+    policy_kwargs = dict(SMALL, n_quantiles=5) if name == "TQC" else dict(SMALL)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = getattr(sb3_graph, name)(
+            "GraphPolicy", env, seed=0, learning_starts=0, batch_size=16, buffer_size=200, policy_kwargs=policy_kwargs
+        )
+    model.set_logger(configure(None, []))
+    obs, _ = env.reset(seed=0)
+    env.action_space.seed(0)
+    for _ in range(64):
+        action = env.action_space.sample() * obs["node_mask"]
+        next_obs, reward, terminated, truncated, _ = env.step(action)
+        stack = lambda o: {k: v[None] for k, v in o.items()}  # noqa: E731
+        model.replay_buffer.add(stack(obs), stack(next_obs), action[None], [reward], [terminated], [{}])
+        obs = env.reset()[0] if terminated or truncated else next_obs
+    return model
+
+
+def trained_state(model, train) -> dict:
+    torch.manual_seed(1)
+    np.random.seed(1)  # noqa: NPY002 (SB3 samples with the global generator)
+    derived_indices.clear()
+    train(model)
+    return {k: v.clone() for k, v in model.policy.state_dict().items()}
+
+
+@pytest.mark.parametrize("name", ["TD3", "DDPG", "SAC", "TQC"])
+def test_updates_equal_those_of_sb3s_train(name):
+    """The graph algorithm's ``train`` against SB3's own ``train`` (critic weights in the policy
+    loss) on a copy of the same learner: identical weights after the updates, actor and critics."""
+    model = filled_learner(name)
+    twin = copy.deepcopy(model)
+    ours = trained_state(model, lambda m: m.train(gradient_steps=4, batch_size=16))
+    stock = trained_state(twin, lambda m: STOCK[name].train(m, gradient_steps=4, batch_size=16))
+    assert set(ours) == set(stock)
+    for key in ours:
+        torch.testing.assert_close(ours[key], stock[key], rtol=0, atol=0, msg=key)
+    assert any(not torch.equal(ours[k], v) for k, v in filled_learner(name).policy.state_dict().items())
+    # The critic's switch is off again and every parameter trainable.
+    assert model.critic.policy_loss_without_weight_gradients is False
+    assert all(p.requires_grad for p in model.policy.parameters())
+
+
+def test_policy_loss_leaves_critic_weight_gradients_out():
+    model = filled_learner("TD3")
+    critic: GraphCritic = model.critic
+    data = model.replay_buffer.sample(16)
+    actions = model.actor(data.observations)
+    critic.policy_loss_without_weight_gradients = True
+    try:
+        # Actions with a gradient (a policy loss): no critic weight gradient, the same actor gradient.
+        critic.q1_forward(data.observations, actions).mean().backward()
+        assert all(p.grad is None for p in critic.parameters())
+        frozen_grads = [p.grad.clone() for p in model.actor.parameters()]
+        model.actor.zero_grad()
+        sum(q.mean() for q in critic(data.observations, model.actor(data.observations))).backward()
+        assert all(p.grad is None for p in critic.parameters())
+        # Buffer actions (a critic loss): the critic's weights get their gradients.
+        sum(q.mean() for q in critic(data.observations, data.actions)).backward()
+        assert all(p.grad is not None for p in critic.parameters())
+    finally:
+        critic.policy_loss_without_weight_gradients = False
+    critic.zero_grad()
+    model.actor.zero_grad()
+    critic.q1_forward(data.observations, model.actor(data.observations)).mean().backward()
+    assert all(p.grad is not None for p in critic.q_networks[0].parameters())  # off: SB3's behaviour
+    for a, b in zip(frozen_grads, [p.grad for p in model.actor.parameters()], strict=True):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
+
+
+def test_constant_parameters_restores_the_flags_after_an_error():
+    layer, fixed = torch.nn.Linear(2, 2), torch.nn.Linear(2, 2)
+    fixed.bias.requires_grad_(False)
+    with pytest.raises(RuntimeError, match="inside"):
+        with constant_parameters([layer, fixed]):
+            assert not any(p.requires_grad for p in layer.parameters())
+            raise RuntimeError("inside")
+    assert all(p.requires_grad for p in layer.parameters())
+    assert fixed.weight.requires_grad and not fixed.bias.requires_grad  # a frozen parameter stays frozen
+
