@@ -11,14 +11,11 @@ noise; about 15 vehicles and 62 edges per observation, see ``IntersectionRecordi
 (defaults). Batch 256 for the off-policy algorithms, from a replay buffer of 2,000 transitions.
 PPO: one epoch over a rollout of 2,048 transitions in minibatches of 256 (a "step" is one
 minibatch update). The graph learners use the graph buffers (ragged storage); the MLP learners
-SB3's buffers. Per algorithm, four learners are timed in turns (best of 3 runs each), so that a
-change of the machine's load hits all of them: the graph learner; the same graph learner as after
-the first round of issue #27 (commit de36e62: that commit's relational kernels, kept in
-``previous_kernels.py``, the critics' max pooling in PyTorch, and SB3's own ``train``, whose policy
-loss also differentiates the critics' weights); the reference, the learner before issue #27
-(``use_compiled_kernels(False)``: the PyTorch formulation, and SB3's own ``train``); and the MLP
-learner. Target (TD3): the graph learner within 1.5x of
-the MLP learner. Also times the TD3 graph learner with 1 and 2 torch threads (``--threads``);
+SB3's buffers. Per algorithm, three learners are timed in turns (best of 3 runs each), so that a
+change of the machine's load hits all of them: the graph learner; the reference, the learner before
+issue #27 (``use_compiled_kernels(False)``: the PyTorch formulation, and SB3's own ``train``, whose
+policy loss also differentiates the critics' weights); and the MLP learner. Target (TD3): the graph
+learner within 1.5x of the MLP learner. Also times the TD3 graph learner with 1 and 2 torch threads (``--threads``);
 ``--profile`` adds the operator breakdown of the TD3 and SAC graph learners (torch.profiler, self
 CPU time of 10 gradient steps).
 """
@@ -45,7 +42,6 @@ from graph_bench_utils import (
 )
 from gymnasium.spaces.utils import flatten, flatten_space
 from gymnasium.wrappers import FlattenObservation
-from previous_kernels import previous_kernels
 
 import sb3_graph
 from sb3_graph.algorithm import GraphAlgorithmMixin
@@ -104,35 +100,21 @@ def reference_call(call: Callable) -> Callable:
     return run
 
 
-def first_round_call(call: Callable) -> Callable:
-    """``call`` with the kernels of issue #27's first round (commit de36e62, ``previous_kernels``)."""
-
-    def run() -> None:
-        with previous_kernels():
-            call()
-
-    return run
-
-
 def steps_per_second(
     models: list,
     min_seconds: float,
     reference: tuple[int, ...] = (),
     repeats: int = 3,
     clock=time.perf_counter,
-    earlier: tuple[int, ...] = (),
 ) -> list[float]:
     """Gradient steps per second of each model, timed in turns (see ``interleaved_rates``); the
     models at the positions in ``reference`` run as the learner before issue #27 (compiled kernels
-    off, SB3's own ``train``), those in ``earlier`` as after its first round (commit de36e62: its
-    relational kernels, max pooling in PyTorch, SB3's own ``train``)."""
+    off, SB3's own ``train``)."""
     calls = [training_call(m) for m in models]
     functions = []
     for k, (call, _) in enumerate(calls):
         if k in reference:
             call = reference_call(sb3_train_call(models[k]))
-        elif k in earlier:
-            call = first_round_call(sb3_train_call(models[k]))
         functions.append(call)
     rates = interleaved_rates(functions, min_seconds, repeats, clock)
     return [r * steps for r, (_, steps) in zip(rates, calls)]
@@ -208,14 +190,14 @@ def main() -> None:
     for name in args.algos:
         graph, mlp = make_learners(name, data)
         clock = time.process_time if args.clock == "cpu" else time.perf_counter
-        ours, earlier, reference, mlp_rate = steps_per_second(
-            [graph, graph, graph, mlp], args.seconds, reference=(2,), repeats=args.repeats, clock=clock, earlier=(1,)
+        ours, reference, mlp_rate = steps_per_second(
+            [graph, graph, mlp], args.seconds, reference=(1,), repeats=args.repeats, clock=clock
         )
         rows.append(
-            [name, f"{ours:.1f}", f"{earlier:.1f}", f"{reference:.1f}", f"{ours / reference:.2f}", f"{mlp_rate:.1f}",
-             f"{mlp_rate / ours:.2f}", f"{mlp_rate / earlier:.2f}", f"{mlp_rate / reference:.2f}"]
+            [name, f"{ours:.1f}", f"{reference:.1f}", f"{ours / reference:.2f}", f"{mlp_rate:.1f}",
+             f"{mlp_rate / ours:.2f}", f"{mlp_rate / reference:.2f}"]
         )  # fmt: skip
-        rates = f"graph {ours:.1f} (first round {earlier:.1f}, reference {reference:.1f}), MLP {mlp_rate:.1f}"
+        rates = f"graph {ours:.1f} (reference {reference:.1f}), MLP {mlp_rate:.1f}"
         print(f"{name}: {rates} steps/s", flush=True)
     nodes, edges = data.mean_size()
     inputs = flatten_space(data.env().observation_space).shape[0]
@@ -224,12 +206,10 @@ def main() -> None:
     header = [
         "algorithm",
         "graph policy, steps/s",
-        "graph, first round, steps/s",
         "graph, PyTorch reference, steps/s",
         "speed-up vs reference",
         f"MlpPolicy [64, 64] on {inputs} inputs, steps/s",
         "x slower than MLP",
-        "first round: x slower than MLP",
         "reference: x slower than MLP",
     ]
     print(markdown_table(header, rows))
