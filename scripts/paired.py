@@ -7,11 +7,12 @@ rows are joined and :func:`envs.evaluation.comparison.paired_differences` is tak
 
 ``LABEL=REPORT`` prefixes that report's planner names with ``LABEL:`` (two reports whose planners share
 names, e.g. the seeds of two weight sets), and ``--pool-seeds`` turns a planner's training seeds into
-one planner: its metrics are averaged per scenario over the seeds (``seed_0`` ... -> ``seed_*``), so
+one planner: its metrics are averaged per scenario over the seeds (``seed_0`` ... -> ``*``, or what
+``--seed-pattern`` matches), so
 that a set of seeds is compared with another per scenario::
 
     python scripts/paired.py default=reports/w/default tuned=reports/w/tuned --pool-seeds \
-        --baseline 'default:RL:seed_*+shield'
+        --baseline 'default:RL:*+shield'
 """
 
 from __future__ import annotations
@@ -57,14 +58,14 @@ def joined_runs(reports: list[Path], labels: list[str] | None = None) -> pd.Data
 
 
 def pool_seeds(runs: pd.DataFrame, pattern: str = r"seed_\d+") -> pd.DataFrame:
-    """One planner per set of training seeds: names with ``pattern`` -> ``seed_*``, metrics averaged
+    """One planner per set of training seeds: the ``pattern`` in a name -> ``*``, metrics averaged
     per scenario over the seeds.
 
     :param runs: rows of :func:`joined_runs`
     :param pattern: regular expression of the seed token in a planner name
     :return: one row per pooled planner and scenario (the paired metrics only)
     """
-    named = runs.assign(planner=runs["planner"].astype(str).str.replace(pattern, "seed_*", regex=True))
+    named = runs.assign(planner=runs["planner"].astype(str).str.replace(pattern, "*", regex=True))
     return named.groupby(["planner", "scenario"], as_index=False)[list(PAIRED_METRICS)].mean()
 
 
@@ -81,6 +82,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("reports", nargs="+", help="sb3-graph evaluate report folders, each [LABEL=]REPORT")
     parser.add_argument("--baseline", required=True, help="report name of the reference planner")
     parser.add_argument("--pool-seeds", action="store_true", help="average each planner's training seeds per scenario")
+    parser.add_argument(
+        "--seed-pattern", default=r"seed_\d+", help="regular expression of the seed in a planner name"
+    )
     args = parser.parse_args(argv)
     labels, reports = zip(*(_labelled(item) for item in args.reports))
     for report in reports:
@@ -91,7 +95,10 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as err:
         parser.error(str(err))
     if args.pool_seeds:
-        runs = pool_seeds(runs)
+        try:
+            runs = pool_seeds(runs, args.seed_pattern)
+        except re.error as err:
+            parser.error(f"--seed-pattern: {err}")
     names = sorted(runs["planner"].unique())
     if args.baseline not in names:
         parser.error(f"--baseline: {args.baseline!r} is not a planner of these reports; allowed: {names}")
