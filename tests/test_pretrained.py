@@ -52,3 +52,21 @@ def test_shipped_model_acts_on_every_layout(env_id):
         obs, _, terminated, truncated, _ = env.step(action)
         if terminated or truncated:
             obs, _ = env.reset()
+
+
+def test_the_weight_studys_six_planners_are_fine_tunings_of_the_shipped_one():
+    """examples/weight_study/seeds (issue #23): each file has the shipped planner's architecture, and
+    fine-tuning moved its weights (a copy of the shipped file would pass a load check too)."""
+    from pathlib import Path
+
+    _, shipped = read_weights_file(DEFAULT_MODEL)
+    root = Path(__file__).parents[1] / "examples" / "weight_study" / "seeds"
+    files = sorted(root.glob("*/seed_*/best_model.safetensors"))
+    assert [f.relative_to(root).as_posix() for f in files] == [
+        f"{s}/seed_{k}/best_model.safetensors" for s in ("default", "tuned") for k in range(3)
+    ]
+    for file in files:
+        description, state = read_weights_file(file)
+        assert (description.algorithm, description.policy_class) == ("TD3", "GraphPolicy")
+        assert {k: v.shape for k, v in state.items()} == {k: v.shape for k, v in shipped.items()}
+        assert any(not th.equal(state[k], shipped[k]) for k in shipped if k.startswith("actor.")), file
