@@ -1,14 +1,15 @@
-"""A training run of the shipped config with the compiled relational kernels on and off, in turns.
+"""A training run of the shipped config, the learner of today and the one before issue #27, in turns.
 
 Builds TD3 from ``zoo_configs/td3_fair.yml`` as ``sb3-graph train`` does (policy, graph replay
 buffer, action noise, callbacks, the config's traffic), with ``learning_starts`` lowered so that a
 short run trains (the config's 5,000 would leave a 3,000-step run without a gradient step), and
 times ``learn`` from ``learning_starts`` to the end: environment steps, action selection, replay
-buffer and one gradient step (batch 128) per environment step. The two versions differ only in
-``sb3_graph.layers.use_compiled_kernels``: off is the PyTorch formulation of the relational layers
-(the learner before issue #27). They alternate run by run (``--rounds`` each, same seeds), so a
-change of the shared machine's load hits both; the table gives medians of env steps per wall
-second and per CPU second of this process (one torch thread).
+buffer and one gradient step (batch 128) per environment step. The reference is the learner before
+issue #27: ``sb3_graph.layers.use_compiled_kernels(False)`` (the PyTorch formulation of the relational
+layers) and SB3's own ``train`` (whose policy loss also differentiates the critics' weights). They
+alternate run by run (``--rounds`` each, same seeds), so a change of the shared machine's load hits
+both; the table gives medians of env steps per wall second and per CPU second of this process (one
+torch thread).
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from stable_baselines3.common.env_util import make_vec_env
 
 import envs  # noqa: F401 - registers the environments
 from sb3_graph import TD3
+from sb3_graph.algorithm import GraphAlgorithmMixin
 from sb3_graph.experiment import build_algorithm_kwargs, build_callbacks, check_entry, read_experiment, resolve_object
 from sb3_graph.layers import use_compiled_kernels
 
@@ -39,6 +41,8 @@ def run(entry: dict, steps: int, learning_starts: int, seed: int, compiled: bool
     try:
         policy = resolve_object(entry["policy"], "policy")
         model = TD3(policy, env, seed=seed, device="cpu", **build_algorithm_kwargs(entry, env.action_space.shape[0]))
+        if not compiled:  # SB3's own train, without what the graph algorithms add around it
+            model.train = super(GraphAlgorithmMixin, model).train
         clock = LearningClock(learning_starts)
         model.learn(learning_starts + steps, callback=CallbackList([*build_callbacks(entry), clock]))
     finally:
