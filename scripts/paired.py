@@ -7,12 +7,12 @@ rows are joined and :func:`envs.evaluation.comparison.paired_differences` is tak
 
 ``LABEL=REPORT`` prefixes that report's planner names with ``LABEL:`` (two reports whose planners share
 names, e.g. the seeds of two weight sets), and ``--pool-seeds`` turns a planner's training seeds into
-one planner: its metrics are averaged per scenario over the seeds (``seed_0`` ... -> ``*``, or what
-``--seed-pattern`` matches), so
-that a set of seeds is compared with another per scenario::
+one planner, named as ``sb3-graph aggregate`` names the configuration (``seed_0`` ... -> ``seed_*``,
+``--seed-pattern`` as there): its metrics are averaged per scenario over the seeds, so that a set of
+seeds is compared with another per scenario::
 
     python scripts/paired.py default=reports/w/default tuned=reports/w/tuned --pool-seeds \
-        --baseline 'default:RL:*+shield'
+        --baseline 'default:RL:seed_*+shield'
 """
 
 from __future__ import annotations
@@ -25,7 +25,9 @@ from pathlib import Path
 
 import pandas as pd
 
+from envs.commands.aggregate import compile_seed_pattern, seeds_pooled, split_label
 from envs.evaluation.comparison import PAIRED_METRICS, paired_differences
+from sb3_graph.commands import UserError
 
 
 def scenario_digests(report: Path) -> dict[str, str]:
@@ -57,24 +59,16 @@ def joined_runs(reports: list[Path], labels: list[str] | None = None) -> pd.Data
     return runs.drop_duplicates(subset=["planner", "scenario"], keep="first")
 
 
-def pool_seeds(runs: pd.DataFrame, pattern: str = r"seed_\d+") -> pd.DataFrame:
-    """One planner per set of training seeds: the ``pattern`` in a name -> ``*``, metrics averaged
-    per scenario over the seeds.
+def pool_seeds(runs: pd.DataFrame, pattern: re.Pattern) -> pd.DataFrame:
+    """One planner per set of training seeds (named by :func:`envs.commands.aggregate.seeds_pooled`),
+    its metrics averaged per scenario over the seeds.
 
     :param runs: rows of :func:`joined_runs`
-    :param pattern: regular expression of the seed token in a planner name
+    :param pattern: from :func:`envs.commands.aggregate.compile_seed_pattern`
     :return: one row per pooled planner and scenario (the paired metrics only)
     """
-    named = runs.assign(planner=runs["planner"].astype(str).str.replace(pattern, "*", regex=True))
+    named = runs.assign(planner=runs["planner"].astype(str).map(lambda name: seeds_pooled(pattern, name)))
     return named.groupby(["planner", "scenario"], as_index=False)[list(PAIRED_METRICS)].mean()
-
-
-def _labelled(item: str) -> tuple[str, Path]:
-    """``[LABEL=]REPORT`` -> ``(label, report)``."""
-    label, sep, path = item.partition("=")
-    if not sep or not re.fullmatch(r"[A-Za-z0-9_.-]+", label):
-        return "", Path(item)
-    return label, Path(path)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -83,22 +77,23 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--baseline", required=True, help="report name of the reference planner")
     parser.add_argument("--pool-seeds", action="store_true", help="average each planner's training seeds per scenario")
     parser.add_argument(
-        "--seed-pattern", default=r"seed_\d+", help="regular expression of the seed in a planner name"
+        "--seed-pattern", default=r"seed_(\d+)", help="regular expression, its first group the seed in a planner name"
     )
     args = parser.parse_args(argv)
-    labels, reports = zip(*(_labelled(item) for item in args.reports))
+    labels, paths = zip(*(split_label(item) for item in args.reports))
+    reports = [Path(path) for path in paths]
     for report in reports:
         if not (report / "metrics.csv").is_file():
             parser.error(f"reports: {report / 'metrics.csv'} does not exist (an sb3-graph evaluate report folder?)")
     try:
-        runs = joined_runs(list(reports), list(labels))
+        runs = joined_runs(reports, list(labels))
     except ValueError as err:
         parser.error(str(err))
     if args.pool_seeds:
         try:
-            runs = pool_seeds(runs, args.seed_pattern)
-        except re.error as err:
-            parser.error(f"--seed-pattern: {err}")
+            runs = pool_seeds(runs, compile_seed_pattern(args.seed_pattern))
+        except UserError as err:
+            parser.error(str(err))
     names = sorted(runs["planner"].unique())
     if args.baseline not in names:
         parser.error(f"--baseline: {args.baseline!r} is not a planner of these reports; allowed: {names}")

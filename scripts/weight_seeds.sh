@@ -58,6 +58,6 @@ sb3-graph aggregate default="$REPORTS/default" tuned="$REPORTS/tuned" baselines=
   --out "$REPORTS/aggregate"
 # Tuned set minus default set, per scenario (each set's seeds averaged), and both against full throttle.
 python scripts/paired.py default="$REPORTS/default" tuned="$REPORTS/tuned" "$REPORTS/baselines" --pool-seeds \
-  --baseline 'default:RL:*+shield' > "$REPORTS/paired_default.txt"
+  --baseline 'default:RL:seed_*+shield' > "$REPORTS/paired_default.txt"
 python scripts/paired.py default="$REPORTS/default" tuned="$REPORTS/tuned" "$REPORTS/baselines" --pool-seeds \
   --baseline FullThrottle+shield > "$REPORTS/paired_fullthrottle.txt"

@@ -61,9 +61,9 @@ def test_labelled_reports_with_pooled_seeds_compare_sets_per_scenario(tmp_path, 
     default = seeds_report(tmp_path / "d", {0: [0.4, 0.4], 1: [0.4, 0.4]})
     tuned = seeds_report(tmp_path / "t", {0: [0.6, 0.6], 1: [0.8, 0.8]})
     assert paired.main([f"default={default}", f"tuned={tuned}", "--pool-seeds", "--baseline",
-                        "default:RL:*+shield"]) == 0
+                        "default:RL:seed_*+shield"]) == 0
     flow = [line for line in capsys.readouterr().out.splitlines() if "flow_rate" in line]
     assert len(flow) == 1
     fields = flow[0].split()
-    assert fields[:2] == ["tuned:RL:*+shield", "default:RL:*+shield"]
+    assert fields[:2] == ["tuned:RL:seed_*+shield", "default:RL:seed_*+shield"]
     assert float(fields[3]) == 2 and float(fields[4]) == pytest.approx(0.3)

@@ -78,13 +78,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def split_label(item: str) -> tuple[str, str]:
+    """``[LABEL=]PATH`` -> ``(label, path)``; the label is ``""`` when there is no ``=``."""
+    label, sep, path = item.partition("=")
+    return (label, path) if sep else ("", item)
+
+
 def _inputs(items: list[str]) -> list[tuple[str, Path]]:
     """``[LABEL=]PATH`` items -> ``(label, metrics.csv)``, each checked."""
     inputs, seen = [], set()
     for item in items:
-        label, sep, path = item.partition("=")
-        if not sep:
-            label, path = "", item
+        label, path = split_label(item)
         file = Path(path)
         if file.is_dir():
             file = file / "metrics.csv"
@@ -108,12 +112,7 @@ def read_runs(items: list[str], metrics: list[str], seed_pattern: str) -> pd.Dat
     :param metrics: metric columns that every input must have
     :param seed_pattern: regular expression, its first group the seed in a planner name
     """
-    try:
-        pattern = re.compile(seed_pattern)
-        if pattern.groups < 1:
-            raise re.error("it needs a group, e.g. seed_(\\d+)")
-    except re.error as error:
-        raise UserError(f"--seed-pattern {seed_pattern!r}: {error}") from None
+    pattern = compile_seed_pattern(seed_pattern)
     frames = []
     for label, file in _inputs(items):
         try:
@@ -129,7 +128,7 @@ def read_runs(items: list[str], metrics: list[str], seed_pattern: str) -> pd.Dat
         _check_metrics(frame, metrics, file)
         planners = frame["planner"].astype(str)
         frame[SEED] = planners.map(lambda name: (m := pattern.search(name)) and m.group(1)).astype("string")
-        configuration = planners.map(lambda name: pattern.sub(lambda m: _wildcard(m), name))
+        configuration = planners.map(lambda name: seeds_pooled(pattern, name))
         frame.insert(0, CONFIGURATION, f"{label}:" + configuration)
         frame.insert(1, "input", str(file))
         frames.append(frame)
@@ -152,10 +151,33 @@ def _check_metrics(frame: pd.DataFrame, metrics: list[str], file: Path) -> None:
         frame[name] = values
 
 
-def _wildcard(match: re.Match) -> str:
-    """The matched seed token with its seed replaced by ``*`` (``seed_3`` -> ``seed_*``)."""
-    text, start = match.group(0), match.start(1) - match.start(0)
-    return text[:start] + "*" + text[start + len(match.group(1)) :]
+def compile_seed_pattern(seed_pattern: str) -> re.Pattern:
+    """``--seed-pattern``: a regular expression whose first group is the seed in a planner name.
+
+    :raises UserError: naming the flag, when it does not compile or has no group
+    """
+    try:
+        pattern = re.compile(seed_pattern)
+        if pattern.groups < 1:
+            raise re.error("it needs a group, e.g. seed_(\\d+)")
+    except re.error as error:
+        raise UserError(f"--seed-pattern {seed_pattern!r}: {error}") from None
+    return pattern
+
+
+def seeds_pooled(pattern: re.Pattern, name: str) -> str:
+    """A planner name with its seed replaced by ``*`` (``RL:seed_3`` -> ``RL:seed_*``): the name of
+    the configuration that all its training seeds form.
+
+    :param pattern: from :func:`compile_seed_pattern`
+    :param name: a planner name
+    """
+
+    def wildcard(match: re.Match) -> str:
+        text, start = match.group(0), match.start(1) - match.start(0)
+        return text[:start] + "*" + text[start + len(match.group(1)) :]
+
+    return pattern.sub(wildcard, name)
 
 
 def markdown(table: pd.DataFrame, confidence: float, bootstrap: str = "stratified") -> str:
