@@ -1,13 +1,13 @@
 """Wall time and runs per second of the evaluation harness: the main job and a small sweep.
 
-The *main job* is ``sb3-graph evaluate`` with its default planners (pr, fifo, aim, signal, the
-shipped GNN planner without and with the shield) on ``--scenarios`` generated scenarios of
-``--duration`` simulated seconds; the *sweep* is ``sb3-graph sweep`` with pr and fifo at two demand
-levels. Each runs as its own ``python -m sb3_graph.cli`` process with ``--jobs`` workers, so the
-wall time is what a user waits for (Python start, scenario generation, worker start-up, the runs,
-the report). Runs per second: planner-scenario runs over that wall time. CPU seconds: user + system
-time of the command and every worker it started (``RUSAGE_CHILDREN``), which a busy shared machine
-inflates far less than the wall time.
+The *main job* is ``sb3-graph evaluate`` with its default planners (pr, fifo, aim, signal, full
+throttle behind the shield, the shipped GNN planner without and with the shield) on ``--scenarios``
+generated scenarios of ``--duration`` simulated seconds; the *sweep* is ``sb3-graph sweep`` with pr
+and fifo at two demand levels. Each runs as its own ``python -m sb3_graph.cli`` process with
+``--jobs`` workers, so the wall time is what a user waits for (Python start, scenario generation,
+worker start-up, the runs, the report). Runs per second: planner-scenario runs over that wall time.
+CPU seconds: user + system time of the command and every worker it started (``RUSAGE_CHILDREN``),
+which a busy shared machine inflates far less than the wall time.
 
 ``--checkout DIR`` (repeatable) names source trees to measure, each put first on ``PYTHONPATH``
 (e.g. an older commit unpacked with ``git archive COMMIT | tar -x -C DIR``); the checkouts are
@@ -36,7 +36,7 @@ import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parents[1]
-DEFAULT_PLANNERS = 6  # pr, fifo, aim, signal, GNN, GNN+shield (envs.commands.evaluate)
+DEFAULT_PLANNERS = 7  # pr, fifo, aim, signal, fullthrottle+shield, GNN, GNN+shield (envs.commands.evaluate)
 SWEEP_PLANNERS = ("pr", "fifo")
 SWEEP_DEMAND = ("0.1", "0.3")
 

@@ -143,3 +143,19 @@ def test_baselines_no_collisions_on_busy_scenarios(spec):
         scenario = generate_scenario("4way", 40.0, seed, rate_range=(0.4, 0.5))
         log, _ = run_episode(env, planner, scenario, 40.0, seed=seed)
         assert len(log) > 20 and int(log["collided"].sum()) == 0
+
+
+def test_fullthrottle_is_a_named_planner_with_the_class_specs_report_name():
+    """``fullthrottle`` (the main job's strongest baseline behind the shield) is a planner word: the
+    same planner and report name as ``envs/planners/adversarial.py:FullThrottle``, so reports of both agree."""
+    from envs.planners import check_planner_spec, planner_name
+
+    assert check_planner_spec("FullThrottle+shield") == "fullthrottle+shield"
+    assert planner_name("fullthrottle+shield") == planner_name("envs/planners/adversarial.py:FullThrottle+shield")
+    env = gym.make("CoopIntersection4Way-v0", **evaluation_env_kwargs({}))
+    env.reset(seed=0)
+    for _ in range(30):
+        env.step(env.action_space.sample() * 0)
+    scene = env.unwrapped.scene()
+    assert scene.num_vehicles > 0
+    np.testing.assert_array_equal(make_planner("fullthrottle").act(scene), np.full(scene.num_vehicles, scene.a_max))

@@ -140,9 +140,9 @@ def test_default_planners_are_the_baselines_and_the_shipped_model():
     from sb3_graph.cli import UserError
 
     planners = checked_planners(None)
-    assert [name for _, name in planners][:4] == ["PR", "FIFO", "AIM", "SIGNAL"]
-    assert planners[4][0] == str(DEFAULT_MODEL)  # sb3-graph ind uses the same defaults
-    assert planners[5] == (str(DEFAULT_MODEL) + "+shield", planners[4][1] + "+shield")  # and shielded
+    assert [name for _, name in planners][:5] == ["PR", "FIFO", "AIM", "SIGNAL", "FullThrottle+shield"]
+    assert planners[5][0] == str(DEFAULT_MODEL)  # sb3-graph ind uses the same defaults
+    assert planners[6] == (str(DEFAULT_MODEL) + "+shield", planners[5][1] + "+shield")  # and shielded
     assert [name for _, name in checked_planners(["pr"], shield=True)] == ["PR+shield"]
     assert [name for _, name in checked_planners(None, reserved=("inD",))] == [name for _, name in planners]
     with pytest.raises(UserError, match="given twice"):
@@ -167,12 +167,12 @@ def test_report_states_the_simulated_duration_of_shorter_scenario_files(tmp_path
 
 
 def test_shipped_safetensors_and_zip_give_the_same_report(tmp_path):
-    from envs.commands.evaluate import DEFAULT_MODEL
+    from envs.commands.evaluate import PAPER_MODEL
 
     copy = tmp_path / "zip" / "best_model.zip"
     copy.parent.mkdir()
-    copy.write_bytes(DEFAULT_MODEL.with_suffix(".zip").read_bytes())
-    args = ["evaluate", "--planner", str(DEFAULT_MODEL), "--planner", str(copy), "--out", str(tmp_path / "r")]
+    copy.write_bytes(PAPER_MODEL.with_suffix(".zip").read_bytes())
+    args = ["evaluate", "--planner", str(PAPER_MODEL), "--planner", str(copy), "--out", str(tmp_path / "r")]
     assert main([*args, "--scenarios", "1", "--duration", "10", "--jobs", "1", "--no-progress"]) == 0
     runs = pd.read_csv(tmp_path / "r" / "metrics.csv").set_index("planner")
     cols = ["vehicles", "crossed", "stopped_all", "collided"]

@@ -15,11 +15,11 @@ import pytest
 import torch as th
 import yaml
 
-from envs.commands.evaluate import DEFAULT_MODEL
+from envs.commands.evaluate import PAPER_MODEL
 from envs.ind.synthetic import SyntheticSite, default_vehicles, make_recording, write_recording
 from sb3_graph.cli import main
 
-SHIPPED_ZIP = DEFAULT_MODEL.with_suffix(".zip")
+SHIPPED_ZIP = PAPER_MODEL.with_suffix(".zip")
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = ROOT / "zoo_configs" / "td3.yml"
 ENV_ID = "CoopIntersection4Way-v0"

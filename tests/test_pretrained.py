@@ -1,4 +1,5 @@
-"""The GNN planner shipped with the package loads (weights only) and acts on every layout."""
+"""The GNN planners shipped with the package load (weights only) and act on every layout: the default
+(a residual policy trained behind the shield) and the paper's planner retrained under the fair physics."""
 
 import gymnasium as gym
 import numpy as np
@@ -7,26 +8,59 @@ import torch as th
 import yaml
 
 import envs  # noqa: F401 - registers the environments
-from envs.commands.evaluate import DEFAULT_MODEL
+from envs.commands.evaluate import DEFAULT_MODEL, PAPER_MODEL
 from envs.planners import make_planner
+from envs.planners.gnn import planner_config_of
+from envs.planners.residual import ResidualPlanner
 from sb3_graph import TD3
 from sb3_graph.weights import read_weights_file
 
-SHIPPED_ZIP = DEFAULT_MODEL.with_suffix(".zip")
+SHIPPED_ZIP = PAPER_MODEL.with_suffix(".zip")
 
 
-def test_shipped_model_comes_with_its_run_record():
-    folder = DEFAULT_MODEL.parent
-    assert DEFAULT_MODEL.is_file() and DEFAULT_MODEL.suffix == ".safetensors"
+@pytest.mark.parametrize("model", [DEFAULT_MODEL, PAPER_MODEL], ids=["default", "paper"])
+def test_shipped_model_comes_with_its_run_record(model):
+    folder = model.parent
+    assert model.is_file() and model.suffix == ".safetensors"
     config = yaml.safe_load((folder / "config.yml").read_text())
     assert config["policy"] == "sb3_graph.GraphPolicy" and config["n_timesteps"] > 0
     assert (folder / "run.json").is_file() and (folder / "README.md").is_file()
     assert "/" not in (folder / "run.json").read_text().split('"command": "')[1].split()[0]  # no machine path
 
 
+def test_default_model_is_the_residual_policy_of_its_training_config():
+    """The header carries what the environment did around the policy in training (its config.yml),
+    so that `--planner FILE` builds the same residual planner over the same observation."""
+    config = yaml.safe_load((DEFAULT_MODEL.parent / "config.yml").read_text())["env_kwargs"]["config"]
+    header = planner_config_of(DEFAULT_MODEL)
+    assert config["shield"] is True
+    for key in ("residual_base", "residual_scale", "vertex_features", "edge_features"):
+        assert header[key] == config[key], key
+
+
+@pytest.mark.parametrize("env_id", ["CoopIntersection4Way-v0", "CoopIntersection3Way-v0", "CoopIntersectionInD-v0"])
+def test_default_model_acts_on_every_layout_and_corrects_its_base(env_id):
+    planner = make_planner(str(DEFAULT_MODEL))
+    assert isinstance(planner, ResidualPlanner) and planner.base.name == "FullThrottle"
+    env = gym.make(env_id, config={"spawn_probability": 0.07})
+    env.reset(seed=0)
+    corrected = 0
+    for _ in range(100):
+        scene = env.unwrapped.scene()
+        acc = planner.act(scene)
+        n = scene.num_vehicles
+        assert acc.shape == (n,) and np.isfinite(acc).all()
+        assert np.all(acc >= scene.a_min) and np.all(acc <= scene.a_max)
+        corrected += int(np.sum(acc < scene.a_max - 1e-6))  # a trained correction, not the base alone
+        _, _, terminated, truncated, _ = env.step(np.append(acc / scene.a_max, np.zeros(env.action_space.shape[0] - n)))
+        if terminated or truncated:
+            env.reset()
+    assert corrected > 0
+
+
 def test_shipped_weights_are_the_zip_policy():
-    """The weights-only file is `sb3-graph export` of the shipped zip: the same tensors."""
-    description, state = read_weights_file(DEFAULT_MODEL)
+    """The paper planner's weights-only file is `sb3-graph export` of its zip: the same tensors."""
+    description, state = read_weights_file(PAPER_MODEL)
     assert (description.algorithm, description.policy_class) == ("TD3", "GraphPolicy")
     policy = TD3.load(SHIPPED_ZIP, device="cpu").policy  # our own shipped file: trusted here
     reference = policy.state_dict()
@@ -36,11 +70,11 @@ def test_shipped_weights_are_the_zip_policy():
 
 
 @pytest.mark.parametrize("env_id", ["CoopIntersection4Way-v0", "CoopIntersection3Way-v0", "CoopIntersectionInD-v0"])
-def test_shipped_model_acts_on_every_layout(env_id):
+def test_paper_model_acts_on_every_layout(env_id):
     model = TD3.load(SHIPPED_ZIP, device="cpu")
     env = gym.make(env_id)
     obs, _ = env.reset(seed=0)
-    planner = make_planner(str(DEFAULT_MODEL))
+    planner = make_planner(str(PAPER_MODEL))
     for _ in range(20):
         n = int(obs["node_mask"].sum())
         action, _ = model.predict(obs, deterministic=True)
@@ -59,7 +93,7 @@ def test_the_weight_studys_six_planners_are_fine_tunings_of_the_shipped_one():
     fine-tuning moved its weights (a copy of the shipped file would pass a load check too)."""
     from pathlib import Path
 
-    _, shipped = read_weights_file(DEFAULT_MODEL)
+    _, shipped = read_weights_file(PAPER_MODEL)
     root = Path(__file__).parents[1] / "examples" / "weight_study" / "seeds"
     files = sorted(root.glob("*/seed_*/best_model.safetensors"))
     assert [f.relative_to(root).as_posix() for f in files] == [

@@ -31,7 +31,13 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from envs.commands.evaluate import add_executor_arguments, add_shield_argument, check_executor_arguments
+from envs.commands.evaluate import (
+    DEFAULT_PLANNERS_HELP,
+    PLANNER_WORDS_HELP,
+    add_executor_arguments,
+    add_shield_argument,
+    check_executor_arguments,
+)
 from sb3_graph.commands import UserError
 from sb3_graph.commands.arguments import json_object, seed_value
 
@@ -60,10 +66,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         action="append",
         default=None,
         metavar="PLANNER",
-        help="repeatable: 'pr', 'fifo', 'aim', 'signal', a policy file .safetensors or a saved model .zip, or a "
-        "Planner class (path/to/file.py:ClassName or package.module:ClassName), '+shield' after any of them for "
-        "the shielded planner (default: pr, fifo, aim, signal and the shipped GNN planner without and with the "
-        "shield)",
+        help=f"repeatable: {PLANNER_WORDS_HELP} (default: {DEFAULT_PLANNERS_HELP})",
     )
     parser.add_argument(
         "--trust-planner-files",

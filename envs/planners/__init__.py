@@ -2,20 +2,23 @@
 
 ``make_planner(spec)`` builds one from a command-line word: ``"pr"`` (static priority rules),
 ``"fifo"`` (first in, first out per group of conflicting paths), ``"aim"`` (reservations per
-conflict zone), ``"signal"`` (an actuated traffic signal), the path of a learned GNN planner (a
-weights-only ``.safetensors`` policy file written by ``sb3-graph export``, or a saved SB3 ``.zip``,
-both loaded without running code from the file, see :mod:`envs.planners.gnn`), or a user class
-``path/to/file.py:ClassName`` / ``package.module:ClassName`` (:mod:`envs.planners.loading`), or a
-planner server ``http://HOST:PORT`` (``sb3-graph serve``, :mod:`envs.serve.client`). The
-suffix ``+shield`` wraps any of them in the safety shield (:class:`envs.planners.shield.Shield`).
-A policy file trained as a residual policy (its header's planner configuration names a
-``residual_base``) is built as :class:`envs.planners.residual.ResidualPlanner` around that base.
+conflict zone), ``"signal"`` (an actuated traffic signal), ``"fullthrottle"`` (every vehicle at the
+largest acceleration: the greedy planner that behind the shield is the strongest baseline), the path
+of a learned GNN planner (a weights-only ``.safetensors`` policy file written by ``sb3-graph
+export``, or a saved SB3 ``.zip``, both loaded without running code from the file, see
+:mod:`envs.planners.gnn`), or a user class ``path/to/file.py:ClassName`` /
+``package.module:ClassName`` (:mod:`envs.planners.loading`), or a planner server
+``http://HOST:PORT`` (``sb3-graph serve``, :mod:`envs.serve.client`). The suffix ``+shield`` wraps
+any of them in the safety shield (:class:`envs.planners.shield.Shield`). A policy file trained as a
+residual policy (its header's planner configuration names a ``residual_base``) is built as
+:class:`envs.planners.residual.ResidualPlanner` around that base.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 
+from envs.planners.adversarial import FullThrottle
 from envs.planners.aim import AIMPlanner
 from envs.planners.base import Planner
 from envs.planners.fifo import FIFOPlanner
@@ -37,7 +40,10 @@ BASELINES: dict[str, type[Planner]] = {
     "fifo": FIFOPlanner,
     "aim": AIMPlanner,
     "signal": SignalPlanner,
+    "fullthrottle": FullThrottle,
 }
+# Report names of the built-in planners.
+BASELINE_NAMES = {"pr": "PR", "fifo": "FIFO", "aim": "AIM", "signal": "SIGNAL", "fullthrottle": "FullThrottle"}
 # A planner word ending in this is the planner wrapped in the safety shield.
 SHIELD_SUFFIX = "+shield"
 # File suffixes of learned planners.
@@ -47,10 +53,10 @@ MODEL_SUFFIXES = (".safetensors", ".zip")
 def check_planner_spec(spec: str) -> str:
     """Validate a planner word without building it (cheap: no model is loaded).
 
-    :param spec: ``"pr"``, ``"fifo"``, ``"aim"``, ``"signal"``, the path of a readable ``.safetensors``
-        or ``.zip`` model file, or a class spec (``file.py:Class``, ``package.module:Class``, imported
-        to check it), or a planner server ``http://HOST:PORT`` (not contacted here), each optionally
-        followed by ``+shield``
+    :param spec: ``"pr"``, ``"fifo"``, ``"aim"``, ``"signal"``, ``"fullthrottle"``, the path of a
+        readable ``.safetensors`` or ``.zip`` model file, or a class spec (``file.py:Class``,
+        ``package.module:Class``, imported to check it), or a planner server ``http://HOST:PORT``
+        (not contacted here), each optionally followed by ``+shield``
     :return: the normalised spec (lower-case baseline name, or the path or class spec as given)
     :raises ValueError: anything else, with the accepted values in the message
     """
@@ -116,7 +122,8 @@ def planner_name(spec: str) -> str:
     """Report name of a planner word, without building it.
 
     :param spec: a valid planner word (see :func:`check_planner_spec`)
-    :return: ``"PR"``, ``"FIFO"``, ``"RL:<name>"``, a class planner's ``name`` or, for a planner server,
+    :return: ``"PR"``, ``"FIFO"``, ``"AIM"``, ``"SIGNAL"``, ``"FullThrottle"``, ``"RL:<name>"``, a
+        class planner's ``name`` or, for a planner server,
         ``<its planner's name>@HOST:PORT`` (asked from the server); ``+shield`` appended
         for a shielded one
     """
@@ -124,7 +131,7 @@ def planner_name(spec: str) -> str:
     if key.endswith(SHIELD_SUFFIX):
         return planner_name(key[: -len(SHIELD_SUFFIX)]) + SHIELD_SUFFIX
     if key in BASELINES:
-        return key.upper()
+        return BASELINE_NAMES[key]
     if is_remote_spec(key):
         return remote_planner_name(key)
     if is_class_spec(key):
@@ -137,6 +144,8 @@ def planner_name(spec: str) -> str:
 __all__ = [
     "AIMPlanner",
     "BASELINES",
+    "BASELINE_NAMES",
+    "FullThrottle",
     "MODEL_SUFFIXES",
     "FIFOPlanner",
     "Planner",

@@ -55,8 +55,4 @@ def make_residual_base(name: str | None):
         return None
     from envs.planners import make_planner
 
-    if name == "fullthrottle":
-        from envs.planners.adversarial import FullThrottle
-
-        return FullThrottle()
     return make_planner(name)

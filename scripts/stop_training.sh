@@ -1,0 +1,40 @@
+#!/usr/bin/env bash
+# Issue #22, stops: fine-tune the residual + feature planners of scripts/feature_training.sh (stored
+# action fixed, examples/shielded_training/features_proposal_s*) behind the shield with a new stop
+# charged 10 s of delay instead of 2 s (reward_weights.stop 1.0), each vertex's exploration noise kept
+# with its vehicle (VertexNoiseCallback), and the actor held for the first WARMUP steps while the
+# critics learn the new reward. Then exported and evaluated behind the shield over demand.
+#   bash scripts/stop_training.sh STEPS SCENARIOS SEED...   (the README's run: 30000 10 0 1)
+set -euo pipefail
+steps=${1:-30000}
+scenarios=${2:-10}
+shift 2 || true
+seeds=("${@:-0 1}")
+runs=${RUNS:-runs/issue22_stops}
+warmup=${WARMUP:-3000}
+stop=${STOP_WEIGHT:-1.0}
+export OMP_NUM_THREADS=1
+mkdir -p "$runs"
+callbacks="[{sb3_graph.callbacks.ActorWarmupCallback: {steps: $warmup, zero_output: false}},
+ sb3_graph.callbacks.VertexNoiseCallback,
+ {sb3_graph.callbacks.InfoLoggerCallback: {keys: [reward_terms, crossed, stopped, collided, waiting, shield_intervention_rate]}}]"
+for s in ${seeds[@]}; do
+  sb3-graph train --config zoo_configs/td3_residual_features.yml --env CoopIntersection4Way-v0 \
+    --out "$runs/stops_s$s" --n-timesteps "$steps" --seed "$s" --no-progress \
+    --init-weights "examples/shielded_training/features_proposal_s$s/final_model.safetensors" \
+    --env-kwargs "{\"config\": {\"reward_weights\": {\"stop\": $stop}}}" \
+    --hyperparams "learning_starts:1000" "callback:$callbacks" > "$runs/stops_s$s.log" 2>&1 &
+done
+wait || true
+latest() { ls "$1"/final_model.zip 2>/dev/null || ls -v "$1"/checkpoints/model_*_steps.zip | tail -n 1; }
+config='{"residual_base": "fullthrottle", "residual_scale": 2.0, "vertex_features": ["maneuver", "priority",
+ "limit", "line", "zone", "committed"], "edge_features": ["zone_receiver", "zone_sender"]}'
+planners=()
+for s in ${seeds[@]}; do
+  mkdir -p "$runs/planners/stops_s$s"
+  sb3-graph export "$(latest "$runs/stops_s$s")" "$runs/planners/stops_s$s/final_model.safetensors" \
+    --planner-config "$config"
+  planners+=(--planner "$runs/planners/stops_s$s/final_model.safetensors+shield")
+done
+sb3-graph sweep --planner aim --planner envs/planners/adversarial.py:FullThrottle+shield "${planners[@]}" \
+  --demand 0.05 0.1 0.2 0.3 0.4 0.6 --scenarios "$scenarios" --jobs 2 --trust-planner-files --out "$runs/sweep"
