@@ -13,8 +13,8 @@ PPO: one epoch over a rollout of 2,048 transitions in minibatches of 256 (a "ste
 minibatch update). The graph learners use the graph buffers (ragged storage); the MLP learners
 SB3's buffers. Per algorithm, three learners are timed in turns (best of 3 runs each), so that a
 change of the machine's load hits all of them: the graph learner; the reference, the learner before
-issue #27 (``use_compiled_kernels(False)``: the PyTorch formulation, and SB3's own ``train``, whose
-policy loss also differentiates the critics' weights); and the MLP learner. Target (TD3): the graph
+issue #27 (``use_compiled_kernels(False)``: the PyTorch formulation; torch's per-tensor Adam; SB3's
+own ``train``, whose policy loss also differentiates the critics' weights); and the MLP learner. Target (TD3): the graph
 learner within 1.5x of the MLP learner. Also times the TD3 graph learner with 1 and 2 torch threads (``--threads``);
 ``--profile`` adds the operator breakdown of the TD3 and SAC graph learners (torch.profiler, self
 CPU time of 10 gradient steps).
@@ -38,6 +38,7 @@ from graph_bench_utils import (
     interleaved_rates,
     machine_line,
     markdown_table,
+    per_tensor_optimizers,
     threads_table,
 )
 from gymnasium.spaces.utils import flatten, flatten_space
@@ -87,13 +88,19 @@ def sb3_train_call(model) -> Callable:
     return lambda: super(GraphAlgorithmMixin, model).train(gradient_steps=2, batch_size=BATCH)
 
 
-def reference_call(call: Callable) -> Callable:
-    """``call`` with the compiled kernels off: the PyTorch formulation of the relational layers."""
+def reference_call(call: Callable, model=None) -> Callable:
+    """``call`` with the compiled kernels off (the PyTorch formulation of the relational layers)
+    and, for an off-policy ``model``, torch's per-tensor Adam (the graph policies' optimizers
+    default to ``foreach=True`` since the third round)."""
 
     def run() -> None:
         previous = use_compiled_kernels(False)
         try:
-            call()
+            if model is not None and hasattr(model, "critic"):
+                with per_tensor_optimizers(model):
+                    call()
+            else:
+                call()
         finally:
             use_compiled_kernels(previous)
 
@@ -114,7 +121,7 @@ def steps_per_second(
     functions = []
     for k, (call, _) in enumerate(calls):
         if k in reference:
-            call = reference_call(sb3_train_call(models[k]))
+            call = reference_call(sb3_train_call(models[k]), models[k])
         functions.append(call)
     rates = interleaved_rates(functions, min_seconds, repeats, clock)
     return [r * steps for r, (_, steps) in zip(rates, calls)]

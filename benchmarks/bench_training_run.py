@@ -6,10 +6,10 @@ short run trains (the config's 5,000 would leave a 3,000-step run without a grad
 times ``learn`` from ``learning_starts`` to the end: environment steps, action selection, replay
 buffer and one gradient step (batch 128) per environment step. The reference is the learner before
 issue #27: ``sb3_graph.layers.use_compiled_kernels(False)`` (the PyTorch formulation of the relational
-layers) and SB3's own ``train`` (whose policy loss also differentiates the critics' weights). They
-alternate run by run (``--rounds`` each, same seeds), so a change of the shared machine's load hits
-both; the table gives medians of env steps per wall second and per CPU second of this process (one
-torch thread).
+layers), torch's per-tensor Adam and SB3's own ``train`` (whose policy loss also differentiates the
+critics' weights). They alternate run by run (``--rounds`` each, same seeds), so a change of the
+shared machine's load hits both; the table gives medians of env steps per wall second and per CPU
+second of this process (one torch thread).
 """
 
 from __future__ import annotations
@@ -43,6 +43,9 @@ def run(entry: dict, steps: int, learning_starts: int, seed: int, compiled: bool
         model = TD3(policy, env, seed=seed, device="cpu", **build_algorithm_kwargs(entry, env.action_space.shape[0]))
         if not compiled:  # SB3's own train, without what the graph algorithms add around it
             model.train = super(GraphAlgorithmMixin, model).train
+            for optimizer in (model.actor.optimizer, model.critic.optimizer):  # torch's per-tensor Adam
+                for group in optimizer.param_groups:
+                    group["foreach"] = False
         clock = LearningClock(learning_starts)
         model.learn(learning_starts + steps, callback=CallbackList([*build_callbacks(entry), clock]))
     finally:

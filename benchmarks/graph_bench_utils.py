@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import gymnasium as gym
@@ -139,6 +140,22 @@ def threads_table(min_seconds: float = 1.5) -> str:
         ["torch threads", "TD3 GraphPolicy gradient steps/s (batch 256)", "ratio vs 1 thread"],
         [["1", f"{one:.1f}", "1.00"], ["2", f"{two:.1f}", f"{two / one:.2f}"]],
     )
+
+
+@contextlib.contextmanager
+def per_tensor_optimizers(model: Any) -> Iterator[None]:
+    """Within the block, the optimizers of ``model``'s policy run torch's per-tensor loop (as before
+    issue #27, when the graph policies did not default to ``foreach=True``): the same updates,
+    slower."""
+    groups = [g for optimizer in (model.actor.optimizer, model.critic.optimizer) for g in optimizer.param_groups]
+    previous = [g.get("foreach") for g in groups]
+    for group in groups:
+        group["foreach"] = False
+    try:
+        yield
+    finally:
+        for group, value in zip(groups, previous):
+            group["foreach"] = value
 
 
 def _null_logger():

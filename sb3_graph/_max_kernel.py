@@ -196,7 +196,7 @@ def relational_max_backward(
         start = e + 1
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def relational_max_backward_ties(
     grad_out: np.ndarray,
     rows: np.ndarray,
@@ -222,15 +222,19 @@ def relational_max_backward_ties(
     """
     channels = grad_out.shape[1]
     counts = np.zeros_like(maxima)  # float: the division stays in the rows' precision
+    # Branch-free channel loops (a select, not a branch), which vectorize: 2x faster (critic max
+    # pooling, batch 256). A row that is not a maximum adds +0.0, which leaves every sum unchanged
+    # bit for bit (the rows start at +0.0, so no sum is -0.0); error_model="numpy" lets the
+    # discarded x / 0 of a channel whose maximum is NaN (no row equals it: count 0) give inf or
+    # NaN instead of raising, and spares the zero test per division.
     for e in range(source.shape[0]):
         s, t = source[e], target[e]
         for c in range(channels):
-            if rows[s, c] == maxima[t, c]:
-                counts[t, c] += 1
+            counts[t, c] += 1.0 if rows[s, c] == maxima[t, c] else 0.0
     _root_gradients(grad_out, num_relations, stride, grad_rows)
     for e in range(source.shape[0]):
         s, t = source[e], target[e]
         i = t // num_relations
         for c in range(channels):
-            if rows[s, c] == maxima[t, c]:
-                grad_rows[s, c] += grad_out[i, c] / counts[t, c]
+            share = grad_out[i, c] / counts[t, c]
+            grad_rows[s, c] += share if rows[s, c] == maxima[t, c] else 0.0

@@ -594,13 +594,15 @@ def relational_conv(
         return _edge_conv(first, x, edge_index, edge_type, edge_attr)
     r, out, has_root = first.num_relations, first.out_channels, first.root is not None
     stride = r + 1 if has_root else r
+    compiled = first.aggr == "max" and first.bias is not None and _compiled_path(x)
     if stacked or torch.is_grad_enabled():
-        weight, bias = _fused_weights(convs, stacked)
+        # The kernel adds the bias itself: no fused bias to build on the compiled path.
+        weight, bias = _fused_weights(convs, stacked, with_bias=not compiled)
     else:  # inference: the same tensors, fused once per change of the parameters
         weight, bias = first.inference_weights()
     layout = relational_layout(edge_index, edge_type, num_nodes, r, stride, first.aggr, copies)
     shape = (copies, num_nodes, out) if stacked else (num_nodes, out)
-    if first.aggr == "max" and first.bias is not None and _compiled_path(x):
+    if compiled:
         # The kernel adds the bias: a plain matmul spares addmm's pass that first copies the
         # broadcast bias into its (N, (R + 1) * out) result.
         kernel_bias = first.bias if not stacked else torch.stack([c.bias for c in convs])
@@ -624,28 +626,37 @@ def relational_conv(
     return result + bias if bias is not None and not has_root else result
 
 
-def _fused_weights(convs: Sequence[RelationalMaxConv], stacked: bool) -> tuple[Tensor, Tensor | None]:
+def _fused_weights(
+    convs: Sequence[RelationalMaxConv], stacked: bool, with_bias: bool = True
+) -> tuple[Tensor, Tensor | None]:
     """Weight and bias of :func:`relational_conv`'s one matmul for ``K`` convolutions.
 
     :param convs: ``K`` convolutions of the same shape, without edge features
     :param stacked: ``(K, in, R * out [+ out])`` and ``(K, 1, ...)`` for a batched matmul; else
         (``K = 1``) ``(in, ...)`` and ``(...,)``
+    :param with_bias: build the fused bias (``False``: ``None``, for the compiled path)
     :return: the weight (relation blocks, then the root block) and the bias (0 on the relation
         blocks: it joins the root block, so the matmul adds it), ``None`` without bias
     """
     first = convs[0]
     copies, r, out, has_root = len(convs), first.num_relations, first.out_channels, first.root is not None
-    bias = torch.stack([c.bias for c in convs]).unsqueeze(1) if first.bias is not None else None
+    if not stacked:
+        # A plain matmul for one convolution: cheaper than a batched one, and 2-D results let the
+        # caller apply an in-place activation without autograd's view bookkeeping. Built directly
+        # (not as copy 0 of the stacked weight): the same values with fewer tensor operations and
+        # autograd nodes, which weigh at small batches.
+        weight = first.weight.permute(1, 0, 2).reshape(first.in_channels, r * out)
+        if has_root:
+            weight = torch.cat((weight, first.root.weight.t()), dim=1)
+        if not with_bias or first.bias is None:
+            return weight, None
+        return weight, torch.cat((first.bias.new_zeros(r * out), first.bias)) if has_root else first.bias
+    bias = torch.stack([c.bias for c in convs]).unsqueeze(1) if with_bias and first.bias is not None else None
     weight = torch.stack([c.weight for c in convs]).permute(0, 2, 1, 3).reshape(copies, -1, r * out)
     if has_root:
         weight = torch.cat((weight, torch.stack([c.root.weight for c in convs]).transpose(1, 2)), dim=2)
         if bias is not None:
             bias = torch.cat((bias.new_zeros(copies, 1, r * out), bias), dim=2)
-    # A plain matmul for one convolution: cheaper than a batched one, and 2-D results let the
-    # caller apply an in-place activation without autograd's view bookkeeping.
-    if not stacked:
-        weight = weight[0]
-        bias = None if bias is None else bias[0, 0]
     return weight, bias
 
 

@@ -34,6 +34,7 @@ POOLINGS = {"max": global_max_pool, "mean": global_mean_pool, "sum": global_add_
 __all__ = [
     "POOLINGS",
     "constant_parameters",
+    "fast_optimizer_kwargs",
     "GraphCritic",
     "GraphQNetwork",
     "GraphTrunk",
@@ -86,6 +87,29 @@ def graph_net_kwargs(
         activation_fn=activation_fn,
         edge_dim=edge_dims(observation_space) if use_edge_features else 0,
     )
+
+
+def fast_optimizer_kwargs(
+    optimizer_class: type[torch.optim.Optimizer], optimizer_kwargs: dict[str, Any] | None
+) -> dict[str, Any]:
+    """The optimizer keyword arguments of a graph policy: ``foreach=True`` for Adam and AdamW
+    unless ``foreach``, ``fused``, ``differentiable`` or ``capturable`` is given.
+
+    On CPU torch otherwise picks the per-tensor implementation, a Python loop of ~10 tensor
+    operations per parameter tensor: ~0.8 ms per critic update of a default TD3 graph policy
+    (20 tensors), against ~0.5 ms with ``foreach``, which computes the same updates bit for bit.
+    (``fused=True`` takes ~0.15 ms, but its rounding differs by an ulp, which a max aggregation
+    can turn into another winner within a few steps: an option, not the default.)
+
+    :param optimizer_class: the policy's optimizer class
+    :param optimizer_kwargs: the keyword arguments given (``None``: none)
+    :return: a new dictionary
+    """
+    kwargs = dict(optimizer_kwargs or {})
+    chosen = {"foreach", "fused", "differentiable", "capturable"} & set(kwargs)
+    if optimizer_class in (torch.optim.Adam, torch.optim.AdamW) and not chosen:
+        kwargs["foreach"] = True
+    return kwargs
 
 
 class GraphPolicyParameters:

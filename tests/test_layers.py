@@ -8,6 +8,7 @@ from torch_geometric.utils import scatter
 from sb3_graph.batching import derived_indices
 from sb3_graph.layers import (
     RelationalMaxConv,
+    _fused_weights,
     relational_conv,
     relational_layout,
     segment_max,
@@ -193,6 +194,25 @@ def test_stacked_convolutions_equal_separate_ones(aggr):
         torch.testing.assert_close(a, b)
     with pytest.raises(ValueError, match="K, N"):
         relational_conv(convs, x, edge_index, edge_type)
+
+
+@pytest.mark.parametrize("root_weight", [True, False])
+@pytest.mark.parametrize("bias", [True, False])
+def test_fused_weights_of_one_convolution_equal_the_stacked_ones(root_weight, bias):
+    """One convolution's fused weight and bias (built directly) are copy 0 of the stacked ones, bit for
+    bit, and so are their gradients; without ``with_bias`` no bias is built."""
+    torch.manual_seed(0)
+    conv = RelationalMaxConv(6, 5, num_relations=3, root_weight=root_weight, bias=bias)
+    weight, fused_bias = _fused_weights([conv], stacked=False)
+    stacked_weight, stacked_bias = _fused_weights([conv], stacked=True)
+    assert torch.equal(weight, stacked_weight[0])
+    assert (fused_bias is None) == (not bias) and (not bias or torch.equal(fused_bias, stacked_bias[0, 0]))
+    assert _fused_weights([conv], stacked=False, with_bias=False)[1] is None
+    grad = torch.randn_like(weight)
+    ours = torch.autograd.grad(weight, list(conv.parameters()), grad, allow_unused=True)
+    theirs = torch.autograd.grad(stacked_weight[0], list(conv.parameters()), grad, allow_unused=True)
+    for a, b in zip(ours, theirs, strict=True):
+        assert (a is None and b is None) or torch.equal(a, b)
 
 
 def test_layout_is_derived_once_per_batch():

@@ -14,7 +14,7 @@ from stable_baselines3.common.logger import configure
 
 import sb3_graph
 from sb3_graph.batching import derived_indices
-from sb3_graph.networks import GraphCritic, constant_parameters
+from sb3_graph.networks import GraphCritic, constant_parameters, fast_optimizer_kwargs
 from sb3_graph.toy_envs import MaxNeighbourEnv
 
 torch.set_num_threads(1)
@@ -104,3 +104,44 @@ def test_constant_parameters_restores_the_flags_after_an_error():
     assert all(p.requires_grad for p in layer.parameters())
     assert fixed.weight.requires_grad and not fixed.bias.requires_grad  # a frozen parameter stays frozen
 
+
+
+@pytest.mark.parametrize("name", ["TD3", "DDPG", "SAC", "TQC"])
+def test_graph_policies_default_to_foreach_adam(name):
+    """The off-policy graph policies build Adam with ``foreach=True`` (one call per parameter list
+    instead of a Python loop per tensor); an explicit choice is kept."""
+    model = filled_learner(name)
+    for optimizer in (model.actor.optimizer, model.critic.optimizer):
+        assert all(group["foreach"] is True for group in optimizer.param_groups)
+    chosen = dict(SMALL, optimizer_kwargs=dict(foreach=False, eps=1e-5))
+    if name == "TQC":
+        chosen["n_quantiles"] = 5
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        other = getattr(sb3_graph, name)("GraphPolicy", MaxNeighbourEnv(min_nodes=0), policy_kwargs=chosen)
+    assert other.critic.optimizer.param_groups[0]["foreach"] is False
+    assert other.critic.optimizer.param_groups[0]["eps"] == 1e-5
+
+
+def test_fast_optimizer_kwargs():
+    assert fast_optimizer_kwargs(torch.optim.Adam, None) == {"foreach": True}
+    assert fast_optimizer_kwargs(torch.optim.AdamW, {"eps": 1e-5}) == {"eps": 1e-5, "foreach": True}
+    given = {"fused": True}
+    assert fast_optimizer_kwargs(torch.optim.Adam, given) == {"fused": True} and given == {"fused": True}
+    assert fast_optimizer_kwargs(torch.optim.Adam, {"differentiable": True}) == {"differentiable": True}
+    assert fast_optimizer_kwargs(torch.optim.SGD, None) == {}
+
+
+@pytest.mark.parametrize("name", ["TD3", "SAC"])
+def test_foreach_adam_updates_equal_per_tensor_adam(name):
+    """``foreach`` Adam makes the same updates as the per-tensor loop that torch picks on CPU
+    otherwise (and the learner used before): identical weights after a few gradient steps."""
+    model = filled_learner(name)
+    twin = copy.deepcopy(model)
+    for optimizer in (twin.actor.optimizer, twin.critic.optimizer):
+        for group in optimizer.param_groups:
+            group["foreach"] = False
+    ours = trained_state(model, lambda m: m.train(gradient_steps=4, batch_size=16))
+    per_tensor = trained_state(twin, lambda m: m.train(gradient_steps=4, batch_size=16))
+    for key in ours:
+        torch.testing.assert_close(ours[key], per_tensor[key], rtol=0, atol=0, msg=key)

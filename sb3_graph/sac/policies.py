@@ -22,7 +22,13 @@ from torch import Tensor, nn
 
 from sb3_graph.batching import GraphBatch, as_graph_batch, batch_to_padded
 from sb3_graph.distributions import LOG_STD_MAX, LOG_STD_MIN, squashed_sample, sum_per_graph
-from sb3_graph.networks import GraphCritic, GraphPolicyParameters, GraphTrunk, graph_dims
+from sb3_graph.networks import (
+    GraphCritic,
+    GraphPolicyParameters,
+    GraphTrunk,
+    fast_optimizer_kwargs,
+    graph_dims,
+)
 
 
 class GraphSACActor(BasePolicy):
@@ -146,7 +152,8 @@ class GraphSACPolicy(GraphPolicyParameters, SACPolicy):
     :param features_extractor_kwargs: not used
     :param normalize_images: not used
     :param optimizer_class: optimizer, ``torch.optim.Adam`` by default
-    :param optimizer_kwargs: optimizer keyword arguments, excluding the learning rate
+    :param optimizer_kwargs: optimizer keyword arguments, excluding the learning rate (Adam and AdamW:
+        ``foreach=True`` unless given otherwise, see :func:`~sb3_graph.networks.fast_optimizer_kwargs`)
     :param n_critics: number of critic networks
     :param share_features_extractor: not used (nothing to share)
     :param net_arch: not used by graph networks; accepted only as ``None``
@@ -201,7 +208,7 @@ class GraphSACPolicy(GraphPolicyParameters, SACPolicy):
             features_extractor_kwargs=features_extractor_kwargs,
             normalize_images=normalize_images,
             optimizer_class=optimizer_class,
-            optimizer_kwargs=optimizer_kwargs,
+            optimizer_kwargs=fast_optimizer_kwargs(optimizer_class, optimizer_kwargs),
             n_critics=n_critics,
             share_features_extractor=False,
         )

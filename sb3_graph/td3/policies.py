@@ -19,7 +19,13 @@ from stable_baselines3.td3.policies import TD3Policy
 from torch import Tensor, nn
 
 from sb3_graph.batching import GraphBatch, as_graph_batch, batch_to_padded
-from sb3_graph.networks import GraphCritic, GraphPolicyParameters, GraphTrunk, graph_dims
+from sb3_graph.networks import (
+    GraphCritic,
+    GraphPolicyParameters,
+    GraphTrunk,
+    fast_optimizer_kwargs,
+    graph_dims,
+)
 
 
 class GraphActor(BasePolicy):
@@ -111,7 +117,8 @@ class GraphPolicy(GraphPolicyParameters, TD3Policy):
     :param pooling: critic pooling over a graph's vertices: ``max``, ``mean``, ``sum``
     :param activation_fn: activation function
     :param optimizer_class: optimizer, ``torch.optim.Adam`` by default
-    :param optimizer_kwargs: optimizer keyword arguments, excluding the learning rate
+    :param optimizer_kwargs: optimizer keyword arguments, excluding the learning rate (Adam and AdamW:
+        ``foreach=True`` unless given otherwise, see :func:`~sb3_graph.networks.fast_optimizer_kwargs`)
     :param n_critics: number of critic networks (TD3: 2)
     :param net_arch: not used by graph networks; accepted only as ``None``
     :param features_extractor_class: not used (graphs go straight to the networks)
@@ -162,7 +169,7 @@ class GraphPolicy(GraphPolicyParameters, TD3Policy):
             features_extractor_kwargs=features_extractor_kwargs,
             normalize_images=normalize_images,
             optimizer_class=optimizer_class,
-            optimizer_kwargs=optimizer_kwargs,
+            optimizer_kwargs=fast_optimizer_kwargs(optimizer_class, optimizer_kwargs),
             n_critics=n_critics,
             share_features_extractor=share_features_extractor,
         )

@@ -13,7 +13,12 @@ from stable_baselines3.common.type_aliases import Schedule
 from torch import Tensor, nn
 
 from sb3_graph.batching import GraphBatch
-from sb3_graph.networks import GraphCritic, GraphPolicyParameters, graph_dims
+from sb3_graph.networks import (
+    GraphCritic,
+    GraphPolicyParameters,
+    fast_optimizer_kwargs,
+    graph_dims,
+)
 from sb3_graph.sac.policies import GraphSACActor, _no_sde
 
 
@@ -69,7 +74,8 @@ class GraphTQCPolicy(GraphPolicyParameters, TQCPolicy):
     :param features_extractor_kwargs: not used
     :param normalize_images: not used
     :param optimizer_class: optimizer, ``torch.optim.Adam`` by default
-    :param optimizer_kwargs: optimizer keyword arguments, excluding the learning rate
+    :param optimizer_kwargs: optimizer keyword arguments, excluding the learning rate (Adam and AdamW:
+        ``foreach=True`` unless given otherwise, see :func:`~sb3_graph.networks.fast_optimizer_kwargs`)
     :param n_quantiles: quantiles per critic
     :param n_critics: number of critic networks
     :param share_features_extractor: not used
@@ -126,7 +132,7 @@ class GraphTQCPolicy(GraphPolicyParameters, TQCPolicy):
             features_extractor_kwargs=features_extractor_kwargs,
             normalize_images=normalize_images,
             optimizer_class=optimizer_class,
-            optimizer_kwargs=optimizer_kwargs,
+            optimizer_kwargs=fast_optimizer_kwargs(optimizer_class, optimizer_kwargs),
             n_quantiles=n_quantiles,
             n_critics=n_critics,
             share_features_extractor=False,
