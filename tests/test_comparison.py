@@ -80,3 +80,13 @@ def test_the_paired_interval_is_the_plain_percentile_bootstrap_bit_for_bit():
     tail = 100 * (1 - CONFIDENCE) / 2
     expected = np.percentile(d[index].mean(axis=1), [tail, 100 - tail], axis=0)
     np.testing.assert_array_equal(bootstrap_interval(d, np.random.default_rng(0), RESAMPLES, CONFIDENCE), expected)
+
+
+def test_a_shielded_baseline_is_a_baseline_and_a_shielded_model_is_not():
+    """Full throttle behind the shield is non-learned: the report pairs the planners against it
+    when it moves the most traffic."""
+    from envs.evaluation.harness import is_baseline
+
+    assert is_baseline("fullthrottle+shield") and is_baseline("AIM+shield") and is_baseline("pr")
+    assert not is_baseline("envs/pretrained/coop_4way_residual/best_model.safetensors+shield")
+    assert not is_baseline("envs/planners/adversarial.py:FullThrottle+shield")  # a user class: not built in

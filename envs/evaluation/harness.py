@@ -307,10 +307,12 @@ def run_shared_job(job: Job, scenarios: Sequence[Any]) -> tuple[dict[str, Any], 
 
 
 def is_baseline(spec: str) -> bool:
-    """Whether a planner spec is a built-in (non-learned) planner word rather than a model file."""
-    from envs.planners import BASELINES
+    """Whether a planner spec is a built-in (non-learned) planner word rather than a model file,
+    with or without the shield (full throttle behind the shield is the strongest baseline)."""
+    from envs.planners import BASELINES, SHIELD_SUFFIX
 
-    return str(spec).strip().lower() in BASELINES
+    key = str(spec).strip().lower()
+    return key.removesuffix(SHIELD_SUFFIX) in BASELINES
 
 
 def generate_scenarios(
