@@ -598,8 +598,9 @@ class _CompactRelationalConv(torch.autograd.Function):
                 grad_x = torch.matmul(grad_out, root)
             else:
                 grad_x = x.new_zeros(x.shape)
-        grad_flat = None if grad_x is None else grad_x.view(copies * num_nodes, in_channels)
-        rows = layout.rows  # sorted within each block: index_add with a sorted index is faster
+        # The compact rows' gradients w.r.t. their x rows, block by block into one buffer, then
+        # added to their vertices in one index_add.
+        grad_x_rows = None if grad_x is None else x.new_empty(x_rows.shape)
         grad_weight = None
         if any(needs[4 : 4 + copies]):  # zeros: a relation without senders has no block
             grad_weight = x.new_zeros((relations, copies, in_channels, out_channels))
@@ -610,17 +611,19 @@ class _CompactRelationalConv(torch.autograd.Function):
             block = grad_rows[copies * lo : copies * hi]
             if stacked:
                 block = block.view(copies, hi - lo, out_channels)
-                if grad_x is not None:
-                    grad_block = torch.bmm(block, weight[r].transpose(1, 2)).view(-1, in_channels)
-                    grad_flat.index_add_(0, rows[copies * lo : copies * hi], grad_block)
+                if grad_x_rows is not None:
+                    grad_block = grad_x_rows[copies * lo : copies * hi].view(copies, hi - lo, in_channels)
+                    torch.bmm(block, weight[r].transpose(1, 2), out=grad_block)
                 if grad_weight is not None:
                     x_block = x_rows[copies * lo : copies * hi].view(copies, hi - lo, in_channels)
                     torch.bmm(x_block.transpose(1, 2), block, out=grad_weight[r])
             else:
-                if grad_x is not None:
-                    grad_flat.index_add_(0, rows[lo:hi], torch.mm(block, weight[r].t()))
+                if grad_x_rows is not None:
+                    torch.mm(block, weight[r].t(), out=grad_x_rows[lo:hi])
                 if grad_weight is not None:
                     torch.mm(x_rows[lo:hi].t(), block, out=grad_weight[r, 0])
+        if grad_x is not None and grad_x_rows is not None:
+            grad_x.view(copies * num_nodes, in_channels).index_add_(0, layout.rows, grad_x_rows)
         grads: list[Tensor | None] = [grad_x, None, None, None]
         grads += [None if grad_weight is None else grad_weight[:, k] for k in range(copies)]
         if has_root:
