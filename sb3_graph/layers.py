@@ -658,7 +658,9 @@ class RelationalMaxConv(MessagePassing):
     The relation transforms and the root transform are one matmul to ``(N, (R + 1) * out)``; each
     edge then reads the row of its own relation and the messages are reduced into ``N * R``
     segments ``target * R + relation`` (:func:`relational_conv`, which also runs several
-    convolutions of the same shape at once, e.g. twin critics).
+    convolutions of the same shape at once, e.g. twin critics). On the compiled CPU path with
+    autograd (and for stacked convolutions) only the relation rows that some edge reads are
+    computed (:class:`_CompactRelationalConv`, :func:`use_compact_rows`).
 
     :param in_channels: size of each input vertex feature
     :param out_channels: size of each output vertex feature
