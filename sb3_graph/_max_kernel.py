@@ -48,6 +48,7 @@ def relational_max_forward(
     maxima: np.ndarray,
     seen: np.ndarray,
     wins: np.ndarray,
+    root: np.ndarray,
 ) -> tuple[int, bool]:
     """Per vertex ``i`` of copy ``k``: ``out[i] = sum_r maxima[i * R + r] (+ rows[i * stride + R])
     (+ bias[k])``, with ``maxima[s] = max_{e : target[e] = s} rows[source[e]]`` per channel (0 for
@@ -70,11 +71,16 @@ def relational_max_forward(
         rows that receive a gradient, see :func:`relational_max_backward`), or ``(0, 0)`` for none
         (no backward pass). Recorded only for edges sorted by ``target``: each segment's rows are
         compared as soon as its maximum is complete, while they are still in cache.
+    :param root: ``(M, C)`` root rows kept apart from ``rows`` (the compact layout: ``rows`` then
+        holds only the relation rows that some edge reads, ``stride = R``), or ``(0, 0)`` for the
+        root rows inside ``rows`` (``stride = R + 1``) or none
     :return: number of non-empty segments, and whether ``wins`` holds exactly one winner per
         non-empty (segment, channel): no tie and no NaN maximum (False without a record)
     """
     channels = rows.shape[1]
     has_bias = bias.shape[0] > 0
+    separate_root = root.shape[0] > 0
+    has_root = separate_root or stride > num_relations
     record = wins.shape[0] > 0
     nonempty, winners, nan_maxima, start = 0, 0, 0, 0
     for e in range(source.shape[0]):
@@ -104,21 +110,28 @@ def relational_max_forward(
                 maxima[t, c] = 0.0
     for i in range(out.shape[0]):
         base, k = i * num_relations, i // max(num_nodes, 1)
-        if stride > num_relations:
-            root = i * stride + num_relations
+        if separate_root:  # index loops, no row views: a view per vertex costs more than its sums
             if has_bias:
                 for c in range(channels):
-                    out[i, c] = maxima[base, c] + (rows[root, c] + bias[k, c])
+                    out[i, c] = maxima[base, c] + (root[i, c] + bias[k, c])
             else:
                 for c in range(channels):
-                    out[i, c] = maxima[base, c] + rows[root, c]
+                    out[i, c] = maxima[base, c] + root[i, c]
+        elif has_root:
+            own = i * stride + num_relations
+            if has_bias:
+                for c in range(channels):
+                    out[i, c] = maxima[base, c] + (rows[own, c] + bias[k, c])
+            else:
+                for c in range(channels):
+                    out[i, c] = maxima[base, c] + rows[own, c]
         else:
             for c in range(channels):
                 out[i, c] = maxima[base, c]
         for r in range(1, num_relations):
             for c in range(channels):
                 out[i, c] += maxima[base + r, c]
-        if has_bias and stride == num_relations:
+        if has_bias and not has_root:
             for c in range(channels):
                 out[i, c] += bias[k, c]
     return nonempty, record and nan_maxima == 0 and winners == nonempty * channels
