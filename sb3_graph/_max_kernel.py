@@ -110,21 +110,15 @@ def relational_max_forward(
                 maxima[t, c] = 0.0
     for i in range(out.shape[0]):
         base, k = i * num_relations, i // max(num_nodes, 1)
-        if separate_root:  # index loops, no row views: a view per vertex costs more than its sums
+        if has_root:  # index loops, no row views: a view per vertex costs more than its sums
+            # The root row: vertex i of the separate root rows, or the last row of its block.
+            src, own = (root, i) if separate_root else (rows, i * stride + num_relations)
             if has_bias:
                 for c in range(channels):
-                    out[i, c] = maxima[base, c] + (root[i, c] + bias[k, c])
+                    out[i, c] = maxima[base, c] + (src[own, c] + bias[k, c])
             else:
                 for c in range(channels):
-                    out[i, c] = maxima[base, c] + root[i, c]
-        elif has_root:
-            own = i * stride + num_relations
-            if has_bias:
-                for c in range(channels):
-                    out[i, c] = maxima[base, c] + (rows[own, c] + bias[k, c])
-            else:
-                for c in range(channels):
-                    out[i, c] = maxima[base, c] + rows[own, c]
+                    out[i, c] = maxima[base, c] + src[own, c]
         else:
             for c in range(channels):
                 out[i, c] = maxima[base, c]
