@@ -1,0 +1,31 @@
+#!/usr/bin/env bash
+# Issue #22 item 5 with AIM as the base: the residual + feature policy of scripts/feature_training.sh
+# (zoo_configs/td3_residual_features.yml) correcting AIM instead of always-full-throttle, from scratch
+# (a zero actor is AIM; the critics learn AIM's value for the first 10,000 steps), then evaluated
+# behind the shield over demand beside AIM and full throttle + shield.
+#   bash scripts/aim_residual_training.sh STEPS SCENARIOS SEED...   (the README's run: 30000 10 0 1)
+set -euo pipefail
+steps=${1:-30000}
+scenarios=${2:-10}
+shift 2 || true
+seeds=("${@:-0 1}")
+runs=${RUNS:-runs/issue22_aim}
+export OMP_NUM_THREADS=1
+mkdir -p "$runs"
+for s in ${seeds[@]}; do
+  sb3-graph train --config zoo_configs/td3_residual_features.yml --env CoopIntersection4Way-v0 \
+    --out "$runs/aim_s$s" --n-timesteps "$steps" --seed "$s" --no-progress \
+    --env-kwargs '{"config": {"residual_base": "aim"}}' > "$runs/aim_s$s.log" 2>&1 &
+done
+wait || true
+latest() { ls "$1"/final_model.zip 2>/dev/null || ls -v "$1"/checkpoints/model_*_steps.zip | tail -n 1; }
+config='{"residual_base": "aim", "residual_scale": 2.0, "vertex_features": ["maneuver", "priority",
+ "limit", "line", "zone", "committed"], "edge_features": ["zone_receiver", "zone_sender"]}'
+planners=()
+for s in ${seeds[@]}; do
+  mkdir -p "$runs/planners/aim_s$s"
+  sb3-graph export "$(latest "$runs/aim_s$s")" "$runs/planners/aim_s$s/final_model.safetensors" --planner-config "$config"
+  planners+=(--planner "$runs/planners/aim_s$s/final_model.safetensors+shield")
+done
+sb3-graph sweep --planner aim --planner fullthrottle+shield "${planners[@]}" \
+  --demand 0.05 0.1 0.2 0.3 0.4 0.6 --scenarios "$scenarios" --jobs 2 --out "$runs/sweep"
