@@ -18,13 +18,10 @@ for s in ${seeds[@]}; do
     --env-kwargs '{"config": {"residual_base": "aim"}}' > "$runs/aim_s$s.log" 2>&1 &
 done
 wait || true
-latest() { ls "$1"/final_model.zip 2>/dev/null || ls -v "$1"/checkpoints/model_*_steps.zip | tail -n 1; }
-config='{"residual_base": "aim", "residual_scale": 2.0, "vertex_features": ["maneuver", "priority",
- "limit", "line", "zone", "committed"], "edge_features": ["zone_receiver", "zone_sender"]}'
+source "$(dirname "$0")/residual_export.sh"
 planners=()
 for s in ${seeds[@]}; do
-  mkdir -p "$runs/planners/aim_s$s"
-  sb3-graph export "$(latest "$runs/aim_s$s")" "$runs/planners/aim_s$s/final_model.safetensors" --planner-config "$config"
+  export_residual "$runs/aim_s$s" "$runs/planners/aim_s$s/final_model.safetensors" aim
   planners+=(--planner "$runs/planners/aim_s$s/final_model.safetensors+shield")
 done
 sb3-graph sweep --planner aim --planner fullthrottle+shield "${planners[@]}" \

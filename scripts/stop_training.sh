@@ -26,15 +26,11 @@ for s in ${seeds[@]}; do
     --hyperparams "learning_starts:1000" "callback:$callbacks" > "$runs/stops_s$s.log" 2>&1 &
 done
 wait || true
-latest() { ls "$1"/final_model.zip 2>/dev/null || ls -v "$1"/checkpoints/model_*_steps.zip | tail -n 1; }
-config='{"residual_base": "fullthrottle", "residual_scale": 2.0, "vertex_features": ["maneuver", "priority",
- "limit", "line", "zone", "committed"], "edge_features": ["zone_receiver", "zone_sender"]}'
+source "$(dirname "$0")/residual_export.sh"
 planners=()
 for s in ${seeds[@]}; do
-  mkdir -p "$runs/planners/stops_s$s"
-  sb3-graph export "$(latest "$runs/stops_s$s")" "$runs/planners/stops_s$s/final_model.safetensors" \
-    --planner-config "$config"
+  export_residual "$runs/stops_s$s" "$runs/planners/stops_s$s/final_model.safetensors" fullthrottle
   planners+=(--planner "$runs/planners/stops_s$s/final_model.safetensors+shield")
 done
-sb3-graph sweep --planner aim --planner envs/planners/adversarial.py:FullThrottle+shield "${planners[@]}" \
-  --demand 0.05 0.1 0.2 0.3 0.4 0.6 --scenarios "$scenarios" --jobs 2 --trust-planner-files --out "$runs/sweep"
+sb3-graph sweep --planner aim --planner fullthrottle+shield "${planners[@]}" \
+  --demand 0.05 0.1 0.2 0.3 0.4 0.6 --scenarios "$scenarios" --jobs 2 --out "$runs/sweep"
