@@ -27,10 +27,4 @@ for s in ${seeds[@]}; do
 done
 wait || true
 source "$(dirname "$0")/residual_export.sh"
-planners=()
-for s in ${seeds[@]}; do
-  export_residual "$runs/stops_s$s" "$runs/planners/stops_s$s/final_model.safetensors" fullthrottle
-  planners+=(--planner "$runs/planners/stops_s$s/final_model.safetensors+shield")
-done
-sb3-graph sweep --planner aim --planner fullthrottle+shield "${planners[@]}" \
-  --demand 0.05 0.1 0.2 0.3 0.4 0.6 --scenarios "$scenarios" --jobs 2 --out "$runs/sweep"
+sweep_residual "$runs" stops fullthrottle "$scenarios" ${seeds[@]}
