@@ -15,12 +15,13 @@ second of this process (one torch thread).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import statistics
 from pathlib import Path
 
 import torch
 from bench_trial_cost import ENV_ID, LearningClock
-from graph_bench_utils import machine_line, markdown_table
+from graph_bench_utils import machine_line, markdown_table, per_tensor_optimizers
 from stable_baselines3.common.callbacks import CallbackList
 from stable_baselines3.common.env_util import make_vec_env
 
@@ -43,11 +44,10 @@ def run(entry: dict, steps: int, learning_starts: int, seed: int, compiled: bool
         model = TD3(policy, env, seed=seed, device="cpu", **build_algorithm_kwargs(entry, env.action_space.shape[0]))
         if not compiled:  # SB3's own train, without what the graph algorithms add around it
             model.train = super(GraphAlgorithmMixin, model).train
-            for optimizer in (model.actor.optimizer, model.critic.optimizer):  # torch's per-tensor Adam
-                for group in optimizer.param_groups:
-                    group["foreach"] = False
         clock = LearningClock(learning_starts)
-        model.learn(learning_starts + steps, callback=CallbackList([*build_callbacks(entry), clock]))
+        # The reference runs torch's per-tensor Adam, as the graph policies did before issue #27.
+        with contextlib.nullcontext() if compiled else per_tensor_optimizers(model):
+            model.learn(learning_starts + steps, callback=CallbackList([*build_callbacks(entry), clock]))
     finally:
         use_compiled_kernels(previous)
         env.close()
