@@ -1,23 +1,26 @@
 """Learner speed: gradient steps per second of every algorithm with its graph policy vs ``MlpPolicy``.
 
 Same data for both learners of an algorithm. ``--data intersection`` (default): 2,000 transitions
-of the intersection environment as the shipped config trains on it (``CoopIntersection4Way-v0``
-with ``zoo_configs/td3_fair.yml``'s traffic, driven by the shipped planner with the config's action
-noise; about 15 vehicles and 62 edges per observation, see ``IntersectionRecording``).
-``--data random``: random paper-scale graphs (~20 vertices, ~60 edges). Both in a
-``GraphSpace(max_nodes=64, max_edges=1024)``; the MLP sees the padded observation flattened
-(4,352 inputs) with hidden layers [64, 64] (CrossQ's too, instead of its default [256, 256] /
-[1024, 1024]; TQC's 25 quantiles per critic for both); the graph networks use hidden size 64
-(defaults). Batch 256 for the off-policy algorithms, from a replay buffer of 2,000 transitions.
-PPO: one epoch over a rollout of 2,048 transitions in minibatches of 256 (a "step" is one
-minibatch update). The graph learners use the graph buffers (ragged storage); the MLP learners
-SB3's buffers. Per algorithm, three learners are timed in turns (best of 3 runs each), so that a
-change of the machine's load hits all of them: the graph learner; the reference, the learner before
-issue #27 (``use_compiled_kernels(False)``: the PyTorch formulation; torch's per-tensor Adam; SB3's
-own ``train``, whose policy loss also differentiates the critics' weights); and the MLP learner. Target (TD3): the graph
-learner within 1.5x of the MLP learner. Also times the TD3 graph learner with 1 and 2 torch threads (``--threads``);
-``--profile`` adds the operator breakdown of the TD3 and SAC graph learners (torch.profiler, self
-CPU time of 10 gradient steps).
+of the intersection environment as the paper's config trains on it (``CoopIntersection4Way-v0``
+with ``zoo_configs/td3_fair.yml``'s traffic, driven by its pretrained planner with the config's
+action noise; about 15 vehicles and 62 edges per observation, 4,352 flattened inputs, see
+``IntersectionRecording``). ``--data features``: the same with the shipped planner's config
+(``zoo_configs/td3_residual_features.yml``: the residual action behind the shield, 11 features per
+vehicle and 2 per edge, which its convolutions read; about 21 vehicles and 131 edges, 6,912
+flattened inputs). ``--data random``: random paper-scale graphs (~20 vertices, ~60 edges). All in a
+``GraphSpace(max_nodes=64, max_edges=1024)``; the MLP sees the padded observation flattened with
+hidden layers [64, 64] (CrossQ's too, instead of its default [256, 256] / [1024, 1024]; TQC's 25
+quantiles per critic for both); the graph networks use hidden size 64 (defaults). Batch 256 for the
+off-policy algorithms, from a replay buffer of 2,000 transitions. PPO: one epoch over a rollout of
+2,048 transitions in minibatches of 256 (a "step" is one minibatch update). The graph learners use
+the graph buffers (ragged storage); the MLP learners SB3's buffers. Per algorithm, three learners
+are timed in turns (best of 3 runs each), so that a change of the machine's load hits all of them:
+the graph learner; the reference, the learner before issue #27 (``use_compiled_kernels(False)``:
+the PyTorch formulation; torch's per-tensor Adam; SB3's own ``train``, whose policy loss also
+differentiates the critics' weights); and the MLP learner. Target (TD3): the graph learner within
+1.5x of the MLP learner. Also times the TD3 graph learner with 1 and 2 torch threads
+(``--threads``); ``--profile`` adds the operator breakdown of the TD3 and SAC graph learners
+(torch.profiler, self CPU time of 10 gradient steps).
 """
 
 from __future__ import annotations
@@ -185,14 +188,22 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--seconds", type=float, default=2.0, help="minimum seconds per timing run")
     parser.add_argument("--algos", nargs="+", default=[*OFF_POLICY, *ON_POLICY], help="algorithms to time")
-    parser.add_argument("--data", choices=("intersection", "random"), default="intersection", help="transitions")
+    parser.add_argument(
+        "--data",
+        choices=("intersection", "features", "random"),
+        default="intersection",
+        help="transitions: td3_fair.yml's intersection, td3_residual_features.yml's (the shipped planner's), random",
+    )
     parser.add_argument("--repeats", type=int, default=3, help="timing runs per learner (the best counts)")
     parser.add_argument("--clock", choices=("wall", "cpu"), default="wall", help="wall time or this process's CPU time")
     parser.add_argument("--threads", action="store_true", help="also time the TD3 graph learner with 1 and 2 threads")
     parser.add_argument("--profile", action="store_true", help="print the TD3 and SAC graph learners' operators")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    data = IntersectionRecording(FILL) if args.data == "intersection" else RandomGraphs()
+    if args.data == "random":
+        data = RandomGraphs()
+    else:
+        data = IntersectionRecording(FILL, recording="fair" if args.data == "intersection" else "features")
     rows = []
     for name in args.algos:
         graph, mlp = make_learners(name, data)

@@ -175,23 +175,36 @@ def machine_line() -> str:
     return f"machine: nproc={os.cpu_count()}, torch {torch.__version__}; command: `{command}`"
 
 
+#: The recordings of the benchmarks: a training config and the planner that drives it.
+RECORDINGS = {
+    # The paper's reward and observation (td3_fair.yml), driven by its retrained planner.
+    "fair": ("zoo_configs/td3_fair.yml", "envs/pretrained/coop_4way_fair/best_model.safetensors"),
+    # The shipped planner's config: a residual over full throttle behind the shield, with vertex and
+    # edge features, driven by the shipped planner's own corrections.
+    "features": (
+        "zoo_configs/td3_residual_features.yml",
+        "envs/pretrained/coop_4way_residual/best_model.safetensors",
+    ),
+}
+
+
 class IntersectionRecording:
-    """Transitions of the intersection environment as the shipped config trains on it
-    (``CoopIntersection4Way-v0`` with ``zoo_configs/td3_fair.yml``'s ``env_kwargs``, read from the file:
-    60 s episodes, spawn probability drawn from [0.01, 0.07], blocked spawns dropped, a collision
-    ends the episode), driven by the shipped
-    planner (``envs/pretrained/coop_4way_fair``) with the config's Gaussian action noise (0.1).
-    About 15 vehicles and 62 edges per observation, in ``GraphSpace(max_nodes=64, max_edges=1024)``.
+    """Transitions of the intersection environment as a training config trains on it
+    (``CoopIntersection4Way-v0`` with the config's ``env_kwargs``, read from the file; ``fair``:
+    ``zoo_configs/td3_fair.yml``: 60 s episodes, spawn probability drawn from [0.01, 0.07], blocked
+    spawns dropped, a collision ends the episode), driven by a pretrained planner with Gaussian
+    action noise (0.1); a residual planner drives with its correction, the action of a residual
+    environment. ``fair``: about 15 vehicles and 62 edges per observation, in
+    ``GraphSpace(max_nodes=64, max_edges=1024)``.
 
     :param count: transitions to record
     :param seed: seed of the environment and of the noise
+    :param recording: a key of :data:`RECORDINGS`
     """
 
-    MODEL = "envs/pretrained/coop_4way_fair/best_model.safetensors"
-    CONFIG = "zoo_configs/td3_fair.yml"
     ENV_ID = "CoopIntersection4Way-v0"
 
-    def __init__(self, count: int, seed: int = 0) -> None:
+    def __init__(self, count: int, seed: int = 0, recording: str = "fair") -> None:
         import envs  # noqa: F401 - registers the environments
         from envs.planners import make_planner
         from sb3_graph.experiment import read_experiment
@@ -199,9 +212,11 @@ class IntersectionRecording:
         root = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..")
         # The config's own env_kwargs, not a copy: its traffic settings (e.g. spawn_queue: 0, blocked
         # spawns dropped, against the environment's default queue of 10) set the graph sizes.
-        env_kwargs = read_experiment(os.path.join(root, self.CONFIG), self.ENV_ID).get("env_kwargs") or {}
+        config, model = RECORDINGS[recording]
+        env_kwargs = read_experiment(os.path.join(root, config), self.ENV_ID).get("env_kwargs") or {}
         env = gym.make(self.ENV_ID, **env_kwargs)
-        planner = make_planner(os.path.join(root, self.MODEL))
+        planner = make_planner(os.path.join(root, model))
+        planner = getattr(planner, "correction", planner)  # a residual environment's action
         base = env.unwrapped
         rng = np.random.default_rng(seed)
         obs, _ = env.reset(seed=seed)

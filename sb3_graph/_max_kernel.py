@@ -36,6 +36,50 @@ import numpy as np
 
 
 @numba.njit(cache=True)
+def _vertex_sums(
+    maxima: np.ndarray,
+    seen: np.ndarray,
+    rows: np.ndarray,
+    root: np.ndarray,
+    bias: np.ndarray,
+    num_relations: int,
+    stride: int,
+    num_nodes: int,
+    out: np.ndarray,
+) -> None:
+    """The forward kernels' pass over the vertices: empty segments' maxima to 0, then per vertex
+    the sum over relations, the root row and the bias (see :func:`relational_max_forward`)."""
+    channels = maxima.shape[1]
+    has_bias = bias.shape[0] > 0
+    separate_root = root.shape[0] > 0
+    has_root = separate_root or stride > num_relations
+    for t in range(seen.shape[0]):
+        if not seen[t]:
+            for c in range(channels):
+                maxima[t, c] = 0.0
+    for i in range(out.shape[0]):
+        base, k = i * num_relations, i // max(num_nodes, 1)
+        if has_root:  # index loops, no row views: a view per vertex costs more than its sums
+            # The root row: vertex i of the separate root rows, or the last row of its block.
+            src, own = (root, i) if separate_root else (rows, i * stride + num_relations)
+            if has_bias:
+                for c in range(channels):
+                    out[i, c] = maxima[base, c] + (src[own, c] + bias[k, c])
+            else:
+                for c in range(channels):
+                    out[i, c] = maxima[base, c] + src[own, c]
+        else:
+            for c in range(channels):
+                out[i, c] = maxima[base, c]
+        for r in range(1, num_relations):
+            for c in range(channels):
+                out[i, c] += maxima[base + r, c]
+        if has_bias and not has_root:
+            for c in range(channels):
+                out[i, c] += bias[k, c]
+
+
+@numba.njit(cache=True)
 def relational_max_forward(
     rows: np.ndarray,
     source: np.ndarray,
@@ -78,9 +122,6 @@ def relational_max_forward(
         non-empty (segment, channel): no tie and no NaN maximum (False without a record)
     """
     channels = rows.shape[1]
-    has_bias = bias.shape[0] > 0
-    separate_root = root.shape[0] > 0
-    has_root = separate_root or stride > num_relations
     record = wins.shape[0] > 0
     nonempty, winners, nan_maxima, start = 0, 0, 0, 0
     for e in range(source.shape[0]):
@@ -104,30 +145,97 @@ def relational_max_forward(
             for c in range(channels):  # a NaN maximum has no winner: the count alone would miss it
                 nan_maxima += maxima[t, c] != maxima[t, c]
             start = e + 1
-    for t in range(seen.shape[0]):
-        if not seen[t]:
-            for c in range(channels):
-                maxima[t, c] = 0.0
-    for i in range(out.shape[0]):
-        base, k = i * num_relations, i // max(num_nodes, 1)
-        if has_root:  # index loops, no row views: a view per vertex costs more than its sums
-            # The root row: vertex i of the separate root rows, or the last row of its block.
-            src, own = (root, i) if separate_root else (rows, i * stride + num_relations)
-            if has_bias:
-                for c in range(channels):
-                    out[i, c] = maxima[base, c] + (src[own, c] + bias[k, c])
-            else:
-                for c in range(channels):
-                    out[i, c] = maxima[base, c] + src[own, c]
+    _vertex_sums(maxima, seen, rows, root, bias, num_relations, stride, num_nodes, out)
+    return nonempty, record and nan_maxima == 0 and winners == nonempty * channels
+
+
+@numba.njit(cache=True, inline="always")
+def _edge_message(
+    rows: np.ndarray, row: int, attr: np.ndarray, edge_weight: np.ndarray, terms: np.ndarray, e: int,
+    messages: np.ndarray, slot: int,
+) -> None:
+    """``messages[slot] = rows[row] + sum_d attr[a, d] * edge_weight[w, d]`` with ``a, w = terms[e]``:
+    the edge term summed over the features first, then added to the row (the order of the PyTorch
+    formulation: a matmul of the features, then the sum with the gathered rows)."""
+    a, w = terms[e, 0], terms[e, 1]
+    channels = rows.shape[1]
+    for c in range(channels):
+        messages[slot, c] = attr[a, 0] * edge_weight[w, 0, c]
+    for d in range(1, attr.shape[1]):
+        for c in range(channels):
+            messages[slot, c] += attr[a, d] * edge_weight[w, d, c]
+    for c in range(channels):
+        messages[slot, c] += rows[row, c]
+
+
+@numba.njit(cache=True)
+def relational_max_edge_forward(
+    rows: np.ndarray,
+    source: np.ndarray,
+    target: np.ndarray,
+    num_relations: int,
+    bias: np.ndarray,
+    num_nodes: int,
+    out: np.ndarray,
+    maxima: np.ndarray,
+    seen: np.ndarray,
+    wins: np.ndarray,
+    root: np.ndarray,
+    attr: np.ndarray,
+    edge_weight: np.ndarray,
+    terms: np.ndarray,
+) -> tuple[int, bool]:
+    """:func:`relational_max_forward` of a convolution with edge features: the message of edge ``e``
+    is ``rows[source[e]] + sum_d attr[a, d] * edge_weight[w, d]`` with ``a, w = terms[e]`` (``w = k
+    * R + r`` for relation ``r`` of copy ``k``), computed as the edges are reduced (no ``(E, C)``
+    tensor of messages); a segment's messages stay in a scratch buffer for its record. The root
+    rows are ``root`` (the compact layout, ``stride = R``), or none when ``(0, 0)``.
+
+    :param attr: ``(A, D)`` edge features, ``D >= 1``
+    :param edge_weight: ``(K * R, D, C)`` the edge features' weights
+    :param terms: ``(E, 2)`` each edge's row of ``attr`` and of ``edge_weight``
+    :return: as :func:`relational_max_forward`
+    """
+    channels = rows.shape[1]
+    record = wins.shape[0] > 0
+    longest, run = 1, 0
+    if record:  # the longest segment (edges sorted by target) sizes the scratch
+        for e in range(source.shape[0]):
+            run = run + 1 if e > 0 and target[e] == target[e - 1] else 1
+            longest = max(longest, run)
+    messages = np.empty((longest, channels), rows.dtype)
+    pairs = attr.shape[1] == 2  # the intersection's edges: two features, one fused pass
+    nonempty, winners, nan_maxima, start = 0, 0, 0, 0
+    for e in range(source.shape[0]):
+        s, t = source[e], target[e]
+        slot = e - start if record else 0
+        first = not seen[t]
+        if first:
+            seen[t] = True
+            nonempty += 1
+        if pairs:
+            a, w = terms[e, 0], terms[e, 1]
+            a0, a1 = attr[a, 0], attr[a, 1]
+            for c in range(channels):  # branch-free: the channel loop vectorizes
+                v = (a0 * edge_weight[w, 0, c] + a1 * edge_weight[w, 1, c]) + rows[s, c]
+                messages[slot, c] = v
+                m = maxima[t, c]
+                maxima[t, c] = v if first | (v > m) | (v != v) else m
         else:
+            _edge_message(rows, s, attr, edge_weight, terms, e, messages, slot)
             for c in range(channels):
-                out[i, c] = maxima[base, c]
-        for r in range(1, num_relations):
+                v, m = messages[slot, c], maxima[t, c]
+                maxima[t, c] = v if first | (v > m) | (v != v) else m
+        if record and (e + 1 == source.shape[0] or target[e + 1] != t):  # the segment is complete
+            for f in range(start, e + 1):
+                for c in range(channels):
+                    is_max = messages[f - start, c] == maxima[t, c]
+                    wins[f, c] = is_max
+                    winners += is_max
             for c in range(channels):
-                out[i, c] += maxima[base + r, c]
-        if has_bias and not has_root:
-            for c in range(channels):
-                out[i, c] += bias[k, c]
+                nan_maxima += maxima[t, c] != maxima[t, c]
+            start = e + 1
+    _vertex_sums(maxima, seen, rows, root, bias, num_relations, num_relations, num_nodes, out)
     return nonempty, record and nan_maxima == 0 and winners == nonempty * channels
 
 
@@ -147,6 +255,18 @@ def _root_gradients(grad_out: np.ndarray, num_relations: int, stride: int, grad_
                 grad_rows[row, c] = 0.0
 
 
+@numba.njit(cache=True, inline="always")
+def _edge_weight_gradient(
+    attr: np.ndarray, terms: np.ndarray, e: int, share: np.ndarray, grad_edge_weight: np.ndarray
+) -> None:
+    """``grad_edge_weight[w, d] += attr[a, d] * share`` for every feature ``d``, ``a, w = terms[e]``."""
+    a, w = terms[e, 0], terms[e, 1]
+    for d in range(attr.shape[1]):
+        value = attr[a, d]
+        for c in range(share.shape[0]):
+            grad_edge_weight[w, d, c] += value * share[c]
+
+
 @numba.njit(cache=True)
 def relational_max_backward(
     grad_out: np.ndarray,
@@ -157,6 +277,9 @@ def relational_max_backward(
     stride: int,
     ties: bool,
     grad_rows: np.ndarray,
+    attr: np.ndarray,
+    terms: np.ndarray,
+    grad_edge_weight: np.ndarray,
 ) -> None:
     """Gradient of :func:`relational_max_forward` w.r.t. ``rows`` from the ``wins`` it recorded:
     each row equal to its segment's maximum gets the output gradient of the segment's vertex,
@@ -175,12 +298,24 @@ def relational_max_backward(
     :param ties: some maximum is tied or NaN (the record holds more or fewer ones than the
         non-empty (segment, channel) pairs)
     :param grad_rows: ``(M * stride, C)``, written (every row: no need to zero it first)
+    :param attr: ``(A, D)`` the forward pass's edge features, or ``(0, 0)`` for none
+    :param terms: ``(E, 2)`` the forward pass's rows of ``attr`` and of the weights per edge
+    :param grad_edge_weight: ``(K * R, D, C)`` zeros, the edge features' weights' gradient added
+        (``attr[a, d]`` times each edge's share), or ``(0, 0, 0)``
     """
     _root_gradients(grad_out, num_relations, stride, grad_rows)
     channels = grad_out.shape[1]
+    has_edges = attr.shape[0] > 0
+    share = np.empty(channels, grad_out.dtype)
     if not ties:
         for e in range(source.shape[0]):
             s, i = source[e], target[e] // num_relations
+            if has_edges:
+                for c in range(channels):
+                    share[c] = grad_out[i, c] if wins[e, c] else 0.0
+                    grad_rows[s, c] += share[c]
+                _edge_weight_gradient(attr, terms, e, share, grad_edge_weight)
+                continue
             for c in range(channels):  # branch-free: the channel loop vectorizes
                 grad_rows[s, c] += grad_out[i, c] if wins[e, c] else 0.0
         return
@@ -198,8 +333,11 @@ def relational_max_backward(
         for f in range(start, e + 1):
             s = source[f]
             for c in range(channels):
+                share[c] = grad_out[i, c] / counts[c] if wins[f, c] else 0.0
                 if wins[f, c]:
-                    grad_rows[s, c] += grad_out[i, c] / counts[c]
+                    grad_rows[s, c] += share[c]
+            if has_edges:
+                _edge_weight_gradient(attr, terms, f, share, grad_edge_weight)
         start = e + 1
 
 

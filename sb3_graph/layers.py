@@ -208,6 +208,16 @@ def _compiled_path(rows: Tensor) -> bool:
     return True
 
 
+_NO_TERMS = np.empty((0, 2), dtype=np.int64)
+
+
+def _empty_arrays(like: Tensor) -> tuple[np.ndarray, np.ndarray]:
+    """Empty ``(0, 0)`` and ``(0, 0, 0)`` arrays of the dtype of ``like``: the kernels' arguments
+    for no separate root rows, no edge features and no edge features' weights."""
+    dtype = torch.empty(0, dtype=like.dtype).numpy().dtype
+    return np.empty((0, 0), dtype), np.empty((0, 0, 0), dtype)
+
+
 def _compiled_forward(
     ctx: Any,
     rows: Tensor,
@@ -234,7 +244,7 @@ def _compiled_forward(
     _, unique = kernels.relational_max_forward(
         rows.numpy(), layout.source.numpy(), layout.target.numpy(), num_relations, stride,
         bias_rows.contiguous().numpy(), shape[-2], out.view(num_vertices, channels).numpy(), maxima.numpy(),
-        seen.numpy(), wins.numpy(), rows.new_empty(0, 0).numpy(),
+        seen.numpy(), wins.numpy(), _empty_arrays(rows)[0],
     )  # fmt: skip
     if record:
         ctx.save_for_backward(wins)
@@ -253,9 +263,10 @@ def _compiled_backward(ctx: Any, grad_out: Tensor) -> tuple[Tensor, Tensor | Non
     (wins,) = ctx.saved_tensors
     grad_out = grad_out.reshape(num_vertices, ctx.rows_shape[1]).contiguous().to(ctx.dtype)
     grad_rows = grad_out.new_empty(ctx.rows_shape)  # the kernel writes every row
+    no_attr, no_weight = _empty_arrays(grad_out)
     kernels.relational_max_backward(
         grad_out.numpy(), layout.source.numpy(), layout.target.numpy(), wins.numpy(), num_relations, stride,
-        ctx.ties, grad_rows.numpy(),
+        ctx.ties, grad_rows.numpy(), no_attr, _NO_TERMS, no_weight,
     )  # fmt: skip
     grad_bias = None
     if ctx.bias_shape is not None and ctx.needs_input_grad[1]:
@@ -277,7 +288,7 @@ def _compiled_segment_max(ctx: Any, values: Tensor, target: Tensor, num_segments
     seen = torch.zeros(num_segments, dtype=torch.bool)
     kernels.relational_max_forward(
         values.numpy(), source.numpy(), target.numpy(), 1, 1, values.new_empty(0, 0).numpy(), num_segments,
-        out.numpy(), maxima.numpy(), seen.numpy(), np.empty((0, 0), dtype=np.uint8), values.new_empty(0, 0).numpy(),
+        out.numpy(), maxima.numpy(), seen.numpy(), np.empty((0, 0), dtype=np.uint8), _empty_arrays(values)[0],
     )  # fmt: skip
     ctx.save_for_backward(values, source, target, maxima)
     return out
@@ -311,6 +322,10 @@ class RelationalLayout(NamedTuple):
     :param sorted_source: ``source[source_order]``
     :param counts: ``(K * N * R,)`` edges per segment (mean only; else ``None``)
     :param num_nonempty: number of non-empty segments
+    :param edge_order: ``(E,)`` the input edge of each of copy 0's edges, for a layout that keeps
+        every edge (``per_edge``: a convolution with edge features, whose repeated edges carry
+        their own messages) and sorts them by target; ``None``: the input order (forward-only) or
+        repeated edges merged
 
     A forward-only layout (max aggregation without autograd, see :func:`relational_layout`)
     holds ``source`` and ``target`` only, every edge kept and unsorted; the other fields, which
@@ -324,6 +339,7 @@ class RelationalLayout(NamedTuple):
     sorted_source: Tensor | None
     counts: Tensor | None
     num_nonempty: int | None
+    edge_order: Tensor | None = None
 
 
 def check_edges(edge_index: Tensor, edge_type: Tensor, num_nodes: int, num_relations: int) -> None:
@@ -350,14 +366,24 @@ def check_edges(edge_index: Tensor, edge_type: Tensor, num_nodes: int, num_relat
 
 
 def _base_layout(
-    edge_index: Tensor, edge_type: Tensor, num_nodes: int, num_relations: int, stride: int, aggr: str
+    edge_index: Tensor,
+    edge_type: Tensor,
+    num_nodes: int,
+    num_relations: int,
+    stride: int,
+    aggr: str,
+    per_edge: bool = False,
 ) -> RelationalLayout:
     check_edges(edge_index, edge_type, num_nodes, num_relations)
     edge_type = edge_type.long()
     source = edge_index[0] * stride + edge_type
     target = edge_index[1] * num_relations + edge_type
-    counts = None
-    if aggr == "max":
+    counts, edge_order = None, None
+    if per_edge:  # every edge is its own message: sorted by target, none merged
+        edge_order = torch.argsort(target, stable=True)
+        source, target = source[edge_order], target[edge_order]
+        num_nonempty = int(torch.count_nonzero(target[1:] != target[:-1])) + 1 if len(target) else 0
+    elif aggr == "max":
         # A repeated edge repeats a message and cannot change a maximum (its gradient is split
         # among the copies, which all read the same row): keep one. Sorting also groups targets.
         rows = num_nodes * stride
@@ -369,7 +395,7 @@ def _base_layout(
         num_nonempty = int(torch.count_nonzero(counts))
     source_order = torch.argsort(source)
     return RelationalLayout(
-        source, target, target // num_relations, source_order, source[source_order], counts, num_nonempty
+        source, target, target // num_relations, source_order, source[source_order], counts, num_nonempty, edge_order
     )
 
 
@@ -391,6 +417,7 @@ def relational_layout(
     stride: int,
     aggr: str = "max",
     copies: int = 1,
+    per_edge: bool = False,
 ) -> RelationalLayout:
     """Aggregation indices of :func:`relational_conv`, cached per batch (see
     :class:`~sb3_graph.batching.DerivedIndexCache`).
@@ -402,6 +429,8 @@ def relational_layout(
     :param stride: rows of transformed features per vertex (``R``, or ``R + 1`` with the root term)
     :param aggr: ``max``, ``mean`` or ``sum``
     :param copies: number ``K`` of stacked networks
+    :param per_edge: max aggregation of per-edge messages (edge features): keep every edge (see
+        :attr:`RelationalLayout.edge_order`)
     :return: the layout; forward-only (see :class:`RelationalLayout`) for the maximum without
         autograd: a repeated edge cannot change a maximum and the order of the edges does not
         matter to it, so the deduplication, sorting and counting that the backward pass needs
@@ -409,12 +438,12 @@ def relational_layout(
         the full layout of the same batch.
     """
     forward_only = aggr == "max" and not torch.is_grad_enabled()
-    extra = (num_nodes, num_relations, stride, aggr, forward_only)
+    extra = (num_nodes, num_relations, stride, aggr, forward_only, per_edge)
 
     def base() -> RelationalLayout:
         if forward_only:
             return _forward_layout(edge_index, edge_type, num_nodes, num_relations, stride)
-        return _base_layout(edge_index, edge_type, num_nodes, num_relations, stride, aggr)
+        return _base_layout(edge_index, edge_type, num_nodes, num_relations, stride, aggr, per_edge)
 
     layout = derived_indices.get((edge_index, edge_type), ("relational", *extra, 1), base)
     if copies == 1:
@@ -436,6 +465,7 @@ def relational_layout(
             sorted_source=(layout.sorted_source + k * (num_nodes * stride)).view(-1),
             counts=None if layout.counts is None else layout.counts.repeat(copies),
             num_nonempty=layout.num_nonempty * copies,
+            edge_order=layout.edge_order,
         )
 
     return derived_indices.get((edge_index, edge_type), ("relational", *extra, copies), stacked)
@@ -459,6 +489,9 @@ class CompactLayout(NamedTuple):
         rows are aggregated with
     :param rows: ``(K * S,)`` the vertex ``k * N + j`` of every compact row (the rows of ``x`` viewed
         as ``(K * N, in)`` that the blocks read, and that their gradients return to)
+    :param terms: ``(E', 2)`` with edge features (``per_edge``): each edge's row of the features
+        (in the layout's edge order) and of the edge weights ``(K * R, D, out)`` (``k * R + r``);
+        else ``None``
     """
 
     senders: Tensor
@@ -466,10 +499,17 @@ class CompactLayout(NamedTuple):
     source: Tensor
     base: RelationalLayout
     rows: Tensor
+    terms: Tensor | None = None
 
 
 def compact_layout(
-    edge_index: Tensor, edge_type: Tensor, num_nodes: int, num_relations: int, stride: int, copies: int = 1
+    edge_index: Tensor,
+    edge_type: Tensor,
+    num_nodes: int,
+    num_relations: int,
+    stride: int,
+    copies: int = 1,
+    per_edge: bool = False,
 ) -> CompactLayout:
     """The :class:`CompactLayout` of a batch for max aggregation, cached per batch like
     :func:`relational_layout` (with or without autograd: it remaps that layout's edges).
@@ -480,13 +520,16 @@ def compact_layout(
     :param num_relations: number of relations ``R``
     :param stride: ``R``, or ``R + 1`` with the root term (the base layout's row numbering)
     :param copies: number ``K`` of stacked networks
+    :param per_edge: every edge kept (edge features, see :func:`relational_layout`)
     :return: the compact layout
     """
     forward_only = not torch.is_grad_enabled()
 
     def compute() -> CompactLayout:
-        base = relational_layout(edge_index, edge_type, num_nodes, num_relations, stride, "max", copies)
-        single = relational_layout(edge_index, edge_type, num_nodes, num_relations, stride, "max", 1)
+        base, single = (
+            relational_layout(edge_index, edge_type, num_nodes, num_relations, stride, "max", k, per_edge)
+            for k in (copies, 1)
+        )
         vertex, relation = single.source // stride, single.source % stride
         # Sorted by (relation, vertex): the inverse is each edge's compact row for one copy.
         key, row = torch.unique(relation * num_nodes + vertex, return_inverse=True)
@@ -500,9 +543,14 @@ def compact_layout(
             row = (row + (copies - 1) * starts[relation] + k * sizes[relation]).view(-1)
             blocks = [senders[lo:hi] + k * num_nodes for lo, hi in zip(offsets[:-1], offsets[1:], strict=True)]
             rows = torch.cat([b.view(-1) for b in blocks])
-        return CompactLayout(senders, offsets, row, base, rows)
+        terms = None
+        if per_edge:  # copy k repeats copy 0's edges (and features) after them
+            edge = torch.arange(len(single.target), device=row.device).repeat(copies)
+            copy, relation = base.target // (num_nodes * num_relations), base.target % num_relations
+            terms = torch.stack((edge, copy * num_relations + relation), dim=1)
+        return CompactLayout(senders, offsets, row, base, rows, terms)
 
-    extra = ("compact", num_nodes, num_relations, stride, forward_only, copies)
+    extra = ("compact", num_nodes, num_relations, stride, forward_only, copies, per_edge)
     return derived_indices.get((edge_index, edge_type), extra, compute)
 
 
@@ -517,17 +565,31 @@ class _CompactRelationalConv(torch.autograd.Function):
     compact rows' gradients ``W_r^T`` added back to their senders (``index_add``), and
     ``grad W_r = x[senders_r]^T grad_rows_r``.
 
-    Inputs of :meth:`forward`: ``x`` ``(N, in)`` or ``(K, N, in)``, the layout, ``K``, whether the
-    convolutions have the root term, then the ``K`` relation weights ``(R, in, out)``, the ``K``
-    root weights ``(out, in)`` (none without the root term) and the ``K`` biases ``(out,)``.
+    With edge features the message of edge ``j -> i`` of relation ``r`` is ``x_j W_r + e_ji U_r``:
+    the kernels add the edge term per edge as they reduce (no ``(E, out)`` tensor of messages) and
+    add the gradient of ``U_r`` in their backward pass.
+
+    Inputs of :meth:`forward`: ``x`` ``(N, in)`` or ``(K, N, in)``, the edge features ``(E', D)`` in
+    the layout's edge order (``None`` without), the layout, ``K``, whether the convolutions have the
+    root term, whether they have edge features, then the ``K`` relation weights ``(R, in, out)``,
+    the ``K`` root weights ``(out, in)`` (none without the root term), the ``K`` edge features'
+    weights ``(R, D, out)`` (none without edge features) and the ``K`` biases ``(out,)``.
     """
 
     @staticmethod
     def forward(  # type: ignore[override]
-        ctx: Any, x: Tensor, layout: CompactLayout, copies: int, has_root: bool, *params: Tensor
+        ctx: Any,
+        x: Tensor,
+        attr: Tensor | None,
+        layout: CompactLayout,
+        copies: int,
+        has_root: bool,
+        has_edges: bool,
+        *params: Tensor,
     ) -> Tensor:
         kernels = _COMPILED["kernels"]
-        weights, roots, biases = params[:copies], params[copies : copies * (1 + has_root)], params[-copies:]
+        weights, roots = params[:copies], params[copies : copies * (1 + has_root)]
+        edge_weights, biases = params[copies * (1 + has_root) : -copies], params[-copies:]
         stacked = x.dim() == 3
         x = x.detach()
         num_nodes, out_channels, relations = x.size(-2), weights[0].size(-1), weights[0].size(0)
@@ -546,13 +608,18 @@ class _CompactRelationalConv(torch.autograd.Function):
                 torch.bmm(block, weight[r], out=rows[copies * lo : copies * hi].view(copies, hi - lo, -1))
             else:
                 torch.mm(x_rows[lo:hi], weight[r], out=rows[lo:hi])
-        root = x.new_empty(0, 0)
+        root, no_weight = _empty_arrays(x)
+        attr_array, edge_weight = root, no_weight
+        if has_edges:
+            assert attr is not None
+            attr_array = attr.detach().numpy()
+            edge_weight = torch.cat([u.detach() for u in edge_weights]).numpy()  # (K * R, D, out)
         if has_root:
             if stacked:
                 root = torch.bmm(x, torch.stack([w.detach() for w in roots]).transpose(1, 2))
             else:
                 root = torch.mm(x, roots[0].detach().t())
-            root = root.view(copies * num_nodes, out_channels)
+            root = root.view(copies * num_nodes, out_channels).numpy()
         bias = torch.stack([b.detach() for b in biases]).to(x.dtype)
         base = layout.base
         num_vertices = copies * num_nodes
@@ -562,14 +629,19 @@ class _CompactRelationalConv(torch.autograd.Function):
         seen = torch.zeros(num_vertices * relations, dtype=torch.bool)
         record = base.target_vertex is not None and any(ctx.needs_input_grad)
         wins = torch.empty((len(layout.source), out_channels) if record else (0, 0), dtype=torch.uint8)
-        _, unique = kernels.relational_max_forward(
-            rows.numpy(), layout.source.numpy(), base.target.numpy(), relations, relations, bias.numpy(),
-            num_nodes, out.view(num_vertices, out_channels).numpy(), maxima.numpy(), seen.numpy(), wins.numpy(),
-            root.numpy(),
+        arrays = (
+            rows.numpy(), layout.source.numpy(), base.target.numpy(), relations, *(() if has_edges else (relations,)),
+            bias.numpy(), num_nodes, out.view(num_vertices, out_channels).numpy(), maxima.numpy(), seen.numpy(),
+            wins.numpy(), root,
         )  # fmt: skip
+        if has_edges:
+            _, unique = kernels.relational_max_edge_forward(*arrays, attr_array, edge_weight, layout.terms.numpy())
+        else:
+            _, unique = kernels.relational_max_forward(*arrays)
         if record:
             ctx.save_for_backward(x, x_rows, wins, weight, *roots)
             ctx.layout, ctx.ties, ctx.copies, ctx.has_root = layout, not unique, copies, has_root
+            ctx.attr = attr_array if has_edges else None  # a numpy view of an observation: no autograd
         return out
 
     @staticmethod
@@ -586,11 +658,20 @@ class _CompactRelationalConv(torch.autograd.Function):
         grad_out = grad_out.contiguous().to(x.dtype)
         flat = grad_out.view(copies * num_nodes, out_channels)
         grad_rows = x.new_empty(copies * offsets[-1], out_channels)  # the kernel writes every row
+        needs = ctx.needs_input_grad
+        # Positions in the inputs: x, attr, layout, K, has_root, has_edges, then the parameters.
+        first_root = 6 + copies
+        first_edge = first_root + copies * has_root
+        attr, grad_edge_weight = _empty_arrays(x)
+        edge_weight_grads = ctx.attr is not None and any(needs[first_edge : first_edge + copies])
+        if edge_weight_grads:  # (K * R, D, out) zeros, added to by the kernel
+            attr = ctx.attr
+            grad_edge_weight = np.zeros((copies * relations, attr.shape[1], out_channels), attr.dtype)
         kernels.relational_max_backward(
             flat.numpy(), layout.source.numpy(), base.target.numpy(), wins.numpy(), relations, relations,
-            ctx.ties, grad_rows.numpy(),
+            ctx.ties, grad_rows.numpy(), attr, _NO_TERMS if layout.terms is None else layout.terms.numpy(),
+            grad_edge_weight,
         )  # fmt: skip
-        needs = ctx.needs_input_grad
         grad_x = None
         if needs[0]:
             if has_root:
@@ -602,7 +683,7 @@ class _CompactRelationalConv(torch.autograd.Function):
         # added to their vertices in one index_add.
         grad_x_rows = None if grad_x is None else x.new_empty(x_rows.shape)
         grad_weight = None
-        if any(needs[4 : 4 + copies]):  # zeros: a relation without senders has no block
+        if any(needs[6:first_root]):  # zeros: a relation without senders has no block
             grad_weight = x.new_zeros((relations, copies, in_channels, out_channels))
         for r in range(relations):
             lo, hi = offsets[r], offsets[r + 1]
@@ -624,13 +705,16 @@ class _CompactRelationalConv(torch.autograd.Function):
                     torch.mm(x_rows[lo:hi].t(), block, out=grad_weight[r, 0])
         if grad_x is not None and grad_x_rows is not None:
             grad_x.view(copies * num_nodes, in_channels).index_add_(0, layout.rows, grad_x_rows)
-        grads: list[Tensor | None] = [grad_x, None, None, None]
+        grads: list[Tensor | None] = [grad_x, None, None, None, None, None]
         grads += [None if grad_weight is None else grad_weight[:, k] for k in range(copies)]
         if has_root:
             grad_root = None
-            if any(needs[4 + copies : 4 + 2 * copies]):
+            if any(needs[first_root:first_edge]):
                 grad_root = torch.matmul(grad_out.transpose(-1, -2), x)
             grads += [None if grad_root is None else (grad_root[k] if stacked else grad_root) for k in range(copies)]
+        if ctx.attr is not None:
+            grad_edges = torch.from_numpy(grad_edge_weight).view(copies, relations, -1, out_channels)
+            grads += [grad_edges[k] if edge_weight_grads else None for k in range(copies)]
         grad_bias = grad_out.sum(dim=-2) if any(needs[-copies:]) else None
         grads += [None if grad_bias is None else (grad_bias[k] if stacked else grad_bias) for k in range(copies)]
         return tuple(grads)
@@ -678,10 +762,11 @@ class RelationalMaxConv(MessagePassing):
 
     Without edge features, repeated edges are merged for the maximum and the aggregation runs
     over per-vertex rows (a message is a row of :math:`\mathbf{x} \mathbf{W}_r`); with them, every
-    edge carries its own message (``E x F_out``), reduced by :func:`segment_max`. On CPU the max
-    aggregation without edge features runs in compiled kernels (:mod:`sb3_graph._max_kernel`,
-    numba), which also add the bias; :func:`use_compiled_kernels` switches them off for the PyTorch
-    formulation, the reference they are tested against.
+    edge carries its own message. On CPU the max aggregation runs in compiled kernels
+    (:mod:`sb3_graph._max_kernel`, numba), which also add the bias and, with edge features, form
+    each edge's message as they reduce; :func:`use_compiled_kernels` switches them off for the
+    PyTorch formulation, the reference they are tested against (with edge features it builds the
+    ``(E, F_out)`` messages and reduces them with :func:`segment_max`).
     """
 
     def __init__(
@@ -795,24 +880,29 @@ def relational_conv(
     copies, num_nodes = len(convs), x.size(-2)
     if not stacked and copies != 1:
         raise ValueError(f"relational_conv: x must be (K, N, in_channels) for {copies} convolutions")
+    r, out, has_root = first.num_relations, first.out_channels, first.root is not None
+    stride = r + 1 if has_root else r
+    compiled = first.aggr == "max" and first.bias is not None and _compiled_path(x)
     if first.edge_dim:
         if edge_attr is None or edge_attr.shape != (edge_index.size(1), first.edge_dim):
             got = None if edge_attr is None else tuple(edge_attr.shape)
             raise ValueError(
                 f"relational_conv: edge_attr of shape ({edge_index.size(1)}, {first.edge_dim}) is required, got {got}"
             )
+        # The kernels add each edge's term as they reduce; features that need a gradient take the
+        # PyTorch formulation (observations never do).
+        if compiled and _COMPILED["compact"] and not edge_attr.requires_grad:
+            compact = compact_layout(edge_index, edge_type, num_nodes, r, stride, copies, per_edge=True)
+            order = compact.base.edge_order
+            attr = (edge_attr if order is None else edge_attr.index_select(0, order)).to(x.dtype).contiguous()
+            return _compact_conv(convs, x, compact, attr)
         if stacked:
             return torch.stack(
                 [_edge_conv(c, x[k], edge_index, edge_type, edge_attr) for k, c in enumerate(convs)]
             )
         return _edge_conv(first, x, edge_index, edge_type, edge_attr)
-    r, out, has_root = first.num_relations, first.out_channels, first.root is not None
-    stride = r + 1 if has_root else r
-    compiled = first.aggr == "max" and first.bias is not None and _compiled_path(x)
     if compiled and _COMPILED["compact"] and (stacked or torch.is_grad_enabled()):
-        compact = compact_layout(edge_index, edge_type, num_nodes, r, stride, copies)
-        params = [c.weight for c in convs] + ([c.root.weight for c in convs] if has_root else [])
-        return _CompactRelationalConv.apply(x, compact, copies, has_root, *params, *[c.bias for c in convs])
+        return _compact_conv(convs, x, compact_layout(edge_index, edge_type, num_nodes, r, stride, copies), None)
     if stacked or torch.is_grad_enabled():
         # The kernel adds the bias itself: no fused bias to build on the compiled path.
         weight, bias = _fused_weights(convs, stacked, with_bias=not compiled)
@@ -842,6 +932,18 @@ def relational_conv(
         if has_root:
             return result + transformed.view(*shape[:-1], stride, out)[..., r, :]
     return result + bias if bias is not None and not has_root else result
+
+
+def _compact_conv(
+    convs: Sequence[RelationalMaxConv], x: Tensor, compact: CompactLayout, attr: Tensor | None
+) -> Tensor:
+    """:class:`_CompactRelationalConv` of ``K`` convolutions (``attr``: the edge features in the
+    layout's edge order, ``None`` without)."""
+    has_root, has_edges = convs[0].root is not None, attr is not None
+    params = [c.weight for c in convs] + ([c.root.weight for c in convs] if has_root else [])
+    params += [c.edge_weight for c in convs] if has_edges else []
+    params += [c.bias for c in convs]
+    return _CompactRelationalConv.apply(x, attr, compact, len(convs), has_root, has_edges, *params)
 
 
 def _fused_weights(
@@ -911,9 +1013,10 @@ def edge_layout(edge_index: Tensor, edge_type: Tensor, num_nodes: int, num_relat
 def _edge_conv(
     conv: RelationalMaxConv, x: Tensor, edge_index: Tensor, edge_type: Tensor, edge_attr: Tensor
 ) -> Tensor:
-    """One convolution with edge features: message ``W_r x_j + U_r e_ji`` per edge, reduced per
-    ``(target, relation)`` segment, summed over relations, plus root and bias (plain autograd
-    around :func:`segment_max`)."""
+    """One convolution with edge features in the PyTorch formulation (the reference of the compiled
+    path, and the path of other devices, other aggregations and features that need a gradient):
+    message ``W_r x_j + U_r e_ji`` per edge, reduced per ``(target, relation)`` segment, summed over
+    relations, plus root and bias (plain autograd around :func:`segment_max`)."""
     r, out, num_nodes = conv.num_relations, conv.out_channels, x.size(0)
     layout = edge_layout(edge_index, edge_type, num_nodes, r)
     relation_rows = torch.matmul(x, conv.weight.permute(1, 0, 2).reshape(conv.in_channels, r * out))

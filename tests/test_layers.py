@@ -1,5 +1,6 @@
 """RelationalMaxConv: the paper's max over transformed messages, per relation, summed over relations."""
 
+import numpy as np
 import pytest
 import torch
 from torch_geometric.nn import RGCNConv
@@ -492,8 +493,9 @@ def test_backward_kernels_write_every_row(stride, num_relations, rows, vertices,
     rows_based = (values.numpy(), source.numpy(), target.numpy(), maxima.numpy(), num_relations, stride)
     kernels = {
         "wins": lambda out: _max_kernel.relational_max_backward(
-            grad_out.numpy(), source.numpy(), target.numpy(), wins.numpy(), num_relations, stride, ties, out
-        ),
+            grad_out.numpy(), source.numpy(), target.numpy(), wins.numpy(), num_relations, stride, ties, out,
+            np.empty((0, 0), np.float32), np.empty((0, 2), np.int64), np.empty((0, 0, 0), np.float32),
+        ),  # fmt: skip
         "rows": lambda out: _max_kernel.relational_max_backward_ties(grad_out.numpy(), *rows_based, out),
     }
     results = {}
@@ -555,10 +557,13 @@ def compact_graph(kind: str, n: int = 50, relations: int = 4):
     return x, edge_index, edge_type
 
 
-def compact_outputs_and_gradients(convs, inputs, edge_index, edge_type, grad, compact, needs):
+def compact_outputs_and_gradients(
+    convs, inputs, edge_index, edge_type, grad, compact, needs, edge_attr=None, compiled=True
+):
     """Outputs (with and without autograd), and the gradients of the inputs and parameters in
-    ``needs`` ("x", "params"), with the compact relation rows on or off (fresh layouts)."""
-    previous = use_compact_rows(compact)
+    ``needs`` ("x", "params"), with the compact relation rows on or off, or the compiled kernels
+    off (the PyTorch formulation), on fresh layouts."""
+    previous, previous_kernels = use_compact_rows(compact), use_compiled_kernels(compiled)
     try:
         derived_indices.clear()
         params = [p for c in convs for p in c.parameters()]
@@ -566,15 +571,16 @@ def compact_outputs_and_gradients(convs, inputs, edge_index, edge_type, grad, co
             p.grad = None
             p.requires_grad_("params" in needs)
         inputs = inputs.clone().requires_grad_("x" in needs)
-        out = relational_conv(convs, inputs, edge_index, edge_type)
-        assert (type(out.grad_fn).__name__ == "_CompactRelationalConvBackward") == compact
+        out = relational_conv(convs, inputs, edge_index, edge_type, edge_attr)
+        assert (type(out.grad_fn).__name__ == "_CompactRelationalConvBackward") == (compact and compiled)
         out.backward(grad)
         with torch.no_grad():
             derived_indices.clear()
-            no_grad = relational_conv(convs, inputs, edge_index, edge_type)
+            no_grad = relational_conv(convs, inputs, edge_index, edge_type, edge_attr)
         return [out.detach(), no_grad, inputs.grad] + [p.grad for p in params]
     finally:
         use_compact_rows(previous)
+        use_compiled_kernels(previous_kernels)
         for c in convs:
             c.requires_grad_(True)
 
@@ -619,3 +625,72 @@ def test_compact_layout_reads_only_the_senders_of_each_relation():
     # Every edge reads a row of its own sender in its own copy.
     assert torch.equal(layout.rows[layout.source] % 20, layout.base.source % (20 * 5) // 5)
     assert torch.equal(layout.rows[layout.source] // 20, layout.base.target_vertex // 20)
+
+
+@pytest.mark.parametrize("kind", ["random", "ties", "sparse", "no_edges", "repeated"])
+@pytest.mark.parametrize("root_weight", [True, False])
+@pytest.mark.parametrize("copies", [1, 2, 3])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_compiled_edge_features_match_the_pytorch_formulation(kind, root_weight, copies, dtype):
+    """A convolution with edge features on the compiled path (each message ``x_j W_r + e_ji U_r``
+    formed in the kernels as they reduce) gives the values and the gradients of x and of every
+    parameter, the edge weights included, of the PyTorch formulation to float rounding: random
+    graphs, exact ties (zero rows and zero features), isolated vertices and empty relations, no
+    edges, and repeated edges that carry their own features (each one its own message)."""
+    torch.manual_seed(0)
+    convs = [
+        RelationalMaxConv(6, 5, num_relations=4, root_weight=root_weight, edge_dim=3).to(dtype) for _ in range(copies)
+    ]
+    x, edge_index, edge_type = compact_graph("random" if kind == "repeated" else kind)
+    edge_attr = torch.randn(edge_index.size(1), 3, dtype=dtype)
+    if kind == "ties":
+        edge_attr[::2] = 0.0
+    if kind == "repeated":  # every third edge twice, the copy with other features
+        extra = torch.arange(0, edge_index.size(1), 3)
+        edge_index = torch.cat((edge_index, edge_index[:, extra]), dim=1)
+        edge_type = torch.cat((edge_type, edge_type[extra]))
+        edge_attr = torch.cat((edge_attr, torch.randn(len(extra), 3, dtype=dtype)))
+    x = x.to(dtype)
+    inputs = x.expand(copies, -1, -1) + 0.1 * torch.randn(copies, *x.shape, dtype=dtype) if copies > 1 else x
+    if kind == "ties" and copies > 1:
+        inputs[:, ::4] = 0.0
+    grad = torch.randn(*inputs.shape[:-1], 5, dtype=dtype)
+    args = (convs, inputs, edge_index, edge_type, grad)
+    for needs in (("x", "params"), ("x",), ("params",)):
+        compiled = compact_outputs_and_gradients(*args, True, needs, edge_attr)
+        reference = compact_outputs_and_gradients(*args, True, needs, edge_attr, compiled=False)
+        assert all((a is None) == (b is None) for a, b in zip(compiled, reference, strict=True))
+        for a, b in zip(compiled, reference, strict=True):
+            if a is not None:
+                torch.testing.assert_close(a, b)
+    if kind == "sparse":  # the edge weights' gradients of an empty relation are zeros
+        assert all(torch.all(c.edge_weight.grad[1] == 0) and torch.all(c.edge_weight.grad[3] == 0) for c in convs)
+
+
+def test_edge_features_that_need_a_gradient_take_the_pytorch_formulation():
+    """The kernels give no gradient to the edge features (observations need none): features that
+    require one run the PyTorch formulation, and their gradient is the same as with the kernels off."""
+    torch.manual_seed(0)
+    conv = RelationalMaxConv(6, 5, num_relations=4, edge_dim=2)
+    x, edge_index, edge_type = compact_graph("random")
+    grads = []
+    for compiled in (True, False):
+        previous = use_compiled_kernels(compiled)
+        try:
+            attr = torch.randn(edge_index.size(1), 2, generator=torch.Generator().manual_seed(1)).requires_grad_(True)
+            out = conv(x, edge_index, edge_type, attr)
+            assert type(out.grad_fn).__name__ != "_CompactRelationalConvBackward"
+            out.sum().backward()
+            grads.append(attr.grad)
+        finally:
+            use_compiled_kernels(previous)
+    torch.testing.assert_close(grads[0], grads[1])
+    # Without a gradient, the kernels: the same values.
+    attr = attr.detach()
+    out = conv(x, edge_index, edge_type, attr)
+    assert type(out.grad_fn).__name__ == "_CompactRelationalConvBackward"
+    previous = use_compiled_kernels(False)
+    try:
+        torch.testing.assert_close(out, conv(x, edge_index, edge_type, attr))
+    finally:
+        use_compiled_kernels(previous)
