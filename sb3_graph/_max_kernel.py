@@ -383,3 +383,52 @@ def relational_max_backward_ties(
         for c in range(channels):
             share = grad_out[i, c] / counts[t, c]
             grad_rows[s, c] += share if rows[s, c] == maxima[t, c] else 0.0
+
+
+@numba.njit(cache=True)
+def segment_order(target: np.ndarray, source: np.ndarray, num_segments: int, merge: bool) -> tuple[np.ndarray, int]:
+    """The edges of a layout sorted by segment: a counting sort over the bounded segment ids
+    (``O(E + S)``, where ``torch.unique`` / ``argsort`` sort 64-bit keys).
+
+    :param target: ``(E,)`` segment of each edge, in ``[0, num_segments)``
+    :param source: ``(E,)`` row read by each edge
+    :param num_segments: ``S``
+    :param merge: sort each segment's edges by ``source`` and keep one of each repeated
+        ``(target, source)`` pair: the order of ``torch.unique(target * rows + source)``; else keep
+        every edge in its input order within its segment (``argsort(target, stable=True)``)
+    :return: the edges' indices in that order, and the number of non-empty segments
+    """
+    starts = np.zeros(num_segments + 1, np.int64)
+    for e in range(target.shape[0]):
+        starts[target[e] + 1] += 1
+    nonempty = 0
+    for s in range(num_segments):
+        nonempty += starts[s + 1] > 0
+        starts[s + 1] += starts[s]
+    order = np.empty(target.shape[0], np.int64)
+    position = starts[:-1].copy()
+    for e in range(target.shape[0]):
+        order[position[target[e]]] = e
+        position[target[e]] += 1
+    if not merge:
+        return order, nonempty
+    kept = 0
+    for s in range(num_segments):
+        lo, hi = starts[s], starts[s + 1]
+        # Insertion sort by source: segments hold a few edges (one per in-neighbour); long ones
+        # take numpy's sort.
+        if hi - lo > 32:
+            segment = order[lo:hi]
+            order[lo:hi] = segment[np.argsort(source[segment], kind="mergesort")]
+        else:
+            for i in range(lo + 1, hi):
+                edge, j = order[i], i - 1
+                while j >= lo and source[order[j]] > source[edge]:
+                    order[j + 1] = order[j]
+                    j -= 1
+                order[j + 1] = edge
+        for i in range(lo, hi):  # repeated pairs are adjacent now: keep the first
+            if i == lo or source[order[i]] != source[order[i - 1]]:
+                order[kept] = order[i]
+                kept += 1
+    return order[:kept], nonempty

@@ -351,7 +351,7 @@ def test_forward_only_layout_gives_the_same_maxima(copies):
         light = relational_layout(edge_index, edge_type, x.size(0), 3, stride=4, copies=copies)
     assert light.source_order is None and len(light.source) == copies * edge_index.size(1)
     full = relational_layout(edge_index, edge_type, x.size(0), 3, stride=4, copies=copies)
-    assert full.source_order is not None and len(full.source) < copies * edge_index.size(1)
+    assert full.target_vertex is not None and len(full.source) < copies * edge_index.size(1)
     inputs.requires_grad_(True)
     with_grad = relational_conv(convs, inputs, edge_index, edge_type)
     exact = {"rtol": 0, "atol": 0} if copies > 1 else {}
