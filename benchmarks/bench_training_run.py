@@ -1,15 +1,17 @@
-"""A training run of the shipped config, the learner of today and the one before issue #27, in turns.
+"""A training run of a config, the learner of today and the one before issue #27, in turns.
 
-Builds TD3 from ``zoo_configs/td3_fair.yml`` as ``sb3-graph train`` does (policy, graph replay
-buffer, action noise, callbacks, the config's traffic), with ``learning_starts`` lowered so that a
-short run trains (the config's 5,000 would leave a 3,000-step run without a gradient step), and
-times ``learn`` from ``learning_starts`` to the end: environment steps, action selection, replay
-buffer and one gradient step (batch 128) per environment step. The reference is the learner before
-issue #27: ``sb3_graph.layers.use_compiled_kernels(False)`` (the PyTorch formulation of the relational
-layers), torch's per-tensor Adam and SB3's own ``train`` (whose policy loss also differentiates the
-critics' weights). They alternate run by run (``--rounds`` each, same seeds), so a change of the
-shared machine's load hits both; the table gives medians of env steps per wall second and per CPU
-second of this process (one torch thread).
+Builds TD3 from ``--config`` (default ``zoo_configs/td3_fair.yml``, the paper's; the shipped
+planner's is ``zoo_configs/td3_residual_features.yml``) as ``sb3-graph train`` does (policy, graph
+replay buffer, action noise, callbacks, the config's traffic and ``n_envs`` environments in this
+process), with ``learning_starts`` lowered so that a short run trains (the config's would leave a
+3,000-step run without a gradient step), and times ``learn`` from ``learning_starts`` to the end:
+environment steps, action selection, replay buffer and the config's gradient steps (``td3_fair.yml``:
+one of batch 128 per environment step; with ``n_envs: 4``, one per four environment steps).
+The reference is the learner before issue #27: ``sb3_graph.layers.use_compiled_kernels(False)`` (the
+PyTorch formulation of the relational layers), torch's per-tensor Adam and SB3's own ``train``
+(whose policy loss also differentiates the critics' weights). They alternate run by run
+(``--rounds`` each, same seeds), so a change of the shared machine's load hits both; the table gives
+medians of env steps per wall second and per CPU second of this process (one torch thread).
 """
 
 from __future__ import annotations
@@ -37,7 +39,7 @@ ROOT = Path(__file__).resolve().parents[1]
 def run(entry: dict, steps: int, learning_starts: int, seed: int, compiled: bool) -> tuple[float, float]:
     """Env steps per wall second and per CPU second of one learning run."""
     entry = dict(entry, learning_starts=learning_starts)
-    env = make_vec_env(ENV_ID, n_envs=1, seed=seed, env_kwargs=entry.get("env_kwargs") or {})
+    env = make_vec_env(ENV_ID, n_envs=int(entry.get("n_envs", 1)), seed=seed, env_kwargs=entry.get("env_kwargs") or {})
     previous = use_compiled_kernels(compiled)
     try:
         policy = resolve_object(entry["policy"], "policy")

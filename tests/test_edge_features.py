@@ -1,7 +1,9 @@
 """Edge features: GraphSpace(edge_features=k) through encode/decode, batching, both buffers and the
 policies, and the layer reads them."""
 
+import copy
 import pickle
+import warnings
 
 import numpy as np
 import pytest
@@ -9,11 +11,14 @@ import torch
 from gymnasium import spaces
 from stable_baselines3.common.buffers import DictReplayBuffer, DictRolloutBuffer
 from stable_baselines3.common.env_checker import check_env
+from stable_baselines3.common.logger import configure
 from stable_baselines3.common.utils import obs_as_tensor
 from torch_geometric.data import Batch, Data
 
+import sb3_graph
 from sb3_graph import PPO, SAC, TD3, GraphReplayBuffer, GraphRolloutBuffer, GraphSpace
-from sb3_graph.batching import padded_to_batch
+from sb3_graph.batching import derived_indices, padded_to_batch
+from sb3_graph.layers import use_compiled_kernels
 from sb3_graph.toy_envs import MaxNeighbourEnv
 
 torch.set_num_threads(1)
@@ -163,3 +168,50 @@ def test_policies_read_edge_features(algo):
     # Switching them off: the same space, a policy that ignores them.
     blind = algo("GraphPolicy", EdgeFeatureEnv(), seed=0, policy_kwargs=dict(use_edge_features=False), **kwargs)
     np.testing.assert_allclose(blind.predict(obs, deterministic=True)[0], blind.predict(changed, deterministic=True)[0])
+
+
+@pytest.mark.parametrize("name", ["TD3", "DDPG", "SAC", "TQC", "PPO"])
+def test_learners_with_edge_features_update_as_the_pytorch_formulation(name):
+    """Issue #27: the convolutions with edge features run in the compiled kernels; copies of one
+    learner, trained on the same transitions with the kernels on and off (the formulation before),
+    end with the same weights to float tolerance, the edge weights included."""
+    kwargs = dict(policy_kwargs=dict(encoder_dim=16, conv_dims=[16, 16]), seed=0)
+    if name == "TQC":
+        kwargs["policy_kwargs"]["n_quantiles"] = 5
+    if name == "PPO":
+        kwargs.update(n_steps=32, batch_size=16, n_epochs=2)
+    else:
+        kwargs.update(learning_starts=0, batch_size=16, buffer_size=200)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = getattr(sb3_graph, name)("GraphPolicy", EdgeFeatureEnv(min_nodes=0), **kwargs)
+    model.set_logger(configure(None, []))
+    if name == "PPO":
+        model.learn(32)  # one rollout and its update, to fill the buffer; then train again on it
+    else:
+        env = EdgeFeatureEnv(min_nodes=0)
+        obs, _ = env.reset(seed=0)
+        env.action_space.seed(0)
+        for _ in range(64):
+            action = env.action_space.sample() * obs["node_mask"]
+            next_obs, reward, terminated, truncated, _ = env.step(action)
+            stack = lambda o: {k: v[None] for k, v in o.items()}  # noqa: E731
+            model.replay_buffer.add(stack(obs), stack(next_obs), action[None], [reward], [terminated], [{}])
+            obs = env.reset()[0] if terminated or truncated else next_obs
+    states = []
+    for compiled in (True, False):
+        learner = copy.deepcopy(model)
+        previous = use_compiled_kernels(compiled)
+        try:
+            torch.manual_seed(1)
+            np.random.seed(1)  # noqa: NPY002 (SB3 samples with the global generator)
+            derived_indices.clear()
+            learner.train() if name == "PPO" else learner.train(gradient_steps=4, batch_size=16)
+        finally:
+            use_compiled_kernels(previous)
+        states.append(learner.policy.state_dict())
+    assert set(states[0]) == set(states[1])
+    for key, value in states[0].items():
+        torch.testing.assert_close(value, states[1][key], msg=key)
+    edge_weights = [k for k in states[0] if k.endswith("edge_weight")]
+    assert edge_weights and any(not torch.equal(states[0][k], model.policy.state_dict()[k]) for k in edge_weights)
