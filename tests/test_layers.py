@@ -696,21 +696,24 @@ def test_edge_features_that_need_a_gradient_take_the_pytorch_formulation():
         use_compiled_kernels(previous)
 
 
-def test_large_batches_without_autograd_compute_only_the_rows_that_edges_read():
+@pytest.mark.parametrize("edge_dim", [0, 2])
+def test_large_batches_without_autograd_compute_only_the_rows_that_edges_read(edge_dim):
     """Without autograd a single convolution switches from the fused matmul over every relation
-    row (a planner's few vertices) to the compact rows at 256 vertices (the target networks of a
-    training batch): the same values to float rounding, and the compact layout is what it builds."""
+    row (without edge features) or the PyTorch formulation (with them), which are faster for a
+    planner's few vertices, to the compact rows at 256 vertices (the target networks of a training
+    batch): the same values to float rounding, and the compact layout is what it builds."""
     torch.manual_seed(0)
-    conv = RelationalMaxConv(6, 5, num_relations=4)
+    conv = RelationalMaxConv(6, 5, num_relations=4, edge_dim=edge_dim)
     for n, compact_expected in ((40, False), (300, True)):
         x, edge_index, edge_type = random_graph(n, 5 * n, relations=4, features=6, seed=1)
+        edge_attr = torch.randn(edge_index.size(1), edge_dim) if edge_dim else None
         outputs = []
         for compact in (True, False):
             previous = use_compact_rows(compact)
             try:
                 derived_indices.clear()
                 with torch.no_grad():
-                    outputs.append(conv(x, edge_index, edge_type))
+                    outputs.append(conv(x, edge_index, edge_type, edge_attr))
                 built = any(key[1][0] == "compact" for key in derived_indices._entries)
                 assert built == (compact and compact_expected)
             finally:
