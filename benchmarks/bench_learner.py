@@ -17,8 +17,10 @@ the graph buffers (ragged storage); the MLP learners SB3's buffers. Per algorith
 are timed in turns (best of 3 runs each), so that a change of the machine's load hits all of them:
 the graph learner; the reference, the learner before issue #27 (``use_compiled_kernels(False)``:
 the PyTorch formulation; torch's per-tensor Adam; SB3's own ``train``, whose policy loss also
-differentiates the critics' weights); and the MLP learner. Target (TD3): the graph learner within
-1.5x of the MLP learner. Also times the TD3 graph learner with 1 and 2 torch threads
+differentiates the critics' weights); and the MLP learner. Then ``--paired-rounds`` rounds of the graph
+and the MLP learner back to back (random order, 4 training calls each; the median and quartiles of
+the per-round ratio of their times per step). Target (TD3): the graph learner within 1.5x of the
+MLP learner. Also times the TD3 graph learner with 1 and 2 torch threads
 (``--threads``); ``--profile`` adds the operator breakdown of the TD3 and SAC graph learners
 (torch.profiler, self CPU time of 10 gradient steps).
 """
@@ -26,6 +28,7 @@ differentiates the critics' weights); and the MLP learner. Target (TD3): the gra
 from __future__ import annotations
 
 import argparse
+import statistics
 import time
 from collections.abc import Callable
 
@@ -167,6 +170,25 @@ def make_learners(name: str, data) -> tuple:
     return graph, mlp
 
 
+def paired_ratios(graph, mlp, rounds: int, clock=time.process_time) -> list[float]:
+    """Per round, the graph learner's time per gradient step over the MLP learner's, the two timed
+    back to back in random order (4 training calls each): unlike the ratio of two best rates, a
+    load change or a slow stretch of this process hits both halves of a round alike."""
+    calls = [training_call(graph), training_call(mlp)]
+    rng = np.random.default_rng(0)
+    ratios = []
+    for _ in range(rounds):
+        seconds = [0.0, 0.0]
+        for k in rng.permutation(2):
+            call, steps = calls[k]
+            start = clock()
+            for _ in range(4):
+                call()
+            seconds[k] = (clock() - start) / (4 * steps)
+        ratios.append(seconds[0] / seconds[1])
+    return ratios
+
+
 def profile_table(model, steps: int = 10, rows: int = 14) -> str:
     """Markdown table of the operators with the most self CPU time over ``steps`` gradient steps."""
     from torch.profiler import ProfilerActivity, profile
@@ -198,6 +220,12 @@ def main() -> None:
     parser.add_argument("--clock", choices=("wall", "cpu"), default="wall", help="wall time or this process's CPU time")
     parser.add_argument("--threads", action="store_true", help="also time the TD3 graph learner with 1 and 2 threads")
     parser.add_argument("--profile", action="store_true", help="print the TD3 and SAC graph learners' operators")
+    parser.add_argument(
+        "--paired-rounds",
+        type=int,
+        default=20,
+        help="rounds of the paired ratio: graph and MLP learner back to back, in random order (0: none)",
+    )
     args = parser.parse_args()
     torch.set_num_threads(1)
     if args.data == "random":
@@ -211,9 +239,14 @@ def main() -> None:
         ours, reference, mlp_rate = steps_per_second(
             [graph, graph, mlp], args.seconds, reference=(1,), repeats=args.repeats, clock=clock
         )
+        paired = "-"
+        if args.paired_rounds:
+            ratios = paired_ratios(graph, mlp, args.paired_rounds, clock)
+            quartiles = statistics.quantiles(ratios, n=4) if len(ratios) > 1 else ratios * 3
+            paired = f"{statistics.median(ratios):.2f} ({quartiles[0]:.2f}-{quartiles[2]:.2f})"
         rows.append(
             [name, f"{ours:.1f}", f"{reference:.1f}", f"{ours / reference:.2f}", f"{mlp_rate:.1f}",
-             f"{mlp_rate / ours:.2f}", f"{mlp_rate / reference:.2f}"]
+             f"{mlp_rate / ours:.2f}", paired, f"{mlp_rate / reference:.2f}"]
         )  # fmt: skip
         rates = f"graph {ours:.1f} (reference {reference:.1f}), MLP {mlp_rate:.1f}"
         print(f"{name}: {rates} steps/s", flush=True)
@@ -228,6 +261,7 @@ def main() -> None:
         "speed-up vs reference",
         f"MlpPolicy [64, 64] on {inputs} inputs, steps/s",
         "x slower than MLP",
+        "paired: x slower than MLP, median (IQR)",
         "reference: x slower than MLP",
     ]
     print(markdown_table(header, rows))
