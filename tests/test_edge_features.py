@@ -9,13 +9,13 @@ import numpy as np
 import pytest
 import torch
 from gymnasium import spaces
+from learner_fixtures import filled_learner
 from stable_baselines3.common.buffers import DictReplayBuffer, DictRolloutBuffer
 from stable_baselines3.common.env_checker import check_env
 from stable_baselines3.common.logger import configure
 from stable_baselines3.common.utils import obs_as_tensor
 from torch_geometric.data import Batch, Data
 
-import sb3_graph
 from sb3_graph import PPO, SAC, TD3, GraphReplayBuffer, GraphRolloutBuffer, GraphSpace
 from sb3_graph.batching import derived_indices, padded_to_batch
 from sb3_graph.layers import use_compiled_kernels
@@ -175,29 +175,17 @@ def test_learners_with_edge_features_update_as_the_pytorch_formulation(name):
     """Issue #27: the convolutions with edge features run in the compiled kernels; copies of one
     learner, trained on the same transitions with the kernels on and off (the formulation before),
     end with the same weights to float tolerance, the edge weights included."""
-    kwargs = dict(policy_kwargs=dict(encoder_dim=16, conv_dims=[16, 16]), seed=0)
-    if name == "TQC":
-        kwargs["policy_kwargs"]["n_quantiles"] = 5
-    if name == "PPO":
-        kwargs.update(n_steps=32, batch_size=16, n_epochs=2)
+    if name == "PPO":  # one rollout and its update, to fill the buffer; then train again on it
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            model = PPO(
+                "GraphPolicy", EdgeFeatureEnv(min_nodes=0), n_steps=32, batch_size=16, n_epochs=2, seed=0,
+                policy_kwargs=dict(encoder_dim=16, conv_dims=[16, 16]),
+            )  # fmt: skip
+        model.set_logger(configure(None, []))
+        model.learn(32)
     else:
-        kwargs.update(learning_starts=0, batch_size=16, buffer_size=200)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        model = getattr(sb3_graph, name)("GraphPolicy", EdgeFeatureEnv(min_nodes=0), **kwargs)
-    model.set_logger(configure(None, []))
-    if name == "PPO":
-        model.learn(32)  # one rollout and its update, to fill the buffer; then train again on it
-    else:
-        env = EdgeFeatureEnv(min_nodes=0)
-        obs, _ = env.reset(seed=0)
-        env.action_space.seed(0)
-        for _ in range(64):
-            action = env.action_space.sample() * obs["node_mask"]
-            next_obs, reward, terminated, truncated, _ = env.step(action)
-            stack = lambda o: {k: v[None] for k, v in o.items()}  # noqa: E731
-            model.replay_buffer.add(stack(obs), stack(next_obs), action[None], [reward], [terminated], [{}])
-            obs = env.reset()[0] if terminated or truncated else next_obs
+        model = filled_learner(name, EdgeFeatureEnv(min_nodes=0))
     states = []
     for compiled in (True, False):
         learner = copy.deepcopy(model)

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import stable_baselines3
 import torch
+from learner_fixtures import SMALL, filled_learner
 from sb3_contrib import TQC as ContribTQC
-from stable_baselines3.common.logger import configure
 
 import sb3_graph
 from sb3_graph.batching import derived_indices
@@ -18,28 +18,7 @@ from sb3_graph.networks import GraphCritic, constant_parameters, fast_optimizer_
 from sb3_graph.toy_envs import MaxNeighbourEnv
 
 torch.set_num_threads(1)
-SMALL = dict(encoder_dim=16, conv_dims=[16, 16])
 STOCK = {"TD3": stable_baselines3.TD3, "DDPG": stable_baselines3.DDPG, "SAC": stable_baselines3.SAC, "TQC": ContribTQC}
-
-
-def filled_learner(name: str):
-    env = MaxNeighbourEnv(min_nodes=0)
-    policy_kwargs = dict(SMALL, n_quantiles=5) if name == "TQC" else dict(SMALL)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        model = getattr(sb3_graph, name)(
-            "GraphPolicy", env, seed=0, learning_starts=0, batch_size=16, buffer_size=200, policy_kwargs=policy_kwargs
-        )
-    model.set_logger(configure(None, []))
-    obs, _ = env.reset(seed=0)
-    env.action_space.seed(0)
-    for _ in range(64):
-        action = env.action_space.sample() * obs["node_mask"]
-        next_obs, reward, terminated, truncated, _ = env.step(action)
-        stack = lambda o: {k: v[None] for k, v in o.items()}  # noqa: E731
-        model.replay_buffer.add(stack(obs), stack(next_obs), action[None], [reward], [terminated], [{}])
-        obs = env.reset()[0] if terminated or truncated else next_obs
-    return model
 
 
 def trained_state(model, train) -> dict:
