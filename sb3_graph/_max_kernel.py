@@ -24,6 +24,11 @@ pass counts the winners of each segment and splits as PyTorch does. Only the ord
 in which the gradients of one row are added differs (edges by target instead of by source), so
 the gradients agree to float rounding (tests/test_layers.py, tests/test_learner_updates.py).
 
+With edge features (:func:`relational_max_edge_forward`) each edge's message is the sender's row
+plus the edge term, formed in the pass over the edges instead of as an ``(E, C)`` tensor, and the
+backward pass adds the edge weights' gradient as it goes. :func:`segment_order` sorts a layout's
+edges by segment with a counting sort (the ids are bounded), in place of sorting 64-bit keys.
+
 No ``fastmath``: no reassociation, so the forward sums are PyTorch's. ``cache=True`` stores the
 machine code next to this file (or in numba's cache directory), so only the first process of an
 installation compiles (a few seconds).
