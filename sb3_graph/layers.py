@@ -207,17 +207,23 @@ def use_compact_rows(enabled: bool) -> bool:
     return bool(previous)
 
 
-def _compiled_path(rows: Tensor) -> bool:
-    if not _COMPILED["enabled"] or rows.device.type != "cpu" or rows.dtype not in (torch.float32, torch.float64):
-        return False
+def _kernels(device: torch.device) -> Any:
+    """The compiled kernels module (imported on first use) for tensors on ``device``, or ``None``:
+    switched off, not a CPU device, or numba missing or broken (then switched off for good)."""
+    if not _COMPILED["enabled"] or device.type != "cpu":
+        return None
     if _COMPILED["kernels"] is None:
         try:
             from sb3_graph import _max_kernel
         except ImportError:  # numba missing or broken: the PyTorch formulation
             _COMPILED["enabled"] = False
-            return False
+            return None
         _COMPILED["kernels"] = _max_kernel
-    return True
+    return _COMPILED["kernels"]
+
+
+def _compiled_path(rows: Tensor) -> bool:
+    return rows.dtype in (torch.float32, torch.float64) and _kernels(rows.device) is not None
 
 
 _NO_TERMS = np.empty((0, 2), dtype=np.int64)
@@ -378,14 +384,6 @@ def check_edges(edge_index: Tensor, edge_type: Tensor, num_nodes: int, num_relat
         raise ValueError(f"sb3_graph: edge_index holds vertex ids in [{lo_v}, {hi_v}], outside [0, {num_nodes})")
 
 
-def _layout_kernels(device: torch.device) -> Any:
-    """The compiled kernels module for building layouts on ``device``, or ``None`` (kernels off,
-    not a CPU tensor, numba missing)."""
-    if not _COMPILED["enabled"] or device.type != "cpu" or not _compiled_path(torch.empty(0)):
-        return None
-    return _COMPILED["kernels"]
-
-
 def _base_layout(
     edge_index: Tensor,
     edge_type: Tensor,
@@ -400,7 +398,7 @@ def _base_layout(
     source = edge_index[0] * stride + edge_type
     target = edge_index[1] * num_relations + edge_type
     counts, edge_order = None, None
-    kernels = _layout_kernels(edge_index.device) if aggr == "max" else None
+    kernels = _kernels(edge_index.device) if aggr == "max" else None
     if kernels is not None:
         # A counting sort over the bounded segment ids (the PyTorch formulation below sorts
         # 64-bit keys: about a tenth of a training step at intersection sizes). Same order.
@@ -471,7 +469,7 @@ def relational_layout(
         the full layout of the same batch.
     """
     forward_only = aggr == "max" and not torch.is_grad_enabled()
-    compiled = _layout_kernels(edge_index.device) is not None  # a layout of its own (no source order)
+    compiled = _kernels(edge_index.device) is not None  # a layout of its own (no source order)
     extra = (num_nodes, num_relations, stride, aggr, forward_only, per_edge, compiled)
 
     def base() -> RelationalLayout:
