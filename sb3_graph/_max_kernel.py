@@ -338,9 +338,11 @@ def relational_max_backward(
         for f in range(start, e + 1):
             s = source[f]
             for c in range(channels):
-                share[c] = grad_out[i, c] / counts[c] if wins[f, c] else 0.0
                 if wins[f, c]:
+                    share[c] = grad_out[i, c] / counts[c]
                     grad_rows[s, c] += share[c]
+                else:
+                    share[c] = 0.0
             if has_edges:
                 _edge_weight_gradient(attr, terms, f, share, grad_edge_weight)
         start = e + 1

@@ -304,9 +304,10 @@ def _compiled_segment_max(ctx: Any, values: Tensor, target: Tensor, num_segments
     out = values.new_empty(num_segments, values.size(1))
     maxima = values.new_empty(num_segments, values.size(1))
     seen = torch.zeros(num_segments, dtype=torch.bool)
+    empty = _empty_arrays(values)[0]  # no bias, no separate root rows
     kernels.relational_max_forward(
-        values.numpy(), source.numpy(), target.numpy(), 1, 1, values.new_empty(0, 0).numpy(), num_segments,
-        out.numpy(), maxima.numpy(), seen.numpy(), np.empty((0, 0), dtype=np.uint8), _empty_arrays(values)[0],
+        values.numpy(), source.numpy(), target.numpy(), 1, 1, empty, num_segments, out.numpy(), maxima.numpy(),
+        seen.numpy(), np.empty((0, 0), dtype=np.uint8), empty,
     )  # fmt: skip
     ctx.save_for_backward(values, source, target, maxima)
     return out
