@@ -670,15 +670,16 @@ class _CompactRelationalConv(torch.autograd.Function):
         seen = torch.zeros(num_vertices * relations, dtype=torch.bool)
         record = base.target_vertex is not None and any(ctx.needs_input_grad)
         wins = torch.empty((len(layout.source), out_channels) if record else (0, 0), dtype=torch.uint8)
-        arrays = (
-            rows.numpy(), layout.source.numpy(), base.target.numpy(), relations, *(() if has_edges else (relations,)),
+        edges = (rows.numpy(), layout.source.numpy(), base.target.numpy(), relations)
+        outputs = (
             bias.numpy(), num_nodes, out.view(num_vertices, out_channels).numpy(), maxima.numpy(), seen.numpy(),
             wins.numpy(), root,
         )  # fmt: skip
-        if has_edges:
-            _, unique = kernels.relational_max_edge_forward(*arrays, attr_array, edge_weight, layout.terms.numpy())
+        if has_edges:  # the compact rows have no stride argument: R rows per sender, the root apart
+            terms = layout.terms.numpy()
+            _, unique = kernels.relational_max_edge_forward(*edges, *outputs, attr_array, edge_weight, terms)
         else:
-            _, unique = kernels.relational_max_forward(*arrays)
+            _, unique = kernels.relational_max_forward(*edges, relations, *outputs)
         if record:
             ctx.save_for_backward(x, x_rows, wins, weight, *roots)
             ctx.layout, ctx.ties, ctx.copies, ctx.has_root = layout, not unique, copies, has_root
