@@ -75,7 +75,8 @@ def behaviour_clone(
     :param log_interval: gradient steps between two dumps of the model's logger (if it has one)
     :return: ``actor_loss`` and ``critic_loss`` (one value per gradient step), ``transitions``
         collected, ``expert_share`` (the share of sub-environment steps acted by the expert),
-        ``collect_s`` and ``train_s`` (wall time)
+        ``collect_s``, ``train_s`` and ``critic_s`` (wall time of collecting, of the actor's steps and of
+        the critics' warm-up)
     :raises ValueError: a bad argument, naming it, or an expert answer of the wrong shape
     """
     _check_arguments(model, transitions, gradient_steps, batch_size, rounds, critic_steps)
@@ -87,7 +88,9 @@ def behaviour_clone(
         for group in optimizer.param_groups:
             group["lr"] = float(learning_rate)
     logger = _logger(model)
-    result: dict[str, Any] = {"actor_loss": [], "critic_loss": [], "transitions": 0, "collect_s": 0.0, "train_s": 0.0}
+    result: dict[str, Any] = {
+        "actor_loss": [], "critic_loss": [], "transitions": 0, "collect_s": 0.0, "train_s": 0.0, "critic_s": 0.0
+    }
     expert_steps, obs = 0, env.reset()
     per_round = [_share(transitions, rounds, k) for k in range(rounds)]
     steps_per_round = [_share(gradient_steps, rounds, k) for k in range(rounds)]
@@ -115,7 +118,7 @@ def behaviour_clone(
     else:
         steps = gradient_steps // 4 if critic_steps is None else critic_steps
         result["critic_loss"] = _warm_up_critics(model, optimizer, steps, batch_size, logger, log_interval)
-    result["train_s"] += time.perf_counter() - start
+    result["critic_s"] = time.perf_counter() - start
     logger.record("pretrain/transitions", result["transitions"])
     logger.record("pretrain/expert_share", result["expert_share"])
     logger.dump(len(result["actor_loss"]) + len(result["critic_loss"]))

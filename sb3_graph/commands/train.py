@@ -525,7 +525,7 @@ def _pretrain(model, entry: dict[str, Any], env_id: str, train_env) -> dict[str,
         "actor_loss_last": result["actor_loss"][-1] if result["actor_loss"] else None,
         "critic_loss_last": result["critic_loss"][-1] if result["critic_loss"] else None,
         "collect_s": round(result["collect_s"], 2),
-        "train_s": round(result["train_s"], 2),
+        "train_s": round(result["train_s"] + result["critic_s"], 2),
     }
     print(f"sb3-graph train: cloned in {summary['collect_s'] + summary['train_s']:.0f} s, actor loss "
           f"{summary['actor_loss_first']} -> {summary['actor_loss_last']}", flush=True)  # fmt: skip
