@@ -259,3 +259,15 @@ def test_behaviour_clone_bad_arguments():
         sb3_graph.behaviour_clone(model, lambda obs: np.zeros((1, 3)), transitions=4, gradient_steps=1)
     with pytest.raises(ValueError, match="beta"):
         sb3_graph.behaviour_clone(model, max_neighbour_expert, transitions=4, gradient_steps=1, beta=2.0)
+
+
+def test_experiment_keys_of_cloning():
+    from sb3_graph.experiment import ExperimentError, build_algorithm_kwargs, check_entry
+
+    entry = {"n_timesteps": 10, "pretrain_from": "aim", "pretrain_transitions": 100, "pretrain_steps": 20,
+             "bc_coef": "lin_0.5"}  # fmt: skip
+    kwargs = build_algorithm_kwargs(entry, 8)
+    assert kwargs == {"bc_coef": "lin_0.5"}  # the pretrain_* keys are the trainer's
+    for key, bad in (("pretrain_steps", -1), ("pretrain_transitions", 0), ("bc_coef", "fast"), ("pretrain_from", "")):
+        with pytest.raises(ExperimentError, match=key):
+            check_entry({"n_timesteps": 10, key: bad})
