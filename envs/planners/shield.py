@@ -65,6 +65,8 @@ import numpy as np
 from envs.planners import _shield_kernel
 from envs.planners.base import Planner
 from envs.planners.errors import PlannerError, checked_accelerations
+from envs.planners.fifo import FIFOPlanner
+from envs.planners.watchdog import WATCHDOG_AFTER, WATCHDOG_HOLD, LivenessWatchdog
 from envs.simulation.layouts import CONFLICT_DISTANCE, ZONE_MARGIN, body_hull
 from envs.simulation.scene import Scene
 
@@ -177,6 +179,12 @@ class Shield(Planner):
     :param max_speed: the simulation's speed cap [m/s]
     :param governor_deceleration: the simulation's speed governor [m/s^2]
     :param name: report name (default: ``<planner name>+shield``)
+    :param watchdog_after: the liveness watchdog (:mod:`envs.planners.watchdog`): seconds without a vehicle
+        entering or leaving the intersection, while vehicles wait before their lines, after which
+        ``live_planner`` proposes instead of ``planner`` (a takeover); ``None``: no watchdog
+    :param watchdog_hold: seconds after the first vehicle entered under a takeover before ``planner`` proposes again
+    :param live_planner: the planner of a takeover, its proposals checked as any other (default:
+        :class:`envs.planners.fifo.FIFOPlanner` with this ``governor_deceleration``)
     """
 
     def __init__(
@@ -191,9 +199,16 @@ class Shield(Planner):
         max_speed: float = 20.0,
         governor_deceleration: float = 3.0,
         name: str | None = None,
+        watchdog_after: float | None = WATCHDOG_AFTER,
+        watchdog_hold: float = WATCHDOG_HOLD,
+        live_planner: Planner | None = None,
     ) -> None:
         super().__init__(name or f"{planner.name}+shield")
         self.planner = planner
+        self.watchdog = None if watchdog_after is None else LivenessWatchdog(watchdog_after, watchdog_hold)
+        self.live_planner = (
+            live_planner if live_planner is not None else FIFOPlanner(governor_deceleration=governor_deceleration)
+        )
         self.horizon = float(horizon)
         self.zone_margin = float(zone_margin)
         self.gap_margin = float(gap_margin)
@@ -211,8 +226,11 @@ class Shield(Planner):
 
     # ------------------------------------------------------------------ planner face
     def reset(self, seed: int | None = None) -> None:
-        """Reset the wrapped planner and the intervention counters."""
+        """Reset the wrapped planner, the live planner, the watchdog and the intervention counters."""
         self.planner.reset(seed)
+        self.live_planner.reset(seed)
+        if self.watchdog is not None:
+            self.watchdog.reset()
         self.interventions = 0
         self.vehicle_steps = 0
         self.unresolved = 0
@@ -226,12 +244,16 @@ class Shield(Planner):
 
     def stats(self) -> dict[str, float]:
         """The counters of the run since the last reset: interventions and the vehicle-steps they are
-        a share of, unresolved steps (everyone braked) and planner errors (steps)."""
+        a share of, unresolved steps (everyone braked), planner errors (steps), the watchdog's
+        takeovers and the vehicle-steps under them (0 without a watchdog)."""
+        watchdog = self.watchdog
         return {
             "shield_interventions": self.interventions,
             "shield_vehicle_steps": self.vehicle_steps,
             "shield_unresolved": self.unresolved,
             "planner_errors": self.planner_errors,
+            "watchdog_takeovers": 0 if watchdog is None else watchdog.takeovers,
+            "watchdog_vehicle_steps": 0 if watchdog is None else watchdog.vehicle_steps,
         }
 
     @property
@@ -242,15 +264,19 @@ class Shield(Planner):
     def act(self, scene: Scene) -> np.ndarray:
         """The wrapped planner's proposal for a private copy of the scene, checked on the shield's own.
 
+        While the watchdog's takeover lasts (:mod:`envs.planners.watchdog`), the live planner proposes
+        instead (the wrapped planner is not called).
+
         An invalid proposal (:func:`envs.planners.errors.checked_accelerations`) is a planner error,
         counted in :attr:`planner_errors` (the first ones in :attr:`errors`): the vehicles with a
         non-finite or out-of-bounds value, or all of them when the shape or dtype is wrong, get the
         fallback for this step (counted as interventions); the other values are checked as usual.
         """
         n = scene.num_vehicles
-        output = self.planner.act(scene.copy())
+        planner = self.live_planner if self.watchdog is not None and self.watchdog.observe(scene) else self.planner
+        output = planner.act(scene.copy())
         try:
-            proposal = checked_accelerations(output, scene, self.planner.name)
+            proposal = checked_accelerations(output, scene, planner.name)
         except PlannerError as error:
             self.planner_errors += 1
             if len(self.errors) < MAX_ERROR_LINES:
