@@ -81,6 +81,8 @@ _STOP_SLACK = 0.05
 LIVE_SPEED = 2.0
 # Planner-error lines a shield keeps per run (the count is complete).
 MAX_ERROR_LINES = 5
+# Rounding allowance on the bound of a vehicle's stopping point over a prediction (`Shield._may_commit`) [m].
+_REACH_TOLERANCE = 1e-3
 
 
 @dataclass
@@ -223,6 +225,7 @@ class Shield(Planner):
         self.planner_errors = 0
         self.errors: list[PlannerError] = []
         self.last_overridden = np.zeros(0, bool)
+        self._prune = True  # only the pairs that can conflict (`_may_commit`); False: every pair (tests, benchmarks)
 
     # ------------------------------------------------------------------ planner face
     def reset(self, seed: int | None = None) -> None:
@@ -407,9 +410,12 @@ class Shield(Planner):
                 arc[ahead] - arc[behind] - (length[ahead] + length[behind]) / 2,
             ]
         )
-        # Conflicting routes: crossing pairs by zone occupancy, merging pairs by a common coordinate.
-        i, j = np.nonzero(lay.conflicts[route[:, None], route[None, :]])
-        i, j = i[i < j], j[i < j]
+        # Conflicting routes: crossing pairs by zone occupancy, merging pairs by a common coordinate;
+        # only the pairs that can conflict within the prediction (`_may_commit`, and crossing pairs
+        # of which neither has passed the zone).
+        rows = np.flatnonzero(self._may_commit(scene, arc, speed, hull_start)) if self._prune else np.arange(len(arc))
+        i, j = np.nonzero(lay.conflicts[route[rows, None], route[None, rows]])
+        i, j = rows[i[i < j]], rows[j[i < j]]
         is_merge = _merging_routes(lay)[route[i], route[j]]
         pairs = np.stack([i, j], axis=1).astype(_INT)
         cross, merge = pairs[~is_merge], pairs[is_merge]
@@ -417,6 +423,9 @@ class Shield(Planner):
         half = length[cross] / 2
         cross_lo = lay.zone_start[r, r[:, ::-1]] - m - half
         cross_hi = lay.zone_end[r, r[:, ::-1]] + m + half
+        if self._prune:
+            ahead = (arc[cross] < cross_hi).all(axis=1)
+            cross, cross_lo, cross_hi = cross[ahead], cross_lo[ahead], cross_hi[ahead]
         r = route[merge]
         merge_lo = lay.zone_start[r, r[:, ::-1]] - m - length[merge] / 2
         merge_exit = lay.exit_arc[r]
@@ -457,6 +466,28 @@ class Shield(Planner):
             cross_back=back,
             cross_stop=stop,
         )
+
+    def _may_commit(self, scene: Scene, arc: np.ndarray, speed: np.ndarray, hull_start: np.ndarray) -> np.ndarray:
+        """``(n,)`` bool: vehicles that may commit within a prediction; the others meet no one in it.
+
+        A prediction applies a command of at most ``a_max`` for one period, then the fallback, which
+        brakes at ``a_max`` every vehicle that has not committed. A vehicle's stopping point
+        ``x + v^2 / (2 a_max)`` grows by less than ``x0 + v0 dt + a_max dt^2 / 2 + (v0 + a_max dt)^2 /
+        (2 a_max)`` over the first period (caps and the governor only lower speeds) and does not grow
+        under braking (the simulation's trapezoid sub-steps keep it exactly, up to ``a_max h^2 / 8``
+        at the sub-step that stops the vehicle, inside ``_STOP_SLACK``). Where that bound plus the
+        slack stays before the vehicle's first zone (``hull_start``), it can stop before every zone
+        at every predicted state: it never commits, never enters a zone and never waits for a
+        crossing vehicle, and no crossing vehicle waits for it (it can always stop) nor follows it
+        at a merge (it neither proceeds nor reaches the merge). Its crossing and merging pairs then
+        change nothing in the prediction, the fallback or the check, and are left out (its follow
+        pairs stay: its proposal can still close a gap). ``tests/test_shield.py`` checks that the
+        shield's commands are bitwise those without the pruning.
+        """
+        a_max, dt = float(scene.a_max), float(scene.dt)
+        v1 = speed + a_max * dt
+        reach = arc + speed * dt + 0.5 * a_max * dt * dt + v1 * v1 / (2 * a_max)
+        return reach + _STOP_SLACK + _REACH_TOLERANCE > hull_start
 
     # ------------------------------------------------------------------ the fallback
     def committed(self, plan: _Plan, arc: np.ndarray, speed: np.ndarray, a_max: float) -> np.ndarray:
