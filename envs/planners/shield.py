@@ -41,10 +41,14 @@ the fallback still fail, every vehicle brakes at ``a_max`` and the step is count
 
 Liveness: inside the intersection a planner may not brake a vehicle below :data:`LIVE_SPEED`. A committed
 vehicle gets the fallback's command instead, and one past its stop line that has not committed is
-proposed onwards (checked like any proposal). Before the line the planner decides (docs/shield.md).
+proposed onwards (checked like any proposal). Before the line the planner decides, until the junction
+stalls: when for ``watchdog_after`` seconds no vehicle entered or left the intersection while vehicles
+waited before their lines, a live planner (FIFO by default) proposes instead until traffic moves
+(:mod:`envs.planners.watchdog`, docs/shield.md).
 An invalid proposal is a planner error (:mod:`envs.planners.errors`), answered with the fallback.
 
-Vectorized over vehicles and pairs; the only loops run over the horizon's time steps and over the
+Only the pairs that can conflict are checked (:meth:`Shield._may_commit`). Vectorized over vehicles
+and pairs; the only loops run over the horizon's time steps and over the
 few rounds of overrides. The prediction (step 2), the fallback, the scan of a prediction for
 conflicts (step 3) and the rules that the liveness checks and the blame read (who is committed, who
 waits for whom, who follows whom) run compiled (:mod:`envs.planners._shield_kernel`, numba): the
