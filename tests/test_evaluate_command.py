@@ -13,7 +13,7 @@ from sb3_graph.cli import main
 SUMMARY_KEYS = {
     "runs", "vehicles", "vehicles_scheduled", "not_spawned", "flow_rate", "offered_flow", "stop_ratio",
     "collision_rate", "collided", "delay_s", "speed_limit_violations", "governor_share", "stuck_runs",
-    "last_crossing_s",
+    "last_crossing_s", "slow_ratio", "hard_brakes_per_vehicle", "energy_kj_per_vehicle",
 }  # fmt: skip
 SMALL = ["--scenarios", "2", "--duration", "20", "--seed", "3", "--jobs", "1", "--no-progress"]
 
