@@ -68,9 +68,10 @@ FRONTAL_AREA = 2.12  # "A" [m^2]
 ROLLING_RESISTANCE_F0 = 0.0095104  # "Fr0" [1]
 ROLLING_RESISTANCE_F1 = 7.08e-05  # "Fr1" [s/m]: the speed-proportional rolling resistance
 # "TransmissionData"/"Transm": the table's speeds ("Speed", in km/h there) and rotating-mass factors ("RotMassF").
-GEAR_SPEEDS = np.array(
+GEAR_SPEEDS_KMH = np.array(
     [0.0, 11.161903925181518, 29.412189004603665, 50.349467492985347, 70.242619060656054, 107.97223660963981, 250.0]
-) / 3.6  # [m/s]
+)  # [km/h]
+GEAR_SPEEDS = GEAR_SPEEDS_KMH / 3.6  # [m/s]
 ROTATING_MASS_FACTORS = np.array(
     [2.1106531442153624, 2.1106531442153624, 1.3550542766263412, 1.1605588206788657, 1.0925309339359672,
      1.0598062620163269, 1.0598062620163269]

@@ -97,7 +97,8 @@ class StepRecord:
             object.__setattr__(self, name, np.asarray(getattr(self, name), np.int64).reshape(-1))
         object.__setattr__(self, "collisions", np.asarray(self.collisions, np.int64).reshape(-1, 2))
         speeds = np.asarray(self.speeds, float)
-        object.__setattr__(self, "speeds", speeds.reshape(-1, self.moved.size) if speeds.size else np.zeros((0, self.moved.size)))
+        speeds = speeds.reshape(-1, self.moved.size) if speeds.size else np.zeros((0, self.moved.size))
+        object.__setattr__(self, "speeds", speeds)
 
     @property
     def has_motion(self) -> bool:
