@@ -57,7 +57,7 @@ NOTES = (
     "of consecutive sub-steps), per scheduled vehicle; energy: traction energy at the wheels (positive power "
     "only, no recuperation) of a Euro 4 petrol passenger car (PHEMlight 5: mass, rolling and air resistance, "
     "inertia), per vehicle that crossed, from its appearance to its crossing. All three read the executed "
-    "motion (after the shield and the speed governor), never a planner's command; see `docs/metrics.md`.",
+    "motion (after the shield and the speed governor), never a planner's command; see `docs/sweep.md`.",
     "- Paired differences: per scenario, planner minus the strongest baseline (the non-learned planner with "
     "the highest median flow, on a tie the lower mean delay); mean over scenarios with a "
     f"{100 * CONFIDENCE:.0f} % percentile bootstrap interval over scenarios.",
