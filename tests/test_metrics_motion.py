@@ -235,3 +235,23 @@ def test_the_environment_records_the_executed_sub_step_speeds():
         if terminated or truncated:
             break
     assert governed > 0
+
+
+def test_the_ind_replay_reports_the_recorded_drivers_motion(tmp_path):
+    from envs.commands.ind import dataset_runs
+    from envs.ind.loader import load_recordings
+    from envs.ind.mapping import map_recordings
+    from envs.ind.synthetic import SyntheticSite, default_vehicles, make_recording, write_recording
+
+    write_recording(tmp_path, make_recording(9, default_vehicles(seed=9, num=30), SyntheticSite()))
+    recordings = load_recordings(tmp_path, [9])
+    mapped = map_recordings(recordings)
+    runs, vehicles = dataset_runs(mapped, recordings)
+    tracks = mapped.mapped
+    row = runs.iloc[0]
+    assert row["slow_ratio"] == pytest.approx((tracks["min_speed"] < motion.SLOW_SPEED).mean())
+    assert 0 < row["stop_ratio_all"] <= row["slow_ratio"] < 1  # every stopped driver was slow
+    assert row["hard_brakes_per_vehicle"] == tracks["hard_brakes"].mean()
+    assert row["energy_kj_per_vehicle"] == pytest.approx(tracks["energy_to_centre_j"].mean() / 1000)
+    assert tracks["energy_to_centre_j"].gt(0).all()
+    assert vehicles["traction_energy_j"].tolist() == tracks["energy_to_centre_j"].tolist()
