@@ -50,11 +50,14 @@ class GlideParams(AIMParams):
     """
 
     accel: float = 5.0
+    decel: float = 1.87
+    commit_decel: float = 3.83
     buffer: float = 0.0
-    follow_headway: float = 1.0
-    window: float = 30.0
-    floor: float = 2.0
-    platoon_gap: float = 2.5
+    follow_headway: float = 0.91
+    stop_penalty: float = 1.36
+    window: float = 16.3
+    floor: float = 3.49
+    platoon_gap: float = 1.28
 
     def __post_init__(self) -> None:
         for field in ("window", "floor", "platoon_gap"):
