@@ -65,6 +65,10 @@ class BadCase:
     :param path: the request path (``{stream}`` is the open stream)
     :param token: the token sent (``None``: the right one)
     :param method: HTTP method
+    :param content_type: the ``Content-Type`` header
+    :param host: the ``Host`` header (``None``: the server's address)
+    :param seq: the step's sequence number, relative to the next one (``None``: none sent); put into the
+        body's JSON object by :func:`send` when it has one
     """
 
     name: str
@@ -74,6 +78,9 @@ class BadCase:
     path: str = "/streams/{stream}/step"
     token: str | None = None
     method: str = "POST"
+    content_type: str = "application/json"
+    host: str | None = None
+    seq: int | None = 0
 
 
 def _vehicle_case(good: dict, i: int, key: str, value: Any) -> bytes:
@@ -83,18 +90,20 @@ def _vehicle_case(good: dict, i: int, key: str, value: Any) -> bytes:
 
 
 def bad_input_cases(good: dict, max_body: int, max_vehicles: int = 64) -> list[BadCase]:
-    """The malformed cases, built from a valid wire scene of at least 3 vehicles with ``time`` > 0.
+    """The malformed and hostile cases, built from a valid wire scene of at least 3 vehicles with ``time`` > 0.
 
-    :param good: a valid wire scene (:func:`envs.serve.wire.scene_to_wire`)
+    :param good: a valid wire scene (:func:`envs.serve.wire.scene_to_wire`), without ``seq``
     :param max_body: the server's body limit [bytes]
     :param max_vehicles: the server's ``max_vehicles``
     :return: the cases; their time lies far ahead of ``good``'s, so that the stream's valid steps that
-        follow each case (at ``good``'s time and after) never make a case's time go back
+        follow each case (at ``good``'s time and after) never make a case's time go back. The stream must
+        have answered one step before (the replayed ``seq``).
     """
     good = {**good, "time": good["time"] + 10_000.0}
     v0 = good["vehicles"][0]
     crowd = [{**v0, "id": 10_000 + k} for k in range(max_vehicles + 1)]
     big = [{**v0, "id": 20_000 + k} for k in range(max_body // 60 + 1)]
+    pile = [{**v0, "id": 30_000 + k} for k in range(min(8, max_vehicles))]
     dump = lambda scene: json.dumps(scene).encode()  # noqa: E731
     return [
         BadCase("not JSON (cut short)", dump(good)[:-5], 422, "body"),
@@ -108,6 +117,9 @@ def bad_input_cases(good: dict, max_body: int, max_vehicles: int = 64) -> list[B
         BadCase("negative speed", _vehicle_case(good, 1, "speed", -1.0), 422, "vehicles[1].speed"),
         BadCase("id not an integer", _vehicle_case(good, 0, "id", 1.5), 422, "vehicles[0].id"),
         BadCase("length zero", _vehicle_case(good, 2, "length", 0.0), 422, "vehicles[2].length"),
+        BadCase("length 1e-300", _vehicle_case(good, 2, "length", 1e-300), 422, "vehicles[2].length"),
+        BadCase("width 50 m", _vehicle_case(good, 0, "width", 50.0), 422, "vehicles[0].width"),
+        BadCase(f"{len(pile)} vehicles on one point", dump({**good, "vehicles": pile}), 422, "vehicles[1].arc"),
         BadCase("unknown route", _vehicle_case(good, 2, "route", "south->moon"), 422, "vehicles[2].route"),
         BadCase("duplicate id", _vehicle_case(good, 1, "id", v0["id"]), 422, "vehicles[1].id"),
         BadCase("arc past the route's end", _vehicle_case(good, 0, "arc", 5000.0), 422, "vehicles[0].arc"),
@@ -116,22 +128,42 @@ def bad_input_cases(good: dict, max_body: int, max_vehicles: int = 64) -> list[B
         BadCase("time goes back", dump({**good, "time": 0.0}), 422, "time"),
         BadCase(f"too many vehicles ({max_vehicles + 1})", dump({**good, "vehicles": crowd}), 422, "vehicles"),
         BadCase(f"body over {max_body} bytes", dump({**good, "vehicles": big}), 413, "body"),
+        BadCase("seq missing", dump(good), 422, "seq", seq=None),
+        BadCase("seq skipped", dump(good), 409, "seq", seq=1),
+        BadCase("seq of the last step, another scene", dump(good), 409, "seq", seq=-1),
         BadCase("wrong token", dump(good), 401, "authorization", token="wrong"),
+        BadCase("another site's Host (DNS rebinding)", dump(good), 400, "host", host="attacker.example:80"),
+        BadCase("text/plain (a cross-site form)", dump(good), 415, "content-type", content_type="text/plain"),
         BadCase("unknown stream", dump(good), 404, "stream", path="/streams/0123456789abcdef/step"),
-        BadCase("reset: seed negative", dump({"seed": -1}), 422, "seed", path="/streams/{stream}/reset"),
+        BadCase("unknown path", b"", 404, "path", path="/streams/{stream}/jump", method="GET"),
+        BadCase("wrong method", b"{}", 405, "method", path="/health", method="PUT"),
+        BadCase("reset: seed negative", dump({"seed": -1}), 422, "seed", path="/streams/{stream}/reset", seq=None),
     ]
 
 
-def send(url: str, case: BadCase, stream: str, token: str | None = None) -> tuple[int, dict]:
-    """Send one case on a fresh connection; the status and the JSON answer."""
+def send(url: str, case: BadCase, stream: str, token: str | None = None, seq: int | None = None) -> tuple[int, dict]:
+    """Send one case on a fresh connection; the status and the JSON answer.
+
+    :param seq: the stream's next sequence number (put into the case's body, shifted by ``case.seq``)
+    """
     parts = urlsplit(url)
     connection = http.client.HTTPConnection(parts.hostname, parts.port, timeout=30)
-    headers = {"Content-Type": "application/json"}
+    headers = {"Content-Type": case.content_type}
+    if case.host is not None:
+        headers["Host"] = case.host
     sent = case.token if case.token is not None else token
     if sent:
         headers["Authorization"] = f"Bearer {sent}"
+    body = case.body
+    if seq is not None and case.seq is not None:
+        try:
+            scene = json.loads(body)
+        except ValueError:
+            scene = None
+        if isinstance(scene, dict):
+            body = json.dumps({**scene, "seq": seq + case.seq}).encode()
     try:
-        connection.request(case.method, case.path.format(stream=stream), body=case.body, headers=headers)
+        connection.request(case.method, case.path.format(stream=stream), body=body, headers=headers)
         response = connection.getresponse()
         payload = response.read()
     finally:
@@ -363,7 +395,7 @@ def bad_input_table() -> str:
     from envs.serve.client import PlannerClient
     from envs.serve.wire import scene_to_wire
 
-    token = "bench-token"
+    token = "bench-token-0123456789"
     with tempfile.TemporaryDirectory() as folder:
         token_file = Path(folder) / "token"
         token_file.write_text(token)
@@ -376,7 +408,7 @@ def bad_input_table() -> str:
             client.step(stream, good)
             rows = []
             for case in bad_input_cases(good, 65536):
-                status, reply = send(url, case, stream, token)
+                status, reply = send(url, case, stream, token, seq=client.seq[stream] + 1)
                 good = {**good, "time": good["time"] + 0.2}
                 client.step(stream, good)  # the stream goes on
                 ok = "yes" if (status, reply.get("field")) == (case.status, case.field) else "NO"
