@@ -164,8 +164,7 @@ def run(args: argparse.Namespace) -> int:
         import uvicorn
 
         from envs.serve.access import Access
-        from envs.serve.app import Gateway, create_app
-        from envs.serve.limits import ConnectionGuard, guarded_protocol, limit_logging, uvicorn_protocol
+        from envs.serve.app import Gateway, uvicorn_config
     except ImportError as error:
         raise UserError(f"the server needs the 'serve' extra (pip install 'sb3-graph[serve]'): {error}") from None
     import ssl
@@ -192,18 +191,12 @@ def run(args: argparse.Namespace) -> int:
     host, port = sock.getsockname()[:2]
     gateway.access = _access(args, tokens, host, port)
     shown = f"[{host}]" if family == socket.AF_INET6 else host
-    guard = ConnectionGuard(cap, args.header_timeout, args.body_timeout)
     tls = {}
     if args.ssl_certfile:
         tls = {"ssl_certfile": args.ssl_certfile, "ssl_keyfile": args.ssl_keyfile}
         if args.ssl_ca_certs:
             tls.update(ssl_ca_certs=args.ssl_ca_certs, ssl_cert_reqs=ssl.CERT_REQUIRED)
-    config = uvicorn.Config(
-        create_app(gateway), log_level="warning", access_log=False, timeout_graceful_shutdown=2,
-        http=guarded_protocol(uvicorn_protocol(), guard), limit_concurrency=cap + 1,
-        timeout_keep_alive=args.keep_alive, **tls,
-    )  # fmt: skip
-    limit_logging()  # after uvicorn's own logging set-up, which would drop the filters
+    config = uvicorn_config(gateway, cap, args.header_timeout, args.body_timeout, args.keep_alive, tls)
     scheme = "https" if tls else "http"
     print(f"serving {service.info()['planner']} on {scheme}://{shown}:{port}", flush=True)
     try:

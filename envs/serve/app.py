@@ -590,3 +590,37 @@ def _document(schema: dict[str, Any], gateway: Gateway) -> dict[str, Any]:
                 for operation in operations.values():
                     operation["security"] = []
     return schema
+
+
+def uvicorn_config(
+    gateway: Gateway,
+    max_connections: int = 1000,
+    header_timeout: float = 5.0,
+    body_timeout: float = 10.0,
+    keep_alive: float = 5.0,
+    tls: dict[str, Any] | None = None,
+):
+    """uvicorn's settings for a :class:`Gateway`: the guarded HTTP protocol (connection cap, header and body read
+    timeouts, :mod:`envs.serve.limits`), ``limit_concurrency`` just above the cap, the keep-alive timeout and TLS.
+
+    :param gateway: the server's front
+    :param max_connections: most connections open at once (below the open-file limit)
+    :param header_timeout: seconds for a request's headers to arrive
+    :param body_timeout: seconds for its body to arrive after them
+    :param keep_alive: seconds an idle connection stays open
+    :param tls: uvicorn's ``ssl_*`` settings (``ssl_certfile``, ``ssl_keyfile``, ``ssl_ca_certs``, ``ssl_cert_reqs``)
+    :return: the ``uvicorn.Config`` (its logging already rate-limited)
+    """
+    import uvicorn
+
+    from envs.serve.limits import ConnectionGuard, guarded_protocol, limit_logging, uvicorn_protocol
+
+    guard = ConnectionGuard(max_connections, header_timeout, body_timeout)
+    config = uvicorn.Config(
+        create_app(gateway), log_level="warning", access_log=False, timeout_graceful_shutdown=2,
+        http=guarded_protocol(uvicorn_protocol(), guard), limit_concurrency=max_connections + 1,
+        timeout_keep_alive=keep_alive, **(tls or {}),
+    )  # fmt: skip
+    config.guard = guard
+    limit_logging()  # after uvicorn's own logging set-up (in Config), which would drop the filters
+    return config

@@ -51,6 +51,7 @@ class ConnectionGuard:
                 return False
             self.evicted += 1
             self.drop(victim)
+            victim.connections.discard(victim)  # uvicorn's count (its limit_concurrency) drops now, not at the close
             victim.transport.close()
         self.open[protocol] = None
         return True
@@ -90,6 +91,7 @@ def guarded_protocol(base: type, guard: ConnectionGuard) -> type:
             self._guard_cycle = None
             super().connection_made(transport)
             if not guard.admit(self):
+                self.connections.discard(self)
                 transport.close()
 
         def connection_lost(self, exc) -> None:  # type: ignore[override]
