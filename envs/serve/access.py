@@ -59,7 +59,8 @@ def default_token_path(host: str, port: int) -> Path:
     :param port: its port
     """
     runtime = os.environ.get("XDG_RUNTIME_DIR")
-    base = Path(runtime) / "sb3-graph" if runtime else Path(tempfile.gettempdir()) / f"sb3-graph-{os.getuid()}"
+    user = os.getuid() if hasattr(os, "getuid") else os.environ.get("USERNAME", "user")
+    base = Path(runtime) / "sb3-graph" if runtime else Path(tempfile.gettempdir()) / f"sb3-graph-{user}"
     safe = "".join(c if c.isalnum() or c in ".-" else "_" for c in host.strip("[]"))
     return base / f"serve-{safe}-{int(port)}.token"
 
@@ -75,7 +76,7 @@ def write_private_token(path: Path) -> str:
     folder = path.parent
     folder.mkdir(mode=0o700, parents=True, exist_ok=True)
     info = folder.stat()
-    if info.st_uid != os.getuid() or info.st_mode & (stat.S_IWGRP | stat.S_IWOTH):
+    if (hasattr(os, "getuid") and info.st_uid != os.getuid()) or info.st_mode & (stat.S_IWGRP | stat.S_IWOTH):
         raise ValueError(f"token folder {str(folder)!r} belongs to another user or others may write to it")
     os.chmod(folder, 0o700)
     token = secrets.token_urlsafe(32)
