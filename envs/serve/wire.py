@@ -169,12 +169,15 @@ def _check_overlaps(scene: Scene) -> None:
     if n < 2:
         return
     position = np.asarray(scene.position, float)
-    apart = np.hypot(*(position[:, None, :] - position[None, :, :]).transpose(2, 0, 1))
-    narrow = 0.5 * np.minimum(scene.width[:, None], scene.width[None, :])
-    close = np.triu(apart < narrow, k=1)
+    x, y = position[:, 0], position[:, 1]
+    half = 0.5 * np.asarray(scene.width, float)
+    squared = np.square(x[:, None] - x[None, :]) + np.square(y[:, None] - y[None, :])
+    close = squared < np.square(np.minimum(half[:, None], half[None, :]))
+    np.fill_diagonal(close, False)
     if close.any():
-        j, i = (int(k) for k in np.argwhere(close)[0])
-        raise WireError(f"vehicles[{i}].arc", f"vehicle {int(scene.vehicle_id[i])} is {apart[j, i]:.2f} m from "
+        j, i = (int(k) for k in np.argwhere(np.triu(close, k=1))[0])
+        apart = float(np.sqrt(squared[j, i]))
+        raise WireError(f"vehicles[{i}].arc", f"vehicle {int(scene.vehicle_id[i])} is {apart:.2f} m from "
                                               f"vehicle {int(scene.vehicle_id[j])}: two vehicles cannot be in one "
                                               "place")  # fmt: skip
     leader = np.asarray(scene.leader)
