@@ -16,7 +16,8 @@ connection per stream) from this process:
 - ``--bad-input``: the malformed-input table, each case's status and the server's one-line answer.
 
 The scenes are synthetic and dense: vehicles queued on every incoming lane, 6.5 m apart from the route
-start, nearest the intersection first, at 90 % of their lane limit (planners see the same scene at every
+start (6 m where that does not hold them all; a place that would put two vehicles of merging routes in one
+spot is left out), nearest the intersection first, at 90 % of their lane limit (planners see the same scene at every
 step, the time advancing by one policy period). Times are wall-clock on whatever machine runs this; the
 script prints it.
 
@@ -65,6 +66,10 @@ class BadCase:
     :param path: the request path (``{stream}`` is the open stream)
     :param token: the token sent (``None``: the right one)
     :param method: HTTP method
+    :param content_type: the ``Content-Type`` header
+    :param host: the ``Host`` header (``None``: the server's address)
+    :param seq: the step's sequence number, relative to the next one (``None``: none sent); put into the
+        body's JSON object by :func:`send` when it has one
     """
 
     name: str
@@ -74,6 +79,9 @@ class BadCase:
     path: str = "/streams/{stream}/step"
     token: str | None = None
     method: str = "POST"
+    content_type: str = "application/json"
+    host: str | None = None
+    seq: int | None = 0
 
 
 def _vehicle_case(good: dict, i: int, key: str, value: Any) -> bytes:
@@ -83,18 +91,20 @@ def _vehicle_case(good: dict, i: int, key: str, value: Any) -> bytes:
 
 
 def bad_input_cases(good: dict, max_body: int, max_vehicles: int = 64) -> list[BadCase]:
-    """The malformed cases, built from a valid wire scene of at least 3 vehicles with ``time`` > 0.
+    """The malformed and hostile cases, built from a valid wire scene of at least 3 vehicles with ``time`` > 0.
 
-    :param good: a valid wire scene (:func:`envs.serve.wire.scene_to_wire`)
+    :param good: a valid wire scene (:func:`envs.serve.wire.scene_to_wire`), without ``seq``
     :param max_body: the server's body limit [bytes]
     :param max_vehicles: the server's ``max_vehicles``
     :return: the cases; their time lies far ahead of ``good``'s, so that the stream's valid steps that
-        follow each case (at ``good``'s time and after) never make a case's time go back
+        follow each case (at ``good``'s time and after) never make a case's time go back. The stream must
+        have answered one step before (the replayed ``seq``).
     """
     good = {**good, "time": good["time"] + 10_000.0}
     v0 = good["vehicles"][0]
     crowd = [{**v0, "id": 10_000 + k} for k in range(max_vehicles + 1)]
     big = [{**v0, "id": 20_000 + k} for k in range(max_body // 60 + 1)]
+    pile = [{**v0, "id": 30_000 + k} for k in range(min(8, max_vehicles))]
     dump = lambda scene: json.dumps(scene).encode()  # noqa: E731
     return [
         BadCase("not JSON (cut short)", dump(good)[:-5], 422, "body"),
@@ -108,6 +118,9 @@ def bad_input_cases(good: dict, max_body: int, max_vehicles: int = 64) -> list[B
         BadCase("negative speed", _vehicle_case(good, 1, "speed", -1.0), 422, "vehicles[1].speed"),
         BadCase("id not an integer", _vehicle_case(good, 0, "id", 1.5), 422, "vehicles[0].id"),
         BadCase("length zero", _vehicle_case(good, 2, "length", 0.0), 422, "vehicles[2].length"),
+        BadCase("length 1e-300", _vehicle_case(good, 2, "length", 1e-300), 422, "vehicles[2].length"),
+        BadCase("width 50 m", _vehicle_case(good, 0, "width", 50.0), 422, "vehicles[0].width"),
+        BadCase(f"{len(pile)} vehicles on one point", dump({**good, "vehicles": pile}), 422, "vehicles[1].arc"),
         BadCase("unknown route", _vehicle_case(good, 2, "route", "south->moon"), 422, "vehicles[2].route"),
         BadCase("duplicate id", _vehicle_case(good, 1, "id", v0["id"]), 422, "vehicles[1].id"),
         BadCase("arc past the route's end", _vehicle_case(good, 0, "arc", 5000.0), 422, "vehicles[0].arc"),
@@ -116,22 +129,42 @@ def bad_input_cases(good: dict, max_body: int, max_vehicles: int = 64) -> list[B
         BadCase("time goes back", dump({**good, "time": 0.0}), 422, "time"),
         BadCase(f"too many vehicles ({max_vehicles + 1})", dump({**good, "vehicles": crowd}), 422, "vehicles"),
         BadCase(f"body over {max_body} bytes", dump({**good, "vehicles": big}), 413, "body"),
+        BadCase("seq missing", dump(good), 422, "seq", seq=None),
+        BadCase("seq skipped", dump(good), 409, "seq", seq=1),
+        BadCase("seq of the last step, another scene", dump(good), 409, "seq", seq=-1),
         BadCase("wrong token", dump(good), 401, "authorization", token="wrong"),
+        BadCase("another site's Host (DNS rebinding)", dump(good), 400, "host", host="attacker.example:80"),
+        BadCase("text/plain (a cross-site form)", dump(good), 415, "content-type", content_type="text/plain"),
         BadCase("unknown stream", dump(good), 404, "stream", path="/streams/0123456789abcdef/step"),
-        BadCase("reset: seed negative", dump({"seed": -1}), 422, "seed", path="/streams/{stream}/reset"),
+        BadCase("unknown path", b"", 404, "path", path="/streams/{stream}/jump", method="GET"),
+        BadCase("wrong method", b"{}", 405, "method", path="/health", method="PUT"),
+        BadCase("reset: seed negative", dump({"seed": -1}), 422, "seed", path="/streams/{stream}/reset", seq=None),
     ]
 
 
-def send(url: str, case: BadCase, stream: str, token: str | None = None) -> tuple[int, dict]:
-    """Send one case on a fresh connection; the status and the JSON answer."""
+def send(url: str, case: BadCase, stream: str, token: str | None = None, seq: int | None = None) -> tuple[int, dict]:
+    """Send one case on a fresh connection; the status and the JSON answer.
+
+    :param seq: the stream's next sequence number (put into the case's body, shifted by ``case.seq``)
+    """
     parts = urlsplit(url)
     connection = http.client.HTTPConnection(parts.hostname, parts.port, timeout=30)
-    headers = {"Content-Type": "application/json"}
+    headers = {"Content-Type": case.content_type}
+    if case.host is not None:
+        headers["Host"] = case.host
     sent = case.token if case.token is not None else token
     if sent:
         headers["Authorization"] = f"Bearer {sent}"
+    body = case.body
+    if seq is not None and case.seq is not None:
+        try:
+            scene = json.loads(body)
+        except ValueError:
+            scene = None
+        if isinstance(scene, dict):
+            body = json.dumps({**scene, "seq": seq + case.seq}).encode()
     try:
-        connection.request(case.method, case.path.format(stream=stream), body=case.body, headers=headers)
+        connection.request(case.method, case.path.format(stream=stream), body=body, headers=headers)
         response = connection.getresponse()
         payload = response.read()
     finally:
@@ -144,14 +177,16 @@ def send(url: str, case: BadCase, stream: str, token: str | None = None) -> tupl
 
 
 # ---------------------------------------------------------------------- scenes and servers
-def dense_scene(n: int, time_s: float = 0.0):
-    """A synthetic scene of ``n`` vehicles on the 4-way layout (see the module docstring)."""
+def dense_scene(n: int, time_s: float = 0.0, env: str = ENV, spacing: float = 6.5):
+    """A synthetic scene of ``n`` vehicles on the layout of ``env``, ``spacing`` apart (see the module docstring;
+    6 m where 6.5 m does not hold ``n``)."""
     import gymnasium as gym
 
     import envs  # noqa: F401
-    from envs.serve.wire import SceneBuilder
+    from envs.serve.wire import SceneBuilder, WireError
 
-    env = gym.make(ENV, config={"max_vehicles": max(n, 64)})
+    env_id = env
+    env = gym.make(env_id, config={"max_vehicles": max(n, 64)})
     builder = SceneBuilder(dict(env.unwrapped.config))
     env.close()
     lay = builder.layout
@@ -160,18 +195,31 @@ def dense_scene(n: int, time_s: float = 0.0):
     for spawn in spawns:
         routes = np.flatnonzero(lay.route_spawn_lane == spawn)
         top = float(lay.length[routes].min()) - 3.0
-        for k, arc in enumerate(np.arange(3.0, top, 6.5)):
+        for k, arc in enumerate(np.arange(3.0, top, spacing)):
             slots.append((abs(arc - float(lay.entry_arc[routes[0]]) + 5.0), spawn, k, float(arc)))
     slots.sort()
-    if n > len(slots):
-        raise ValueError(f"at most {len(slots)} vehicles fit the synthetic scene")
     cars = []
-    for i, (_, spawn, k, arc) in enumerate(slots[:n]):
+    for spawn, k, arc in (slot[1:] for slot in slots):
         routes = np.flatnonzero(lay.route_spawn_lane == spawn)
         route = int(routes[k % routes.size])
         limit = float(lay.limit_at(np.array([route]), np.array([arc]))[0])
-        cars.append(SimpleCar(i, lay.route_names[route], arc, 0.9 * limit))
-    return builder.scene(lay.name, time_s, cars), builder
+        cars.append(SimpleCar(len(cars), lay.route_names[route], arc, 0.9 * limit))
+    # Slots inside the intersection can put two vehicles of merging routes in one place, which the server
+    # refuses: such a slot is left out and the next one taken.
+    chosen, rest = cars[:n], cars[n:]
+    while True:
+        if len(chosen) < n:
+            if spacing > 6.0:
+                return dense_scene(n, time_s, env_id, 6.0)
+            raise ValueError(f"at most {len(chosen)} vehicles fit the synthetic scene")
+        try:
+            return builder.scene(lay.name, time_s, chosen), builder
+        except WireError as error:
+            i = int(error.field.split("[")[1].split("]")[0])
+            chosen = chosen[:i] + chosen[i + 1 :] + rest[:1]
+            rest = rest[1:]
+            for k, car in enumerate(chosen):
+                car.id = k
 
 
 @dataclass
@@ -226,9 +274,15 @@ def _ms(values: list[float]) -> tuple[float, float, float]:
 
 # ---------------------------------------------------------------------- measurements
 def cpu_s(pid: int) -> float:
-    """CPU time (user + system) a process has used [s] (Linux ``/proc``, 10 ms ticks)."""
+    """CPU time (user + system) a process and its living children (the planning processes) have used [s]
+    (Linux ``/proc``, 10 ms ticks)."""
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    own = (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    try:
+        children = Path(f"/proc/{pid}/task/{pid}/children").read_text().split()
+    except OSError:
+        children = []
+    return own + sum(cpu_s(int(child)) for child in children)
 
 
 def latency(url: str, pid: int, planner_spec: str, sizes: list[int], decisions: int, seconds: float) -> list[dict]:
@@ -279,30 +333,41 @@ def latency(url: str, pid: int, planner_spec: str, sizes: list[int], decisions: 
     return rows
 
 
-def throughput(url: str, n: int, streams: int, seconds: float) -> dict:
-    """Decisions per second with ``streams`` streams stepped at once, and the errors."""
+def throughput(url: str, n: int, streams: int, seconds: float, env: str = ENV) -> dict:
+    """Decisions per second with ``streams`` streams stepped back-to-back at once (one thread and connection
+    each), the latency of their decisions [ms] and the errors by status."""
     from envs.serve.client import PlannerClient, RemotePlannerError
     from envs.serve.wire import scene_to_wire
 
-    scene, _ = dense_scene(n)
+    scene, _ = dense_scene(n, env=env)
     wire = scene_to_wire(scene)
-    done, errors, lock = [0], [0], threading.Lock()
+    times: list[float] = []
+    errors: dict[int, int] = {}
+    lock = threading.Lock()
     start = threading.Barrier(streams + 1)
     stop_at: list[float] = [0.0]
 
     def work() -> None:
-        client = PlannerClient(url)
-        stream = client.open("4way", seed=0)
+        client = PlannerClient(url, timeout=30)
+        try:
+            stream = client.open(wire["layout"], seed=0)
+        except RemotePlannerError as error:
+            with lock:
+                errors[error.status] = errors.get(error.status, 0) + 1
+            start.wait()
+            return
         start.wait()
         k = 0
         while time.monotonic() < stop_at[0]:
+            tic = time.perf_counter()
             try:
                 client.step(stream, {**wire, "time": k * scene.dt})
                 with lock:
-                    done[0] += 1
-            except (RemotePlannerError, OSError):
+                    times.append(time.perf_counter() - tic)
+            except (RemotePlannerError, OSError) as error:
                 with lock:
-                    errors[0] += 1
+                    status = getattr(error, "status", 0)
+                    errors[status] = errors.get(status, 0) + 1
             k += 1
         client.close(stream)
         client.disconnect()
@@ -316,7 +381,91 @@ def throughput(url: str, n: int, streams: int, seconds: float) -> dict:
     for thread in threads:
         thread.join(timeout=seconds + 60)
     wall = time.monotonic() - tic
-    return {"streams": streams, "decisions": done[0], "decisions/s": done[0] / wall, "errors": errors[0]}
+    p50, p99, worst = _ms(times) if times else (float("nan"),) * 3
+    shown = ", ".join(f"{k}: {v}" for k, v in sorted(errors.items())) or "0"
+    return {"streams": streams, "vehicles": n, "decisions": len(times), "decisions/s": len(times) / wall,
+            "p50 [ms]": p50, "p99 [ms]": p99, "max [ms]": worst, "errors (status: count)": shown}  # fmt: skip
+
+
+def concurrency(workers: list[int], small: int, big: int, n_small: int, seconds: float) -> list[dict]:
+    """Latency of ``small`` streams of ``n_small`` vehicles, alone and beside one stream of ``big`` vehicles,
+    for each number of planning processes (AIM behind the server's shield, every stream back-to-back)."""
+    from envs.serve.wire import scene_to_wire
+
+    kwargs = json.dumps({"config": {"max_vehicles": max(big, 64)}})
+    small_scene, big_scene = scene_to_wire(dense_scene(n_small)[0]), scene_to_wire(dense_scene(big)[0])
+    rows = []
+    for count in workers:
+        process, url = start_server("aim", "--shield", "--env-kwargs", kwargs, "--workers", str(count),
+                                    "--time-limit", "30")  # fmt: skip
+        try:
+            _streams(url, ["small", "big"], {"small": small_scene, "big": big_scene}, 0.5)  # untimed: compiled kernels
+            for with_big in (False, True):
+                kinds = (["big"] if with_big else []) + ["small"] * small  # the big stream opens first
+                times = _streams(url, kinds, {"small": small_scene, "big": big_scene}, seconds)
+                s50, s99, smax = _ms(times["small"])
+                b50 = _ms(times["big"])[0] if times["big"] else float("nan")
+                rows.append({"workers": count, "load": f"{small} x {n_small} vehicles" + (f" + 1 x {big} vehicles"
+                             if with_big else ""), "small decisions": len(times["small"]), "small p50": s50,
+                             "small p99": s99, "small max": smax, "big p50": b50,
+                             "big decisions": len(times["big"])})  # fmt: skip
+        finally:
+            stop_server(process)
+    return rows
+
+
+def _streams(url: str, kinds: list[str], scenes: dict[str, dict], seconds: float) -> dict[str, list[float]]:
+    """One thread and stream per entry of ``kinds`` (opened one after the other, so that the server spreads
+    them over its workers), each stepping ``scenes[kind]`` back-to-back; the latencies [s] per kind."""
+    from envs.serve.client import PlannerClient
+
+    times: dict[str, list[float]] = {kind: [] for kind in scenes}
+    lock, stop, ready = threading.Lock(), time.monotonic() + seconds + 0.2 * len(kinds), threading.Barrier(len(kinds))
+
+    def work(kind: str) -> None:
+        client = PlannerClient(url, timeout=60)
+        stream = client.open(scenes[kind]["layout"], seed=0)
+        ready.wait()
+        k = 0
+        while time.monotonic() < stop:
+            tic = time.perf_counter()
+            client.step(stream, {**scenes[kind], "time": 0.2 * k})
+            with lock:
+                times[kind].append(time.perf_counter() - tic)
+            k += 1
+        client.close(stream)
+
+    threads = []
+    for kind in kinds:
+        threads.append(threading.Thread(target=work, args=(kind,)))
+        threads[-1].start()
+        time.sleep(0.2)
+    for thread in threads:
+        thread.join(timeout=seconds + 120)
+    return times
+
+
+# The remote planner's own counters (a run in process has none): left out of the identity's comparison.
+REMOTE_COLUMNS = ("remote_deadline_misses", "remote_retries", "remote_reopened")
+LOAD_LIMITS = {"clients": 64, "seconds": 120.0, "vehicles": 1024}
+
+
+def load_test(url: str, clients: int, seconds: float, vehicles: int) -> str:
+    """A bounded load test of a running server (one's own): ``clients`` streams stepping back-to-back for
+    ``seconds`` seconds on a synthetic scene of ``vehicles`` vehicles of the server's layout."""
+    from envs.serve.client import PlannerClient, RemotePlannerError
+
+    for name, value in (("clients", clients), ("seconds", seconds), ("vehicles", vehicles)):
+        if not 0 < value <= LOAD_LIMITS[name]:
+            raise SystemExit(f"--{name} must be from 1 to {LOAD_LIMITS[name]}, got {value}")
+    try:
+        info = PlannerClient(url, timeout=10).version()
+    except RemotePlannerError as error:
+        raise SystemExit(f"--url: {error} (a token: $SB3_GRAPH_TOKEN_FILE)") from None
+    n = min(vehicles, int(info["max_vehicles"]))
+    row = throughput(url, n, clients, seconds, env=info["env"])
+    return (f"server: {info['planner']} (shield: {info['shield']}), {info['env']}, workers {info.get('workers')}\n"
+            f"load: {clients} streams x {n} vehicles, back-to-back, {seconds:g} s\n\n" + _table([row], 1))
 
 
 def churn(url: str, pid: int, count: int, seconds: float) -> dict:
@@ -363,7 +512,7 @@ def bad_input_table() -> str:
     from envs.serve.client import PlannerClient
     from envs.serve.wire import scene_to_wire
 
-    token = "bench-token"
+    token = "bench-token-0123456789"
     with tempfile.TemporaryDirectory() as folder:
         token_file = Path(folder) / "token"
         token_file.write_text(token)
@@ -376,7 +525,7 @@ def bad_input_table() -> str:
             client.step(stream, good)
             rows = []
             for case in bad_input_cases(good, 65536):
-                status, reply = send(url, case, stream, token)
+                status, reply = send(url, case, stream, token, seq=client.seq[stream] + 1)
                 good = {**good, "time": good["time"] + 0.2}
                 client.step(stream, good)  # the stream goes on
                 ok = "yes" if (status, reply.get("field")) == (case.status, case.field) else "NO"
@@ -399,8 +548,11 @@ def identity(scenarios: int, duration: float, seed: int, skip_gnn: bool = False)
 
     import pandas as pd
 
+    from envs.serve.client import DEADLINE_VARIABLE
     from sb3_graph.cli import main as cli
 
+    # a real-time deadline on a loaded machine would change runs (each miss is counted): the identity is the point
+    os.environ.setdefault(DEADLINE_VARIABLE, "60")
     servers = [("aim", ())] + ([] if skip_gnn else [(str(MODEL), ()), (str(MODEL), ("--shield",))])
     started = [start_server(spec, *extra) for spec, extra in servers]
     try:
@@ -420,11 +572,11 @@ def identity(scenarios: int, duration: float, seed: int, skip_gnn: bool = False)
     finally:
         for process, _ in started:
             stop_server(process)
-    rows, drop = [], ["planner", "wall_s", "baseline"]
+    rows, drop = [], ["planner", "wall_s", "baseline", *REMOTE_COLUMNS]
     names = {w: n for w, n in zip(words, list(dict.fromkeys(metrics["planner"])))}
     for local, remote in pairs:
-        a = metrics[metrics.planner == names[local]].drop(columns=drop).reset_index(drop=True)
-        b = metrics[metrics.planner == names[remote]].drop(columns=drop).reset_index(drop=True)
+        a = metrics[metrics.planner == names[local]].drop(columns=drop, errors="ignore").reset_index(drop=True)
+        b = metrics[metrics.planner == names[remote]].drop(columns=drop, errors="ignore").reset_index(drop=True)
         va = vehicles[vehicles.planner == names[local]].drop(columns="planner").reset_index(drop=True)
         vb = vehicles[vehicles.planner == names[remote]].drop(columns="planner").reset_index(drop=True)
         rows.append({"in process": names[local], "through the server": names[remote].replace(names[local], "..."),
@@ -472,7 +624,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--load-planner", default="aim", help="planner of the throughput runs (default: aim)")
     parser.add_argument("--load-vehicles", type=int, default=50, help="vehicles in the throughput scene (default: 50)")
     parser.add_argument("--load-streams", type=int, nargs="+", default=[1, 8, 32])
-    parser.add_argument("--load-seconds", type=float, default=5.0, help="duration of each throughput run [s]")
+    parser.add_argument("--load-seconds", type=float, default=5.0, help="duration of each throughput, concurrency "
+                        f"and load-test run [s] (default: 5; at most {LOAD_LIMITS['seconds']:g} in --load-test)")
     parser.add_argument("--churn", type=int, default=10_000, help="streams opened and closed (default: 10000)")
     parser.add_argument("--churn-seconds", type=float, default=240.0, help="time cap of the churn [s] (default: 240)")
     parser.add_argument("--skip-gnn", action="store_true", help="AIM only")
@@ -483,6 +636,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--scenarios", type=int, default=3, help="scenarios of --identity (default: 3)")
     parser.add_argument("--duration", type=float, default=60.0, help="seconds per run of --identity (default: 60)")
     parser.add_argument("--seed", type=int, default=0, help="seed of --identity's scenarios (default: 0)")
+    parser.add_argument("--concurrency", action="store_true", help="only: small streams alone and beside a large "
+                        "scene, for each of --workers (AIM+shield)")  # fmt: skip
+    parser.add_argument("--workers", type=int, nargs="+", default=[1, 2], help="planning processes of --concurrency")
+    parser.add_argument("--small-streams", type=int, default=3, help="small streams of --concurrency (default: 3)")
+    parser.add_argument("--big-vehicles", type=int, default=100, help="the large scene of --concurrency (default: 100)")
+    parser.add_argument("--load-test", action="store_true", help="only: a bounded load test of a running server "
+                        "(--url, --clients, --load-seconds, --load-vehicles)")  # fmt: skip
+    parser.add_argument("--url", default="http://127.0.0.1:8765", help="server of --load-test (default: "
+                        "http://127.0.0.1:8765, loopback)")  # fmt: skip
+    parser.add_argument("--clients", type=int, default=4, help=f"streams of --load-test (default: 4, at most "
+                        f"{LOAD_LIMITS['clients']})")  # fmt: skip
     args = parser.parse_args(argv)
     import torch
 
@@ -490,6 +654,15 @@ def main(argv: list[str] | None = None) -> int:
     print(f"machine: {platform.node()}, nproc={os.cpu_count()}, load average {os.getloadavg()[0]:.1f}, "
           f"Python {platform.python_version()}, torch {torch.__version__}")  # fmt: skip
     print(f"command: python benchmarks/bench_serve.py {' '.join(argv if argv is not None else sys.argv[1:])}\n")
+    if args.load_test:
+        print("## Load test\n")
+        print(load_test(args.url, args.clients, args.load_seconds, args.load_vehicles))
+        return 0
+    if args.concurrency:
+        print(f"## Concurrency: {args.small_streams} small streams alone and beside one of {args.big_vehicles} "
+              f"vehicles (AIM+shield, back-to-back, {args.load_seconds:g} s per run) [ms]\n")  # fmt: skip
+        print(_table(concurrency(args.workers, args.small_streams, args.big_vehicles, 10, args.load_seconds)))
+        return 0
     if args.identity:
         print(f"## evaluate in process and through the server ({args.scenarios} scenarios x {args.duration:g} s, "
               f"seed {args.seed})\n")  # fmt: skip

@@ -27,7 +27,7 @@ import pytest
 import envs  # noqa: F401  (registers the environments)
 from envs.planners import AIMPlanner, check_planner_spec, make_planner, planner_name
 from envs.planners.shield import Shield
-from envs.serve.client import TOKEN_FILE_VARIABLE, PlannerClient, RemotePlannerError
+from envs.serve.client import DEADLINE_VARIABLE, TOKEN_FILE_VARIABLE, PlannerClient, RemotePlannerError
 from envs.serve.wire import SceneBuilder, WireError, scene_to_wire
 from envs.simulation.scene import Scene
 from sb3_graph.cli import main
@@ -145,7 +145,8 @@ def test_wire_refuses_what_the_intersection_cannot_hold(recorded):
 def test_remote_spec_is_checked_without_a_server():
     assert check_planner_spec("http://127.0.0.1:8765") == "http://127.0.0.1:8765"
     assert check_planner_spec("http://localhost:8765/+shield") == "http://localhost:8765+shield"
-    for bad, word in (("http://127.0.0.1", "port"), ("https://127.0.0.1:1", "http://"),
+    assert check_planner_spec("https://localhost:8765") == "https://localhost:8765"
+    for bad, word in (("http://127.0.0.1", "port"), ("ftp://127.0.0.1:1", "http://"),
                       ("http://127.0.0.1:1/plan", "path"), ("http://127.0.0.1:99999", "port")):  # fmt: skip
         with pytest.raises(ValueError, match=word):
             check_planner_spec(bad)
@@ -262,7 +263,7 @@ def test_bad_input_is_refused_naming_the_field_and_the_stream_goes_on(server, cl
         client.step(stream, good)
         steps = 0
         for case in bench.bad_input_cases(good, MAX_BODY):
-            status, reply = bench.send(server.url, case, stream, TOKEN)
+            status, reply = bench.send(server.url, case, stream, TOKEN, seq=client.seq[stream] + 1)
             assert (status, reply.get("field")) == (case.status, case.field), (case.name, status, reply)
             assert case.field in reply["error"], case.name
             good = {**good, "time": good["time"] + 0.2}
@@ -272,7 +273,7 @@ def test_bad_input_is_refused_naming_the_field_and_the_stream_goes_on(server, cl
         assert client.request("POST", f"/streams/{stream}/reset", {"seed": 0})["steps"] == 0
     finally:
         client.close(stream)
-    assert steps >= 15
+    assert steps >= 25
 
 
 @needs_server
@@ -311,6 +312,7 @@ def test_wrong_token_is_refused(server):
 def test_evaluate_remote_gives_identical_metrics(server, tmp_path, monkeypatch):
     """``evaluate --planner http://...`` (and ``+shield``, shielded in the client) gives the in-process metrics."""
     monkeypatch.setenv(TOKEN_FILE_VARIABLE, str(server.token_file))
+    monkeypatch.setenv(DEADLINE_VARIABLE, "60")  # no fallback on this shared machine: the identity is the point
     out = tmp_path / "report"
     words = ["aim", server.url, "aim+shield", server.url + "+shield"]
     args = ["evaluate", "--out", str(out), "--scenarios", "2", "--duration", "30", "--seed", "5", "--jobs", "1",
@@ -320,7 +322,8 @@ def test_evaluate_remote_gives_identical_metrics(server, tmp_path, monkeypatch):
     vehicles = pd.read_csv(out / "vehicles.csv")
     remote = f"AIM@{server.url.removeprefix('http://')}"
     assert list(dict.fromkeys(metrics["planner"])) == ["AIM", remote, "AIM+shield", remote + "+shield"]
-    drop = ["planner", "wall_s", "baseline"]
+    drop = ["planner", "wall_s", "baseline", "remote_deadline_misses", "remote_retries", "remote_reopened"]
+    assert (metrics.loc[metrics.planner.str.contains("@"), "remote_deadline_misses"] == 0).all()
     for local, far in (("AIM", remote), ("AIM+shield", remote + "+shield")):
         a = metrics[metrics.planner == local].drop(columns=drop, errors="ignore").reset_index(drop=True)
         b = metrics[metrics.planner == far].drop(columns=drop, errors="ignore").reset_index(drop=True)
@@ -345,8 +348,8 @@ def test_server_side_shield_and_gnn_answer_as_in_process(recorded):
     first = service.open(OpenRequest(layout="4way", seed=0))
     second = service.open(OpenRequest(layout="4way", seed=0))
     assert first.planner is not second.planner and first.planner.planner is second.planner.planner
-    for scene in _scenes(recorded, "aim")[:60]:
-        reply = service.step(first.id, SceneIn.model_validate(_through_json(scene)))
+    for seq, scene in enumerate(_scenes(recorded, "aim")[:60], start=1):
+        reply = service.step(first.id, SceneIn.model_validate({**_through_json(scene), "seq": seq}))
         np.testing.assert_array_equal(reply["accelerations"], local.act(scene))
         assert reply["shield"]["overridden"] == local.last_overridden.tolist()
     assert first.planner.interventions == local.interventions and second.planner.interventions == 0
@@ -360,7 +363,7 @@ def test_openapi_schema_documents_the_scene_in_physical_units(client):
     assert "[m]" in vehicle["arc"]["description"] and "[m/s]" in vehicle["speed"]["description"]
     step = schema["paths"]["/streams/{stream}/step"]["post"]
     assert step["requestBody"]["content"]["application/json"]["schema"]["$ref"].endswith("/SceneIn")
-    assert {"401", "404", "413", "422", "429"} <= set(step["responses"])
+    assert {"400", "401", "404", "409", "413", "415", "422", "429", "503"} <= set(step["responses"])
 
 
 @needs_server
@@ -370,6 +373,7 @@ def test_evaluate_behind_a_shielding_server_reports_its_counters(tmp_path, monke
     token_file = tmp_path / "token"
     token_file.write_text(TOKEN + "\n")
     monkeypatch.setenv(TOKEN_FILE_VARIABLE, str(token_file))
+    monkeypatch.setenv(DEADLINE_VARIABLE, "60")
     process, url = start_server("aim", "--shield", "--token-file", str(token_file))
     try:
         out = tmp_path / "report"

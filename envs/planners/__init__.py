@@ -109,7 +109,10 @@ def make_planner(spec: str, trust_files: bool = False) -> Planner:
     if key.endswith(SHIELD_SUFFIX):
         from envs.planners.shield import Shield
 
-        return Shield(make_planner(key[: -len(SHIELD_SUFFIX)], trust_files=trust_files))
+        inner = key[: -len(SHIELD_SUFFIX)]
+        if is_remote_spec(inner):  # its misses get the shield's fallback
+            return make_remote_planner(inner, shielded=True)
+        return Shield(make_planner(inner, trust_files=trust_files))
     if key in BASELINES:
         return BASELINES[key]()
     if is_remote_spec(key):

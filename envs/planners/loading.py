@@ -111,21 +111,24 @@ def check_remote_spec(spec: str) -> str:
     :return: the normalised address
     :raises ValueError: anything but ``http://HOST:PORT``
     """
-    from envs.serve.client import parse_address
+    from envs.serve.client import parse_url
 
-    host, port = parse_address(spec)
-    return f"http://{host}:{port}"
+    scheme, host, port = parse_url(spec)
+    return f"{scheme}://{host}:{port}"
 
 
-def make_remote_planner(spec: str) -> Planner:
+def make_remote_planner(spec: str, shielded: bool = False) -> Planner:
     """The planner that plans through the server at ``spec`` (:class:`envs.serve.client.RemotePlanner`).
 
     :param spec: ``http://HOST:PORT``
+    :param shielded: shield it here, in the client (:class:`envs.serve.client.RemoteShield`: a missed
+        deadline gets the shield's fallback)
     :raises ValueError: the server cannot be reached or refuses (a wrong token)
     """
-    from envs.serve.client import RemotePlanner
+    from envs.serve.client import RemotePlanner, RemoteShield
 
-    return RemotePlanner(check_remote_spec(spec))
+    planner = RemotePlanner(check_remote_spec(spec))
+    return RemoteShield(planner) if shielded else planner
 
 
 def remote_planner_name(spec: str) -> str:

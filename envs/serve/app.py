@@ -6,27 +6,36 @@ Built with FastAPI (pydantic models, OpenAPI schema at ``/openapi.json`` and ``/
 - ``GET /health``: liveness; ``GET /version``: what the server runs (:class:`~envs.serve.schema.ServerInfo`);
 - ``POST /streams``: open a stream (its own planner state: AIM's reservations, the shield's plans,
   signal phases), ``201`` with its id;
-- ``POST /streams/{id}/step``: a scene (:class:`~envs.serve.schema.SceneIn`), answered with one
-  acceleration per vehicle; ``POST /streams/{id}/reset``: a new episode; ``DELETE /streams/{id}``: close.
+- ``POST /streams/{id}/step``: a scene (:class:`~envs.serve.schema.SceneIn`) with its sequence number
+  ``seq``, answered with one acceleration per vehicle (the same ``seq`` again: the cached answer);
+  ``POST /streams/{id}/reset``: a new episode; ``DELETE /streams/{id}``: close.
+
+Two layers: the :class:`Gateway` (the event loop's process) checks every request (``Host``, token,
+``Content-Type``, size) and keeps the open streams, whose client owns each, the quotas and the idle
+expiry; the :class:`PlannerService` holds the planners of the streams and answers a request's raw body
+(:meth:`PlannerService.handle`), in the server's process or in the worker process that the stream was
+given to (:mod:`envs.serve.workers`).
 
 Bad input gets a 4xx whose body names the field (:class:`~envs.serve.schema.ErrorReply`), and the
-stream and the server go on: 401 a missing or wrong token, 404 an unknown stream, 413 a body over
-the limit, 422 a malformed scene (wrong type, unknown field, NaN or infinity, out of range, unknown
-route, duplicate id, time going back, another layout, too many vehicles), 429 too many streams.
-Every answer carries ``Server-Timing: app;dur=<ms>``, the server's own time for it.
-
-The endpoints are ``async`` and plan on the event loop: one decision at a time, no thread hand-off
-(a planner is CPU work; on one core, threads would only add switching).
+stream and the server go on: 400 an unknown ``Host``, 401 a missing or wrong token, 404 an unknown
+stream or path, 405 a wrong method, 409 a ``seq`` out of order, 413 a body over the limit, 415 a body
+that is not JSON, 422 a malformed scene (wrong type, unknown field, NaN or infinity, out of range,
+impossible size, two vehicles in one place, unknown route, duplicate id, time going back, another
+layout, too many vehicles), 429 too many streams, 503 no answer within the time limit. Every answer
+carries ``Server-Timing: app;dur=<ms>``, the server's own time for it.
 """
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import copy
-import hmac
+import hashlib
 import json
 import math
 import secrets
 import time
+from collections import Counter
 from dataclasses import dataclass, field
 from types import SimpleNamespace
 from typing import Any
@@ -34,10 +43,12 @@ from typing import Any
 import numpy as np
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse, Response
-from pydantic import ValidationError
+from fastapi.responses import Response
+from pydantic import BaseModel, ValidationError
+from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from envs.planners.base import Planner
+from envs.serve.access import Access
 from envs.serve.schema import (
     ErrorReply,
     Health,
@@ -49,34 +60,44 @@ from envs.serve.schema import (
     StreamReply,
 )
 from envs.serve.wire import SCHEMA_VERSION, SceneBuilder, WireError
+from envs.serve.workers import InlinePool, ProcessPool, WorkerGone
 
 # Paths anyone may read without the token (liveness and the schema).
 OPEN_PATHS = frozenset({"/health", "/openapi.json", "/docs", "/docs/oauth2-redirect"})
-ERRORS = {code: {"model": ErrorReply} for code in (401, 404, 413, 422, 429)}
+ERRORS = {code: {"model": ErrorReply} for code in (400, 401, 404, 409, 413, 415, 422, 429, 503)}
+# Methods whose body must be JSON (refused with 415 before it is read otherwise).
+BODY_METHODS = frozenset({"POST", "PUT", "PATCH"})
 
 
 class RequestError(Exception):
     """A refused request: its status, the field and the message (the body of :class:`ErrorReply`)."""
 
-    def __init__(self, status: int, field: str, message: str) -> None:
+    def __init__(self, status: int, field: str, message: str, **extra: Any) -> None:
         super().__init__(message)
-        self.status, self.field, self.message = status, field, message
+        self.status, self.field, self.message, self.extra = status, field, message, extra
 
 
 @dataclass
 class Stream:
-    """One planning stream: its planner (its own state) and its clock."""
+    """One planning stream: its planner (its own state), its clock and its last answer (for a retry)."""
 
     id: str
     layout: str
     planner: Planner
     steps: int = 0
     last_time: float = -math.inf
-    last_used: float = field(default_factory=time.monotonic)
+    seq: int = 0
+    digest: bytes | None = None
+    reply: dict[str, Any] | None = None
 
 
-def _error(status: int, field_name: str, message: str) -> JSONResponse:
-    return JSONResponse({"error": f"{field_name}: {message}", "field": field_name}, status_code=status)
+def _error_body(field_name: str, message: str, **extra: Any) -> bytes:
+    return json.dumps({"error": f"{field_name}: {message}", "field": field_name, **extra}).encode()
+
+
+def _error(status: int, field_name: str, message: str, headers: dict[str, str] | None = None) -> Response:
+    return Response(_error_body(field_name, message), status_code=status, media_type="application/json",
+                    headers=headers)  # fmt: skip
 
 
 def _field_of(loc: tuple) -> str:
@@ -86,6 +107,12 @@ def _field_of(loc: tuple) -> str:
     for part in parts:
         text += f"[{part}]" if isinstance(part, int) else (f".{part}" if text else str(part))
     return text or "body"
+
+
+def _validation_field(error: ValidationError | RequestValidationError) -> tuple[str, str]:
+    first = error.errors()[0]
+    name = "body" if first.get("type") == "json_invalid" else _field_of(tuple(first.get("loc", ())))
+    return name, str(first.get("msg", "invalid"))
 
 
 def _shared_parts(planner: Any, depth: int = 0) -> list[Any]:
@@ -99,29 +126,18 @@ def _shared_parts(planner: Any, depth: int = 0) -> list[Any]:
 
 
 class PlannerService:
-    """The server's state: the planner prototype, the scene builder and the open streams.
+    """The planners of the streams: the prototype, the scene builder and each open stream's planner.
+
+    It runs where the planning runs (the server's process, or one worker process per share of the
+    streams); the :class:`Gateway` decides which streams exist and who owns them.
 
     :param spec: planner spec (as ``evaluate --planner``; not a remote one)
     :param env_id: gymnasium id whose configuration (layout, policy period, limits) the server uses
     :param env_kwargs: ``gym.make`` keyword arguments of that environment
     :param shield: wrap the planner in the safety shield (per stream)
-    :param token: if given, every request but :data:`OPEN_PATHS` must carry ``Authorization: Bearer <token>``
-    :param max_streams: most streams open at once
-    :param stream_timeout: a stream unused for this long [s] is closed when a new one opens
-    :param max_body: largest request body [bytes]
     """
 
-    def __init__(
-        self,
-        spec: str,
-        env_id: str,
-        env_kwargs: dict[str, Any] | None = None,
-        shield: bool = False,
-        token: str | None = None,
-        max_streams: int = 1000,
-        stream_timeout: float = 600.0,
-        max_body: int = 1 << 20,
-    ) -> None:
+    def __init__(self, spec: str, env_id: str, env_kwargs: dict[str, Any] | None = None, shield: bool = False) -> None:
         from envs.evaluation.harness import env_config
         from envs.planners import SHIELD_SUFFIX, check_planner_spec, make_planner
 
@@ -137,8 +153,6 @@ class PlannerService:
             check(int(config["max_vehicles"]), key)
         self._memo_seed = {id(part): part for part in _shared_parts(self.prototype)}
         self._memo_seed[id(self.builder.layout)] = self.builder.layout
-        self.token = token.encode() if token else None
-        self.max_streams, self.stream_timeout, self.max_body = int(max_streams), float(stream_timeout), int(max_body)
         self.streams: dict[str, Stream] = {}
         self.warm_up()
 
@@ -149,61 +163,63 @@ class PlannerService:
     def warm_up(self) -> None:
         """One decision on a small scene, so that the first stream does not pay for compiling kernels."""
         lay = self.builder.layout
-        cars = [SimpleNamespace(id=i, route=lay.route_names[i], arc=10.0, speed=5.0, length=5.0, width=2.0)
+        cars = [SimpleNamespace(id=i, route=lay.route_names[i], arc=10.0 + 10.0 * i, speed=5.0, length=5.0, width=2.0)
                 for i in range(min(2, lay.num_routes))]  # fmt: skip
         planner = self.new_planner()
         planner.reset(0)
         planner.act(self.builder.scene(lay.name, 0.0, cars))
 
     def info(self) -> dict[str, Any]:
+        """What the planners are (the server adds its limits): :class:`~envs.serve.schema.ServerInfo`'s fields."""
         from envs.planners import planner_name
         from sb3_graph import __version__
 
         cfg = self.builder.config
-        return ServerInfo(
+        return dict(
             package=__version__, schema_version=SCHEMA_VERSION, planner=planner_name(self.spec), spec=self.spec,
             shield=self.shield, env=self.env_id, layout=self.builder.layout.name, dt=self.builder.dt,
             a_min=-float(cfg["max_acceleration"]), a_max=float(cfg["max_acceleration"]),
             max_vehicles=self.builder.limits.max_vehicles, max_speed=self.builder.limits.max_speed,
-            max_streams=self.max_streams,
-        ).model_dump()  # fmt: skip
+        )  # fmt: skip
 
-    def authorized(self, header: bytes | None) -> bool:
-        if self.token is None:
-            return True
-        return header is not None and hmac.compare_digest(header, b"Bearer " + self.token)
-
-    def open(self, request: OpenRequest) -> Stream:
+    def open(self, request: OpenRequest, sid: str | None = None) -> Stream:
+        """A new stream (``sid``: its id, given by the gateway; default: a new random one)."""
         if request.layout != self.builder.layout.name:
             raise RequestError(422, "layout", f"this server plans for layout {self.builder.layout.name!r}, "
                                               f"got {request.layout!r}")  # fmt: skip
         if request.dt is not None and abs(request.dt - self.builder.dt) > 1e-9:
             raise RequestError(422, "dt", f"this server's policy period is {self.builder.dt} s, got {request.dt}")
-        self.expire()
-        if len(self.streams) >= self.max_streams:
-            raise RequestError(429, "streams", f"{len(self.streams)} streams are open, the most this server takes; "
-                                               "close one first")  # fmt: skip
         planner = self.new_planner()
         planner.reset(request.seed)
-        stream = Stream(secrets.token_hex(8), request.layout, planner)
+        stream = Stream(sid or secrets.token_hex(16), request.layout, planner)
         self.streams[stream.id] = stream
         return stream
-
-    def expire(self) -> None:
-        """Close the streams unused for longer than ``stream_timeout``."""
-        now = time.monotonic()
-        for sid in [s.id for s in self.streams.values() if now - s.last_used > self.stream_timeout]:
-            del self.streams[sid]
 
     def stream(self, sid: str) -> Stream:
         stream = self.streams.get(sid)
         if stream is None:
             raise RequestError(404, "stream", f"no open stream {sid[:40]!r} (closed, expired, or never opened)")
-        stream.last_used = time.monotonic()
         return stream
 
-    def step(self, sid: str, scene_in: SceneIn) -> dict[str, Any]:
+    def step(self, sid: str, scene_in: SceneIn, digest: bytes | None = None) -> dict[str, Any]:
+        """One decision, exactly once: ``seq`` one more than the last step's plans; the last step's ``seq``
+        again answers what it answered (without planning) if the body is the same.
+
+        :param sid: the stream
+        :param scene_in: the scene
+        :param digest: a hash of the request's body (``None``: not compared)
+        :raises RequestError: 409 ``seq`` out of order, 422 a scene the intersection cannot hold
+        """
         stream = self.stream(sid)
+        if scene_in.seq == stream.seq and stream.reply is not None:
+            if digest is not None and stream.digest is not None and digest != stream.digest:
+                raise RequestError(409, "seq", f"step {scene_in.seq} was answered for another scene; a new scene "
+                                               f"is step {stream.seq + 1}", expected=stream.seq + 1)  # fmt: skip
+            return stream.reply
+        if scene_in.seq != stream.seq + 1:
+            retry = f" or {stream.seq} (a retry)" if stream.seq else ""
+            raise RequestError(409, "seq", f"expected step {stream.seq + 1}{retry}, got {scene_in.seq}",
+                               expected=stream.seq + 1)  # fmt: skip
         if scene_in.time < stream.last_time:
             raise RequestError(422, "time", f"{scene_in.time} s is before the stream's last scene "
                                             f"({stream.last_time} s); reset the stream for a new episode")  # fmt: skip
@@ -219,47 +235,212 @@ class PlannerService:
                                f"{bool(np.isfinite(acc).all())}) for {scene.num_vehicles} vehicles")  # fmt: skip
         stream.steps += 1
         stream.last_time = scene_in.time
-        reply = {"stream": sid, "step": stream.steps, "time": scene_in.time, "ids": scene.vehicle_id.tolist(),
-                 "accelerations": acc.tolist(), "shield": None}  # fmt: skip
+        reply = {"stream": sid, "seq": scene_in.seq, "step": stream.steps, "time": scene_in.time,
+                 "ids": scene.vehicle_id.tolist(), "accelerations": acc.tolist(), "shield": None}  # fmt: skip
         if self.shield:  # what the server's shield did, for the client's counters (the harness reports them)
             reply["shield"] = {"overridden": planner.last_overridden.tolist(),
                                "unresolved": planner.unresolved > unresolved}  # fmt: skip
+        stream.seq, stream.digest, stream.reply = scene_in.seq, digest, reply
         return reply
 
     def reset(self, sid: str, request: ResetRequest) -> Stream:
         stream = self.stream(sid)
         stream.planner.reset(request.seed)
         stream.steps, stream.last_time = 0, -math.inf
+        stream.seq, stream.digest, stream.reply = 0, None, None
         return stream
 
     def close(self, sid: str) -> None:
         self.stream(sid)
         del self.streams[sid]
 
+    def stream_reply(self, stream: Stream) -> dict[str, Any]:
+        return {"stream": stream.id, "layout": stream.layout, "dt": self.builder.dt, "steps": stream.steps}
 
-def _stream_reply(service: PlannerService, stream: Stream) -> dict[str, Any]:
-    return {"stream": stream.id, "layout": stream.layout, "dt": service.builder.dt, "steps": stream.steps}
+    def handle(self, op: str, sid: str, body: bytes) -> tuple[int, bytes]:
+        """A request as bytes: ``op`` (``open``, ``step``, ``reset``, ``close``) on stream ``sid`` with the raw
+        JSON ``body``; the answer's status and JSON body (refusals name the field).
+        """
+        try:
+            if op == "step":
+                # pydantic's own JSON parser: about half the time of json.loads plus validation
+                scene = SceneIn.model_validate_json(body)
+                digest = hashlib.blake2b(body, digest_size=16).digest()
+                # json.dumps writes each float so that it reads back exactly (the identity with in-process runs)
+                return 200, json.dumps(self.step(sid, scene, digest)).encode()
+            if op == "open":
+                stream = self.open(OpenRequest.model_validate_json(body), sid)
+                return 201, json.dumps(self.stream_reply(stream)).encode()
+            if op == "reset":
+                stream = self.reset(sid, ResetRequest.model_validate_json(body))
+                return 200, json.dumps(self.stream_reply(stream)).encode()
+            if op == "close":
+                self.close(sid)
+                return 204, b""
+            if op == "expire":
+                self.streams.pop(sid, None)
+                return 204, b""
+        except ValidationError as error:
+            return 422, _error_body(*_validation_field(error))
+        except RequestError as error:
+            return error.status, _error_body(error.field, error.message, **error.extra)
+        raise ValueError(f"unknown operation {op!r}")
+
+
+@dataclass
+class _Entry:
+    """An open stream as the gateway knows it: the worker that plans it, its client, its last use."""
+
+    worker: int
+    client: str
+    last_used: float = field(default_factory=time.monotonic)
+
+
+class Gateway:
+    """The server's front: who may ask (:class:`~envs.serve.access.Access`), which streams are open and whose,
+    the quotas, the idle expiry and the time limit; the planning itself is ``pool``'s.
+
+    :param service: the planners (and what the server runs, for ``/version``)
+    :param access: tokens and ``Host`` names
+    :param workers: planning processes (0: plan on the event loop, one decision at a time)
+    :param max_streams: most streams open at once
+    :param max_streams_per_client: most streams one client holds
+    :param stream_timeout: a stream unused for this long [s] is closed (checked on a timer)
+    :param max_body: largest request body [bytes]
+    :param time_limit: a request not answered within this many seconds gets 503 (its step still completes
+        in the worker, and a retry with the same ``seq`` gets its answer); needs ``workers >= 1``
+    """
+
+    def __init__(
+        self,
+        service: PlannerService,
+        access: Access,
+        workers: int = 0,
+        max_streams: int = 1000,
+        max_streams_per_client: int = 64,
+        stream_timeout: float = 600.0,
+        max_body: int = 1 << 20,
+        time_limit: float = 1.0,
+    ) -> None:
+        self.service, self.access = service, access
+        self.pool: InlinePool | ProcessPool = ProcessPool(service, workers) if workers > 0 else InlinePool(service)
+        self.workers = int(workers)
+        self.max_streams, self.max_streams_per_client = int(max_streams), int(max_streams_per_client)
+        self.stream_timeout, self.max_body, self.time_limit = float(stream_timeout), int(max_body), float(time_limit)
+        self.streams: dict[str, _Entry] = {}
+        self.per_client: Counter[str] = Counter()
+        self.expired = 0
+        self._info = service.info()
+
+    def info(self) -> dict[str, Any]:
+        limits = {"max_streams": self.max_streams, "max_streams_per_client": self.max_streams_per_client}
+        return ServerInfo(**self._info, **limits, workers=self.workers).model_dump()
+
+    async def _call(self, worker: int, op: str, sid: str, body: bytes) -> tuple[int, bytes]:
+        try:
+            return await self.pool.call(worker, op, sid, body, self.time_limit if op == "step" else None)
+        except TimeoutError:
+            raise RequestError(503, "time_limit", f"no answer within {self.time_limit} s; the step completes "
+                                                  "on the server: send the same seq again for its answer") from None
+        except WorkerGone:
+            self._drop(sid)
+            raise RequestError(404, "stream", "lost (its planning process ended); open a new one") from None
+
+    def _drop(self, sid: str) -> None:
+        entry = self.streams.pop(sid, None)
+        if entry is not None:
+            self.per_client[entry.client] -= 1
+            self.pool.load[entry.worker] -= 1
+
+    async def open(self, client: str, body: bytes) -> tuple[int, bytes]:
+        if len(self.streams) >= self.max_streams:
+            raise RequestError(429, "streams", f"{len(self.streams)} streams are open, the most this server "
+                                               "takes; close one first")  # fmt: skip
+        if self.per_client[client] >= self.max_streams_per_client:
+            raise RequestError(429, "streams", f"this client holds {self.per_client[client]} streams, the most one "
+                                               "client may; close one first")  # fmt: skip
+        alive = [k for k in range(self.pool.size) if self.pool.alive(k)]
+        if not alive:
+            raise RequestError(503, "server", "no planning process is running; restart the server")
+        worker = min(alive, key=lambda k: self.pool.load[k])
+        sid = secrets.token_hex(16)
+        # counted before the worker answers: concurrent opens cannot overrun the quotas
+        self.streams[sid] = _Entry(worker, client)
+        self.per_client[client] += 1
+        self.pool.load[worker] += 1
+        try:
+            status, payload = await self._call(worker, "open", sid, body)
+        except BaseException:
+            self._drop(sid)
+            raise
+        if status != 201:
+            self._drop(sid)
+        return status, payload
+
+    async def forward(self, client: str, op: str, sid: str, body: bytes) -> tuple[int, bytes]:
+        """A request on an open stream of this client (another client's stream is unknown to it: 404)."""
+        entry = self.streams.get(sid)
+        if entry is None or entry.client != client:
+            raise RequestError(404, "stream", f"no open stream {sid[:40]!r} (closed, expired, or never opened)")
+        entry.last_used = time.monotonic()
+        status, payload = await self._call(entry.worker, op, sid, body)
+        if op == "close" and status == 204:
+            self._drop(sid)
+        return status, payload
+
+    async def expire(self) -> int:
+        """Close the streams unused for longer than ``stream_timeout``; how many."""
+        now = time.monotonic()
+        idle = [sid for sid, entry in self.streams.items() if now - entry.last_used > self.stream_timeout]
+        for sid in idle:
+            worker = self.streams[sid].worker
+            self._drop(sid)
+            with contextlib.suppress(Exception):
+                await self.pool.call(worker, "expire", sid, b"", None)
+        self.expired += len(idle)
+        return len(idle)
+
+    async def expire_forever(self) -> None:
+        """The idle expiry's timer: every quarter of ``stream_timeout`` (at most 5 s)."""
+        period = min(max(self.stream_timeout / 4, 0.05), 5.0)
+        while True:
+            await asyncio.sleep(period)
+            await self.expire()
 
 
 class _Guard:
-    """ASGI middleware: the token check and the body limit, before any parsing.
+    """ASGI middleware: the ``Host`` check, the token, JSON only, the body limit, all before any parsing.
 
     :param app: the application
-    :param service: the server's state (its token and body limit)
+    :param gateway: the server's front (its access rules and body limit)
     """
 
-    def __init__(self, app, service: PlannerService) -> None:
-        self.app, self.service = app, service
+    def __init__(self, app, gateway: Gateway) -> None:
+        self.app, self.gateway = app, gateway
 
     async def __call__(self, scope, receive, send) -> None:
         if scope["type"] != "http":
             return await self.app(scope, receive, send)
         headers = dict(scope["headers"])
-        if scope["path"] not in OPEN_PATHS and not self.service.authorized(headers.get(b"authorization")):
-            return await _error(401, "authorization", "missing or wrong token (send 'Authorization: Bearer <token>')")(
-                scope, receive, send
-            )
-        limit = self.service.max_body
+        refuse = None
+        access = self.gateway.access
+        if not access.host_allowed(headers.get(b"host")):
+            refuse = _error(400, "host", "this server does not answer to that Host name (see --allowed-host)")
+        elif scope["path"] not in OPEN_PATHS:
+            peer = (scope.get("client") or ("unknown", 0))[0]
+            client = access.client(headers.get(b"authorization"), peer)
+            if client is None:
+                refuse = _error(401, "authorization", "missing or wrong token (send 'Authorization: Bearer <token>')",
+                                headers={"WWW-Authenticate": "Bearer"})  # fmt: skip
+            else:
+                scope.setdefault("state", {})["client"] = client
+        if refuse is None and scope["method"] in BODY_METHODS:
+            kind = headers.get(b"content-type", b"").split(b";")[0].strip().lower()
+            if kind != b"application/json":
+                refuse = _error(415, "content-type", "the body must be JSON (Content-Type: application/json)")
+        if refuse is not None:
+            return await refuse(scope, receive, send)
+        limit = self.gateway.max_body
         declared = headers.get(b"content-length")
         if declared is not None and (not declared.isdigit() or int(declared) > limit):
             return await _error(413, "body", f"the body is over the limit of {limit} bytes")(scope, receive, send)
@@ -295,81 +476,151 @@ def _replay(messages: list[dict], then=None):
     return receive
 
 
-def create_app(service: PlannerService) -> FastAPI:
-    """The FastAPI application around a :class:`PlannerService`.
+def _body_schema(model: type[BaseModel]) -> dict[str, Any]:
+    ref = {"$ref": f"#/components/schemas/{model.__name__}"}
+    return {"requestBody": {"content": {"application/json": {"schema": ref}}, "required": True}}
 
-    :param service: the server's state
+
+def create_app(gateway: Gateway) -> FastAPI:
+    """The FastAPI application around a :class:`Gateway`.
+
+    :param gateway: the server's front and its planners
     :return: the ASGI application (uvicorn runs it)
     """
+
+    @contextlib.asynccontextmanager
+    async def lifespan(app: FastAPI):
+        await gateway.pool.start()
+        expiry = asyncio.get_running_loop().create_task(gateway.expire_forever())
+        try:
+            yield
+        finally:
+            expiry.cancel()
+            await gateway.pool.close()
+
     app = FastAPI(
         title="sb3-graph planner server",
         version=str(SCHEMA_VERSION),
         description="Scenes of a cooperative intersection in, one acceleration per vehicle out (see docs/serve.md).",
+        lifespan=lifespan,
     )
-    app.state.service = service
+    app.state.gateway = gateway
 
     @app.exception_handler(RequestError)
-    async def _refused(request: Request, error: RequestError) -> JSONResponse:
-        return _error(error.status, error.field, error.message)
+    async def _refused(request: Request, error: RequestError) -> Response:
+        return Response(_error_body(error.field, error.message, **error.extra), status_code=error.status,
+                        media_type="application/json")  # fmt: skip
 
     @app.exception_handler(RequestValidationError)
-    async def _malformed(request: Request, error: RequestValidationError) -> JSONResponse:
-        first = error.errors()[0]
-        name = _field_of(tuple(first.get("loc", ())))
-        if first.get("type") == "json_invalid":
-            name = "body"
-        return _error(422, name, str(first.get("msg", "invalid")))
+    async def _malformed(request: Request, error: RequestValidationError) -> Response:
+        return _error(422, *_validation_field(error))
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _http(request: Request, error: StarletteHTTPException) -> Response:
+        name = {404: "path", 405: "method"}.get(error.status_code, "body")
+        return _error(error.status_code, name, f"{request.method} {request.url.path[:80]}: {error.detail}",
+                      headers=getattr(error, "headers", None))  # fmt: skip
+
+    def client_of(request: Request) -> str:
+        return request.scope.get("state", {}).get("client", "")
+
+    def answer(status: int, payload: bytes) -> Response:
+        return Response(payload or None, status_code=status, media_type="application/json" if payload else None)
 
     @app.get("/health", response_model=Health)
     async def health() -> dict[str, Any]:
-        return {"status": "ok", "streams": len(service.streams)}
+        return {"status": "ok", "streams": len(gateway.streams)}
 
     @app.get("/version", response_model=ServerInfo, responses=ERRORS)
     async def version() -> dict[str, Any]:
-        return service.info()
+        return gateway.info()
 
-    @app.post("/streams", response_model=StreamReply, status_code=201, responses=ERRORS)
-    async def open_stream(request: OpenRequest) -> JSONResponse:
-        return JSONResponse(_stream_reply(service, service.open(request)), status_code=201)
-
-    scene_schema = {"content": {"application/json": {"schema": {"$ref": "#/components/schemas/SceneIn"}}},
-                    "required": True}  # fmt: skip
+    @app.post("/streams", response_model=StreamReply, status_code=201, responses=ERRORS,
+              openapi_extra=_body_schema(OpenRequest))  # fmt: skip
+    async def open_stream(request: Request) -> Response:
+        return answer(*await gateway.open(client_of(request), await request.body()))
 
     @app.post("/streams/{stream}/step", response_model=StepReply, responses=ERRORS,
-              openapi_extra={"requestBody": scene_schema})  # fmt: skip
+              openapi_extra=_body_schema(SceneIn))  # fmt: skip
     async def step(stream: str, request: Request) -> Response:
-        # The hot path parses the raw body with pydantic's own JSON parser (about half the time of
-        # json.loads plus validation); the schema is SceneIn's all the same (documented above).
-        try:
-            scene = SceneIn.model_validate_json(await request.body())
-        except ValidationError as error:
-            first = error.errors()[0]
-            name = "body" if first.get("type") == "json_invalid" else _field_of(tuple(first.get("loc", ())))
-            raise RequestError(422, name, str(first.get("msg", "invalid"))) from None
-        # json.dumps writes each float so that it reads back exactly (the identity with in-process runs)
-        return Response(json.dumps(service.step(stream, scene)), media_type="application/json")
+        return answer(*await gateway.forward(client_of(request), "step", stream, await request.body()))
 
-    @app.post("/streams/{stream}/reset", response_model=StreamReply, responses=ERRORS)
-    async def reset(stream: str, request: ResetRequest) -> dict[str, Any]:
-        return _stream_reply(service, service.reset(stream, request))
+    @app.post("/streams/{stream}/reset", response_model=StreamReply, responses=ERRORS,
+              openapi_extra=_body_schema(ResetRequest))  # fmt: skip
+    async def reset(stream: str, request: Request) -> Response:
+        return answer(*await gateway.forward(client_of(request), "reset", stream, await request.body()))
 
     @app.delete("/streams/{stream}", status_code=204, responses=ERRORS)
-    async def close(stream: str) -> Response:
-        service.close(stream)
-        return Response(status_code=204)
+    async def close(stream: str, request: Request) -> Response:
+        return answer(*await gateway.forward(client_of(request), "close", stream, b""))
 
     base_openapi = app.openapi
 
     def openapi() -> dict[str, Any]:
-        """FastAPI's schema, plus the models of the step's body (parsed in the endpoint, not by FastAPI)."""
+        """FastAPI's schema, plus the request bodies (parsed by the planners, not by FastAPI), this server's
+        enums and limits, and the bearer token."""
         if app.openapi_schema is None:
-            schema = base_openapi()
-            scene = SceneIn.model_json_schema(ref_template="#/components/schemas/{model}")
-            schema.setdefault("components", {}).setdefault("schemas", {}).update(scene.pop("$defs", {}))
-            schema["components"]["schemas"]["SceneIn"] = scene
-            app.openapi_schema = schema
+            app.openapi_schema = _document(base_openapi(), gateway)
         return app.openapi_schema
 
     app.openapi = openapi
-    app.add_middleware(_Guard, service=service)
+    app.add_middleware(_Guard, gateway=gateway)
     return app
+
+
+def _document(schema: dict[str, Any], gateway: Gateway) -> dict[str, Any]:
+    """Complete FastAPI's schema: the bodies' models, enums of this server's layout and routes, its
+    ``max_vehicles`` as ``maxItems``, and the bearer-token security scheme on every path but :data:`OPEN_PATHS`."""
+    components = schema.setdefault("components", {}).setdefault("schemas", {})
+    for model in (SceneIn, OpenRequest, ResetRequest):
+        body = model.model_json_schema(ref_template="#/components/schemas/{model}")
+        components.update(body.pop("$defs", {}))
+        components[model.__name__] = body
+    layout = gateway.service.builder.layout
+    components["SceneIn"]["properties"]["layout"]["enum"] = [layout.name]
+    components["SceneIn"]["properties"]["vehicles"]["maxItems"] = gateway.service.builder.limits.max_vehicles
+    components["OpenRequest"]["properties"]["layout"]["enum"] = [layout.name]
+    components["Vehicle"]["properties"]["route"]["enum"] = list(layout.route_names)
+    if gateway.access.tokens:
+        schema["components"]["securitySchemes"] = {"bearer": {"type": "http", "scheme": "bearer",
+                                                              "description": "a token of the server's token file"}}
+        schema["security"] = [{"bearer": []}]
+        for path, operations in schema.get("paths", {}).items():
+            if path in OPEN_PATHS:
+                for operation in operations.values():
+                    operation["security"] = []
+    return schema
+
+
+def uvicorn_config(
+    gateway: Gateway,
+    max_connections: int = 1000,
+    header_timeout: float = 5.0,
+    body_timeout: float = 10.0,
+    keep_alive: float = 5.0,
+    tls: dict[str, Any] | None = None,
+):
+    """uvicorn's settings for a :class:`Gateway`: the guarded HTTP protocol (connection cap, header and body read
+    timeouts, :mod:`envs.serve.limits`), ``limit_concurrency`` just above the cap, the keep-alive timeout and TLS.
+
+    :param gateway: the server's front
+    :param max_connections: most connections open at once (below the open-file limit)
+    :param header_timeout: seconds for a request's headers to arrive
+    :param body_timeout: seconds for its body to arrive after them
+    :param keep_alive: seconds an idle connection stays open
+    :param tls: uvicorn's ``ssl_*`` settings (``ssl_certfile``, ``ssl_keyfile``, ``ssl_ca_certs``, ``ssl_cert_reqs``)
+    :return: the ``uvicorn.Config`` (its logging already rate-limited)
+    """
+    import uvicorn
+
+    from envs.serve.limits import ConnectionGuard, guarded_protocol, limit_logging, uvicorn_protocol
+
+    guard = ConnectionGuard(max_connections, header_timeout, body_timeout)
+    config = uvicorn.Config(
+        create_app(gateway), log_level="warning", access_log=False, timeout_graceful_shutdown=2,
+        http=guarded_protocol(uvicorn_protocol(), guard), limit_concurrency=max_connections + 1,
+        timeout_keep_alive=keep_alive, **(tls or {}),
+    )  # fmt: skip
+    config.guard = guard
+    limit_logging()  # after uvicorn's own logging set-up (in Config), which would drop the filters
+    return config

@@ -10,9 +10,18 @@ Standard library only (``http.client`` over one kept-alive connection), no ``sb3
     client.close(stream)
 
 :class:`RemotePlanner` is a :class:`~envs.planners.Planner` whose ``act`` asks the server; it is what
-the planner spec ``http://HOST:PORT`` builds in ``evaluate``, ``sweep`` and ``ind``
-(``http://HOST:PORT+shield``: shielded here, in the client). The token of a server started with
-``--token-file`` is read from the file named by the environment variable :data:`TOKEN_FILE_VARIABLE`.
+the planner spec ``http://HOST:PORT`` (or ``https://``) builds in ``evaluate``, ``sweep`` and ``ind``
+(``http://HOST:PORT+shield``: :class:`RemoteShield`, shielded here, in the client). It survives the
+server: every decision has a deadline (one policy period by default, ``$SB3_GRAPH_DEADLINE`` seconds
+otherwise), within which it retries with capped exponential backoff and reopens a stream the server
+lost (a restart), sending this decision's scene to the new stream; a decision that misses its deadline
+gets the vehicle-side fallback and is counted (``remote_deadline_misses`` in ``metrics.csv``).
+
+The token: ``token=``, else the first token of the file named by :data:`TOKEN_FILE_VARIABLE`, else the
+token file that a server on this machine wrote for its address (:func:`envs.serve.access.default_token_path`).
+TLS (``https://``): the server's certificate is checked against :data:`CA_FILE_VARIABLE`'s bundle (else
+the system's), and :data:`CLIENT_CERT_VARIABLE` / :data:`CLIENT_KEY_VARIABLE` name a client certificate
+for a server that asks for one (mutual TLS).
 """
 
 from __future__ import annotations
@@ -21,6 +30,8 @@ import http.client
 import json
 import os
 import socket
+import ssl
+import time
 import weakref
 from pathlib import Path
 from typing import Any
@@ -29,11 +40,19 @@ from urllib.parse import urlsplit
 import numpy as np
 
 from envs.planners.base import Planner
+from envs.planners.shield import Shield
+from envs.serve.access import default_token_path, read_tokens
 from envs.serve.wire import scene_to_wire
 from envs.simulation.scene import Scene
 
 TOKEN_FILE_VARIABLE = "SB3_GRAPH_TOKEN_FILE"
-REMOTE_SCHEMES = ("http://",)
+CA_FILE_VARIABLE = "SB3_GRAPH_CA_FILE"
+CLIENT_CERT_VARIABLE = "SB3_GRAPH_CLIENT_CERT"
+CLIENT_KEY_VARIABLE = "SB3_GRAPH_CLIENT_KEY"
+DEADLINE_VARIABLE = "SB3_GRAPH_DEADLINE"
+REMOTE_SCHEMES = ("http://", "https://")
+# Statuses worth another try within the deadline: no answer, over the time limit, the server busy.
+TRANSIENT = frozenset({0, 502, 503, 504})
 
 
 class RemotePlannerError(ValueError):
@@ -42,23 +61,28 @@ class RemotePlannerError(ValueError):
     :param status: HTTP status (0: no answer)
     :param field: the field the server named (``""`` if none)
     :param message: one line
+    :param reply: the server's JSON answer (``{}`` if none)
     """
 
-    def __init__(self, status: int, field: str, message: str) -> None:
+    def __init__(self, status: int, field: str, message: str, reply: dict[str, Any] | None = None) -> None:
         super().__init__(message)
-        self.status, self.field = status, field
+        self.status, self.field, self.reply = status, field, reply or {}
 
 
-def parse_address(url: str) -> tuple[str, int]:
-    """Host and port of ``http://HOST:PORT`` (no path, query, user or fragment).
+class DeadlineMissed(RemotePlannerError):
+    """No answer within the decision's deadline."""
+
+
+def parse_url(url: str) -> tuple[str, str, int]:
+    """Scheme, host and port of ``http://HOST:PORT`` or ``https://HOST:PORT`` (no path, query, user or fragment).
 
     :param url: the address
-    :return: ``(host, port)``
+    :return: ``(scheme, host, port)``
     :raises ValueError: anything else, naming the part
     """
     parts = urlsplit(str(url).strip())
-    if parts.scheme != "http":
-        raise ValueError(f"planner server {url!r}: the address must start with http://")
+    if parts.scheme not in ("http", "https"):
+        raise ValueError(f"planner server {url!r}: the address must start with http:// or https://")
     if parts.path not in ("", "/") or parts.query or parts.fragment or parts.username or parts.password:
         raise ValueError(f"planner server {url!r}: give only http://HOST:PORT (no path, query or user)")
     try:
@@ -67,11 +91,16 @@ def parse_address(url: str) -> tuple[str, int]:
         raise ValueError(f"planner server {url!r}: the port must be a number from 1 to 65535") from None
     if not parts.hostname or port is None:
         raise ValueError(f"planner server {url!r}: give both host and port, http://HOST:PORT")
-    return parts.hostname, port
+    return parts.scheme, parts.hostname, port
+
+
+def parse_address(url: str) -> tuple[str, int]:
+    """Host and port of ``http(s)://HOST:PORT`` (see :func:`parse_url`)."""
+    return parse_url(url)[1:]
 
 
 def read_token(path: str | Path | None) -> str | None:
-    """The token in a file (its first line, stripped), or ``None`` for no file.
+    """The first token in a token file, or ``None`` for no file.
 
     :param path: the token file
     :raises ValueError: an unreadable or empty file
@@ -79,70 +108,112 @@ def read_token(path: str | Path | None) -> str | None:
     if path is None:
         return None
     try:
-        token = Path(path).read_text(encoding="utf-8").strip().splitlines()
-    except (OSError, UnicodeDecodeError) as error:
-        raise ValueError(f"token file {str(path)!r} cannot be read ({error})") from None
-    if not token or not token[0].strip():
-        raise ValueError(f"token file {str(path)!r} is empty")
-    return token[0].strip()
+        return read_tokens(path)[0]
+    except ValueError as error:
+        if "shorter than 16" in str(error):  # a client's file may hold a short token of its own server's choosing
+            return Path(path).read_text(encoding="utf-8").split()[0]
+        raise
+
+
+def _tls_context() -> ssl.SSLContext:
+    context = ssl.create_default_context(cafile=os.environ.get(CA_FILE_VARIABLE) or None)
+    cert = os.environ.get(CLIENT_CERT_VARIABLE)
+    if cert:
+        context.load_cert_chain(cert, os.environ.get(CLIENT_KEY_VARIABLE) or None)
+    return context
 
 
 class PlannerClient:
     """The planner server's endpoints as methods, over one kept-alive HTTP connection.
 
-    :param url: ``http://HOST:PORT``
-    :param token: the server's token (default: read from the file named by ``$SB3_GRAPH_TOKEN_FILE``, if set)
+    Steps carry their sequence number (kept here per stream): a step retried after a lost connection
+    is answered from the server's cache, never planned twice.
+
+    :param url: ``http://HOST:PORT`` or ``https://HOST:PORT``
+    :param token: the server's token (default: :data:`TOKEN_FILE_VARIABLE`'s file, else the server's own
+        token file on this machine)
     :param timeout: seconds to wait for an answer
+    :param ssl_context: TLS settings of an ``https://`` server (default: from the environment variables)
     """
 
-    def __init__(self, url: str, token: str | None = None, timeout: float = 30.0) -> None:
+    def __init__(self, url: str, token: str | None = None, timeout: float = 30.0,
+                 ssl_context: ssl.SSLContext | None = None) -> None:  # fmt: skip
         self.url = str(url).strip().rstrip("/")
-        self.host, self.port = parse_address(self.url)
-        self.token = token if token is not None else read_token(os.environ.get(TOKEN_FILE_VARIABLE) or None)
+        self.scheme, self.host, self.port = parse_url(self.url)
+        self._token_file: Path | None = None
+        if token is None:
+            named = os.environ.get(TOKEN_FILE_VARIABLE) or None
+            local = default_token_path(self.host, self.port)
+            self._token_file = Path(named) if named else (local if local.is_file() else None)
+            token = read_token(self._token_file)
+        self.token = token
         self.timeout = float(timeout)
+        self.ssl_context = ssl_context if ssl_context is not None or self.scheme == "http" else _tls_context()
         self._connection: http.client.HTTPConnection | None = None
+        self.seq: dict[str, int] = {}  # last answered step per stream
         # the server's own time for the last answer [ms] (its Server-Timing header; nan without one)
         self.server_ms = float("nan")
         # the server shield's report of the last step (``None`` for a server without --shield)
         self.last_shield: dict[str, Any] | None = None
 
-    def request(self, method: str, path: str, body: dict[str, Any] | None = None) -> Any:
-        """One request; its JSON answer.
+    def request(self, method: str, path: str, body: dict[str, Any] | bytes | None = None,
+                timeout: float | None = None) -> Any:  # fmt: skip
+        """One request; its JSON answer. A kept-alive connection that the server closed is reopened once.
 
+        :param timeout: seconds for this request (default: the client's)
         :raises RemotePlannerError: a 4xx/5xx answer (with the server's field and message) or no answer
         """
-        data = None if body is None else json.dumps(body, allow_nan=False).encode()
-        headers = {"Content-Type": "application/json"} if data is not None else {}
-        if self.token:
-            headers["Authorization"] = f"Bearer {self.token}"
-        for attempt in (0, 1):  # a kept-alive connection that the server closed is opened once more
-            if self._connection is None:
-                self._connection = self._connect()
+        data = body if isinstance(body, bytes) or body is None else json.dumps(body, allow_nan=False).encode()
+        for attempt in (0, 1):
+            headers = {"Content-Type": "application/json"} if data is not None else {}
+            if self.token:
+                headers["Authorization"] = f"Bearer {self.token}"
             try:
+                if self._connection is None:
+                    self._connection = self._connect(timeout)
+                self._connection.sock.settimeout(self.timeout if timeout is None else max(timeout, 1e-3))
                 self._connection.request(method, path, body=data, headers=headers)
                 response = self._connection.getresponse()
                 payload = response.read()
                 self.server_ms = _server_ms(response.getheader("server-timing"))
-                break
             except (ConnectionError, http.client.HTTPException, OSError) as error:
                 self.disconnect()
                 if attempt or not isinstance(error, (ConnectionResetError, http.client.RemoteDisconnected,
                                                      BrokenPipeError)):  # fmt: skip
                     raise RemotePlannerError(0, "", f"planner server {self.url}: no answer ({error})") from None
+                continue
+            if response.status == 401 and not attempt and self._reread_token():
+                continue  # the server restarted with a new token in the same file
+            break
         if response.status >= 400:
             try:
                 reply = json.loads(payload)
                 field, message = str(reply.get("field", "")), str(reply.get("error", payload[:200]))
             except (ValueError, AttributeError):
-                field, message = "", payload[:200].decode(errors="replace")
-            raise RemotePlannerError(response.status, field, f"planner server {self.url}: {response.status} {message}")
+                reply, field, message = {}, "", payload[:200].decode(errors="replace")
+            raise RemotePlannerError(response.status, field, f"planner server {self.url}: {response.status} {message}",
+                                     reply if isinstance(reply, dict) else {})  # fmt: skip
         return json.loads(payload) if payload else None
 
-    def _connect(self) -> http.client.HTTPConnection:
-        connection = http.client.HTTPConnection(self.host, self.port, timeout=self.timeout)
+    def _reread_token(self) -> bool:
+        if self._token_file is None:
+            return False
+        try:
+            token = read_token(self._token_file)
+        except ValueError:
+            return False
+        changed, self.token = token != self.token, token
+        return changed
+
+    def _connect(self, timeout: float | None = None) -> http.client.HTTPConnection:
+        seconds = self.timeout if timeout is None else max(timeout, 1e-3)
+        if self.scheme == "https":
+            connection = http.client.HTTPSConnection(self.host, self.port, timeout=seconds, context=self.ssl_context)
+        else:
+            connection = http.client.HTTPConnection(self.host, self.port, timeout=seconds)
         try:
             connection.connect()
-        except OSError as error:
+        except (OSError, ssl.SSLError) as error:
             raise RemotePlannerError(0, "", f"planner server {self.url}: no answer ({error})") from None
         # http.client writes the headers and the body in two segments: without this, Nagle's algorithm
         # holds the body until the server acknowledges the headers (a delayed ACK: about 40 ms per request).
@@ -162,36 +233,52 @@ class PlannerClient:
         """What the server runs (planner, layout, policy period, limits)."""
         return self.request("GET", "/version")
 
-    def open(self, layout: str, dt: float | None = None, seed: int | None = None) -> str:
+    def open(self, layout: str, dt: float | None = None, seed: int | None = None, timeout: float | None = None) -> str:
         """Open a stream; its id.
 
         :param layout: layout name of the scenes that will be sent
         :param dt: the client's policy period [s] (the server refuses another)
         :param seed: seed of the planner
         """
-        return self.request("POST", "/streams", {"layout": layout, "dt": dt, "seed": seed})["stream"]
+        stream = self.request("POST", "/streams", {"layout": layout, "dt": dt, "seed": seed}, timeout)["stream"]
+        self.seq[stream] = 0
+        return stream
 
-    def step(self, stream: str, scene: dict[str, Any]) -> np.ndarray:
-        """One decision.
+    def step(self, stream: str, scene: dict[str, Any], timeout: float | None = None) -> np.ndarray:
+        """One decision, planned once however often it is sent: a step with this stream's next sequence
+        number, sent again with the same number (and bytes) until answered or ``timeout``.
 
         :param stream: stream id
         :param scene: the wire scene (:func:`envs.serve.wire.scene_to_wire`)
         :return: ``(n,)`` accelerations [m/s^2], row ``i`` for ``scene["vehicles"][i]``
         :raises RemotePlannerError: a refusal, or an answer for other vehicles
         """
-        reply = self.request("POST", f"/streams/{stream}/step", scene)
+        seq = self.seq.get(stream, 0) + 1
+        try:
+            reply = self.request("POST", f"/streams/{stream}/step", {**scene, "seq": seq}, timeout)
+        except RemotePlannerError as error:
+            expected = error.reply.get("expected") if error.status == 409 and error.field == "seq" else None
+            if not isinstance(expected, int) or expected == seq:
+                raise
+            # A step of ours whose answer never came was planned after all (or the count is behind):
+            # this new scene is the server's next step.
+            self.seq[stream] = expected - 1
+            reply = self.request("POST", f"/streams/{stream}/step", {**scene, "seq": expected}, timeout)
+        self.seq[stream] = int(reply.get("seq", seq))
         ids = [v["id"] for v in scene["vehicles"]]
         if reply.get("ids") != ids or len(reply.get("accelerations", ())) != len(ids):
             raise RemotePlannerError(0, "ids", f"planner server {self.url}: the answer is for other vehicles")
         self.last_shield = reply.get("shield")
         return np.asarray(reply["accelerations"], dtype=float)
 
-    def reset(self, stream: str, seed: int | None = None) -> None:
-        """A new episode in the stream."""
-        self.request("POST", f"/streams/{stream}/reset", {"seed": seed})
+    def reset(self, stream: str, seed: int | None = None, timeout: float | None = None) -> None:
+        """A new episode in the stream (the sequence numbers start over)."""
+        self.request("POST", f"/streams/{stream}/reset", {"seed": seed}, timeout)
+        self.seq[stream] = 0
 
     def close(self, stream: str) -> None:
         """Close a stream (its planner state is dropped)."""
+        self.seq.pop(stream, None)
         self.request("DELETE", f"/streams/{stream}")
 
 
@@ -217,25 +304,49 @@ class RemotePlanner(Planner):
     The stream opens at the first ``act`` (it needs the scene's layout) and closes when the planner
     is garbage-collected or the process exits; an abandoned stream also expires on the server.
 
-    :param url: ``http://HOST:PORT``
-    :param token: the server's token (default: from ``$SB3_GRAPH_TOKEN_FILE``)
+    Each decision has a deadline (``deadline`` seconds, default one policy period, the scene's ``dt``).
+    Within it, a request without an answer (no connection, a reset, the server's 503) is sent again
+    after a capped exponential backoff (the step with the same sequence number: planned once), and a
+    stream the server no longer knows (404: a restart, an expiry) is opened again with the same seed and
+    sent this decision's scene. A decision that misses its deadline gets the fallback: every vehicle
+    brakes at ``a_min`` (the shield's own last resort), or, behind ``+shield``
+    (:class:`RemoteShield`), the shield's fallback command. Refusals of the scene itself (4xx) still
+    raise :class:`RemotePlannerError`: they are a bug, not an outage.
+
+    :param url: ``http://HOST:PORT`` or ``https://HOST:PORT``
+    :param token: the server's token (default: see :class:`PlannerClient`)
     :param name: report name (default: ``<server's planner name>@HOST:PORT``)
+    :param deadline: seconds per decision (default: ``$SB3_GRAPH_DEADLINE``, else the scene's ``dt``)
+    :param backoff: first wait before a retry [s]; it doubles up to ``backoff_cap``
+    :param backoff_cap: longest wait between retries [s]
 
     Behind a server started with ``--shield`` it keeps the shield's counters (``interventions``,
     ``vehicle_steps``, ``unresolved``) from the server's answers and reports them in :meth:`stats`,
-    as a local shield does.
+    as a local shield does; it always reports its own (:meth:`remote_stats`).
     """
 
-    def __init__(self, url: str, token: str | None = None, name: str | None = None) -> None:
+    def __init__(
+        self,
+        url: str,
+        token: str | None = None,
+        name: str | None = None,
+        deadline: float | None = None,
+        backoff: float = 0.005,
+        backoff_cap: float = 0.05,
+    ) -> None:
         self.client = PlannerClient(url, token=token)
         self.info = self.client.version()
         super().__init__(name or remote_name(self.info, self.client))
+        self.deadline = _deadline(deadline)
+        self.backoff, self.backoff_cap = float(backoff), float(backoff_cap)
+        self.raise_on_miss = False  # RemoteShield answers a miss itself
         self.stream: str | None = None
         self._seed: int | None = None
         self._fresh = True
         self._finalizer: weakref.finalize | None = None
         self.shielded = bool(self.info.get("shield"))  # the server shields: its counters, as a local Shield's
         self.interventions = self.vehicle_steps = self.unresolved = 0
+        self.deadline_misses = self.retries = self.reopened = 0
 
     def check_capacity(self, max_vehicles: int, source: str = "planner") -> None:
         """Refuse an environment whose scenes can hold more vehicles than the server takes.
@@ -251,16 +362,18 @@ class RemotePlanner(Planner):
     def reset(self, seed: int | None = None) -> None:
         self._seed, self._fresh = seed, True
         self.interventions = self.vehicle_steps = self.unresolved = 0
+        self.deadline_misses = self.retries = self.reopened = 0
 
     def act(self, scene: Scene) -> np.ndarray:
         wire = scene_to_wire(scene)
-        if self.stream is None:
-            self.stream = self.client.open(wire["layout"], dt=float(scene.dt), seed=self._seed)
-            self._finalizer = weakref.finalize(self, _close_quietly, self.client, self.stream)
-        elif self._fresh:
-            self.client.reset(self.stream, self._seed)
-        self._fresh = False
-        acc = self.client.step(self.stream, wire)
+        deadline = time.monotonic() + (self.deadline if self.deadline is not None else float(scene.dt))
+        try:
+            acc = self._decide(wire, float(scene.dt), deadline)
+        except DeadlineMissed:
+            self.deadline_misses += 1
+            if self.raise_on_miss:
+                raise
+            return np.full(scene.num_vehicles, float(scene.a_min))
         report = self.client.last_shield
         if report is not None and self.shielded:
             self.interventions += sum(map(bool, report["overridden"]))
@@ -268,18 +381,54 @@ class RemotePlanner(Planner):
             self.unresolved += bool(report["unresolved"])
         return acc
 
+    def _decide(self, wire: dict[str, Any], dt: float, deadline: float) -> np.ndarray:
+        """The server's answer to this scene before ``deadline``, retrying what an outage interrupted."""
+        wait = self.backoff
+        while True:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise DeadlineMissed(0, "", f"planner server {self.client.url}: no answer within the deadline")
+            try:
+                if self.stream is None:
+                    self.stream = self.client.open(wire["layout"], dt=dt, seed=self._seed, timeout=left)
+                    self._fresh = False
+                    if self._finalizer is not None:
+                        self._finalizer.detach()
+                    self._finalizer = weakref.finalize(self, _close_quietly, self.client, self.stream)
+                elif self._fresh:
+                    self.client.reset(self.stream, self._seed, timeout=left)
+                    self._fresh = False
+                return self.client.step(self.stream, wire, timeout=left)
+            except RemotePlannerError as error:
+                if error.status == 404 and error.field == "stream":  # the server lost the stream: a new one
+                    self.stream = None
+                    self.reopened += 1
+                    continue
+                if error.status not in TRANSIENT:
+                    raise
+            self.retries += 1
+            time.sleep(max(0.0, min(wait, deadline - time.monotonic())))
+            wait = min(2 * wait, self.backoff_cap)
+
+    def remote_stats(self) -> dict[str, float]:
+        """The client's own counters of the run: decisions that missed their deadline (and got the fallback),
+        requests sent again, streams opened again."""
+        return {"remote_deadline_misses": self.deadline_misses, "remote_retries": self.retries,
+                "remote_reopened": self.reopened}  # fmt: skip
+
     def stats(self) -> dict[str, float]:
-        """The server's shield's counters of the run (none when the server does not shield).
+        """The client's counters (:meth:`remote_stats`) and the server's shield's (when the server shields).
 
         The server's answers carry no planner errors: ``planner_errors`` is 0.
         """
         if not self.shielded:
-            return {}
+            return self.remote_stats()
         return {
             "shield_interventions": self.interventions,
             "shield_vehicle_steps": self.vehicle_steps,
             "shield_unresolved": self.unresolved,
             "planner_errors": 0,
+            **self.remote_stats(),
         }
 
     def close(self) -> None:
@@ -287,6 +436,47 @@ class RemotePlanner(Planner):
         if self._finalizer is not None:
             self._finalizer()
         self.stream = None
+
+
+class RemoteShield(Shield):
+    """The shield in the client around a :class:`RemotePlanner` (``http://HOST:PORT+shield``): a decision
+    that misses its deadline gets the shield's fallback command for every vehicle
+    (:meth:`~envs.planners.shield.Shield.check` with every vehicle forced), counted as interventions and
+    in ``remote_deadline_misses``.
+
+    :param planner: the remote planner
+    :param kwargs: :class:`~envs.planners.shield.Shield`'s settings
+    """
+
+    def __init__(self, planner: RemotePlanner, **kwargs: Any) -> None:
+        super().__init__(planner, **kwargs)
+        planner.raise_on_miss = True
+
+    def act(self, scene: Scene) -> np.ndarray:
+        try:
+            return super().act(scene)
+        except DeadlineMissed:
+            n = scene.num_vehicles
+            return self.check(scene, np.zeros(n), forced=np.ones(n, bool))
+
+    def stats(self) -> dict[str, float]:
+        """The shield's counters and the remote planner's own (:meth:`RemotePlanner.remote_stats`)."""
+        return {**super().stats(), **self.planner.remote_stats()}
+
+
+def _deadline(value: float | None) -> float | None:
+    """The deadline per decision: ``value``, else ``$SB3_GRAPH_DEADLINE``, else ``None`` (one policy period)."""
+    if value is None:
+        text = os.environ.get(DEADLINE_VARIABLE, "").strip()
+        if not text:
+            return None
+        try:
+            value = float(text)
+        except ValueError:
+            raise ValueError(f"${DEADLINE_VARIABLE} must be a number of seconds, got {text!r}") from None
+    if not value > 0:
+        raise ValueError(f"the deadline per decision must be > 0 s, got {value}")
+    return float(value)
 
 
 def remote_name(info: dict[str, Any], client: PlannerClient) -> str:

@@ -11,8 +11,11 @@ from pydantic import BaseModel, ConfigDict, Field
 
 _STRICT = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False)
 # Largest number of vehicles the schema takes in one scene (the server's own limit is its
-# environment's max_vehicles, usually far lower).
+# environment's max_vehicles, usually far lower: its OpenAPI schema states that one).
 MAX_VEHICLES = 1024
+# Physical bounds of a vehicle's size [m]: from a small car to a road train, from a narrow car to a wide load.
+LENGTH_RANGE = (1.5, 30.0)
+WIDTH_RANGE = (0.8, 5.0)
 
 
 class Vehicle(BaseModel):
@@ -24,8 +27,8 @@ class Vehicle(BaseModel):
     route: str = Field(min_length=1, max_length=64, description="route name, e.g. 'south->north'")
     arc: float = Field(ge=0.0, description="centre position along the route from its start [m]")
     speed: float = Field(ge=0.0, description="speed [m/s]")
-    length: float = Field(gt=0.0, le=30.0, description="vehicle length [m]")
-    width: float = Field(gt=0.0, le=5.0, description="vehicle width [m]")
+    length: float = Field(ge=LENGTH_RANGE[0], le=LENGTH_RANGE[1], description="vehicle length [m]")
+    width: float = Field(ge=WIDTH_RANGE[0], le=WIDTH_RANGE[1], description="vehicle width [m]")
 
 
 class SceneIn(BaseModel):
@@ -36,6 +39,9 @@ class SceneIn(BaseModel):
     layout: str = Field(min_length=1, max_length=32, description="intersection layout name: '4way', '3way' or 'inD'")
     time: float = Field(ge=0.0, le=1e9, description="simulated time [s]; never decreases within a stream")
     vehicles: list[Vehicle] = Field(max_length=MAX_VEHICLES, description="row i of the answer is vehicles[i]")
+    seq: int = Field(ge=1, le=2**63 - 1, description="the step's sequence number in the stream: 1 after an open or "
+                     "a reset, then one more per step; the same number again returns the cached answer (a retry), "
+                     "any other is refused (409)")
 
 
 class ShieldReport(BaseModel):
@@ -50,6 +56,7 @@ class StepReply(BaseModel):
     """The planner's answer to one scene."""
 
     stream: str = Field(description="the stream")
+    seq: int = Field(description="the request's sequence number")
     step: int = Field(description="steps answered in this stream since it was opened or reset (this one included)")
     time: float = Field(description="the scene's time [s]")
     ids: list[int] = Field(description="the vehicles' ids, in the order of the scene")
@@ -101,6 +108,9 @@ class ServerInfo(BaseModel):
     max_vehicles: int = Field(description="most vehicles in one scene")
     max_speed: float = Field(description="speed cap [m/s]")
     max_streams: int = Field(description="most streams open at once")
+    max_streams_per_client: int = Field(description="most streams one client (token, or address without a "
+                                        "token) may hold open")
+    workers: int = Field(description="planning processes (0: planned on the server's event loop)")
 
 
 class Health(BaseModel):
@@ -114,4 +124,6 @@ class ErrorReply(BaseModel):
     """A refused request (4xx)."""
 
     error: str = Field(description="one line: the field and what is wrong with it")
-    field: str = Field(description="the offending field, e.g. 'vehicles[3].speed', 'stream', 'authorization', 'body'")
+    field: str = Field(description="the offending field, e.g. 'vehicles[3].speed', 'stream', 'seq', 'authorization', "
+                       "'host', 'content-type', 'body', 'path', 'method'")
+    expected: int | None = Field(default=None, description="409 on 'seq': the sequence number a new step must carry")

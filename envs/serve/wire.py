@@ -28,8 +28,8 @@ import numpy as np
 
 from envs.simulation.scene import Scene
 
-# Version of the wire schema; a change that old clients cannot read increments it.
-SCHEMA_VERSION = 1
+# Version of the wire schema; a change that old clients cannot read increments it (2: steps carry `seq`).
+SCHEMA_VERSION = 2
 VEHICLE_FIELDS = ("id", "route", "arc", "speed", "length", "width")
 
 
@@ -111,7 +111,8 @@ class SceneBuilder:
         :param vehicles: objects with the attributes of :data:`VEHICLE_FIELDS`, in row order
         :return: the scene, row ``i`` = ``vehicles[i]``
         :raises WireError: another layout, too many vehicles, an unknown route, a duplicate id, an
-            ``arc`` beyond the route's end or a ``speed`` above the cap, naming the field
+            ``arc`` beyond the route's end, a ``speed`` above the cap or two vehicles in one place
+            (:func:`_check_overlaps`), naming the field
         """
         lay = self.layout
         if layout != lay.name:
@@ -136,7 +137,9 @@ class SceneBuilder:
         sim.time = float(time)
         if n:
             sim.add(route, speed, ids, length=length, width=width, arc=arc)
-        return sim.scene()
+        scene = sim.scene()
+        _check_overlaps(scene)
+        return scene
 
 
 def _check_rows(
@@ -156,3 +159,33 @@ def _check_rows(
     if fast.size:
         i = int(fast[0])
         raise WireError(f"vehicles[{i}].speed", f"{speed[i]} m/s is above the speed cap of {max_speed} m/s")
+
+
+def _check_overlaps(scene: Scene) -> None:
+    """Refuse two vehicles in one place: centres closer than half the narrower one's width, or a vehicle that
+    overlaps its leader on the same path by more than half the shorter one's length (a scene of the simulation
+    overlaps by at most what one sub-step of a collision moves, about 1.3 m at the speed cap)."""
+    n = scene.num_vehicles
+    if n < 2:
+        return
+    position = np.asarray(scene.position, float)
+    x, y = position[:, 0], position[:, 1]
+    half = 0.5 * np.asarray(scene.width, float)
+    squared = np.square(x[:, None] - x[None, :]) + np.square(y[:, None] - y[None, :])
+    close = squared < np.square(np.minimum(half[:, None], half[None, :]))
+    np.fill_diagonal(close, False)
+    if close.any():
+        j, i = (int(k) for k in np.argwhere(np.triu(close, k=1))[0])
+        apart = float(np.sqrt(squared[j, i]))
+        raise WireError(f"vehicles[{i}].arc", f"vehicle {int(scene.vehicle_id[i])} is {apart:.2f} m from "
+                                              f"vehicle {int(scene.vehicle_id[j])}: two vehicles cannot be in one "
+                                              "place")  # fmt: skip
+    leader = np.asarray(scene.leader)
+    has = leader >= 0
+    shorter = np.minimum(scene.length, scene.length[np.where(has, leader, 0)])
+    deep = np.flatnonzero(has & (scene.gap < -0.5 * shorter))
+    if deep.size:
+        i, j = int(deep[0]), int(leader[deep[0]])
+        raise WireError(f"vehicles[{i}].arc", f"vehicle {int(scene.vehicle_id[i])} overlaps vehicle "
+                                              f"{int(scene.vehicle_id[j])} by {-float(scene.gap[i]):.2f} m: two "
+                                              "vehicles cannot be in one place")  # fmt: skip

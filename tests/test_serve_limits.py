@@ -1,0 +1,336 @@
+"""The planner server against the attacks of its threat model (docs/serve.md): each one refused, bounded, or
+survived while a good client is still served.
+
+Servers run in a thread of the test process on a free loopback port (``serve_support.ThreadServer``, the
+command's uvicorn settings), and skip when the ``serve`` extra (FastAPI, uvicorn) is not installed.
+"""
+
+from __future__ import annotations
+
+import http.client
+import json
+import logging
+import os
+import resource
+import socket
+import ssl
+import stat
+import subprocess
+import sys
+import threading
+import time
+from argparse import Namespace
+from pathlib import Path
+
+import pytest
+from serve_support import OTHER_TOKEN, TOKEN, SlowPlanner, ThreadServer, serve_extra, wire_scene
+
+from envs.serve.client import PlannerClient, RemotePlannerError
+
+pytestmark = pytest.mark.skipif(not serve_extra(), reason="the 'serve' extra (fastapi, uvicorn) is not installed")
+ENV = "CoopIntersection4Way-v0"
+SUPPORT = Path(__file__).resolve().parent / "serve_support.py"
+
+
+@pytest.fixture(scope="module")
+def service():
+    from envs.serve.app import PlannerService
+
+    return PlannerService("pr", ENV)
+
+
+def raw(url: str, method: str, path: str, body: bytes = b"", headers: dict | None = None) -> tuple[int, dict]:
+    """One request on a fresh connection, headers exactly as given (plus Host unless given)."""
+    host, port = url.split("//")[1].split(":")
+    connection = http.client.HTTPConnection(host, int(port), timeout=10)
+    try:
+        connection.request(method, path, body=body, headers=headers or {})
+        response = connection.getresponse()
+        payload = response.read()
+    finally:
+        connection.close()
+    return response.status, (json.loads(payload) if payload else {})
+
+
+def test_default_token_file_is_private_and_found_by_the_client(tmp_path, monkeypatch, service):
+    from envs.commands.serve import _access
+
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path))
+    monkeypatch.delenv("SB3_GRAPH_TOKEN_FILE", raising=False)
+    args = Namespace(allowed_host=[], no_token=False)
+    port = 40000 + os.getpid() % 20000
+    access = _access(args, None, "127.0.0.1", port)
+    path = tmp_path / "sb3-graph" / f"serve-127.0.0.1-{port}.token"
+    assert stat.S_IMODE(path.stat().st_mode) == 0o600 and stat.S_IMODE(path.parent.stat().st_mode) == 0o700
+    token = path.read_text().strip()
+    assert len(token) >= 32 and access.tokens == [token.encode()]
+    assert PlannerClient(f"http://127.0.0.1:{port}").token == token  # the same user's client finds it
+    assert _access(args, None, "127.0.0.1", port).tokens != access.tokens  # a new token at every start
+
+
+def test_no_token_wrong_host_and_text_plain_are_refused_before_parsing(service):
+    scene = json.dumps(wire_scene(2, 0.0, service.builder.layout)).encode()
+    with ThreadServer(service, tokens=[TOKEN, OTHER_TOKEN], hosts=["planner.local"]) as server:
+        bearer = {"Authorization": f"Bearer {TOKEN}", "Content-Type": "application/json"}
+        assert raw(server.url, "POST", "/streams", b'{"layout": "4way"}', {"Content-Type": "application/json"}) == (
+            401, {"error": "authorization: missing or wrong token (send 'Authorization: Bearer <token>')",
+                  "field": "authorization"})  # fmt: skip
+        # DNS rebinding: a page of attacker.example that resolves to 127.0.0.1 sends its own Host
+        status, reply = raw(server.url, "GET", "/version", headers={**bearer, "Host": "attacker.example"})
+        assert (status, reply["field"]) == (400, "host")
+        assert raw(server.url, "GET", "/version", headers={**bearer, "Host": "planner.local:8765"})[0] == 200
+        # a cross-site form posts text/plain without a preflight: refused before its body is read
+        for kind in ("text/plain", "application/x-www-form-urlencoded", ""):
+            status, reply = raw(server.url, "POST", "/streams", b"not even json", {**bearer, "Content-Type": kind})
+            assert (status, reply["field"]) == (415, "content-type"), kind
+        # every token of the file is a client; each is served
+        for token in (TOKEN, OTHER_TOKEN):
+            client = PlannerClient(server.url, token=token)
+            stream = client.open("4way")
+            assert client.step(stream, json.loads(scene)).shape == (2,)
+            client.close(stream)
+
+
+def test_a_thousand_streams_from_one_client_leave_room_for_another(service):
+    with ThreadServer(service, tokens=[TOKEN, OTHER_TOKEN], max_streams=1000, max_streams_per_client=16) as server:
+        greedy = PlannerClient(server.url, token=TOKEN)
+        opened, refused = 0, []
+        for _ in range(1000):
+            try:
+                greedy.open("4way")
+                opened += 1
+            except RemotePlannerError as error:
+                refused.append((error.status, error.field))
+        assert opened == 16 and refused == [(429, "streams")] * 984
+        other = PlannerClient(server.url, token=OTHER_TOKEN)
+        stream = other.open("4way")
+        assert other.step(stream, wire_scene(3, 0.0, service.builder.layout)).shape == (3,)
+        # a client cannot see, step or close another's stream
+        with pytest.raises(RemotePlannerError) as caught:
+            greedy.close(stream)
+        assert (caught.value.status, caught.value.field) == (404, "stream")
+
+
+def test_idle_streams_expire_on_a_timer(service):
+    with ThreadServer(service, stream_timeout=0.3) as server:
+        client = PlannerClient(server.url, token=TOKEN)
+        stream = client.open("4way")
+        assert client.health()["streams"] == 1
+        time.sleep(1.0)  # nobody opens a stream meanwhile: the timer alone expires it
+        assert client.health()["streams"] == 0 and server.gateway.expired == 1
+        with pytest.raises(RemotePlannerError) as caught:
+            client.step(stream, wire_scene(1, 0.0, service.builder.layout))
+        assert (caught.value.status, caught.value.field) == (404, "stream")
+
+
+def test_a_replayed_sequence_number_is_answered_from_the_cache(service):
+    layout = service.builder.layout
+    with ThreadServer(service) as server:
+        client = PlannerClient(server.url, token=TOKEN)
+        stream = client.open("4way", seed=0)
+        first = json.dumps({**wire_scene(3, 0.0, layout), "seq": 1}).encode()
+        headers = {"Authorization": f"Bearer {TOKEN}", "Content-Type": "application/json"}
+        status, answer = raw(server.url, "POST", f"/streams/{stream}/step", first, headers)
+        assert status == 200 and answer["step"] == 1
+        # the client lost the answer and sends the step again: the same answer, not planned again
+        assert raw(server.url, "POST", f"/streams/{stream}/step", first, headers) == (200, answer)
+        second = {**wire_scene(3, 0.2, layout), "seq": 1}  # another scene under an answered number
+        status, reply = raw(server.url, "POST", f"/streams/{stream}/step", json.dumps(second).encode(), headers)
+        assert (status, reply["field"], reply["expected"]) == (409, "seq", 2)
+        status, reply = raw(server.url, "POST", f"/streams/{stream}/step",
+                            json.dumps({**second, "seq": 7}).encode(), headers)  # fmt: skip
+        assert (status, reply["field"], reply["expected"]) == (409, "seq", 2)
+        status, reply = raw(server.url, "POST", f"/streams/{stream}/step",
+                            json.dumps({**second, "seq": 2}).encode(), headers)  # fmt: skip
+        assert status == 200 and reply["step"] == 2
+
+
+def _fd_attack(url: str, count: int, seconds: float) -> subprocess.Popen:
+    """A process that opens ``count`` connections, sends half a request on each and holds them."""
+    host, port = url.split("//")[1].split(":")
+    code = f"""
+import socket, time, resource
+resource.setrlimit(resource.RLIMIT_NOFILE, resource.getrlimit(resource.RLIMIT_NOFILE)[1:] * 2)
+held, end = [], time.monotonic() + {seconds}
+while time.monotonic() < end:
+    while len(held) < {count}:
+        s = socket.create_connection(({host!r}, {port}))
+        s.sendall(b"POST /streams HTTP/1.1\\r\\nHost: 127.0.0.1\\r\\nContent-Le")
+        held.append(s)
+    time.sleep(0.05)
+    held = [s for s in held if s.fileno() >= 0]
+    alive = []
+    for s in held:  # a connection the server closed reads as EOF: open another
+        s.setblocking(False)
+        try:
+            gone = s.recv(1) == b""
+        except BlockingIOError:
+            gone = False
+        (s.close() if gone else alive.append(s))
+    held = alive
+"""
+    return subprocess.Popen([sys.executable, "-c", code], stderr=subprocess.PIPE)
+
+
+def test_half_open_connections_leave_a_good_client_served(service):
+    """About 3x the connections the file-descriptor limit allows, each half-sent and held, while a good client
+    steps a stream: the cap (under the lowered limit) closes the oldest half-open one for each newcomer."""
+    from envs.commands.serve import connection_cap
+
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    used = len(os.listdir("/proc/self/fd"))
+    if used > 120:
+        pytest.skip(f"this process already holds {used} descriptors")
+    resource.setrlimit(resource.RLIMIT_NOFILE, (used + 130, hard))  # a small limit for this test's server
+    records: list[logging.LogRecord] = []
+    handler = logging.Handler()
+    handler.emit = records.append
+    for name in ("asyncio", "uvicorn.error"):
+        logging.getLogger(name).addHandler(handler)
+    attack = None
+    try:
+        cap = connection_cap(None, 0)
+        assert cap < used + 130 - 32
+        with ThreadServer(service, max_connections=cap, header_timeout=2.0) as server:
+            guard = server.config.guard
+            attack = _fd_attack(server.url, 3 * cap, seconds=4.0)
+            client = PlannerClient(server.url, token=TOKEN, timeout=5)
+            stream = client.open("4way")
+            time.sleep(1.0)  # the attack fills the cap
+            peak, tic = 0, time.monotonic()
+            for k in range(20):
+                client.disconnect()  # a new connection each time: the hard case
+                assert client.step(stream, wire_scene(2, 0.2 * k, service.builder.layout)).shape == (2,)
+                peak = max(peak, len(guard.open))
+                time.sleep(0.1)
+            took = time.monotonic() - tic
+            assert guard.evicted > 0 and peak <= cap
+            assert took < 15, took
+    finally:
+        if attack is not None:
+            attack.kill()
+            attack.wait()
+        resource.setrlimit(resource.RLIMIT_NOFILE, (soft, hard))
+        for name in ("asyncio", "uvicorn.error"):
+            logging.getLogger(name).removeHandler(handler)
+    assert not [r for r in records if "accept" in r.getMessage()]  # never out of descriptors
+    assert len(records) <= 25  # rate-limited
+
+
+def test_a_half_sent_request_is_closed_after_the_header_timeout(service):
+    with ThreadServer(service, header_timeout=0.5) as server:
+        with socket.create_connection(("127.0.0.1", server.port)) as lazy, socket.create_connection(
+            ("127.0.0.1", server.port)
+        ) as silent:
+            lazy.sendall(b"GET /health HTTP/1.1\r\nHost: 127.0.0.1\r\n")
+            lazy.settimeout(5)
+            silent.settimeout(5)
+            tic = time.monotonic()
+            assert lazy.recv(100) == b"" and silent.recv(100) == b""  # closed by the server
+            assert 0.4 < time.monotonic() - tic < 3
+
+
+def test_log_is_rate_limited():
+    from envs.serve.limits import RateLimitFilter
+
+    limiter = RateLimitFilter(burst=5, rate=0.0)
+    logger = logging.getLogger("test_serve_limits.flood")
+    logger.addFilter(limiter)
+    records: list[logging.LogRecord] = []
+    handler = logging.Handler()
+    handler.emit = records.append
+    logger.addHandler(handler)
+    try:
+        for k in range(10_000):
+            logger.warning("socket.accept() out of system resource %d", k)
+    finally:
+        logger.removeHandler(handler)
+    assert len(records) == 5 and limiter.dropped == 9_995
+
+
+def test_workers_plan_streams_in_parallel_under_a_time_limit():
+    """A slow scene on one worker holds neither the streams of the other worker nor its client past the
+    time limit; the step it timed out on completes, and its retry gets that answer without a second plan."""
+    from envs.serve.app import PlannerService
+
+    service = PlannerService(f"{SUPPORT}:SlowPlanner", ENV)
+    layout = service.builder.layout
+    with ThreadServer(service, workers=2, time_limit=0.4) as server:
+        slow, fast = PlannerClient(server.url, token=TOKEN), PlannerClient(server.url, token=TOKEN)
+        a, b = slow.open("4way"), fast.open("4way")
+        assert {entry.worker for entry in server.gateway.streams.values()} == {0, 1}
+        big = wire_scene(SlowPlanner.SLOW_VEHICLES, 0.0, layout)
+        outcome = {}
+
+        def step_slow() -> None:
+            try:
+                slow.step(a, big)
+            except RemotePlannerError as error:
+                outcome["error"] = (error.status, error.field)
+
+        thread = threading.Thread(target=step_slow)
+        tic = time.monotonic()
+        thread.start()
+        times = []
+        for k in range(5):
+            t0 = time.monotonic()
+            fast.step(b, wire_scene(2, 0.2 * k, layout))
+            times.append(time.monotonic() - t0)
+        thread.join()
+        assert outcome["error"] == (503, "time_limit") and time.monotonic() - tic < SlowPlanner.SLOW_SECONDS + 0.5
+        assert max(times) < 0.35, times  # not held by the slow scene of the other worker
+        time.sleep(SlowPlanner.SLOW_SECONDS)
+        body = json.dumps({**big, "seq": 1}).encode()
+        headers = {"Authorization": f"Bearer {TOKEN}", "Content-Type": "application/json"}
+        status, reply = raw(server.url, "POST", f"/streams/{a}/step", body, headers)
+        assert status == 200 and reply["step"] == 1 and reply["accelerations"] == [-1.0] * SlowPlanner.SLOW_VEHICLES
+
+
+def _certificates(tmp_path: Path):
+    trustme = pytest.importorskip("trustme")
+    ca = trustme.CA()
+    server_cert = ca.issue_cert("127.0.0.1", "localhost")
+    client_cert = ca.issue_cert("client@example")
+    paths = {name: tmp_path / f"{name}.pem" for name in ("ca", "cert", "key", "client")}
+    ca.cert_pem.write_to_path(paths["ca"])
+    server_cert.cert_chain_pems[0].write_to_path(paths["cert"])
+    server_cert.private_key_pem.write_to_path(paths["key"])
+    client_cert.private_key_and_cert_chain_pem.write_to_path(paths["client"])
+    return paths
+
+
+def test_tls_and_mutual_tls(tmp_path, service):
+    paths = _certificates(tmp_path)
+    trusted = ssl.create_default_context(cafile=str(paths["ca"]))
+    tls = {"ssl_certfile": str(paths["cert"]), "ssl_keyfile": str(paths["key"])}
+    with ThreadServer(service, tls=tls) as server:
+        assert server.url.startswith("https://")
+        client = PlannerClient(server.url, token=TOKEN, ssl_context=trusted)
+        assert client.version()["planner"] == "PR"
+        with pytest.raises(RemotePlannerError):  # the system's CAs do not know the test CA
+            PlannerClient(server.url, token=TOKEN, ssl_context=ssl.create_default_context()).version()
+    mutual = {**tls, "ssl_ca_certs": str(paths["ca"]), "ssl_cert_reqs": ssl.CERT_REQUIRED}
+    with ThreadServer(service, tls=mutual) as server:
+        with pytest.raises(RemotePlannerError) as caught:  # no client certificate
+            PlannerClient(server.url, token=TOKEN, ssl_context=trusted).version()
+        assert caught.value.status == 0
+        signed = ssl.create_default_context(cafile=str(paths["ca"]))
+        signed.load_cert_chain(str(paths["client"]))
+        assert PlannerClient(server.url, token=TOKEN, ssl_context=signed).version()["planner"] == "PR"
+
+
+def test_openapi_states_the_token_enums_and_limits(service):
+    with ThreadServer(service) as server:
+        schema = PlannerClient(server.url, token="").request("GET", "/openapi.json")
+    assert schema["components"]["securitySchemes"]["bearer"] == {"type": "http", "scheme": "bearer",
+                                                                 "description": "a token of the server's token file"}
+    assert schema["security"] == [{"bearer": []}] and schema["paths"]["/health"]["get"]["security"] == []
+    parts = schema["components"]["schemas"]
+    assert parts["SceneIn"]["properties"]["vehicles"]["maxItems"] == service.builder.limits.max_vehicles == 64
+    assert parts["SceneIn"]["properties"]["layout"]["enum"] == ["4way"]
+    assert parts["Vehicle"]["properties"]["route"]["enum"] == list(service.builder.layout.route_names)
+    assert parts["SceneIn"]["properties"]["seq"]["minimum"] == 1
+    assert parts["Vehicle"]["properties"]["length"]["minimum"] >= 1.0
+    assert schema["paths"]["/streams"]["post"]["requestBody"]["content"]["application/json"]["schema"] == {
+        "$ref": "#/components/schemas/OpenRequest"
+    }
