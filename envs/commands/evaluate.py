@@ -50,7 +50,6 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from envs.simulation.traffic import MAX_DURATION
 from sb3_graph.commands import UserError
 from sb3_graph.commands.arguments import finite_float, json_object, seed_value
 
@@ -183,6 +182,7 @@ def check_executor_arguments(args: argparse.Namespace) -> None:
 
 def _check(args: argparse.Namespace) -> list[tuple[str, str]]:
     """Validate the arguments; return the ``(planner word, report name)`` pairs."""
+    from envs.simulation.traffic import MAX_DURATION  # highway-env: imported when the command runs, not for --help
     from sb3_graph.outputs import OutputError, check_destination
 
     if not 1 <= args.scenarios <= MAX_SCENARIOS:
