@@ -33,6 +33,7 @@ import pandas as pd
 
 from envs.commands.evaluate import (
     DEFAULT_PLANNERS_HELP,
+    LABEL_HELP,
     PLANNER_WORDS_HELP,
     add_executor_arguments,
     add_shield_argument,
@@ -65,8 +66,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--planner",
         action="append",
         default=None,
-        metavar="PLANNER",
-        help=f"repeatable: {PLANNER_WORDS_HELP} (default: {DEFAULT_PLANNERS_HELP})",
+        metavar="[LABEL=]PLANNER",
+        help=f"repeatable: {PLANNER_WORDS_HELP}; {LABEL_HELP} (default: {DEFAULT_PLANNERS_HELP})",
     )
     parser.add_argument(
         "--trust-planner-files",
