@@ -340,12 +340,24 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(str(error)) from None
     print_summary(summary)
     print(run_line(stats))
+    print_verdict(out)
     print(f"report written to {out} ({wall:.1f} s)")
     failed = sum(s.get("failed_runs", 0) for s in summary.values())
     if failed:
         print(f"{failed} runs failed on a planner error (see above and metrics.csv): exit status 1")
         return 1
     return 0
+
+
+def print_verdict(report: Path) -> None:
+    """The verdict that opens the report's ``report.md`` (who leads on flow, delay and stops), on the console.
+
+    :param report: the report folder
+    """
+    from envs.evaluation.verdict import read_verdict
+
+    for line in read_verdict(Path(report) / "report.md"):
+        print(line.replace("**", ""))
 
 
 def print_summary(summary: dict[str, dict[str, Any]]) -> None:

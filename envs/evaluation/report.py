@@ -5,7 +5,8 @@ Files written into the report folder:
 - ``metrics.csv``: one row per planner and run (:func:`envs.evaluation.metrics.run_metrics` columns);
 - ``vehicles.csv``: every vehicle of every run (the vehicle log, for re-analysis);
 - ``summary.json``: per planner, :func:`envs.evaluation.metrics.summarize`;
-- ``report.md``: the tables;
+- ``report.md``: the verdict (:mod:`envs.evaluation.verdict`: who leads on flow, delay and stops, by how much,
+  and whether the paired interval excludes zero), then the tables;
 - ``flow_rate.png``: flow-rate distribution per planner (box plot, paper Fig. "flow rate"), with the
   offered flow (what a perfect planner reaches) as a dashed line;
 - ``delay_collisions.png``: mean delay per run (box plot) and collided vehicles per planner (bars);
@@ -84,17 +85,21 @@ def markdown_report(
     vehicles: pd.DataFrame,
     meta: Mapping[str, Any],
     paired: pd.DataFrame | None = None,
+    verdict: Sequence[str] = (),
 ) -> str:
-    """The Markdown report: settings, flow rate, stops, collisions and delay tables, reading notes.
+    """The Markdown report: verdict, settings, flow rate, stops, collisions and delay tables, reading notes.
 
     :param summary: :func:`envs.evaluation.metrics.summarize` output
     :param runs: ``metrics.csv`` rows
     :param vehicles: all vehicle logs with a ``planner`` column
     :param meta: settings of the evaluation (env, scenarios, duration, seed, ...), shown as a list
     :param paired: :func:`envs.evaluation.comparison.paired_differences` output (a section when not empty)
+    :param verdict: the verdict section's lines (:func:`envs.evaluation.verdict.verdict_lines`), first after the title
     :return: Markdown text
     """
     lines = ["# Planner evaluation", ""]
+    if verdict:
+        lines += [*verdict, "", "## Settings", ""]
     lines += [f"- {key}: {value}" for key, value in meta.items()]
     errors = {name: s for name, s in summary.items() if s.get("planner_error_lines")}
     summary = {name: s for name, s in summary.items() if "flow_rate" in s}  # planners with a measured run
@@ -337,6 +342,19 @@ def failed_runs(runs: pd.DataFrame) -> pd.Series:
     return runs["failed"].fillna(False).astype(bool)
 
 
+def report_verdict(runs: pd.DataFrame, paired: pd.DataFrame) -> list[str]:
+    """The verdict section of ``report.md``: against the strongest baseline, or the first planner without one.
+
+    :param runs: ``metrics.csv`` rows of the runs that did not fail
+    :param paired: :func:`envs.evaluation.comparison.paired_differences` of ``runs``
+    """
+    from envs.evaluation.verdict import VERDICT_METRICS, reference_comparison, reference_means, verdict_lines
+
+    table, kind = reference_comparison(runs, paired)
+    means = reference_means(runs, table, list(VERDICT_METRICS))
+    return verdict_lines(table, reference_means=means, reference_kind=kind, level=f"{100 * CONFIDENCE:.0f} %")
+
+
 def write_report(
     out: str | Path, runs: pd.DataFrame, vehicles: pd.DataFrame, meta: Mapping[str, Any]
 ) -> dict:
@@ -361,6 +379,7 @@ def write_report(
     planners = list(pd.unique(runs["planner"]))
     summary = summarize(runs, vehicles)
     paired = paired_differences(runs)
+    verdict = report_verdict(runs, paired)
     add_collided_counts(summary, vehicles)
     add_shield_interventions(summary, runs)
     add_failures(summary, every)
@@ -368,7 +387,7 @@ def write_report(
     vehicles.to_csv(out / "vehicles.csv", index=False)
     paired.to_csv(out / "paired.csv", index=False)
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
-    (out / "report.md").write_text(markdown_report(summary, runs, vehicles, meta, paired))
+    (out / "report.md").write_text(markdown_report(summary, runs, vehicles, meta, paired, verdict))
     flow_rate_figure(runs, planners, out / FIGURES[0])
     stop_figure(vehicles, planners, "priority", PRIORITIES, out / FIGURES[1])
     stop_figure(vehicles, planners, "maneuver", MANEUVERS, out / FIGURES[2])
