@@ -206,12 +206,25 @@ def flow_rate_figure(runs: pd.DataFrame, planners: Sequence[str], path: Path) ->
         offered = runs["offered_flow"].astype(float)
         if offered.notna().any():
             ax.axhline(float(offered.mean()), color="tab:green", ls="--", lw=1, label="offered flow (mean)")
-            ax.legend(fontsize=7, loc="lower right")
+            ax.legend(fontsize=8, loc="lower right")
     ax.set_ylabel("flow rate [veh/s]")
+    ax.set_title("Flow rate per run (higher is better)", fontsize=10)
     ax.grid(axis="y", alpha=0.3)
     fig.tight_layout()
     fig.savefig(path, dpi=150)
     plt.close(fig)
+
+
+def dwarfed(values: Sequence[float], ratio: float = 20.0) -> bool:
+    """Whether one bar dwarfs another so that a linear axis hides it: the largest value is more than ``ratio``
+    times the smallest non-zero one.
+
+    :param values: the bars' heights (zeros are drawn as no bar on any axis and do not count)
+    :param ratio: the largest ratio a linear axis shows legibly
+    """
+    positive = np.asarray(values, float)
+    positive = positive[np.isfinite(positive) & (positive > 0)]
+    return positive.size > 1 and positive.max() > ratio * positive.min()
 
 
 def delay_collision_figure(runs: pd.DataFrame, planners: Sequence[str], path: Path) -> None:
@@ -228,6 +241,7 @@ def delay_collision_figure(runs: pd.DataFrame, planners: Sequence[str], path: Pa
     left.boxplot([d[np.isfinite(d)] for d in delays], showfliers=True, widths=0.5)
     _planner_axis(left, planners)
     left.set_ylabel("mean delay per run [s]")
+    left.set_title("Mean delay per run (lower is better)", fontsize=10)
     left.grid(axis="y", alpha=0.3)
     collided = [int(runs.loc[runs["planner"] == p, "collided"].fillna(0).sum()) if "collided" in runs else 0
                 for p in planners]  # fmt: skip
@@ -236,9 +250,16 @@ def delay_collision_figure(runs: pd.DataFrame, planners: Sequence[str], path: Pa
     for xi, count in zip(x, collided):
         right.text(xi, count, str(count), ha="center", va="bottom", fontsize=8)
     _planner_axis(right, planners)
-    right.set_ylabel("collided vehicles (all runs)")
-    right.set_ylim(0, max(collided + [1]) * 1.2)
-    right.yaxis.set_major_locator(matplotlib.ticker.MaxNLocator(integer=True))
+    right.set_title("Collided vehicles, all runs (lower is better)", fontsize=10)
+    if dwarfed(collided):  # e.g. 5229 beside 2: a linear axis would hide the small bars
+        right.set_yscale("symlog", linthresh=1)
+        right.set_ylim(0, max(collided) * 3)
+        right.yaxis.set_major_formatter(matplotlib.ticker.ScalarFormatter())
+        right.set_ylabel("collided vehicles (all runs, log scale)")
+    else:
+        right.set_ylabel("collided vehicles (all runs)")
+        right.set_ylim(0, max(collided + [1]) * 1.2)
+        right.yaxis.set_major_locator(matplotlib.ticker.MaxNLocator(integer=True))
     right.grid(axis="y", alpha=0.3)
     fig.tight_layout()
     fig.savefig(path, dpi=150)
@@ -267,8 +288,8 @@ def stop_figure(
         stopped = np.array([((sub[column] == g) & sub["stopped"]).sum() for g in groups])
         pos = x - 0.4 + width * (k + 0.5)
         color = colors[k % len(colors)]
-        ax.bar(pos, totals, width, color=color, alpha=0.35, label=f"{planner}: vehicles")
-        ax.bar(pos, stopped, width, color=color, label=f"{planner}: stopped")
+        ax.bar(pos, totals, width, color=color, alpha=0.35)
+        ax.bar(pos, stopped, width, color=color, label=planner)
         for p, t, s in zip(pos, totals, stopped):
             label = f"{100 * s / t:.0f}%" if t else "n/a"
             ax.text(p, t, label, ha="center", va="bottom", fontsize=7)
@@ -276,8 +297,15 @@ def stop_figure(
     ax.set_xticks(x, list(groups))
     ax.set_ylabel("vehicles")
     ax.set_ylim(0, top * 1.15)
-    ax.legend(fontsize=7, ncol=max(len(planners), 1), loc="upper center", bbox_to_anchor=(0.5, -0.12))
-    ax.set_title(f"stops by {'road priority' if column == 'priority' else column}", fontsize=9)
+    # one entry per planner (its colour), and what light and dark mean once, not once per planner
+    from matplotlib.patches import Patch
+
+    handles, _ = ax.get_legend_handles_labels()
+    handles += [Patch(color="grey", alpha=0.35, label="vehicles (light)"), Patch(color="grey", label="stopped (dark)")]
+    columns = min(len(handles), max(2, int(fig.get_figwidth() // 1.8)))
+    ax.legend(handles=handles, fontsize=9, ncol=columns, loc="upper center", bbox_to_anchor=(0.5, -0.12))
+    what = "road priority" if column == "priority" else column
+    ax.set_title(f"Vehicles that stopped, by {what} (share on top; lower is better)", fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=150, bbox_inches="tight")
     plt.close(fig)
