@@ -38,6 +38,7 @@ import pandas as pd
 
 from envs.evaluation.executors import JobExecutor, make_executor
 from envs.evaluation.metrics import VehicleLog, run_metrics
+from envs.evaluation.progress import RunClock, format_eta, interleaved
 from envs.simulation.step_record import StepRecord, step_record
 
 SCENARIO_SUFFIX = ".json"
@@ -295,15 +296,17 @@ def run_seed(seed: int, index: int) -> int:
     return int(seed) + int(index)
 
 
-def run_shared_job(job: Job, scenarios: Sequence[Any]) -> tuple[dict[str, Any], pd.DataFrame]:
+def run_shared_job(job: Job, scenarios: Sequence[Any]) -> tuple[dict[str, Any], pd.DataFrame, bool]:
     """The executors' task: :func:`run_job` with the scenario from the shared table.
 
     :param job: what to run
     :param scenarios: every scenario of the evaluation, loaded, in the order of ``job.index``
-    :return: :func:`run_job`'s result
+    :return: :func:`run_job`'s result and whether the run was warm (its worker had built its planner before:
+        its wall time is a sample of the planner's speed, see :class:`envs.evaluation.progress.RunClock`)
     """
     _worker_init()
-    return run_job(job, scenarios[job.index])
+    warm = (job.planner, job.trust_files) in _cache("planners")
+    return (*run_job(job, scenarios[job.index]), warm)
 
 
 def is_baseline(spec: str) -> bool:
@@ -460,9 +463,16 @@ def evaluate(
     tic = time.perf_counter()  # a cluster started for this evaluation counts in its wall time
     runner = make_executor(executor, jobs, scheduler_address) if own else executor
     bar = _progress(len(work), progress, progress_label)
+    # Hand the runs out scenario by scenario (every planner in turn) and price the time left per planner from
+    # warm runs (envs.evaluation.progress): the results keep the planner-major order of `work`.
+    order = interleaved(len(planners), len(scenarios))
+    seconds = [min(job.duration, getattr(table[job.index], "duration", job.duration)) for job in work]
+    clock = RunClock([job.planner for job in work], seconds, jobs)
     try:
-        for k, result in runner.map_unordered(run_shared_job, work, table):
-            results[k] = result
+        for k, result in runner.map_unordered(run_shared_job, [work[i] for i in order], table):
+            results[order[k]] = result
+            clock.record(order[k], result[0].get("wall_s"), warm=bool(result[2]) if len(result) > 2 else True)
+            bar.eta_text = format_eta(clock.remaining_s())
             bar.update(1)
         wall = time.perf_counter() - tic
         if stats is not None:
@@ -480,13 +490,21 @@ def evaluate(
 
 
 def _progress(total: int, enabled: bool, label: str = "evaluate"):
+    """The harness's bar: runs done, and the time left that :class:`envs.evaluation.progress.RunClock` gives."""
     from tqdm.auto import tqdm
 
-    return tqdm(
+    class _Bar(tqdm):
+        eta_text = "?"  # set before each update
+
+        @property
+        def format_dict(self):
+            return {**super().format_dict, "eta": self.eta_text}
+
+    return _Bar(
         total=total,
         desc=label,
         unit="run",
         # runs per second even below 1 (tqdm's default turns a slow rate into seconds per run)
-        bar_format="{l_bar}{bar}| {n_fmt}/{total_fmt} [{elapsed}<{remaining}, {rate_noinv_fmt}]",
+        bar_format="{l_bar}{bar}| {n_fmt}/{total_fmt} [{elapsed}<{eta}, {rate_noinv_fmt}]",
         disable=not enabled or bool(os.environ.get("SB3_GRAPH_NO_PROGRESS")),
     )
