@@ -124,8 +124,27 @@ def _env(env_id: str, env_kwargs: dict[str, Any]):
     envs_made = _cache("envs")
     key = (env_id, repr(sorted(env_kwargs.items())))
     if key not in envs_made:
+        _check_render_mode(env_id, env_kwargs.get("render_mode"))
         envs_made[key] = gym.make(env_id, **evaluation_env_kwargs(env_kwargs))
     return envs_made[key]
+
+
+def _check_render_mode(env_id: str, mode: Any) -> None:
+    """Refuse a ``render_mode`` that the environment does not offer before ``gym.make`` (which warns, then
+    fails inside the environment).
+
+    :raises ValueError: naming ``render_mode`` and the environment's modes
+    """
+    import gymnasium as gym
+    from gymnasium.envs.registration import load_env_creator
+
+    if mode is None or env_id not in gym.registry:
+        return
+    entry_point = gym.registry[env_id].entry_point
+    creator = load_env_creator(entry_point) if isinstance(entry_point, str) else entry_point
+    modes = list(getattr(creator, "metadata", {}).get("render_modes", []))
+    if mode not in modes:
+        raise ValueError(f"render_mode must be None or one of {modes}, got {mode!r}")
 
 
 def _planner(spec: str, trust_files: bool = False):

@@ -417,10 +417,11 @@ def _load_checkpoint(path: Path, buffer_path: Path, trust: bool, algorithm, **lo
 
 
 def _build_model(entry: dict[str, Any], train_env, seed: int, args: argparse.Namespace, tensorboard_log):
-    from sb3_graph.experiment import ExperimentError, build_algorithm_kwargs, resolve_object
+    from sb3_graph.experiment import ExperimentError, build_algorithm_kwargs, check_algorithm_keys, resolve_object
 
     try:
         algo_kwargs = build_algorithm_kwargs(entry, int(np.prod(train_env.action_space.shape)))
+        check_algorithm_keys(algo_kwargs, _algorithm(args))  # a typo (learnig_rate) named, with the closest key
         policy = entry.get("policy", "GraphPolicy")
         if isinstance(policy, str) and "." in policy:
             policy = resolve_object(policy, "policy")
