@@ -9,6 +9,7 @@ from envs.evaluation.verdict import (
     HEADING,
     VERDICT_METRICS,
     VerdictMetric,
+    compact_verdict,
     read_verdict,
     reference_comparison,
     verdict_lines,
@@ -104,3 +105,13 @@ def test_report_opens_with_the_verdict_and_the_command_reads_it_back(tmp_path):
     assert text.splitlines()[:3] == ["# Planner evaluation", "", HEADING]
     (tmp_path / "report.md").write_text(text)
     assert read_verdict(tmp_path) == [line for line in verdict[1:] if line]
+
+
+def test_the_compact_verdict_names_each_leader_and_whether_it_is_clear():
+    paired = _paired([
+        ("A", "PR", "flow_rate", 5, 0.03, 0.01, 0.05),
+        ("A", "PR", "delay_mean", 5, 0.5, -0.2, 1.0),  # A is slower, not clearly
+        ("A", "PR", "stop_ratio_all", 5, 0.0, 0.0, 0.0),
+    ])  # fmt: skip
+    assert compact_verdict(paired) == "flow: A (clear), delay: PR (no clear lead), stops: tie"
+    assert compact_verdict(paired.iloc[:0]) == "no verdict (a single planner)"

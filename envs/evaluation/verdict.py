@@ -59,12 +59,55 @@ def _signed(value: float, metric: VerdictMetric) -> str:
     return f"{metric.scale * value:+.{metric.digits}f}"
 
 
-def _interval_text(low: float, high: float, metric: VerdictMetric) -> tuple[str, bool | None]:
-    """``"[a, b]"`` in the metric's unit and whether it excludes zero (``None``: no interval)."""
-    if not (np.isfinite(low) and np.isfinite(high)):
-        return "no interval", None
-    text = f"[{_signed(low, metric)}, {_signed(high, metric)}]"
-    return text, bool(low > 0 or high < 0)
+@dataclass(frozen=True)
+class Lead:
+    """Who leads on one metric (:func:`lead`).
+
+    :param leader: the planner with the best mean difference, or the reference when every other planner is worse
+    :param other: the planner it leads (the reference, or the reference's closest follower)
+    :param planner: the planner of the paired row read (``planner - reference``)
+    :param reference: the reference planner
+    :param difference: mean per-scenario ``planner - reference`` (NaN: no paired scenario)
+    :param low: lower end of its interval
+    :param high: upper end of its interval
+    :param pairs: paired scenarios
+    :param clear: the interval excludes zero (``None``: no interval)
+    :param tie: equal on every paired scenario
+    """
+
+    leader: str
+    other: str
+    planner: str
+    reference: str
+    difference: float
+    low: float
+    high: float
+    pairs: int
+    clear: bool | None
+    tie: bool
+
+
+def lead(rows: pd.DataFrame, metric: VerdictMetric) -> Lead:
+    """Who leads on one metric, from its paired rows.
+
+    :param rows: the paired rows of one metric (columns of :data:`envs.evaluation.comparison.PAIRED_COLUMNS`),
+        one per planner other than the reference
+    :param metric: how the metric enters the verdict (its direction)
+    """
+    reference = str(rows["baseline"].iloc[0])
+    means = rows["mean_difference"].to_numpy(float)
+    gains = metric.direction * np.where(np.isfinite(means), means, -np.inf)
+    best = int(np.argmax(gains))
+    row = rows.iloc[best]
+    planner = str(row["planner"])
+    diff, low, high = float(row["mean_difference"]), float(row["ci_low"]), float(row["ci_high"])
+    clear = bool(low > 0 or high < 0) if np.isfinite(low) and np.isfinite(high) else None
+    ahead = bool(gains[best] > 0)
+    return Lead(
+        leader=planner if ahead else reference, other=reference if ahead else planner, planner=planner,
+        reference=reference, difference=diff, low=low, high=high, pairs=int(row["pairs"]), clear=clear,
+        tie=diff == 0 and low == 0 and high == 0,
+    )  # fmt: skip
 
 
 def metric_verdict(
@@ -77,36 +120,50 @@ def metric_verdict(
     :param metric: how the metric enters the verdict
     :param reference_mean: the reference's mean of the metric over the runs (for the relative difference)
     :param level: the interval's confidence, as text
-    :return: a Markdown list item, e.g. ``"- flow: **A** leads by 0.052 veh/s (+4.1 %) over PR ..."``
+    :return: a Markdown list item, e.g. ``"- flow: **A** leads by 0.052 veh/s (13.0 % of PR's mean) over PR; ..."``
     """
-    reference = str(rows["baseline"].iloc[0])
-    means = rows["mean_difference"].to_numpy(float)
-    gains = metric.direction * np.where(np.isfinite(means), means, -np.inf)
-    best = int(np.argmax(gains))
-    row = rows.iloc[best]
-    diff, low, high = float(row["mean_difference"]), float(row["ci_low"]), float(row["ci_high"])
+    found = lead(rows, metric)
+    reference, diff = found.reference, found.difference
     if not np.isfinite(diff):
-        return f"- {metric.word}: no verdict (no scenario where both {row['planner']} and {reference} have a value)"
-    interval, clear = _interval_text(low, high, metric)
-    pairs = int(row["pairs"])
-    if diff == 0 and low == 0 and high == 0:
-        return f"- {metric.word}: **tie**, {row['planner']} and {reference} equal on all {pairs} paired scenarios"
+        return f"- {metric.word}: no verdict (no scenario where both {found.planner} and {reference} have a value)"
+    if found.tie:
+        return f"- {metric.word}: **tie**, {found.planner} and {reference} equal on all {found.pairs} paired scenarios"
     size = f"{abs(metric.scale * diff):.{metric.digits}f} {metric.unit}"
     if metric.relative and reference_mean is not None and np.isfinite(reference_mean) and reference_mean != 0:
         size += f" ({100 * abs(diff) / abs(reference_mean):.1f} % of {reference}'s mean)"
-    if gains[best] > 0:
-        lead = f"**{row['planner']}** leads by {size} over {reference}"
-    else:
-        closest = " (the closest)" if len(rows) > 1 else ""
-        lead = f"**{reference}** leads by {size} over {row['planner']}{closest}"
-    if clear is None:
+    closest = " (the closest)" if found.leader == reference and len(rows) > 1 else ""
+    text = f"**{found.leader}** leads by {size} over {found.other}{closest}"
+    if found.clear is None:
         judgement = "one scenario, no interval: no clear lead"
-    elif clear:
+    elif found.clear:
         judgement = f"its {level} interval excludes zero: a clear lead"
     else:
         judgement = f"its {level} interval includes zero: no clear lead"
-    detail = f"{row['planner']} - {reference} = {_signed(diff, metric)} {interval} {metric.unit} over {pairs} scenarios"
-    return f"- {metric.word}: {lead}; {detail}; {judgement}"
+    interval = f"[{_signed(found.low, metric)}, {_signed(found.high, metric)}]" if found.clear is not None else ""
+    detail = f"{found.planner} - {reference} = {_signed(diff, metric)} {interval} {metric.unit}".replace("  ", " ")
+    return f"- {metric.word}: {text}; {detail} over {found.pairs} scenarios; {judgement}"
+
+
+def compact_verdict(paired: pd.DataFrame, metrics: Mapping[str, VerdictMetric] | None = None) -> str:
+    """The verdict in one line, e.g. ``"flow: AIM (clear), delay: AIM (clear), stops: tie"`` (a sweep's level).
+
+    :param paired: :func:`envs.evaluation.comparison.paired_differences` output
+    :param metrics: the metrics that enter (default :data:`VERDICT_METRICS`)
+    :return: the line; ``"no verdict (a single planner)"`` for an empty table
+    """
+    if paired is None or paired.empty:
+        return "no verdict (a single planner)"
+    parts = []
+    for column, metric in (VERDICT_METRICS if metrics is None else metrics).items():
+        rows = paired[paired["metric"] == column]
+        if rows.empty:
+            continue
+        found = lead(rows, metric)
+        if found.tie or not np.isfinite(found.difference):
+            parts.append(f"{metric.word}: {'tie' if found.tie else 'n/a'}")
+        else:
+            parts.append(f"{metric.word}: {found.leader} ({'clear' if found.clear else 'no clear lead'})")
+    return ", ".join(parts)
 
 
 def verdict_lines(
