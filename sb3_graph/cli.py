@@ -43,24 +43,32 @@ class _Parser(argparse.ArgumentParser):
 
 
 def build_parser(
-    commands: Sequence[str] | None = None, table: dict[str, tuple[str, str]] | None = None
+    commands: Sequence[str] | None = None,
+    table: dict[str, tuple[str, str]] | None = None,
+    load: Sequence[str] | None = None,
 ) -> argparse.ArgumentParser:
-    """The argument parser with a sub-parser for each command whose module is importable.
+    """The argument parser with a sub-parser for each command; a command's module is imported (for its
+    arguments) only when it is in ``load``, so that the top-level ``--help`` imports none.
 
-    :param commands: the commands to build (default: all)
+    :param commands: the commands listed (default: all)
     :param table: ``command -> (module, help)`` (default: :func:`all_commands`)
+    :param load: the commands whose arguments are added, importing their modules (default: every listed one)
     """
     table = all_commands() if table is None else table
     from sb3_graph import __version__
 
+    names = list(commands if commands is not None else table)
+    load = set(names if load is None else load)
     parser = _Parser(prog="sb3-graph", description=__doc__.splitlines()[0])
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for name in commands if commands is not None else table:
+    for name in names:
         module_name, help_text = table[name]
         # argparse %-formats a help string (not a description): "95 % intervals" must reach it as "95 %% ..."
         sub_parser = sub.add_parser(name, help=help_text.replace("%", "%%"), description=help_text)
         sub_parser.set_defaults(_module=module_name)
+        if name not in load:
+            continue
         try:
             module = importlib.import_module(module_name)
         except ModuleNotFoundError as error:  # a command whose module is not part of this install
@@ -73,11 +81,12 @@ def build_parser(
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``sb3-graph`` console script."""
     argv = list(sys.argv[1:] if argv is None else argv)
-    # Build only the chosen command's parser, so that one command's import cost is not paid by all;
-    # the domains' entry points are read only for a command that is not the package's own.
+    # Import only the chosen command's module (the top-level --help lists the commands from their
+    # one-line helps, importing none); the domains' entry points are read only for a command that
+    # is not the package's own.
     table = COMMANDS if argv and argv[0] in COMMANDS else all_commands()
     chosen = [argv[0]] if argv and argv[0] in table else None
-    parser = build_parser(chosen, table)
+    parser = build_parser(chosen, table, load=chosen or [])
     if argv and not argv[0].startswith("-") and argv[0] not in table:
         parser.error(
             f"unknown command {argv[0]!r} (commands: {', '.join(table)}; a domain's commands come from its "

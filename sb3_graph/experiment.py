@@ -292,6 +292,33 @@ def check_entry(entry: dict[str, Any]) -> dict[str, Any]:
     return checked
 
 
+def check_algorithm_keys(kwargs: dict[str, Any], algorithm_class: type, where: str = "") -> None:
+    """Refuse a keyword that the algorithm's constructor does not take (a typo such as ``learnig_rate``), naming
+    it and the closest keyword, before anything is built (a tuning study would otherwise fail every trial).
+
+    :param kwargs: :func:`build_algorithm_kwargs`' output (or the entry's keys that reach the constructor)
+    :param algorithm_class: the algorithm class (its ``__init__`` signature; one with ``**kwargs`` accepts any key)
+    :param where: where the keys come from, for the message (e.g. ``"--trial-hyperparams"``)
+    :raises ExperimentError: ``<key>: not a hyperparameter of <Algorithm> (did you mean <closest>?)``
+    """
+    import difflib
+    import inspect
+
+    try:
+        parameters = inspect.signature(algorithm_class).parameters
+    except (TypeError, ValueError):  # a constructor without a signature: nothing to check against
+        return
+    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters.values()):
+        return
+    known = sorted(name for name in parameters if name not in ("self", "policy", "env"))
+    for key in kwargs:
+        if key not in parameters:
+            close = difflib.get_close_matches(key, known, n=1)
+            hint = f"did you mean {close[0]!r}?" if close else f"its hyperparameters: {', '.join(known)}"
+            source = f" ({where})" if where else ""
+            raise ExperimentError(f"{key}{source}: not a hyperparameter of {algorithm_class.__name__}; {hint}")
+
+
 def build_algorithm_kwargs(entry: dict[str, Any], action_dim: int) -> dict[str, Any]:
     """Constructor keyword arguments for the algorithm from one experiment entry.
 

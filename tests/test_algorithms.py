@@ -296,7 +296,9 @@ def test_n_steps_go_to_the_graph_buffer_without_a_warning():
     assert isinstance(model.replay_buffer, GraphReplayBuffer)
     assert (model.replay_buffer.n_steps, model.replay_buffer.gamma) == (3, 0.9)
     model.learn(30)
-    assert model.replay_buffer.sample(8).discounts is not None
+    discounts = model.replay_buffer.sample(64).discounts.cpu().numpy()  # gamma ** k, k <= 3 steps looked ahead
+    assert discounts.shape == (64, 1)
+    assert np.isclose(discounts, [[0.9, 0.81, 0.729]]).any(axis=1).all() and np.isclose(discounts, 0.729).any()
     with pytest.warns(UserWarning, match="n_steps=3"):  # an explicit class without n_steps: SB3's warning stands
         tiny("SAC", n_steps=3, replay_buffer_class=GraphReplayBuffer)
 

@@ -71,6 +71,7 @@ def files(tmp_path_factory):
     paths["afile"] = f / "afile"
     for name, changes in {
         "lin_abc": {"learning_rate": "lin_abc"},
+        "typo": {"learnig_rate": 0.001},
         "gamma_high": {"gamma": "high"},
         "n_envs_0": {"n_envs": 0},
         "negative_steps": {"n_timesteps": -5},
@@ -85,6 +86,7 @@ def files(tmp_path_factory):
         "ind_gz": lambda t: gzip.compress(t["tracks"].encode()),
         "ind_truncated": lambda t: "\n".join(t["tracks"].splitlines()[: len(t["tracks"].splitlines()) // 2]).encode(),
         "ind_cut_row": lambda t: _cut_row(t["tracks"]),
+        "ind_header_only": lambda t: t["tracks"].splitlines()[0].encode() + b"\n",
     }.items():
         folder = f / name
         for kind, text in texts.items():
@@ -325,6 +327,15 @@ CASES = [
     ("env-not-intersection", ["evaluate", "--env", "CartPole-v1"], ["--env", "CartPole-v1", "not an intersection"]),
     ("env-unknown", ["evaluate", "--env", "Nope-v9"], ["--env", "Nope-v9"]),
     ("env-kwargs-list", ["evaluate", "--env-kwargs", "[1]"], ["--env-kwargs", "JSON object"]),
+    ("env-config-list", ["evaluate", "--env-kwargs", '{"config": [["max_vehicles", 8]]}'], ["--env-kwargs", "config"]),
+    ("env-render-mode", ["evaluate", "--env-kwargs", '{"render_mode": "video"}'],
+     ["--env-kwargs", "render_mode", "'video'", "rgb_array"]),  # fmt: skip
+    ("env-observation-scale", ["evaluate", "--env-kwargs", '{"config": {"s_scale": 1e300}}'],
+     ["--env-kwargs", "s_scale", "1e+300"]),  # fmt: skip
+    ("tune-hyperparameter-typo", _tune("{typo}"), ["learnig_rate", "did you mean 'learning_rate'"]),
+    ("tune-trial-hyperparameter-typo", _tune(str(CONFIG), "--trial-hyperparams", "batch_sise:64"),
+     ["batch_sise", "did you mean 'batch_size'"]),  # fmt: skip
+    ("train-hyperparameter-typo", _train("{typo}"), ["learnig_rate", "did you mean 'learning_rate'"]),
     ("env-kwargs-not-json", ["evaluate", "--env-kwargs", "{duration: 5"], ["--env-kwargs", "JSON"]),
     ("max-vehicles-huge", ["evaluate", "--env-kwargs", '{"config": {"max_vehicles": 1000000000}}'],
      ["--env-kwargs", "max_vehicles"]),  # fmt: skip
@@ -370,6 +381,7 @@ CASES = [
     ("ind-gzipped", _ind("--dataset-only", data="{ind_gz}"), ["07_tracks.csv", "gzip"]),
     ("ind-truncated", _ind("--dataset-only", data="{ind_truncated}"), ["07_tracks.csv", "truncated"]),
     ("ind-cut-row", _ind("--dataset-only", data="{ind_cut_row}"), ["07_tracks.csv", "'xCenter'", "line", "empty"]),
+    ("ind-header-only", _ind("--dataset-only", data="{ind_header_only}"), ["07_tracks.csv", "no track rows"]),
     ("ind-non-numeric", _ind("--dataset-only", data="{ind_words}"), ["07_recordingMeta.csv", "frameRate", "'fast'"]),
     ("ind-layout-mismatch", _ind("--planner", "fifo", "--env", ENV_ID), ["--env", "layout", "'4way'", "'inD'"]),
     ("ind-model-too-small", _ind("--planner", "{small}"), ["--planner", "small.zip", "max_nodes=8"]),

@@ -43,3 +43,28 @@ def test_import_sb3_graph_registers_the_toy_env():
     code = "import gymnasium as gym, sb3_graph; env = gym.make('GraphMaxNeighbour-v0'); env.reset(seed=0)"
     result = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert result.returncode == 0, result.stderr
+
+
+def test_top_level_help_imports_no_command_module_nor_torch():
+    # The fast start (benchmarks/bench_cli_start.py times it): listing the commands loads none of them.
+    code = (
+        "import sys\n"
+        "from sb3_graph.cli import all_commands, main\n"
+        "try:\n    main(['--help'])\nexcept SystemExit:\n    pass\n"
+        "modules = {module for module, _ in all_commands().values()}\n"
+        "print(sorted(m for m in modules | {'torch', 'stable_baselines3', 'torch_geometric', 'highway_env'} "
+        "if m in sys.modules))\n"
+    )
+    result = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip().splitlines()[-1] == "[]"
+
+
+def test_package_names_load_on_first_use():
+    code = (
+        "import sys, sb3_graph\nassert 'torch' not in sys.modules\n"
+        "print(sb3_graph.TD3.__module__, len(sb3_graph.POLICY_CLASSES))"
+    )
+    result = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.split() == ["sb3_graph.td3.td3", "5"]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import gymnasium as gym
+import numpy as np
 import pytest
 
 import envs  # noqa: F401
@@ -59,6 +60,9 @@ def test_configure_takes_effect_at_reset():
         ({"policy_frequency": 4}, "simulation_frequency"),  # 15 is not a multiple of 4
         ({"collision_handling": "ignore"}, "collision_handling"),
         ({"collision_handling": None}, "collision_handling"),
+        ({"s_scale": 1e300}, "s_scale"),  # observation scales: the float32 features would overflow
+        ({"d_max": 1e300}, "d_max"),
+        ({"s_ref": 1e300}, "s_ref"),
     ],
 )
 def test_bad_settings_raise_value_error_naming_the_key(config, key):
@@ -89,3 +93,40 @@ def test_spawn_probability_range_draws_per_episode():
     assert len(drawn) == 5
     with pytest.raises(ValueError, match="spawn_probability_range"):
         CoopIntersectionEnv(config={"spawn_probability_range": [0.5, 1.5]})
+
+
+@pytest.mark.parametrize("config", [[("max_vehicles", 8)], "max_vehicles=8", 0])
+def test_a_config_that_is_not_a_dict_names_config(config):
+    with pytest.raises(ValueError, match="config must be a dict"):
+        CoopIntersectionEnv(config=config)
+    with pytest.raises(ValueError, match="config must be a dict"):
+        CoopIntersectionEnv().configure(config)
+
+
+def test_numpy_booleans_are_booleans():
+    env = CoopIntersectionEnv(config={"shield": np.bool_(True), "render_agent": np.bool_(False)})
+    assert env.config["shield"] is True and env.config["render_agent"] is False  # stored as Python booleans
+
+
+def test_an_unknown_render_mode_names_it_without_gymnasiums_warning():
+    import warnings
+
+    from envs.evaluation.harness import env_config
+
+    with pytest.raises(ValueError, match=r"render_mode must be None or one of \['human', 'rgb_array'\], got 'video'"):
+        CoopIntersectionEnv(render_mode="video")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        with pytest.raises(ValueError, match="render_mode"):
+            env_config("CoopIntersection4Way-v0", {"render_mode": "video"})
+    assert not caught, [str(w.message) for w in caught]
+
+
+def test_observation_scales_at_their_bounds_give_finite_observations():
+    from envs.simulation.config import MAX_D_MAX, MAX_S_REF, MAX_S_SCALE
+
+    env = CoopIntersectionEnv(config={"s_scale": MAX_S_SCALE, "s_ref": MAX_S_REF, "d_max": MAX_D_MAX})
+    obs, _ = env.reset(seed=0)
+    for _ in range(10):
+        obs, *_ = env.step(np.ones(env.action_space.shape, np.float32))
+    assert all(np.isfinite(value).all() for value in obs.values())

@@ -178,3 +178,53 @@ def test_shipped_safetensors_and_zip_give_the_same_report(tmp_path):
     runs = pd.read_csv(tmp_path / "r" / "metrics.csv").set_index("planner")
     cols = ["vehicles", "crossed", "stopped_all", "collided"]
     pd.testing.assert_series_equal(runs.loc["RL:coop_4way_fair", cols], runs.loc["RL:zip", cols], check_names=False)
+
+
+def test_labels_are_report_names_and_tell_files_of_one_folder_name_apart(tmp_path, capsys):
+    import shutil
+
+    from envs.commands.evaluate import DEFAULT_MODEL
+
+    files = []
+    for run in ("default", "tuned"):  # .../<run>/seed_0/best_model.safetensors: both named after 'seed_0'
+        (tmp_path / run / "seed_0").mkdir(parents=True)
+        files.append(str(shutil.copy(DEFAULT_MODEL, tmp_path / run / "seed_0" / DEFAULT_MODEL.name)))
+    unlabelled = ["evaluate", "--planner", files[0], "--planner", files[1], "--out", str(tmp_path / "x"), *SMALL]
+    assert main(unlabelled) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "LABEL=SPEC" in err and "Traceback" not in err, err
+    out = tmp_path / "r"
+    args = ["evaluate", "--planner", "base=pr", "--planner", f"default={files[0]}", "--planner", f"tuned={files[1]}",
+            "--shield", "--out", str(out), *SMALL]  # fmt: skip
+    assert main(args) == 0
+    last = capsys.readouterr().out.splitlines()[-5:]  # the command ends with the verdict, then the report's path
+    assert last[0].startswith("Who leads, against base+shield (the strongest baseline)")
+    assert [line.split(":")[0] for line in last[1:4]] == ["- flow", "- delay", "- stops"]
+    assert last[4].startswith(f"report written to {out}")
+    names = ["base+shield", "default+shield", "tuned+shield"]
+    assert list(pd.unique(pd.read_csv(out / "metrics.csv")["planner"])) == names
+    assert list(json.loads((out / "summary.json").read_text())) == names
+    report = (out / "report.md").read_text()
+    assert all(f"| {name} |" in report for name in names)
+    assert report.splitlines()[2] == "## Verdict"  # report.md opens with the same verdict as the console
+    assert [line.replace("**", "") for line in report.splitlines()[6:9]] == last[1:4]
+    replay = json.loads((out / "run.json").read_text())["replay"]["planners"]
+    assert [name for _, name in replay] == names and replay[1][0] == f"{files[0]}+shield"
+
+
+@pytest.mark.parametrize(
+    "words, message",
+    [
+        (["a=pr", "a=fifo"], "'a=fifo' and 'a=pr' both get the label 'a'"),
+        (["FIFO=pr", "fifo"], "'fifo' and 'FIFO=pr' both get the report name 'FIFO'"),
+        (["two words=pr"], "label 'two words' in 'two words=pr' is not a valid label"),
+        (["empty="], "label 'empty' names no planner"),
+        (["x=nobody"], "planner 'nobody' is neither a baseline"),
+    ],
+)
+def test_a_label_clash_or_a_bad_label_is_one_line(words, message, tmp_path, capsys):
+    args = ["evaluate", *[f"--planner={w}" for w in words], "--out", str(tmp_path / "r"), *SMALL]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1, err
+    assert not (tmp_path / "r").exists()

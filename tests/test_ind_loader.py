@@ -112,6 +112,15 @@ def test_track_without_meta_row_is_an_error(data, tmp_path):
         load_recording(tmp_path, 7)
 
 
+def test_a_header_only_tracks_file_is_named(data, tmp_path):
+    _, written = data
+    write_recording(tmp_path, written)
+    path = recording_file(tmp_path, 7, "tracks")
+    path.write_text(path.read_text().splitlines()[0] + "\n")
+    with pytest.raises(IndDataError, match=r"07_tracks\.csv: no track rows, only the header"):
+        load_recording(tmp_path, 7)
+
+
 def test_existing_files_are_not_overwritten(data):
     folder, written = data
     with pytest.raises(FileExistsError, match="07_tracks.csv"):

@@ -133,11 +133,22 @@ def test_env_config_is_valid_or_names_the_key(config):
                               config_values, max_size=2))  # fmt: skip
 def test_env_accepts_or_refuses_before_stepping(config):
     try:
-        env = CoopIntersectionEnv(config=config)
+        expected = validate_config(config, CoopIntersectionEnv.default_config())
     except ValueError:
+        expected = None
+    try:
+        env = CoopIntersectionEnv(config=config)
+    except ValueError as error:  # refused exactly when the config check refuses, naming a key
+        assert expected is None, config
+        assert any(repr(key) in str(error) for key in [*config, "simulation_frequency"]), str(error)
         return
-    env.reset(seed=0)
-    env.step(np.zeros(env.action_space.shape, np.float32))
+    assert expected is not None, config
+    assert {key: env.config[key] for key in config} == {key: expected[key] for key in config}
+    obs, _ = env.reset(seed=0)
+    assert env.observation_space.contains(obs)
+    obs, reward, *_ = env.step(np.zeros(env.action_space.shape, np.float32))
+    assert env.observation_space.contains(obs) and np.isfinite(reward)
+    assert obs["x"].shape[0] == env.config["max_vehicles"] and int(obs["node_mask"].sum()) <= env.config["max_vehicles"]
 
 
 # ---------------------------------------------------------------- inD recordings

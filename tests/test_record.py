@@ -32,12 +32,15 @@ def test_record_writes_one_gif_frame_per_policy_step(layout, tmp_path, capsys):
     assert not list(tmp_path.glob(".*"))  # no partial file left beside it
 
 
-def test_record_html_is_self_contained_and_a_still_is_written(tmp_path):
+def test_record_html_is_self_contained_and_a_still_is_written(tmp_path, capsys):
     out, still = tmp_path / "episode.html", tmp_path / "frame.png"
-    assert main(["record", "--planner", "aim", "--planner", "fifo+shield", "--duration", "1", "--out", str(out),
+    assert main(["record", "--planner", "lead=aim", "--planner", "fifo+shield", "--duration", "1", "--out", str(out),
                  "--still", str(still), *FAST]) == 0  # fmt: skip
+    assert [line.split(":")[0].strip() for line in capsys.readouterr().out.splitlines()[:2]] == ["lead", "FIFO+shield"]
     html = out.read_text()
     assert html.count("data:image/png;base64") == 5 and "<script" in html  # frames embedded, no side files
+    assert "http://" not in html and "https://" not in html and "<link" not in html  # loads nothing (no CDN)
+    assert html.count("<button") == 9 and 'class="fa' not in html  # the player's buttons, as Unicode glyphs
     assert sorted(p.name for p in tmp_path.iterdir()) == ["episode.html", "frame.png"]
     with Image.open(still) as image:
         assert image.size[0] > image.size[1] > 100  # two panels side by side
@@ -97,7 +100,8 @@ def test_record_replays_a_run_of_an_evaluate_report(tmp_path, capsys):
         (["--out", "x.gif", "--planner", "nobody"], "--planner"),
         (["--out", "x.gif", "--planner", "fifo", "--run", "3"], "--run needs --report"),
         (["--out", "x.gif", "--report", "nowhere", "--run", "0"], "--report: 'nowhere' is not an evaluate report"),
-        (["--out", "x.gif"], "--planner: give at least one planner"),
+        (["--out", "x.gif", "--planner", "a b=fifo"], "--planner: label 'a b' in 'a b=fifo' is not a valid label"),
+        (["--out", "x.gif", "--planner", "x=fifo", "--planner", "x=aim"], "both get the label 'x'"),
         (["--out", "x.gif", "--planner", "fifo", "--duration", "-1"], "--duration must be positive"),
         (["--out", "x.gif", "--planner", "fifo", "--duration", "5", "--from", "5"], "--from must be in [0, 5)"),
         (["--out", "x.gif", "--planner", "fifo", "--scenario", "missing.json"], "--scenario: 'missing.json'"),
@@ -109,6 +113,16 @@ def test_bad_input_is_one_line(extra, message, tmp_path, monkeypatch, capsys):
     err = capsys.readouterr().err
     assert message in err and err.count("\n") == 1, err
     assert not list(tmp_path.iterdir())
+
+
+def test_record_defaults_to_the_shipped_planner_behind_the_shield(tmp_path, capsys):
+    from envs.commands.evaluate import DEFAULT_MODEL
+    from envs.planners import planner_name
+
+    out = tmp_path / "episode.gif"
+    assert main(["record", "--duration", "0.6", "--out", str(out), *FAST]) == 0
+    name = planner_name(str(DEFAULT_MODEL) + "+shield")
+    assert capsys.readouterr().out.splitlines()[0].strip().startswith(f"{name}:")
 
 
 def test_existing_out_is_refused(tmp_path, capsys):

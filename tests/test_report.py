@@ -57,3 +57,34 @@ def test_figures_are_written_with_the_offered_flow_and_delay(tmp_path):
     for figure in FIGURES:
         image = matplotlib.image.imread(tmp_path / figure)
         assert image.shape[0] > 100 and image.shape[1] > 100
+
+
+def _drawn(monkeypatch, draw) -> list:
+    """The figures that ``draw()`` makes (kept open: the report closes them after saving)."""
+    import matplotlib.pyplot as plt
+
+    figures = []
+    monkeypatch.setattr(plt, "close", lambda fig=None: figures.append(fig))
+    draw()
+    return figures
+
+
+def test_figures_have_titles_and_a_log_axis_where_one_bar_dwarfs_the_others(tmp_path, monkeypatch):
+    from envs.evaluation.report import delay_collision_figure, dwarfed, flow_rate_figure, stop_figure
+
+    assert dwarfed([5229, 2, 0]) and not dwarfed([30, 2, 0]) and not dwarfed([5229, 0]) and not dwarfed([])
+    runs, vehicles = _results(collided_in_fifo=2)
+    planners = list(pd.unique(runs["planner"]))
+    for counts, scale in (({"PR": 2600}, "symlog"), ({"PR": 10}, "linear")):  # PR 2 x 2600 beside FIFO's 2
+        mine = runs.assign(collided=runs["planner"].map(counts).fillna(runs["collided"]))
+        (fig,) = _drawn(monkeypatch, lambda mine=mine: delay_collision_figure(mine, planners, tmp_path / "d.png"))
+        left, right = fig.axes
+        assert "delay" in left.get_title().lower() and "collided" in right.get_title().lower()
+        assert right.get_yscale() == scale
+    (fig,) = _drawn(monkeypatch, lambda: flow_rate_figure(runs, planners, tmp_path / "f.png"))
+    assert fig.axes[0].get_title().startswith("Flow rate")
+    (fig,) = _drawn(monkeypatch, lambda: stop_figure(vehicles, planners, "maneuver", ["straight"], tmp_path / "s.png"))
+    legend = fig.axes[0].get_legend()
+    labels = [text.get_text() for text in legend.get_texts()]
+    assert labels == [*planners, "vehicles (light)", "stopped (dark)"]  # one entry per planner, not two
+    assert min(text.get_fontsize() for text in legend.get_texts()) >= 9

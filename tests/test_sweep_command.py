@@ -15,16 +15,24 @@ from sb3_graph.cli import main
 TINY = ["--scenarios", "1", "--duration", "10", "--seed", "2", "--jobs", "1", "--no-progress"]
 
 
-def test_tiny_sweep_writes_both_files_with_the_schema(tmp_path):
+def test_tiny_sweep_writes_both_files_with_the_schema(tmp_path, capsys):
     out = tmp_path / "sweep"
-    args = ["sweep", "--planner", "pr", "--planner", "fifo", "--demand", "0.3", "0.1", "--out", str(out)]
+    args = ["sweep", "--planner", "rules=pr", "--planner", "fifo", "--demand", "0.3", "0.1", "--out", str(out)]
     assert main([*args, *TINY]) == 0
+    last = capsys.readouterr().out.splitlines()[-4:]  # who leads per level, then the folder
+    assert last[0].startswith("Who leads at each demand level")
+    assert [line.split(":")[0] for line in last[1:3]] == ["  demand 0.1", "  demand 0.3"]
+    assert all("flow: " in line and "delay: " in line and "stops: " in line for line in last[1:3])
+    assert last[3].startswith(f"sweep written to {out}")
     table = pd.read_csv(out / "sweep.csv")
     assert list(table.columns) == [
         "planner", "demand", "flow_rate", "delay_mean_s", "stop_ratio", "collision_rate", "speed_limit_violations",
         "slow_ratio", "hard_brakes_per_vehicle", "energy_kj_per_vehicle",
     ]  # fmt: skip
-    assert list(zip(table["planner"], table["demand"])) == [("PR", 0.1), ("FIFO", 0.1), ("PR", 0.3), ("FIFO", 0.3)]
+    # the label is the report name
+    assert list(zip(table["planner"], table["demand"])) == [
+        ("rules", 0.1), ("FIFO", 0.1), ("rules", 0.3), ("FIFO", 0.3)
+    ]  # fmt: skip
     assert table[["flow_rate", "delay_mean_s", "stop_ratio", "collision_rate"]].notna().all().all()
     assert (table["speed_limit_violations"] >= 0).all()
     image = matplotlib.image.imread(out / "sweep.png")
@@ -36,13 +44,14 @@ def test_tiny_sweep_writes_both_files_with_the_schema(tmp_path):
         scenario = json.loads(next((out / level / "scenarios").iterdir()).read_text())
         assert scenario["meta"]["demand"] == float(level.split("_")[1])
         summary = json.loads((out / level / "summary.json").read_text())
-        assert summary["PR"]["vehicles_scheduled"] == summary["FIFO"]["vehicles_scheduled"]
-        row = table[(table["planner"] == "PR") & (table["demand"] == float(level.split("_")[1]))].iloc[0]
-        assert row["flow_rate"] == pytest.approx(summary["PR"]["flow_rate"]["mean"])
-        assert row["speed_limit_violations"] == summary["PR"]["speed_limit_violations"]
+        assert summary["rules"]["vehicles_scheduled"] == summary["FIFO"]["vehicles_scheduled"]
+        row = table[(table["planner"] == "rules") & (table["demand"] == float(level.split("_")[1]))].iloc[0]
+        assert row["flow_rate"] == pytest.approx(summary["rules"]["flow_rate"]["mean"])
+        assert row["speed_limit_violations"] == summary["rules"]["speed_limit_violations"]
+        assert (out / level / "report.md").read_text().splitlines()[2] == "## Verdict"
     # the higher demand offers more traffic
-    low = json.loads((out / "demand_0.1" / "summary.json").read_text())["PR"]
-    high = json.loads((out / "demand_0.3" / "summary.json").read_text())["PR"]
+    low = json.loads((out / "demand_0.1" / "summary.json").read_text())["rules"]
+    high = json.loads((out / "demand_0.3" / "summary.json").read_text())["rules"]
     assert high["vehicles_scheduled"] > low["vehicles_scheduled"]
 
 

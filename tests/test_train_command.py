@@ -55,6 +55,7 @@ def test_tiny_run_writes_loadable_models_and_resumes(tmp_path):
     assert record["num_timesteps"] == 200 and record["env"] == ENV_ID and "torch" in record["versions"]
     assert (out / "checkpoints" / "model_replay_buffer_200_steps.pkl").is_file()
     assert (out / "checkpoints" / "model_100_steps.zip").is_file()  # periodic checkpoint
+    assert any((out / "tb").rglob("events.out.tfevents.*"))  # TensorBoard is installed here: its logs
 
     # --resume continues the step count from the last checkpoint, with its replay buffer
     assert train(out, "--resume", "--n-timesteps", "300") == 0
@@ -298,17 +299,39 @@ def test_intersection_zoo_entries_read_and_build(name):
 
 
 def test_short_run_warns_names_its_settings_and_records_the_typed_command(tmp_path, capsys, monkeypatch):
+    import importlib.util
+
     monkeypatch.chdir(tmp_path)
+    find_spec = importlib.util.find_spec  # a base install: no TensorBoard
+
+    def hidden(name, *args):
+        return None if name == "tensorboard" else find_spec(name, *args)
+
+    monkeypatch.setattr(importlib.util, "find_spec", hidden)
     args = ["--n-timesteps", "120", "--hyperparams", "learning_starts:500", "batch_size:16", "buffer_size:1000",
             *SHORT_EPISODES]  # fmt: skip
     assert train("short", *args) == 0
     captured = capsys.readouterr()
     assert "warning: n_timesteps 120 <= learning_starts 500: no gradient step" in captured.err
+    assert "note: TensorBoard is not installed, so this run writes no tb/ logs" in captured.err
+    assert not (tmp_path / "short" / "tb").exists()
     assert "--eval-freq" not in captured.err  # a validation runs at step 100
     assert "Eval num_timesteps=100" in captured.out  # the validation score on the console
     record = json.loads((tmp_path / "short" / "run.json").read_text())
     assert " --out short " in record["command"] + " " and record["command"].startswith("sb3-graph train ")
-    assert record["best_mean_reward"] is not None
+    results = np.load(tmp_path / "short" / "evaluations.npz")["results"]  # one validation: (1, episodes)
+    assert results.shape == (1, 1) and record["best_mean_reward"] == pytest.approx(float(results.mean(axis=1).max()))
+    # what the run wrote, and what to do next (export, then the domain's evaluate; no TensorBoard line)
+    lines = captured.out.splitlines()
+    summary = lines[[k for k, line in enumerate(lines) if line.startswith("sb3-graph train: 120 steps")][0] + 1 :]
+    checkpoints = sum(1 for _ in (tmp_path / "short" / "checkpoints").iterdir())
+    assert summary[0] == (
+        f"  wrote: best_model.zip, final_model.zip, evaluations.npz, checkpoints/ ({checkpoints} files), config.yml, "
+        "run.json"
+    )
+    assert summary[2].startswith("    sb3-graph export short/best_model.zip short/best_model.safetensors")
+    assert summary[3].startswith(f"    sb3-graph evaluate --env {ENV_ID} --planner mine=short/best_model.safetensors")
+    assert "--resume" in summary[4] and not any("tensorboard" in line for line in summary)
 
 
 def test_short_run_warnings_name_learning_starts_and_eval_freq():

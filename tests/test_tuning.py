@@ -484,3 +484,27 @@ def test_the_shipped_shield_study_reports_what_its_trials_trained_with(tmp_path)
     assert entry["learning_starts"] == 500  # the trials' --trial-hyperparams, not the file's 2000
     assert entry["env_kwargs"]["config"]["shield"] is True
     assert entry == yaml.safe_load((folder / "shield_fine" / "best_params.yml").read_text())["CoopIntersection4Way-v0"]
+
+
+@pytest.mark.parametrize(
+    "entry, extra, key, closest",
+    [
+        ({"learnig_rate": 0.001}, [], "learnig_rate", "learning_rate"),  # in the YAML entry
+        ({}, ["--trial-hyperparams", "gama:0.9"], "gama", "gamma"),  # on the command line
+    ],
+)
+def test_a_hyperparameter_typo_fails_before_the_first_trial(tmp_path, capsys, monkeypatch, entry, extra, key, closest):
+    import sb3_graph.tuning.runner as runner
+
+    def no_trial(*args, **kwargs):
+        raise AssertionError("a trial ran")
+
+    monkeypatch.setattr(runner, "run_trial", no_trial)
+    path = tmp_path / "td3.yml"
+    path.write_text(yaml.safe_dump({TOY: {**TINY, **entry}}))
+    db = tmp_path / "typo.db"
+    code = tune(path, "typo", "--env", TOY, "--storage", f"sqlite:///{db}", "--tune-algo", "--n-trials", "2", *extra)
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and "Traceback" not in err, err
+    assert f"{key}" in err and f"did you mean {closest!r}" in err and "TD3" in err
+    assert not db.exists()  # refused before the study was opened: no trial, no storage

@@ -45,12 +45,12 @@ from __future__ import annotations
 
 import argparse
 import platform
+import re
 import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from envs.simulation.traffic import MAX_DURATION
 from sb3_graph.commands import UserError
 from sb3_graph.commands.arguments import finite_float, json_object, seed_value
 
@@ -74,6 +74,12 @@ PLANNER_WORDS_HELP = (
     "a policy file .safetensors (sb3-graph export) "
     "or a saved model .zip, or a Planner class (path/to/file.py:ClassName or package.module:ClassName); '+shield' "
     "after any of them wraps it in the safety shield"
+)
+#: A planner label (``--planner LABEL=SPEC``): the report name it gets.
+LABEL_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.:@+-]{0,63}")
+LABEL_HELP = (
+    "LABEL=SPEC names a planner in the report (letters, digits and _ . : @ + -, at most 64 characters), "
+    "e.g. tuned=runs/tuned/seed_0/best_model.safetensors"
 )
 RUN_INFO_FILE = "run.json"
 TRUST_HELP = (
@@ -104,8 +110,8 @@ def add_run_arguments(parser: argparse.ArgumentParser, scenarios: int, out: str,
         "--planner",
         action="append",
         default=None,
-        metavar="PLANNER",
-        help=f"repeatable: {PLANNER_WORDS_HELP}; default: {DEFAULT_PLANNERS_HELP}",
+        metavar="[LABEL=]PLANNER",
+        help=f"repeatable: {PLANNER_WORDS_HELP}; {LABEL_HELP}; default: {DEFAULT_PLANNERS_HELP}",
     )
     add_shield_argument(parser)
     parser.add_argument("--trust-planner-files", action="store_true", help=TRUST_HELP)
@@ -184,6 +190,7 @@ def check_executor_arguments(args: argparse.Namespace) -> None:
 
 def _check(args: argparse.Namespace) -> list[tuple[str, str]]:
     """Validate the arguments; return the ``(planner word, report name)`` pairs."""
+    from envs.simulation.traffic import MAX_DURATION  # highway-env: imported when the command runs, not for --help
     from sb3_graph.outputs import OutputError, check_destination
 
     if not 1 <= args.scenarios <= MAX_SCENARIOS:
@@ -332,12 +339,24 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(str(error)) from None
     print_summary(summary)
     print(run_line(stats))
+    print_verdict(out)
     print(f"report written to {out} ({wall:.1f} s)")
     failed = sum(s.get("failed_runs", 0) for s in summary.values())
     if failed:
         print(f"{failed} runs failed on a planner error (see above and metrics.csv): exit status 1")
         return 1
     return 0
+
+
+def print_verdict(report: Path) -> None:
+    """The verdict that opens the report's ``report.md`` (who leads on flow, delay and stops), on the console.
+
+    :param report: the report folder
+    """
+    from envs.evaluation.verdict import read_verdict
+
+    for line in read_verdict(Path(report) / "report.md"):
+        print(line.replace("**", ""))
 
 
 def print_summary(summary: dict[str, dict[str, Any]]) -> None:
@@ -488,14 +507,38 @@ def write_run_info(out: Path, stats: dict[str, Any], wall: float, replay: dict[s
     (Path(out) / RUN_INFO_FILE).write_text(json.dumps(info, indent=2) + "\n")
 
 
-def add_shield_argument(parser: argparse.ArgumentParser) -> None:
-    """The ``--shield`` flag (shared by the commands that run planners)."""
+def add_shield_argument(parser: argparse.ArgumentParser, help_text: str | None = None) -> None:
+    """The ``--shield`` flag (shared by the commands that run planners).
+
+    :param parser: the command's parser
+    :param help_text: its help (default: that of a command that writes a report)
+    """
     parser.add_argument(
         "--shield",
         action="store_true",
-        help="wrap every planner of the run in the safety shield (reported as '<name>+shield', with its "
+        help=help_text or "wrap every planner of the run in the safety shield (reported as '<name>+shield', with its "
         "intervention rate in summary.json)",
     )
+
+
+def split_label(word: str) -> tuple[str | None, str]:
+    """``"LABEL=SPEC"`` as ``(label, spec)``; a word without a label as ``(None, word)``.
+
+    A word is labelled when it holds ``=`` and the part before the first ``=`` holds no path separator, and
+    the whole word is not an existing file (``runs/a=1/model.safetensors`` stays a path).
+
+    :param word: a ``--planner`` word
+    :raises UserError: a label with characters other than :data:`LABEL_PATTERN`'s, or an empty spec
+    """
+    word = str(word)
+    label, sep, spec = word.partition("=")
+    if not sep or "/" in label or "\\" in label or Path(word).exists():
+        return None, word
+    if not LABEL_PATTERN.fullmatch(label):
+        raise UserError(f"--planner: label {label!r} in {word!r} is not a valid label: {LABEL_HELP}")
+    if not spec.strip():
+        raise UserError(f"--planner: label {label!r} names no planner (expected LABEL=SPEC, got {word!r})")
+    return label, spec
 
 
 def checked_planners(
@@ -503,11 +546,12 @@ def checked_planners(
 ) -> list[tuple[str, str]]:
     """The ``--planner`` words as ``(planner spec, report name)`` pairs, validated.
 
-    :param words: the words given; ``None`` or empty: :data:`DEFAULT_BASELINES` and the shipped GNN
-        planner without and with the shield
+    :param words: the words given, each a planner spec or ``LABEL=SPEC`` (the label is the report name;
+        ``--shield`` appends ``+shield`` to it); ``None`` or empty: :data:`DEFAULT_BASELINES` and the shipped
+        GNN planner without and with the shield
     :param reserved: report names that a planner must not take (e.g. ``"inD"`` for the recorded drivers)
     :param shield: wrap every planner in the safety shield (``--shield``)
-    :raises UserError: an unknown planner, a missing model file, or two planners with one report name
+    :raises UserError: an unknown planner, a missing model file, a bad label, or two planners with one report name
     """
     from envs.planners import SHIELD_SUFFIX, check_planner_spec, planner_name
 
@@ -515,15 +559,25 @@ def checked_planners(
         model = [str(DEFAULT_MODEL), str(DEFAULT_MODEL) + SHIELD_SUFFIX] if DEFAULT_MODEL.is_file() else []
         words = list(DEFAULT_BASELINES) + model
     planners: list[tuple[str, str]] = []
+    given: dict[str, str] = {}  # report name -> the word that took it
     for word in words:
+        label, spec = split_label(word)
         try:
-            key = check_planner_spec(word)
-            if shield and not key.endswith(SHIELD_SUFFIX):
+            key = check_planner_spec(spec)
+            added = shield and not key.endswith(SHIELD_SUFFIX)
+            if added:
                 key += SHIELD_SUFFIX
-            name = planner_name(key)
+            name = planner_name(key) if label is None else label + (SHIELD_SUFFIX if added else "")
         except ValueError as error:
             raise UserError(f"--planner: {error}") from None
-        if name in [n for _, n in planners] or name in reserved:
-            raise UserError(f"--planner: {word!r} given twice or named like a reserved column (report name {name!r})")
+        if name in reserved:
+            raise UserError(f"--planner: {word!r} is named like a reserved column ({name!r}); label it: {LABEL_HELP}")
+        if name in given:
+            how = "the label" if label is not None else "the report name"
+            raise UserError(
+                f"--planner: {word!r} and {given[name]!r} both get {how} {name!r} (a planner given twice, or files "
+                f"in folders of the same name); label each: {LABEL_HELP}"
+            )
+        given[name] = word
         planners.append((key, name))
     return planners

@@ -33,6 +33,7 @@ import pandas as pd
 
 from envs.commands.evaluate import (
     DEFAULT_PLANNERS_HELP,
+    LABEL_HELP,
     PLANNER_WORDS_HELP,
     add_executor_arguments,
     add_shield_argument,
@@ -65,8 +66,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--planner",
         action="append",
         default=None,
-        metavar="PLANNER",
-        help=f"repeatable: {PLANNER_WORDS_HELP} (default: {DEFAULT_PLANNERS_HELP})",
+        metavar="[LABEL=]PLANNER",
+        help=f"repeatable: {PLANNER_WORDS_HELP}; {LABEL_HELP} (default: {DEFAULT_PLANNERS_HELP})",
     )
     parser.add_argument(
         "--trust-planner-files",
@@ -432,6 +433,9 @@ def run(args: argparse.Namespace) -> int:
             f"straight {format_number(sr['straight'])} right {format_number(sr['right'])}, "
             f"collisions {format_number(s['collision_rate'])}"
         )
+    from envs.commands.evaluate import print_verdict
+
+    print_verdict(out)
     print(f"report written to {out} ({time.perf_counter() - tic:.1f} s)")
     return 0
 
@@ -465,6 +469,7 @@ def _write(args: argparse.Namespace, out: Path, recordings, mapped, planners, ti
 
     from envs.commands.evaluate import harness_meta, write_run_info
     from envs.evaluation.report import markdown_report, write_report
+    from envs.evaluation.verdict import HEADING, read_verdict
 
     wall = time.perf_counter() - tic
     meta = {
@@ -485,7 +490,11 @@ def _write(args: argparse.Namespace, out: Path, recordings, mapped, planners, ti
     summary["inD"]["unmapped"] = facts["unmapped"]  # vehicle tracks left out, per reason
     summary["inD"]["not_modelled"] = facts["not_modelled"]  # pedestrians, bicycles, ...
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
-    report = markdown_report(summary, runs, vehicles, meta).replace("# Planner evaluation", "# inD replay", 1)
+    verdict = read_verdict(out / "report.md")  # write_report's, kept in the rewritten report
+    verdict = [HEADING, "", verdict[0], "", *verdict[1:]] if verdict else []
+    report = markdown_report(summary, runs, vehicles, meta, verdict=verdict).replace(
+        "# Planner evaluation", "# inD replay", 1
+    )
     (out / "report.md").write_text(report + _mapping_section(mapped, recordings, dataset_table))
     if stats:
         write_run_info(out, stats, time.perf_counter() - tic)

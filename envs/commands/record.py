@@ -2,9 +2,11 @@
 
 Examples::
 
-    sb3-graph record --planner aim --seed 3 --duration 30 --out aim.gif
-    sb3-graph record --planner aim --planner envs/pretrained/coop_4way_fair/best_model.safetensors+shield \\
+    sb3-graph record --seed 3 --duration 30 --out gnn.gif   # the shipped planner behind the shield
+    sb3-graph record --planner aim --planner envs/pretrained/coop_4way_residual/best_model.safetensors+shield \\
         --seed 3 --duration 30 --out aim_vs_gnn.gif          # side by side, the same scenario
+    sb3-graph record --planner gnn=envs/pretrained/coop_4way_residual/best_model.safetensors+shield \\
+        --seed 3 --out gnn.html                              # labelled: the panel's title is "gnn"
     sb3-graph record --report reports/main100 --run 33 --planner aim --out aim_run33.mp4
 
 One frame per policy step (``--duration`` x the policy frequency, or what follows ``--from``; played
@@ -38,18 +40,21 @@ from sb3_graph.cli import UserError
 from sb3_graph.commands.arguments import finite_float, json_object
 
 DEFAULT_DURATION = 30.0
+# The planner recorded when neither --planner nor --report is given: the shipped GNN planner behind the shield.
+_SHIPPED = "coop_4way_residual/best_model.safetensors"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from envs.commands.evaluate import DEFAULT_ENV, TRUST_HELP, add_shield_argument
+    from envs.commands.evaluate import DEFAULT_ENV, LABEL_HELP, TRUST_HELP, add_shield_argument
 
     parser.add_argument(
         "--planner",
         action="append",
         default=None,
-        metavar="PLANNER",
+        metavar="[LABEL=]PLANNER",
         help="repeatable, one panel each: a planner as evaluate's --planner takes it ('aim', a .safetensors "
-        "file, 'fifo+shield' ...); required unless --report, whose planners are the default then",
+        f"file, 'fifo+shield' ...); {LABEL_HELP} (the panel's title); default: the report's planners with "
+        f"--report, else the shipped planner behind the shield (envs/pretrained/{_SHIPPED})",
     )
     parser.add_argument("--env", default=None, help=f"environment id (default: {DEFAULT_ENV}, or the report's)")
     source = parser.add_mutually_exclusive_group()
@@ -67,7 +72,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--from", dest="from_time", type=finite_float, default=0.0, metavar="SECONDS",
         help="draw only what happens after this simulated time (the run still starts at 0; default: 0)",
     )  # fmt: skip
-    add_shield_argument(parser)
+    add_shield_argument(parser, "wrap every planner in the safety shield (its panel is titled '<name>+shield')")
     parser.add_argument("--out", required=True, help="the file to write, .gif, .mp4 or .html; must not exist")
     parser.add_argument(
         "--speed", type=finite_float, default=1.0, help="playback speed, 1 = real time (default: 1)"
@@ -175,11 +180,24 @@ def _settings(args: argparse.Namespace) -> dict[str, Any]:
         raise UserError(f"--duration must be positive, got {settings['duration']}")
     if not 0 <= args.from_time < settings["duration"]:
         raise UserError(f"--from must be in [0, {settings['duration']:g}) s (the duration), got {args.from_time:g}")
-    words = args.planner or [spec for spec, _ in settings.get("planners", [])]
+    # a report's planners keep their report names (labels), so that the replay matches the report's rows
+    words = args.planner or [_labelled(spec, name) for spec, name in settings.get("planners", [])]
+    if not words and args.report is None:
+        from envs.commands.evaluate import DEFAULT_MODEL
+        from envs.planners import SHIELD_SUFFIX
+
+        words = [str(DEFAULT_MODEL) + SHIELD_SUFFIX] if DEFAULT_MODEL.is_file() else []
     if not words:
         raise UserError("--planner: give at least one planner (e.g. --planner aim)")
     settings["words"] = words
     return settings
+
+
+def _labelled(spec: str, name: str) -> str:
+    """A report's planner as a ``--planner`` word that keeps its report name (``LABEL=SPEC``)."""
+    from envs.commands.evaluate import LABEL_PATTERN
+
+    return f"{name}={spec}" if LABEL_PATTERN.fullmatch(name) else spec
 
 
 def _check_outputs(args: argparse.Namespace) -> None:

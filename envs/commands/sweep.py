@@ -95,7 +95,26 @@ def run(args: argparse.Namespace) -> int:
         text = capacity_text(cap, demand[-1]) + ("" if cap is None else " veh/s per major-road lane")
         print(f"{planner:>10}: capacity {text}, highest flow {flow:.3f} veh/s")
     print(run_line(stats))
+    print_level_verdicts(out, demand)
     print(f"sweep written to {out} ({wall:.1f} s)")
+
+
+def print_level_verdicts(out, demand: Sequence[float]) -> None:
+    """Who leads at each demand level, one line each (the full verdict opens each level's report.md).
+
+    :param out: the sweep folder
+    :param demand: the levels
+    """
+    import pandas as pd
+
+    from envs.evaluation.sweep import level_folder
+    from envs.evaluation.verdict import compact_verdict
+
+    print("Who leads at each demand level, against its strongest baseline (each level's report.md: by how much):")
+    for level in demand:
+        path = out / level_folder(level) / "paired.csv"
+        paired = pd.read_csv(path) if path.is_file() and path.stat().st_size else pd.DataFrame()
+        print(f"  demand {level:g}: {compact_verdict(paired)}")
     return 0
 
 

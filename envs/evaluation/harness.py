@@ -38,6 +38,7 @@ import pandas as pd
 
 from envs.evaluation.executors import JobExecutor, make_executor
 from envs.evaluation.metrics import VehicleLog, run_metrics
+from envs.evaluation.progress import RunClock, format_eta, interleaved
 from envs.simulation.step_record import StepRecord, step_record
 
 SCENARIO_SUFFIX = ".json"
@@ -123,8 +124,27 @@ def _env(env_id: str, env_kwargs: dict[str, Any]):
     envs_made = _cache("envs")
     key = (env_id, repr(sorted(env_kwargs.items())))
     if key not in envs_made:
+        _check_render_mode(env_id, env_kwargs.get("render_mode"))
         envs_made[key] = gym.make(env_id, **evaluation_env_kwargs(env_kwargs))
     return envs_made[key]
+
+
+def _check_render_mode(env_id: str, mode: Any) -> None:
+    """Refuse a ``render_mode`` that the environment does not offer before ``gym.make`` (which warns, then
+    fails inside the environment).
+
+    :raises ValueError: naming ``render_mode`` and the environment's modes
+    """
+    import gymnasium as gym
+    from gymnasium.envs.registration import load_env_creator
+
+    if mode is None or env_id not in gym.registry:
+        return
+    entry_point = gym.registry[env_id].entry_point
+    creator = load_env_creator(entry_point) if isinstance(entry_point, str) else entry_point
+    modes = list(getattr(creator, "metadata", {}).get("render_modes", []))
+    if mode not in modes:
+        raise ValueError(f"render_mode must be None or one of {modes}, got {mode!r}")
 
 
 def _planner(spec: str, trust_files: bool = False):
@@ -295,15 +315,17 @@ def run_seed(seed: int, index: int) -> int:
     return int(seed) + int(index)
 
 
-def run_shared_job(job: Job, scenarios: Sequence[Any]) -> tuple[dict[str, Any], pd.DataFrame]:
+def run_shared_job(job: Job, scenarios: Sequence[Any]) -> tuple[dict[str, Any], pd.DataFrame, bool]:
     """The executors' task: :func:`run_job` with the scenario from the shared table.
 
     :param job: what to run
     :param scenarios: every scenario of the evaluation, loaded, in the order of ``job.index``
-    :return: :func:`run_job`'s result
+    :return: :func:`run_job`'s result and whether the run was warm (its worker had built its planner before:
+        its wall time is a sample of the planner's speed, see :class:`envs.evaluation.progress.RunClock`)
     """
     _worker_init()
-    return run_job(job, scenarios[job.index])
+    warm = (job.planner, job.trust_files) in _cache("planners")
+    return (*run_job(job, scenarios[job.index]), warm)
 
 
 def is_baseline(spec: str) -> bool:
@@ -460,9 +482,16 @@ def evaluate(
     tic = time.perf_counter()  # a cluster started for this evaluation counts in its wall time
     runner = make_executor(executor, jobs, scheduler_address) if own else executor
     bar = _progress(len(work), progress, progress_label)
+    # Hand the runs out scenario by scenario (every planner in turn) and price the time left per planner from
+    # warm runs (envs.evaluation.progress): the results keep the planner-major order of `work`.
+    order = interleaved(len(planners), len(scenarios))
+    seconds = [min(job.duration, getattr(table[job.index], "duration", job.duration)) for job in work]
+    clock = RunClock([job.planner for job in work], seconds, jobs)
     try:
-        for k, result in runner.map_unordered(run_shared_job, work, table):
-            results[k] = result
+        for k, result in runner.map_unordered(run_shared_job, [work[i] for i in order], table):
+            results[order[k]] = result
+            clock.record(order[k], result[0].get("wall_s"), warm=bool(result[2]) if len(result) > 2 else True)
+            bar.eta_text = format_eta(clock.remaining_s())
             bar.update(1)
         wall = time.perf_counter() - tic
         if stats is not None:
@@ -480,13 +509,21 @@ def evaluate(
 
 
 def _progress(total: int, enabled: bool, label: str = "evaluate"):
+    """The harness's bar: runs done, and the time left that :class:`envs.evaluation.progress.RunClock` gives."""
     from tqdm.auto import tqdm
 
-    return tqdm(
+    class _Bar(tqdm):
+        eta_text = "?"  # set before each update
+
+        @property
+        def format_dict(self):
+            return {**super().format_dict, "eta": self.eta_text}
+
+    return _Bar(
         total=total,
         desc=label,
         unit="run",
         # runs per second even below 1 (tqdm's default turns a slow rate into seconds per run)
-        bar_format="{l_bar}{bar}| {n_fmt}/{total_fmt} [{elapsed}<{remaining}, {rate_noinv_fmt}]",
+        bar_format="{l_bar}{bar}| {n_fmt}/{total_fmt} [{elapsed}<{eta}, {rate_noinv_fmt}]",
         disable=not enabled or bool(os.environ.get("SB3_GRAPH_NO_PROGRESS")),
     )

@@ -5,7 +5,8 @@ Files written into the report folder:
 - ``metrics.csv``: one row per planner and run (:func:`envs.evaluation.metrics.run_metrics` columns);
 - ``vehicles.csv``: every vehicle of every run (the vehicle log, for re-analysis);
 - ``summary.json``: per planner, :func:`envs.evaluation.metrics.summarize`;
-- ``report.md``: the tables;
+- ``report.md``: the verdict (:mod:`envs.evaluation.verdict`: who leads on flow, delay and stops, by how much,
+  and whether the paired interval excludes zero), then the tables;
 - ``flow_rate.png``: flow-rate distribution per planner (box plot, paper Fig. "flow rate"), with the
   offered flow (what a perfect planner reaches) as a dashed line;
 - ``delay_collisions.png``: mean delay per run (box plot) and collided vehicles per planner (bars);
@@ -92,17 +93,21 @@ def markdown_report(
     vehicles: pd.DataFrame,
     meta: Mapping[str, Any],
     paired: pd.DataFrame | None = None,
+    verdict: Sequence[str] = (),
 ) -> str:
-    """The Markdown report: settings, flow rate, stops, collisions and delay tables, reading notes.
+    """The Markdown report: verdict, settings, flow rate, stops, collisions and delay tables, reading notes.
 
     :param summary: :func:`envs.evaluation.metrics.summarize` output
     :param runs: ``metrics.csv`` rows
     :param vehicles: all vehicle logs with a ``planner`` column
     :param meta: settings of the evaluation (env, scenarios, duration, seed, ...), shown as a list
     :param paired: :func:`envs.evaluation.comparison.paired_differences` output (a section when not empty)
+    :param verdict: the verdict section's lines (:func:`envs.evaluation.verdict.verdict_lines`), first after the title
     :return: Markdown text
     """
     lines = ["# Planner evaluation", ""]
+    if verdict:
+        lines += [*verdict, "", "## Settings", ""]
     lines += [f"- {key}: {value}" for key, value in meta.items()]
     errors = {name: s for name, s in summary.items() if s.get("planner_error_lines")}
     summary = {name: s for name, s in summary.items() if "flow_rate" in s}  # planners with a measured run
@@ -231,12 +236,25 @@ def flow_rate_figure(runs: pd.DataFrame, planners: Sequence[str], path: Path) ->
         offered = runs["offered_flow"].astype(float)
         if offered.notna().any():
             ax.axhline(float(offered.mean()), color="tab:green", ls="--", lw=1, label="offered flow (mean)")
-            ax.legend(fontsize=7, loc="lower right")
+            ax.legend(fontsize=8, loc="lower right")
     ax.set_ylabel("flow rate [veh/s]")
+    ax.set_title("Flow rate per run (higher is better)", fontsize=10)
     ax.grid(axis="y", alpha=0.3)
     fig.tight_layout()
     fig.savefig(path, dpi=150)
     plt.close(fig)
+
+
+def dwarfed(values: Sequence[float], ratio: float = 20.0) -> bool:
+    """Whether one bar dwarfs another so that a linear axis hides it: the largest value is more than ``ratio``
+    times the smallest non-zero one.
+
+    :param values: the bars' heights (zeros are drawn as no bar on any axis and do not count)
+    :param ratio: the largest ratio a linear axis shows legibly
+    """
+    positive = np.asarray(values, float)
+    positive = positive[np.isfinite(positive) & (positive > 0)]
+    return positive.size > 1 and positive.max() > ratio * positive.min()
 
 
 def delay_collision_figure(runs: pd.DataFrame, planners: Sequence[str], path: Path) -> None:
@@ -253,6 +271,7 @@ def delay_collision_figure(runs: pd.DataFrame, planners: Sequence[str], path: Pa
     left.boxplot([d[np.isfinite(d)] for d in delays], showfliers=True, widths=0.5)
     _planner_axis(left, planners)
     left.set_ylabel("mean delay per run [s]")
+    left.set_title("Mean delay per run (lower is better)", fontsize=10)
     left.grid(axis="y", alpha=0.3)
     collided = [int(runs.loc[runs["planner"] == p, "collided"].fillna(0).sum()) if "collided" in runs else 0
                 for p in planners]  # fmt: skip
@@ -261,9 +280,16 @@ def delay_collision_figure(runs: pd.DataFrame, planners: Sequence[str], path: Pa
     for xi, count in zip(x, collided):
         right.text(xi, count, str(count), ha="center", va="bottom", fontsize=8)
     _planner_axis(right, planners)
-    right.set_ylabel("collided vehicles (all runs)")
-    right.set_ylim(0, max(collided + [1]) * 1.2)
-    right.yaxis.set_major_locator(matplotlib.ticker.MaxNLocator(integer=True))
+    right.set_title("Collided vehicles, all runs (lower is better)", fontsize=10)
+    if dwarfed(collided):  # e.g. 5229 beside 2: a linear axis would hide the small bars
+        right.set_yscale("symlog", linthresh=1)
+        right.set_ylim(0, max(collided) * 3)
+        right.yaxis.set_major_formatter(matplotlib.ticker.ScalarFormatter())
+        right.set_ylabel("collided vehicles (all runs, log scale)")
+    else:
+        right.set_ylabel("collided vehicles (all runs)")
+        right.set_ylim(0, max(collided + [1]) * 1.2)
+        right.yaxis.set_major_locator(matplotlib.ticker.MaxNLocator(integer=True))
     right.grid(axis="y", alpha=0.3)
     fig.tight_layout()
     fig.savefig(path, dpi=150)
@@ -292,8 +318,8 @@ def stop_figure(
         stopped = np.array([((sub[column] == g) & sub["stopped"]).sum() for g in groups])
         pos = x - 0.4 + width * (k + 0.5)
         color = colors[k % len(colors)]
-        ax.bar(pos, totals, width, color=color, alpha=0.35, label=f"{planner}: vehicles")
-        ax.bar(pos, stopped, width, color=color, label=f"{planner}: stopped")
+        ax.bar(pos, totals, width, color=color, alpha=0.35)
+        ax.bar(pos, stopped, width, color=color, label=planner)
         for p, t, s in zip(pos, totals, stopped):
             label = f"{100 * s / t:.0f}%" if t else "n/a"
             ax.text(p, t, label, ha="center", va="bottom", fontsize=7)
@@ -301,8 +327,15 @@ def stop_figure(
     ax.set_xticks(x, list(groups))
     ax.set_ylabel("vehicles")
     ax.set_ylim(0, top * 1.15)
-    ax.legend(fontsize=7, ncol=max(len(planners), 1), loc="upper center", bbox_to_anchor=(0.5, -0.12))
-    ax.set_title(f"stops by {'road priority' if column == 'priority' else column}", fontsize=9)
+    # one entry per planner (its colour), and what light and dark mean once, not once per planner
+    from matplotlib.patches import Patch
+
+    handles, _ = ax.get_legend_handles_labels()
+    handles += [Patch(color="grey", alpha=0.35, label="vehicles (light)"), Patch(color="grey", label="stopped (dark)")]
+    columns = min(len(handles), max(2, int(fig.get_figwidth() // 1.8)))
+    ax.legend(handles=handles, fontsize=9, ncol=columns, loc="upper center", bbox_to_anchor=(0.5, -0.12))
+    what = "road priority" if column == "priority" else column
+    ax.set_title(f"Vehicles that stopped, by {what} (share on top; lower is better)", fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=150, bbox_inches="tight")
     plt.close(fig)
@@ -368,6 +401,19 @@ def failed_runs(runs: pd.DataFrame) -> pd.Series:
     return runs["failed"].fillna(False).astype(bool)
 
 
+def report_verdict(runs: pd.DataFrame, paired: pd.DataFrame) -> list[str]:
+    """The verdict section of ``report.md``: against the strongest baseline, or the first planner without one.
+
+    :param runs: ``metrics.csv`` rows of the runs that did not fail
+    :param paired: :func:`envs.evaluation.comparison.paired_differences` of ``runs``
+    """
+    from envs.evaluation.verdict import VERDICT_METRICS, reference_comparison, reference_means, verdict_lines
+
+    table, kind = reference_comparison(runs, paired)
+    means = reference_means(runs, table, list(VERDICT_METRICS))
+    return verdict_lines(table, reference_means=means, reference_kind=kind, level=f"{100 * CONFIDENCE:.0f} %")
+
+
 def write_report(
     out: str | Path, runs: pd.DataFrame, vehicles: pd.DataFrame, meta: Mapping[str, Any]
 ) -> dict:
@@ -392,6 +438,7 @@ def write_report(
     planners = list(pd.unique(runs["planner"]))
     summary = summarize(runs, vehicles)
     paired = paired_differences(runs)
+    verdict = report_verdict(runs, paired)
     add_collided_counts(summary, vehicles)
     add_shield_interventions(summary, runs)
     add_failures(summary, every)
@@ -399,7 +446,7 @@ def write_report(
     vehicles.to_csv(out / "vehicles.csv", index=False)
     paired.to_csv(out / "paired.csv", index=False)
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
-    (out / "report.md").write_text(markdown_report(summary, runs, vehicles, meta, paired))
+    (out / "report.md").write_text(markdown_report(summary, runs, vehicles, meta, paired, verdict))
     flow_rate_figure(runs, planners, out / FIGURES[0])
     stop_figure(vehicles, planners, "priority", PRIORITIES, out / FIGURES[1])
     stop_figure(vehicles, planners, "maneuver", MANEUVERS, out / FIGURES[2])

@@ -198,6 +198,11 @@ def load_recording(
     tracks_meta = tracks_meta.set_index("trackId", drop=False).rename_axis(None)
 
     tracks = _read_csv(tracks_path, REQUIRED_TRACKS_COLUMNS, OPTIONAL_TRACKS_COLUMNS)
+    if tracks.empty and len(tracks_meta):
+        raise IndDataError(
+            f"{tracks_path}: no track rows, only the header ({len(tracks_meta)} tracks listed in "
+            f"{tracks_meta_path.name}; a truncated file?)"
+        )
     unknown = np.setdiff1d(tracks["trackId"].unique(), tracks_meta["trackId"].to_numpy())
     if unknown.size:
         raise IndDataError(

@@ -29,6 +29,11 @@ MAX_DURATION = 86_400.0  # [s]
 MAX_ACCELERATION = 100.0  # [m/s^2], about 10 g
 MAX_SPEED = 100.0  # [m/s]
 MAX_VEHICLE_SIZE = 30.0  # [m]
+# Upper bounds of the observation's scales: the features (float32) stay finite, and far from its limit, for any
+# path (s_ref [m], s_scale [1/m]: s times s_scale; d_max: the clip of the inverse distance feature).
+MAX_S_REF = 1e4
+MAX_S_SCALE = 1e3
+MAX_D_MAX = 1e6
 # Upper bounds of the sizes (vertices, edges, simulation sub-steps): far above any real scene.
 MAX_VEHICLES = 1024
 MAX_EDGES = 1 << 18
@@ -89,7 +94,7 @@ def _probability() -> Rule:
 
 
 def _bool() -> Rule:
-    return Rule(lambda x: isinstance(x, bool), "true or false")
+    return Rule(lambda x: isinstance(x, (bool, np.bool_)), "true or false")
 
 
 def _range(lower: float, strict: bool) -> Rule:
@@ -171,9 +176,9 @@ RULES: dict[str, Rule] = {
     "vehicle_length": _positive(MAX_VEHICLE_SIZE),
     "vehicle_width": _positive(MAX_VEHICLE_SIZE),
     "spawn_min_gap": _non_negative(),
-    "s_ref": _positive(),
-    "s_scale": _positive(),
-    "d_max": _positive(),
+    "s_ref": _positive(MAX_S_REF),
+    "s_scale": _positive(MAX_S_SCALE),
+    "d_max": _positive(MAX_D_MAX),
     "proximity_threshold": _positive(),
     "reward": Rule(lambda x: isinstance(x, str) and x in REWARD_PRESETS, f"one of {sorted(REWARD_PRESETS)}"),
     "reward_weights": Rule(_weights, f"a dict mapping some of {REWARD_TERMS} to numbers in [-1e6, 1e6]"),
@@ -197,7 +202,7 @@ RULES: dict[str, Rule] = {
         lambda x: isinstance(x, (list, tuple)) and len(x) == 2 and all(_is_number(v) for v in x),
         "a pair [x, y] of numbers (fractions of the screen)",
     ),
-    "offscreen_rendering": Rule(lambda x: x is None or isinstance(x, bool), "null, true or false"),
+    "offscreen_rendering": Rule(lambda x: x is None or isinstance(x, (bool, np.bool_)), "null, true or false"),
     "real_time_rendering": _bool(),
     "render_agent": _bool(),
     "show_trajectories": _bool(),
@@ -229,7 +234,7 @@ def validate_config(config: dict[str, Any], defaults: dict[str, Any]) -> dict[st
         impossible value (including ``simulation_frequency`` not a multiple of ``policy_frequency``)
     """
     if not isinstance(config, dict):
-        raise ValueError(f"config must be a dict, got {type(config).__name__}")
+        raise ValueError(f"config must be a dict of config keys and values, got {type(config).__name__}")
     unknown = sorted(set(config) - set(defaults))
     if unknown:
         raise ValueError(f"unknown config key(s) {unknown}; allowed keys: {sorted(defaults)}")

@@ -35,6 +35,7 @@ accelerations in m/s^2 -> padded action), :meth:`~CoopIntersectionEnv.set_spawn_
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -79,6 +80,8 @@ class CoopIntersectionEnv(AbstractEnv):
     metadata = {"render_modes": ["human", "rgb_array"], "render_fps": 5}
 
     def __init__(self, config: dict | None = None, render_mode: str | None = None) -> None:
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(f"render_mode must be None or one of {self.metadata['render_modes']}, got {render_mode!r}")
         self.metadata = dict(self.metadata)  # highway-env writes render_fps into it
         self.sim: Simulation | None = None
         self.layout: Layout | None = None
@@ -196,6 +199,8 @@ class CoopIntersectionEnv(AbstractEnv):
         :param config: settings to change
         :raises ValueError: naming the key and what is allowed
         """
+        if config is not None and not isinstance(config, Mapping):  # dict() would take a list of pairs, or fail
+            raise ValueError(f"config must be a dict of config keys and values, got {type(config).__name__}")
         self.config = validate_config(dict(config or {}), self.config)
         if self.config["offscreen_rendering"] is None:
             self.config["offscreen_rendering"] = self.render_mode != "human"

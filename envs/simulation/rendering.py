@@ -54,6 +54,13 @@ ROAD_COLOR = "#d9d9d9"
 COLLIDED_SHOWN_S = 2.0
 #: output suffix -> what writes it
 FORMATS = (".gif", ".mp4", ".html")
+# matplotlib's HTML player draws its buttons with font-awesome icons loaded from a CDN; a self-contained
+# file shows the same buttons as Unicode glyphs instead (icon class -> glyph).
+HTML_ICONS = {
+    "fa fa-minus": "\u2212", "fa fa-fast-backward": "\u23ee", "fa fa-step-backward": "\u25c1",
+    "fa fa-play fa-flip-horizontal": "\u25c0", "fa fa-pause": "\u23f8", "fa fa-play": "\u25b6",
+    "fa fa-step-forward": "\u25b7", "fa fa-fast-forward": "\u23ed", "fa fa-plus": "+",
+}  # fmt: skip
 DEFAULT_WIDTH = 2.0  # [m], a scene without widths (as Scene.width says)
 
 
@@ -357,8 +364,25 @@ def write_animation(
         with matplotlib.rc_context({"animation.embed_limit": 1024.0}):  # MB: a long HTML episode
             movie.save(str(target), writer=writer, dpi=dpi, progress_callback=callback)
         plt.close(fig)
+        if suffix == ".html":
+            target.write_text(offline_html(target.read_text(encoding="utf-8")), encoding="utf-8")
         os.replace(target, path)
     return total
+
+
+def offline_html(text: str) -> str:
+    """matplotlib's HTML animation without its one remote resource: the font-awesome stylesheet (a CDN link)
+    goes, and the buttons' icons become Unicode glyphs (:data:`HTML_ICONS`), so that the file loads nothing.
+
+    :param text: the HTML that ``animation.HTMLWriter`` wrote
+    :return: the same page, self-contained
+    """
+    import re
+
+    text = re.sub(r"<link[^>]*font-awesome[^>]*>\s*", "", text, count=1)
+    return re.sub(
+        r'<i class="(fa [^"]+)"></i>', lambda m: HTML_ICONS.get(m.group(1), m.group(1).split("fa-")[-1]), text
+    )
 
 
 def write_frame(episodes: Sequence[Episode], path: str | Path, index: int, dpi: int = 100,

@@ -52,6 +52,14 @@ CHECKPOINT_PATTERN = re.compile(r"model_(\d+)_steps\.zip$")
 #: Defaults of --pretrain-transitions and --pretrain-steps (issue #37's budget: minutes on 2 cores).
 PRETRAIN_TRANSITIONS = 10_000
 PRETRAIN_STEPS = 2_000
+# Said when TensorBoard is missing (it is not in the base install): the run goes on without tb/.
+TENSORBOARD_MISSING = (
+    "TensorBoard is not installed, so this run writes no tb/ logs (pip install tensorboard, or pip install "
+    "'sb3-graph[zoo]'); the validation results go to evaluations.npz either way"
+)
+# What a finished run folder may hold, in the order listed after a run (see the module docstring).
+RUN_FILES = ("best_model.zip", "final_model.zip", "evaluations.npz", "checkpoints", "tb", "callbacks", "config.yml",
+             "run.json")  # fmt: skip
 VALIDATION_SEED_OFFSET = 10_000
 
 
@@ -452,10 +460,11 @@ def _load_checkpoint(path: Path, buffer_path: Path, trust: bool, algorithm, **lo
 
 
 def _build_model(entry: dict[str, Any], train_env, seed: int, args: argparse.Namespace, tensorboard_log):
-    from sb3_graph.experiment import ExperimentError, build_algorithm_kwargs, resolve_object
+    from sb3_graph.experiment import ExperimentError, build_algorithm_kwargs, check_algorithm_keys, resolve_object
 
     try:
         algo_kwargs = build_algorithm_kwargs(entry, int(np.prod(train_env.action_space.shape)))
+        check_algorithm_keys(algo_kwargs, _algorithm(args))  # a typo (learnig_rate) named, with the closest key
         policy = entry.get("policy", "GraphPolicy")
         if isinstance(policy, str) and "." in policy:
             policy = resolve_object(policy, "policy")
@@ -671,6 +680,8 @@ def _run_one(args: argparse.Namespace) -> int:
     except ExperimentError as error:
         raise UserError(str(error)) from None
     tensorboard_log = str(out / "tb") if importlib.util.find_spec("tensorboard") else None
+    if tensorboard_log is None:
+        print(f"sb3-graph train: note: {TENSORBOARD_MISSING}", file=sys.stderr, flush=True)
     if checkpoint is not None:
         steps, path = checkpoint
         buffer_path = out / "checkpoints" / f"model_replay_buffer_{steps}_steps.pkl"
@@ -765,4 +776,49 @@ def _run_one(args: argparse.Namespace) -> int:
         return 130
     model.save(out / "final_model.zip")
     print(f"sb3-graph train: {model.num_timesteps} steps in {record['wall_time_s']:.0f} s, run folder {out}")
+    for line in run_summary(out, args):
+        print(f"  {line}")
     return 0
+
+
+def run_summary(out: Path, args: argparse.Namespace) -> list[str]:
+    """What a finished run wrote and what to do next, as lines for the console.
+
+    :param out: the run folder
+    :param args: the command's arguments (``--env``, ``--config``)
+    :return: ``"wrote: ..."``, then ``"next: ..."`` lines: export the best model as a weights-only file, evaluate
+        it (when an installed domain provides ``evaluate`` for the environment), watch TensorBoard, train longer
+    """
+    wrote = []
+    for name in RUN_FILES:
+        path = out / name
+        if path.is_dir():
+            wrote.append(f"{name}/ ({sum(1 for p in path.rglob('*') if p.is_file())} files)")
+        elif path.is_file():
+            wrote.append(name)
+    model = out / ("best_model.zip" if (out / "best_model.zip").is_file() else "final_model.zip")
+    policy = model.with_suffix(".safetensors")
+    lines = [f"wrote: {', '.join(wrote)}", "next:"]
+    lines.append(f"  sb3-graph export {model} {policy}   # the policy as a weights-only file (runs no code)")
+    if _domain_evaluates(args.env):
+        lines.append(
+            f"  sb3-graph evaluate --env {args.env} --planner mine={policy} --planner ...   # against other planners"
+        )
+    if (out / "tb").is_dir():
+        lines.append(f"  tensorboard --logdir {out / 'tb'}   # the training curves")
+    lines.append(
+        f"  sb3-graph train --config {args.config} --env {args.env} --out {out} --resume --n-timesteps N   # train on"
+    )
+    return lines
+
+
+def _domain_evaluates(env_id: str) -> bool:
+    """Whether an installed domain's ``evaluate`` command runs ``env_id`` (an environment that is not this
+    package's own, and a domain that provides ``evaluate``)."""
+    import gymnasium as gym
+
+    from sb3_graph.plugins import domain_commands
+
+    spec = gym.registry.get(env_id)
+    own = spec is None or str(spec.entry_point).startswith("sb3_graph.")
+    return not own and "evaluate" in domain_commands()

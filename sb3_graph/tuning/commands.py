@@ -215,6 +215,7 @@ def prepare(args: argparse.Namespace):
         ExperimentError,
         build_algorithm_kwargs,
         build_callbacks,
+        check_algorithm_keys,
         check_entry,
         merge_env_kwargs,
         read_experiment,
@@ -252,7 +253,8 @@ def prepare(args: argparse.Namespace):
         trial_entry = check_entry({**entry, **overrides})
         # Every value that a trial turns into an object, checked once here (a typo fails the
         # command, not every trial): no expression is evaluated, see sb3_graph.safe_values.
-        build_algorithm_kwargs(trial_entry, 1)
+        # a key that the algorithm does not take (a typo: learnig_rate) names itself here, not in every trial
+        check_algorithm_keys(build_algorithm_kwargs(trial_entry, 1), ALGORITHMS[args.algo].load_class())
         build_callbacks(trial_entry)
         if isinstance(trial_entry.get("policy"), str) and "." in trial_entry["policy"]:
             resolve_object(trial_entry["policy"], "policy")
