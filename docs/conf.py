@@ -60,7 +60,9 @@ def write_api_pages(app) -> None:
     """
     out = Path(app.srcdir) / "_api"
     out.mkdir(exist_ok=True)
-    wanted = {f"{name}.rst": f"``{name}``\n{'=' * (len(name) + 4)}\n\n.. automodule:: {name}\n" for name in api_modules()}
+    wanted = {
+        f"{name}.rst": f"``{name}``\n{'=' * (len(name) + 4)}\n\n.. automodule:: {name}\n" for name in api_modules()
+    }
     for stale in out.glob("*.rst"):
         if stale.name not in wanted:
             stale.unlink()

@@ -1,4 +1,4 @@
-"""Hostile planners: the attacks on the safety shield and on the harness that its table in the README runs.
+"""Hostile planners: the attacks on the safety shield and on the harness that its table in docs/shield.md runs.
 
 Each one tries a way to break the evaluation from the only place a planner sits: the scene it is
 handed and the array it returns. Run them by class name behind the shield, e.g.
@@ -14,7 +14,7 @@ handed and the array it returns. Run them by class name behind the shield, e.g.
 - :class:`BangBang` alternates full throttle and full braking every step.
 - :class:`NaNPlanner` answers NaN for one vehicle every step (an invalid output).
 - :class:`LineHolder` holds every vehicle before the stop line forever: the shield's liveness guarantee
-  does not cover it (see the README's "The safety shield").
+  does not cover it (see docs/shield.md, "Measured").
 """
 
 from __future__ import annotations
