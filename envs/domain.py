@@ -1,5 +1,5 @@
 """What the intersection domain plugs into sb3-graph, declared as entry points in ``pyproject.toml``
-(groups ``sb3_graph.commands``, ``sb3_graph.tuning`` and ``sb3_graph.gym_packages``; see
+(groups ``sb3_graph.commands``, ``sb3_graph.tuning``, ``sb3_graph.experts`` and ``sb3_graph.gym_packages``; see
 :mod:`sb3_graph.plugins`). Plain strings only: reading this module imports no command.
 """
 
@@ -19,4 +19,12 @@ COMMANDS: dict[str, tuple[str, str]] = {
 #: ``sb3-graph tune``: env id prefix -> (metric evaluator, reduced env kwargs of the trials)
 TUNING: dict[str, tuple[str, str]] = {
     "CoopIntersection": ("envs.evaluation.tuning:evaluate_model", "envs.evaluation.tuning:tuning_env_kwargs"),
+}
+
+#: ``sb3-graph train --pretrain-from PLANNER``: env id prefix -> (expert factory, what PLANNER may be)
+EXPERTS: dict[str, tuple[str, str]] = {
+    "CoopIntersection": (
+        "envs.planners.expert:make_expert",
+        "a planner word of evaluate (aim, fifo, pr, fullthrottle, signal, file.py:Class, a policy file)",
+    ),
 }

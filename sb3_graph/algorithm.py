@@ -13,19 +13,26 @@
   action, not the proposal, is stored in the replay buffer, so the critics learn the value of
   what happened (:data:`EXECUTED_ACTION`).
 
+- A regularizer toward an expert's actions, ``bc_coef`` (default 0: off, and the updates are exactly
+  SB3's): see :meth:`GraphAlgorithmMixin.bc_coefficient`.
+
 Training itself is SB3's (or sb3-contrib's) own ``train``; around it, a graph critic leaves its own
 weights out of the policy loss's autograd graph (SB3 discards those gradients; same updates).
 """
 
 from __future__ import annotations
 
+import contextlib
 import inspect
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import numpy as np
 from gymnasium import spaces
+from stable_baselines3.common.callbacks import BaseCallback, CallbackList
 from stable_baselines3.common.vec_env import VecEnv, VecNormalize
 
+from sb3_graph.demonstrations import ExpertLabeller, bc_coef_value, demonstration_loss, parse_bc_coef
 from sb3_graph.networks import GraphCritic
 from sb3_graph.spaces import EDGE_ATTR, GRAPH_KEYS, GraphSpace
 
@@ -69,10 +76,52 @@ class GraphAlgorithmMixin:
 
     The subclass names its graph buffer in ``graph_buffer_class`` and the constructor argument
     that selects a buffer in ``buffer_class_attribute``.
+
+    Two constructor arguments of its own, the regularizer toward an expert (TD3+BC, Fujimoto & Gu
+    2021, in its plain additive form):
+
+    :param bc_coef: weight ``c`` of the imitation term added to the actor's loss,
+        ``loss + c * mean_i (pi(s)_i - a^E_i)^2`` over the real vertices of the labelled graphs of
+        each batch (:func:`sb3_graph.demonstrations.demonstration_loss`): a number >= 0,
+        ``"lin_<c>"`` (linear decay to 0 over ``learn``) or a callable of SB3's
+        ``progress_remaining``. 0 (the default) leaves training exactly SB3's. Off-policy (TD3, DDPG,
+        SAC, TQC, CrossQ), the labelled transitions are the demonstrations that
+        :func:`sb3_graph.behaviour_clone` left in the replay buffer; on-policy (PPO, A2C), every
+        rollout state is labelled by ``bc_expert``. TD3+BC's ``lambda``-normalised form
+        ``-lambda Q + BC`` with ``lambda = alpha / mean|Q|`` is this with ``c = mean|Q| / alpha``
+        (the paper's ``alpha = 2.5``). The term's gradient is added to the actor's just before its
+        optimizer steps (after PPO's and A2C's gradient clipping, which it does not pass through),
+        at the cost of one more actor forward and backward pass on the batch.
+    :param bc_expert: on-policy only: ``expert(obs) -> (n_envs, max_nodes)`` actions that label the
+        rollout states while ``bc_coef`` is above 0 (not saved with the model)
     """
 
     graph_buffer_class: type | None = None
     buffer_class_attribute = "replay_buffer_class"
+    # Defaults for models saved before these options existed.
+    bc_coef: float | str | Callable[[float], float] = 0.0
+    bc_expert: Callable | None = None
+
+    def __init__(self, *args: Any, bc_coef: Any = 0.0, bc_expert: Callable | None = None, **kwargs: Any) -> None:
+        self.bc_coef = parse_bc_coef(bc_coef)
+        self.bc_expert = bc_expert
+        super().__init__(*args, **kwargs)
+
+    def _excluded_save_params(self) -> list[str]:
+        return [*super()._excluded_save_params(), "bc_expert"]  # type: ignore[misc]
+
+    def bc_coefficient(self) -> float:
+        """The imitation term's weight now (see ``bc_coef``), at SB3's ``_current_progress_remaining``."""
+        return bc_coef_value(self.bc_coef, getattr(self, "_current_progress_remaining", 1.0))
+
+    @property
+    def _on_policy(self) -> bool:
+        return self.buffer_class_attribute == "rollout_buffer_class"
+
+    def actor_optimizer(self) -> Any:
+        """The optimizer of the actor's parameters: the actor's own (off-policy) or the policy's (on-policy)."""
+        actor = getattr(self, "actor", None)
+        return self.policy.optimizer if actor is None else actor.optimizer  # type: ignore[attr-defined]
 
     def _setup_model(self) -> None:
         check_vec_normalize(self._vec_normalize_env, self.observation_space)  # type: ignore[attr-defined]
@@ -101,16 +150,66 @@ class GraphAlgorithmMixin:
 
     def train(self, *args: Any, **kwargs: Any) -> None:
         """SB3's ``train``; a graph critic (TD3, DDPG, SAC, TQC) computes no weight gradients in the
-        policy loss, which SB3 discards (see :class:`~sb3_graph.networks.GraphCritic`)."""
-        critic = getattr(getattr(self, "policy", None), "critic", None)
-        if not isinstance(critic, GraphCritic):
-            super().train(*args, **kwargs)  # type: ignore[misc]
-            return
-        critic.policy_loss_without_weight_gradients = True
+        policy loss, which SB3 discards (see :class:`~sb3_graph.networks.GraphCritic`); with
+        ``bc_coef`` above 0, the imitation term joins the actor's loss."""
+        coef = self.bc_coefficient()
+        with self._imitation_term(coef) if coef > 0 else contextlib.nullcontext():
+            critic = getattr(getattr(self, "policy", None), "critic", None)
+            if not isinstance(critic, GraphCritic):
+                super().train(*args, **kwargs)  # type: ignore[misc]
+                return
+            critic.policy_loss_without_weight_gradients = True
+            try:
+                super().train(*args, **kwargs)  # type: ignore[misc]
+            finally:
+                critic.policy_loss_without_weight_gradients = False
+
+    @contextlib.contextmanager
+    def _imitation_term(self, coef: float) -> Iterator[None]:
+        """Within the block, each step of the actor's optimizer first adds the gradient of
+        ``coef * demonstration_loss`` on the batch that SB3 sampled last (recorded at the buffer)."""
+        buffer = self.rollout_buffer if self._on_policy else self.replay_buffer  # type: ignore[attr-defined]
+        method = "_get_samples" if self._on_policy else "sample"
+        original = getattr(buffer, method)
+        last: list[Any] = [None]
+        losses: list[float] = []
+
+        def recording(*args: Any, **kwargs: Any) -> Any:
+            last[0] = original(*args, **kwargs)
+            return last[0]
+
+        def add_imitation_gradient(optimizer: Any, args: Any, kwargs: Any) -> None:
+            loss = None if last[0] is None else demonstration_loss(self.policy, last[0])  # type: ignore[attr-defined]
+            if loss is not None:
+                (coef * loss).backward()
+                losses.append(loss.item())
+
+        setattr(buffer, method, recording)
+        handle = self.actor_optimizer().register_step_pre_hook(add_imitation_gradient)
         try:
-            super().train(*args, **kwargs)  # type: ignore[misc]
+            yield
         finally:
-            critic.policy_loss_without_weight_gradients = False
+            handle.remove()
+            del buffer.__dict__[method]
+        self.logger.record("train/bc_coef", coef)  # type: ignore[attr-defined]
+        if losses:
+            self.logger.record("train/bc_loss", float(np.mean(losses)))  # type: ignore[attr-defined]
+
+    def collect_rollouts(self, env: VecEnv, callback: BaseCallback, *args: Any, **kwargs: Any) -> Any:
+        """SB3's ``collect_rollouts``; on-policy with ``bc_coef`` above 0, ``bc_expert`` labels every
+        rollout state (:class:`~sb3_graph.demonstrations.ExpertLabeller`)."""
+        if not self._on_policy or self.bc_coefficient() <= 0:
+            return super().collect_rollouts(env, callback, *args, **kwargs)  # type: ignore[misc]
+        if self.bc_expert is None:
+            raise ValueError(
+                f"{type(self).__name__}: bc_coef > 0 needs an expert to label the rollouts: pass bc_expert= "
+                "(sb3_graph.behaviour_clone sets it)"
+            )
+        labeller = ExpertLabeller(self.bc_expert, self.rollout_buffer)  # type: ignore[attr-defined]
+        labeller.init_callback(self)  # type: ignore[arg-type]
+        both = CallbackList([callback, labeller])
+        both.model = self  # type: ignore[assignment] # the children are initialised already
+        return super().collect_rollouts(env, both, *args, **kwargs)  # type: ignore[misc]
 
     def set_env(self, env: Any, force_reset: bool = True) -> None:
         super().set_env(env, force_reset)  # type: ignore[misc]

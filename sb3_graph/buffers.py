@@ -25,7 +25,7 @@ between real vertices of its own graph, relation ids in ``[0, num_relations)``.
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -37,6 +37,39 @@ from stable_baselines3.common.vec_env import VecNormalize
 from sb3_graph.algorithm import check_vec_normalize
 from sb3_graph.batching import GraphBatch
 from sb3_graph.spaces import EDGE_ATTR, EDGE_INDEX, EDGE_MASK, EDGE_TYPE, NODE_MASK, X, edge_dims, graph_dims
+
+
+class ExpertReplayBufferSamples(NamedTuple):
+    """SB3's ``ReplayBufferSamples`` (same first fields, in the same order) plus the demonstrations'
+    labels: what :class:`GraphReplayBuffer` returns when it stores expert actions.
+
+    :param expert_actions: ``(B, max_nodes)`` expert action per vertex slot, in the units of
+        ``actions`` (0 in padded slots and for unlabelled transitions)
+    :param expert_mask: ``(B,)`` bool, the transitions that carry an expert action
+    """
+
+    observations: Any
+    actions: torch.Tensor
+    next_observations: Any
+    dones: torch.Tensor
+    rewards: torch.Tensor
+    discounts: torch.Tensor | None
+    expert_actions: torch.Tensor
+    expert_mask: torch.Tensor
+
+
+class ExpertRolloutBufferSamples(NamedTuple):
+    """SB3's ``RolloutBufferSamples`` plus the expert's labels of the rollout states (see
+    :meth:`GraphRolloutBuffer.label_step`); fields as in :class:`ExpertReplayBufferSamples`."""
+
+    observations: Any
+    actions: torch.Tensor
+    old_values: torch.Tensor
+    old_log_prob: torch.Tensor
+    advantages: torch.Tensor
+    returns: torch.Tensor
+    expert_actions: torch.Tensor
+    expert_mask: torch.Tensor
 
 
 def _exclusive_cumsum(counts: np.ndarray) -> np.ndarray:
@@ -271,6 +304,10 @@ class GraphReplayBuffer(ReplayBuffer):
         the ``k`` transitions summed (the algorithm bootstraps with it). The algorithm aliases set it
         from their ``n_steps`` argument.
     :param gamma: discount factor of the n-step returns
+    :param store_expert_actions: keep an expert action per vertex next to each transition (ragged, like
+        the observation): :meth:`add` takes ``expert_action=``, samples are
+        :class:`ExpertReplayBufferSamples`, :meth:`sample_expert` samples the labelled transitions
+        only (:func:`sb3_graph.behaviour_clone` switches it on with :meth:`enable_expert_actions`)
     """
 
     observation_space: spaces.Dict
@@ -278,6 +315,7 @@ class GraphReplayBuffer(ReplayBuffer):
     edge_features = 0
     n_steps = 1
     gamma = 0.99
+    store_expert_actions = False
 
     def __init__(
         self,
@@ -291,6 +329,7 @@ class GraphReplayBuffer(ReplayBuffer):
         initial_capacity: int = 4096,
         n_steps: int = 1,
         gamma: float = 0.99,
+        store_expert_actions: bool = False,
     ) -> None:
         if int(n_steps) < 1:
             raise ValueError(f"GraphReplayBuffer: n_steps must be >= 1, got {n_steps}")
@@ -315,6 +354,7 @@ class GraphReplayBuffer(ReplayBuffer):
         self.initial_capacity = initial_capacity
         self.n_steps = int(n_steps)
         self.gamma = float(gamma)
+        self.store_expert_actions = bool(store_expert_actions)
         self.rewards = np.zeros((self.buffer_size, self.n_envs), dtype=np.float32)
         self.dones = np.zeros((self.buffer_size, self.n_envs), dtype=np.float32)
         self.timeouts = np.zeros((self.buffer_size, self.n_envs), dtype=np.float32)
@@ -330,13 +370,34 @@ class GraphReplayBuffer(ReplayBuffer):
         if self.edge_features:
             edge_fields["attr"] = ((self.edge_features,), np.float32)
         size, n_envs, cap = self.buffer_size, self.n_envs, self.initial_capacity
-        self.obs_nodes = _RingPool(size, n_envs, {**node_fields, "action": ((), np.float32)}, cap)
+        action_fields = {"action": ((), np.float32)}
+        if self.store_expert_actions:
+            action_fields["expert"] = ((), np.float32)
+        self.obs_nodes = _RingPool(size, n_envs, {**node_fields, **action_fields}, cap)
         self.next_obs_nodes = _RingPool(size, n_envs, node_fields, cap)
         self.obs_edges = _RingPool(size, n_envs, edge_fields, cap)
         self.next_obs_edges = _RingPool(size, n_envs, edge_fields, cap)
         # True where a transition's next observation is the observation of the same env's next
         # transition (ring row + 1): it is then stored once, in the observation pools.
         self.next_is_successor = np.zeros((size, n_envs), dtype=bool)
+        if self.store_expert_actions:
+            self.expert_labelled = np.zeros((size, n_envs), dtype=bool)
+
+    def enable_expert_actions(self) -> None:
+        """Start storing expert actions (:class:`GraphReplayBuffer`'s ``store_expert_actions``); the
+        transitions already stored carry none."""
+        if self.store_expert_actions:
+            return
+        self.store_expert_actions = True
+        pool = self.obs_nodes
+        pool.fields = {**pool.fields, "expert": ((), np.float32)}
+        pool.arrays["expert"] = np.zeros(pool.capacity, dtype=np.float32)
+        self.expert_labelled = np.zeros((self.buffer_size, self.n_envs), dtype=bool)
+
+    @property
+    def num_expert_transitions(self) -> int:
+        """Stored transitions that carry an expert action."""
+        return int(self.expert_labelled.sum()) if self.store_expert_actions else 0
 
     @property
     def pools(self) -> tuple[_RingPool, ...]:
@@ -347,7 +408,7 @@ class GraphReplayBuffer(ReplayBuffer):
         """Bytes held by the buffer's arrays (allocated capacity, not only live rows)."""
         return (
             sum(p.nbytes for p in self.pools) + self.rewards.nbytes + self.dones.nbytes + self.timeouts.nbytes
-        )
+        ) + (self.expert_labelled.nbytes if self.store_expert_actions else 0)
 
     def reset(self) -> None:
         super().reset()
@@ -367,6 +428,7 @@ class GraphReplayBuffer(ReplayBuffer):
         reward: np.ndarray,
         done: np.ndarray,
         infos: list[dict[str, Any]],
+        expert_action: np.ndarray | None = None,
     ) -> None:
         """Add one transition per environment.
 
@@ -376,9 +438,21 @@ class GraphReplayBuffer(ReplayBuffer):
         :param reward: ``(n_envs,)``
         :param done: ``(n_envs,)``
         :param infos: one info dict per environment (``TimeLimit.truncated`` is read)
+        :param expert_action: ``(n_envs, max_nodes)`` the expert's actions in the units of ``action``
+            (only real vertices' are kept), or ``None``: these transitions carry no expert action.
+            Only with ``store_expert_actions``.
         """
         nodes, node_counts, edges, edge_counts, node_mask = self._split(obs)
         nodes["action"] = np.asarray(action, dtype=np.float32).reshape(self.n_envs, self.max_nodes)[node_mask]
+        if expert_action is not None and not self.store_expert_actions:
+            raise ValueError(
+                "GraphReplayBuffer.add: expert_action given, but the buffer stores none "
+                "(store_expert_actions=True or enable_expert_actions())"
+            )
+        if self.store_expert_actions:
+            labels = np.zeros(node_mask.shape, np.float32) if expert_action is None else expert_action
+            nodes["expert"] = np.asarray(labels, dtype=np.float32).reshape(self.n_envs, self.max_nodes)[node_mask]
+            self.expert_labelled[self.pos] = expert_action is not None
         next_nodes, next_node_counts, next_edges, next_edge_counts, _ = self._split(next_obs)
         previous = (self.pos - 1) % self.buffer_size
         if (self.pos > 0 or self.full) and previous != self.pos:
@@ -440,6 +514,21 @@ class GraphReplayBuffer(ReplayBuffer):
         # The global numpy generator, as in SB3, so that the algorithm's seed applies.
         batch_inds = np.random.randint(0, upper_bound, size=batch_size)  # noqa: NPY002
         return self._get_samples(batch_inds, env=env)
+
+    def sample_expert(self, batch_size: int, env: VecNormalize | None = None) -> ExpertReplayBufferSamples:
+        """Sample ``batch_size`` of the transitions that carry an expert action, uniformly (with
+        replacement, the global numpy generator).
+
+        :param batch_size: number of transitions
+        :param env: VecNormalize wrapper, for reward normalization only
+        :raises ValueError: no stored transition carries an expert action
+        """
+        labelled = np.flatnonzero(self.expert_labelled) if self.store_expert_actions else np.zeros(0, np.int64)
+        if not len(labelled):
+            raise ValueError("GraphReplayBuffer.sample_expert: no stored transition carries an expert action")
+        chosen = labelled[np.random.randint(0, len(labelled), size=batch_size)]  # noqa: NPY002
+        rows, envs = np.divmod(chosen, self.n_envs)
+        return self._get_samples(rows, env=env, env_indices=envs)  # type: ignore[return-value]
 
     @staticmethod
     def _take(
@@ -507,10 +596,11 @@ class GraphReplayBuffer(ReplayBuffer):
         return graphs, (node_idx, batch, node_slot)
 
     def _get_samples(  # type: ignore[override]
-        self, batch_inds: np.ndarray, env: VecNormalize | None = None
-    ) -> ReplayBufferSamples:
+        self, batch_inds: np.ndarray, env: VecNormalize | None = None, env_indices: np.ndarray | None = None
+    ) -> ReplayBufferSamples | ExpertReplayBufferSamples:
         check_vec_normalize(env, self.observation_space)
-        env_indices = np.random.randint(0, high=self.n_envs, size=(len(batch_inds),))  # noqa: NPY002
+        if env_indices is None:
+            env_indices = np.random.randint(0, high=self.n_envs, size=(len(batch_inds),))  # noqa: NPY002
         observations, (node_idx, batch, node_slot) = self._graph_batch(
             (self.obs_nodes, self.obs_nodes), (self.obs_edges, self.obs_edges), batch_inds, env_indices
         )
@@ -529,13 +619,21 @@ class GraphReplayBuffer(ReplayBuffer):
         actions = np.zeros((len(batch_inds), self.max_nodes), dtype=np.float32)
         actions[batch, node_slot] = self.obs_nodes.arrays["action"][node_idx]
         dones = self.dones[last, env_indices] * (1 - self.timeouts[last, env_indices])
-        return ReplayBufferSamples(
+        samples = ReplayBufferSamples(
             observations=observations,  # type: ignore[arg-type]
             actions=self.to_torch(actions),
             next_observations=next_observations,  # type: ignore[arg-type]
             dones=self.to_torch(dones.reshape(-1, 1)),
             rewards=self.to_torch(rewards),
             discounts=None if discounts is None else self.to_torch(discounts),
+        )
+        if not self.store_expert_actions:
+            return samples
+        expert = np.zeros((len(batch_inds), self.max_nodes), dtype=np.float32)
+        expert[batch, node_slot] = self.obs_nodes.arrays["expert"][node_idx]
+        labelled = self.expert_labelled[batch_inds, env_indices]
+        return ExpertReplayBufferSamples(
+            *samples, expert_actions=self.to_torch(expert), expert_mask=torch.as_tensor(labelled, device=self.device)
         )
 
     def _n_step_returns(
@@ -656,8 +754,23 @@ class GraphRolloutBuffer(RolloutBuffer):
         self.edge_counts = np.zeros(shape, dtype=np.int64)
         self._step_nodes: list[dict[str, np.ndarray]] = []
         self._step_edges: list[dict[str, np.ndarray]] = []
+        self._expert: np.ndarray | None = None  # (buffer_size, n_envs, max_nodes) once a step is labelled
         self.generator_ready = False
         BaseBuffer.reset(self)
+
+    def label_step(self, step: int, expert_action: np.ndarray) -> None:
+        """Label the observations of rollout step ``step`` (of every environment) with an expert's
+        actions (a regularizer toward the expert: ``bc_coef`` of PPO and A2C). The minibatches of a
+        rollout with labels are :class:`ExpertRolloutBufferSamples` (unlabelled steps masked out).
+
+        :param step: the step's index in the rollout (it may be labelled before it is added)
+        :param expert_action: ``(n_envs, max_nodes)`` expert actions in the action space's units
+        """
+        if self._expert is None:
+            self._expert = np.zeros((self.buffer_size, self.n_envs, self.max_nodes), dtype=np.float32)
+            self._expert_steps = np.zeros(self.buffer_size, dtype=bool)
+        self._expert[step] = np.asarray(expert_action, dtype=np.float32).reshape(self.n_envs, self.max_nodes)
+        self._expert_steps[step] = True
 
     @property
     def nbytes(self) -> int:
@@ -707,6 +820,12 @@ class GraphRolloutBuffer(RolloutBuffer):
         (SB3's ``swap_and_flatten`` order: transition ``k`` is env ``k // n_steps``, step ``k % n_steps``)."""
         self._nodes = {k: np.concatenate([s[k] for s in self._step_nodes]) for k in self._step_nodes[0]}
         self._edges = {k: np.concatenate([s[k] for s in self._step_edges]) for k in self._step_edges[0]}
+        if self._expert is not None:
+            # Rows step after step, env after env, as the vertex pool.
+            real = np.arange(self.max_nodes) < self.node_counts.reshape(-1, 1)
+            self._nodes["expert"] = self._expert.reshape(-1, self.max_nodes)[real]
+            steps = np.repeat(self._expert_steps[:, None], self.n_envs, axis=1)
+            self._expert_labelled = steps.swapaxes(0, 1).reshape(-1)  # env-major, as swap_and_flatten
         flat = {}
         for name, counts in (("node", self.node_counts), ("edge", self.edge_counts)):
             starts = _exclusive_cumsum(counts.reshape(-1)).reshape(counts.shape)  # rows step after step
@@ -748,7 +867,7 @@ class GraphRolloutBuffer(RolloutBuffer):
         )
         actions = np.zeros((len(batch_inds), self.max_nodes), dtype=np.float32)
         actions[batch, node_slot] = self._nodes["action"][node_idx]
-        return RolloutBufferSamples(
+        samples = RolloutBufferSamples(
             observations=graphs,  # type: ignore[arg-type]
             actions=self.to_torch(actions),
             old_values=self.to_torch(self.values[batch_inds].flatten()),
@@ -756,3 +875,9 @@ class GraphRolloutBuffer(RolloutBuffer):
             advantages=self.to_torch(self.advantages[batch_inds].flatten()),
             returns=self.to_torch(self.returns[batch_inds].flatten()),
         )
+        if "expert" not in self._nodes:
+            return samples
+        expert = np.zeros((len(batch_inds), self.max_nodes), dtype=np.float32)
+        expert[batch, node_slot] = self._nodes["expert"][node_idx]
+        labelled = torch.as_tensor(self._expert_labelled[batch_inds], device=self.device)
+        return ExpertRolloutBufferSamples(*samples, expert_actions=self.to_torch(expert), expert_mask=labelled)  # type: ignore[return-value]

@@ -30,6 +30,9 @@ from sb3_graph.safe_values import UnsafeValueError, load_yaml, parse_value, read
 
 # Keys the trainer consumes itself; all others go to the algorithm's constructor.
 TRAINER_KEYS = {"n_timesteps", "n_envs", "env_kwargs", "noise_type", "noise_std", "callback", "policy"}
+# Keys of behaviour cloning before training (sb3-graph train --pretrain-from; see sb3_graph.behaviour_clone).
+PRETRAIN_KEYS = {"pretrain_from", "pretrain_transitions", "pretrain_steps", "pretrain_critic_steps"}
+TRAINER_KEYS |= PRETRAIN_KEYS
 # Keys of rl-zoo3 that this trainer does not implement: refused rather than silently ignored.
 UNSUPPORTED_KEYS = {"normalize", "frame_stack", "env_wrapper", "vec_env_wrapper", "monitor_kwargs"}
 # Keys that would choose where a run writes: paths come from the command line only (train writes
@@ -200,6 +203,14 @@ ENTRY_RULES: dict[str, tuple[Any, str]] = {
         "a number > 0 or 'lin_<number>'",
     ),
     "train_freq": (_train_freq, "an integer >= 1 or [integer, 'step' or 'episode']"),
+    "pretrain_from": (lambda v: v is None or (isinstance(v, str) and v.strip() != ""), "a planner word (string)"),
+    "pretrain_transitions": _integer(1, MAX_BUFFER),
+    "pretrain_steps": _integer(0, MAX_TIMESTEPS),
+    "pretrain_critic_steps": _integer(0, MAX_TIMESTEPS),
+    "bc_coef": (
+        lambda v: _number(0.0)[0](v) or (isinstance(v, str) and _lin_start(v) is not None),
+        "a number >= 0 or 'lin_<number>'",
+    ),
     "env_kwargs": (lambda v: v is None or isinstance(v, dict), "a mapping (of gym.make keyword arguments)"),
 }
 

@@ -11,12 +11,19 @@ A package that provides graph environments declares, in its ``pyproject.toml``::
     [project.entry-points."sb3_graph.gym_packages"]
     mydomain = "mydomain"                        # importing it registers its gymnasium environments
 
+    [project.entry-points."sb3_graph.experts"]
+    mydomain = "mydomain.plugin:EXPERTS"         # {"EnvIdPrefix": ("module:make_expert", "what a spec may be")}
+
 - **commands**: each becomes ``sb3-graph <name>``; its module provides ``add_arguments(parser)`` and
   ``run(args) -> int`` and raises :class:`sb3_graph.commands.UserError` for a user's mistake. A
   command of the package itself keeps its name over a domain's.
 - **tuning**: ``sb3-graph tune --env <id>`` with an id that starts with the prefix uses that
   evaluator (``evaluate(model, env_id, env_kwargs, episodes, seed) -> metrics``) and env preset
   unless ``--evaluator``/``--env-preset`` are given.
+- **experts**: ``sb3-graph train --pretrain-from SPEC`` (and the ``pretrain_from`` key of an
+  experiment) with an env id that starts with the prefix clones ``make_expert(SPEC, vec_env)``, a
+  callable ``expert(obs) -> (n_envs, max_nodes)`` actions (see :func:`sb3_graph.behaviour_clone`).
+  The toy task's expert (``GraphMaxNeighbour``: ``exact``) is the package's own.
 - **gym_packages**: imported by ``sb3-graph train`` (and ``tune`` for a domain's env id) when
   ``--gym-packages`` is not given.
 
@@ -35,6 +42,11 @@ from typing import Any
 COMMANDS_GROUP = "sb3_graph.commands"
 TUNING_GROUP = "sb3_graph.tuning"
 GYM_PACKAGES_GROUP = "sb3_graph.gym_packages"
+EXPERTS_GROUP = "sb3_graph.experts"
+#: The package's own experts (env id prefix -> (factory, what a spec may be)), before the domains'.
+BUILTIN_EXPERTS: dict[str, tuple[str, str]] = {
+    "GraphMaxNeighbour": ("sb3_graph.toy_envs:make_expert", "exact (the task's exact answer)"),
+}
 #: Folders searched for installed distributions (``None``: ``sys.path``, as ``importlib.metadata``).
 SEARCH_PATH: list[str] | None = None
 
@@ -93,3 +105,14 @@ def tuning_defaults() -> dict[str, tuple[str, str]]:
 def gym_packages() -> list[str]:
     """The modules whose import registers the installed domains' environments (not imported here)."""
     return [point.value for point in entry_points(GYM_PACKAGES_GROUP)]
+
+
+def expert_factories() -> dict[str, tuple[str, str]]:
+    """``env id prefix -> (expert factory, what a spec may be)`` of the package and every installed domain."""
+    return {**_pairs(EXPERTS_GROUP), **BUILTIN_EXPERTS}
+
+
+def expert_factory(env_id: str) -> tuple[str, str] | None:
+    """The expert factory whose prefix is the longest that starts ``env_id``, or ``None``."""
+    matches = [prefix for prefix in expert_factories() if env_id.startswith(prefix)]
+    return expert_factories()[max(matches, key=len)] if matches else None

@@ -119,6 +119,39 @@ class MaxNeighbourEnv(gym.Env):
         return np.repeat(np.repeat(image, 8, axis=0), 32, axis=1)
 
 
+def max_neighbour_expert(obs: dict[str, np.ndarray]) -> np.ndarray:
+    """The exact answer of :class:`MaxNeighbourEnv` for a batch of observations (an expert for
+    :func:`sb3_graph.behaviour_clone`): each real vertex's largest first feature among its
+    in-neighbours of relation 0, 0 without one; 0 in padded slots.
+
+    :param obs: a VecEnv's batched observation dictionary (leading dimension ``n_envs``)
+    :return: ``(n_envs, max_nodes)`` float32 actions
+    """
+    x = np.asarray(obs["x"], dtype=np.float32)
+    n_envs, max_nodes = x.shape[:2]
+    edge_index = np.asarray(obs["edge_index"]).astype(np.int64)
+    signal = np.asarray(obs["edge_mask"]).astype(bool) & (np.asarray(obs["edge_type"]) == 0)
+    graph = np.broadcast_to(np.arange(n_envs)[:, None], signal.shape)[signal]
+    src, dst = edge_index[:, 0][signal], edge_index[:, 1][signal]
+    target = np.full(n_envs * max_nodes, -np.inf, dtype=np.float32)
+    np.maximum.at(target, graph * max_nodes + dst, x[graph, src, 0])
+    target = np.where(np.isfinite(target), target, 0.0).reshape(n_envs, max_nodes)
+    return (target * np.asarray(obs["node_mask"]).reshape(n_envs, max_nodes)).astype(np.float32)
+
+
+def make_expert(spec: str, env: Any) -> Any:
+    """The toy task's experts by name, for ``sb3-graph train --pretrain-from``: ``"exact"``
+    (:func:`max_neighbour_expert`).
+
+    :param spec: the expert's name
+    :param env: the VecEnv (unused: the exact answer reads the observation only)
+    :raises ValueError: another name
+    """
+    if spec != "exact":
+        raise ValueError(f"--pretrain-from: the toy task's expert is 'exact', got {spec!r}")
+    return max_neighbour_expert
+
+
 MAX_NEIGHBOUR_ID = "GraphMaxNeighbour-v0"
 if MAX_NEIGHBOUR_ID not in gym.registry:
     gym.register(MAX_NEIGHBOUR_ID, entry_point="sb3_graph.toy_envs:MaxNeighbourEnv")

@@ -158,6 +158,7 @@ def test_the_repository_declares_the_intersection_domain(capsys):
         "sb3_graph.commands": {"intersection": "envs.domain:COMMANDS"},
         "sb3_graph.tuning": {"intersection": "envs.domain:TUNING"},
         "sb3_graph.gym_packages": {"intersection": "envs"},
+        "sb3_graph.experts": {"intersection": "envs.domain:EXPERTS"},
     }
     from envs.domain import COMMANDS as DOMAIN
 

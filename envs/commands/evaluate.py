@@ -64,13 +64,14 @@ DEFAULT_MODEL = Path(__file__).resolve().parents[1] / "pretrained" / "coop_4way_
 # one, with its training checkpoint best_model.zip beside it).
 PAPER_MODEL = DEFAULT_MODEL.parents[1] / "coop_4way_fair" / "best_model.safetensors"
 # The strongest baseline is greedy: every vehicle at full throttle, kept safe by the shield.
-DEFAULT_BASELINES = ("pr", "fifo", "aim", "signal", "fullthrottle+shield")
+DEFAULT_BASELINES = ("pr", "fifo", "aim", "signal", "fullthrottle+shield", "glide+shield")
 DEFAULT_PLANNERS_HELP = (
     f"{', '.join(DEFAULT_BASELINES)} and the GNN planner shipped in envs/pretrained/{DEFAULT_MODEL.parent.name}/"
     f"{DEFAULT_MODEL.name}, without and with the shield"
 )
 PLANNER_WORDS_HELP = (
-    "'pr' (priority rules), 'fifo', 'aim', 'signal', 'fullthrottle', a policy file .safetensors (sb3-graph export) "
+    "'pr' (priority rules), 'fifo', 'aim', 'signal', 'fullthrottle', 'glide' (arrival times, meant with +shield), "
+    "a policy file .safetensors (sb3-graph export) "
     "or a saved model .zip, or a Planner class (path/to/file.py:ClassName or package.module:ClassName); '+shield' "
     "after any of them wraps it in the safety shield"
 )
@@ -234,9 +235,7 @@ def checked_env(env_id: str, env_kwargs: dict[str, Any] | None) -> dict[str, Any
         raise UserError(f"--env-kwargs: {error}") from None
 
 
-def load_model_planners(
-    planners: Sequence[tuple[str, str]], config: dict[str, Any], trust_files: bool = False
-) -> None:
+def load_model_planners(planners: Sequence[tuple[str, str]], config: dict[str, Any], trust_files: bool = False) -> None:
     """Load every model planner once, before any run: a file that cannot be loaded safely, or whose
     graphs are smaller than the environment's scenes, is a one-line error instead of a failed run.
 

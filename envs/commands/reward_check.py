@@ -12,9 +12,10 @@ evaluate`` (every run's return under each reward preset is in ``metrics.csv``: `
     sb3-graph reward-check reports/reward_check
 
 Per planner: the mean flow rate, mean delay, stop ratio and the mean return under every reward;
-per reward: Spearman's rank correlation of the planners' mean returns with their flow rate and
-with their mean delay. A reward that ranks like the task has rho near +1 with flow and near -1
-with delay. ``--min-rho`` makes the command fail (exit 1) when the reward named by ``--reward``
+per reward: Spearman's rank correlation of the planners' mean returns with their flow rate, with
+their mean delay and with their stop ratio. A reward that ranks like the task has rho near +1 with
+flow and near -1 with delay (and, since a stop costs its driver time and energy, below 0 with
+stops). ``--min-rho`` makes the command fail (exit 1) when the reward named by ``--reward``
 misses ``rho(flow) >= min`` or ``rho(delay) <= -min``, so a training script can refuse to start.
 """
 
@@ -77,7 +78,7 @@ def reward_table(runs: pd.DataFrame) -> tuple[pd.DataFrame, pd.DataFrame]:
 
     :param runs: rows of ``metrics.csv`` (one per planner and scenario)
     :return: ``(planners, correlations)``: ``planners`` indexed by planner with the task columns and
-        one column per reward; ``correlations`` indexed by reward with ``rho_flow`` and ``rho_delay``
+        one column per reward; ``correlations`` indexed by reward with ``rho_flow``, ``rho_delay`` and ``rho_stops``
     """
     returns = sorted(c for c in runs if c.startswith("return_"))
     for column in (*TASK_COLUMNS, *returns):
@@ -89,6 +90,7 @@ def reward_table(runs: pd.DataFrame) -> tuple[pd.DataFrame, pd.DataFrame]:
         rows[column.removeprefix("return_")] = {
             "rho_flow": ranks[column].corr(ranks["flow_rate"]),
             "rho_delay": ranks[column].corr(ranks["delay_mean"]),
+            "rho_stops": ranks[column].corr(ranks["stop_ratio_all"]),
         }
     return planners, pd.DataFrame.from_dict(rows, orient="index")
 
@@ -105,7 +107,7 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--reward: {args.reward!r} is not in the reports; choose from {sorted(correlations.index)}")
     print(f"{len(planners)} planners, {len(runs)} runs (means over runs):")
     print(planners.sort_values("flow_rate", ascending=False).to_string(float_format=lambda v: f"{v:.3f}"))
-    print("\nSpearman rank correlation of the planners' mean return with their flow rate and mean delay:")
+    print("\nSpearman rank correlation of the planners' mean return with their flow rate, mean delay and stop ratio:")
     print(correlations.to_string(float_format=lambda v: f"{v:+.2f}"))
     if args.min_rho is None:
         return 0

@@ -22,6 +22,7 @@ from envs.planners.adversarial import FullThrottle
 from envs.planners.aim import AIMPlanner
 from envs.planners.base import Planner
 from envs.planners.fifo import FIFOPlanner
+from envs.planners.glide import GlidePlanner
 from envs.planners.loading import (
     check_remote_spec,
     class_planner_name,
@@ -41,9 +42,17 @@ BASELINES: dict[str, type[Planner]] = {
     "aim": AIMPlanner,
     "signal": SignalPlanner,
     "fullthrottle": FullThrottle,
+    "glide": GlidePlanner,
 }
 # Report names of the built-in planners.
-BASELINE_NAMES = {"pr": "PR", "fifo": "FIFO", "aim": "AIM", "signal": "SIGNAL", "fullthrottle": "FullThrottle"}
+BASELINE_NAMES = {
+    "pr": "PR",
+    "fifo": "FIFO",
+    "aim": "AIM",
+    "signal": "SIGNAL",
+    "fullthrottle": "FullThrottle",
+    "glide": "Glide",
+}
 # A planner word ending in this is the planner wrapped in the safety shield.
 SHIELD_SUFFIX = "+shield"
 # File suffixes of learned planners.
@@ -112,6 +121,10 @@ def make_planner(spec: str, trust_files: bool = False) -> Planner:
 
     planner = GNNPlanner(key, trust_files=trust_files)
     config = planner.planner_config  # checked at load
+    if "action" in config:  # a priority policy: its scores shift glide's order
+        from envs.planners.priority import PriorityPlanner
+
+        return PriorityPlanner(GlidePlanner(), planner, config["action"]["scale"], name=planner.name)
     if config.get("residual_base") is None:
         return planner
     base = make_residual_base(config["residual_base"])
@@ -148,6 +161,7 @@ __all__ = [
     "FullThrottle",
     "MODEL_SUFFIXES",
     "FIFOPlanner",
+    "GlidePlanner",
     "Planner",
     "PriorityRulesPlanner",
     "SHIELD_SUFFIX",

@@ -206,6 +206,15 @@ class AIMPlanner(Planner):
         self._ids, self._keys, self._committed_at = ids[order], keys[order], since[order]
         return keys, since
 
+    def order_keys(self, scene: Scene, keys: np.ndarray) -> np.ndarray:
+        """The keys that order this step's reservations (after the committed vehicles).
+
+        :param scene: the vehicles now
+        :param keys: ``(n,)`` remembered arrival keys (:meth:`arrival_keys`)
+        :return: ``(n,)`` keys, lower first; here the arrival keys themselves (a subclass may shift them)
+        """
+        return keys
+
     # ------------------------------------------------------------------ planning
     def candidates(self, scene: Scene) -> dict[str, np.ndarray]:
         """Candidate plans of every vehicle: time and speed at the line (see the module docstring).
@@ -280,6 +289,7 @@ class AIMPlanner(Planner):
 
         # Order: committed first, in the order they committed, then FIFO by the remembered arrival keys.
         keys, since = self.arrival_keys(scene, cand["earliest"], committed)
+        keys = self.order_keys(scene, keys)
         order = np.empty(n, np.int64)
         order[np.lexsort((scene.vehicle_id, keys, since))] = np.arange(n)
         pair = lay.conflicts[route[:, None], route[None, :]] & zone[:, route] & zone[:, route].T
@@ -333,11 +343,19 @@ class AIMPlanner(Planner):
 
     # ------------------------------------------------------------------ control
     def act(self, scene: Scene) -> np.ndarray:
-        n = scene.num_vehicles
-        if n == 0:
+        if scene.num_vehicles == 0:
             return np.zeros(0)
+        return self.control(scene, self.reserve(scene))
+
+    def control(self, scene: Scene, plan: Reservations) -> np.ndarray:
+        """Each vehicle's command to follow its reservation (step 4 of the module docstring).
+
+        :param scene: the vehicles now
+        :param plan: the reservations of this step (:meth:`reserve`)
+        :return: ``(n,)`` accelerations within the scene's bounds
+        """
+        n = scene.num_vehicles
         p = self.params
-        plan = self.reserve(scene)
         rows = np.arange(n)
         kind, u = plan.kind[plan.choice], plan.cruise[plan.choice]
         v, dist, dt = scene.speed, scene.dist_to_entry, scene.dt

@@ -37,8 +37,14 @@ def load_model(path: str | Path, device: str = "cpu", trust_files: bool = False)
 
 #: Keys of a policy file's planner configuration (``source["planner"]`` of its header): what the
 #: environment did around the policy in training, which the planner must do again.
-PLANNER_CONFIG_KEYS = ("residual_base", "residual_scale", "vertex_features", "edge_features")
-_PLANNER_CONFIG_DEFAULTS = {"residual_base": None, "residual_scale": 0.5, "vertex_features": [], "edge_features": []}
+PLANNER_CONFIG_KEYS = ("residual_base", "residual_scale", "vertex_features", "edge_features", "action")
+_PLANNER_CONFIG_DEFAULTS = {
+    "residual_base": None,
+    "residual_scale": 0.5,
+    "vertex_features": [],
+    "edge_features": [],
+    "action": {"type": "acceleration"},
+}
 
 
 def check_planner_config(config: Any, source: str) -> dict[str, Any]:
@@ -47,14 +53,16 @@ def check_planner_config(config: Any, source: str) -> dict[str, Any]:
     :param config: ``None`` or a dict with keys among :data:`PLANNER_CONFIG_KEYS`: ``residual_base``
         (a planner of ``envs.simulation.config.RESIDUAL_BASES``) and ``residual_scale`` (in ``(0, 2]``, default 0.5)
         for a residual policy; ``vertex_features`` and ``edge_features``, the observation's feature
-        names (the environment config's keys of the same names)
+        names (the environment config's keys of the same names); ``action``, what the policy's action
+        means (the environment config's key: ``{"type": "priority", "scale": 5.0}`` for a policy
+        that shifts glide's order, default accelerations)
     :param source: what to name in errors (the file)
     :return: ``vertex_features`` and ``edge_features`` (tuples, default empty), plus ``residual_base``
-        and ``residual_scale`` for a residual policy
+        and ``residual_scale`` for a residual policy, plus ``action`` (type and scale) for a priority policy
     :raises ValueError: an unknown key, base or feature name, or a scale outside ``(0, 2]`` (as the
         environment config's rules of the same keys)
     """
-    from envs.simulation.config import RULES
+    from envs.simulation.config import RULES, action_config
 
     config = {} if config is None else config
     if not isinstance(config, dict) or set(config) - set(PLANNER_CONFIG_KEYS):
@@ -67,6 +75,11 @@ def check_planner_config(config: Any, source: str) -> dict[str, Any]:
         if not RULES[key].check(values[key]):
             raise ValueError(f"{source}: planner config {key} must be {RULES[key].allowed}, got {values[key]!r}")
     checked: dict[str, Any] = {key: tuple(values[key]) for key in ("vertex_features", "edge_features")}
+    action = action_config(values["action"])
+    if action["type"] == "priority":
+        if values["residual_base"] is not None:
+            raise ValueError(f"{source}: planner config residual_base must be null for a priority policy")
+        checked["action"] = action
     if values["residual_base"] is None:
         return checked
     return {**checked, "residual_base": values["residual_base"], "residual_scale": float(values["residual_scale"])}

@@ -34,7 +34,13 @@ MAX_VEHICLES = 1024
 MAX_EDGES = 1 << 18
 MAX_SIMULATION_FREQUENCY = 1000
 # Base planners of a residual policy (``residual_base``): the policy's action corrects their command.
-RESIDUAL_BASES = ("fullthrottle", "aim", "fifo", "pr")
+RESIDUAL_BASES = ("fullthrottle", "aim", "fifo", "pr", "glide")
+# What the action means (``action``'s ``type``, highway-env's convention): one acceleration per
+# vehicle, or one priority score per vehicle that shifts the arrival order of glide's scheduler.
+ACTION_TYPES = ("acceleration", "priority")
+# A priority score of +-1 shifts a vehicle's arrival key by this many seconds (``action``'s ``scale``).
+DEFAULT_PRIORITY_SCALE = 5.0
+MAX_PRIORITY_SCALE = 3600.0
 
 
 def _is_int(x: Any) -> bool:
@@ -112,6 +118,24 @@ def _weights(x: Any) -> bool:
     )
 
 
+def _action(x: Any) -> bool:
+    return (
+        isinstance(x, dict)
+        and set(x) <= {"type", "scale"}
+        and x.get("type", ACTION_TYPES[0]) in ACTION_TYPES
+        and ("scale" not in x or (_is_number(x["scale"]) and 0 < x["scale"] <= MAX_PRIORITY_SCALE))
+    )
+
+
+def action_config(value: dict[str, Any] | None) -> dict[str, Any]:
+    """The ``action`` setting with its defaults filled in (``type`` and ``scale``).
+
+    :param value: a checked ``action`` setting, or ``None`` (accelerations)
+    """
+    value = dict(value or {})
+    return {"type": value.get("type", ACTION_TYPES[0]), "scale": float(value.get("scale", DEFAULT_PRIORITY_SCALE))}
+
+
 def _distinct_names(allowed) -> Rule:
     """A list of distinct names from ``allowed`` (feature lists)."""
     return Rule(
@@ -159,6 +183,11 @@ RULES: dict[str, Rule] = {
         lambda x: x is None or (isinstance(x, str) and x in RESIDUAL_BASES), f"null or one of {RESIDUAL_BASES}"
     ),
     "residual_scale": Rule(lambda x: _is_number(x) and 0 < x <= 2, "a number in (0, 2]"),
+    "action": Rule(
+        _action,
+        f"a dict {{'type': one of {list(ACTION_TYPES)}, 'scale': seconds in (0, {MAX_PRIORITY_SCALE:g}] "
+        f"(priority only, default {DEFAULT_PRIORITY_SCALE:g})}}",
+    ),
     "collision_handling": Rule(lambda x: x in COLLISION_HANDLING, f"one of {COLLISION_HANDLING}"),
     # Rendering (highway-env's viewer reads these).
     "screen_width": _int(1),
@@ -225,4 +254,11 @@ def validate_config(config: dict[str, Any], defaults: dict[str, Any]) -> dict[st
     weights.update(_plain(config.get("reward_weights", {})))
     merged["reward_weights"] = weights
     merged["initial_speed_range"] = [float(v) for v in merged["initial_speed_range"]]
+    if "action" in merged:
+        merged["action"] = action_config(merged["action"])
+        if merged["action"]["type"] == "priority" and merged.get("residual_base") is not None:
+            raise ValueError(
+                "config key 'residual_base' must be null with action type 'priority' (the scores shift "
+                f"glide's order; there is no acceleration to correct), got {merged['residual_base']!r}"
+            )
     return merged

@@ -131,10 +131,17 @@ class CoopIntersectionEnv(AbstractEnv):
           command where it overrode it), and the override enters the ``shield`` reward term
         - ``spawn_queue``: training spawns that find their spawn point blocked wait, up to this many
           per lane (0: dropped); waiting vehicles count in the delay term
-        - ``residual_base``: ``None``, or a planner (``"fullthrottle"``, ``"aim"``, ``"fifo"``,
+        - ``residual_base``: ``None``, or a planner (``"fullthrottle"``, ``"glide"``, ``"aim"``, ``"fifo"``,
           ``"pr"``) whose command the action corrects: ``a = base + residual_scale * action * max_acceleration``
           (a zero action reproduces the base planner)
         - ``residual_scale``: largest correction as a fraction of ``max_acceleration``
+        - ``action``: what an action means, highway-env's ``{"type": ...}``: ``"acceleration"``
+          (the default: one acceleration per vehicle, as above) or ``"priority"``: one score per
+          vehicle in ``[-1, 1]`` that shifts the vehicle's arrival key in the order of glide's
+          scheduler (:class:`envs.planners.glide.GlidePlanner`) by ``scale`` seconds per unit
+          (default 5; lower goes earlier); the scheduler turns the order into approach profiles and
+          accelerations, behind the shield with ``shield``. A zero action drives exactly as
+          ``glide`` (``glide+shield`` with ``shield``) does in an evaluation. Needs ``residual_base`` null.
         - ``collision_handling``: ``"terminate"`` (a collision ends the episode) or ``"remove"``
           (the vehicles involved leave the scene and the episode goes on)
         - rendering: ``screen_width``, ``screen_height``, ``scaling``, ``centering_position``,
@@ -171,6 +178,7 @@ class CoopIntersectionEnv(AbstractEnv):
             "spawn_queue": 10,
             "residual_base": None,
             "residual_scale": 0.5,
+            "action": {"type": "acceleration"},
             "collision_handling": "terminate",
             "screen_width": 600,
             "screen_height": 600,
@@ -271,6 +279,12 @@ class CoopIntersectionEnv(AbstractEnv):
 
             self._base = make_residual_base(cfg["residual_base"])
             self._base.reset(seed)
+        self._scheduler = None
+        if cfg["action"]["type"] == "priority":
+            from envs.planners.glide import GlidePlanner
+
+            self._scheduler = GlidePlanner()
+            self._scheduler.reset(seed)
         self._scene = self.sim.scene()
         obs = build_observation(
             self._scene,
@@ -307,7 +321,9 @@ class CoopIntersectionEnv(AbstractEnv):
         a_max = cfg["max_acceleration"]
         correction = np.clip(action[:n], -1.0, 1.0)
         base = None
-        if self._base is not None:
+        if self._scheduler is not None:
+            acc = self._scheduled(correction)
+        elif self._base is not None:
             base = np.asarray(self._base.act(self._scene), dtype=float).reshape(n)
             acc = np.clip(base + cfg["residual_scale"] * a_max * correction, -a_max, a_max)
         else:
@@ -315,6 +331,9 @@ class CoopIntersectionEnv(AbstractEnv):
         proposal = acc
         if self._shield is not None:
             acc = self._shield.check(self._scene, proposal)
+        shield_gap = float(np.abs(proposal - acc).sum()) / a_max
+        if self._scheduler is not None:
+            acc = self._as_commanded(acc)
         remove = cfg["collision_handling"] == "remove"
         events = sim.step(acc, remove_collided=remove)
         kept = events.kept
@@ -354,7 +373,7 @@ class CoopIntersectionEnv(AbstractEnv):
                 waiting=self.traffic.waiting,
                 crossed=events.crossed.size,
                 new_stops=new_stops.size,
-                shield_gap=float(np.abs(proposal - acc).sum()) / a_max,
+                shield_gap=shield_gap,
             )
         )
         info = self._make_info(events, entered, terms)
@@ -404,6 +423,21 @@ class CoopIntersectionEnv(AbstractEnv):
         }
         return info
 
+    def _scheduled(self, scores: np.ndarray) -> np.ndarray:
+        """Glide's accelerations with its order shifted by the priority scores (``action`` ``"priority"``)."""
+        from envs.planners.errors import checked_accelerations
+
+        self._scheduler.set_priority(self.config["action"]["scale"] * scores)
+        scene = self._scene
+        return checked_accelerations(self._scheduler.act(scene.copy()), scene, self._scheduler.name)
+
+    def _as_commanded(self, acc: np.ndarray) -> np.ndarray:
+        """Accelerations as a planner's command reaches the simulation in an evaluation (through the
+        float32 action of :meth:`accelerations_to_action`), so that training and evaluation agree bit for bit."""
+        a_max = self.config["max_acceleration"]
+        action = np.clip(acc / a_max, -1.0, 1.0).astype(np.float32)
+        return np.clip(action.astype(np.float64), -1.0, 1.0) * a_max
+
     def _make_shield(self):
         from envs.planners.shield import Shield
 
@@ -428,6 +462,9 @@ class CoopIntersectionEnv(AbstractEnv):
         """
         a_max = self.config["max_acceleration"]
         action = np.zeros(self.action_space.shape, np.float32)
+        if self._scheduler is not None:  # a score, not an acceleration: the shield's override is no score
+            action[: acc.size] = correction
+            return action
         if base is None:
             shield = acc / a_max
         else:

@@ -49,6 +49,9 @@ from sb3_graph.commands.arguments import json_object, seed_value
 from sb3_graph.registry import ALGORITHMS
 
 CHECKPOINT_PATTERN = re.compile(r"model_(\d+)_steps\.zip$")
+#: Defaults of --pretrain-transitions and --pretrain-steps (issue #37's budget: minutes on 2 cores).
+PRETRAIN_TRANSITIONS = 10_000
+PRETRAIN_STEPS = 2_000
 VALIDATION_SEED_OFFSET = 10_000
 
 
@@ -110,6 +113,29 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="start from the network weights of a saved model .zip or a .safetensors policy file (fine-tuning; "
         "read as tensors only, the architecture must match); recorded in run.json",
+    )
+    parser.add_argument(
+        "--pretrain-from",
+        default=None,
+        metavar="PLANNER",
+        help="clone this expert before training (sb3_graph.behaviour_clone): for the intersection envs any planner "
+        "word of evaluate (aim, fifo, pr, fullthrottle, file.py:Class...), for the toy task 'exact'; the entry "
+        "key pretrain_from",
+    )
+    parser.add_argument(
+        "--pretrain-transitions",
+        type=int,
+        default=None,
+        metavar="N",
+        help=f"environment steps of demonstrations (default {PRETRAIN_TRANSITIONS}; entry key pretrain_transitions)",
+    )
+    parser.add_argument(
+        "--pretrain-steps",
+        type=int,
+        default=None,
+        metavar="M",
+        help=f"gradient steps of cloning (default {PRETRAIN_STEPS}; entry key pretrain_steps; the critics' warm-up, "
+        "off-policy, takes pretrain_critic_steps, default M // 4)",
     )
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (see benchmarks/)")
     parser.add_argument("--device", default="auto", help="torch device (auto, cpu, cuda)")
@@ -296,6 +322,12 @@ def _check_flags(args: argparse.Namespace) -> None:
         raise UserError(f"--seed must be >= 0, got {args.seed}")
     if args.trust_run_files and not args.resume:
         raise UserError("--trust-run-files applies to --resume only")
+    pretrain = {flag: getattr(args, flag, None) for flag in ("pretrain_from", "pretrain_transitions", "pretrain_steps")}
+    if args.resume and any(value is not None for value in pretrain.values()):
+        raise UserError("--pretrain-from/--pretrain-transitions/--pretrain-steps apply to a fresh run, not --resume")
+    for flag, low in (("pretrain_transitions", 1), ("pretrain_steps", 0)):
+        if pretrain[flag] is not None and pretrain[flag] < low:
+            raise UserError(f"--{flag.replace('_', '-')} must be at least {low}, got {pretrain[flag]}")
     check_device(args.device)
 
 
@@ -308,6 +340,9 @@ def _entry_from_file(args: argparse.Namespace) -> dict[str, Any]:
         entry.update(parse_overrides(args.hyperparams))
         if args.n_timesteps is not None:
             entry["n_timesteps"] = args.n_timesteps
+        for key in ("pretrain_from", "pretrain_transitions", "pretrain_steps"):
+            if getattr(args, key, None) is not None:
+                entry[key] = getattr(args, key)
         if args.env_kwargs:
             if entry.get("env_kwargs") is not None and not isinstance(entry["env_kwargs"], dict):
                 raise ExperimentError(f"env_kwargs must be a mapping, got {entry['env_kwargs']!r}")
@@ -441,6 +476,60 @@ def _build_model(entry: dict[str, Any], train_env, seed: int, args: argparse.Nam
     if args.init_weights:
         _load_weights(model, args.init_weights)
     return model
+
+
+def _make_expert(spec: str, env_id: str, train_env) -> Any:
+    """The expert ``spec`` for ``env_id``'s environments, from the factory that the package or a domain
+    declares for it (:func:`sb3_graph.plugins.expert_factory`)."""
+    from sb3_graph.plugins import expert_factories, expert_factory
+    from sb3_graph.registry import import_object
+
+    found = expert_factory(env_id)
+    if found is None:
+        raise UserError(
+            f"pretrain_from: no expert is known for env {env_id!r} (experts exist for env ids starting with "
+            f"{sorted(expert_factories())})"
+        )
+    try:
+        return import_object(found[0])(spec, train_env)
+    except ValueError as error:
+        raise UserError(f"pretrain_from: {error} (for {env_id!r}: {found[1]})") from None
+
+
+def _pretrain(model, entry: dict[str, Any], env_id: str, train_env) -> dict[str, Any] | None:
+    """Clone the entry's ``pretrain_from`` expert into the model (nothing without one); its summary."""
+    from sb3_graph.cloning import behaviour_clone
+
+    spec = entry.get("pretrain_from")
+    if spec is None:
+        return None
+    expert = _make_expert(str(spec), env_id, train_env)
+    transitions = int(entry.get("pretrain_transitions", PRETRAIN_TRANSITIONS))
+    steps = int(entry.get("pretrain_steps", PRETRAIN_STEPS))
+    critic_steps = entry.get("pretrain_critic_steps")
+    print(f"sb3-graph train: cloning {spec!r}: {transitions} transitions, {steps} gradient steps", flush=True)
+    result = behaviour_clone(
+        model,
+        expert,
+        transitions=transitions,
+        gradient_steps=steps,
+        batch_size=int(getattr(model, "batch_size", 256) or 256),
+        critic_steps=None if critic_steps is None else int(critic_steps),
+    )
+    summary = {
+        "from": str(spec),
+        "transitions": result["transitions"],
+        "gradient_steps": steps,
+        "critic_steps": len(result["critic_loss"]),
+        "actor_loss_first": result["actor_loss"][0] if result["actor_loss"] else None,
+        "actor_loss_last": result["actor_loss"][-1] if result["actor_loss"] else None,
+        "critic_loss_last": result["critic_loss"][-1] if result["critic_loss"] else None,
+        "collect_s": round(result["collect_s"], 2),
+        "train_s": round(result["train_s"] + result["critic_s"], 2),
+    }
+    print(f"sb3-graph train: cloned in {summary['collect_s'] + summary['train_s']:.0f} s, actor loss "
+          f"{summary['actor_loss_first']} -> {summary['actor_loss_last']}", flush=True)  # fmt: skip
+    return summary
 
 
 def _discard(out: Path, created: bool) -> None:
@@ -594,10 +683,16 @@ def _run_one(args: argparse.Namespace) -> int:
             device=args.device,
             tensorboard_log=tensorboard_log,
         )
+        if entry.get("pretrain_from") is not None and getattr(model, "rollout_buffer", None) is not None:
+            # an on-policy bc_coef labels its rollouts with the expert (not saved with the model)
+            model.bc_expert = _make_expert(str(entry["pretrain_from"]), args.env, train_env)
     else:
         model = _build_model(entry, train_env, seed, args, tensorboard_log)
         if args.init_weights:
             record["init_weights"] = str(args.init_weights)
+        pretrained = _pretrain(model, entry, args.env, train_env)
+        if pretrained is not None:
+            record["pretrain"] = pretrained
 
     try:
         out.mkdir(parents=True, exist_ok=True)

@@ -1,0 +1,141 @@
+"""Arrival-time planning behind the shield (``glide``): full throttle, except where a vehicle's slot says slow down.
+
+Every vehicle drives at full throttle, and the safety shield (:mod:`envs.planners.shield`) keeps
+the result collision-free. Full throttle alone makes vehicles race to the line and stop there when
+a crossing vehicle holds the junction; ``glide`` instead times their arrival. It reuses the
+reservations of :class:`~envs.planners.aim.AIMPlanner` (candidate plans per vehicle, an order,
+windows per conflict zone), with three changes:
+
+- **Tight reservations**: the plans accelerate at ``accel`` = 5 m/s^2 with no time ``buffer`` and
+  ``follow_headway`` = 1.0 s at the line, since the shield, not the plan's margins, keeps safety.
+- **Platoons kept together**: the order is first come, first served by the earliest feasible
+  arrival, as AIM's, but a vehicle first seen within ``platoon_gap`` seconds of its leader's arrival
+  takes its place right behind the leader, so a same-lane platoon crosses as one and the junction
+  switches direction less often.
+- **Advice only where it pays, never a crawl**: a vehicle follows its plan's first phase (slow to a
+  cruise speed, or stop at the line) only within ``window`` metres of its line and only when its
+  plan would slow or stop it; everyone else goes at full throttle. Glide never brakes a vehicle
+  below ``floor`` m/s (a plan that would stop it slows it to the floor instead), so no vehicle
+  creeps just above the stop threshold on glide's advice: a stop, where one is still needed, is the
+  shield's, which lets the vehicle go as soon as its gap is safe.
+
+The order can be shifted per vehicle (:meth:`GlidePlanner.set_priority`): the ``"priority"`` action
+type of the intersection environments lets a policy do so (a zero shift drives exactly as glide).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from envs.planners.aim import AIMParams, AIMPlanner
+from envs.planners.idm import DEFAULT_IDM, IDMParams, leader_chain_max
+from envs.simulation.scene import Scene
+
+# Added per link of a platoon so that its members keep their order (AIM's own chain offset).
+_CHAIN_OFFSET = 1e-3
+
+
+@dataclass(frozen=True)
+class GlideParams(AIMParams):
+    """Free parameters of :class:`GlidePlanner` (defaults: tuned, see ``docs/baselines.md``);
+    AIM's parameters (:class:`~envs.planners.aim.AIMParams`) with tight reservations, plus:
+
+    :param window: a vehicle follows its plan only this close to its line [m] (``inf``: on the
+        whole approach); farther out it drives at full throttle
+    :param floor: glide brakes no vehicle below this speed [m/s] (the slowest cruise of a slowed approach)
+    :param platoon_gap: a vehicle first seen within this many seconds of its leader's arrival key
+        goes right behind its leader in the order [s] (0: AIM's plain first come, first served)
+    """
+
+    accel: float = 5.0
+    buffer: float = 0.0
+    follow_headway: float = 1.0
+    window: float = 30.0
+    floor: float = 2.0
+    platoon_gap: float = 2.5
+
+    def __post_init__(self) -> None:
+        for field in ("window", "floor", "platoon_gap"):
+            value = getattr(self, field)
+            if not (isinstance(value, (int, float)) and value >= 0 and not np.isnan(value)):
+                raise ValueError(f"glide's {field} must be a number >= 0, got {value!r}")
+
+
+class GlidePlanner(AIMPlanner):
+    """Full throttle behind the shield, with arrival times from tight, platoon-batched reservations.
+
+    Meant to run behind the shield (``glide+shield``): alone it drives at full throttle wherever
+    no slot asks it to slow, and relies on the shield for the rest.
+
+    :param name: the name shown in reports
+    :param params: free parameters
+    :param idm: IDM constants of car following (its ``acc_max`` is replaced by ``params.accel``)
+    """
+
+    def __init__(self, name: str = "Glide", params: GlideParams | None = None, idm: IDMParams = DEFAULT_IDM) -> None:
+        super().__init__(name, params if params is not None else GlideParams(), idm)
+        self._shift: np.ndarray | None = None
+
+    def reset(self, seed: int | None = None) -> None:
+        super().reset(seed)
+        self._shift = None
+
+    def set_priority(self, shift: np.ndarray | None) -> None:
+        """Shift the order of the next :meth:`act` (then forgotten).
+
+        :param shift: ``(n,)`` seconds added to each vehicle's arrival key (lower goes earlier), one
+            per vehicle of the scene that :meth:`act` gets; ``None`` or all zeros: glide's own order
+        """
+        self._shift = None if shift is None else np.asarray(shift, dtype=float)
+
+    # ------------------------------------------------------------------ order
+    def arrival_keys(self, scene: Scene, earliest: np.ndarray, committed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """AIM's remembered keys, with new vehicles batched behind their leaders (see the module docstring)."""
+        new = ~np.isin(scene.vehicle_id, self._ids)
+        keys, since = super().arrival_keys(scene, earliest, committed)
+        gap = self.params.platoon_gap
+        leader = scene.leader
+        src = np.maximum(leader, 0)
+        joins = new & (leader >= 0) & (keys - keys[src] <= gap)
+        if not joins.any():
+            return keys, since
+        out = keys.copy()
+        for _ in range(len(out)):  # along the chains, one link per pass (a platoon of k needs k passes)
+            batched = np.where(joins, out[src] + _CHAIN_OFFSET, out)
+            if np.array_equal(batched, out):
+                break
+            out = batched
+        order = np.argsort(scene.vehicle_id)
+        self._keys = out[order]  # remembered as batched: the place is kept on later steps
+        return out, since
+
+    def order_keys(self, scene: Scene, keys: np.ndarray) -> np.ndarray:
+        """The arrival keys, shifted by :meth:`set_priority` (a follower still never before its leader)."""
+        shift, self._shift = self._shift, None
+        if shift is None or not shift.any():
+            return keys
+        if shift.shape != keys.shape:
+            raise ValueError(f"glide's priority shift must have one value per vehicle ({keys.size}), got {shift.shape}")
+        return leader_chain_max(keys + shift, scene.leader, _CHAIN_OFFSET)
+
+    # ------------------------------------------------------------------ planning
+    def _grids(self, top_speed: float) -> tuple[np.ndarray, np.ndarray]:
+        """AIM's grids without the cruise speeds below ``floor``."""
+        u, waits = super()._grids(top_speed)
+        return u[u >= self.params.floor - 1e-9], waits
+
+    # ------------------------------------------------------------------ control
+    def act(self, scene: Scene) -> np.ndarray:
+        if scene.num_vehicles == 0:
+            self._shift = None
+            return np.zeros(0)
+        plan = self.reserve(scene)
+        planned = self.control(scene, plan)
+        dist = scene.dist_to_entry
+        slowed = plan.kind[plan.choice] != 0
+        advised = slowed & (dist > 0) & (scene.dist_to_exit > 0) & (dist <= self.params.window)
+        # Never brake below the floor, nor hold a vehicle that is slower: a stop, if one is needed, is the shield's.
+        keep_floor = np.clip((self.params.floor - scene.speed) / scene.dt, scene.a_min, scene.a_max)
+        return np.where(advised, np.maximum(planned, keep_floor), scene.a_max)

@@ -1,0 +1,202 @@
+"""Glide (arrival-time planning behind the shield) and the ``"priority"`` action type over its scheduler."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import envs  # noqa: F401  (registers the environments)
+from envs.evaluation.harness import evaluation_env_kwargs, planned_accelerations
+from envs.planners import make_planner
+from envs.planners.glide import GlideParams, GlidePlanner
+from envs.planners.shield import Shield
+from envs.simulation.traffic import generate_scenario
+
+EMPTY = {"spawn_probability": 0.0, "initial_spawn_probability": 0.0}
+
+
+def empty_env(**config):
+    env = gym.make("CoopIntersection4Way-v0", config={**EMPTY, **config})
+    env.reset(seed=0)
+    return env
+
+
+def platoon_and_minor(base, to_zone: float = 25.0, gap: float = 12.0) -> tuple[int, int]:
+    """Three major-road vehicles about to cross, and a minor-road vehicle due in their stream."""
+    lay = base.layout
+    we, sn = lay.route_id("west->east"), lay.route_id("south->north")
+    half = base.config["vehicle_length"] / 2
+    zw, zs = lay.zone_start[we, sn], lay.zone_start[sn, we]
+    arcs = [zw - 20 - half, zw - 20 - gap - half, zw - 20 - 2 * gap - half, zs - to_zone - half]
+    base.place_vehicles([we, we, we, sn], arc=arcs, speed=[10.0] * 4)
+    return we, sn
+
+
+def drive_minor(spec: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The minor-road vehicle's speeds and whether its body / the majors' bodies are in their shared zone."""
+    env = empty_env()
+    base = env.unwrapped
+    we, sn = platoon_and_minor(base)
+    lay, half = base.layout, base.config["vehicle_length"] / 2
+    planner = make_planner(spec)
+    planner.reset(0)
+    speeds, minor_in, major_in = [], [], []
+    for _ in range(60):
+        scene = base.scene()
+        minor = np.flatnonzero(scene.route == sn)
+        if minor.size:
+            k = minor[0]
+            speeds.append(scene.speed[k])
+            minor_in.append(
+                scene.arc[k] + half >= lay.zone_start[sn, we] and scene.arc[k] - half <= lay.zone_end[sn, we]
+            )
+            majors = scene.route == we
+            arc = scene.arc[majors]
+            major_in.append(bool(np.any((arc + half >= lay.zone_start[we, sn]) & (arc - half <= lay.zone_end[we, sn]))))
+        _, _, terminated, _, _ = env.step(base.accelerations_to_action(planner.act(scene)))
+        assert not terminated, f"{spec}: collision"
+    return np.array(speeds), np.array(minor_in), np.array(major_in)
+
+
+def test_glide_slows_early_instead_of_stopping():
+    """A minor-road vehicle due in a platoon's stream: full throttle behind the shield stops it at
+    the line; glide slows it early, never below its floor, and it enters the zone after the platoon."""
+    floor = GlideParams().floor
+    speeds, minor_in, major_in = drive_minor("glide+shield")
+    assert minor_in.any()
+    first = np.flatnonzero(minor_in).min()
+    assert not major_in[first:].any()  # the platoon has cleared the zone when the minor vehicle enters
+    assert speeds.min() >= floor - 1e-6  # never below the floor ...
+    assert speeds[:first].min() < 10.0 - 3.0  # ... but it did slow down, before the zone
+    ft_speeds, _, _ = drive_minor("fullthrottle+shield")
+    assert ft_speeds.min() < 0.3  # full throttle raced to the line and stopped there
+
+
+def conflict_scene(base, minor_ahead: float = 4.0):
+    """A west->east leader and its follower 9 m behind; a south->north vehicle due between them."""
+    lay = base.layout
+    we, sn = lay.route_id("west->east"), lay.route_id("south->north")
+    half = base.config["vehicle_length"] / 2
+    zw, zs = lay.zone_start[we, sn], lay.zone_start[sn, we]
+    base.place_vehicles(
+        [we, we, sn], arc=[zw - 40 - half, zw - 49 - half, zs - 44.5 + minor_ahead - half], speed=[10.0] * 3
+    )
+    return base.scene()
+
+
+@pytest.mark.parametrize("platoon_gap, expected", [(2.5, [0, 1, 2]), (0.0, [0, 2, 1])])
+def test_platoon_batching_keeps_a_follower_behind_its_leader(platoon_gap, expected):
+    """With batching the follower takes its place right behind its leader in the order; without it,
+    the crossing vehicle that arrives between them goes between them."""
+    scene = conflict_scene(empty_env().unwrapped)
+    planner = GlidePlanner(params=GlideParams(platoon_gap=platoon_gap))
+    plan = planner.reserve(scene)
+    assert np.argsort(plan.order).tolist() == expected
+
+
+def test_priority_shift_changes_the_order_and_zero_does_not():
+    scene = conflict_scene(empty_env().unwrapped)
+    planner = GlidePlanner()
+    own = planner.reserve(scene).order
+    planner.reset()
+    planner.set_priority(np.zeros(3))
+    assert np.array_equal(planner.reserve(scene).order, own)
+    planner.reset()
+    planner.set_priority(np.array([0.0, 0.0, -10.0]))  # the crossing vehicle first
+    assert np.argsort(planner.reserve(scene).order).tolist() == [2, 0, 1]
+    planner.set_priority(np.array([0.0, -10.0, 0.0]))  # a follower never before its leader
+    assert np.argsort(planner.reserve(scene).order)[0] == 0
+
+
+def test_priority_with_a_zero_action_drives_as_glide_behind_the_shield_bit_for_bit():
+    """A whole run of the priority environment with zero scores, and the evaluation's way of running
+    glide+shield (planned_accelerations, then the float32 action) on the same scenario: every
+    vehicle's position and speed equal at every step."""
+    scenario = generate_scenario("4way", 40.0, 7)
+    kwargs = evaluation_env_kwargs({})
+    reference = gym.make("CoopIntersection4Way-v0", **kwargs)
+    config = {**kwargs["config"], "action": {"type": "priority"}, "shield": True}
+    priority = gym.make("CoopIntersection4Way-v0", config=config)
+    reference.reset(seed=7, options={"scenario": scenario})
+    priority.reset(seed=7, options={"scenario": scenario})
+    planner = Shield(GlidePlanner())
+    planner.reset(7)
+    zero = np.zeros(priority.action_space.shape, np.float32)
+    steps = crossed = 0
+    while True:
+        ref_scene, pri_scene = reference.unwrapped.scene(), priority.unwrapped.scene()
+        assert np.array_equal(ref_scene.vehicle_id, pri_scene.vehicle_id)
+        assert np.array_equal(ref_scene.arc, pri_scene.arc) and np.array_equal(ref_scene.speed, pri_scene.speed)
+        acc = planned_accelerations(planner, ref_scene)
+        _, _, _, truncated, info = reference.step(reference.unwrapped.accelerations_to_action(acc))
+        _, _, _, truncated_p, info_p = priority.step(zero)
+        assert truncated == truncated_p
+        crossed += info["record"].crossed.size
+        steps += 1
+        if truncated:
+            break
+    assert steps == 200 and crossed > 10
+    assert np.array_equal(info_p["executed_action"], zero)
+
+
+@pytest.mark.parametrize(
+    "action, message",
+    [
+        ({"type": "speed"}, "config key 'action'"),
+        ({"type": "priority", "scale": 0}, "config key 'action'"),
+        ({"type": "priority", "horizon": 3}, "config key 'action'"),
+        ("priority", "config key 'action'"),
+    ],
+)
+def test_bad_action_config_names_the_key(action, message):
+    with pytest.raises(ValueError, match=message):
+        gym.make("CoopIntersection4Way-v0", config={"action": action})
+
+
+def test_priority_action_refuses_a_residual_base():
+    with pytest.raises(ValueError, match="residual_base"):
+        gym.make("CoopIntersection4Way-v0", config={"action": {"type": "priority"}, "residual_base": "aim"})
+
+
+@pytest.mark.parametrize("field, value", [("window", -1.0), ("floor", float("nan")), ("platoon_gap", "2")])
+def test_bad_glide_parameter_names_the_field(field, value):
+    with pytest.raises(ValueError, match=field):
+        GlideParams(**{field: value})
+
+
+@pytest.mark.parametrize("algo", ["td3", "ddpg", "sac", "tqc", "crossq", "ppo", "a2c"])
+def test_every_algorithm_trains_on_priority_actions(algo, tmp_path):
+    """A short run of every registered algorithm in the priority action space behind the shield; the
+    exported file's header says it is a priority policy, and ``make_planner`` runs it over glide."""
+    import torch
+    from test_registry import RUNS, SMALL, STEPS
+
+    from envs.planners.priority import PriorityPlanner
+    from sb3_graph.cli import main
+    from sb3_graph.registry import ALGORITHMS
+
+    torch.set_num_threads(1)
+    entry = ALGORITHMS[algo]
+    config = {"action": {"type": "priority", "scale": 4.0}, "shield": True}
+    policy_kwargs = dict(SMALL, n_quantiles=5) if algo == "tqc" else dict(SMALL)
+    env = gym.make("CoopIntersection4Way-v0", config=config)
+    model = entry.load_class()("GraphPolicy", env, seed=0, policy_kwargs=policy_kwargs, device="cpu", **RUNS[algo])
+    before = [p.detach().clone() for p in model.policy.parameters()]
+    model.learn(STEPS)
+    assert any(not torch.equal(a, b) for a, b in zip(before, model.policy.parameters())), "no gradient step ran"
+    model.save(tmp_path / "model.zip")
+    out = tmp_path / "planner.safetensors"
+    header = '{"action": {"type": "priority", "scale": 4.0}}'
+    assert main(["export", str(tmp_path / "model.zip"), str(out), "--planner-config", header]) == 0
+    planner = make_planner(f"{out}+shield")
+    inner = planner.planner
+    assert isinstance(inner, PriorityPlanner) and inner.scale == 4.0
+    env.reset(seed=1)
+    for _ in range(10):
+        env.step(np.zeros(env.action_space.shape, np.float32))
+    scene = env.unwrapped.scene()
+    scores = inner.scores.act(scene) / scene.a_max
+    glide = GlidePlanner()
+    glide.set_priority(4.0 * scores)
+    np.testing.assert_array_equal(inner.act(scene), glide.act(scene))

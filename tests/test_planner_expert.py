@@ -1,0 +1,85 @@
+"""Planners as experts for behaviour cloning (envs.planners.expert) and `sb3-graph train --pretrain-from`."""
+
+import json
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from stable_baselines3.common.vec_env import DummyVecEnv
+
+import envs  # noqa: F401  (registers the environments)
+from envs.planners import AIMPlanner, FIFOPlanner, make_planner
+from envs.planners.expert import PlannerExpert
+from sb3_graph.cli import main
+from sb3_graph.plugins import expert_factory
+
+ROOT = Path(__file__).resolve().parents[1]
+ENV_ID = "CoopIntersection4Way-v0"
+EMPTY = {"spawn_probability": 0.0, "initial_spawn_probability": 0.0}
+
+
+def one_vehicle_env(**config):
+    venv = DummyVecEnv([lambda: gym.make(ENV_ID, config={**EMPTY, **config})])
+    venv.reset()
+    base = venv.envs[0].unwrapped
+    base.place_vehicles(["south->north"], arc=[30.0], speed=[6.0])
+    return venv, base
+
+
+@pytest.mark.parametrize(("spec", "planner"), [("aim", AIMPlanner), ("fifo", FIFOPlanner)])
+def test_one_vehicle_expert_action_is_the_planners_command(spec, planner):
+    venv, base = one_vehicle_env()
+    expert = PlannerExpert(spec, venv)
+    reference = planner()
+    reference.reset()
+    scene = base.scene()
+    action = expert(None)
+    assert action.shape == (1, base.action_space.shape[0])
+    np.testing.assert_array_equal(action[0], base.accelerations_to_action(reference.act(scene)))
+    assert np.all(action[0, 1:] == 0)
+
+
+def test_residual_expert_action_reproduces_the_planners_command():
+    venv, base = one_vehicle_env(residual_base="fullthrottle", residual_scale=2.0)
+    expert = PlannerExpert("aim", venv)
+    scene = base.scene()
+    wanted = AIMPlanner().act(scene)
+    action = expert(None)
+    applied = np.clip(make_planner("fullthrottle").act(scene) + 2.0 * base.config["max_acceleration"] * action[0, :1],
+                      -base.config["max_acceleration"], base.config["max_acceleration"])  # fmt: skip
+    np.testing.assert_allclose(applied, wanted, atol=1e-9)
+    assert not np.allclose(action[0, :1], base.accelerations_to_action(wanted)[:1])  # not the plain action
+
+
+def test_the_domain_declares_its_expert():
+    factory, _ = expert_factory(ENV_ID)
+    assert factory == "envs.planners.expert:make_expert"
+    assert expert_factory("GraphMaxNeighbour-v0")[0] == "sb3_graph.toy_envs:make_expert"
+    assert expert_factory("Pendulum-v1") is None
+
+
+def test_train_pretrain_from_aim_runs_end_to_end(tmp_path):
+    out = tmp_path / "run"
+    status = main(
+        ["train", "--config", str(ROOT / "zoo_configs" / "td3.yml"), "--env", ENV_ID, "--out", str(out),
+         "--n-timesteps", "40", "--eval-freq", "40", "--eval-episodes", "1", "--checkpoint-freq", "40",
+         "--no-progress", "--pretrain-from", "aim", "--pretrain-transitions", "40", "--pretrain-steps", "8",
+         "--hyperparams", "learning_starts:16", "batch_size:16", "buffer_size:500", "n_envs:2", "bc_coef:0.5",
+         "--env-kwargs", json.dumps({"config": {"duration": 6.0}})]
+    )  # fmt: skip
+    assert status == 0
+    record = json.loads((out / "run.json").read_text())
+    assert record["pretrain"]["from"] == "aim" and record["pretrain"]["transitions"] == 40
+    assert record["pretrain"]["gradient_steps"] == 8 and record["pretrain"]["critic_steps"] == 2
+    assert record["num_timesteps"] == 40 and (out / "final_model.zip").is_file()
+
+
+def test_train_pretrain_from_an_unknown_planner_is_one_line(tmp_path, capsys):
+    status = main(
+        ["train", "--config", str(ROOT / "zoo_configs" / "td3.yml"), "--env", ENV_ID, "--out", str(tmp_path / "r"),
+         "--n-timesteps", "40", "--no-progress", "--pretrain-from", "nosuchplanner"]
+    )  # fmt: skip
+    assert status != 0
+    assert "pretrain_from" in capsys.readouterr().err
+    assert not (tmp_path / "r").exists()
