@@ -30,7 +30,7 @@ ATTACKS = (
     ("parking inside the box", "BoxParker"),
     ("bang-bang", "BangBang"),
     ("NaN", "NaNPlanner"),
-    ("holding before the line (not covered)", "LineHolder"),
+    ("holding before the line (watchdog takeovers)", "LineHolder"),
 )
 
 

@@ -297,3 +297,70 @@ def test_a_vehicle_ahead_on_a_lane_that_split_off_is_followed_until_the_lanes_pa
     shield.planner = Fixed()
     collided, _ = _run(sim, shield, 100)
     assert not collided and sim.num_vehicles == 0
+
+
+def _shields_agree(pruned: Shield, full: Shield, scene: Scene, proposal: np.ndarray) -> tuple[np.ndarray, int, int]:
+    """The pruned and the unpruned shield answer a proposal bit for bit: the command, and their pair counts."""
+    command = pruned.check(scene, proposal)
+    np.testing.assert_array_equal(command, full.check(scene, proposal))
+    np.testing.assert_array_equal(pruned.last_overridden, full.last_overridden)
+    assert pruned.unresolved == full.unresolved
+    a, b = pruned._plan(scene), full._plan(scene)
+    return command, len(a.cross) + len(a.merge), len(b.cross) + len(b.merge)
+
+
+@pytest.mark.parametrize("layout", ["4way", "3way", "inD"])
+def test_pruning_the_pairs_that_cannot_conflict_changes_no_command(layout):
+    """The shield reads only the pairs that can conflict (`Shield._may_commit`); its commands, overrides
+    and counters are those of the shield that reads every pair, bit for bit, on random dense scenes
+    under random proposals and on the scenes of a run of greedy and random planners."""
+    lay = build_layout(layout)
+    rng = np.random.default_rng(7)
+    pruned, full = Shield(Fixed()), Shield(Fixed())
+    full._prune = False
+    kept = total = 0
+    for count in (3, 10, 30, 60) * 3:
+        sim = Simulation(lay)
+        route = rng.integers(0, lay.num_routes, count)
+        sim.add(route, rng.uniform(0.0, 15.0, count), np.arange(count), arc=rng.uniform(0.0, lay.length[route] - 1.0))
+        scene = sim.scene()
+        _, k, t = _shields_agree(pruned, full, scene, rng.uniform(scene.a_min, scene.a_max, count))
+        kept, total = kept + k, total + t
+    env_id = {"4way": "CoopIntersection4Way-v0", "3way": "CoopIntersection3Way-v0", "inD": "CoopIntersectionInD-v0"}
+    env = gym.make(env_id[layout], **evaluation_env_kwargs(None))
+    for planner in (FullThrottle(), RandomAccel(seed=2)):
+        env.reset(seed=5, options={"scenario": generate_scenario(env.unwrapped.layout, 20.0, 5)})
+        done = False
+        while not done:
+            scene = env.unwrapped.scene()
+            acc = np.asarray(planner.act(scene), float)
+            if scene.num_vehicles:
+                acc, k, t = _shields_agree(pruned, full, scene, acc)
+                kept, total = kept + k, total + t
+            _, _, terminated, truncated, _ = env.step(env.unwrapped.accelerations_to_action(acc))
+            done = terminated or truncated
+    env.close()
+    assert pruned.interventions == full.interventions > 0
+    assert kept < 0.7 * total  # the pruning does prune
+
+
+@pytest.mark.parametrize("layout", ["4way", "inD"])
+def test_a_vehicle_that_may_not_commit_never_commits_in_a_prediction(layout):
+    """The bound behind the pruning: whatever the first period's command (up to full throttle), a
+    vehicle that `_may_commit` leaves out can stop before its first zone at every predicted sub-step."""
+    lay = build_layout(layout)
+    rng = np.random.default_rng(11)
+    shield, left_out = Shield(Fixed()), 0
+    for count in (5, 20, 40) * 4:
+        sim = Simulation(lay)
+        route = rng.integers(0, lay.num_routes, count)
+        sim.add(route, rng.uniform(0.0, 15.0, count), np.arange(count), arc=rng.uniform(0.0, lay.length[route] - 1.0))
+        scene = sim.scene()
+        plan = shield._plan(scene)
+        out = ~shield._may_commit(scene, plan.arc, plan.speed, plan.hull_start)
+        for command in (np.full(count, scene.a_max), rng.uniform(scene.a_min, scene.a_max, count)):
+            arcs, speeds = shield.predict(scene, plan, command)
+            for t in range(len(arcs)):
+                assert not shield.committed(plan, arcs[t], speeds[t], scene.a_max)[out].any()
+        left_out += int(out.sum())
+    assert left_out > 50

@@ -359,7 +359,8 @@ def print_summary(summary: dict[str, dict[str, Any]]) -> None:
         if "shield_interventions" in s:
             print(
                 f"{'':>{width}}  shield: interventions {format_number(s['shield_interventions'])},"
-                f" unresolved steps {s.get('shield_unresolved', 0)}, planner errors {s.get('planner_errors', 0)}"
+                f" unresolved steps {s.get('shield_unresolved', 0)}, planner errors {s.get('planner_errors', 0)},"
+                f" watchdog takeovers {s.get('watchdog_takeovers', 0)}"
             )
         if s.get("failed_runs"):
             print(f"{name:>{width}}: {s['failed_runs']} runs failed (left out of the report's tables)")

@@ -135,11 +135,14 @@ def markdown_report(
     shielded = [(name, s) for name, s in summary.items() if "shield_interventions" in s]
     if shielded:
         lines += ["", "## Safety shield: commands replaced, share of vehicle-steps", ""]
-        lines += ["| planner | interventions | unresolved steps | planner errors (steps) | stuck runs |"]
-        lines += ["|---|---:|---:|---:|---:|"]
+        lines += [
+            "| planner | interventions | unresolved steps | planner errors (steps) | watchdog takeovers | stuck runs |"
+        ]
+        lines += ["|---|---:|---:|---:|---:|---:|"]
         lines += [
             f"| {name} | {_pct(s['shield_interventions'])} | {s.get('shield_unresolved', 'n/a')} "
-            f"| {s.get('planner_errors', 'n/a')} | {s.get('stuck_runs', 'n/a')} |"
+            f"| {s.get('planner_errors', 'n/a')} | {s.get('watchdog_takeovers', 'n/a')} "
+            f"| {s.get('stuck_runs', 'n/a')} |"
             for name, s in shielded
         ]
     if errors:
@@ -293,7 +296,8 @@ def add_collided_counts(summary: dict, vehicles: pd.DataFrame) -> None:
 
 def add_shield_interventions(summary: dict, runs: pd.DataFrame) -> None:
     """Add ``shield_interventions`` (share of vehicle-steps whose command the shield replaced, over
-    all runs) to the summary of every shielded planner (in place).
+    all runs) and the run sums of ``shield_unresolved``, ``planner_errors`` and ``watchdog_takeovers``
+    to the summary of every shielded planner (in place).
 
     :param summary: :func:`envs.evaluation.metrics.summarize` output
     :param runs: ``metrics.csv`` rows; shielded runs carry ``shield_interventions`` and ``shield_vehicle_steps``
@@ -305,7 +309,7 @@ def add_shield_interventions(summary: dict, runs: pd.DataFrame) -> None:
         steps = float(rows["shield_vehicle_steps"].sum())
         if len(rows):
             s["shield_interventions"] = float(rows["shield_interventions"].sum()) / steps if steps else None
-            for column in ("shield_unresolved", "planner_errors"):
+            for column in ("shield_unresolved", "planner_errors", "watchdog_takeovers"):
                 if column in rows:
                     s[column] = int(rows[column].fillna(0).sum())
 

@@ -13,8 +13,9 @@ handed and the array it returns. Run them by class name behind the shield, e.g.
 - :class:`BoxParker` stops every vehicle that is inside the intersection (to stall it).
 - :class:`BangBang` alternates full throttle and full braking every step.
 - :class:`NaNPlanner` answers NaN for one vehicle every step (an invalid output).
-- :class:`LineHolder` holds every vehicle before the stop line forever: the shield's liveness guarantee
-  does not cover it (see docs/shield.md, "Measured").
+- :class:`LineHolder` holds every vehicle before the stop line forever: the shield's rules inside the
+  intersection do not cover it; its watchdog hands the stalled junction to a live planner
+  (:mod:`envs.planners.watchdog`, docs/shield.md).
 """
 
 from __future__ import annotations
@@ -204,7 +205,8 @@ class NaNPlanner(Planner):
 
 class LineHolder(Planner):
     """Holds every vehicle that can still stop before the stop line there, forever; full throttle for
-    the others. No shield can make this planner's traffic flow without overruling it everywhere.
+    the others. Behind the shield its traffic moves only through the watchdog's takeovers
+    (:mod:`envs.planners.watchdog`); with ``Shield(watchdog_after=None)`` it stands for good.
 
     :param name: the name shown in reports
     """

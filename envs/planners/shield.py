@@ -41,10 +41,14 @@ the fallback still fail, every vehicle brakes at ``a_max`` and the step is count
 
 Liveness: inside the intersection a planner may not brake a vehicle below :data:`LIVE_SPEED`. A committed
 vehicle gets the fallback's command instead, and one past its stop line that has not committed is
-proposed onwards (checked like any proposal). Before the line the planner decides (docs/shield.md).
+proposed onwards (checked like any proposal). Before the line the planner decides, until the junction
+stalls: when for ``watchdog_after`` seconds no vehicle entered or left the intersection while vehicles
+waited before their lines, a live planner (FIFO by default) proposes instead until traffic moves
+(:mod:`envs.planners.watchdog`, docs/shield.md).
 An invalid proposal is a planner error (:mod:`envs.planners.errors`), answered with the fallback.
 
-Vectorized over vehicles and pairs; the only loops run over the horizon's time steps and over the
+Only the pairs that can conflict are checked (:meth:`Shield._may_commit`). Vectorized over vehicles
+and pairs; the only loops run over the horizon's time steps and over the
 few rounds of overrides. The prediction (step 2), the fallback, the scan of a prediction for
 conflicts (step 3) and the rules that the liveness checks and the blame read (who is committed, who
 waits for whom, who follows whom) run compiled (:mod:`envs.planners._shield_kernel`, numba): the
@@ -65,6 +69,8 @@ import numpy as np
 from envs.planners import _shield_kernel
 from envs.planners.base import Planner
 from envs.planners.errors import PlannerError, checked_accelerations
+from envs.planners.fifo import FIFOPlanner
+from envs.planners.watchdog import WATCHDOG_AFTER, WATCHDOG_HOLD, LivenessWatchdog
 from envs.simulation.layouts import CONFLICT_DISTANCE, ZONE_MARGIN, body_hull
 from envs.simulation.scene import Scene
 
@@ -79,6 +85,8 @@ _STOP_SLACK = 0.05
 LIVE_SPEED = 2.0
 # Planner-error lines a shield keeps per run (the count is complete).
 MAX_ERROR_LINES = 5
+# Rounding allowance on the bound of a vehicle's stopping point over a prediction (`Shield._may_commit`) [m].
+_REACH_TOLERANCE = 1e-3
 
 
 @dataclass
@@ -177,6 +185,12 @@ class Shield(Planner):
     :param max_speed: the simulation's speed cap [m/s]
     :param governor_deceleration: the simulation's speed governor [m/s^2]
     :param name: report name (default: ``<planner name>+shield``)
+    :param watchdog_after: the liveness watchdog (:mod:`envs.planners.watchdog`): seconds without a vehicle
+        entering or leaving the intersection, while vehicles wait before their lines, after which
+        ``live_planner`` proposes instead of ``planner`` (a takeover); ``None``: no watchdog
+    :param watchdog_hold: seconds after the first vehicle entered under a takeover before ``planner`` proposes again
+    :param live_planner: the planner of a takeover, its proposals checked as any other (default:
+        :class:`envs.planners.fifo.FIFOPlanner` with this ``governor_deceleration``)
     """
 
     def __init__(
@@ -191,9 +205,16 @@ class Shield(Planner):
         max_speed: float = 20.0,
         governor_deceleration: float = 3.0,
         name: str | None = None,
+        watchdog_after: float | None = WATCHDOG_AFTER,
+        watchdog_hold: float = WATCHDOG_HOLD,
+        live_planner: Planner | None = None,
     ) -> None:
         super().__init__(name or f"{planner.name}+shield")
         self.planner = planner
+        self.watchdog = None if watchdog_after is None else LivenessWatchdog(watchdog_after, watchdog_hold)
+        self.live_planner = (
+            live_planner if live_planner is not None else FIFOPlanner(governor_deceleration=governor_deceleration)
+        )
         self.horizon = float(horizon)
         self.zone_margin = float(zone_margin)
         self.gap_margin = float(gap_margin)
@@ -208,11 +229,15 @@ class Shield(Planner):
         self.planner_errors = 0
         self.errors: list[PlannerError] = []
         self.last_overridden = np.zeros(0, bool)
+        self._prune = True  # only the pairs that can conflict (`_may_commit`); False: every pair (tests, benchmarks)
 
     # ------------------------------------------------------------------ planner face
     def reset(self, seed: int | None = None) -> None:
-        """Reset the wrapped planner and the intervention counters."""
+        """Reset the wrapped planner, the live planner, the watchdog and the intervention counters."""
         self.planner.reset(seed)
+        self.live_planner.reset(seed)
+        if self.watchdog is not None:
+            self.watchdog.reset()
         self.interventions = 0
         self.vehicle_steps = 0
         self.unresolved = 0
@@ -226,12 +251,16 @@ class Shield(Planner):
 
     def stats(self) -> dict[str, float]:
         """The counters of the run since the last reset: interventions and the vehicle-steps they are
-        a share of, unresolved steps (everyone braked) and planner errors (steps)."""
+        a share of, unresolved steps (everyone braked), planner errors (steps), the watchdog's
+        takeovers and the vehicle-steps under them (0 without a watchdog)."""
+        watchdog = self.watchdog
         return {
             "shield_interventions": self.interventions,
             "shield_vehicle_steps": self.vehicle_steps,
             "shield_unresolved": self.unresolved,
             "planner_errors": self.planner_errors,
+            "watchdog_takeovers": 0 if watchdog is None else watchdog.takeovers,
+            "watchdog_vehicle_steps": 0 if watchdog is None else watchdog.vehicle_steps,
         }
 
     @property
@@ -242,15 +271,19 @@ class Shield(Planner):
     def act(self, scene: Scene) -> np.ndarray:
         """The wrapped planner's proposal for a private copy of the scene, checked on the shield's own.
 
+        While the watchdog's takeover lasts (:mod:`envs.planners.watchdog`), the live planner proposes
+        instead (the wrapped planner is not called).
+
         An invalid proposal (:func:`envs.planners.errors.checked_accelerations`) is a planner error,
         counted in :attr:`planner_errors` (the first ones in :attr:`errors`): the vehicles with a
         non-finite or out-of-bounds value, or all of them when the shape or dtype is wrong, get the
         fallback for this step (counted as interventions); the other values are checked as usual.
         """
         n = scene.num_vehicles
-        output = self.planner.act(scene.copy())
+        planner = self.live_planner if self.watchdog is not None and self.watchdog.observe(scene) else self.planner
+        output = planner.act(scene.copy())
         try:
-            proposal = checked_accelerations(output, scene, self.planner.name)
+            proposal = checked_accelerations(output, scene, planner.name)
         except PlannerError as error:
             self.planner_errors += 1
             if len(self.errors) < MAX_ERROR_LINES:
@@ -381,9 +414,12 @@ class Shield(Planner):
                 arc[ahead] - arc[behind] - (length[ahead] + length[behind]) / 2,
             ]
         )
-        # Conflicting routes: crossing pairs by zone occupancy, merging pairs by a common coordinate.
-        i, j = np.nonzero(lay.conflicts[route[:, None], route[None, :]])
-        i, j = i[i < j], j[i < j]
+        # Conflicting routes: crossing pairs by zone occupancy, merging pairs by a common coordinate;
+        # only the pairs that can conflict within the prediction (`_may_commit`, and crossing pairs
+        # of which neither has passed the zone).
+        rows = np.flatnonzero(self._may_commit(scene, arc, speed, hull_start)) if self._prune else np.arange(len(arc))
+        i, j = np.nonzero(lay.conflicts[route[rows, None], route[None, rows]])
+        i, j = rows[i[i < j]], rows[j[i < j]]
         is_merge = _merging_routes(lay)[route[i], route[j]]
         pairs = np.stack([i, j], axis=1).astype(_INT)
         cross, merge = pairs[~is_merge], pairs[is_merge]
@@ -391,6 +427,9 @@ class Shield(Planner):
         half = length[cross] / 2
         cross_lo = lay.zone_start[r, r[:, ::-1]] - m - half
         cross_hi = lay.zone_end[r, r[:, ::-1]] + m + half
+        if self._prune:
+            ahead = (arc[cross] < cross_hi).all(axis=1)
+            cross, cross_lo, cross_hi = cross[ahead], cross_lo[ahead], cross_hi[ahead]
         r = route[merge]
         merge_lo = lay.zone_start[r, r[:, ::-1]] - m - length[merge] / 2
         merge_exit = lay.exit_arc[r]
@@ -431,6 +470,28 @@ class Shield(Planner):
             cross_back=back,
             cross_stop=stop,
         )
+
+    def _may_commit(self, scene: Scene, arc: np.ndarray, speed: np.ndarray, hull_start: np.ndarray) -> np.ndarray:
+        """``(n,)`` bool: vehicles that may commit within a prediction; the others meet no one in it.
+
+        A prediction applies a command of at most ``a_max`` for one period, then the fallback, which
+        brakes at ``a_max`` every vehicle that has not committed. A vehicle's stopping point
+        ``x + v^2 / (2 a_max)`` grows by less than ``x0 + v0 dt + a_max dt^2 / 2 + (v0 + a_max dt)^2 /
+        (2 a_max)`` over the first period (caps and the governor only lower speeds) and does not grow
+        under braking (the simulation's trapezoid sub-steps keep it exactly, up to ``a_max h^2 / 8``
+        at the sub-step that stops the vehicle, inside ``_STOP_SLACK``). Where that bound plus the
+        slack stays before the vehicle's first zone (``hull_start``), it can stop before every zone
+        at every predicted state: it never commits, never enters a zone and never waits for a
+        crossing vehicle, and no crossing vehicle waits for it (it can always stop) nor follows it
+        at a merge (it neither proceeds nor reaches the merge). Its crossing and merging pairs then
+        change nothing in the prediction, the fallback or the check, and are left out (its follow
+        pairs stay: its proposal can still close a gap). ``tests/test_shield.py`` checks that the
+        shield's commands are bitwise those without the pruning.
+        """
+        a_max, dt = float(scene.a_max), float(scene.dt)
+        v1 = speed + a_max * dt
+        reach = arc + speed * dt + 0.5 * a_max * dt * dt + v1 * v1 / (2 * a_max)
+        return reach + _STOP_SLACK + _REACH_TOLERANCE > hull_start
 
     # ------------------------------------------------------------------ the fallback
     def committed(self, plan: _Plan, arc: np.ndarray, speed: np.ndarray, a_max: float) -> np.ndarray:
