@@ -68,7 +68,8 @@ def pool_seeds(runs: pd.DataFrame, pattern: re.Pattern) -> pd.DataFrame:
     :return: one row per pooled planner and scenario (the paired metrics only)
     """
     named = runs.assign(planner=runs["planner"].astype(str).map(lambda name: seeds_pooled(pattern, name)))
-    return named.groupby(["planner", "scenario"], as_index=False)[list(PAIRED_METRICS)].mean()
+    metrics = [metric for metric in PAIRED_METRICS if metric in named]  # older reports lack the newer ones
+    return named.groupby(["planner", "scenario"], as_index=False)[metrics].mean()
 
 
 def main(argv: list[str] | None = None) -> int:

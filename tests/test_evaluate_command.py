@@ -7,13 +7,14 @@ import json
 import pandas as pd
 import pytest
 
+from envs.evaluation.comparison import PAIRED_METRICS
 from envs.evaluation.report import REPORT_FILES
 from sb3_graph.cli import main
 
 SUMMARY_KEYS = {
     "runs", "vehicles", "vehicles_scheduled", "not_spawned", "flow_rate", "offered_flow", "stop_ratio",
     "collision_rate", "collided", "delay_s", "speed_limit_violations", "governor_share", "stuck_runs",
-    "last_crossing_s",
+    "last_crossing_s", "slow_ratio", "hard_brakes_per_vehicle", "energy_kj_per_vehicle",
 }  # fmt: skip
 SMALL = ["--scenarios", "2", "--duration", "20", "--seed", "3", "--jobs", "1", "--no-progress"]
 
@@ -72,7 +73,7 @@ def test_small_run_writes_every_file_and_repeats(tmp_path):
     assert len(metrics) == 4 and set(metrics["planner"]) == {"PR", "FIFO"}
     assert metrics["baseline"].all()
     paired = pd.read_csv(out / "paired.csv")  # the other baseline against the one with the higher median flow
-    assert len(paired) == 3 and paired["pairs"].eq(2).all() and paired["planner"].nunique() == 1
+    assert len(paired) == len(PAIRED_METRICS) and paired["pairs"].eq(2).all() and paired["planner"].nunique() == 1
 
     # Same scenario files, same seed: the same numbers (the run is deterministic), in a new folder.
     again = tmp_path / "again"

@@ -19,7 +19,7 @@ from envs.simulation.step_record import StepRecord
 SUMMARY_KEYS = {
     "runs", "vehicles", "vehicles_scheduled", "not_spawned", "flow_rate", "offered_flow", "stop_ratio",
     "collision_rate", "collided", "delay_s", "speed_limit_violations", "governor_share", "stuck_runs",
-    "last_crossing_s",
+    "last_crossing_s", "slow_ratio", "hard_brakes_per_vehicle", "energy_kj_per_vehicle",
 }  # fmt: skip
 
 

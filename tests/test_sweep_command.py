@@ -22,6 +22,7 @@ def test_tiny_sweep_writes_both_files_with_the_schema(tmp_path):
     table = pd.read_csv(out / "sweep.csv")
     assert list(table.columns) == [
         "planner", "demand", "flow_rate", "delay_mean_s", "stop_ratio", "collision_rate", "speed_limit_violations",
+        "slow_ratio", "hard_brakes_per_vehicle", "energy_kj_per_vehicle",
     ]  # fmt: skip
     assert list(zip(table["planner"], table["demand"])) == [("PR", 0.1), ("FIFO", 0.1), ("PR", 0.3), ("FIFO", 0.3)]
     assert table[["flow_rate", "delay_mean_s", "stop_ratio", "collision_rate"]].notna().all().all()

@@ -246,6 +246,10 @@ def dataset_vehicle_log(mapped, recording: int | None = None) -> pd.DataFrame:
             "removed": rows["t_last"].to_numpy(),
             "stopped": rows["stopped"].to_numpy(bool),
             "collided": False,
+            # the recorded motion, measured as the simulation's (envs.simulation.motion; energy up to "crossed")
+            "min_speed": rows["min_speed"].to_numpy(float),
+            "hard_brakes": rows["hard_brakes"].to_numpy(float),
+            "traction_energy_j": rows["energy_to_centre_j"].to_numpy(float),
         }
     )
     frame = vehicle_frame(columns.to_dict("records"))  # the harness's columns and dtypes

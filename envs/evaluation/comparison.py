@@ -16,7 +16,14 @@ import pandas as pd
 from sb3_graph.aggregate import bootstrap_interval
 
 # metrics.csv column -> label in the report
-PAIRED_METRICS = {"flow_rate": "flow [veh/s]", "delay_mean": "mean delay [s]", "stop_ratio_all": "stop ratio"}
+PAIRED_METRICS = {
+    "flow_rate": "flow [veh/s]",
+    "delay_mean": "mean delay [s]",
+    "stop_ratio_all": "stop ratio",
+    "slow_ratio": "slow ratio",
+    "hard_brakes_per_vehicle": "hard brakes / vehicle",
+    "energy_kj_per_vehicle": "energy [kJ/vehicle]",
+}
 PAIRED_COLUMNS = ("planner", "baseline", "metric", "pairs", "mean_difference", "ci_low", "ci_high")
 RESAMPLES = 10_000
 CONFIDENCE = 0.95
@@ -47,13 +54,14 @@ def paired_differences(runs: pd.DataFrame, baseline: str | None = None, seed: in
     :param runs: ``metrics.csv`` rows (``planner``, ``scenario`` and the :data:`PAIRED_METRICS`)
     :param baseline: report name of the reference; default :func:`strongest_baseline`
     :param seed: seed of the bootstrap
-    :return: one row per other planner and metric, columns :data:`PAIRED_COLUMNS` (``pairs``:
-        scenarios where both values are defined); empty without a baseline
+    :return: one row per other planner and metric of :data:`PAIRED_METRICS` that ``runs`` has (older
+        ``metrics.csv`` files lack the newer ones), columns :data:`PAIRED_COLUMNS` (``pairs``: scenarios
+        where both values are defined); empty without a baseline
     """
     baseline = strongest_baseline(runs) if baseline is None else baseline
     rows = []
     if baseline is not None:
-        metrics = list(PAIRED_METRICS)
+        metrics = [metric for metric in PAIRED_METRICS if metric in runs]
         ref = runs[runs["planner"] == baseline].set_index("scenario")[metrics]
         for planner in pd.unique(runs["planner"]):
             if planner == baseline:

@@ -30,6 +30,20 @@ look better by keeping vehicles out of the scene.
 - **travel time**: vehicles that crossed, from the scheduled appearance to the crossing.
 - **speed-limit violations**: vehicle-steps (scenes the planner answered) in which a vehicle
   drove faster than its lane's limit by more than :data:`SPEED_TOLERANCE`.
+- **slow ratio**, **hard brakes per vehicle** and **energy per vehicle** (:func:`motion_metrics`), from the
+  executed motion that the step records carry (every simulation sub-step, after the governor and the
+  shield; definitions and the energy model in :mod:`envs.simulation.motion`):
+
+  - ``slow_ratio``: scheduled vehicles whose lowest speed (``min_speed``) was below
+    :data:`~envs.simulation.motion.SLOW_SPEED` (2 m/s), over all scheduled vehicles; a vehicle that never
+    appeared stands (``min_speed`` 0). Every stopped vehicle is slow, so ``slow_ratio >= stop_ratio_all``;
+  - ``hard_brakes_per_vehicle``: hard-braking events (maximal runs of consecutive sub-steps whose
+    acceleration was below :data:`~envs.simulation.motion.HARD_BRAKE_ACCELERATION`, -3 m/s^2, by more than
+    :data:`~envs.simulation.motion.HARD_BRAKE_MARGIN`) over all scheduled vehicles;
+  - ``energy_kj_per_vehicle``: mean traction energy [kJ] of the vehicles that crossed, from their appearance
+    to the end of the policy step in which they crossed (``traction_energy_j``): the same stretch of road for
+    every planner. Vehicles that did not cross are left out (their energy so far would flatter a jam), as
+    from ``travel_time_mean``.
 
 The environment appears vehicles and reports crossings at policy steps (0.2 s by default), so a
 delay includes up to one step of appearance and one of crossing quantization, the same for
@@ -46,6 +60,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import pandas as pd
 
+from envs.simulation.motion import SLOW_SPEED, event_starts, hard_braking, traction_energy
 from envs.simulation.scene import MANEUVERS, PRIORITY_NAMES, STOP_SPEED, Scene
 from envs.simulation.step_record import StepRecord, step_record
 
@@ -73,6 +88,9 @@ VEHICLE_COLUMNS = (
     "speed_violations",
     "steps",
     "governed_steps",
+    "min_speed",
+    "hard_brakes",
+    "traction_energy_j",
 )
 PRIORITIES = ("major", "minor")
 STOP_GROUPS = ("all",) + PRIORITIES + tuple(MANEUVERS)
@@ -83,7 +101,7 @@ SPEED_TOLERANCE = 0.1
 STANDSTILL_LIMIT = 30.0
 _FLOAT_COLUMNS = (
     "scheduled", "first_seen", "path_length", "speed_limit", "crossed", "removed", "censored",
-    "free_flow", "free_flow_covered",
+    "free_flow", "free_flow_covered", "min_speed", "hard_brakes", "traction_energy_j",
 )  # fmt: skip
 
 
@@ -108,6 +126,11 @@ class VehicleLog:
         self._stopped: list[np.ndarray] = []
         self._counted: list[np.ndarray] = []  # ids of each scene the planner answered
         self._governed: list[np.ndarray] = []  # ids the speed governor held back, per step
+        # The executed motion, per scene or step (reduced in frame()): (ids, lowest speeds) of every scene and
+        # step, (ids repeated per sub-step, hard-braking flags) and (ids, traction energy, record time) per step.
+        self._lowest: list[tuple[np.ndarray, np.ndarray]] = []
+        self._braking: list[tuple[np.ndarray, np.ndarray]] = []
+        self._energy: list[tuple[np.ndarray, np.ndarray, float]] = []
         self._bounds = (5.0, 5.0)  # acceleration, deceleration of the free-flow reference
 
     def _row(self, vid: int) -> dict[str, Any]:
@@ -149,6 +172,7 @@ class VehicleLog:
                 start_speed=float(scene.speed[k]),
             )
         speeding = np.zeros(len(ids), bool)
+        self._lowest.append((ids.copy(), np.asarray(scene.speed, float).copy()))
         if count and len(ids):
             self._stopped.append(ids[scene.speed < STOP_SPEED])
             self._counted.append(ids.copy())
@@ -181,6 +205,16 @@ class VehicleLog:
         self._governed.append(record.governed)
         for vid in record.collisions.reshape(-1).tolist():
             self._row(vid)["collided"] = True
+        if record.has_motion:
+            self._record_motion(record)
+
+    def _record_motion(self, record: StepRecord) -> None:
+        """Keep what the metrics need of a step's executed sub-step speeds (vectorized over its vehicles)."""
+        ids, speeds, h = record.moved, record.speeds, float(record.substep)
+        self._lowest.append((ids, speeds.min(axis=0)))
+        hard = hard_braking(np.diff(speeds, axis=0) / h).T.ravel()  # vehicle-major, in time order
+        self._braking.append((np.repeat(ids, speeds.shape[0] - 1), hard))
+        self._energy.append((ids, traction_energy(speeds[:-1], speeds[1:], h).sum(axis=0), float(record.time)))
 
     def frame(self, schedule: Scenario | None = None, end: float | None = None) -> pd.DataFrame:
         """The vehicle log: one row per vehicle, columns :data:`VEHICLE_COLUMNS`.
@@ -209,9 +243,36 @@ class VehicleLog:
                 rows[column] = pd.Series(counts, index=found).reindex(ids, fill_value=0).to_numpy()
             last, where = np.unique(seen[::-1], return_index=True)  # the last scene of each vehicle
             rows["end_arc"] = pd.Series(arcs[::-1][where], index=last).reindex(ids).to_numpy()
+        self._motion_columns(rows)
         if schedule is not None and end is not None and self.layout is not None:
             rows = self._add_schedule(rows, schedule, float(end))
         return self._reference(rows, end)
+
+    def _motion_columns(self, rows: pd.DataFrame) -> None:
+        """Add ``min_speed``, ``hard_brakes`` and ``traction_energy_j`` (in place; NaN where unknown: the
+        two motion columns of a log whose records carry no sub-step speeds)."""
+        ids = rows["vehicle_id"].to_numpy(np.int64)
+        rows["min_speed"] = np.nan
+        rows["hard_brakes"] = np.nan
+        rows["traction_energy_j"] = np.nan
+        if self._lowest:
+            seen = np.concatenate([x[0] for x in self._lowest])
+            lowest = pd.Series(np.concatenate([x[1] for x in self._lowest])).groupby(seen).min()
+            rows["min_speed"] = lowest.reindex(ids).to_numpy()
+        if not self._energy:
+            return
+        vehicle = np.concatenate([x[0] for x in self._braking])
+        order = np.argsort(vehicle, kind="stable")  # each vehicle's sub-steps together, in time order
+        starts = event_starts(np.concatenate([x[1] for x in self._braking])[order], vehicle[order])
+        found, counts = np.unique(vehicle[order][starts], return_counts=True)
+        rows["hard_brakes"] = pd.Series(counts, index=found).reindex(ids, fill_value=0).to_numpy(float)
+        moved = np.concatenate([x[0] for x in self._energy])
+        energy = np.concatenate([x[1] for x in self._energy])
+        time = np.concatenate([np.full(len(x[0]), x[2]) for x in self._energy])
+        crossed = pd.Series(rows["crossed"].to_numpy(float), index=ids)
+        before = time <= crossed.reindex(moved).to_numpy()  # up to the step of the crossing (NaN: never)
+        to_exit = pd.Series(energy[before]).groupby(moved[before]).sum()
+        rows["traction_energy_j"] = np.where(rows["crossed"].notna(), to_exit.reindex(ids, fill_value=0.0), np.nan)
 
     def _add_schedule(self, rows: pd.DataFrame, schedule: Scenario, end: float) -> pd.DataFrame:
         """Scheduled times for every row, and rows for the vehicles due by ``end`` that never appeared."""
@@ -237,6 +298,9 @@ class VehicleLog:
                 "speed_violations": 0,
                 "steps": 0,
                 "governed_steps": 0,
+                "min_speed": 0.0,  # it stands
+                "hard_brakes": 0.0 if self._energy else np.nan,
+                "traction_energy_j": np.nan,
                 "route_index": route,
                 "start_arc": start,
                 "start_speed": schedule.speed[missing],
@@ -331,6 +395,25 @@ def governor_share(vehicles: pd.DataFrame) -> float:
     return float(_column(vehicles, "governed_steps", 0).sum() / steps) if steps else float("nan")
 
 
+def motion_metrics(vehicles: pd.DataFrame) -> dict[str, float]:
+    """Crawling, hard braking and energy of a vehicle log (NaN where its vehicles' motion is unknown).
+
+    :param vehicles: a vehicle log (one run, or pooled runs)
+    :return: ``slow_ratio`` (share of the vehicles with a known lowest speed whose speed fell below
+        :data:`~envs.simulation.motion.SLOW_SPEED`), ``hard_brakes_per_vehicle`` (hard-braking events per
+        vehicle with known motion) and ``energy_kj_per_vehicle`` (mean traction energy of the vehicles that
+        crossed [kJ]); definitions in the module docstring
+    """
+    lowest = _column(vehicles, "min_speed").astype(float).dropna()
+    brakes = _column(vehicles, "hard_brakes").astype(float).dropna()
+    energy = _column(vehicles, "traction_energy_j").astype(float).dropna()
+    return {
+        "slow_ratio": float((lowest < SLOW_SPEED).mean()) if len(lowest) else float("nan"),
+        "hard_brakes_per_vehicle": float(brakes.mean()) if len(brakes) else float("nan"),
+        "energy_kj_per_vehicle": float(energy.mean()) / 1000.0 if len(energy) else float("nan"),
+    }
+
+
 def offered_count(vehicles: pd.DataFrame, duration: float) -> float:
     """Scheduled vehicles that would cross within ``duration`` in free flow (NaN without references).
 
@@ -403,7 +486,8 @@ def run_metrics(vehicles: pd.DataFrame, duration: float) -> dict[str, float | in
         :data:`STOP_GROUPS`, ``collided``, ``collision_rate``, ``delay_mean``, ``delay_median``,
         ``travel_time_mean`` [s], ``speed_limit_violations`` [vehicle-steps], ``governor_share``,
         ``longest_standstill_s``, ``stuck`` (the watchdog, :func:`standstill` against
-        :data:`STANDSTILL_LIMIT`) and ``last_crossing_s``
+        :data:`STANDSTILL_LIMIT`), ``last_crossing_s``, and ``slow_ratio``, ``hard_brakes_per_vehicle``,
+        ``energy_kj_per_vehicle`` (:func:`motion_metrics`)
     """
     if duration <= 0:
         raise ValueError(f"duration must be positive, got {duration}")
@@ -435,6 +519,7 @@ def run_metrics(vehicles: pd.DataFrame, duration: float) -> dict[str, float | in
     row["longest_standstill_s"] = longest
     row["stuck"] = bool(longest >= STANDSTILL_LIMIT)
     row["last_crossing_s"] = last
+    row.update(motion_metrics(vehicles))
     return row
 
 
@@ -450,7 +535,8 @@ def summarize(runs: pd.DataFrame, vehicles: pd.DataFrame) -> dict[str, dict[str,
         "flow_rate": {median, q1, q3, mean}, "offered_flow" (mean over runs), "stop_ratio": {all, major,
         minor, left, straight, right}, "collision_rate", "delay_s": {median, mean},
         "speed_limit_violations", "governor_share", "stuck_runs" (runs the watchdog found stuck),
-        "last_crossing_s" (per run, in run order; ``None`` for a run without a crossing)}``
+        "last_crossing_s" (per run, in run order; ``None`` for a run without a crossing), "slow_ratio",
+        "hard_brakes_per_vehicle", "energy_kj_per_vehicle" (:func:`motion_metrics`, pooled)}``
     """
     summary: dict[str, dict[str, Any]] = {}
     for planner in pd.unique(runs["planner"]):
@@ -480,6 +566,7 @@ def summarize(runs: pd.DataFrame, vehicles: pd.DataFrame) -> dict[str, dict[str,
             "governor_share": _finite(governor_share(v)),
             "stuck_runs": int(_column(r, "stuck", False).astype(bool).sum()),
             "last_crossing_s": [_finite(t) for t in _column(r, "last_crossing_s").astype(float)],
+            **{key: _finite(value) for key, value in motion_metrics(v).items()},
         }
     return summary
 

@@ -32,7 +32,8 @@ import pandas as pd  # noqa: E402
 
 from envs.evaluation.comparison import CONFIDENCE, PAIRED_METRICS, paired_differences  # noqa: E402
 from envs.evaluation.metrics import PRIORITIES, SPEED_TOLERANCE, stop_counts, summarize  # noqa: E402
-from envs.simulation.scene import MANEUVERS  # noqa: E402
+from envs.simulation.motion import HARD_BRAKE_ACCELERATION, SLOW_SPEED  # noqa: E402
+from envs.simulation.scene import MANEUVERS, STOP_SPEED  # noqa: E402
 
 NOTES = (
     "- Vehicles counted: every vehicle the scenario schedules within the run, the same set for every "
@@ -50,6 +51,13 @@ NOTES = (
     f"- Speed-limit violations: vehicle-steps faster than the lane limit by more than {SPEED_TOLERANCE} m/s. "
     "The simulation's speed governor prevents them for every planner; *governor held back* is the share of "
     "vehicle-steps in which it had to lower a planner's command (to the lane limit, or braking for a turn).",
+    f"- Slow ratio: vehicles whose speed fell below {SLOW_SPEED:g} m/s at some simulation sub-step (a "
+    f"vehicle that never appeared stands), so that creeping just above the {STOP_SPEED:g} m/s stop threshold "
+    f"still shows; hard brakes: events of braking harder than {-HARD_BRAKE_ACCELERATION:g} m/s^2 (a maximal run "
+    "of consecutive sub-steps), per scheduled vehicle; energy: traction energy at the wheels (positive power "
+    "only, no recuperation) of a Euro 4 petrol passenger car (PHEMlight 5: mass, rolling and air resistance, "
+    "inertia), per vehicle that crossed, from its appearance to its crossing. All three read the executed "
+    "motion (after the shield and the speed governor), never a planner's command; see `docs/sweep.md`.",
     "- Paired differences: per scenario, planner minus the strongest baseline (the non-learned planner with "
     "the highest median flow, on a tie the lower mean delay); mean over scenarios with a "
     f"{100 * CONFIDENCE:.0f} % percentile bootstrap interval over scenarios.",
@@ -130,6 +138,7 @@ def markdown_report(
             f"| {format_number(d['median'], 2)} | {format_number(d['mean'], 2)} "
             f"| {s.get('speed_limit_violations', 'n/a')} | {_pct(s.get('governor_share'))} |"
         )
+    lines += _motion_table(summary)
     if paired is not None and not paired.empty:
         lines += _paired_section(paired)
     shielded = [(name, s) for name, s in summary.items() if "shield_interventions" in s]
@@ -155,18 +164,36 @@ def markdown_report(
     return "\n".join(lines)
 
 
+def _motion_table(summary: Mapping[str, Mapping[str, Any]]) -> list[str]:
+    """Markdown table of the crawling, hard-braking and energy figures (pooled per planner)."""
+    lines = ["", "## Crawling, hard braking and energy (the executed motion)", ""]
+    lines.append(
+        f"| planner | slow ratio (below {SLOW_SPEED:g} m/s) | stop ratio (below {STOP_SPEED:g} m/s) "
+        f"| hard brakes per vehicle (below {HARD_BRAKE_ACCELERATION:g} m/s^2) | energy per crossed vehicle [kJ] |"
+    )
+    lines.append("|---|---:|---:|---:|---:|")
+    for name, s in summary.items():
+        lines.append(
+            f"| {name} | {_pct(s.get('slow_ratio'))} | {_pct(s['stop_ratio']['all'])} "
+            f"| {format_number(s.get('hard_brakes_per_vehicle'), 2)} "
+            f"| {format_number(s.get('energy_kj_per_vehicle'), 1)} |"
+        )
+    return lines
+
+
 def _paired_section(paired: pd.DataFrame) -> list[str]:
     """Markdown table of the paired differences (one row per planner, one column per metric)."""
     baseline = paired["baseline"].iloc[0]
     level = f"{100 * CONFIDENCE:.0f} %"
     lines = ["", f"## Against the strongest baseline ({baseline}): per-scenario differences", ""]
     lines.append(f"Mean of (planner - {baseline}) over paired scenarios, [{level} bootstrap interval].")
-    lines += ["", "| planner | scenarios | " + " | ".join(f"Δ {label}" for label in PAIRED_METRICS.values()) + " |"]
-    lines.append("|---|---:|" + "---:|" * len(PAIRED_METRICS))
+    metrics = [metric for metric in PAIRED_METRICS if metric in set(paired["metric"])]
+    lines += ["", "| planner | scenarios | " + " | ".join(f"Δ {PAIRED_METRICS[m]}" for m in metrics) + " |"]
+    lines.append("|---|---:|" + "---:|" * len(metrics))
     for planner, rows in paired.groupby("planner", sort=False):
         by_metric = rows.set_index("metric")
         cells = []
-        for metric in PAIRED_METRICS:
+        for metric in metrics:
             r = by_metric.loc[metric]
             digits = 2 if metric == "delay_mean" else 3
             cells.append(

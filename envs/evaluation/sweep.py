@@ -7,7 +7,9 @@ to one row per planner and level (:data:`SWEEP_COLUMNS`):
 
 - ``flow_rate``: mean over the level's runs [veh/s];
 - ``delay_mean_s``, ``stop_ratio``, ``collision_rate``: pooled over every scheduled vehicle;
-- ``speed_limit_violations``: vehicle-steps above the lane limit, summed over the runs.
+- ``speed_limit_violations``: vehicle-steps above the lane limit, summed over the runs;
+- ``slow_ratio`` (speed below 2 m/s, every scheduled vehicle), ``hard_brakes_per_vehicle`` and
+  ``energy_kj_per_vehicle`` (vehicles that crossed): pooled, :func:`envs.evaluation.metrics.motion_metrics`.
 
 **Capacity** of a planner: the highest demand level up to which (at that level and every lower
 one) its flow still serves at least :data:`SERVED_FRACTION` of the offered flow, i.e. of the
@@ -38,6 +40,9 @@ SWEEP_COLUMNS = (
     "stop_ratio",
     "collision_rate",
     "speed_limit_violations",
+    "slow_ratio",
+    "hard_brakes_per_vehicle",
+    "energy_kj_per_vehicle",
 )
 SERVED_FRACTION = 0.9
 SWEEP_FILES = ("sweep.csv", "sweep.png", "sweep.md")
@@ -64,6 +69,9 @@ def sweep_rows(demand: float, summary: Mapping[str, Mapping[str, Any]]) -> list[
             "stop_ratio": s["stop_ratio"]["all"],
             "collision_rate": s["collision_rate"],
             "speed_limit_violations": s["speed_limit_violations"],
+            "slow_ratio": s.get("slow_ratio"),
+            "hard_brakes_per_vehicle": s.get("hard_brakes_per_vehicle"),
+            "energy_kj_per_vehicle": s.get("energy_kj_per_vehicle"),
             "offered_flow": s["offered_flow"],
         }
         for name, s in summary.items()
@@ -98,14 +106,23 @@ def capacity_text(capacity: float | None, top: float) -> str:
 
 
 def sweep_figure(table: pd.DataFrame, capacity: Mapping[str, float | None], path: Path) -> None:
-    """Flow, mean delay and stop ratio against demand, one line per planner, capacities marked.
+    """Flow, mean delay, stop ratio (top row), slow ratio, hard brakes per vehicle and energy per vehicle
+    (bottom row) against demand, one line per planner, capacities marked.
 
     :param table: sweep rows (with ``offered_flow``)
     :param capacity: :func:`capacities` output
     :param path: PNG file to write
     """
-    panels = (("flow_rate", "flow [veh/s]"), ("delay_mean_s", "mean delay [s]"), ("stop_ratio", "stop ratio"))
-    fig, axes = plt.subplots(1, 3, figsize=(12, 3.6))
+    panels = (
+        ("flow_rate", "flow [veh/s]"),
+        ("delay_mean_s", "mean delay [s]"),
+        ("stop_ratio", "stop ratio (below 0.3 m/s)"),
+        ("slow_ratio", "slow ratio (below 2 m/s)"),
+        ("hard_brakes_per_vehicle", "hard brakes per vehicle"),
+        ("energy_kj_per_vehicle", "energy per crossed vehicle [kJ]"),
+    )
+    fig, axes = plt.subplots(2, 3, figsize=(12, 7.2))
+    axes = axes.ravel()
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     offered = table.groupby("demand")["offered_flow"].mean()
     axes[0].plot(offered.index, offered.to_numpy(float), "k--", lw=1, label="offered (free flow)")
@@ -115,7 +132,8 @@ def sweep_figure(table: pd.DataFrame, capacity: Mapping[str, float | None], path
         cap = capacity.get(str(planner))
         label = f"{planner} (capacity {capacity_text(cap, table['demand'].max())})"
         for ax, (column, _) in zip(axes, panels):
-            ax.plot(rows["demand"], rows[column].astype(float), "o-", color=color, label=label)
+            values = rows[column].astype(float) if column in rows else np.full(len(rows), np.nan)
+            ax.plot(rows["demand"], values, "o-", color=color, label=label)
             if cap is not None:
                 ax.axvline(cap, color=color, ls=":", lw=1)
         if cap is not None:
@@ -167,7 +185,7 @@ def sweep_markdown(
         lines += ["| demand | planner | baseline | " + " | ".join(f"Δ {x}" for x in labels) + " |"]
         lines.append("|---:|---|---|" + "---:|" * len(labels))
         for (demand, planner), rows in paired.groupby(["demand", "planner"], sort=False):
-            by = rows.set_index("metric")
+            by = rows.set_index("metric").reindex(list(PAIRED_METRICS))  # a missing metric reads n/a
             cells = [
                 f"{format_number(by.loc[m, 'mean_difference'])} "
                 f"[{format_number(by.loc[m, 'ci_low'])}, {format_number(by.loc[m, 'ci_high'])}]"

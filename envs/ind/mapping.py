@@ -38,6 +38,7 @@ import numpy as np
 import pandas as pd
 
 from envs.ind.loader import Recording
+from envs.simulation.motion import event_starts, hard_braking, traction_energy
 from envs.simulation.scene import MAJOR, MANEUVERS, STOP_SPEED
 
 COMPASS: tuple[str, ...] = ("east", "north", "west", "south")  # counter-clockwise from +x
@@ -203,7 +204,9 @@ class MappedTracks:
         ``time`` (appearance time [s]: initialFrame / frameRate), ``speed`` (first speed [m/s]),
         ``min_speed``, ``stopped`` (speed below ``STOP_SPEED`` in some frame), ``t_centre`` (time
         of the frame closest to the centre [s]), ``t_last`` (last frame [s]), ``min_distance``
-        (closest approach to the centre [m]), ``t_entry`` (when it entered the intersection
+        (closest approach to the centre [m]), ``hard_brakes`` (hard-braking events over the track) and
+        ``energy_to_centre_j`` (traction energy from the first frame to the one closest to the centre [J]:
+        :func:`track_motion`), ``t_entry`` (when it entered the intersection
         area [s], NaN without arrival timing), ``spawn_time`` (when it appears in simulation [s]:
         timed by the arrival timing, else ``time``), ``entry_arm``,
         ``exit_arm``, ``turn_deg`` (signed turn angle, left positive), ``maneuver``,
@@ -282,6 +285,28 @@ def track_summary(tracks: pd.DataFrame) -> pd.DataFrame:
             "last_frame": last["frame"],
         }
     )
+
+
+def track_motion(tracks: pd.DataFrame, frame_rate: float) -> tuple[np.ndarray, np.ndarray]:
+    """What each recorded vehicle's motion costs, frame by frame, with the simulation's measures
+    (:mod:`envs.simulation.motion`): between two frames of a track the speed changes linearly.
+
+    :param tracks: per-frame rows of one recording (``trackId``, ``frame``, ``speed``), sorted by track and frame
+    :param frame_rate: the recording's frames per second
+    :return: ``(m,)`` bool: a hard-braking event begins between the previous frame and this one, and
+        ``(m,)`` the traction energy from the track's first frame to this one [J]
+    """
+    track = tracks["trackId"].to_numpy()
+    speed = tracks["speed"].to_numpy(float)
+    frame = tracks["frame"].to_numpy(float)
+    same = np.zeros(len(track), bool)
+    same[1:] = (track[1:] == track[:-1]) & (frame[1:] > frame[:-1])
+    before = np.concatenate([speed[:1], speed[:-1]])  # the previous frame's speed
+    dt = np.where(same, np.diff(frame, prepend=frame[:1]) / frame_rate, 1.0)
+    group = np.cumsum(~same)  # one group per track (and per gap in its frames)
+    starts = event_starts(same & hard_braking((speed - before) / dt), group)
+    energy = np.where(same, traction_energy(before, speed, dt), 0.0)
+    return starts, pd.Series(energy).groupby(group).cumsum().to_numpy()
 
 
 def estimate_centre(points: np.ndarray, directions: np.ndarray, iterations: int = 5) -> np.ndarray:
@@ -510,6 +535,8 @@ def map_recordings(
         x, y = r.tracks["xCenter"].to_numpy(), r.tracks["yCenter"].to_numpy()
         dist = pd.Series(np.hypot(x - centre[0], y - centre[1]))
         closest = dist.groupby(r.tracks["trackId"].to_numpy()).idxmin().to_numpy()
+        starts, energy = track_motion(r.tracks, r.frame_rate)
+        brakes = pd.Series(starts).groupby(r.tracks["trackId"].to_numpy()).sum()
         passages.append(
             pd.DataFrame(
                 {
@@ -517,6 +544,8 @@ def map_recordings(
                     "track_id": r.tracks["trackId"].to_numpy()[closest],
                     "centre_frame": r.tracks["frame"].to_numpy()[closest],
                     "min_distance": dist.to_numpy()[closest],
+                    "hard_brakes": brakes.reindex(r.tracks["trackId"].to_numpy()[closest]).to_numpy(float),
+                    "energy_to_centre_j": energy[closest],
                 }
             )
         )
@@ -645,6 +674,8 @@ def map_recordings(
         "t_centre",
         "t_last",
         "min_distance",
+        "hard_brakes",
+        "energy_to_centre_j",
         "t_entry",
         "spawn_time",
         "entry_arm",

@@ -48,6 +48,10 @@ class StepEvents:
     :param collisions: ``(k, 2)`` id pairs whose bodies overlapped after any sub-step
     :param kept: ``(n,)`` bool over the rows before the step: the vehicle is still in the scene
     :param governed: ids whose speed the governor lowered below what the planner commanded
+    :param moved: ``(n,)`` ids of the rows before the step (removed vehicles included): the columns of ``speeds``
+    :param speeds: ``(S + 1, n)`` executed speeds at the sub-step boundaries (row 0: the step's start) [m/s],
+        after the acceleration bounds and the governor: the motion the metrics measure
+        (:mod:`envs.simulation.motion`)
     """
 
     stopped: np.ndarray = field(default_factory=lambda: np.zeros(0, _INT))
@@ -56,6 +60,8 @@ class StepEvents:
     collisions: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), _INT))
     kept: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
     governed: np.ndarray = field(default_factory=lambda: np.zeros(0, _INT))
+    moved: np.ndarray = field(default_factory=lambda: np.zeros(0, _INT))
+    speeds: np.ndarray = field(default_factory=lambda: np.zeros((1, 0)))
 
 
 class Simulation:
@@ -255,6 +261,8 @@ class Simulation:
             crossed=self.vehicle_id[crossed],
             collisions=self.vehicle_id[collisions] if collisions.size else collisions,
             governed=self.vehicle_id[governed],
+            moved=self.vehicle_id,
+            speeds=speed,
         )
         done = self.arc >= self.layout.length[self.route]
         if remove_collided and collisions.size:

@@ -408,6 +408,9 @@ class CoopIntersectionEnv(AbstractEnv):
             waiting=int(self.traffic.waiting),
             reward_terms=terms,
             reward_weighted=weighted(terms, self.config["reward_weights"]),
+            moved=events.moved,
+            speeds=events.speeds,
+            substep=1.0 / sim.simulation_frequency,
         )
         info = record.info()
         # For users only (the metrics read these facts from the scenes): the new vehicles are the last rows.

@@ -30,6 +30,9 @@ For gymnasium users the record also travels in the step ``info``, which keeps it
 - ``"vertex_origin"``: for each vertex of the new observation, its slot in the previous one (``-1``
   for a vehicle that entered), so that per-vertex state such as correlated exploration noise
   follows its vehicle (``sb3_graph.callbacks.VertexNoiseCallback``); set by ``step`` only.
+- ``"record"`` alone carries the step's executed motion (``moved``, ``speeds``, ``substep``: the
+  speeds of every vehicle at the simulation sub-steps, after the governor and the shield), which the
+  metrics read for slow vehicles, hard braking and energy (:mod:`envs.simulation.motion`).
 - With ``shield=True``: ``"shield_overridden"``, ``"shield_intervention_rate"`` and
   ``"executed_action"`` (:class:`envs.simulation.env.CoopIntersectionEnv`).
 """
@@ -43,7 +46,7 @@ from typing import Any
 
 import numpy as np
 
-_ID_FIELDS = ("entered", "crossed", "removed", "stopped", "governed")
+_ID_FIELDS = ("entered", "crossed", "removed", "stopped", "governed", "moved")
 
 
 def _no_ids() -> np.ndarray:
@@ -65,6 +68,12 @@ class StepRecord:
     :param waiting: scenario appearances due but not yet placed (their spawn position is not free)
     :param reward_terms: ``term -> unweighted value``
     :param reward_weighted: the same terms times their weights
+    :param moved: ids of the vehicles that the step moved (those in the scene at its start, removed ones
+        included): the columns of ``speeds``
+    :param speeds: ``(S + 1, len(moved))`` their executed speeds at the simulation sub-steps, row 0 the
+        step's start [m/s] (after the acceleration bounds, the shield and the governor); no rows when the
+        record carries no motion (``reset``, hand-built records)
+    :param substep: seconds between two rows of ``speeds``
     """
 
     time: float = 0.0
@@ -78,12 +87,23 @@ class StepRecord:
     waiting: int = 0
     reward_terms: Mapping[str, float] = field(default_factory=dict)
     reward_weighted: Mapping[str, float] = field(default_factory=dict)
+    moved: np.ndarray = field(default_factory=_no_ids)
+    speeds: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    substep: float = 0.0
 
     def __post_init__(self) -> None:
         # Hand-built records may pass lists; the simulation's arrays pass through without a copy.
         for name in _ID_FIELDS:
             object.__setattr__(self, name, np.asarray(getattr(self, name), np.int64).reshape(-1))
         object.__setattr__(self, "collisions", np.asarray(self.collisions, np.int64).reshape(-1, 2))
+        speeds = np.asarray(self.speeds, float)
+        speeds = speeds.reshape(-1, self.moved.size) if speeds.size else np.zeros((0, self.moved.size))
+        object.__setattr__(self, "speeds", speeds)
+
+    @property
+    def has_motion(self) -> bool:
+        """Whether the record carries the executed sub-step speeds of its vehicles (at least one sample)."""
+        return self.speeds.shape[0] >= 2 and self.substep > 0
 
     def __eq__(self, other: object) -> bool:
         """Field by field, arrays by value (two runs of one seeded step give equal records)."""
