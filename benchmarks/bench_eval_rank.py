@@ -2,7 +2,7 @@
 
 A trial of ``sb3-graph tune`` is scored by ``envs.evaluation.tuning.evaluate_model``: a few short validation
 scenarios (``--episodes``, default 6, 40 s each, seed ``--eval-seed`` 500) on the reduced "tuning"
-preset. The results in the README come from ``sb3-graph evaluate``: 100 s scenarios of the full
+preset. The results in docs/results.md come from ``sb3-graph evaluate``: 100 s scenarios of the full
 environment, every scheduled vehicle counted. This script scores the same trained models both ways
 and prints Spearman's rho and Kendall's tau between the two rankings of the flow rate:
 

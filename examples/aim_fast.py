@@ -1,7 +1,7 @@
 """AIM with full-throttle acceleration, a shorter headway and no zone buffer, to run behind the shield.
 
 A candidate for a planner with full throttle's flow and AIM's stops (issue #22), tried and dropped:
-behind the shield it moves no more than AIM (README, "Training behind the shield"). The command::
+behind the shield it moves no more than AIM (docs/training.md, "What training has tried"). The command::
 
     sb3-graph evaluate --planner examples/aim_fast.py:AIMFast+shield \\
         --planner envs/planners/adversarial.py:FullThrottle+shield --planner aim \\

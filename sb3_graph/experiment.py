@@ -40,7 +40,7 @@ UNSUPPORTED_KEYS = {"normalize", "frame_stack", "env_wrapper", "vec_env_wrapper"
 PATH_KEYS = {"tensorboard_log"}
 # Largest experiment file read (an entry is a few hundred bytes).
 MAX_FILE_BYTES = 1 << 20
-# Bounds of the counts of an entry (README, "Files from others"): beyond them a run cannot fit in
+# Bounds of the counts of an entry (docs/security.md): beyond them a run cannot fit in
 # memory or end, so they are refused before anything is built.
 MAX_TIMESTEPS = 10**9
 MAX_ENVS = 256

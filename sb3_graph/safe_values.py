@@ -36,7 +36,7 @@ ALLOWED_PACKAGES: tuple[str, ...] = ("sb3_graph", "stable_baselines3", "sb3_cont
 ALIASES: dict[str, str] = {"nn": "torch.nn", "th": "torch", "torch": "torch"}
 # Longest string accepted (a policy_kwargs expression is a line or two).
 MAX_LENGTH = 10_000
-# Limits on a document read from a file that someone else made (README, "Files from others").
+# Limits on a document read from a file that someone else made (docs/security.md).
 #: deepest nesting of lists and mappings (experiment entries and metadata need fewer than 10)
 MAX_DEPTH = 64
 #: most values in one document, counting each use of a YAML alias as a copy ("billion laughs")

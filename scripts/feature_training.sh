@@ -4,7 +4,7 @@
 # zoo_configs/td3_residual_features.yml, 3 training seeds from scratch, then evaluated behind the
 # shield on the main job's scenarios beside the residual policies without them, AIM and
 # always-full-throttle + shield.
-#   bash scripts/feature_training.sh STEPS SCENARIOS   (the README's run: 50000 10)
+#   bash scripts/feature_training.sh STEPS SCENARIOS   (the run in docs/training.md: 50000 10)
 # The trainings run in parallel, one torch thread each; a killed one is exported from its latest checkpoint.
 set -euo pipefail
 steps=${1:-50000}

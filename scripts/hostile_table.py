@@ -1,4 +1,4 @@
-"""The hostile-planner table of the README ("The safety shield"): every attack of
+"""The hostile-planner table of docs/shield.md ("Measured"): every attack of
 :mod:`envs.planners.hostile` behind the shield, on every layout, with the evaluation harness.
 
 Per layout and planner: runs, collided vehicles, stuck runs (the watchdog: no crossing for

@@ -4,7 +4,7 @@
 # charged 10 s of delay instead of 2 s (reward_weights.stop 1.0), each vertex's exploration noise kept
 # with its vehicle (VertexNoiseCallback), and the actor held for the first WARMUP steps while the
 # critics learn the new reward. Then exported and evaluated behind the shield over demand.
-#   bash scripts/stop_training.sh STEPS SCENARIOS SEED...   (the README's run: 30000 10 0 1)
+#   bash scripts/stop_training.sh STEPS SCENARIOS SEED...   (the run in docs/training.md: 30000 10 0 1)
 set -euo pipefail
 steps=${1:-30000}
 scenarios=${2:-10}

@@ -2,10 +2,10 @@
 # Issue #23 item 4: the default task weights against the study's best (examples/weight_study/shield_fine),
 # trained the same way with 3 training seeds each, then evaluated behind the shield on held-out scenarios.
 # Both fine-tune the shipped planner behind the shield for STEPS steps (the protocol of the study's trials
-# and of the README's one-seed preview); the checkpoint kept is the best on train's own validation
+# and of the one-seed preview); the checkpoint kept is the best on train's own validation
 # (another seed). The six planners are exported as weights-only files into examples/weight_study/seeds/.
 #
-#   bash scripts/weight_seeds.sh [STEPS] [SCENARIOS]     (the README's run: 30000 20)
+#   bash scripts/weight_seeds.sh [STEPS] [SCENARIOS]     (the run in docs/tuning.md: 30000 20)
 #
 # Two trainings run at once, one torch thread each. Existing run folders and reports are refused,
 # never overwritten (sb3-graph's own checks); RUNS and REPORTS move them elsewhere.

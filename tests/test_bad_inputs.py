@@ -162,7 +162,7 @@ def _scenario(folder: Path, name: str, **changes) -> Path:
 
 
 def _hostile_inputs(f: Path, small, texts: dict[str, str]) -> dict[str, Path]:
-    """Inputs of the second hostile-input round (README, "Files from others")."""
+    """Inputs of the second hostile-input round (docs/security.md)."""
     from safetensors.torch import save_file
 
     from sb3_graph.weights import METADATA_KEY, describe_policy

@@ -8,7 +8,7 @@ passes per policy step on average, about 15 per pass. On the loaded 2-core devel
 NumPy call costs 1.4-2.4 us whatever the size of these arrays, so the calls alone made about as
 much as the simulation's whole step (0.6-0.8 ms); removing NumPy calls (windows only for the zones
 a vehicle still has to pass, the three IDM uses in one call) took AIM from 1.42 to 1.24 ms per
-step only, 2.2x to 1.7x the simulation's (benchmarks/README.md, "AIM's step, compiled").
+step only, 2.2x to 1.7x the simulation's (docs/speed.md, "Planners").
 
 Every function here is the scalar form of a NumPy one, with the same floating-point operations in
 the same order (no ``fastmath``, so no reassociation or fused multiply-add; ``np.maximum`` and

@@ -7,7 +7,7 @@ look-ups) and one fallback evaluation, about 100 NumPy calls on arrays of 10-30 
 period about 250 us in all; for the shield to cost no more than the simulation's step (0.6-0.8 ms
 per policy step, with 13-60 predicted periods per step), a period may cost about 15 us. That is the
 per-call overhead of some 20 NumPy calls, less than ``integrate`` alone makes, so no vectorization
-gets there (benchmarks/README.md, "The shield compiled (numba)").
+gets there (docs/speed.md, "Planners").
 
 These kernels are the only implementation of the shield's prediction, fallback and check.
 ``tests/shield_reference.py`` holds the same rules in NumPy, with :func:`envs.simulation.engine.integrate`

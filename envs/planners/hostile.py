@@ -1,4 +1,4 @@
-"""Hostile planners: the attacks on the safety shield and on the harness that its table in the README runs.
+"""Hostile planners: the attacks on the safety shield and on the harness that its table in docs/shield.md runs.
 
 Each one tries a way to break the evaluation from the only place a planner sits: the scene it is
 handed and the array it returns. Run them by class name behind the shield, e.g.

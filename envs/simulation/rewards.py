@@ -5,7 +5,7 @@ Every step computes every term (``info["reward_terms"]``); the weights choose th
 ``reward_weights`` changes some of them.
 
 **The task preset** (``reward: task``, the default). The paper's reward ranks planners opposite to
-flow and delay (README, "The reward check"): its velocity term is a mean over the vehicles in the
+flow and delay (docs/training.md, "The reward check"): its velocity term is a mean over the vehicles in the
 scene, so a vehicle held out at the spawn point costs nothing and a crossing earns nothing, and
 its proximity and action terms punish the dense platoons that the shield makes safe. The task
 terms are sums over vehicles in the units of the task metrics:

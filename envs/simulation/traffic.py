@@ -30,7 +30,7 @@ from envs.simulation.layouts import LAYOUT_NAMES, Layout, build_layout
 SCENARIO_FORMAT = "sb3-graph-scenario"
 SCENARIO_VERSION = 1
 VEHICLE_FIELDS = ("id", "time", "route", "speed", "length", "width")
-# Bounds of a scenario file (README, "Files from others"): a file from someone else cannot ask for
+# Bounds of a scenario file (docs/security.md): a file from someone else cannot ask for
 # a run that never ends, a vehicle larger than a lane, or more memory than a machine has.
 MAX_DURATION = 86_400.0  # one simulated day [s]
 MAX_VEHICLES = 100_000
