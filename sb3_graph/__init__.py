@@ -4,7 +4,7 @@ Stable-Baselines3 and sb3-contrib algorithms (TD3, DDPG, SAC, TQC, CrossQ, PPO, 
 from sb3_graph.a2c import A2C
 from sb3_graph.batching import GraphBatch, batch_to_padded, padded_to_batch
 from sb3_graph.buffers import GraphReplayBuffer, GraphRolloutBuffer
-from sb3_graph.cloning import behaviour_clone
+from sb3_graph.cloning import Demonstrations, behaviour_clone
 from sb3_graph.crossq import CrossQ, GraphCrossQCritic, GraphCrossQPolicy
 from sb3_graph.ddpg import DDPG
 from sb3_graph.layers import RelationalMaxConv
@@ -53,5 +53,6 @@ __all__ = [
     "__version__",
     "batch_to_padded",
     "behaviour_clone",
+    "Demonstrations",
     "padded_to_batch",
 ]
