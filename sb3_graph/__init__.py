@@ -24,6 +24,7 @@ _LAZY = {
     "GraphReplayBuffer": "sb3_graph.buffers",
     "GraphRolloutBuffer": "sb3_graph.buffers",
     "behaviour_clone": "sb3_graph.cloning",
+    "Demonstrations": "sb3_graph.cloning",
     "CrossQ": "sb3_graph.crossq",
     "GraphCrossQCritic": "sb3_graph.crossq",
     "GraphCrossQPolicy": "sb3_graph.crossq",
@@ -51,7 +52,7 @@ if TYPE_CHECKING:  # what type checkers and IDEs see: the eager imports of befor
     from sb3_graph.a2c import A2C
     from sb3_graph.batching import GraphBatch, batch_to_padded, padded_to_batch
     from sb3_graph.buffers import GraphReplayBuffer, GraphRolloutBuffer
-    from sb3_graph.cloning import behaviour_clone
+    from sb3_graph.cloning import Demonstrations, behaviour_clone
     from sb3_graph.crossq import CrossQ, GraphCrossQCritic, GraphCrossQPolicy
     from sb3_graph.ddpg import DDPG
     from sb3_graph.layers import RelationalMaxConv
@@ -114,5 +115,6 @@ __all__ = [
     "__version__",
     "batch_to_padded",
     "behaviour_clone",
+    "Demonstrations",
     "padded_to_batch",
 ]

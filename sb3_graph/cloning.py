@@ -36,6 +36,8 @@ def behaviour_clone(
     critic_steps: int | None = None,
     learning_rate: float | None = None,
     log_interval: int = 100,
+    demonstrations: Demonstrations | None = None,
+    record: bool = False,
 ) -> dict[str, Any]:
     """Clone an expert into ``model``'s actor (and, off-policy, warm up its critics on the demonstrations).
 
@@ -73,16 +75,26 @@ def behaviour_clone(
     :param critic_steps: critic warm-up gradient steps (off-policy; default ``gradient_steps // 4``)
     :param learning_rate: the actor's learning rate while cloning (default: the model's current one)
     :param log_interval: gradient steps between two dumps of the model's logger (if it has one)
+    :param demonstrations: transitions recorded by an earlier call (``record=True``) on the same
+        environments (same ``n_envs`` and spaces): they are replayed into the dataset instead of
+        collecting (``transitions`` and ``beta`` are then unused, ``rounds`` must be 1, the expert is
+        never asked; an on-policy model still gets it as ``bc_expert``)
+    :param record: also return the collected transitions as ``result["demonstrations"]``
+        (a :class:`Demonstrations`, e.g. to clone into other models without collecting again)
     :return: ``actor_loss`` and ``critic_loss`` (one value per gradient step), ``transitions``
         collected, ``expert_share`` (the share of sub-environment steps acted by the expert),
         ``collect_s``, ``train_s`` and ``critic_s`` (wall time of collecting, of the actor's steps and of
-        the critics' warm-up)
+        the critics' warm-up), and with ``record`` the ``demonstrations``
     :raises ValueError: a bad argument, naming it, or an expert answer of the wrong shape
     """
     _check_arguments(model, transitions, gradient_steps, batch_size, rounds, critic_steps)
     env = model.get_env()
+    if demonstrations is not None:
+        _check_demonstrations(demonstrations, env, rounds)
+        transitions = demonstrations.transitions
     on_policy = getattr(model, "replay_buffer", None) is None
     dataset = _dataset(model, transitions, env.num_envs, on_policy)
+    recorder = Demonstrations() if record and demonstrations is None else demonstrations
     optimizer = model.actor_optimizer()
     if learning_rate is not None:
         for group in optimizer.param_groups:
@@ -91,7 +103,7 @@ def behaviour_clone(
     result: dict[str, Any] = {
         "actor_loss": [], "critic_loss": [], "transitions": 0, "collect_s": 0.0, "train_s": 0.0, "critic_s": 0.0
     }
-    expert_steps, obs = 0, env.reset()
+    expert_steps, obs = 0, (env.reset() if demonstrations is None else None)
     per_round = [_share(transitions, rounds, k) for k in range(rounds)]
     steps_per_round = [_share(gradient_steps, rounds, k) for k in range(rounds)]
     for k in range(rounds):
@@ -99,9 +111,15 @@ def behaviour_clone(
         if not 0.0 <= probability <= 1.0:
             raise ValueError(f"behaviour_clone: beta must lie in [0, 1], got {probability} in round {k}")
         start = time.perf_counter()
-        obs, acted = _collect(model, expert, dataset, obs, math.ceil(per_round[k] / env.num_envs), probability)
-        expert_steps += acted
-        result["transitions"] += math.ceil(per_round[k] / env.num_envs) * env.num_envs
+        if demonstrations is None:
+            steps = math.ceil(per_round[k] / env.num_envs)
+            obs, acted = _collect(model, expert, dataset, obs, steps, probability, recorder)
+            expert_steps += acted
+            result["transitions"] += steps * env.num_envs
+        else:
+            demonstrations.replay(dataset, model.policy)
+            expert_steps += demonstrations.expert_steps
+            result["transitions"] += demonstrations.transitions
         result["collect_s"] += time.perf_counter() - start
         start = time.perf_counter()
         losses = _fit_actor(model, dataset, optimizer, steps_per_round[k], batch_size, logger, log_interval)
@@ -119,6 +137,8 @@ def behaviour_clone(
         steps = gradient_steps // 4 if critic_steps is None else critic_steps
         result["critic_loss"] = _warm_up_critics(model, optimizer, steps, batch_size, logger, log_interval)
     result["critic_s"] = time.perf_counter() - start
+    if record:
+        result["demonstrations"] = recorder
     logger.record("pretrain/transitions", result["transitions"])
     logger.record("pretrain/expert_share", result["expert_share"])
     logger.dump(len(result["actor_loss"]) + len(result["critic_loss"]))
@@ -144,6 +164,19 @@ def _check_arguments(
         raise ValueError("behaviour_clone: the model has no environment (model.set_env(env) first)")
     if transitions < rounds:
         raise ValueError(f"behaviour_clone: transitions ({transitions}) must be at least rounds ({rounds})")
+
+
+def _check_demonstrations(demonstrations: Demonstrations, env: Any, rounds: int) -> None:
+    if not isinstance(demonstrations, Demonstrations) or demonstrations.steps == 0:
+        raise ValueError("behaviour_clone: demonstrations must be a non-empty Demonstrations (record=True)")
+    if rounds != 1:
+        raise ValueError(f"behaviour_clone: replayed demonstrations take rounds=1 (DAgger collects), got {rounds}")
+    n_envs, max_nodes = demonstrations.actions.shape[1:]
+    if n_envs != env.num_envs or max_nodes != int(np.prod(env.action_space.shape)):
+        raise ValueError(
+            f"behaviour_clone: demonstrations of {n_envs} environments x {max_nodes} vertices do not fit this "
+            f"model's {env.num_envs} x {int(np.prod(env.action_space.shape))}"
+        )
 
 
 def _share(total: int, parts: int, k: int) -> int:
@@ -180,7 +213,13 @@ def _logger(model: Any) -> Logger:
 
 
 def _collect(
-    model: Any, expert: Expert, buffer: GraphReplayBuffer, obs: dict, steps: int, probability: float
+    model: Any,
+    expert: Expert,
+    buffer: GraphReplayBuffer,
+    obs: dict,
+    steps: int,
+    probability: float,
+    recorder: Demonstrations | None = None,
 ) -> tuple[dict, int]:
     """Step the VecEnv ``steps`` times, store each transition with its expert label; return the last
     observation and the number of sub-environment steps acted by the expert."""
@@ -202,17 +241,146 @@ def _collect(
         for i, info in enumerate(infos):  # one per environment, as SB3's _store_transition
             if EXECUTED_ACTION in info:
                 stored[i] = np.asarray(info[EXECUTED_ACTION], dtype=np.float32).reshape(max_nodes)
+        rewards = _original_rewards(model, rewards)
         buffer.add(
             obs,
             _next_observations(new_obs, dones, infos),
             expert_targets(policy, stored),
-            _original_rewards(model, rewards),
+            rewards,
             dones,
             infos,
             expert_action=expert_targets(policy, labels),
         )
+        if recorder is not None:
+            recorder.append(obs, new_obs, stored, labels, rewards, dones, infos, use_expert)
         obs = new_obs
     return obs, acted
+
+
+class Demonstrations:
+    """Transitions collected by :func:`behaviour_clone` (``record=True``), to replay into other models.
+
+    Kept as VecEnv steps: the observations ``obs[t]`` (``steps + 1`` of them: step ``t`` goes from
+    ``obs[t]`` to ``obs[t + 1]``, except where an episode ended, whose terminal observation is kept
+    apart), the executed and the expert's actions in the action space's units (so that any algorithm's
+    policy can take them), the original rewards, the dones and the time-limit truncations.
+    :meth:`save` and :meth:`load` write and read one ``.npz`` file (arrays only, nothing unpickled).
+    """
+
+    ARRAYS = ("actions", "labels", "rewards", "dones", "truncated", "by_expert", "terminal_index")
+
+    def __init__(self) -> None:
+        self._obs: list[dict[str, np.ndarray]] = []
+        self._rows: dict[str, list[np.ndarray]] = {name: [] for name in self.ARRAYS if name != "terminal_index"}
+        self._terminal: list[tuple[int, int, dict[str, np.ndarray]]] = []
+        self._frozen: dict[str, np.ndarray] | None = None
+
+    def append(
+        self,
+        obs: dict[str, np.ndarray],
+        new_obs: dict[str, np.ndarray],
+        actions: np.ndarray,
+        labels: np.ndarray,
+        rewards: np.ndarray,
+        dones: np.ndarray,
+        infos: list[dict[str, Any]],
+        by_expert: np.ndarray,
+    ) -> None:
+        """Record one VecEnv step (``obs`` must be the ``new_obs`` of the previous one, if any)."""
+        if self._frozen is not None:
+            raise ValueError("Demonstrations: loaded demonstrations are read-only")
+        if not self._obs:
+            self._obs.append({key: np.array(value, copy=True) for key, value in obs.items()})
+        self._obs.append({key: np.array(value, copy=True) for key, value in new_obs.items()})
+        step = len(self._obs) - 2
+        for name, value in (("actions", actions), ("labels", labels), ("rewards", rewards), ("dones", dones),
+                            ("by_expert", by_expert)):  # fmt: skip
+            self._rows[name].append(np.array(value, dtype=np.float32 if name != "by_expert" else bool, copy=True))
+        self._rows["truncated"].append(np.array([bool(info.get("TimeLimit.truncated", False)) for info in infos]))
+        for i, info in enumerate(infos):
+            terminal = info.get("terminal_observation")
+            if dones[i] and terminal is not None:
+                self._terminal.append((step, i, {key: np.asarray(terminal[key]) for key in new_obs}))
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """Everything as named arrays (``obs/KEY``, ``terminal/KEY`` and :attr:`ARRAYS`)."""
+        if self._frozen is not None:
+            return self._frozen
+        if not self._obs:
+            raise ValueError("Demonstrations: nothing recorded")
+        out = {f"obs/{key}": np.stack([o[key] for o in self._obs]) for key in self._obs[0]}
+        out.update({name: np.stack(rows) for name, rows in self._rows.items()})
+        out["terminal_index"] = np.array([(t, i) for t, i, _ in self._terminal], dtype=np.int64).reshape(-1, 2)
+        for key in self._obs[0]:
+            shape = self._obs[0][key].shape[1:]
+            rows = [obs[key] for _, _, obs in self._terminal]
+            out[f"terminal/{key}"] = np.stack(rows) if rows else np.zeros((0, *shape), self._obs[0][key].dtype)
+        return out
+
+    @property
+    def steps(self) -> int:
+        """VecEnv steps held."""
+        return int(self.arrays()["actions"].shape[0]) if (self._obs or self._frozen is not None) else 0
+
+    @property
+    def actions(self) -> np.ndarray:
+        """``(steps, n_envs, max_nodes)`` executed actions."""
+        return self.arrays()["actions"]
+
+    @property
+    def transitions(self) -> int:
+        """Sub-environment steps held."""
+        return int(np.prod(self.actions.shape[:2]))
+
+    @property
+    def expert_steps(self) -> int:
+        """Sub-environment steps that the expert acted."""
+        return int(self.arrays()["by_expert"].sum())
+
+    def replay(self, buffer: GraphReplayBuffer, policy: Any) -> None:
+        """Add every transition to ``buffer`` with its expert label, in ``policy``'s buffer units."""
+        data = self.arrays()
+        keys = [name[len("obs/"):] for name in data if name.startswith("obs/")]
+        terminal = {(int(t), int(i)): k for k, (t, i) in enumerate(data["terminal_index"])}
+        for t in range(self.steps):  # one buffer.add per VecEnv step, as when collecting
+            obs = {key: data[f"obs/{key}"][t] for key in keys}
+            next_obs = {key: np.array(data[f"obs/{key}"][t + 1], copy=True) for key in keys}
+            for i in np.flatnonzero(data["dones"][t]):
+                if (t, int(i)) in terminal:
+                    for key in keys:
+                        next_obs[key][i] = data[f"terminal/{key}"][terminal[t, int(i)]]
+            infos = [{"TimeLimit.truncated": bool(flag)} for flag in data["truncated"][t]]
+            buffer.add(
+                obs,
+                next_obs,
+                expert_targets(policy, data["actions"][t]),
+                data["rewards"][t],
+                data["dones"][t],
+                infos,
+                expert_action=expert_targets(policy, data["labels"][t]),
+            )
+
+    def save(self, file: Any) -> None:
+        """Write the arrays to ``file`` (a path or a binary file object) as a compressed ``.npz``."""
+        np.savez_compressed(file, **self.arrays())
+
+    @classmethod
+    def load(cls, file: Any) -> Demonstrations:
+        """Read demonstrations written by :meth:`save` (no pickle).
+
+        :raises ValueError: not such a file
+        """
+        try:
+            with np.load(file, allow_pickle=False) as npz:
+                data = {name: npz[name] for name in npz.files}
+        except (OSError, ValueError, KeyError) as error:
+            raise ValueError(f"Demonstrations.load: not a demonstrations file: {error}") from None
+        missing = [name for name in cls.ARRAYS if name not in data]
+        if missing or not any(name.startswith("obs/") for name in data):
+            raise ValueError(f"Demonstrations.load: not a demonstrations file (missing {missing or 'obs/'})")
+        new = cls()
+        new._frozen = data
+        return new
 
 
 def _next_observations(new_obs: dict, dones: np.ndarray, infos: list[dict]) -> dict:

@@ -271,3 +271,51 @@ def test_experiment_keys_of_cloning():
     for key, bad in (("pretrain_steps", -1), ("pretrain_transitions", 0), ("bc_coef", "fast"), ("pretrain_from", "")):
         with pytest.raises(ExperimentError, match=key):
             check_entry({"n_timesteps": 10, key: bad})
+
+
+def _fields(samples):
+    out = {}
+    for name, value in samples._asdict().items():
+        if isinstance(value, dict):
+            out.update({f"{name}.{k}": v for k, v in value.items()})
+        elif isinstance(value, torch.Tensor):
+            out[name] = value
+    return out
+
+
+def test_recorded_demonstrations_replay_into_another_model_as_collected():
+    import io
+
+    def refuse(obs):
+        raise AssertionError("a replay must not ask the expert")
+
+    env = make_vec_env(MaxNeighbourEnv, n_envs=2, seed=0)
+    first = learner("TD3", env=env)
+    result = sb3_graph.behaviour_clone(first, max_neighbour_expert, transitions=60, gradient_steps=2, batch_size=8,
+                                       critic_steps=0, record=True)  # fmt: skip
+    demos = result["demonstrations"]
+    assert demos.transitions == 60 and demos.expert_steps == 60 and demos.arrays()["dones"].any()
+    file = io.BytesIO()
+    demos.save(file)
+    file.seek(0)
+    loaded = sb3_graph.Demonstrations.load(file)
+    second = learner("TD3", env=make_vec_env(MaxNeighbourEnv, n_envs=2, seed=5))
+    again = sb3_graph.behaviour_clone(second, refuse, transitions=1, gradient_steps=2, batch_size=8, critic_steps=0,
+                                      demonstrations=loaded)  # fmt: skip
+    assert again["transitions"] == 60 and again["expert_share"] == 1.0
+    a, b = first.replay_buffer, second.replay_buffer
+    assert a.pos == b.pos == 30 and b.num_expert_transitions == 60
+    np.testing.assert_array_equal(a.rewards, b.rewards)
+    np.testing.assert_array_equal(a.dones, b.dones)
+    np.random.seed(3)  # noqa: NPY002 (SB3 buffers sample with the legacy global generator)
+    one = _fields(a.sample_expert(16))
+    np.random.seed(3)  # noqa: NPY002 (SB3 buffers sample with the legacy global generator)
+    two = _fields(b.sample_expert(16))
+    assert one.keys() == two.keys()
+    for name in one:
+        torch.testing.assert_close(one[name], two[name], rtol=0, atol=0, msg=name)
+    with pytest.raises(ValueError, match="do not fit"):
+        sb3_graph.behaviour_clone(learner("TD3", env=make_vec_env(MaxNeighbourEnv, n_envs=1, seed=0)), refuse,
+                                  transitions=1, gradient_steps=0, demonstrations=loaded)  # fmt: skip
+    with pytest.raises(ValueError, match="not a demonstrations file"):
+        sb3_graph.Demonstrations.load(io.BytesIO(b"nonsense"))

@@ -1,6 +1,7 @@
 """Planners as experts for behaviour cloning (envs.planners.expert) and `sb3-graph train --pretrain-from`."""
 
 import json
+import re
 from pathlib import Path
 
 import gymnasium as gym
@@ -83,3 +84,32 @@ def test_train_pretrain_from_an_unknown_planner_is_one_line(tmp_path, capsys):
     assert status != 0
     assert "pretrain_from" in capsys.readouterr().err
     assert not (tmp_path / "r").exists()
+
+
+PRIORITY = {"action": {"type": "priority"}}
+
+
+def test_glide_expert_with_priority_scores_is_zero_and_drives_as_glide():
+    venv, base = one_vehicle_env(**PRIORITY)
+    reference, reference_base = one_vehicle_env()  # acceleration actions, glide's own command
+    expert, glide = PlannerExpert("glide", venv), PlannerExpert("glide", reference)
+    for _ in range(3):
+        scores = expert(None)
+        assert scores.shape == (1, base.action_space.shape[0]) and not scores.any()
+        venv.step(scores)
+        reference.step(glide(None))
+    mine, theirs = base.scene(), reference_base.scene()
+    assert mine.num_vehicles == theirs.num_vehicles == 1
+    np.testing.assert_array_equal(mine.speed, theirs.speed)
+    np.testing.assert_array_equal(mine.arc, theirs.arc)
+
+
+def test_other_planners_are_refused_with_priority_scores_in_one_line():
+    venv, _ = one_vehicle_env(**PRIORITY)
+    for spec in ("aim", "fifo", "glide+shield"):  # glide+shield: only where the env shields
+        message = re.escape(f"planner '{spec}' has no exact label for action type 'priority'")
+        with pytest.raises(ValueError, match=message) as e:
+            PlannerExpert(spec, venv)
+        assert "\n" not in str(e.value)
+    shielded, _ = one_vehicle_env(shield=True, **PRIORITY)
+    assert not PlannerExpert("glide+shield", shielded)(None).any()

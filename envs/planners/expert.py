@@ -12,6 +12,12 @@ accelerations into the environment's action:
 - with the environment's ``shield``, the planner's own proposal: the environment shields whatever the
   policy proposes, so the policy learns to propose what the planner proposes (a word ending in
   ``+shield`` labels with the shielded command instead).
+
+With the environment's ``action`` type ``"priority"`` an action is a score per vehicle that shifts the
+arrival order of glide's scheduler, not an acceleration. ``glide`` is the one planner with an exact
+score: zero for every vehicle (the environment then drives exactly as ``glide``, shielded with
+``shield``; ``glide+shield`` is exact only with ``shield`` on). No score reproduces another planner's
+accelerations (they come from another order *and* other profiles), so any other planner is refused.
 """
 
 from __future__ import annotations
@@ -20,8 +26,11 @@ from typing import Any
 
 import numpy as np
 
-from envs.planners import make_planner
+from envs.planners import SHIELD_SUFFIX, check_planner_spec, make_planner
 from envs.planners.residual import make_residual_base
+
+#: The planner whose exact label, with the ``"priority"`` action type, is the zero score.
+PRIORITY_PLANNER = "glide"
 
 
 class PlannerExpert:
@@ -34,26 +43,33 @@ class PlannerExpert:
         ``"fullthrottle"``, a class spec ``file.py:Class``, a policy file...)
     :param vec_env: an SB3 VecEnv of intersection environments
     :param trust_files: passed to :func:`~envs.planners.make_planner`
+    :raises ValueError: with the ``"priority"`` action type, a planner other than ``glide`` (one line)
     """
 
     def __init__(self, spec: str, vec_env: Any, trust_files: bool = False) -> None:
         self.spec = spec
         self.vec_env = vec_env
         n_envs = vec_env.num_envs
-        self.planners = [make_planner(spec, trust_files=trust_files) for _ in range(n_envs)]
         configs = vec_env.get_attr("config")
+        self.max_nodes = int(vec_env.action_space.shape[0])
+        self.zero_scores = _priority_expert(spec, configs)
+        if self.zero_scores:  # glide's own order: nothing to ask a planner
+            return
+        self.planners = [make_planner(spec, trust_files=trust_files) for _ in range(n_envs)]
         self.max_acceleration = np.array([c["max_acceleration"] for c in configs], dtype=np.float64)
         self.residual_scale = np.array([c["residual_scale"] for c in configs], dtype=np.float64)
         self.bases = [make_residual_base(c["residual_base"]) for c in configs]
-        self.max_nodes = int(vec_env.action_space.shape[0])
         self._last_step = [-1] * n_envs
 
     def __call__(self, obs: dict[str, np.ndarray] | None = None) -> np.ndarray:
         """The planner's actions for the sub-environments' current scenes.
 
         :param obs: the VecEnv's observation (unused: the scenes are read from the environments)
-        :return: ``(n_envs, max_vehicles)`` float32 actions in ``[-1, 1]``, 0 in padded slots
+        :return: ``(n_envs, max_vehicles)`` float32 actions in ``[-1, 1]``, 0 in padded slots (with the
+            ``"priority"`` action type, glide's zero scores)
         """
+        if self.zero_scores:
+            return np.zeros((self.vec_env.num_envs, self.max_nodes), dtype=np.float32)
         scenes = self.vec_env.env_method("scene")
         steps = self.vec_env.get_attr("steps")
         actions = np.zeros((len(scenes), self.max_nodes), dtype=np.float32)
@@ -73,6 +89,24 @@ class PlannerExpert:
             return np.clip(acc / a_max, -1.0, 1.0)
         base = np.asarray(self.bases[i].act(scene), dtype=np.float64).reshape(scene.num_vehicles)
         return np.clip((acc - base) / (self.residual_scale[i] * a_max), -1.0, 1.0)
+
+
+def _priority_expert(spec: str, configs: list[dict[str, Any]]) -> bool:
+    """Whether the environments take priority scores (then ``spec`` must be glide's word), or a ValueError."""
+    types = {(c.get("action") or {}).get("type", "acceleration") for c in configs}
+    if "priority" not in types:
+        return False
+    key = check_planner_spec(spec)
+    shielded = key.endswith(SHIELD_SUFFIX)
+    base = key[: -len(SHIELD_SUFFIX)] if shielded else key
+    shield = all(c["shield"] for c in configs)
+    if len(types) > 1 or base != PRIORITY_PLANNER or (shielded and not shield):
+        exact = f"{PRIORITY_PLANNER!r}" + (f" or '{PRIORITY_PLANNER}{SHIELD_SUFFIX}'" if shield else "")
+        raise ValueError(
+            f"planner {spec!r} has no exact label for action type 'priority' (scores that shift glide's order): "
+            f"only {exact} can be cloned there (zero scores); use action type 'acceleration' to clone {spec!r}"
+        )
+    return True
 
 
 def make_expert(spec: str, vec_env: Any) -> PlannerExpert:

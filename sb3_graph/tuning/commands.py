@@ -157,6 +157,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-retry", type=int, default=0, help="retries of a trial whose worker died")
     parser.add_argument("--save-models", default=None, help="folder for each trial's final model")
     parser.add_argument(
+        "--pretrain-cache",
+        default=None,
+        metavar="DIR",
+        help="an entry with pretrain_from: folder where the study keeps its demonstrations and cloned models, "
+        "shared by its trials (default: <study-name>.pretrain next to the --storage file; studies/ otherwise)",
+    )
+    parser.add_argument(
         "--gym-packages",
         nargs="*",
         default=None,
@@ -308,6 +315,9 @@ def prepare(args: argparse.Namespace):
     if getattr(args, "init_weights", None):
         init_weights = Path(args.init_weights)
         init_hash = _check_init_weights(args, trial_entry, env_kwargs, init_weights)
+    pretrain_cache = None
+    if trial_entry.get("pretrain_from") is not None:
+        pretrain_cache = _check_pretrain(args, trial_entry, env_kwargs)
     study_entry = {**trial_entry, "env_kwargs": env_kwargs}
     settings = TrialSettings(
         env_id=args.env,
@@ -328,6 +338,7 @@ def prepare(args: argparse.Namespace):
         device=args.device,
         save_models=Path(args.save_models) if args.save_models else None,
         init_weights=init_weights,
+        pretrain_cache=pretrain_cache,
     )
     attrs = {
         "objective": objective.name,
@@ -427,6 +438,29 @@ def _check_init_weights(args: argparse.Namespace, entry: dict[str, Any], env_kwa
     finally:
         probe.close()
     return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def _check_pretrain(args: argparse.Namespace, entry: dict[str, Any], env_kwargs: dict[str, Any]) -> Path:
+    """The entry's ``pretrain_from`` names an expert of the env (checked once, not in every trial).
+
+    :return: the study's cloning cache folder
+    :raises UserError: no expert for the env, a spec that its factory refuses, a cache path that is a file
+    """
+    from stable_baselines3.common.env_util import make_vec_env
+
+    from sb3_graph.commands.train import _make_expert
+    from sb3_graph.tuning.pretrain import default_cache_folder
+
+    probe = make_vec_env(args.env, n_envs=1, seed=0, env_kwargs=env_kwargs)
+    try:
+        _make_expert(str(entry["pretrain_from"]), args.env, probe)
+    finally:
+        probe.close()
+    chosen = getattr(args, "pretrain_cache", None)
+    folder = Path(chosen) if chosen else default_cache_folder(storage_url(args), args.study_name)
+    if folder.exists() and not folder.is_dir():
+        raise UserError(f"--pretrain-cache: {str(folder)!r} is a file, not a folder")
+    return folder
 
 
 def _evaluation_steps(args: argparse.Namespace, timesteps: int) -> tuple[int, ...]:

@@ -97,6 +97,8 @@ class TrialSettings:
     :param save_models: folder for each trial's final model (``trial_<k>.zip``), or ``None``
     :param init_weights: a policy file (``.safetensors``, or an SB3 ``.zip`` read without unpickling)
         whose tensors every trial's policy starts from (fine-tuning), or ``None`` (from scratch)
+    :param pretrain_cache: folder of the study's cloning cache (an entry with ``pretrain_from``; see
+        :mod:`sb3_graph.tuning.pretrain`), or ``None``: each trial clones without a cache
     """
 
     env_id: str
@@ -117,6 +119,7 @@ class TrialSettings:
     device: str = "cpu"
     save_models: Path | None = None
     init_weights: Path | None = None
+    pretrain_cache: Path | None = None
 
 
 def sample_params(trial: optuna.Trial, settings: TrialSettings) -> dict[str, Any]:
@@ -239,6 +242,12 @@ def _run(trial: optuna.Trial, settings: TrialSettings) -> float | tuple[float, .
         model = algorithm(policy, train_env, seed=seed, device=settings.device, verbose=0, **algo_kwargs)
         if settings.init_weights is not None:
             load_init_weights(model, settings.init_weights)
+        if entry.get("pretrain_from") is not None:
+            from sb3_graph.tuning.pretrain import pretrain_trial
+
+            pretrained = pretrain_trial(model, entry, settings.env_id, train_env, settings.algo,
+                                        settings.pretrain_cache, settings.init_weights)  # fmt: skip
+            trial.set_user_attr("pretrain", pretrained)
         callbacks = build_callbacks(entry)
         monitor = None
         steps = settings.eval_steps

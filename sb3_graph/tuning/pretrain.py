@@ -1,0 +1,202 @@
+"""Behaviour cloning in a tuning study: clone once, reuse in every trial.
+
+An entry with ``pretrain_from`` clones its expert into each trial's model before ``learn`` (as
+``sb3-graph train --pretrain-from``). Collecting the demonstrations is the costly part (the expert and
+the environments: about 17 ms per transition on the intersection), so a study does it once and keeps
+two kinds of files in its cache folder (``--pretrain-cache``, by default ``<study>.pretrain/`` next to a
+SQLite or journal storage file):
+
+- ``demonstrations-<hash>.npz``: the collected transitions (:class:`~sb3_graph.Demonstrations`),
+  under a hash of the expert spec, the env id, the trial's env kwargs (its whole env config: reward
+  weights and config keys included, since the stored rewards and the dynamics depend on them),
+  ``n_envs`` and ``pretrain_transitions``;
+- ``clone-<hash>.pt``: the model's parameters after cloning and the critics' warm-up (policy,
+  optimizers, entropy coefficient), under the demonstrations' hash plus the algorithm, every entry key
+  that shapes the model or its updates (``policy_kwargs``, ``learning_rate``, ``batch_size``, ``gamma``,
+  ``pretrain_steps``...) and the SHA-256 of ``--init-weights``.
+
+A trial whose keys match reuses the file instead of collecting (or cloning) again; a trial whose keys
+differ (a sampled reward weight, config key or algorithm setting) makes its own. The files come from the
+first trial that needed them (its seed). They are written atomically (a temporary file, then a hard link
+that never replaces an existing file) and read without unpickling (``np.load(allow_pickle=False)``,
+``torch.load(weights_only=True)``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import os
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import torch as th
+
+#: Entry keys that do not change the cloned model (RL's budget, callbacks, the RL-time regularizer).
+NOT_CLONING_KEYS = ("n_timesteps", "callback", "bc_coef", "env_kwargs")
+
+
+def default_cache_folder(storage_url: str, study_name: str) -> Path:
+    """``<folder of the storage file>/<study>.pretrain`` (``studies/<study>.pretrain`` for a server storage).
+
+    :param storage_url: the study's storage URL (``sqlite:///PATH``, ``journal://PATH``, ``postgresql://...``)
+    :param study_name: the study's name
+    """
+    for prefix in ("sqlite:///", "journal://"):
+        if storage_url.startswith(prefix):
+            return Path(storage_url[len(prefix):]).parent / f"{study_name}.pretrain"
+    return Path("studies") / f"{study_name}.pretrain"
+
+
+def _digest(value: Any) -> str:
+    return hashlib.sha256(json.dumps(value, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def demonstrations_key(entry: dict[str, Any], env_id: str) -> dict[str, Any]:
+    """What the collected demonstrations depend on."""
+    from sb3_graph.commands.train import PRETRAIN_TRANSITIONS
+
+    return {
+        "expert": str(entry["pretrain_from"]),
+        "env": env_id,
+        "env_kwargs": entry.get("env_kwargs") or {},
+        "n_envs": int(entry.get("n_envs", 1)),
+        "transitions": int(entry.get("pretrain_transitions", PRETRAIN_TRANSITIONS)),
+    }
+
+
+def clone_key(entry: dict[str, Any], env_id: str, algo: str, init_weights_sha256: str) -> dict[str, Any]:
+    """What the cloned parameters depend on: the demonstrations, the algorithm and its settings, the start."""
+    settings = {key: value for key, value in entry.items() if key not in NOT_CLONING_KEYS}
+    return {**demonstrations_key(entry, env_id), "algo": algo, "entry": settings, "init": init_weights_sha256}
+
+
+def write_atomically(path: Path, write: Any) -> bool:
+    """Write a file through ``write(file_object)`` into a temporary file of ``path``'s folder, then link it
+    to ``path`` unless ``path`` exists (another worker's, or a user's file: never replaced).
+
+    :return: whether ``path`` is the new file
+    """
+    path.parent.mkdir(parents=True, exist_ok=True)
+    handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(handle, "wb") as file:
+            write(file)
+        try:
+            os.link(temporary, path)  # fails if path exists: nothing is overwritten
+        except FileExistsError:
+            return False
+        except OSError:  # a file system without hard links
+            if path.exists():
+                return False
+            os.replace(temporary, path)
+            return True
+        return True
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(temporary)
+
+
+def _torch_state(model: Any) -> dict[str, Any]:
+    """The model's parameters, optimizer states and torch variables (SAC's ``log_ent_coef``)."""
+    _, variables = model._get_torch_save_params()
+    state = {"parameters": model.get_parameters(), "variables": {}, "n_updates": int(getattr(model, "_n_updates", 0))}
+    for name in variables:
+        value = _attribute(model, name)
+        if isinstance(value, th.Tensor):
+            state["variables"][name] = value.detach().cpu()
+    return state
+
+
+def _attribute(model: Any, dotted: str) -> Any:
+    value = model
+    for part in dotted.split("."):
+        value = getattr(value, part, None)
+    return value
+
+
+def _load_torch_state(model: Any, state: dict[str, Any]) -> None:
+    model.set_parameters(state["parameters"], exact_match=True, device=model.device)
+    with th.no_grad():
+        for name, value in state["variables"].items():
+            _attribute(model, name).copy_(value.to(model.device))
+    model._n_updates = int(state["n_updates"])
+
+
+def pretrain_trial(
+    model: Any,
+    entry: dict[str, Any],
+    env_id: str,
+    train_env: Any,
+    algo: str,
+    folder: Path | None,
+    init_weights: Path | None = None,
+) -> dict[str, Any] | None:
+    """Clone the entry's ``pretrain_from`` expert into a trial's model, through the study's cache.
+
+    :param model: the trial's fresh model (after ``--init-weights``)
+    :param entry: the trial's entry (its sampled parameters in place)
+    :param env_id: the study's env id
+    :param train_env: the model's VecEnv
+    :param algo: the ``--algo`` name
+    :param folder: the study's cache folder (``None``: clone without a cache)
+    :param init_weights: the ``--init-weights`` file, if any (its hash enters the clone's key)
+    :return: ``None`` without ``pretrain_from``; else ``cache`` (``"none"``, ``"demonstrations"`` or
+        ``"clone"``: what was reused), ``transitions``, ``seconds`` and the two files' names
+    """
+    from sb3_graph.cloning import Demonstrations, behaviour_clone
+    from sb3_graph.commands.train import PRETRAIN_STEPS, _make_expert
+
+    if entry.get("pretrain_from") is None:
+        return None
+    if folder is None:  # a cache of one trial
+        with tempfile.TemporaryDirectory(prefix="pretrain-") as temporary:
+            return pretrain_trial(model, entry, env_id, train_env, algo, Path(temporary), init_weights)
+    folder = Path(folder)
+    tic = time.perf_counter()
+    init_hash = hashlib.sha256(init_weights.read_bytes()).hexdigest() if init_weights is not None else ""
+    demo_path = folder / f"demonstrations-{_digest(demonstrations_key(entry, env_id))[:32]}.npz"
+    clone_path = folder / f"clone-{_digest(clone_key(entry, env_id, algo, init_hash))[:32]}.pt"
+    expert = _make_expert(str(entry["pretrain_from"]), env_id, train_env)  # on-policy bc_coef labels with it
+    demonstrations = None
+    if demo_path.is_file():
+        try:
+            demonstrations = Demonstrations.load(demo_path)
+        except ValueError:
+            demonstrations = None  # unreadable (cut short?): collect again, the file stays
+    state = None
+    if demonstrations is not None and clone_path.is_file():
+        try:
+            state = th.load(clone_path, map_location="cpu", weights_only=True)
+        except Exception:  # noqa: BLE001 (any unreadable file: clone again)
+            state = None
+    steps = int(entry.get("pretrain_steps", PRETRAIN_STEPS))
+    critic_steps = entry.get("pretrain_critic_steps")
+    result = behaviour_clone(
+        model,
+        expert,
+        transitions=int(entry.get("pretrain_transitions", demonstrations_key(entry, env_id)["transitions"])),
+        gradient_steps=0 if state is not None else steps,
+        batch_size=int(getattr(model, "batch_size", 256) or 256),
+        critic_steps=0 if state is not None else (None if critic_steps is None else int(critic_steps)),
+        demonstrations=demonstrations,
+        record=demonstrations is None,
+    )
+    if state is not None:
+        _load_torch_state(model, state)
+        cache = "clone"
+    else:
+        cache = "none" if demonstrations is None else "demonstrations"
+        if demonstrations is None:
+            write_atomically(demo_path, result["demonstrations"].save)
+        write_atomically(clone_path, lambda file: th.save(_torch_state(model), file))
+    return {
+        "cache": cache,
+        "transitions": int(result["transitions"]),
+        "seconds": round(time.perf_counter() - tic, 2),
+        "demonstrations_file": demo_path.name,
+        "clone_file": clone_path.name,
+    }
