@@ -141,9 +141,10 @@ def test_default_planners_are_the_baselines_and_the_shipped_model():
     from sb3_graph.cli import UserError
 
     planners = checked_planners(None)
-    assert [name for _, name in planners][:5] == ["PR", "FIFO", "AIM", "SIGNAL", "FullThrottle+shield"]
-    assert planners[5][0] == str(DEFAULT_MODEL)  # sb3-graph ind uses the same defaults
-    assert planners[6] == (str(DEFAULT_MODEL) + "+shield", planners[5][1] + "+shield")  # and shielded
+    expected = ["PR", "FIFO", "AIM", "SIGNAL", "FullThrottle+shield", "Glide+shield"]
+    assert [name for _, name in planners][:6] == expected
+    assert planners[6][0] == str(DEFAULT_MODEL)  # sb3-graph ind uses the same defaults
+    assert planners[7] == (str(DEFAULT_MODEL) + "+shield", planners[6][1] + "+shield")  # and shielded
     assert [name for _, name in checked_planners(["pr"], shield=True)] == ["PR+shield"]
     assert [name for _, name in checked_planners(None, reserved=("inD",))] == [name for _, name in planners]
     with pytest.raises(UserError, match="given twice"):
