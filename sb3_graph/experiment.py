@@ -304,13 +304,22 @@ def check_algorithm_keys(kwargs: dict[str, Any], algorithm_class: type, where: s
     import difflib
     import inspect
 
-    try:
-        parameters = inspect.signature(algorithm_class).parameters
-    except (TypeError, ValueError):  # a constructor without a signature: nothing to check against
-        return
-    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters.values()):
-        return
-    known = sorted(name for name in parameters if name not in ("self", "policy", "env"))
+    # A constructor that passes **kwargs on (the graph mixin's, for its own keys such as bc_coef) takes
+    # its own names plus those of the next constructor up the MRO, down to one without **kwargs.
+    parameters: dict[str, inspect.Parameter] = {}
+    for klass in algorithm_class.__mro__:
+        if "__init__" not in vars(klass):
+            continue
+        try:
+            own = inspect.signature(klass.__init__).parameters
+        except (TypeError, ValueError):  # a constructor without a signature: nothing to check against
+            return
+        parameters.update({name: p for name, p in own.items() if p.kind is not inspect.Parameter.VAR_KEYWORD})
+        if not any(p.kind is inspect.Parameter.VAR_KEYWORD for p in own.values()):
+            break
+    else:
+        return  # every constructor takes **kwargs: any key may be right
+    known = sorted(name for name in parameters if name not in ("self", "policy", "env", "args"))
     for key in kwargs:
         if key not in parameters:
             close = difflib.get_close_matches(key, known, n=1)
