@@ -122,6 +122,12 @@ def _integrate(
     for i in range(route.shape[0]):
         r = route[i]
         v0, x0 = speeds[row, i], arcs[row, i]
+        if v0 == 0.0 and acc[i] < 0.0:
+            # Standing and braking: every sub-step below gives v = 0 and x = x0 + 0.0 (the envelope,
+            # never below 0, cannot cap a speed of 0), so the look-ups are skipped, bitwise alike.
+            for k in range(substeps):
+                speeds[row + k + 1, i], arcs[row + k + 1, i] = 0.0, x0 + 0.0
+            continue
         cap_now = _envelope(table, r, x0)
         for k in range(substeps):
             v = min(max(v0 + acc[i] * h, 0.0), max_speed)
