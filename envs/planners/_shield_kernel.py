@@ -311,8 +311,10 @@ def _fallback(
     slow = min(proceed, -a_max)
     for k in range(plan.follower.shape[0]):
         f, ahead = plan.follower[k], plan.ahead[k]
+        if not go[f]:  # a follower that is not committed brakes anyway: its gap is not read
+            continue
         gap = plan.follow_gap[k] + (arc[ahead] - plan.ahead_arc[k]) - (arc[f] - plan.follower_arc[k])
-        if go[f] and _unsafe(gap, speed[f], speed[ahead], proceed, a_max, dt, gap_margin):
+        if _unsafe(gap, speed[f], speed[ahead], proceed, a_max, dt, gap_margin):
             acc[f] = slow
     for g in range(plan.merge.shape[0]):
         f, ahead, active, distance = _merge_leader(plan, g, arc, go)
