@@ -28,6 +28,8 @@ Usage::
     PYTHONPATH=$PWD python benchmarks/bench_serve.py --bad-input-only
     PYTHONPATH=$PWD python benchmarks/bench_serve.py --identity --scenarios 3 --duration 60
     PYTHONPATH=$PWD python benchmarks/bench_serve.py --components --sizes 100
+    PYTHONPATH=$PWD python benchmarks/bench_serve.py --latency-only --planners aim+shield glide+shield \
+        fullthrottle+shield
 """
 
 from __future__ import annotations
@@ -629,6 +631,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--churn", type=int, default=10_000, help="streams opened and closed (default: 10000)")
     parser.add_argument("--churn-seconds", type=float, default=240.0, help="time cap of the churn [s] (default: 240)")
     parser.add_argument("--skip-gnn", action="store_true", help="AIM only")
+    parser.add_argument("--planners", nargs="+", help="only these planners in the latency tables (words of "
+                        "`serve --planner`, `+shield` for its `--shield`; e.g. aim+shield glide+shield)")
+    parser.add_argument("--latency-only", action="store_true", help="only the latency tables")
     parser.add_argument("--bad-input-only", action="store_true", help="only the malformed-input table")
     parser.add_argument("--components", action="store_true", help="only: CPU per piece of a decision, in process")
     parser.add_argument("--identity", action="store_true", help="only: evaluate in process and through servers, "
@@ -679,6 +684,9 @@ def main(argv: list[str] | None = None) -> int:
     configs = [("aim", "aim", ()), ("aim", "aim+shield", ("--shield",))]
     if not args.skip_gnn:
         configs += [(str(MODEL), "gnn", ()), (str(MODEL), "gnn+shield", ("--shield",))]
+    if args.planners:  # planner words, `+shield` for the server's shield
+        configs = [(word.removesuffix("+shield"), word, ("--shield",) if word.endswith("+shield") else ())
+                   for word in args.planners]  # fmt: skip
     big = max(max(args.sizes), args.load_vehicles, 64)
     kwargs = json.dumps({"config": {"max_vehicles": big}})
     print("## Latency per decision [ms]\n")
@@ -697,6 +705,8 @@ def main(argv: list[str] | None = None) -> int:
             print(_table(latency(url, process.pid, local_spec, sizes, args.decisions, args.seconds)) + "\n", flush=True)
         finally:
             stop_server(process)
+    if args.latency_only:
+        return 0
     print(f"## Throughput, {args.load_planner} at {args.load_vehicles} vehicles, {args.load_seconds:g} s per run\n")
     process, url = start_server(args.load_planner, "--env-kwargs", kwargs, "--max-streams", "64")
     try:

@@ -74,16 +74,40 @@ def settle(
     choice = np.zeros(n, np.int64)
     new = np.zeros(n, np.int64)
     clash = np.zeros((n, c_count), np.bool_)
+    # Incremental passes, bitwise the full ones: a vehicle's clashes depend only on the choices of the
+    # vehicles it pairs with, and its choice on its clashes and its leader's choice; so a pass recomputes
+    # only the clash rows with a partner whose choice changed in the last pass, and the choices of those
+    # rows and of the vehicles whose leader's choice changed (the others keep the last pass's answer).
+    order = np.argsort(pair_i, kind="mergesort")  # the pairs of each i, contiguous
+    first = np.zeros(n + 1, np.int64)
+    for r in range(pair_i.size):
+        first[pair_i[r] + 1] += 1
+    for i in range(n):
+        first[i + 1] += first[i]
+    changed = np.ones(n, np.bool_)  # before the first pass: every choice is new
+    dirty = np.zeros(n, np.bool_)
     for _ in range(passes):
-        clash[:] = False
-        for r in range(pair_i.size):  # j's chosen window in its zone with i against each of i's candidates
-            i, j = pair_i[r], pair_j[r]
-            enter_j = zone_enter[row_j[r], choice[j]]
-            leave_j = zone_leave[row_j[r], choice[j]] + buffer
-            for c in range(c_count):
-                if zone_enter[row_i[r], c] < leave_j and enter_j < zone_leave[row_i[r], c] + buffer:
-                    clash[i, c] = True
         for i in range(n):
+            dirty[i] = changed[lead_row[i]]
+            for q in range(first[i], first[i + 1]):
+                if changed[pair_j[order[q]]]:
+                    dirty[i] = True
+                    break
+        for i in range(n):  # j's chosen window in its zone with i against each of i's candidates
+            if not dirty[i]:
+                continue
+            clash[i, :] = False
+            for q in range(first[i], first[i + 1]):
+                r = order[q]
+                j = pair_j[r]
+                enter_j = zone_enter[row_j[r], choice[j]]
+                leave_j = zone_leave[row_j[r], choice[j]] + buffer
+                ri = row_i[r]
+                for c in range(c_count):  # branch-free, so that it vectorizes
+                    clash[i, c] |= (zone_enter[ri, c] < leave_j) & (enter_j < zone_leave[ri, c] + buffer)
+        for i in range(n):
+            if not dirty[i]:
+                continue
             lead_arrival = arrival[lead_row[i], choice[lead_row[i]]] + follow_headway
             best, best_score, any_ok = 0, np.inf, False
             for c in range(c_count):
@@ -98,7 +122,8 @@ def settle(
             new[i] = best if any_ok else fallback[i]
         same = True
         for i in range(n):
-            same &= new[i] == choice[i]
+            changed[i] = new[i] != choice[i]
+            same &= not changed[i]
         if same:
             break
         choice[:] = new

@@ -122,6 +122,12 @@ def _integrate(
     for i in range(route.shape[0]):
         r = route[i]
         v0, x0 = speeds[row, i], arcs[row, i]
+        if v0 == 0.0 and acc[i] < 0.0:
+            # Standing and braking: every sub-step below gives v = 0 and x = x0 + 0.0 (the envelope,
+            # never below 0, cannot cap a speed of 0), so the look-ups are skipped, bitwise alike.
+            for k in range(substeps):
+                speeds[row + k + 1, i], arcs[row + k + 1, i] = 0.0, x0 + 0.0
+            continue
         cap_now = _envelope(table, r, x0)
         for k in range(substeps):
             v = min(max(v0 + acc[i] * h, 0.0), max_speed)
@@ -305,8 +311,10 @@ def _fallback(
     slow = min(proceed, -a_max)
     for k in range(plan.follower.shape[0]):
         f, ahead = plan.follower[k], plan.ahead[k]
+        if not go[f]:  # a follower that is not committed brakes anyway: its gap is not read
+            continue
         gap = plan.follow_gap[k] + (arc[ahead] - plan.ahead_arc[k]) - (arc[f] - plan.follower_arc[k])
-        if go[f] and _unsafe(gap, speed[f], speed[ahead], proceed, a_max, dt, gap_margin):
+        if _unsafe(gap, speed[f], speed[ahead], proceed, a_max, dt, gap_margin):
             acc[f] = slow
     for g in range(plan.merge.shape[0]):
         f, ahead, active, distance = _merge_leader(plan, g, arc, go)
