@@ -8,8 +8,7 @@ import torch as th
 import torch.nn as nn
 
 from sb3_graph import TD3, GraphPolicy
-from sb3_graph.toy_envs import MaxNeighbourEnv
-from sb3_graph.weights import (
+from sb3_graph.files.policy_files import (
     POLICY_REGISTRY,
     PolicyFileError,
     kwargs_from_json,
@@ -23,6 +22,7 @@ from sb3_graph.weights import (
     space_from_json,
     space_to_json,
 )
+from sb3_graph.toy_envs import MaxNeighbourEnv
 
 
 @pytest.fixture(scope="module")

@@ -1,5 +1,5 @@
-"""The relational max aggregation of :class:`~sb3_graph.layers.RelationalMaxConv` on CPU, compiled
-with numba (used by ``sb3_graph.layers._RelationalMax``; the PyTorch formulation there stays the
+"""The relational max aggregation of :class:`~sb3_graph.common.layers.RelationalMaxConv` on CPU, compiled
+with numba (used by ``sb3_graph.common.layers.max_aggregation._RelationalMax``; the PyTorch formulation there stays the
 reference and serves every other device).
 
 Why compiled: per layer, the PyTorch formulation makes about ten passes over an ``(E, C)`` tensor
