@@ -106,6 +106,22 @@ def test_registry_is_per_algorithm(tmp_path, model):
         load_policy(tmp_path / "q.safetensors")
 
 
+def test_a_policy_registered_under_the_old_module_path_is_allowed_in_files():
+    """Plugins register their policy classes with ``sb3_graph.weights.register_policy``: the old path
+    still registers into the one allow-list that the policy-file readers consult."""
+    import sb3_graph.weights
+    from sb3_graph.files.policy_files import registered_policy
+    from sb3_graph.td3.policies import GraphPolicy
+
+    with pytest.raises(PolicyFileError, match="MyAlgo/MyPolicy"):
+        registered_policy("MyAlgo", "MyPolicy")
+    sb3_graph.weights.register_policy("MyAlgo", "MyPolicy", "sb3_graph.policies:GraphPolicy")
+    try:
+        assert registered_policy("MyAlgo", "MyPolicy") is GraphPolicy
+    finally:
+        POLICY_REGISTRY.pop("MyAlgo")
+
+
 def test_a_graph_policy_resized_to_larger_graphs_acts_the_same_on_the_same_graph(model, tmp_path):
     small = load_policy(save_policy(model.policy, tmp_path / "p.safetensors", "TD3"))
     large = resize_graph_policy(small, 20, 60, "p.safetensors")
