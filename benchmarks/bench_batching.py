@@ -21,7 +21,7 @@ from stable_baselines3.common.utils import obs_as_tensor
 from torch_geometric.data import Batch, Data
 
 from sb3_graph import GraphReplayBuffer
-from sb3_graph.batching import padded_to_batch
+from sb3_graph.common.batching import padded_to_batch
 
 BATCH = 256
 

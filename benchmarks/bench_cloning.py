@@ -27,8 +27,8 @@ from stable_baselines3.common.env_util import make_vec_env
 
 import envs  # noqa: F401  (registers the environments)
 from envs.planners.expert import PlannerExpert
-from sb3_graph.cloning import behaviour_clone
-from sb3_graph.experiment import build_algorithm_kwargs, read_experiment
+from sb3_graph.common.cloning import behaviour_clone
+from sb3_graph.files.experiment_files import build_algorithm_kwargs, read_experiment
 from sb3_graph.registry import ALGORITHMS
 
 ISSUE_BUDGET = (10_000, 2_000, 500)  # transitions, actor steps, critic steps

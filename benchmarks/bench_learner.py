@@ -51,8 +51,8 @@ from gymnasium.spaces.utils import flatten, flatten_space
 from gymnasium.wrappers import FlattenObservation
 
 import sb3_graph
-from sb3_graph.algorithm import GraphAlgorithmMixin
-from sb3_graph.layers import use_compiled_kernels
+from sb3_graph.common.algorithm import GraphAlgorithmMixin
+from sb3_graph.common.layers import use_compiled_kernels
 
 FILL = 2000
 ROLLOUT = 2048

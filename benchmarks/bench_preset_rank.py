@@ -26,7 +26,7 @@ from scipy.stats import kendalltau, spearmanr
 
 import envs  # noqa: F401 - registers the environments
 from envs.evaluation.tuning import evaluate_model, tuning_env_kwargs
-from sb3_graph.experiment import check_entry, merge_env_kwargs, read_experiment
+from sb3_graph.files.experiment_files import check_entry, merge_env_kwargs, read_experiment
 from sb3_graph.tuning.objectives import make_objective
 from sb3_graph.tuning.runner import TrialSettings, run_trial
 

@@ -58,7 +58,7 @@ import numpy as np
 from envs.simulation.engine import SPLIT_CLEARANCE, Simulation
 from envs.simulation.graph import NODE_FEATURES, NUM_RELATIONS, build_observation, min_mahalanobis
 from envs.simulation.layouts import Layout, build_layout
-from sb3_graph.spaces import GraphSpace
+from sb3_graph.common.spaces import GraphSpace
 
 COUNTS = (10, 20, 50, 100)
 EPISODE_STEPS = 25

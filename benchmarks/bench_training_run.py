@@ -7,7 +7,7 @@ process), with ``learning_starts`` lowered so that a short run trains (the confi
 3,000-step run without a gradient step), and times ``learn`` from ``learning_starts`` to the end:
 environment steps, action selection, replay buffer and the config's gradient steps (``td3_fair.yml``:
 one of batch 128 per environment step; with ``n_envs: 4``, one per four environment steps).
-The reference is the learner before issue #27: ``sb3_graph.layers.use_compiled_kernels(False)`` (the
+The reference is the learner before issue #27: ``sb3_graph.common.layers.use_compiled_kernels(False)`` (the
 PyTorch formulation of the relational layers), torch's per-tensor Adam and SB3's own ``train``
 (whose policy loss also differentiates the critics' weights). They alternate run by run
 (``--rounds`` each, same seeds), so a change of the shared machine's load hits both; the table gives
@@ -29,9 +29,15 @@ from stable_baselines3.common.env_util import make_vec_env
 
 import envs  # noqa: F401 - registers the environments
 from sb3_graph import TD3
-from sb3_graph.algorithm import GraphAlgorithmMixin
-from sb3_graph.experiment import build_algorithm_kwargs, build_callbacks, check_entry, read_experiment, resolve_object
-from sb3_graph.layers import use_compiled_kernels
+from sb3_graph.common.algorithm import GraphAlgorithmMixin
+from sb3_graph.common.layers import use_compiled_kernels
+from sb3_graph.files.experiment_files import (
+    build_algorithm_kwargs,
+    build_callbacks,
+    check_entry,
+    read_experiment,
+    resolve_object,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -45,7 +45,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 import envs  # noqa: F401 - registers the environments
 from envs.evaluation.tuning import tuning_env_kwargs
 from sb3_graph import TD3
-from sb3_graph.experiment import (
+from sb3_graph.files.experiment_files import (
     build_algorithm_kwargs,
     build_callbacks,
     check_entry,
@@ -144,7 +144,7 @@ def critic_pass_rates(base: dict, rounds: int, gradient_steps: int = 30) -> dict
     same model and replay buffer (filled by 400 steps of the full environment)."""
     from stable_baselines3.common.logger import configure
 
-    from sb3_graph.networks import GraphCritic, as_graph_batch, gather_vertex_values, stacked_q_forward
+    from sb3_graph.common.networks import GraphCritic, as_graph_batch, gather_vertex_values, stacked_q_forward
 
     def batched(self, obs, actions):
         graphs = as_graph_batch(obs)

@@ -207,7 +207,7 @@ class IntersectionRecording:
     def __init__(self, count: int, seed: int = 0, recording: str = "fair") -> None:
         import envs  # noqa: F401 - registers the environments
         from envs.planners import make_planner
-        from sb3_graph.experiment import read_experiment
+        from sb3_graph.files.experiment_files import read_experiment
 
         root = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..")
         # The config's own env_kwargs, not a copy: its traffic settings (e.g. spawn_queue: 0, blocked

@@ -18,27 +18,27 @@ __version__ = "0.1.0"
 # public name -> the module that defines it (imported on first access)
 _LAZY = {
     "A2C": "sb3_graph.a2c",
-    "GraphBatch": "sb3_graph.batching",
-    "batch_to_padded": "sb3_graph.batching",
-    "padded_to_batch": "sb3_graph.batching",
-    "GraphReplayBuffer": "sb3_graph.buffers",
-    "GraphRolloutBuffer": "sb3_graph.buffers",
-    "behaviour_clone": "sb3_graph.cloning",
-    "Demonstrations": "sb3_graph.cloning",
+    "GraphBatch": "sb3_graph.common.batching",
+    "batch_to_padded": "sb3_graph.common.batching",
+    "padded_to_batch": "sb3_graph.common.batching",
+    "GraphReplayBuffer": "sb3_graph.common.buffers",
+    "GraphRolloutBuffer": "sb3_graph.common.buffers",
+    "behaviour_clone": "sb3_graph.common.cloning",
+    "Demonstrations": "sb3_graph.common.cloning",
     "CrossQ": "sb3_graph.crossq",
     "GraphCrossQCritic": "sb3_graph.crossq",
     "GraphCrossQPolicy": "sb3_graph.crossq",
     "DDPG": "sb3_graph.ddpg",
-    "RelationalMaxConv": "sb3_graph.layers",
-    "GraphCritic": "sb3_graph.networks",
-    "GraphQNetwork": "sb3_graph.networks",
-    "GraphTrunk": "sb3_graph.networks",
+    "RelationalMaxConv": "sb3_graph.common.layers",
+    "GraphCritic": "sb3_graph.common.networks",
+    "GraphQNetwork": "sb3_graph.common.networks",
+    "GraphTrunk": "sb3_graph.common.networks",
     "PPO": "sb3_graph.ppo",
     "GraphActorCriticPolicy": "sb3_graph.ppo",
     "SAC": "sb3_graph.sac",
     "GraphSACActor": "sb3_graph.sac",
     "GraphSACPolicy": "sb3_graph.sac",
-    "GraphSpace": "sb3_graph.spaces",
+    "GraphSpace": "sb3_graph.common.spaces",
     "TD3": "sb3_graph.td3",
     "GraphActor": "sb3_graph.td3",
     "GraphPolicy": "sb3_graph.td3",
@@ -50,16 +50,16 @@ _LAZY = {
 
 if TYPE_CHECKING:  # what type checkers and IDEs see: the eager imports of before
     from sb3_graph.a2c import A2C
-    from sb3_graph.batching import GraphBatch, batch_to_padded, padded_to_batch
-    from sb3_graph.buffers import GraphReplayBuffer, GraphRolloutBuffer
-    from sb3_graph.cloning import Demonstrations, behaviour_clone
+    from sb3_graph.common.batching import GraphBatch, batch_to_padded, padded_to_batch
+    from sb3_graph.common.buffers import GraphReplayBuffer, GraphRolloutBuffer
+    from sb3_graph.common.cloning import Demonstrations, behaviour_clone
+    from sb3_graph.common.layers import RelationalMaxConv
+    from sb3_graph.common.networks import GraphCritic, GraphQNetwork, GraphTrunk
+    from sb3_graph.common.spaces import GraphSpace
     from sb3_graph.crossq import CrossQ, GraphCrossQCritic, GraphCrossQPolicy
     from sb3_graph.ddpg import DDPG
-    from sb3_graph.layers import RelationalMaxConv
-    from sb3_graph.networks import GraphCritic, GraphQNetwork, GraphTrunk
     from sb3_graph.ppo import PPO, GraphActorCriticPolicy
     from sb3_graph.sac import SAC, GraphSACActor, GraphSACPolicy
-    from sb3_graph.spaces import GraphSpace
     from sb3_graph.td3 import TD3, GraphActor, GraphPolicy, GraphTD3Policy
     from sb3_graph.tqc import TQC, GraphQuantileCritic, GraphTQCPolicy
 

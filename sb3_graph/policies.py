@@ -2,12 +2,12 @@
 
 The policies now live beside their algorithms (``sb3_graph/td3/policies.py``,
 ``sb3_graph/sac/policies.py``, ...) and the GNN pieces that they share in
-:mod:`sb3_graph.networks`. This module re-exports the names it used to define, so that models saved
+:mod:`sb3_graph.common.networks`. This module re-exports the names it used to define, so that models saved
 with ``sb3_graph.policies.GraphPolicy`` as their policy class (e.g. the repository's shipped
 pretrained intersection planner) still load.
 """
 
-from sb3_graph.networks import (
+from sb3_graph.common.networks import (
     POOLINGS,
     GraphCritic,
     GraphQNetwork,

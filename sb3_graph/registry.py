@@ -1,5 +1,5 @@
 """Every algorithm of the package, one entry each: what ``train``, ``export``, the weights-only
-policy files (:mod:`sb3_graph.weights`), ``tune`` and a learned planner need to know about it.
+policy files (:mod:`sb3_graph.files.policy_files`), ``tune`` and a learned planner need to know about it.
 
 An entry names its parts as ``"module:attribute"`` strings, so that reading the registry imports
 no algorithm (``sb3-graph --help`` stays fast). A new algorithm is its folder (``<algo>/<algo>.py``
@@ -76,8 +76,8 @@ class AlgorithmEntry:
         return import_object(self.policy)
 
 
-_REPLAY = "sb3_graph.buffers:GraphReplayBuffer"
-_ROLLOUT = "sb3_graph.buffers:GraphRolloutBuffer"
+_REPLAY = "sb3_graph.common.buffers:GraphReplayBuffer"
+_ROLLOUT = "sb3_graph.common.buffers:GraphRolloutBuffer"
 _ACTOR = "sb3_graph.registry:actor_vertex_actions"
 _SQUASHED = "sb3_graph.registry:squashed_mean_vertex_actions"
 _MEAN = "sb3_graph.registry:mean_vertex_actions"

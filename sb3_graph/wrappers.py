@@ -25,7 +25,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from sb3_graph.spaces import GraphSpace
+from sb3_graph.common.spaces import GraphSpace
 
 EDGE_MODES = ("relations", "features")
 

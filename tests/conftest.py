@@ -6,7 +6,7 @@ from pathlib import Path
 
 
 def pytest_configure(config):
-    # Checkpoint signatures (sb3_graph.signing) use a key of the test session, not the user's.
+    # Checkpoint signatures (sb3_graph.files.signing) use a key of the test session, not the user's.
     if not os.environ.get("SB3_GRAPH_KEY_FILE"):
         os.environ["SB3_GRAPH_KEY_FILE"] = os.path.join(tempfile.mkdtemp(prefix="sb3-graph-key-"), "file-key")
     # The checkout's entry points (its domain plug-ins), whatever copy of the package is installed.

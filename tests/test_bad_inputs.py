@@ -42,7 +42,7 @@ def files(tmp_path_factory):
 
     import envs  # noqa: F401
     from sb3_graph import TD3, GraphPolicy
-    from sb3_graph.weights import save_policy
+    from sb3_graph.files.policy_files import save_policy
 
     th.set_num_threads(1)
     f = tmp_path_factory.mktemp("inputs")
@@ -165,7 +165,7 @@ def _hostile_inputs(f: Path, small, texts: dict[str, str]) -> dict[str, Path]:
     """Inputs of the second hostile-input round (docs/security.md)."""
     from safetensors.torch import save_file
 
-    from sb3_graph.weights import METADATA_KEY, describe_policy
+    from sb3_graph.files.policy_files import METADATA_KEY, describe_policy
 
     paths: dict[str, Path] = {}
     for name, kwargs in {

@@ -5,7 +5,7 @@ import torch
 from torch_geometric.data import Batch, Data
 
 from sb3_graph import GraphSpace
-from sb3_graph.batching import (
+from sb3_graph.common.batching import (
     DerivedIndexCache,
     as_graph_batch,
     batch_to_padded,

@@ -10,7 +10,7 @@ from stable_baselines3.common.buffers import DictReplayBuffer
 from stable_baselines3.common.type_aliases import ReplayBufferSamples
 
 from sb3_graph import GraphReplayBuffer, GraphSpace
-from sb3_graph.batching import GraphBatch, padded_to_batch
+from sb3_graph.common.batching import GraphBatch, padded_to_batch
 
 torch.set_num_threads(1)
 

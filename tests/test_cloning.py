@@ -9,8 +9,8 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.logger import configure
 
 import sb3_graph
-from sb3_graph.buffers import GraphReplayBuffer, GraphRolloutBuffer
-from sb3_graph.demonstrations import demonstration_loss, expert_targets, parse_bc_coef
+from sb3_graph.common.buffers import GraphReplayBuffer, GraphRolloutBuffer
+from sb3_graph.common.demonstrations import demonstration_loss, expert_targets, parse_bc_coef
 from sb3_graph.toy_envs import MaxNeighbourEnv, max_neighbour_expert
 
 SMALL = dict(encoder_dim=16, conv_dims=[16, 16])
@@ -262,7 +262,7 @@ def test_behaviour_clone_bad_arguments():
 
 
 def test_experiment_keys_of_cloning():
-    from sb3_graph.experiment import ExperimentError, build_algorithm_kwargs, check_entry
+    from sb3_graph.files.experiment_files import ExperimentError, build_algorithm_kwargs, check_entry
 
     entry = {"n_timesteps": 10, "pretrain_from": "aim", "pretrain_transitions": 100, "pretrain_steps": 20,
              "bc_coef": "lin_0.5"}  # fmt: skip

@@ -9,7 +9,7 @@ from stable_baselines3.common.distributions import DiagGaussianDistribution, Squ
 from stable_baselines3.common.utils import obs_as_tensor
 
 from sb3_graph import GraphActorCriticPolicy, GraphSACPolicy, GraphSpace
-from sb3_graph.batching import padded_to_batch
+from sb3_graph.common.batching import padded_to_batch
 
 torch.set_num_threads(1)
 

@@ -17,8 +17,8 @@ from stable_baselines3.common.utils import obs_as_tensor
 from torch_geometric.data import Batch, Data
 
 from sb3_graph import PPO, SAC, TD3, GraphReplayBuffer, GraphRolloutBuffer, GraphSpace
-from sb3_graph.batching import derived_indices, padded_to_batch
-from sb3_graph.layers import use_compiled_kernels
+from sb3_graph.common.batching import derived_indices, padded_to_batch
+from sb3_graph.common.layers import use_compiled_kernels
 from sb3_graph.toy_envs import MaxNeighbourEnv
 
 torch.set_num_threads(1)

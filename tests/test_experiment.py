@@ -6,7 +6,7 @@ import torch as th
 from stable_baselines3.common.noise import NormalActionNoise
 
 from sb3_graph.callbacks import InfoLoggerCallback, LinearScheduleCallback
-from sb3_graph.experiment import (
+from sb3_graph.files.experiment_files import (
     ExperimentError,
     build_algorithm_kwargs,
     build_callbacks,

@@ -154,7 +154,7 @@ def test_ind_loads_weights_only_and_refuses_what_it_cannot_rebuild(hostile, tmp_
 
 
 def test_export_writes_weights_only_and_trust_restores_sb3_load(hostile, tmp_path, capsys):
-    from sb3_graph.weights import load_policy, read_weights_file
+    from sb3_graph.files.policy_files import load_policy, read_weights_file
 
     folder, marker, files = hostile
     out = tmp_path / "p.safetensors"
@@ -176,7 +176,7 @@ HOSTILE_VALUES = [
     ("policy_kwargs", "dict(x=open('{marker}', 'w'))"),
     ("policy_kwargs", "__import__('builtins').open('{marker}', 'w')"),
     ("policy_kwargs", "importlib.import_module('builtins').open('{marker}', 'w')"),
-    ("policy_kwargs", "dict(activation_fn=sb3_graph.experiment.importlib)"),
+    ("policy_kwargs", "dict(activation_fn=sb3_graph.files.experiment_files.importlib)"),
     ("replay_buffer_class", "importlib.import_module('pathlib').Path('{marker}').touch()"),
     ("replay_buffer_kwargs", "(lambda: open('{marker}', 'w'))()"),
     ("policy", "stable_baselines3.common.save_util.load_from_pkl"),
@@ -223,7 +223,7 @@ def test_safe_reader_gives_what_rl_zoo3_would(tmp_path):
     import torch.nn as nn
 
     from sb3_graph import GraphReplayBuffer
-    from sb3_graph.experiment import build_algorithm_kwargs
+    from sb3_graph.files.experiment_files import build_algorithm_kwargs
 
     entry = yaml.safe_load(CONFIG.read_text())[ENV_ID]
     policy_kwargs = entry["policy_kwargs"][:-1] + ", activation_fn=nn.Tanh)"
@@ -249,7 +249,7 @@ def _run_folder(tmp_path, marker):
 
 
 def test_resume_does_not_unpickle_files_it_did_not_write(tmp_path, capsys):
-    from sb3_graph.signing import SIGNATURES, sign
+    from sb3_graph.files.signing import SIGNATURES, sign
 
     marker = tmp_path / "MARKER"
     out, checkpoint = _run_folder(tmp_path, marker)

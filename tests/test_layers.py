@@ -6,10 +6,9 @@ import torch
 from torch_geometric.nn import RGCNConv
 from torch_geometric.utils import scatter
 
-from sb3_graph.batching import derived_indices
-from sb3_graph.layers import (
+from sb3_graph.common.batching import derived_indices
+from sb3_graph.common.layers import (
     RelationalMaxConv,
-    _fused_weights,
     compact_layout,
     relational_conv,
     relational_layout,
@@ -17,6 +16,7 @@ from sb3_graph.layers import (
     use_compact_rows,
     use_compiled_kernels,
 )
+from sb3_graph.common.layers.relational_max_conv import _fused_weights
 
 torch.set_num_threads(1)
 
@@ -481,7 +481,7 @@ def test_backward_kernels_write_every_row(stride, num_relations, rows, vertices,
     """The backward kernels fill their output themselves (it comes from ``new_empty``): the same
     gradient into rows of NaN as into zeros, also where the output has more rows than the vertices'
     (max pooling: more vertices than graphs) or fewer (more graphs than vertices)."""
-    from sb3_graph import _max_kernel
+    from sb3_graph.common.layers import _max_kernel
 
     g = torch.Generator().manual_seed(0)
     values = torch.randn(rows, 4, generator=g)

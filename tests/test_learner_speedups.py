@@ -13,8 +13,8 @@ from learner_fixtures import SMALL, filled_learner
 from sb3_contrib import TQC as ContribTQC
 
 import sb3_graph
-from sb3_graph.batching import derived_indices
-from sb3_graph.networks import GraphCritic, constant_parameters, fast_optimizer_kwargs
+from sb3_graph.common.batching import derived_indices
+from sb3_graph.common.networks import GraphCritic, constant_parameters, fast_optimizer_kwargs
 from sb3_graph.toy_envs import MaxNeighbourEnv
 
 torch.set_num_threads(1)

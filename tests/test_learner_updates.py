@@ -16,7 +16,7 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
-from sb3_graph.layers import use_compiled_kernels
+from sb3_graph.common.layers import use_compiled_kernels
 
 ROOT = Path(__file__).resolve().parents[1]
 FIXTURE = ROOT / "tests" / "data" / "learner_updates.safetensors"

@@ -19,9 +19,9 @@ from envs.ind.synthetic import SyntheticSite, default_vehicles, make_recording, 
 from envs.simulation.config import RULES, validate_config
 from envs.simulation.env import CoopIntersectionEnv
 from envs.simulation.traffic import Scenario
-from sb3_graph.experiment import ExperimentError, check_entry, resolve_object
-from sb3_graph.safe_values import UnsafeValueError, parse_value
-from sb3_graph.weights import PolicyDescription, PolicyFileError, space_from_json
+from sb3_graph.files.experiment_files import ExperimentError, check_entry, resolve_object
+from sb3_graph.files.policy_files import PolicyDescription, PolicyFileError, space_from_json
+from sb3_graph.files.safe_values import UnsafeValueError, parse_value
 
 
 def examples(count: int):
@@ -256,7 +256,7 @@ python_text = st.one_of(
             "importlib.import_module('os').system",
             "dict(f=open('x'))",
             "[1, 2, {'a': -3.5}]",
-            "sb3_graph.experiment.importlib",
+            "sb3_graph.files.experiment_files.importlib",
             "th.nn.Tanh.__subclasses__",
             "(lambda: 1)()",
         ]

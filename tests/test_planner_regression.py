@@ -163,8 +163,8 @@ def test_gnn_scene_batch_is_the_padded_observation(data):
 
     from envs.planners.gnn import GNNPlanner
     from envs.simulation.graph import build_graph_batch, build_observation
-    from sb3_graph.batching import padded_to_batch
-    from sb3_graph.layers import use_compact_rows
+    from sb3_graph.common.batching import padded_to_batch
+    from sb3_graph.common.layers import use_compact_rows
 
     path = Path(__file__).parents[1] / "envs" / "pretrained" / "coop_4way" / "best_model.safetensors"
     planner = GNNPlanner(path)

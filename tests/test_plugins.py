@@ -134,7 +134,7 @@ def test_sb3_graph_imports_and_lists_its_commands_without_the_domain(tmp_path):
         sys.path.insert(0, {str(folder)!r})
         import sb3_graph.plugins as plugins
         plugins.SEARCH_PATH = [{str(folder)!r}]
-        import sb3_graph, sb3_graph.registry, sb3_graph.weights, sb3_graph.tuning.commands
+        import sb3_graph, sb3_graph.registry, sb3_graph.files.policy_files, sb3_graph.tuning.commands
         import sb3_graph.commands.train, sb3_graph.commands.export
         from sb3_graph.cli import main
         try:

@@ -8,7 +8,7 @@ from stable_baselines3.common.utils import obs_as_tensor
 from torch_geometric.nn import global_max_pool
 
 from sb3_graph import GraphPolicy, GraphSpace
-from sb3_graph.batching import gather_vertex_values, padded_to_batch
+from sb3_graph.common.batching import gather_vertex_values, padded_to_batch
 from sb3_graph.policies import stacked_q_forward
 
 torch.set_num_threads(1)

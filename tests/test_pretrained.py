@@ -13,7 +13,7 @@ from envs.planners import make_planner
 from envs.planners.gnn import planner_config_of
 from envs.planners.residual import ResidualPlanner
 from sb3_graph import TD3
-from sb3_graph.weights import read_weights_file
+from sb3_graph.files.policy_files import read_weights_file
 
 SHIPPED_ZIP = PAPER_MODEL.with_suffix(".zip")
 

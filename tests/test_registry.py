@@ -13,8 +13,8 @@ import sb3_graph
 from envs.planners.gnn import GNNPlanner
 from envs.simulation.graph import build_observation
 from sb3_graph.cli import main
+from sb3_graph.files.policy_files import POLICY_REGISTRY, load_policy
 from sb3_graph.registry import ALGORITHMS, algorithm_entry, entry_of_policy
-from sb3_graph.weights import POLICY_REGISTRY, load_policy
 
 torch.set_num_threads(1)
 

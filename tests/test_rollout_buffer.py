@@ -7,7 +7,7 @@ from gymnasium import spaces
 from stable_baselines3.common.buffers import DictRolloutBuffer
 
 from sb3_graph import GraphRolloutBuffer, GraphSpace
-from sb3_graph.batching import GraphBatch, padded_to_batch
+from sb3_graph.common.batching import GraphBatch, padded_to_batch
 
 torch.set_num_threads(1)
 

@@ -1,5 +1,9 @@
 """Model, policy and replay buffer survive save/load."""
 
+import base64
+import json
+import zipfile
+
 import numpy as np
 import stable_baselines3
 import torch
@@ -71,3 +75,30 @@ def test_replay_buffer_save_load(tmp_path):
     torch.testing.assert_close(a.actions, b.actions)
     torch.testing.assert_close(a.rewards, b.rewards)
     fresh.learn(10, reset_num_timesteps=False)
+
+
+def test_model_saved_under_the_old_module_paths_loads(tmp_path, monkeypatch):
+    """Models saved before ``spaces`` and ``buffers`` moved into ``sb3_graph.common`` (the shipped
+    planners among them) name ``sb3_graph.spaces.GraphSpace`` and ``sb3_graph.buffers.GraphReplayBuffer``
+    in their pickles and their ``:type:`` strings: they still load, and still read without unpickling."""
+    from sb3_graph.common.spaces import GraphSpace
+    from sb3_graph.files.policy_files import read_sb3_zip
+
+    env = MaxNeighbourEnv()
+    model = TD3("GraphPolicy", env, seed=0, policy_kwargs=dict(encoder_dim=8, conv_dims=[8]))
+    with monkeypatch.context() as patch:  # pickled as the old files were (needs the re-exports to exist)
+        patch.setattr(GraphSpace, "__module__", "sb3_graph.spaces")
+        patch.setattr(GraphReplayBuffer, "__module__", "sb3_graph.buffers")
+        model.save(tmp_path / "old")
+    with zipfile.ZipFile(tmp_path / "old.zip") as archive:
+        data = json.loads(archive.read("data"))
+    assert data["observation_space"][":type:"] == "<class 'sb3_graph.spaces.GraphSpace'>"
+    assert b"sb3_graph.buffers" in base64.b64decode(data["replay_buffer_class"][":serialized:"])
+
+    loaded = TD3.load(tmp_path / "old", env=env)
+    assert type(loaded.observation_space) is GraphSpace and loaded.replay_buffer_class is GraphReplayBuffer
+    o = observations(env, 1)[0]
+    np.testing.assert_allclose(loaded.predict(o, deterministic=True)[0], model.predict(o, deterministic=True)[0])
+    description, state = read_sb3_zip(tmp_path / "old.zip")
+    assert description.observation_space["type"] == "GraphSpace"
+    assert set(state) == set(model.policy.state_dict())

@@ -18,7 +18,7 @@ from envs.simulation.graph import (
 )
 from envs.simulation.layouts import LAYOUT_NAMES, build_layout
 from envs.simulation.scene import Scene
-from sb3_graph.spaces import GraphSpace
+from sb3_graph.common.spaces import GraphSpace
 
 
 def _sim(layout="4way", s_ref=25.0):
@@ -179,7 +179,7 @@ def test_graph_batch_is_the_unpadded_observation(names):
     max_edges cut included, and refuses what the padded observation refuses."""
     import torch
 
-    from sb3_graph.batching import padded_to_batch
+    from sb3_graph.common.batching import padded_to_batch
 
     sim = _sim()
     lay = sim.layout

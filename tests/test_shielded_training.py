@@ -138,7 +138,7 @@ def test_the_residual_env_with_a_zero_action_drives_as_its_base_planner():
 
 
 def test_a_policy_file_with_a_residual_config_becomes_a_residual_planner(tmp_path):
-    from sb3_graph.weights import load_policy, save_policy
+    from sb3_graph.files.policy_files import load_policy, save_policy
 
     shipped = "envs/pretrained/coop_4way_fair/best_model.safetensors"
     loaded = load_policy(shipped)

@@ -11,7 +11,7 @@ import pytest
 from envs.simulation.engine import Simulation
 from envs.simulation.graph import NODE_FEATURES, NUM_RELATIONS, build_observation, min_mahalanobis
 from envs.simulation.layouts import build_layout
-from sb3_graph.spaces import GraphSpace
+from sb3_graph.common.spaces import GraphSpace
 
 _path = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_sim_bound.py"
 _spec = importlib.util.spec_from_file_location("bench_sim_bound", _path)

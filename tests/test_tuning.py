@@ -452,8 +452,8 @@ def test_the_shipped_weight_study_holds_24_finished_trials_and_reports(tmp_path)
 
 
 def test_tune_trains_the_chosen_algorithm_with_its_search_space(config, tmp_path, capsys):
+    from sb3_graph.files.policy_files import read_sb3_zip
     from sb3_graph.registry import ALGORITHMS
-    from sb3_graph.weights import read_sb3_zip
 
     storage, models = f"sqlite:///{tmp_path}/sac.db", tmp_path / "models"
     base = ["--env", TOY, "--storage", storage, "--tune-algo", "--n-trials", "1", "--timesteps", "100"]

@@ -182,7 +182,7 @@ def tiny_policy_file(tmp_path, encoder_dim=8, name="init.safetensors"):
 
     import sb3_graph.toy_envs  # noqa: F401
     from sb3_graph import TD3
-    from sb3_graph.weights import save_policy
+    from sb3_graph.files.policy_files import save_policy
 
     env = gym.make(TOY)
     model = TD3("GraphPolicy", env, policy_kwargs={"encoder_dim": encoder_dim, "conv_dims": [8]}, seed=1)

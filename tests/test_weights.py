@@ -8,8 +8,7 @@ import torch as th
 import torch.nn as nn
 
 from sb3_graph import TD3, GraphPolicy
-from sb3_graph.toy_envs import MaxNeighbourEnv
-from sb3_graph.weights import (
+from sb3_graph.files.policy_files import (
     POLICY_REGISTRY,
     PolicyFileError,
     kwargs_from_json,
@@ -23,6 +22,7 @@ from sb3_graph.weights import (
     space_from_json,
     space_to_json,
 )
+from sb3_graph.toy_envs import MaxNeighbourEnv
 
 
 @pytest.fixture(scope="module")
@@ -104,6 +104,22 @@ def test_registry_is_per_algorithm(tmp_path, model):
     save_file(tensors, str(tmp_path / "q.safetensors"), {"sb3_graph": metadata["sb3_graph"].replace("TD3", "PPO")})
     with pytest.raises(PolicyFileError, match="PPO/GraphPolicy is not an allowed planner policy"):
         load_policy(tmp_path / "q.safetensors")
+
+
+def test_a_policy_registered_under_the_old_module_path_is_allowed_in_files():
+    """Plugins register their policy classes with ``sb3_graph.weights.register_policy``: the old path
+    still registers into the one allow-list that the policy-file readers consult."""
+    import sb3_graph.weights
+    from sb3_graph.files.policy_files import registered_policy
+    from sb3_graph.td3.policies import GraphPolicy
+
+    with pytest.raises(PolicyFileError, match="MyAlgo/MyPolicy"):
+        registered_policy("MyAlgo", "MyPolicy")
+    sb3_graph.weights.register_policy("MyAlgo", "MyPolicy", "sb3_graph.policies:GraphPolicy")
+    try:
+        assert registered_policy("MyAlgo", "MyPolicy") is GraphPolicy
+    finally:
+        POLICY_REGISTRY.pop("MyAlgo")
 
 
 def test_a_graph_policy_resized_to_larger_graphs_acts_the_same_on_the_same_graph(model, tmp_path):

@@ -209,7 +209,7 @@ def markdown(table: pd.DataFrame, confidence: float, bootstrap: str = "stratifie
 
 def run(args: argparse.Namespace) -> int:
     from sb3_graph.aggregate import aggregate
-    from sb3_graph.outputs import OutputError, check_destination, staged_folder
+    from sb3_graph.files.output_folders import OutputError, check_destination, staged_folder
 
     if not 1 <= args.reps <= MAX_REPS:
         raise UserError(f"--reps must be in [1, {MAX_REPS}], got {args.reps}")

@@ -191,7 +191,7 @@ def check_executor_arguments(args: argparse.Namespace) -> None:
 def _check(args: argparse.Namespace) -> list[tuple[str, str]]:
     """Validate the arguments; return the ``(planner word, report name)`` pairs."""
     from envs.simulation.traffic import MAX_DURATION  # highway-env: imported when the command runs, not for --help
-    from sb3_graph.outputs import OutputError, check_destination
+    from sb3_graph.files.output_folders import OutputError, check_destination
 
     if not 1 <= args.scenarios <= MAX_SCENARIOS:
         raise UserError(f"--scenarios must be in [1, {MAX_SCENARIOS}], got {args.scenarios}")
@@ -292,7 +292,7 @@ def duration_text(runs, requested: float) -> str:
 def run(args: argparse.Namespace) -> int:
     from envs.evaluation.harness import check_scenarios, find_scenarios, generate_scenarios
     from envs.evaluation.report import write_report
-    from sb3_graph.outputs import OutputError, staged_folder
+    from sb3_graph.files.output_folders import OutputError, staged_folder
 
     planners = _check(args)
     config = checked_env(args.env, args.env_kwargs)

@@ -388,7 +388,7 @@ def _mapping_section(mapped, recordings: Sequence, dataset_table: pd.DataFrame) 
 
 
 def run(args: argparse.Namespace) -> int:
-    from sb3_graph.outputs import OutputError, check_destination, staged_folder
+    from sb3_graph.files.output_folders import OutputError, check_destination, staged_folder
 
     check_executor_arguments(args)
     if args.seed < 0:

@@ -243,7 +243,7 @@ def run(args: argparse.Namespace) -> int:
     from envs.evaluation.harness import evaluation_env_kwargs
     from envs.planners import make_planner
     from envs.simulation.rendering import record_episode, write_animation
-    from sb3_graph.outputs import OutputError, write_file_atomically
+    from sb3_graph.files.output_folders import OutputError, write_file_atomically
 
     _check_outputs(args)
     settings = _settings(args)

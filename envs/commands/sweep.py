@@ -76,7 +76,7 @@ def checked_demand(values: Sequence[float]) -> list[float]:
 
 def run(args: argparse.Namespace) -> int:
     from envs.evaluation.sweep import capacities, capacity_text
-    from sb3_graph.outputs import OutputError, staged_folder
+    from sb3_graph.files.output_folders import OutputError, staged_folder
 
     demand = checked_demand(args.demand)
     planners = _check(args)

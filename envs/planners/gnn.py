@@ -5,7 +5,7 @@ of a stochastic policy squashed (SAC, TQC, CrossQ) or clipped (PPO, A2C) as ``pr
 
 Planner files are what people share, so they load without running code: a weights-only
 ``.safetensors`` policy file (``sb3-graph export``) or an SB3 ``.zip`` read without unpickling
-(:mod:`sb3_graph.weights`). ``trust_files=True`` (``--trust-planner-files``) restores SB3's full
+(:mod:`sb3_graph.files.policy_files`). ``trust_files=True`` (``--trust-planner-files``) restores SB3's full
 ``Algorithm.load`` for one's own files.
 """
 
@@ -28,9 +28,9 @@ def load_model(path: str | Path, device: str = "cpu", trust_files: bool = False)
     :param device: torch device
     :param trust_files: load a ``.zip`` with its algorithm's SB3 ``load``, which runs the pickles in it
     :return: the policy (``predict``, ``observation_space``)
-    :raises ValueError: a file that cannot be loaded safely (``sb3_graph.weights.PolicyFileError``)
+    :raises ValueError: a file that cannot be loaded safely (``sb3_graph.files.policy_files.PolicyFileError``)
     """
-    from sb3_graph.weights import load_policy
+    from sb3_graph.files.policy_files import load_policy
 
     return load_policy(path, device=device, trust=trust_files).policy
 
@@ -95,7 +95,7 @@ def planner_config_of(path: str | Path) -> dict:
 
     from safetensors import safe_open
 
-    from sb3_graph.weights import METADATA_KEY
+    from sb3_graph.files.policy_files import METADATA_KEY
 
     path = Path(path)
     if path.suffix != ".safetensors" or not path.is_file():
@@ -217,7 +217,7 @@ class GNNPlanner(Planner):
         import torch
 
         from envs.simulation.graph import build_graph_batch
-        from sb3_graph.batching import concat_graph_batches
+        from sb3_graph.common.batching import concat_graph_batches
         from sb3_graph.registry import deterministic_vertex_actions
 
         answers = [np.zeros(0) for _ in scenes]

@@ -64,7 +64,7 @@ from envs.simulation.scene import MAJOR, MANEUVERS, Scene
 from envs.simulation.step_record import StepRecord
 from envs.simulation.traffic import Scenario, ScenarioTraffic, TrainingTraffic
 from sb3_graph.callbacks import VERTEX_ORIGIN
-from sb3_graph.spaces import GraphSpace
+from sb3_graph.common.spaces import GraphSpace
 
 _EMPTY_IDS = np.zeros(0, np.int64)
 

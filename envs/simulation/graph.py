@@ -59,8 +59,8 @@ import torch
 
 from envs.simulation.layouts import ZONE_MARGIN, body_hull
 from envs.simulation.scene import LEFT, MAJOR, RIGHT, STRAIGHT, Scene
-from sb3_graph.batching import GraphBatch
-from sb3_graph.spaces import GraphSpace
+from sb3_graph.common.batching import GraphBatch
+from sb3_graph.common.spaces import GraphSpace
 
 # s in units of the default s_ref (25 m): the GNN's inputs stay of order 1.
 DEFAULT_S_SCALE = 0.04
@@ -336,7 +336,7 @@ def build_graph_batch(
     edge_feature_names: tuple[str, ...] | list[str] = (),
     vertex_feature_names: tuple[str, ...] | list[str] = (),
 ) -> GraphBatch:
-    """The scene as a batch of one graph: what ``sb3_graph.batching.padded_to_batch`` makes of
+    """The scene as a batch of one graph: what ``sb3_graph.common.batching.padded_to_batch`` makes of
     :func:`build_observation`'s observation, built straight from the scene's arrays.
 
     Inference on one scene (the GNN planner) then skips the padding to ``max_nodes`` and

@@ -238,7 +238,7 @@ class Scenario:
         :param path: the file
         :raises ValueError: for a missing, unreadable or invalid file, naming the file and the field
         """
-        from sb3_graph.safe_values import UnsafeValueError, read_regular_file
+        from sb3_graph.files.safe_values import UnsafeValueError, read_regular_file
 
         path = Path(path)
         try:  # a FIFO or a device (also behind a link) is refused before it is opened, a huge file by size

@@ -7,8 +7,8 @@ from typing import ClassVar
 from stable_baselines3 import A2C as SB3A2C
 from stable_baselines3.common.policies import BasePolicy
 
-from sb3_graph.algorithm import GraphAlgorithmMixin
-from sb3_graph.buffers import GraphRolloutBuffer
+from sb3_graph.common.algorithm import GraphAlgorithmMixin
+from sb3_graph.common.buffers import GraphRolloutBuffer
 from sb3_graph.ppo.policies import GraphActorCriticPolicy
 
 

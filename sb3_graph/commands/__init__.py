@@ -13,7 +13,7 @@ class UserError(Exception):
 
 
 from sb3_graph.commands.arguments import check_device, finite_float, json_object  # noqa: E402
-from sb3_graph.outputs import OutputError, check_destination, staged_folder, write_file_atomically  # noqa: E402
+from sb3_graph.files.output_folders import OutputError, check_destination, staged_folder, write_file_atomically  # noqa: E402
 
 __all__ = [
     "OutputError",

@@ -14,7 +14,7 @@ def json_object(text: str) -> dict[str, Any]:
 
     :raises argparse.ArgumentTypeError: invalid JSON, or JSON that is not an object
     """
-    from sb3_graph.safe_values import UnsafeValueError, load_json
+    from sb3_graph.files.safe_values import UnsafeValueError, load_json
 
     try:
         value = load_json(text, "value", constants=False)

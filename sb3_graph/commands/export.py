@@ -7,12 +7,12 @@ Example::
 
 The output holds the policy's tensors (safetensors) and, in the file's metadata, the JSON that
 rebuilds it: algorithm, policy class (from an allow-list), policy keyword arguments, observation and
-action spaces (see :mod:`sb3_graph.weights`). ``sb3-graph evaluate --planner`` and ``sb3-graph ind
+action spaces (see :mod:`sb3_graph.files.policy_files`). ``sb3-graph evaluate --planner`` and ``sb3-graph ind
 --planner`` take it like a ``.zip``. The ``.zip`` is read without unpickling; a file that cannot be
 read that way is exported only with ``--trust-planner-files`` (SB3's full ``load``, which runs the
 pickles in the file: only for files you made yourself). ``--max-nodes``/``--max-edges`` write a
 graph policy for larger (or smaller) graphs with the same weights (see
-:func:`sb3_graph.weights.resize_graph_policy`).
+:func:`sb3_graph.files.policy_files.resize_graph_policy`).
 """
 
 from __future__ import annotations
@@ -50,8 +50,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Run the command (see the module docstring)."""
-    from sb3_graph.outputs import OutputError, write_file_atomically
-    from sb3_graph.weights import SUFFIX, PolicyFileError, load_policy, resize_graph_policy, save_policy
+    from sb3_graph.files.output_folders import OutputError, write_file_atomically
+    from sb3_graph.files.policy_files import SUFFIX, PolicyFileError, load_policy, resize_graph_policy, save_policy
 
     model, out = Path(args.model), Path(args.out)
     for flag, value in (("--max-nodes", args.max_nodes), ("--max-edges", args.max_edges)):

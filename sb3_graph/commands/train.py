@@ -12,7 +12,7 @@ A run folder holds::
     tb/                 TensorBoard logs (reward terms, curriculum, losses)
 
 Checkpoints are pickles (SB3's format): ``--resume`` loads only checkpoint files that this
-machine's ``sb3-graph train`` signed when it wrote them (:mod:`sb3_graph.signing`), so a run
+machine's ``sb3-graph train`` signed when it wrote them (:mod:`sb3_graph.files.signing`), so a run
 folder from elsewhere cannot run code here; ``--trust-run-files`` loads unsigned ones (runs made
 before signatures existed, or your own run copied from another machine). The stored
 ``config.yml`` is read like any experiment file, without evaluating code.
@@ -157,7 +157,7 @@ def parse_overrides(items: list[str], flag: str = "--hyperparams") -> dict[str, 
     :param items: ``KEY:VALUE`` strings
     :param flag: the option named in errors
     """
-    from sb3_graph.safe_values import UnsafeValueError, load_yaml
+    from sb3_graph.files.safe_values import UnsafeValueError, load_yaml
 
     overrides = {}
     for item in items:
@@ -246,8 +246,8 @@ def latest_checkpoint(folder: Path) -> tuple[int, Path] | None:
 
 def save_checkpoint(model, folder: Path) -> None:
     """Save the model and its replay buffer as ``model_<steps>_steps``, each signed (see
-    :mod:`sb3_graph.signing`); drop older replay buffers."""
-    from sb3_graph.signing import sign
+    :mod:`sb3_graph.files.signing`); drop older replay buffers."""
+    from sb3_graph.files.signing import sign
 
     folder.mkdir(parents=True, exist_ok=True)
     steps = model.num_timesteps
@@ -341,7 +341,7 @@ def _check_flags(args: argparse.Namespace) -> None:
 
 def _entry_from_file(args: argparse.Namespace) -> dict[str, Any]:
     """The entry of ``--env`` in ``--config`` with the command line's overrides, checked."""
-    from sb3_graph.experiment import ExperimentError, check_entry, merge_env_kwargs, read_experiment
+    from sb3_graph.files.experiment_files import ExperimentError, check_entry, merge_env_kwargs, read_experiment
 
     try:
         entry = read_experiment(args.config, args.env)
@@ -361,7 +361,7 @@ def _entry_from_file(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def _check_links(out: Path) -> None:
-    from sb3_graph.outputs import OutputError, check_no_links
+    from sb3_graph.files.output_folders import OutputError, check_no_links
 
     written = ("checkpoints", "tb", "callbacks", "config.yml", "run.json", "signatures.json", "best_model.zip",
                "evaluations.npz", "final_model.zip")  # fmt: skip
@@ -373,9 +373,9 @@ def _check_links(out: Path) -> None:
 
 def _stored_record(record_path: Path, trust: bool) -> dict[str, Any] | None:
     """The run record (``run.json``) if there is one, signed (unless ``trust``) and checked."""
-    from sb3_graph.experiment import ExperimentError, check_run_record
-    from sb3_graph.safe_values import UnsafeValueError, load_json, read_text_file
-    from sb3_graph.signing import SignatureError, verify_run_file
+    from sb3_graph.files.experiment_files import ExperimentError, check_run_record
+    from sb3_graph.files.safe_values import UnsafeValueError, load_json, read_text_file
+    from sb3_graph.files.signing import SignatureError, verify_run_file
 
     if not record_path.exists() and not record_path.is_symlink():
         return None
@@ -390,9 +390,9 @@ def _stored_record(record_path: Path, trust: bool) -> dict[str, Any] | None:
 def _stored_entry(config_path: Path, n_timesteps: int | None, trust: bool = False) -> dict[str, Any]:
     """The entry a run folder recorded (``config.yml``), signed (unless ``trust``) and checked like a
     file entry (its expressions are read safely too, though the checkpoint holds the model)."""
-    from sb3_graph.experiment import ExperimentError, build_algorithm_kwargs, check_entry
-    from sb3_graph.safe_values import UnsafeValueError, load_yaml, read_text_file
-    from sb3_graph.signing import SignatureError, verify_run_file
+    from sb3_graph.files.experiment_files import ExperimentError, build_algorithm_kwargs, check_entry
+    from sb3_graph.files.safe_values import UnsafeValueError, load_yaml, read_text_file
+    from sb3_graph.files.signing import SignatureError, verify_run_file
 
     try:
         verify_run_file(config_path, trust)
@@ -417,11 +417,11 @@ def _algorithm(args: argparse.Namespace):
 
 def _load_weights(model, path: str) -> None:
     # SB3's set_parameters reads only the zip's .pth files, with torch.load(weights_only=True); a
-    # .safetensors policy file is tensors by construction (sb3_graph.weights).
+    # .safetensors policy file is tensors by construction (sb3_graph.files.policy_files).
     if not Path(path).is_file():
         raise UserError(f"--init-weights: no such file {path!r}")
     if Path(path).suffix == ".safetensors":
-        from sb3_graph.weights import PolicyFileError, init_from_file
+        from sb3_graph.files.policy_files import PolicyFileError, init_from_file
 
         try:
             init_from_file(model.policy, path)
@@ -432,7 +432,7 @@ def _load_weights(model, path: str) -> None:
         model.set_parameters(path, exact_match=True, device=model.device)
     except Exception as error:  # a zip of another architecture, or not a model at all
         raise UserError(f"--init-weights: cannot load the weights of {path!r}: {error}") from error
-    from sb3_graph.policy_kwargs import PolicyKwargsError, check_finite_weights
+    from sb3_graph.files.policy_kwargs import PolicyKwargsError, check_finite_weights
 
     try:
         check_finite_weights(model.policy, f"--init-weights: {path}")
@@ -442,7 +442,7 @@ def _load_weights(model, path: str) -> None:
 
 def _load_checkpoint(path: Path, buffer_path: Path, trust: bool, algorithm, **load_kwargs):
     """Load a checkpoint and its replay buffer, each only if this machine signed it (or ``trust``)."""
-    from sb3_graph.signing import SignatureError, verify
+    from sb3_graph.files.signing import SignatureError, verify
 
     if not trust:
         for file in (path, buffer_path) if buffer_path.is_file() else (path,):
@@ -460,7 +460,12 @@ def _load_checkpoint(path: Path, buffer_path: Path, trust: bool, algorithm, **lo
 
 
 def _build_model(entry: dict[str, Any], train_env, seed: int, args: argparse.Namespace, tensorboard_log):
-    from sb3_graph.experiment import ExperimentError, build_algorithm_kwargs, check_algorithm_keys, resolve_object
+    from sb3_graph.files.experiment_files import (
+        ExperimentError,
+        build_algorithm_kwargs,
+        check_algorithm_keys,
+        resolve_object,
+    )
 
     try:
         algo_kwargs = build_algorithm_kwargs(entry, int(np.prod(train_env.action_space.shape)))
@@ -507,7 +512,7 @@ def _make_expert(spec: str, env_id: str, train_env) -> Any:
 
 def _pretrain(model, entry: dict[str, Any], env_id: str, train_env) -> dict[str, Any] | None:
     """Clone the entry's ``pretrain_from`` expert into the model (nothing without one); its summary."""
-    from sb3_graph.cloning import behaviour_clone
+    from sb3_graph.common.cloning import behaviour_clone
 
     spec = entry.get("pretrain_from")
     if spec is None:
@@ -629,8 +634,8 @@ def _run_one(args: argparse.Namespace) -> int:
     import torch as th
     from stable_baselines3.common.callbacks import CallbackList, EvalCallback
 
-    from sb3_graph.experiment import ExperimentError, build_callbacks
-    from sb3_graph.signing import write_signed
+    from sb3_graph.files.experiment_files import ExperimentError, build_callbacks
+    from sb3_graph.files.signing import write_signed
 
     _check_flags(args)
     th.set_num_threads(args.threads)

@@ -2,7 +2,7 @@
 
 CrossQ drops target networks and instead normalizes the critic's layers with batch
 renormalization over the *joint* batch of observations and next observations
-(``torch.cat([obs, next_obs])``; :class:`~sb3_graph.batching.GraphBatch` concatenates as a disjoint
+(``torch.cat([obs, next_obs])``; :class:`~sb3_graph.common.batching.GraphBatch` concatenates as a disjoint
 union, so sb3-contrib's ``CrossQ.train`` runs unchanged).
 
 Where batch renormalization meets ragged batches:
@@ -35,9 +35,9 @@ from stable_baselines3.common.torch_layers import FlattenExtractor
 from stable_baselines3.common.type_aliases import Schedule
 from torch import Tensor, nn
 
-from sb3_graph.batching import GraphBatch, as_graph_batch, gather_vertex_values
-from sb3_graph.layers import relational_conv
-from sb3_graph.networks import GraphPolicyParameters, GraphTrunk, _activate, graph_dims, pool_graphs
+from sb3_graph.common.batching import GraphBatch, as_graph_batch, gather_vertex_values
+from sb3_graph.common.layers import relational_conv
+from sb3_graph.common.networks import GraphPolicyParameters, GraphTrunk, _activate, graph_dims, pool_graphs
 from sb3_graph.sac.policies import GraphSACActor, _no_sde
 
 

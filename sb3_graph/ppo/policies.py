@@ -3,7 +3,7 @@
 The actor trunk gives each real vertex the mean of a Gaussian over its action; the standard
 deviation is one learned, state-independent parameter shared by all vertices (SB3's
 ``log_std``). The log-probability and the entropy of a graph's action are sums over its real
-vertices (:mod:`sb3_graph.distributions`). The critic trunk's vertex embeddings are pooled into
+vertices (:mod:`sb3_graph.common.distributions`). The critic trunk's vertex embeddings are pooled into
 one row per graph and a linear head gives the value. Padded action slots are exactly 0, carry no
 probability and never reach a loss.
 """
@@ -20,9 +20,9 @@ from stable_baselines3.common.torch_layers import FlattenExtractor
 from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from torch import Tensor, nn
 
-from sb3_graph.batching import GraphBatch, as_graph_batch, batch_to_padded, gather_vertex_values
-from sb3_graph.distributions import gaussian_entropy, gaussian_log_prob, sum_per_graph
-from sb3_graph.networks import GraphTrunk, graph_dims, graph_net_kwargs, pool_graphs
+from sb3_graph.common.batching import GraphBatch, as_graph_batch, batch_to_padded, gather_vertex_values
+from sb3_graph.common.distributions import gaussian_entropy, gaussian_log_prob, sum_per_graph
+from sb3_graph.common.networks import GraphTrunk, graph_dims, graph_net_kwargs, pool_graphs
 
 
 class GraphActorCriticPolicy(BasePolicy):

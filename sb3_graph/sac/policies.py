@@ -3,7 +3,7 @@
 The same actor serves SAC, TQC (:mod:`sb3_graph.tqc`) and CrossQ (:mod:`sb3_graph.crossq`): a
 relational trunk, then a dense head shared by all vertices that outputs each vertex's mean and log
 standard deviation; an action is ``tanh(u)`` with ``u ~ N(mean, std^2)`` per real vertex, and its
-log-probability is the sum over the graph's real vertices (:mod:`sb3_graph.distributions`).
+log-probability is the sum over the graph's real vertices (:mod:`sb3_graph.common.distributions`).
 Padded action slots are exactly 0 and carry no probability.
 """
 
@@ -20,9 +20,9 @@ from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from stable_baselines3.sac.policies import SACPolicy
 from torch import Tensor, nn
 
-from sb3_graph.batching import GraphBatch, as_graph_batch, batch_to_padded
-from sb3_graph.distributions import LOG_STD_MAX, LOG_STD_MIN, squashed_sample, sum_per_graph
-from sb3_graph.networks import (
+from sb3_graph.common.batching import GraphBatch, as_graph_batch, batch_to_padded
+from sb3_graph.common.distributions import LOG_STD_MAX, LOG_STD_MIN, squashed_sample, sum_per_graph
+from sb3_graph.common.networks import (
     GraphCritic,
     GraphPolicyParameters,
     GraphTrunk,
@@ -130,7 +130,7 @@ def _no_sde(use_sde: bool, owner: str) -> None:
 class GraphSACPolicy(GraphPolicyParameters, SACPolicy):
     """SAC policy with a relational GNN actor (per-vertex squashed Gaussian) and graph critics.
 
-    The critics are TD3's graph critics (:class:`~sb3_graph.networks.GraphCritic`): each vertex's
+    The critics are TD3's graph critics (:class:`~sb3_graph.common.networks.GraphCritic`): each vertex's
     action joins its features, and a padded slot's action never reaches them. Works with
     :class:`sb3_graph.SAC` (graph replay buffer, entropy target per real vertex) and with stock
     ``stable_baselines3.SAC(GraphSACPolicy, env)`` (padded ``DictReplayBuffer``, SB3's entropy target
@@ -153,7 +153,7 @@ class GraphSACPolicy(GraphPolicyParameters, SACPolicy):
     :param normalize_images: not used
     :param optimizer_class: optimizer, ``torch.optim.Adam`` by default
     :param optimizer_kwargs: optimizer keyword arguments, excluding the learning rate (Adam and AdamW:
-        ``foreach=True`` unless given otherwise, see :func:`~sb3_graph.networks.fast_optimizer_kwargs`)
+        ``foreach=True`` unless given otherwise, see :func:`~sb3_graph.common.networks.fast_optimizer_kwargs`)
     :param n_critics: number of critic networks
     :param share_features_extractor: not used (nothing to share)
     :param net_arch: not used by graph networks; accepted only as ``None``

@@ -2,7 +2,7 @@
 
 The actor maps a graph to one action per vertex; each critic joins every vertex's action to its
 features, runs the same kind of trunk, pools over the graph's vertices and outputs one Q value
-(:mod:`sb3_graph.networks`).
+(:mod:`sb3_graph.common.networks`).
 """
 
 from __future__ import annotations
@@ -18,8 +18,8 @@ from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from stable_baselines3.td3.policies import TD3Policy
 from torch import Tensor, nn
 
-from sb3_graph.batching import GraphBatch, as_graph_batch, batch_to_padded
-from sb3_graph.networks import (
+from sb3_graph.common.batching import GraphBatch, as_graph_batch, batch_to_padded
+from sb3_graph.common.networks import (
     GraphCritic,
     GraphPolicyParameters,
     GraphTrunk,
@@ -118,7 +118,7 @@ class GraphPolicy(GraphPolicyParameters, TD3Policy):
     :param activation_fn: activation function
     :param optimizer_class: optimizer, ``torch.optim.Adam`` by default
     :param optimizer_kwargs: optimizer keyword arguments, excluding the learning rate (Adam and AdamW:
-        ``foreach=True`` unless given otherwise, see :func:`~sb3_graph.networks.fast_optimizer_kwargs`)
+        ``foreach=True`` unless given otherwise, see :func:`~sb3_graph.common.networks.fast_optimizer_kwargs`)
     :param n_critics: number of critic networks (TD3: 2)
     :param net_arch: not used by graph networks; accepted only as ``None``
     :param features_extractor_class: not used (graphs go straight to the networks)

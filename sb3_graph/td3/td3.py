@@ -7,8 +7,8 @@ from typing import ClassVar
 from stable_baselines3 import TD3 as SB3TD3
 from stable_baselines3.common.policies import BasePolicy
 
-from sb3_graph.algorithm import GraphAlgorithmMixin
-from sb3_graph.buffers import GraphReplayBuffer
+from sb3_graph.common.algorithm import GraphAlgorithmMixin
+from sb3_graph.common.buffers import GraphReplayBuffer
 from sb3_graph.td3.policies import GraphPolicy
 
 

@@ -12,8 +12,8 @@ from stable_baselines3.common.torch_layers import FlattenExtractor
 from stable_baselines3.common.type_aliases import Schedule
 from torch import Tensor, nn
 
-from sb3_graph.batching import GraphBatch
-from sb3_graph.networks import (
+from sb3_graph.common.batching import GraphBatch
+from sb3_graph.common.networks import (
     GraphCritic,
     GraphPolicyParameters,
     fast_optimizer_kwargs,
@@ -30,7 +30,7 @@ class GraphQuantileCritic(GraphCritic):
     :param action_space: ``Box`` of shape ``(max_nodes,)``
     :param n_quantiles: quantiles per critic
     :param n_critics: number of critic networks
-    :param kwargs: the graph network options of :class:`~sb3_graph.networks.GraphCritic`
+    :param kwargs: the graph network options of :class:`~sb3_graph.common.networks.GraphCritic`
     """
 
     def __init__(
@@ -75,7 +75,7 @@ class GraphTQCPolicy(GraphPolicyParameters, TQCPolicy):
     :param normalize_images: not used
     :param optimizer_class: optimizer, ``torch.optim.Adam`` by default
     :param optimizer_kwargs: optimizer keyword arguments, excluding the learning rate (Adam and AdamW:
-        ``foreach=True`` unless given otherwise, see :func:`~sb3_graph.networks.fast_optimizer_kwargs`)
+        ``foreach=True`` unless given otherwise, see :func:`~sb3_graph.common.networks.fast_optimizer_kwargs`)
     :param n_quantiles: quantiles per critic
     :param n_critics: number of critic networks
     :param share_features_extractor: not used

@@ -7,8 +7,8 @@ from typing import ClassVar
 from sb3_contrib import TQC as ContribTQC
 from stable_baselines3.common.policies import BasePolicy
 
-from sb3_graph.algorithm import GraphAlgorithmMixin, VertexEntropyMixin
-from sb3_graph.buffers import GraphReplayBuffer
+from sb3_graph.common.algorithm import GraphAlgorithmMixin, VertexEntropyMixin
+from sb3_graph.common.buffers import GraphReplayBuffer
 from sb3_graph.tqc.policies import GraphTQCPolicy
 
 

@@ -218,7 +218,7 @@ def prepare(args: argparse.Namespace):
 
     import gymnasium as gym
 
-    from sb3_graph.experiment import (
+    from sb3_graph.files.experiment_files import (
         ExperimentError,
         build_algorithm_kwargs,
         build_callbacks,
@@ -259,7 +259,7 @@ def prepare(args: argparse.Namespace):
         entry = check_entry(read_experiment(args.config, args.env))
         trial_entry = check_entry({**entry, **overrides})
         # Every value that a trial turns into an object, checked once here (a typo fails the
-        # command, not every trial): no expression is evaluated, see sb3_graph.safe_values.
+        # command, not every trial): no expression is evaluated, see sb3_graph.files.safe_values.
         # a key that the algorithm does not take (a typo: learnig_rate) names itself here, not in every trial
         check_algorithm_keys(build_algorithm_kwargs(trial_entry, 1), ALGORITHMS[args.algo].load_class())
         build_callbacks(trial_entry)
@@ -385,7 +385,7 @@ def _check_config_space(env_id: str, env_kwargs: dict[str, Any], config: Any, sp
     """Each ``--tune-config`` key is a number of the env's config that the env accepts at both bounds."""
     import gymnasium as gym
 
-    from sb3_graph.experiment import merge_env_kwargs
+    from sb3_graph.files.experiment_files import merge_env_kwargs
 
     def number(value: Any) -> bool:
         return isinstance(value, (int, float)) and not isinstance(value, bool)
@@ -413,9 +413,9 @@ def _check_init_weights(args: argparse.Namespace, entry: dict[str, Any], env_kwa
     import numpy as np
     from stable_baselines3.common.env_util import make_vec_env
 
-    from sb3_graph.experiment import build_algorithm_kwargs, resolve_object
+    from sb3_graph.files.experiment_files import build_algorithm_kwargs, resolve_object
+    from sb3_graph.files.policy_files import PolicyFileError
     from sb3_graph.tuning.runner import load_init_weights
-    from sb3_graph.weights import PolicyFileError
 
     if not path.is_file():
         raise UserError(f"--init-weights: no such file {str(path)!r}")

@@ -147,8 +147,8 @@ def pretrain_trial(
     :return: ``None`` without ``pretrain_from``; else ``cache`` (``"none"``, ``"demonstrations"`` or
         ``"clone"``: what was reused), ``transitions``, ``seconds`` and the two files' names
     """
-    from sb3_graph.cloning import Demonstrations, behaviour_clone
     from sb3_graph.commands.train import PRETRAIN_STEPS, _make_expert
+    from sb3_graph.common.cloning import Demonstrations, behaviour_clone
 
     if entry.get("pretrain_from") is None:
         return None

@@ -180,9 +180,9 @@ class TrialEvalCallback(BaseCallback):
 def load_init_weights(model, path: str | Path) -> None:
     """Start ``model``'s policy from the tensors of a policy file (tensors only, nothing unpickled).
 
-    :raises sb3_graph.weights.PolicyFileError: an unreadable file or another architecture (one line)
+    :raises sb3_graph.files.policy_files.PolicyFileError: an unreadable file or another architecture (one line)
     """
-    from sb3_graph.weights import init_from_file
+    from sb3_graph.files.policy_files import init_from_file
 
     init_from_file(model.policy, path)
 
@@ -214,7 +214,7 @@ def run_trial(trial: optuna.Trial, settings: TrialSettings) -> float | tuple[flo
 def _run(trial: optuna.Trial, settings: TrialSettings) -> float | tuple[float, ...]:
     from stable_baselines3.common.env_util import make_vec_env
 
-    from sb3_graph.experiment import build_algorithm_kwargs, build_callbacks, resolve_object
+    from sb3_graph.files.experiment_files import build_algorithm_kwargs, build_callbacks, resolve_object
     params = sample_params(trial, settings)
     entry = entry_with_params(settings.entry, params)
     env_kwargs = dict(entry.get("env_kwargs") or {})

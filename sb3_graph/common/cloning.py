@@ -2,7 +2,7 @@
 
 :func:`behaviour_clone` drives the model's own VecEnv with an expert (optionally mixing in the policy,
 DAgger), labels every visited state with the expert's action, and trains the actor on the labels with
-the masked imitation loss of :mod:`sb3_graph.demonstrations`. Off-policy models keep the demonstrations
+the masked imitation loss of :mod:`sb3_graph.common.demonstrations`. Off-policy models keep the demonstrations
 in their replay buffer (:class:`~sb3_graph.GraphReplayBuffer` with expert actions), where the
 ``bc_coef`` regularizer finds them during RL, and warm up their critics on them.
 """
@@ -19,9 +19,9 @@ import numpy as np
 import torch
 from stable_baselines3.common.logger import Logger
 
-from sb3_graph.algorithm import EXECUTED_ACTION
-from sb3_graph.buffers import GraphReplayBuffer
-from sb3_graph.demonstrations import Expert, checked_expert_actions, demonstration_loss, expert_targets
+from sb3_graph.common.algorithm import EXECUTED_ACTION
+from sb3_graph.common.buffers import GraphReplayBuffer
+from sb3_graph.common.demonstrations import Expert, checked_expert_actions, demonstration_loss, expert_targets
 
 
 def behaviour_clone(
@@ -47,7 +47,7 @@ def behaviour_clone(
     visited state with the expert's action, then take ``gradient_steps / rounds`` gradient steps of the
     actor on batches of labelled transitions (all rounds' so far).
 
-    The loss (:func:`sb3_graph.demonstrations.demonstration_loss`) is the squared error of the policy's
+    The loss (:func:`sb3_graph.common.demonstrations.demonstration_loss`) is the squared error of the policy's
     deterministic action against the expert's over the real vertices only: a masked MSE of the actor's
     output for TD3 and DDPG; for the stochastic actors the error of the Gaussian *mean* (``tanh(mean)``
     for SAC, TQC and CrossQ, the mean for PPO and A2C), not the negative log-likelihood: an expert's

@@ -25,7 +25,7 @@ import stat
 import tempfile
 from pathlib import Path
 
-from sb3_graph.safe_values import UnsafeValueError, load_json, read_text_file
+from sb3_graph.files.safe_values import UnsafeValueError, load_json, read_text_file
 
 KEY_ENV = "SB3_GRAPH_KEY_FILE"
 SIGNATURES = "signatures.json"

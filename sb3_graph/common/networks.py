@@ -8,7 +8,7 @@
 - :func:`graph_net_kwargs`: the checked network options (``encoder_dim``, ``conv_dims``,
   ``aggregation``, ``activation_fn``, ``use_edge_features``) that every graph policy accepts.
 
-Observations arrive either as a :class:`~sb3_graph.batching.GraphBatch` (from the graph buffers)
+Observations arrive either as a :class:`~sb3_graph.common.batching.GraphBatch` (from the graph buffers)
 or as SB3's padded dictionary of tensors (``predict``, ``DictReplayBuffer``); actions are always
 padded ``(B, max_nodes)`` at this boundary.
 """
@@ -25,9 +25,9 @@ from stable_baselines3.common.policies import BaseModel
 from torch import Tensor, nn
 from torch_geometric.nn import global_add_pool, global_max_pool, global_mean_pool
 
-from sb3_graph.batching import GraphBatch, as_graph_batch, derived_indices, gather_vertex_values
-from sb3_graph.layers import AGGREGATIONS, RelationalMaxConv, relational_conv, segment_max
-from sb3_graph.spaces import edge_dims, graph_dims
+from sb3_graph.common.batching import GraphBatch, as_graph_batch, derived_indices, gather_vertex_values
+from sb3_graph.common.layers import AGGREGATIONS, RelationalMaxConv, relational_conv, segment_max
+from sb3_graph.common.spaces import edge_dims, graph_dims
 
 POOLINGS = {"max": global_max_pool, "mean": global_mean_pool, "sum": global_add_pool}
 
@@ -354,7 +354,7 @@ class GraphCritic(BaseModel):
     :param n_outputs: outputs of each network's head (1: a Q value)
 
     While :attr:`policy_loss_without_weight_gradients` is set (the graph algorithms set it for the
-    duration of their ``train``, see :class:`~sb3_graph.algorithm.GraphAlgorithmMixin`), a call on
+    duration of their ``train``, see :class:`~sb3_graph.common.algorithm.GraphAlgorithmMixin`), a call on
     actions that carry a gradient (the actor's: a policy loss) treats the critics' own parameters
     as constants: the actor's gradients are the same, and the critics' weight gradients, which the
     algorithm discards (its next critic update starts with ``zero_grad``), are not computed.

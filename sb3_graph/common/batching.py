@@ -14,7 +14,7 @@ from typing import Any, NamedTuple
 import torch
 from torch import Tensor
 
-from sb3_graph.spaces import EDGE_ATTR, EDGE_INDEX, EDGE_MASK, EDGE_TYPE, NODE_MASK, X
+from sb3_graph.common.spaces import EDGE_ATTR, EDGE_INDEX, EDGE_MASK, EDGE_TYPE, NODE_MASK, X
 
 
 class GraphBatch(NamedTuple):

@@ -16,7 +16,7 @@ import math
 import torch
 from torch import Tensor
 
-from sb3_graph.batching import GraphBatch
+from sb3_graph.common.batching import GraphBatch
 
 LOG_STD_MIN, LOG_STD_MAX = -20.0, 2.0  # SB3's bounds for SAC's state-dependent log std
 SQUASH_EPSILON = 1e-6  # SB3's SquashedDiagGaussianDistribution epsilon

@@ -1,6 +1,6 @@
 """Learning from an expert's actions: the masked imitation loss, its coefficient, and the labelling of
 rollout states, shared by :func:`sb3_graph.behaviour_clone` and the ``bc_coef`` regularizer of the
-algorithm aliases (:class:`~sb3_graph.algorithm.GraphAlgorithmMixin`).
+algorithm aliases (:class:`~sb3_graph.common.algorithm.GraphAlgorithmMixin`).
 
 An *expert* is a callable ``expert(obs) -> actions``: it takes a VecEnv's batched observation
 dictionary and returns ``(n_envs, max_nodes)`` actions in the action space's units (padded slots are

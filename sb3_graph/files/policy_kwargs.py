@@ -27,7 +27,7 @@ from typing import Any
 import torch as th
 from torch import nn
 
-from sb3_graph.safe_values import check_structure, finite_number
+from sb3_graph.files.safe_values import check_structure, finite_number
 
 #: widest layer (vertex encoder, convolution or MLP layer) accepted
 MAX_WIDTH = 4096
@@ -113,8 +113,8 @@ def _plain(value: Any) -> bool:
 
 
 def _rules() -> dict[str, tuple[Any, str]]:
-    from sb3_graph.layers import AGGREGATIONS
-    from sb3_graph.networks import POOLINGS
+    from sb3_graph.common.layers import AGGREGATIONS
+    from sb3_graph.common.networks import POOLINGS
 
     return {
         "encoder_dim": _integer(1, MAX_WIDTH),
@@ -149,7 +149,7 @@ def check_policy_kwargs(
     """Check a policy's constructor keyword arguments (see the module docstring).
 
     :param kwargs: the keyword arguments (classes already resolved, e.g. by
-        :func:`sb3_graph.safe_values.resolve_name`)
+        :func:`sb3_graph.files.safe_values.resolve_name`)
     :param source: what they came from, the start of each message (``policy_kwargs``, a file)
     :param observation_space: the graph space the policy is built for (sizes of the memory
         estimate); ``None``: :data:`DEFAULT_NODE_FEATURES` and :data:`DEFAULT_RELATIONS`

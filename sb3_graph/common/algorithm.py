@@ -32,9 +32,9 @@ from gymnasium import spaces
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList
 from stable_baselines3.common.vec_env import VecEnv, VecNormalize
 
-from sb3_graph.demonstrations import ExpertLabeller, bc_coef_value, demonstration_loss, parse_bc_coef
-from sb3_graph.networks import GraphCritic
-from sb3_graph.spaces import EDGE_ATTR, GRAPH_KEYS, GraphSpace
+from sb3_graph.common.demonstrations import ExpertLabeller, bc_coef_value, demonstration_loss, parse_bc_coef
+from sb3_graph.common.networks import GraphCritic
+from sb3_graph.common.spaces import EDGE_ATTR, GRAPH_KEYS, GraphSpace
 
 #: ``info`` key of an environment's applied action when it differs from the agent's (a shield).
 EXECUTED_ACTION = "executed_action"
@@ -82,7 +82,7 @@ class GraphAlgorithmMixin:
 
     :param bc_coef: weight ``c`` of the imitation term added to the actor's loss,
         ``loss + c * mean_i (pi(s)_i - a^E_i)^2`` over the real vertices of the labelled graphs of
-        each batch (:func:`sb3_graph.demonstrations.demonstration_loss`): a number >= 0,
+        each batch (:func:`sb3_graph.common.demonstrations.demonstration_loss`): a number >= 0,
         ``"lin_<c>"`` (linear decay to 0 over ``learn``) or a callable of SB3's
         ``progress_remaining``. 0 (the default) leaves training exactly SB3's. Off-policy (TD3, DDPG,
         SAC, TQC, CrossQ), the labelled transitions are the demonstrations that
@@ -150,7 +150,7 @@ class GraphAlgorithmMixin:
 
     def train(self, *args: Any, **kwargs: Any) -> None:
         """SB3's ``train``; a graph critic (TD3, DDPG, SAC, TQC) computes no weight gradients in the
-        policy loss, which SB3 discards (see :class:`~sb3_graph.networks.GraphCritic`); with
+        policy loss, which SB3 discards (see :class:`~sb3_graph.common.networks.GraphCritic`); with
         ``bc_coef`` above 0, the imitation term joins the actor's loss."""
         coef = self.bc_coefficient()
         with self._imitation_term(coef) if coef > 0 else contextlib.nullcontext():
@@ -197,7 +197,7 @@ class GraphAlgorithmMixin:
 
     def collect_rollouts(self, env: VecEnv, callback: BaseCallback, *args: Any, **kwargs: Any) -> Any:
         """SB3's ``collect_rollouts``; on-policy with ``bc_coef`` above 0, ``bc_expert`` labels every
-        rollout state (:class:`~sb3_graph.demonstrations.ExpertLabeller`)."""
+        rollout state (:class:`~sb3_graph.common.demonstrations.ExpertLabeller`)."""
         if not self._on_policy or self.bc_coefficient() <= 0:
             return super().collect_rollouts(env, callback, *args, **kwargs)  # type: ignore[misc]
         if self.bc_expert is None:

@@ -1,6 +1,7 @@
-"""The relational max aggregation of :class:`~sb3_graph.layers.RelationalMaxConv` on CPU, compiled
-with numba (used by ``sb3_graph.layers._RelationalMax``; the PyTorch formulation there stays the
-reference and serves every other device).
+"""The relational max aggregation of :class:`~sb3_graph.common.layers.RelationalMaxConv` on CPU,
+compiled with numba (used by ``sb3_graph.common.layers.max_aggregation._RelationalMax``, switched
+by :mod:`sb3_graph.common.layers.compiled`; the PyTorch formulation there stays the reference and
+serves every other device).
 
 Why compiled: per layer, the PyTorch formulation makes about ten passes over an ``(E, C)`` tensor
 of messages (gather, ``scatter_reduce``; in the backward pass a gather of the maxima, an equality

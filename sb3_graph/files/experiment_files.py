@@ -3,7 +3,7 @@
 The YAML format is rl-zoo3's (one top-level entry per environment id), so the same file runs
 with ``python -m rl_zoo3.train -conf FILE`` and with ``sb3-graph train --config FILE``. Values
 that rl-zoo3 evaluates as Python (``policy_kwargs``, ``replay_buffer_class``) are *not*
-evaluated here: :mod:`sb3_graph.safe_values` reads the subset that experiment files need
+evaluated here: :mod:`sb3_graph.files.safe_values` reads the subset that experiment files need
 (literals, ``dict(...)``, dotted class names inside an allow-list of packages), so an experiment
 file cannot run code through ``sb3-graph``. (rl-zoo3 itself still ``eval``s these strings: run
 files from others with ``sb3-graph train``, or read them first.)
@@ -25,8 +25,8 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from stable_baselines3.common.utils import LinearSchedule
 
-from sb3_graph.policy_kwargs import PolicyKwargsError, check_policy_kwargs
-from sb3_graph.safe_values import UnsafeValueError, load_yaml, parse_value, read_text_file
+from sb3_graph.files.policy_kwargs import PolicyKwargsError, check_policy_kwargs
+from sb3_graph.files.safe_values import UnsafeValueError, load_yaml, parse_value, read_text_file
 
 # Keys the trainer consumes itself; all others go to the algorithm's constructor.
 TRAINER_KEYS = {"n_timesteps", "n_envs", "env_kwargs", "noise_type", "noise_std", "callback", "policy"}
@@ -98,7 +98,7 @@ def read_experiment(path: str | Path, env_id: str) -> dict[str, Any]:
 
 
 def resolve_object(value: Any, field: str) -> Any:
-    """Turn an rl-zoo3 string into an object without evaluating it (see :mod:`sb3_graph.safe_values`).
+    """Turn an rl-zoo3 string into an object without evaluating it (see :mod:`sb3_graph.files.safe_values`).
 
     :param value: a dotted class name, a ``dict(...)``/literal expression, or any non-string (kept)
     :param field: the entry's field; a class named for a field of :data:`CLASS_BASES` (also
