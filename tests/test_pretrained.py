@@ -89,7 +89,7 @@ def test_paper_model_acts_on_every_layout(env_id):
 
 
 def test_the_weight_studys_six_planners_are_fine_tunings_of_the_shipped_one():
-    """examples/weight_study/seeds (issue #23): each file has the shipped planner's architecture, and
+    """experiments/weight_study/seeds (issue #23): each file has the shipped planner's architecture, and
     fine-tuning moved its weights (a copy of the shipped file would pass a load check too)."""
     from pathlib import Path
 
