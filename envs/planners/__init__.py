@@ -34,7 +34,10 @@ from envs.planners.loading import (
     remote_planner_name,
 )
 from envs.planners.priority_rules import PriorityRulesPlanner
+from envs.planners.residual import make_residual_base
+from envs.planners.shield import Shield, training_shield
 from envs.planners.signal import SignalPlanner
+from envs.simulation import hooks
 
 BASELINES: dict[str, type[Planner]] = {
     "pr": PriorityRulesPlanner,
@@ -107,8 +110,6 @@ def make_planner(spec: str, trust_files: bool = False) -> Planner:
     """
     key = check_planner_spec(spec)
     if key.endswith(SHIELD_SUFFIX):
-        from envs.planners.shield import Shield
-
         inner = key[: -len(SHIELD_SUFFIX)]
         if is_remote_spec(inner):  # its misses get the shield's fallback
             return make_remote_planner(inner, shielded=True)
@@ -120,7 +121,7 @@ def make_planner(spec: str, trust_files: bool = False) -> Planner:
     if is_class_spec(key):
         return make_class_planner(key)
     from envs.planners.gnn import GNNPlanner
-    from envs.planners.residual import ResidualPlanner, make_residual_base
+    from envs.planners.residual import ResidualPlanner
 
     planner = GNNPlanner(key, trust_files=trust_files)
     config = planner.planner_config  # checked at load
@@ -156,6 +157,11 @@ def planner_name(spec: str) -> str:
 
     return model_name(Path(key))
 
+
+# What the environments train with (envs.simulation.hooks): the planners live on this floor.
+hooks.register("shield", training_shield)
+hooks.register("residual_base", make_residual_base)
+hooks.register("priority", GlidePlanner)
 
 __all__ = [
     "AIMPlanner",
