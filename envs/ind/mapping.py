@@ -38,6 +38,7 @@ import numpy as np
 import pandas as pd
 
 from envs.ind.loader import Recording
+from envs.simulation.layouts import build_layout
 from envs.simulation.motion import event_starts, hard_braking, traction_energy
 from envs.simulation.scene import MAJOR, MANEUVERS, STOP_SPEED
 
@@ -463,8 +464,6 @@ def map_recordings(
     """
     options = options or MappingOptions()
     if layout is None:
-        from envs.simulation.layouts import build_layout
-
         layout = layout_arms(build_layout("inD"))
     if options.arrival_timing and layout.routes is None:
         raise ValueError(

@@ -31,10 +31,12 @@ from envs.planners.loading import (
     load_planner_class,
     make_class_planner,
     make_remote_planner,
+    model_name,
     remote_planner_name,
 )
+from envs.planners.priority import PriorityPlanner
 from envs.planners.priority_rules import PriorityRulesPlanner
-from envs.planners.residual import make_residual_base
+from envs.planners.residual import ResidualPlanner
 from envs.planners.shield import Shield, training_shield
 from envs.planners.signal import SignalPlanner
 from envs.simulation import hooks
@@ -121,18 +123,22 @@ def make_planner(spec: str, trust_files: bool = False) -> Planner:
     if is_class_spec(key):
         return make_class_planner(key)
     from envs.planners.gnn import GNNPlanner
-    from envs.planners.residual import ResidualPlanner
-
     planner = GNNPlanner(key, trust_files=trust_files)
     config = planner.planner_config  # checked at load
     if "action" in config:  # a priority policy: its scores shift glide's order
-        from envs.planners.priority import PriorityPlanner
-
         return PriorityPlanner(GlidePlanner(), planner, config["action"]["scale"], name=planner.name)
     if config.get("residual_base") is None:
         return planner
     base = make_residual_base(config["residual_base"])
     return ResidualPlanner(base, planner, config["residual_scale"], name=planner.name)
+
+
+def make_residual_base(name: str | None) -> Planner | None:
+    """The base planner of a residual policy (``residual_base``), or ``None``.
+
+    :param name: ``None`` or one of :data:`envs.simulation.config.RESIDUAL_BASES`
+    """
+    return None if name is None else make_planner(name)
 
 
 def planner_name(spec: str) -> str:
@@ -153,8 +159,6 @@ def planner_name(spec: str) -> str:
         return remote_planner_name(key)
     if is_class_spec(key):
         return class_planner_name(key)
-    from envs.planners.gnn import model_name
-
     return model_name(Path(key))
 
 
@@ -177,5 +181,6 @@ __all__ = [
     "SignalPlanner",
     "check_planner_spec",
     "make_planner",
+    "make_residual_base",
     "planner_name",
 ]

@@ -158,3 +158,16 @@ def remote_planner_name(spec: str) -> str:
     :raises ValueError: the server cannot be reached or refuses
     """
     return hooks.maker("remote_planner_name")(check_remote_spec(spec))
+
+
+def model_name(path: Path) -> str:
+    """Report name of a model file: ``RL:<folder>`` for ``best_model.zip`` (or ``.safetensors``) and the
+    like, else ``RL:<stem>``.
+
+    :param path: the model file
+    :return: the name
+    """
+    stem = path.stem
+    if stem in ("best_model", "final_model", "model") and path.parent.name:
+        return f"RL:{path.parent.name}"
+    return f"RL:{stem}"

@@ -37,6 +37,7 @@ from matplotlib import animation  # noqa: E402
 from matplotlib.collections import PolyCollection  # noqa: E402
 from matplotlib.patches import Patch  # noqa: E402
 
+from envs.simulation.layouts import LANE_WIDTH  # noqa: E402
 from envs.simulation.scene import STOP_SPEED, Scene  # noqa: E402
 from envs.simulation.step_record import StepRecord  # noqa: E402
 
@@ -211,8 +212,6 @@ def zone_outlines(layout, half_width: float = 1.0) -> list[np.ndarray]:
 
 
 def _draw_background(ax, layout, view: float) -> None:
-    from envs.simulation.layouts import LANE_WIDTH
-
     roads = [_band(_route_samples(layout, r), LANE_WIDTH / 2) for r in range(layout.num_routes)]
     ax.add_collection(PolyCollection(roads, facecolors=ROAD_COLOR, edgecolors="none", zorder=0))
     ax.add_collection(
