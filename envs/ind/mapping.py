@@ -475,10 +475,8 @@ def map_recordings(
             "nothing to map"
         )
     centre = _centre(table, moving, options)
-    r0 = np.hypot(table["x0"] - centre[0], table["y0"] - centre[1]).to_numpy()
-    r1 = np.hypot(table["x1"] - centre[0], table["y1"] - centre[1]).to_numpy()
-    a0 = np.rad2deg(np.arctan2(table["y0"] - centre[1], table["x0"] - centre[0])).to_numpy()
-    a1 = np.rad2deg(np.arctan2(table["y1"] - centre[1], table["x1"] - centre[0])).to_numpy()
+    r0, a0 = _polar(table["x0"], table["y0"], centre)
+    r1, a1 = _polar(table["x1"], table["y1"], centre)
     table = _with_passages(table, recordings, centre)
     start_out = moving & (r0 >= options.inner_radius)
     end_out = moving & (r1 >= options.inner_radius)
@@ -488,19 +486,17 @@ def map_recordings(
     names = np.array(compass_names(arm_angles))
     k0, on0 = _nearest_arm(a0, arm_angles, options.arm_tolerance_deg)
     k1, on1 = _nearest_arm(a1, arm_angles, options.arm_tolerance_deg)
-    reason = _first_reasons(
-        table,
-        [
-            (~table["is_vehicle"].to_numpy(), None),
-            (~vehicle, REASON_NO_FRAMES),
-            (vehicle & ~moving, REASON_PARKED),
-            (moving & ~start_out, REASON_STARTS_INSIDE),
-            (moving & ~end_out, REASON_ENDS_INSIDE),
-            (moving & ~on0, REASON_ENTRY_OFF_ARM),
-            (moving & ~on1, REASON_EXIT_OFF_ARM),
-            (moving & (k0 == k1), REASON_U_TURN),
-        ],
-    )
+    checks = [
+        (~table["is_vehicle"].to_numpy(), None),
+        (~vehicle, REASON_NO_FRAMES),
+        (vehicle & ~moving, REASON_PARKED),
+        (moving & ~start_out, REASON_STARTS_INSIDE),
+        (moving & ~end_out, REASON_ENDS_INSIDE),
+        (moving & ~on0, REASON_ENTRY_OFF_ARM),
+        (moving & ~on1, REASON_EXIT_OFF_ARM),
+        (moving & (k0 == k1), REASON_U_TURN),
+    ]
+    reason = _first_reasons(table, checks)
     ok = reason == ""
 
     entry = np.where(ok, names[k0], "")
@@ -512,12 +508,7 @@ def map_recordings(
     major = _major_road(entries, exits, names, options)
 
     pairing = align_arms(dict(zip(names, arm_angles)), major, layout)
-    layout_name = np.array([pairing[n] for n in names], dtype=object)  # per recorded arm
-    layout_deg = np.array([np.rad2deg(layout.angles[pairing[n]]) for n in names])
-    route = np.where(ok, pd.Series(layout_name[k0]).str.cat(layout_name[k1], sep="->").to_numpy(), "")
-    # The layout's own turn angles must give the same maneuvers (they do unless its arms are skewed).
-    layout_turn = _wrap_deg(layout_deg[k1] - layout_deg[k0] - 180.0)
-    changed = ok & (_maneuver(layout_turn, options.turn_threshold_deg) != maneuver)
+    route, changed = _layout_routes(pairing, names, k0, k1, ok, maneuver, layout, options)
     reason[changed] = REASON_LAYOUT
     ok = ok & ~changed
 
@@ -533,7 +524,20 @@ def map_recordings(
         mapped=ok,
         reason=reason,
     )
-    arms = pd.DataFrame(
+    arms = _arm_table(arm_angles, names, entries, exits, major, pairing)
+    return MappedTracks(table[list(MAPPED_COLUMNS)], arms, centre, options.centre is None, options)
+
+
+def _arm_table(
+    arm_angles: np.ndarray,
+    names: np.ndarray,
+    entries: pd.Series,
+    exits: pd.Series,
+    major: tuple[str, ...],
+    pairing: Mapping[str, str],
+) -> pd.DataFrame:
+    """:attr:`MappedTracks.arms`: one row per recorded arm."""
+    return pd.DataFrame(
         {
             "angle_deg": arm_angles,
             "entries": entries.to_numpy(),
@@ -543,7 +547,32 @@ def map_recordings(
         },
         index=pd.Index(names, name="arm"),
     )
-    return MappedTracks(table[list(MAPPED_COLUMNS)], arms, centre, options.centre is None, options)
+
+
+def _polar(x: pd.Series, y: pd.Series, centre: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Distance from ``centre`` [m] and angle [deg] of points."""
+    radius = np.hypot(x - centre[0], y - centre[1]).to_numpy()
+    angle = np.rad2deg(np.arctan2(y - centre[1], x - centre[0])).to_numpy()
+    return radius, angle
+
+
+def _layout_routes(
+    pairing: Mapping[str, str],
+    names: np.ndarray,
+    k0: np.ndarray,
+    k1: np.ndarray,
+    ok: np.ndarray,
+    maneuver: np.ndarray,
+    layout: LayoutArms,
+    options: MappingOptions,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Each mapped track's route on the layout (``"<entry>-><exit>"`` of the layout's arms), and where
+    the layout's own turn angles give another maneuver (they do not unless its arms are skewed)."""
+    layout_name = np.array([pairing[n] for n in names], dtype=object)  # per recorded arm
+    layout_deg = np.array([np.rad2deg(layout.angles[pairing[n]]) for n in names])
+    route = np.where(ok, pd.Series(layout_name[k0]).str.cat(layout_name[k1], sep="->").to_numpy(), "")
+    layout_turn = _wrap_deg(layout_deg[k1] - layout_deg[k0] - 180.0)
+    return route, ok & (_maneuver(layout_turn, options.turn_threshold_deg) != maneuver)
 
 
 # Columns of MappedTracks.tracks, in order.
