@@ -4,7 +4,9 @@ conflict zone, or that have left their last one.
 A fact of the simulation's state and layout, read by the observation's ``committed`` vertex feature
 (:mod:`envs.simulation.graph`) and by the safety shield (:mod:`envs.planners.shield`, whose compiled
 kernels call :func:`can_stop` and :func:`is_committed`), so that both apply one rule. Compiled with
-numba (``cache=True``), as the shield's kernels that call it.
+numba (``cache=True``), as the shield's kernels that call it. numba's cache does not see a change to a
+function called from another file: after editing a kernel here, delete the cached machine code of
+:mod:`envs.planners._shield_kernel` (``envs/planners/__pycache__/_shield_kernel*.nb[ci]``).
 """
 
 from __future__ import annotations
