@@ -8,7 +8,9 @@
   :mod:`envs.commands`: the ``sb3-graph`` commands, ``envs/pretrained/``: the shipped planners.
 
 Importing ``envs`` registers the gymnasium environments (their modules load only on ``gym.make``)
-and names :mod:`envs.planners` as the provider of the planners they train with (:mod:`envs.simulation.hooks`):
+and names the providers of what a lower floor asks of a higher one (:mod:`envs.simulation.hooks`):
+:mod:`envs.planners` for the planners the environments train with, :mod:`envs.serve.client` for
+planner servers. The environments:
 
 - ``CoopIntersection4Way-v0``: the paper's synthetic four-way intersection,
 - ``CoopIntersection3Way-v0``: a T junction (major road, minor road merging),

@@ -122,7 +122,8 @@ def make_planner(spec: str, trust_files: bool = False) -> Planner:
         return make_remote_planner(key)
     if is_class_spec(key):
         return make_class_planner(key)
-    from envs.planners.gnn import GNNPlanner
+    from envs.planners.gnn import GNNPlanner  # torch: loaded only for a policy file
+
     planner = GNNPlanner(key, trust_files=trust_files)
     config = planner.planner_config  # checked at load
     if "action" in config:  # a priority policy: its scores shift glide's order
