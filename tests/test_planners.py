@@ -223,7 +223,6 @@ def test_registry(tmp_path):
 
 def test_gnn_planner_scales_the_model_action(monkeypatch, tmp_path):
     """The learned planner: model's own observation space in, action[:n] * a_max out."""
-
     import envs.planners.gnn as gnn
 
     seen = {}
