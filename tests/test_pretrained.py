@@ -94,7 +94,7 @@ def test_the_weight_studys_six_planners_are_fine_tunings_of_the_shipped_one():
     from pathlib import Path
 
     _, shipped = read_weights_file(PAPER_MODEL)
-    root = Path(__file__).parents[1] / "examples" / "weight_study" / "seeds"
+    root = Path(__file__).parents[1] / "experiments" / "weight_study" / "seeds"
     files = sorted(root.glob("*/seed_*/best_model.safetensors"))
     assert [f.relative_to(root).as_posix() for f in files] == [
         f"{s}/seed_{k}/best_model.safetensors" for s in ("default", "tuned") for k in range(3)

@@ -431,7 +431,7 @@ def test_the_shipped_weight_study_holds_24_finished_trials_and_reports(tmp_path)
     # experiments/weight_study: the journal of the study of issue #15 and its report's zoo entry.
     from pathlib import Path
 
-    folder = Path(__file__).resolve().parents[1] / "examples" / "weight_study"
+    folder = Path(__file__).resolve().parents[1] / "experiments" / "weight_study"
     storage = f"journal://{folder / 'weights_fair.log'}"
     study = optuna.load_study(study_name="weights_fair", storage=optuna.storages.JournalStorage(
         optuna.storages.journal.JournalFileBackend(str(folder / "weights_fair.log"))))  # fmt: skip
@@ -473,7 +473,7 @@ def test_the_shipped_shield_study_reports_what_its_trials_trained_with(tmp_path)
     # experiments/weight_study/shield_fine.log: issue #23's study behind the shield, fine-tuning the shipped planner.
     from pathlib import Path
 
-    folder = Path(__file__).resolve().parents[1] / "examples" / "weight_study"
+    folder = Path(__file__).resolve().parents[1] / "experiments" / "weight_study"
     storage = f"journal://{folder / 'shield_fine.log'}"
     study = optuna.load_study(study_name="shield_fine", storage=optuna.storages.JournalStorage(
         optuna.storages.journal.JournalFileBackend(str(folder / "shield_fine.log"))))  # fmt: skip
