@@ -5,7 +5,7 @@ environment and loop) and counts, over the vehicle-steps, the policy's correctio
 [-1, 1], before ``residual_scale``): at the top bound (over full throttle a correction >= 0 changes
 nothing: the bounds clip it), negative (it brakes against its base), and its mean::
 
-    python scripts/corrections.py examples/shielded_training/features_s*/final_model.safetensors --scenarios 2
+    python scripts/corrections.py experiments/shielded_training/features_s*/final_model.safetensors --scenarios 2
 
 A policy whose corrections are all at +1 is its base planner, whatever its file says.
 """

@@ -223,9 +223,6 @@ def test_registry(tmp_path):
 
 def test_gnn_planner_scales_the_model_action(monkeypatch, tmp_path):
     """The learned planner: model's own observation space in, action[:n] * a_max out."""
-    import sys
-    import types
-
     import envs.planners.gnn as gnn
 
     seen = {}
@@ -242,12 +239,7 @@ def test_gnn_planner_scales_the_model_action(monkeypatch, tmp_path):
         assert names == {"vertex_feature_names": (), "edge_feature_names": ()}  # a file without a planner config
         return {"n": scene.num_vehicles}
 
-    import envs.simulation.graph as real
-
-    fake = types.SimpleNamespace(
-        build_observation=build_observation, EDGE_FEATURES=real.EDGE_FEATURES, VERTEX_FEATURES=real.VERTEX_FEATURES
-    )
-    monkeypatch.setitem(sys.modules, "envs.simulation.graph", fake)
+    monkeypatch.setattr(gnn, "build_observation", build_observation)
     monkeypatch.setattr(gnn, "load_model", lambda path, device="cpu", **kwargs: FakeModel())
     planner = gnn.GNNPlanner(tmp_path / "run" / "best_model.zip")
     assert planner.name == "RL:run"

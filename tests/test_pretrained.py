@@ -89,12 +89,12 @@ def test_paper_model_acts_on_every_layout(env_id):
 
 
 def test_the_weight_studys_six_planners_are_fine_tunings_of_the_shipped_one():
-    """examples/weight_study/seeds (issue #23): each file has the shipped planner's architecture, and
+    """experiments/weight_study/seeds (issue #23): each file has the shipped planner's architecture, and
     fine-tuning moved its weights (a copy of the shipped file would pass a load check too)."""
     from pathlib import Path
 
     _, shipped = read_weights_file(PAPER_MODEL)
-    root = Path(__file__).parents[1] / "examples" / "weight_study" / "seeds"
+    root = Path(__file__).parents[1] / "experiments" / "weight_study" / "seeds"
     files = sorted(root.glob("*/seed_*/best_model.safetensors"))
     assert [f.relative_to(root).as_posix() for f in files] == [
         f"{s}/seed_{k}/best_model.safetensors" for s in ("default", "tuned") for k in range(3)

@@ -428,10 +428,10 @@ def test_importances_at_the_first_rung_use_pruned_trials_too(tmp_path):
 
 
 def test_the_shipped_weight_study_holds_24_finished_trials_and_reports(tmp_path):
-    # examples/weight_study: the journal of the study of issue #15 and its report's zoo entry.
+    # experiments/weight_study: the journal of the study of issue #15 and its report's zoo entry.
     from pathlib import Path
 
-    folder = Path(__file__).resolve().parents[1] / "examples" / "weight_study"
+    folder = Path(__file__).resolve().parents[1] / "experiments" / "weight_study"
     storage = f"journal://{folder / 'weights_fair.log'}"
     study = optuna.load_study(study_name="weights_fair", storage=optuna.storages.JournalStorage(
         optuna.storages.journal.JournalFileBackend(str(folder / "weights_fair.log"))))  # fmt: skip
@@ -470,10 +470,10 @@ def test_tune_trains_the_chosen_algorithm_with_its_search_space(config, tmp_path
 
 
 def test_the_shipped_shield_study_reports_what_its_trials_trained_with(tmp_path):
-    # examples/weight_study/shield_fine.log: issue #23's study behind the shield, fine-tuning the shipped planner.
+    # experiments/weight_study/shield_fine.log: issue #23's study behind the shield, fine-tuning the shipped planner.
     from pathlib import Path
 
-    folder = Path(__file__).resolve().parents[1] / "examples" / "weight_study"
+    folder = Path(__file__).resolve().parents[1] / "experiments" / "weight_study"
     storage = f"journal://{folder / 'shield_fine.log'}"
     study = optuna.load_study(study_name="shield_fine", storage=optuna.storages.JournalStorage(
         optuna.storages.journal.JournalFileBackend(str(folder / "shield_fine.log"))))  # fmt: skip

@@ -241,8 +241,9 @@ def run(args: argparse.Namespace) -> int:
 
     from envs.commands.evaluate import check_env_id, checked_env, checked_planners, load_model_planners
     from envs.evaluation.harness import evaluation_env_kwargs
+    from envs.evaluation.recording import record_episode
     from envs.planners import make_planner
-    from envs.simulation.rendering import record_episode, write_animation
+    from envs.simulation.rendering import write_animation
     from sb3_graph.files.output_folders import OutputError, write_file_atomically
 
     _check_outputs(args)

@@ -7,6 +7,7 @@
 - :mod:`~envs.evaluation.report`: ``evaluate``'s report (``report.md``, the figures, the CSV files),
 - :mod:`~envs.evaluation.sweep`: planners across demand levels, with their capacity,
 - :mod:`~envs.evaluation.tuning`: the objective of ``sb3-graph tune`` (a trained model on validation scenarios).
+- :mod:`~envs.evaluation.recording`: one episode run with a frame per step, for ``sb3-graph record``.
 
 This package re-exports the harness's names (``from envs.evaluation import evaluate, run_episode``);
 the other modules load only when imported (the report and the sweep pull in matplotlib).

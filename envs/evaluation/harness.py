@@ -39,7 +39,11 @@ import pandas as pd
 from envs.evaluation.executors import JobExecutor, make_executor
 from envs.evaluation.metrics import VehicleLog, run_metrics
 from envs.evaluation.progress import RunClock, format_eta, interleaved
+from envs.planners import BASELINES, SHIELD_SUFFIX, make_planner
+from envs.planners.errors import PlannerError, checked_accelerations
+from envs.simulation.rewards import REWARD_PRESETS
 from envs.simulation.step_record import StepRecord, step_record
+from envs.simulation.traffic import Scenario, demand_scenario, generate_scenario
 
 SCENARIO_SUFFIX = ".json"
 
@@ -119,8 +123,6 @@ def evaluation_env_kwargs(env_kwargs: dict[str, Any] | None) -> dict[str, Any]:
 def _env(env_id: str, env_kwargs: dict[str, Any]):
     import gymnasium as gym
 
-    import envs  # noqa: F401  (registers the environments)
-
     envs_made = _cache("envs")
     key = (env_id, repr(sorted(env_kwargs.items())))
     if key not in envs_made:
@@ -148,8 +150,6 @@ def _check_render_mode(env_id: str, mode: Any) -> None:
 
 
 def _planner(spec: str, trust_files: bool = False):
-    from envs.planners import make_planner
-
     planners = _cache("planners")
     if (spec, trust_files) not in planners:
         planners[spec, trust_files] = make_planner(spec, trust_files=trust_files)
@@ -223,8 +223,6 @@ def preset_returns(terms: dict[str, float]) -> dict[str, float]:
     :param terms: ``term -> sum over the run's steps``
     :return: ``{"return_<preset>": value}`` for every preset of :data:`envs.simulation.rewards.REWARD_PRESETS`
     """
-    from envs.simulation.rewards import REWARD_PRESETS
-
     return {
         f"return_{name}": float(sum(weight * terms.get(key, 0.0) for key, weight in weights.items()))
         for name, weights in REWARD_PRESETS.items()
@@ -240,8 +238,6 @@ def planned_accelerations(planner, scene) -> np.ndarray:
     :return: ``(n,)`` accelerations within the scene's bounds
     :raises PlannerError: the output is not a valid command, or the planner raised (chained)
     """
-    from envs.planners.errors import PlannerError, checked_accelerations
-
     name = getattr(planner, "name", type(planner).__name__)
     try:
         output = planner.act(scene.copy())
@@ -254,8 +250,6 @@ def planned_accelerations(planner, scene) -> np.ndarray:
 
 def _schedule(scenario: Any):
     """The :class:`envs.simulation.traffic.Scenario` behind a ``reset`` option (``None`` for none)."""
-    from envs.simulation.traffic import Scenario
-
     if isinstance(scenario, (str, Path)):
         return Scenario.load(scenario)
     return scenario if isinstance(scenario, Scenario) else None
@@ -268,9 +262,6 @@ def run_job(job: Job, scenario: Any = None) -> tuple[dict[str, Any], pd.DataFram
     :param scenario: the loaded :class:`envs.simulation.traffic.Scenario` of ``job.scenario`` (default: read the file)
     :return: ``(metrics row, vehicle log)``, both tagged with planner, run and scenario
     """
-    from envs.planners.errors import PlannerError
-    from envs.simulation.traffic import Scenario
-
     tic = time.perf_counter()
     env = _env(job.env_id, job.env_kwargs)
     planner = _planner(job.planner, job.trust_files)
@@ -331,8 +322,6 @@ def run_shared_job(job: Job, scenarios: Sequence[Any]) -> tuple[dict[str, Any], 
 def is_baseline(spec: str) -> bool:
     """Whether a planner spec is a built-in (non-learned) planner word rather than a model file,
     with or without the shield (full throttle behind the shield is the strongest baseline)."""
-    from envs.planners import BASELINES, SHIELD_SUFFIX
-
     key = str(spec).strip().lower()
     return key.removesuffix(SHIELD_SUFFIX) in BASELINES
 
@@ -353,8 +342,6 @@ def generate_scenarios(
         rate drawn per scenario from the paper's range (:func:`envs.simulation.traffic.generate_scenario`)
     :return: the files, in order
     """
-    from envs.simulation.traffic import demand_scenario, generate_scenario
-
     if count < 1:
         raise ValueError(f"count (--scenarios) must be at least 1, got {count}")
     if duration <= 0:
@@ -418,8 +405,6 @@ def check_scenarios(paths: Sequence[str | Path], layout: str) -> None:
     :param layout: the environment's layout name
     :raises ValueError: an unreadable or invalid file, or one for another layout (naming the file)
     """
-    from envs.simulation.traffic import Scenario
-
     for path in paths:
         scenario = Scenario.load(path)
         if scenario.layout != layout:
@@ -466,8 +451,6 @@ def evaluate(
     :return: ``(runs, vehicles)``: one row per planner and run, one row per vehicle and run;
         sorted by planner (given order) and scenario, whatever order the workers finished in
     """
-    from envs.simulation.traffic import Scenario
-
     if jobs < 1:
         raise ValueError(f"jobs must be at least 1, got {jobs}")
     work = [

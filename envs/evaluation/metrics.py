@@ -60,6 +60,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import pandas as pd
 
+from envs.simulation.free_flow import free_flow_table, time_at
 from envs.simulation.motion import SLOW_SPEED, event_starts, hard_braking, traction_energy
 from envs.simulation.scene import MANEUVERS, PRIORITY_NAMES, STOP_SPEED, Scene
 from envs.simulation.step_record import StepRecord, step_record
@@ -316,8 +317,6 @@ class VehicleLog:
             rows["censored"] = np.where(not_crossed, rows["removed"].fillna(float(end)), np.nan)
         known = (rows["route_index"] >= 0) & rows["start_arc"].notna() & rows["start_speed"].notna()
         if self.layout is not None and known.any():
-            from envs.simulation.free_flow import free_flow_table, time_at
-
             lay, sub = self.layout, rows[known]
             route = sub["route_index"].to_numpy(np.int64)
             start = sub["start_arc"].to_numpy(float)

@@ -33,6 +33,12 @@ import pandas as pd  # noqa: E402
 
 from envs.evaluation.comparison import CONFIDENCE, PAIRED_METRICS, paired_differences  # noqa: E402
 from envs.evaluation.metrics import PRIORITIES, SPEED_TOLERANCE, stop_counts, summarize  # noqa: E402
+from envs.evaluation.verdict import (  # noqa: E402
+    VERDICT_METRICS,
+    reference_comparison,
+    reference_means,
+    verdict_lines,
+)
 from envs.simulation.motion import HARD_BRAKE_ACCELERATION, SLOW_SPEED  # noqa: E402
 from envs.simulation.scene import MANEUVERS, STOP_SPEED  # noqa: E402
 
@@ -407,8 +413,6 @@ def report_verdict(runs: pd.DataFrame, paired: pd.DataFrame) -> list[str]:
     :param runs: ``metrics.csv`` rows of the runs that did not fail
     :param paired: :func:`envs.evaluation.comparison.paired_differences` of ``runs``
     """
-    from envs.evaluation.verdict import VERDICT_METRICS, reference_comparison, reference_means, verdict_lines
-
     table, kind = reference_comparison(runs, paired)
     means = reference_means(runs, table, list(VERDICT_METRICS))
     return verdict_lines(table, reference_means=means, reference_kind=kind, level=f"{100 * CONFIDENCE:.0f} %")

@@ -32,6 +32,9 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
+from envs.evaluation.comparison import PAIRED_METRICS  # noqa: E402
+from envs.evaluation.report import format_number  # noqa: E402
+
 SWEEP_COLUMNS = (
     "planner",
     "demand",
@@ -161,9 +164,6 @@ def sweep_markdown(
     :param meta: settings shown as a list
     :return: Markdown text
     """
-    from envs.evaluation.comparison import PAIRED_METRICS
-    from envs.evaluation.report import format_number
-
     top = table["demand"].max()
     lines = ["# Demand sweep", "", *(f"- {key}: {value}" for key, value in meta.items()), ""]
     lines += ["## Capacity", "", f"Highest demand level up to which a planner serves >= {100 * SERVED_FRACTION:.0f} %"]

@@ -46,8 +46,11 @@ import pandas as pd
 
 from envs.evaluation.harness import EVALUATION_CONFIG, run_episode
 from envs.evaluation.metrics import run_metrics, summarize
+from envs.planners import make_residual_base
 from envs.planners.base import Planner
 from envs.planners.gnn import GNNPlanner
+from envs.planners.residual import ResidualPlanner
+from envs.planners.shield import Shield
 from envs.simulation.traffic import Scenario, generate_scenario
 
 PRESET_NAME = "tuning"
@@ -94,9 +97,6 @@ def trial_planner(model: Any, config: dict[str, Any]) -> Planner:
     :param model: the trial's SB3 model
     :param config: the training environment's config (``env.unwrapped.config``)
     """
-    from envs.planners.residual import ResidualPlanner, make_residual_base
-    from envs.planners.shield import Shield
-
     planner: Planner = ModelPlanner(
         model, vertex_features=config.get("vertex_features", ()), edge_features=config.get("edge_features", ())
     )
@@ -160,8 +160,6 @@ def evaluate_model(
         collision: none under the harness's collision handling), and behind the shield
         ``shield_intervention_rate`` (share of vehicle-steps whose command the shield replaced)
     """
-    import envs  # noqa: F401  (registers the environments)
-
     if episodes < 1:
         raise ValueError(f"episodes must be at least 1, got {episodes}")
     env = gym.make(env_id, **env_kwargs)
@@ -187,8 +185,6 @@ def evaluate_planner(
     :param seed: base seed of the scenarios and of the environment resets
     :param duration: simulated seconds per scenario
     """
-    import envs  # noqa: F401  (registers the environments)
-
     if episodes < 1:
         raise ValueError(f"episodes must be at least 1, got {episodes}")
     env = gym.make(env_id, **harness_env_kwargs(env_kwargs))

@@ -24,6 +24,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from envs.evaluation.comparison import paired_differences
+
 HEADING = "## Verdict"
 
 
@@ -209,8 +211,6 @@ def reference_comparison(runs: pd.DataFrame, paired: pd.DataFrame) -> tuple[pd.D
     :param paired: :func:`envs.evaluation.comparison.paired_differences` of ``runs`` (may be empty)
     :return: ``(paired table, what its reference is)``
     """
-    from envs.evaluation.comparison import paired_differences
-
     if not paired.empty:
         return paired, "the strongest baseline"
     planners = list(pd.unique(runs["planner"])) if "planner" in runs else []

@@ -38,6 +38,7 @@ import numpy as np
 import pandas as pd
 
 from envs.ind.loader import Recording
+from envs.simulation.layouts import build_layout
 from envs.simulation.motion import event_starts, hard_braking, traction_energy
 from envs.simulation.scene import MAJOR, MANEUVERS, STOP_SPEED
 
@@ -463,9 +464,149 @@ def map_recordings(
     """
     options = options or MappingOptions()
     if layout is None:
-        from envs.simulation.layouts import build_layout
-
         layout = layout_arms(build_layout("inD"))
+    _check_mapping_inputs(recordings, options, layout)
+    table = _track_table(recordings)
+    vehicle = table["is_vehicle"].to_numpy() & table["x0"].notna().to_numpy()
+    moving = vehicle & (table["travel"].to_numpy() >= options.min_travel)
+    if moving.sum() < 2:
+        raise ValueError(
+            f"only {int(moving.sum())} vehicle track(s) move at least min_travel={options.min_travel} m: "
+            "nothing to map"
+        )
+    centre = _centre(table, moving, options)
+    r0, a0 = _polar(table["x0"], table["y0"], centre)
+    r1, a1 = _polar(table["x1"], table["y1"], centre)
+    table = _with_passages(table, recordings, centre)
+    start_out = moving & (r0 >= options.inner_radius)
+    end_out = moving & (r1 >= options.inner_radius)
+    arm_angles = find_arms(
+        np.concatenate([a0[start_out], a1[end_out]]), options.num_arms, options.min_arm_separation_deg
+    )
+    names = np.array(compass_names(arm_angles))
+    k0, on0 = _nearest_arm(a0, arm_angles, options.arm_tolerance_deg)
+    k1, on1 = _nearest_arm(a1, arm_angles, options.arm_tolerance_deg)
+    checks = [
+        (~table["is_vehicle"].to_numpy(), None),
+        (~vehicle, REASON_NO_FRAMES),
+        (vehicle & ~moving, REASON_PARKED),
+        (moving & ~start_out, REASON_STARTS_INSIDE),
+        (moving & ~end_out, REASON_ENDS_INSIDE),
+        (moving & ~on0, REASON_ENTRY_OFF_ARM),
+        (moving & ~on1, REASON_EXIT_OFF_ARM),
+        (moving & (k0 == k1), REASON_U_TURN),
+    ]
+    reason = _first_reasons(table, checks)
+    ok = reason == ""
+
+    entry = np.where(ok, names[k0], "")
+    exit_ = np.where(ok, names[k1], "")
+    turn = np.where(ok, _wrap_deg(arm_angles[k1] - (arm_angles[k0] + 180.0)), np.nan)
+    maneuver = np.where(ok, _maneuver(turn, options.turn_threshold_deg), "")
+    entries = pd.Series(entry[ok]).value_counts().reindex(names, fill_value=0)
+    exits = pd.Series(exit_[ok]).value_counts().reindex(names, fill_value=0)
+    major = _major_road(entries, exits, names, options)
+
+    pairing = align_arms(dict(zip(names, arm_angles)), major, layout)
+    route, changed = _layout_routes(pairing, names, k0, k1, ok, maneuver, layout, options)
+    reason[changed] = REASON_LAYOUT
+    ok = ok & ~changed
+
+    route = np.where(ok, route, "")
+    table["t_entry"], table["spawn_time"] = _arrival_times(table, recordings, centre, route, ok, layout, options)
+    table = table.assign(
+        entry_arm=np.where(ok, entry, ""),
+        exit_arm=np.where(ok, exit_, ""),
+        turn_deg=np.where(ok, turn, np.nan),
+        maneuver=np.where(ok, maneuver, ""),
+        priority=np.where(ok, np.where(np.isin(entry, major), "major", "minor"), ""),
+        route=np.where(ok, route, ""),
+        mapped=ok,
+        reason=reason,
+    )
+    arms = _arm_table(arm_angles, names, entries, exits, major, pairing)
+    return MappedTracks(table[list(MAPPED_COLUMNS)], arms, centre, options.centre is None, options)
+
+
+def _arm_table(
+    arm_angles: np.ndarray,
+    names: np.ndarray,
+    entries: pd.Series,
+    exits: pd.Series,
+    major: tuple[str, ...],
+    pairing: Mapping[str, str],
+) -> pd.DataFrame:
+    """:attr:`MappedTracks.arms`: one row per recorded arm."""
+    return pd.DataFrame(
+        {
+            "angle_deg": arm_angles,
+            "entries": entries.to_numpy(),
+            "exits": exits.to_numpy(),
+            "major": np.isin(names, major),
+            "layout_arm": [pairing[n] for n in names],
+        },
+        index=pd.Index(names, name="arm"),
+    )
+
+
+def _polar(x: pd.Series, y: pd.Series, centre: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Distance from ``centre`` [m] and angle [deg] of points."""
+    radius = np.hypot(x - centre[0], y - centre[1]).to_numpy()
+    angle = np.rad2deg(np.arctan2(y - centre[1], x - centre[0])).to_numpy()
+    return radius, angle
+
+
+def _layout_routes(
+    pairing: Mapping[str, str],
+    names: np.ndarray,
+    k0: np.ndarray,
+    k1: np.ndarray,
+    ok: np.ndarray,
+    maneuver: np.ndarray,
+    layout: LayoutArms,
+    options: MappingOptions,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Each mapped track's route on the layout (``"<entry>-><exit>"`` of the layout's arms), and where
+    the layout's own turn angles give another maneuver (they do not unless its arms are skewed)."""
+    layout_name = np.array([pairing[n] for n in names], dtype=object)  # per recorded arm
+    layout_deg = np.array([np.rad2deg(layout.angles[pairing[n]]) for n in names])
+    route = np.where(ok, pd.Series(layout_name[k0]).str.cat(layout_name[k1], sep="->").to_numpy(), "")
+    layout_turn = _wrap_deg(layout_deg[k1] - layout_deg[k0] - 180.0)
+    return route, ok & (_maneuver(layout_turn, options.turn_threshold_deg) != maneuver)
+
+
+# Columns of MappedTracks.tracks, in order.
+MAPPED_COLUMNS = (
+    "recording",
+    "track_id",
+    "class",
+    "length",
+    "width",
+    "time",
+    "speed",
+    "min_speed",
+    "stopped",
+    "t_centre",
+    "t_last",
+    "min_distance",
+    "hard_brakes",
+    "energy_to_centre_j",
+    "t_entry",
+    "spawn_time",
+    "entry_arm",
+    "exit_arm",
+    "turn_deg",
+    "maneuver",
+    "priority",
+    "route",
+    "mapped",
+    "reason",
+)
+
+
+def _check_mapping_inputs(recordings: Sequence[Recording], options: MappingOptions, layout: LayoutArms) -> None:
+    """Refuse what :func:`map_recordings` cannot map: no recordings, several sites, or ``arrival_timing``
+    without the layout's route geometry."""
     if options.arrival_timing and layout.routes is None:
         raise ValueError(
             "arrival_timing needs the layout's route geometry (LayoutArms.routes, e.g. from "
@@ -479,7 +620,9 @@ def map_recordings(
             f"{sorted({r.location_id for r in recordings})}"
         )
 
-    # One row per track of every class: when it appears and what it is.
+
+def _track_table(recordings: Sequence[Recording]) -> pd.DataFrame:
+    """One row per track of every class: when it appears, what it is, and its :func:`track_summary`."""
     meta = pd.concat(
         [
             r.tracks_meta.assign(recording=r.recording_id, time=r.tracks_meta["initialFrame"] / r.frame_rate)
@@ -504,32 +647,22 @@ def map_recordings(
     table = table.merge(summary, on=["recording", "track_id"], how="left")
     table["speed"] = table.pop("speed0")
     table["stopped"] = table["min_speed"] < STOP_SPEED
+    return table
 
-    vehicle = table["is_vehicle"].to_numpy() & table["x0"].notna().to_numpy()
-    moving = vehicle & (table["travel"].to_numpy() >= options.min_travel)
 
-    if moving.sum() < 2:
-        raise ValueError(
-            f"only {int(moving.sum())} vehicle track(s) move at least min_travel={options.min_travel} m: "
-            "nothing to map"
-        )
-    # Centre: lines along which moving vehicles enter and leave.
-    if options.centre is None:
-        pts = np.vstack(
-            [table.loc[moving, ["x0", "y0"]].to_numpy(), table.loc[moving, ["x1", "y1"]].to_numpy()]
-        )
-        dirs = np.vstack(
-            [table.loc[moving, ["dx0", "dy0"]].to_numpy(), table.loc[moving, ["dx1", "dy1"]].to_numpy()]
-        )
-        centre = estimate_centre(pts, dirs)
-    else:
-        centre = np.asarray(options.centre, dtype=float)
+def _centre(table: pd.DataFrame, moving: np.ndarray, options: MappingOptions) -> np.ndarray:
+    """The intersection centre: ``options.centre``, or where the lines along which moving vehicles
+    enter and leave meet (:func:`estimate_centre`)."""
+    if options.centre is not None:
+        return np.asarray(options.centre, dtype=float)
+    pts = np.vstack([table.loc[moving, ["x0", "y0"]].to_numpy(), table.loc[moving, ["x1", "y1"]].to_numpy()])
+    dirs = np.vstack([table.loc[moving, ["dx0", "dy0"]].to_numpy(), table.loc[moving, ["dx1", "dy1"]].to_numpy()])
+    return estimate_centre(pts, dirs)
 
-    r0 = np.hypot(table["x0"] - centre[0], table["y0"] - centre[1]).to_numpy()
-    r1 = np.hypot(table["x1"] - centre[0], table["y1"] - centre[1]).to_numpy()
-    a0 = np.rad2deg(np.arctan2(table["y0"] - centre[1], table["x0"] - centre[0])).to_numpy()
-    a1 = np.rad2deg(np.arctan2(table["y1"] - centre[1], table["x1"] - centre[0])).to_numpy()
-    # When each vehicle passes closest to the centre (one groupby over the frames of a recording).
+
+def _with_passages(table: pd.DataFrame, recordings: Sequence[Recording], centre: np.ndarray) -> pd.DataFrame:
+    """``table`` with when and how close each vehicle passes the centre (one groupby over the frames
+    of a recording), its hard brakes and its traction energy up to there."""
     passages = []
     for r in recordings:
         x, y = r.tracks["xCenter"].to_numpy(), r.tracks["yCenter"].to_numpy()
@@ -554,150 +687,80 @@ def map_recordings(
     frame_rate = table["recording"].map({r.recording_id: r.frame_rate for r in recordings})
     table["t_centre"] = table.pop("centre_frame") / frame_rate
     table["t_last"] = table["last_frame"] / frame_rate
-    start_out = moving & (r0 >= options.inner_radius)
-    end_out = moving & (r1 >= options.inner_radius)
-    arm_angles = find_arms(
-        np.concatenate([a0[start_out], a1[end_out]]), options.num_arms, options.min_arm_separation_deg
-    )
-    names = np.array(compass_names(arm_angles))
+    return table
 
-    def nearest_arm(angle: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        off = np.abs(_wrap_deg(angle[:, None] - arm_angles[None, :]))
-        off = np.nan_to_num(off, nan=np.inf)
-        k = off.argmin(axis=1)
-        return k, off[np.arange(len(k)), k] <= options.arm_tolerance_deg
 
-    k0, on0 = nearest_arm(a0)
-    k1, on1 = nearest_arm(a1)
+def _nearest_arm(angle: np.ndarray, arm_angles: np.ndarray, tolerance_deg: float) -> tuple[np.ndarray, np.ndarray]:
+    """Index of the arm nearest to each angle, and whether it is within ``tolerance_deg``."""
+    off = np.abs(_wrap_deg(angle[:, None] - arm_angles[None, :]))
+    off = np.nan_to_num(off, nan=np.inf)
+    k = off.argmin(axis=1)
+    return k, off[np.arange(len(k)), k] <= tolerance_deg
 
-    # Reasons, the first that applies wins.
+
+def _first_reasons(table: pd.DataFrame, checks: Sequence[tuple[np.ndarray, str | None]]) -> np.ndarray:
+    """Why each track is not mapped, the first check that applies winning (``""``: mapped; a ``None``
+    reason: not modelled, with the track's class)."""
     reason = np.full(len(table), "", dtype=object)
-    checks = [
-        (~table["is_vehicle"].to_numpy(), None),
-        (~vehicle, REASON_NO_FRAMES),
-        (vehicle & ~moving, REASON_PARKED),
-        (moving & ~start_out, REASON_STARTS_INSIDE),
-        (moving & ~end_out, REASON_ENDS_INSIDE),
-        (moving & ~on0, REASON_ENTRY_OFF_ARM),
-        (moving & ~on1, REASON_EXIT_OFF_ARM),
-        (moving & (k0 == k1), REASON_U_TURN),
-    ]
     for mask, text in checks:
         fill = mask & (reason == "")
         if text is None:
             reason[fill] = ("not modelled: " + table["class"].astype(str)).to_numpy()[fill]
         else:
             reason[fill] = text
-    ok = reason == ""
+    return reason
 
-    entry = np.where(ok, names[k0], "")
-    exit_ = np.where(ok, names[k1], "")
-    turn = np.where(ok, _wrap_deg(arm_angles[k1] - (arm_angles[k0] + 180.0)), np.nan)
-    maneuver = np.where(ok, _maneuver(turn, options.turn_threshold_deg), "")
 
-    # Major road: given, or the opposite pair of arms with the most mapped entries and exits.
-    entries = pd.Series(entry[ok]).value_counts().reindex(names, fill_value=0)
-    exits = pd.Series(exit_[ok]).value_counts().reindex(names, fill_value=0)
+def _major_road(entries: pd.Series, exits: pd.Series, names: np.ndarray, options: MappingOptions) -> tuple[str, ...]:
+    """The major road: ``options.major_arms``, or the opposite pair of arms with the most mapped
+    entries and exits."""
     if options.major_arms is not None:
         unknown = set(options.major_arms) - set(names)
         if unknown:
-            raise ValueError(
-                f"major_arms: {sorted(unknown)} are not arms of this site; its arms are {list(names)}"
-            )
-        major = tuple(options.major_arms)
+            raise ValueError(f"major_arms: {sorted(unknown)} are not arms of this site; its arms are {list(names)}")
+        return tuple(options.major_arms)
+    if options.num_arms % 2:
+        raise ValueError(f"major_arms must be given for a site with {options.num_arms} arms")
+    half = options.num_arms // 2
+    traffic = (entries + exits).to_numpy()
+    pair = int(np.argmax([traffic[k] + traffic[k + half] for k in range(half)]))
+    return (str(names[pair]), str(names[pair + half]))
+
+
+def _arrival_times(
+    table: pd.DataFrame,
+    recordings: Sequence[Recording],
+    centre: np.ndarray,
+    route: np.ndarray,
+    ok: np.ndarray,
+    layout: LayoutArms,
+    options: MappingOptions,
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(t_entry, spawn_time)`` of every track: when each simulated vehicle must appear (vectorized
+    over tracks; NaN where not mapped). Without ``arrival_timing``: no entry time, and it appears when
+    the track does."""
+    if not options.arrival_timing:
+        return np.nan, np.where(ok, table["time"].to_numpy(float), np.nan)
+    geometry = layout.routes.reindex(route)  # NaN rows where not mapped
+    missing = sorted(set(route[ok & geometry["entry_arc"].isna().to_numpy()]))
+    if missing:
+        raise ValueError(f"arrival_timing: the layout's route geometry has no routes {missing}")
+    if options.entry_radius is None:
+        radius = geometry["entry_radius"].to_numpy()
     else:
-        if options.num_arms % 2:
-            raise ValueError(f"major_arms must be given for a site with {options.num_arms} arms")
-        half = options.num_arms // 2
-        traffic = (entries + exits).to_numpy()
-        pair = int(np.argmax([traffic[k] + traffic[k + half] for k in range(half)]))
-        major = (str(names[pair]), str(names[pair + half]))
-
-    pairing = align_arms(dict(zip(names, arm_angles)), major, layout)
-    layout_name = np.array([pairing[n] for n in names], dtype=object)  # per recorded arm
-    layout_deg = np.array([np.rad2deg(layout.angles[pairing[n]]) for n in names])
-    route = np.where(ok, pd.Series(layout_name[k0]).str.cat(layout_name[k1], sep="->").to_numpy(), "")
-    # The layout's own turn angles must give the same maneuvers (they do unless its arms are skewed).
-    layout_turn = _wrap_deg(layout_deg[k1] - layout_deg[k0] - 180.0)
-    changed = ok & (_maneuver(layout_turn, options.turn_threshold_deg) != maneuver)
-    reason[changed] = REASON_LAYOUT
-    ok = ok & ~changed
-
-    # Arrival timing: when each simulated vehicle must appear (vectorized over tracks).
-    route = np.where(ok, route, "")
-    if options.arrival_timing:
-        geometry = layout.routes.reindex(route)  # NaN rows where not mapped
-        missing = sorted(set(route[ok & geometry["entry_arc"].isna().to_numpy()]))
-        if missing:
-            raise ValueError(f"arrival_timing: the layout's route geometry has no routes {missing}")
-        if options.entry_radius is None:
-            radius = geometry["entry_radius"].to_numpy()
-        else:
-            radius = np.where(ok, options.entry_radius, np.nan)
-        entered = _entry_times(recordings, table, centre, radius)
-        # Recorded initial speed, clipped to the lane's limit; slow starts count as the floor.
-        limit = geometry["speed_limit"].to_numpy()
-        speed = np.maximum(np.minimum(table["speed"].to_numpy(float), limit), options.min_timing_speed)
-        # Never that close to the centre: closest approach minus the layout's travel to it.
-        fallback = table["t_centre"].to_numpy(float) - geometry["inside"].to_numpy() / speed
-        t_entry = np.where(ok, np.where(np.isnan(entered), fallback, entered), np.nan)
-        length = table["length"].to_numpy(float)
-        length = np.where(length > 0, length, DEFAULT_VEHICLE_LENGTH)  # NaN > 0 is False
-        # The simulated centre starts half a length into the route and drives to the stop line.
-        travel = geometry["entry_arc"].to_numpy() - length / 2
-        table["t_entry"] = t_entry
-        table["spawn_time"] = np.where(ok, np.maximum(t_entry - travel / speed, 0.0), np.nan)
-    else:
-        table["t_entry"] = np.nan
-        table["spawn_time"] = np.where(ok, table["time"].to_numpy(float), np.nan)
-
-    table = table.assign(
-        entry_arm=np.where(ok, entry, ""),
-        exit_arm=np.where(ok, exit_, ""),
-        turn_deg=np.where(ok, turn, np.nan),
-        maneuver=np.where(ok, maneuver, ""),
-        priority=np.where(ok, np.where(np.isin(entry, major), "major", "minor"), ""),
-        route=np.where(ok, route, ""),
-        mapped=ok,
-        reason=reason,
-    )
-    columns = [
-        "recording",
-        "track_id",
-        "class",
-        "length",
-        "width",
-        "time",
-        "speed",
-        "min_speed",
-        "stopped",
-        "t_centre",
-        "t_last",
-        "min_distance",
-        "hard_brakes",
-        "energy_to_centre_j",
-        "t_entry",
-        "spawn_time",
-        "entry_arm",
-        "exit_arm",
-        "turn_deg",
-        "maneuver",
-        "priority",
-        "route",
-        "mapped",
-        "reason",
-    ]
-    arms = pd.DataFrame(
-        {
-            "angle_deg": arm_angles,
-            "entries": entries.to_numpy(),
-            "exits": exits.to_numpy(),
-            "major": np.isin(names, major),
-            "layout_arm": [pairing[n] for n in names],
-        },
-        index=pd.Index(names, name="arm"),
-    )
-    return MappedTracks(table[columns], arms, centre, options.centre is None, options)
+        radius = np.where(ok, options.entry_radius, np.nan)
+    entered = _entry_times(recordings, table, centre, radius)
+    # Recorded initial speed, clipped to the lane's limit; slow starts count as the floor.
+    limit = geometry["speed_limit"].to_numpy()
+    speed = np.maximum(np.minimum(table["speed"].to_numpy(float), limit), options.min_timing_speed)
+    # Never that close to the centre: closest approach minus the layout's travel to it.
+    fallback = table["t_centre"].to_numpy(float) - geometry["inside"].to_numpy() / speed
+    t_entry = np.where(ok, np.where(np.isnan(entered), fallback, entered), np.nan)
+    length = table["length"].to_numpy(float)
+    length = np.where(length > 0, length, DEFAULT_VEHICLE_LENGTH)  # NaN > 0 is False
+    # The simulated centre starts half a length into the route and drives to the stop line.
+    travel = geometry["entry_arc"].to_numpy() - length / 2
+    return t_entry, np.where(ok, np.maximum(t_entry - travel / speed, 0.0), np.nan)
 
 
 def _entry_times(

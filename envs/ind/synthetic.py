@@ -16,6 +16,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -266,15 +267,33 @@ def make_recording(
     :return: the tables and the expected mapping
     """
     site = site or SyntheticSite()
-    fr = site.frame_rate
-    frames, metas, expected = [], [], []
+    tracks = _TrackTables(site)
+    for vehicle in vehicles:
+        _add_route_vehicle(tracks, site, vehicle)
+    if extras:
+        _add_extras(tracks, site)
+    return tracks.recording(int(recording_id))
 
-    def add(cls: str, first_frame: int, xy, v, tangent, entry="", exit="", reason="", maneuver=""):
-        track_id = len(metas)
+
+class _TrackTables:
+    """The rows of a made-up recording as its tracks are added: frames, track metadata and what the
+    mapping should find for each track."""
+
+    def __init__(self, site: SyntheticSite) -> None:
+        self.site = site
+        self.fr = site.frame_rate
+        self.frames: list[pd.DataFrame] = []
+        self.metas: list[dict[str, Any]] = []
+        self.expected: list[dict[str, Any]] = []
+
+    def add(self, cls: str, first_frame: int, xy, v, tangent, entry="", exit="", reason="", maneuver="") -> None:
+        """Add one track (the next trackId) of class ``cls``, and its expected mapping."""
+        fr = self.fr
+        track_id = len(self.metas)
         is_vehicle = cls in VEHICLE_CLASSES
         width, length = ((2.5, 10.0) if cls == "truck_bus" else (1.8, 4.5)) if is_vehicle else (0.0, 0.0)
-        frames.append(_track_rows(track_id, first_frame, xy, v, tangent, width, length, fr))
-        metas.append(
+        self.frames.append(_track_rows(track_id, first_frame, xy, v, tangent, width, length, fr))
+        self.metas.append(
             {
                 "trackId": track_id,
                 "initialFrame": first_frame,
@@ -285,7 +304,7 @@ def make_recording(
                 "class": cls,
             }
         )
-        expected.append(
+        self.expected.append(
             {
                 "trackId": track_id,
                 "class": cls,
@@ -299,116 +318,108 @@ def make_recording(
             }
         )
 
-    for vehicle in vehicles:
-        points = site.path(vehicle.entry, vehicle.exit)
-        xy, v, tangent = _motion(
-            site, points, vehicle.speed, vehicle.stop, site.length_of(vehicle.entry) - site.box - 1.0
-        )
-        maneuver = maneuver_of(vehicle.entry, vehicle.exit)
-        reason = "u-turn" if maneuver == "u-turn" else ""  # labels: see make_recording
-        add(
-            vehicle.cls,
-            int(round(vehicle.time * fr)),
-            xy,
-            v,
-            tangent,
-            vehicle.entry,
-            vehicle.exit,
-            reason,
-            "" if reason else maneuver,
-        )
+    def end_time(self) -> float:
+        """Time of the last frame so far [s] (0 without tracks)."""
+        return max((m["finalFrame"] for m in self.metas), default=0) / self.fr
 
-    t_end = max((m["finalFrame"] for m in metas), default=0) / fr
-    if extras:
-        c = np.asarray(site.centre)
-        # A pedestrian crossing the east arm on a crosswalk just outside the stop line.
-        u, left = site.outward("east"), site.outward("north")
-        a, b = c + (site.box + 3) * u - 6 * left, c + (site.box + 3) * u + 6 * left
-        n = int(np.hypot(*(b - a)) / 1.4 * fr)
-        xy = a + np.linspace(0, 1, n)[:, None] * (b - a)
-        add(
-            "pedestrian",
-            int(5 * fr),
-            xy,
-            np.full(n, 1.4),
-            np.tile((b - a) / np.hypot(*(b - a)), (n, 1)),
-            reason="not modelled",
-        )
-        # A bicycle going straight south -> north.
-        points = site.path("south", "north")
-        xy, v, tangent = _motion(site, points, 4.5, 0.0, 0.0)
-        add("bicycle", int(12 * fr), xy, v, tangent, reason="not modelled")
-        # A car parked next to the intersection for the whole recording.
-        n = int(max(t_end, 30.0) * fr)
-        diag = (site.outward("north") + site.outward("east")) / np.sqrt(2)
-        xy = np.tile(c + 25.0 * diag, (n, 1))
-        add("car", 0, xy, np.zeros(n), np.tile(site.outward("north"), (n, 1)), reason="parked")
-        # A U-turn on the west arm.
-        points = site.path("west", "west")
-        xy, v, tangent = _motion(site, points, 6.0, 0.0, 0.0)
-        add("car", int(20 * fr), xy, v, tangent, "west", "west", "u-turn")
-        # A car first tracked in the middle of the intersection, leaving north.
-        points = site.path("south", "north")
-        start = np.argmin(np.hypot(*(points - c).T))
-        xy, v, tangent = _motion(site, points[start:], 8.0, 0.0, 0.0)
-        add("car", int(30 * fr), xy, v, tangent, "", "north", "starts inside")
-        # A car whose track is lost in the middle of the intersection, coming from the east.
-        points = site.path("east", "west")
-        end = np.argmin(np.hypot(*(points - c).T))
-        xy, v, tangent = _motion(site, points[: end + 1], 8.0, 0.0, 0.0)
-        add("car", int(40 * fr), xy, v, tangent, "east", "", "ends inside")
-        # A car out of a driveway half-way between the east and north arms, leaving south.
-        u_south = site.outward("south")
-        rough = np.vstack(
+    def recording(self, recording_id: int) -> SyntheticRecording:
+        """The three inD tables of the tracks added, and the expected mapping."""
+        fr, site = self.fr, self.site
+        tracks = pd.concat(self.frames, ignore_index=True)
+        tracks.insert(0, "recordingId", recording_id)
+        tracks = tracks[list(TRACKS_COLUMNS)]
+        tracks_meta = pd.DataFrame(self.metas)
+        tracks_meta.insert(0, "recordingId", recording_id)
+        tracks_meta = tracks_meta[list(TRACKS_META_COLUMNS)]
+        num_vehicles = int(tracks_meta["class"].isin(VEHICLE_CLASSES).sum())
+        duration = (int(tracks["frame"].max()) + 1) / fr
+        recording_meta = pd.DataFrame(
             [
-                c + 30.0 * diag,
-                c + 1.75 * diag,
-                c
-                + site.length_of("south") * u_south
-                - site.lane_offset * np.array([-u_south[1], u_south[0]]),
+                {
+                    "recordingId": recording_id,
+                    "locationId": site.location_id,
+                    "frameRate": fr,
+                    "speedLimit": 13.8889,
+                    "weekday": "tuesday",
+                    "startTime": 8,
+                    "duration": duration,
+                    "numTracks": len(tracks_meta),
+                    "numVehicles": num_vehicles,
+                    "numVRUs": len(tracks_meta) - num_vehicles,
+                    "latLocation": 50.78,
+                    "lonLocation": 6.07,
+                    "xUtmOrigin": 293487.1,
+                    "yUtmOrigin": 5629712.0,
+                    "orthoPxToMeter": 0.0126999352667008,
+                }
             ]
-        )
-        seg = np.hypot(*np.diff(rough, axis=0).T)
-        s_rough = np.concatenate([[0.0], np.cumsum(seg)])
-        fine = np.arange(0.0, s_rough[-1], 0.25)
-        points = np.column_stack(
-            [np.interp(fine, s_rough, rough[:, 0]), np.interp(fine, s_rough, rough[:, 1])]
-        )
-        xy, v, tangent = _motion(site, points, 5.0, 0.0, 0.0)
-        add("car", int(50 * fr), xy, v, tangent, "", "south", "off arm")
+        )[list(RECORDING_META_COLUMNS)]
+        expected = pd.DataFrame(self.expected).set_index("trackId")
+        return SyntheticRecording(tracks, tracks_meta, recording_meta, expected)
 
-    tracks = pd.concat(frames, ignore_index=True)
-    tracks.insert(0, "recordingId", int(recording_id))
-    tracks = tracks[list(TRACKS_COLUMNS)]
-    tracks_meta = pd.DataFrame(metas)
-    tracks_meta.insert(0, "recordingId", int(recording_id))
-    tracks_meta = tracks_meta[list(TRACKS_META_COLUMNS)]
-    num_vehicles = int(tracks_meta["class"].isin(VEHICLE_CLASSES).sum())
-    duration = (int(tracks["frame"].max()) + 1) / fr
-    recording_meta = pd.DataFrame(
+
+def _add_route_vehicle(tracks: _TrackTables, site: SyntheticSite, vehicle: SyntheticVehicle) -> None:
+    """Add a road user driving its route (a U-turn is expected as ``"u-turn"``)."""
+    points = site.path(vehicle.entry, vehicle.exit)
+    xy, v, tangent = _motion(site, points, vehicle.speed, vehicle.stop, site.length_of(vehicle.entry) - site.box - 1.0)
+    maneuver = maneuver_of(vehicle.entry, vehicle.exit)
+    reason = "u-turn" if maneuver == "u-turn" else ""  # labels: see make_recording
+    first = int(round(vehicle.time * site.frame_rate))
+    tracks.add(vehicle.cls, first, xy, v, tangent, vehicle.entry, vehicle.exit, reason, "" if reason else maneuver)
+
+
+def _add_extras(tracks: _TrackTables, site: SyntheticSite) -> None:
+    """Add the tracks that the mapping must refuse, each with its reason (see :func:`make_recording`)."""
+    fr = site.frame_rate
+    t_end = tracks.end_time()
+    c = np.asarray(site.centre)
+    # A pedestrian crossing the east arm on a crosswalk just outside the stop line.
+    u, left = site.outward("east"), site.outward("north")
+    a, b = c + (site.box + 3) * u - 6 * left, c + (site.box + 3) * u + 6 * left
+    n = int(np.hypot(*(b - a)) / 1.4 * fr)
+    xy = a + np.linspace(0, 1, n)[:, None] * (b - a)
+    direction = np.tile((b - a) / np.hypot(*(b - a)), (n, 1))
+    tracks.add("pedestrian", int(5 * fr), xy, np.full(n, 1.4), direction, reason="not modelled")
+    # A bicycle going straight south -> north.
+    xy, v, tangent = _motion(site, site.path("south", "north"), 4.5, 0.0, 0.0)
+    tracks.add("bicycle", int(12 * fr), xy, v, tangent, reason="not modelled")
+    # A car parked next to the intersection for the whole recording.
+    n = int(max(t_end, 30.0) * fr)
+    diag = (site.outward("north") + site.outward("east")) / np.sqrt(2)
+    xy = np.tile(c + 25.0 * diag, (n, 1))
+    tracks.add("car", 0, xy, np.zeros(n), np.tile(site.outward("north"), (n, 1)), reason="parked")
+    # A U-turn on the west arm.
+    xy, v, tangent = _motion(site, site.path("west", "west"), 6.0, 0.0, 0.0)
+    tracks.add("car", int(20 * fr), xy, v, tangent, "west", "west", "u-turn")
+    # A car first tracked in the middle of the intersection, leaving north.
+    points = site.path("south", "north")
+    start = np.argmin(np.hypot(*(points - c).T))
+    xy, v, tangent = _motion(site, points[start:], 8.0, 0.0, 0.0)
+    tracks.add("car", int(30 * fr), xy, v, tangent, "", "north", "starts inside")
+    # A car whose track is lost in the middle of the intersection, coming from the east.
+    points = site.path("east", "west")
+    end = np.argmin(np.hypot(*(points - c).T))
+    xy, v, tangent = _motion(site, points[: end + 1], 8.0, 0.0, 0.0)
+    tracks.add("car", int(40 * fr), xy, v, tangent, "east", "", "ends inside")
+    # A car out of a driveway half-way between the east and north arms, leaving south.
+    xy, v, tangent = _motion(site, _driveway_path(site, c, diag), 5.0, 0.0, 0.0)
+    tracks.add("car", int(50 * fr), xy, v, tangent, "", "south", "off arm")
+
+
+def _driveway_path(site: SyntheticSite, c: np.ndarray, diag: np.ndarray) -> np.ndarray:
+    """Points every 0.25 m from a driveway between the east and north arms to the south exit lane."""
+    u_south = site.outward("south")
+    rough = np.vstack(
         [
-            {
-                "recordingId": int(recording_id),
-                "locationId": site.location_id,
-                "frameRate": fr,
-                "speedLimit": 13.8889,
-                "weekday": "tuesday",
-                "startTime": 8,
-                "duration": duration,
-                "numTracks": len(tracks_meta),
-                "numVehicles": num_vehicles,
-                "numVRUs": len(tracks_meta) - num_vehicles,
-                "latLocation": 50.78,
-                "lonLocation": 6.07,
-                "xUtmOrigin": 293487.1,
-                "yUtmOrigin": 5629712.0,
-                "orthoPxToMeter": 0.0126999352667008,
-            }
+            c + 30.0 * diag,
+            c + 1.75 * diag,
+            c + site.length_of("south") * u_south - site.lane_offset * np.array([-u_south[1], u_south[0]]),
         ]
-    )[list(RECORDING_META_COLUMNS)]
-    return SyntheticRecording(
-        tracks, tracks_meta, recording_meta, pd.DataFrame(expected).set_index("trackId")
     )
+    seg = np.hypot(*np.diff(rough, axis=0).T)
+    s_rough = np.concatenate([[0.0], np.cumsum(seg)])
+    fine = np.arange(0.0, s_rough[-1], 0.25)
+    return np.column_stack([np.interp(fine, s_rough, rough[:, 0]), np.interp(fine, s_rough, rough[:, 1])])
 
 
 def write_recording(data_dir: str | Path, recording: SyntheticRecording) -> dict[str, Path]:

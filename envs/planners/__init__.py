@@ -31,10 +31,15 @@ from envs.planners.loading import (
     load_planner_class,
     make_class_planner,
     make_remote_planner,
+    model_name,
     remote_planner_name,
 )
+from envs.planners.priority import PriorityPlanner
 from envs.planners.priority_rules import PriorityRulesPlanner
+from envs.planners.residual import ResidualPlanner
+from envs.planners.shield import Shield, training_shield
 from envs.planners.signal import SignalPlanner
+from envs.simulation import hooks
 
 BASELINES: dict[str, type[Planner]] = {
     "pr": PriorityRulesPlanner,
@@ -107,8 +112,6 @@ def make_planner(spec: str, trust_files: bool = False) -> Planner:
     """
     key = check_planner_spec(spec)
     if key.endswith(SHIELD_SUFFIX):
-        from envs.planners.shield import Shield
-
         inner = key[: -len(SHIELD_SUFFIX)]
         if is_remote_spec(inner):  # its misses get the shield's fallback
             return make_remote_planner(inner, shielded=True)
@@ -119,19 +122,24 @@ def make_planner(spec: str, trust_files: bool = False) -> Planner:
         return make_remote_planner(key)
     if is_class_spec(key):
         return make_class_planner(key)
-    from envs.planners.gnn import GNNPlanner
-    from envs.planners.residual import ResidualPlanner, make_residual_base
+    from envs.planners.gnn import GNNPlanner  # torch: loaded only for a policy file
 
     planner = GNNPlanner(key, trust_files=trust_files)
     config = planner.planner_config  # checked at load
     if "action" in config:  # a priority policy: its scores shift glide's order
-        from envs.planners.priority import PriorityPlanner
-
         return PriorityPlanner(GlidePlanner(), planner, config["action"]["scale"], name=planner.name)
     if config.get("residual_base") is None:
         return planner
     base = make_residual_base(config["residual_base"])
     return ResidualPlanner(base, planner, config["residual_scale"], name=planner.name)
+
+
+def make_residual_base(name: str | None) -> Planner | None:
+    """The base planner of a residual policy (``residual_base``), or ``None``.
+
+    :param name: ``None`` or one of :data:`envs.simulation.config.RESIDUAL_BASES`
+    """
+    return None if name is None else make_planner(name)
 
 
 def planner_name(spec: str) -> str:
@@ -152,10 +160,13 @@ def planner_name(spec: str) -> str:
         return remote_planner_name(key)
     if is_class_spec(key):
         return class_planner_name(key)
-    from envs.planners.gnn import model_name
-
     return model_name(Path(key))
 
+
+# What the environments train with (envs.simulation.hooks): the planners live on this floor.
+hooks.register("shield", training_shield)
+hooks.register("residual_base", make_residual_base)
+hooks.register("priority", GlidePlanner)
 
 __all__ = [
     "AIMPlanner",
@@ -171,5 +182,6 @@ __all__ = [
     "SignalPlanner",
     "check_planner_spec",
     "make_planner",
+    "make_residual_base",
     "planner_name",
 ]

@@ -18,7 +18,8 @@ NumPy form (no ``fastmath``, so no reassociation or fused multiply-add), so that
 - :func:`_envelope`: :meth:`envs.simulation.layouts.Layout.envelope_at` for one vehicle, from the tables of
   :func:`envs.planners.shield.envelope_table`,
 - :func:`_integrate`: :func:`envs.simulation.engine.integrate` for one policy period,
-- :func:`_committed`, :func:`_fallback`: the reference's ``committed`` and ``fallback_given``
+- :func:`envs.simulation.commitment.is_committed` (the rule that the observation reads too), :func:`_fallback`:
+  the reference's ``committed`` and ``fallback_given``
   (with ``yielding``, ``leaders_now`` and ``safe_gap_after``),
 - :func:`predict`: the reference's ``predict_numpy``; :func:`fallback`: ``fallback_numpy``,
 - :func:`conflicts`: ``conflicts_numpy``, the check of a prediction (its blame stays in NumPy).
@@ -36,6 +37,9 @@ from typing import NamedTuple
 
 import numba
 import numpy as np
+
+from envs.simulation.commitment import can_stop as _can_stop
+from envs.simulation.commitment import is_committed as _committed
 
 
 class PlanArrays(NamedTuple):
@@ -143,23 +147,6 @@ def _integrate(
 
 
 @numba.njit(cache=True)
-def _can_stop(arc: float, speed: float, line: float, a_max: float, standing: float, slack: float) -> bool:
-    """Whether braking at ``a_max`` stops a vehicle's centre at or before ``line``.
-
-    A standing vehicle outside the line can always wait (the slack is for moving ones only).
-    """
-    return arc <= line and (speed <= standing or arc + speed * speed / (2 * a_max) + slack <= line)
-
-
-@numba.njit(cache=True)
-def _committed(
-    arc: float, speed: float, hull_start: float, hull_end: float, a_max: float, standing: float, slack: float
-) -> bool:
-    """``committed`` of one vehicle: it can no longer stop before its first zone, or has cleared them all."""
-    return not _can_stop(arc, speed, hull_start, a_max, standing, slack) or arc > hull_end
-
-
-@numba.njit(cache=True)
 def _less_far(
     x: float, lo: float, hi: float, vid: int, x_other: float, lo_other: float, hi_other: float, vid_other: int
 ) -> bool:
@@ -220,23 +207,6 @@ def _merge_leader(plan: PlanArrays, g: int, arc: np.ndarray, go: np.ndarray) -> 
     if e0 >= e1:  # vehicle 1 is behind along the common exit lane
         return m1, m0, a0 > plan.merge_lo[g, 0] or go[m0], distance
     return m0, m1, a1 > plan.merge_lo[g, 1] or go[m1], distance
-
-
-@numba.njit(cache=True)
-def committed_rows(
-    arc: np.ndarray,
-    speed: np.ndarray,
-    hull_start: np.ndarray,
-    hull_end: np.ndarray,
-    a_max: float,
-    standing: float,
-    slack: float,
-) -> np.ndarray:
-    """``(n,)`` bool ``committed`` of vehicles given their hulls, without a plan (the observation)."""
-    go = np.zeros(arc.shape[0], np.bool_)
-    for i in range(arc.shape[0]):
-        go[i] = _committed(arc[i], speed[i], hull_start[i], hull_end[i], a_max, standing, slack)
-    return go
 
 
 @numba.njit(cache=True)

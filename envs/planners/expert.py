@@ -26,8 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from envs.planners import SHIELD_SUFFIX, check_planner_spec, make_planner
-from envs.planners.residual import make_residual_base
+from envs.planners import SHIELD_SUFFIX, check_planner_spec, make_planner, make_residual_base
 
 #: The planner whose exact label, with the ``"priority"`` action type, is the zero score.
 PRIORITY_PLANNER = "glide"

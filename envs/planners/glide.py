@@ -30,6 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from envs.planners.aim import AIMParams, AIMPlanner
+from envs.planners.errors import checked_accelerations
 from envs.planners.idm import DEFAULT_IDM, IDMParams, leader_chain_max
 from envs.simulation.scene import Scene
 
@@ -92,6 +93,17 @@ class GlidePlanner(AIMPlanner):
             per vehicle of the scene that :meth:`act` gets; ``None`` or all zeros: glide's own order
         """
         self._shift = None if shift is None else np.asarray(shift, dtype=float)
+
+    def schedule(self, scene: Scene, shift: np.ndarray) -> np.ndarray:
+        """Accelerations for ``scene`` with the order shifted by ``shift``, checked as a planner's
+        output (the environment's ``"action": {"type": "priority"}``, :mod:`envs.simulation.hooks`).
+
+        :param scene: the scene now (not modified: :meth:`act` gets a copy)
+        :param shift: see :meth:`set_priority`
+        :raises envs.planners.errors.PlannerError: an invalid output
+        """
+        self.set_priority(shift)
+        return checked_accelerations(self.act(scene.copy()), scene, self.name)
 
     # ------------------------------------------------------------------ order
     def arrival_keys(self, scene: Scene, earliest: np.ndarray, committed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -18,7 +18,13 @@ from typing import Any
 import numpy as np
 
 from envs.planners.base import Planner
+from envs.planners.loading import model_name
+from envs.simulation.config import RULES, action_config
+from envs.simulation.graph import build_graph_batch, build_observation, num_node_features
 from envs.simulation.scene import Scene
+from sb3_graph.common.batching import concat_graph_batches
+from sb3_graph.files.policy_files import METADATA_KEY, load_policy
+from sb3_graph.registry import deterministic_vertex_actions, entry_of_policy
 
 
 def load_model(path: str | Path, device: str = "cpu", trust_files: bool = False):
@@ -30,8 +36,6 @@ def load_model(path: str | Path, device: str = "cpu", trust_files: bool = False)
     :return: the policy (``predict``, ``observation_space``)
     :raises ValueError: a file that cannot be loaded safely (``sb3_graph.files.policy_files.PolicyFileError``)
     """
-    from sb3_graph.files.policy_files import load_policy
-
     return load_policy(path, device=device, trust=trust_files).policy
 
 
@@ -62,8 +66,6 @@ def check_planner_config(config: Any, source: str) -> dict[str, Any]:
     :raises ValueError: an unknown key, base or feature name, or a scale outside ``(0, 2]`` (as the
         environment config's rules of the same keys)
     """
-    from envs.simulation.config import RULES, action_config
-
     config = {} if config is None else config
     if not isinstance(config, dict) or set(config) - set(PLANNER_CONFIG_KEYS):
         raise ValueError(
@@ -94,8 +96,6 @@ def planner_config_of(path: str | Path) -> dict:
     import json
 
     from safetensors import safe_open
-
-    from sb3_graph.files.policy_files import METADATA_KEY
 
     path = Path(path)
     if path.suffix != ".safetensors" or not path.is_file():
@@ -154,8 +154,6 @@ class GNNPlanner(Planner):
         :param max_vehicles: the environment's ``max_vehicles``
         :raises ValueError: naming the model's ``max_nodes``
         """
-        from envs.simulation.graph import num_node_features
-
         max_nodes = getattr(self.space, "max_nodes", None)
         if max_nodes is None or getattr(self.space, "node_features", None) != num_node_features(self.vertex_features):
             raise ValueError(f"{source}: the model does not take the intersection's graph observation")
@@ -174,8 +172,6 @@ class GNNPlanner(Planner):
         node, edge = getattr(self.space, "node_features", None), getattr(self.space, "edge_features", None)
         if node is None:
             return  # not a graph model: check_capacity says so
-        from envs.simulation.graph import num_node_features
-
         if node != num_node_features(self.vertex_features) or edge != len(self.edge_features):
             raise ValueError(
                 f"{source}: the model takes {node} vertex and {edge} edge features, its planner config names "
@@ -189,8 +185,6 @@ class GNNPlanner(Planner):
         return {"vertex_feature_names": self.vertex_features, "edge_feature_names": self.edge_features}
 
     def act(self, scene: Scene) -> np.ndarray:
-        from envs.simulation.graph import build_observation
-
         n = scene.num_vehicles
         if n == 0:
             return np.zeros(0)
@@ -215,10 +209,6 @@ class GNNPlanner(Planner):
         if not self._graph_actor:
             return [self.act(scene) for scene in scenes]
         import torch
-
-        from envs.simulation.graph import build_graph_batch
-        from sb3_graph.common.batching import concat_graph_batches
-        from sb3_graph.registry import deterministic_vertex_actions
 
         answers = [np.zeros(0) for _ in scenes]
         busy = [k for k, scene in enumerate(scenes) if scene.num_vehicles]
@@ -252,9 +242,6 @@ class GNNPlanner(Planner):
         :return: ``(n,)`` float32 actions in the action space's range
         """
         import torch
-
-        from envs.simulation.graph import build_graph_batch
-        from sb3_graph.registry import deterministic_vertex_actions
 
         policy = self.model
         graphs = build_graph_batch(scene, self.space, **self._observation_kwargs())
@@ -306,8 +293,6 @@ def _plain_sb3_policy(model) -> bool:
 def _plain_graph_actor(model) -> bool:
     """Whether ``model`` is exactly a registered graph policy (:data:`sb3_graph.registry.ALGORITHMS`,
     so its ``_predict`` is the graph network's deterministic action: what :meth:`GNNPlanner.vertex_actions` runs)."""
-    from sb3_graph.registry import entry_of_policy
-
     return entry_of_policy(model) is not None
 
 
@@ -316,16 +301,3 @@ def _to_action_bounds(policy, actions: np.ndarray) -> np.ndarray:
     if policy.squash_output:
         return policy.unscale_action(actions)
     return np.clip(actions, policy.action_space.low, policy.action_space.high)
-
-
-def model_name(path: Path) -> str:
-    """Report name of a model file: ``RL:<folder>`` for ``best_model.zip`` (or ``.safetensors``) and the
-    like, else ``RL:<stem>``.
-
-    :param path: the model file
-    :return: the name
-    """
-    stem = path.stem
-    if stem in ("best_model", "final_model", "model") and path.parent.name:
-        return f"RL:{path.parent.name}"
-    return f"RL:{stem}"

@@ -1,4 +1,5 @@
-"""User planners named on the command line: ``path/to/file.py:ClassName`` or ``package.module:ClassName``.
+"""User planners named on the command line: ``path/to/file.py:ClassName`` or ``package.module:ClassName``,
+and planner servers ``http://HOST:PORT`` (their client, :mod:`envs.serve.client`, registers how they are built).
 
 The class must implement :class:`envs.planners.Planner` and be constructible without arguments.
 This imports the user's code, by the user's explicit choice (like ``python file.py``); it is not
@@ -12,8 +13,10 @@ import importlib.util
 import inspect
 import sys
 from pathlib import Path
+from urllib.parse import urlsplit
 
 from envs.planners.base import Planner
+from envs.simulation import hooks
 
 
 def is_class_spec(spec: str) -> bool:
@@ -104,6 +107,27 @@ def is_remote_spec(spec: str) -> bool:
     return str(spec).strip().lower().startswith(("http://", "https://"))
 
 
+def parse_url(url: str) -> tuple[str, str, int]:
+    """Scheme, host and port of ``http://HOST:PORT`` or ``https://HOST:PORT`` (no path, query, user or fragment).
+
+    :param url: the address
+    :return: ``(scheme, host, port)``
+    :raises ValueError: anything else, naming the part
+    """
+    parts = urlsplit(str(url).strip())
+    if parts.scheme not in ("http", "https"):
+        raise ValueError(f"planner server {url!r}: the address must start with http:// or https://")
+    if parts.path not in ("", "/") or parts.query or parts.fragment or parts.username or parts.password:
+        raise ValueError(f"planner server {url!r}: give only http://HOST:PORT (no path, query or user)")
+    try:
+        port = parts.port
+    except ValueError:
+        raise ValueError(f"planner server {url!r}: the port must be a number from 1 to 65535") from None
+    if not parts.hostname or port is None:
+        raise ValueError(f"planner server {url!r}: give both host and port, http://HOST:PORT")
+    return parts.scheme, parts.hostname, port
+
+
 def check_remote_spec(spec: str) -> str:
     """Validate a planner server's address without contacting it.
 
@@ -111,24 +135,20 @@ def check_remote_spec(spec: str) -> str:
     :return: the normalised address
     :raises ValueError: anything but ``http://HOST:PORT``
     """
-    from envs.serve.client import parse_url
-
     scheme, host, port = parse_url(spec)
     return f"{scheme}://{host}:{port}"
 
 
 def make_remote_planner(spec: str, shielded: bool = False) -> Planner:
-    """The planner that plans through the server at ``spec`` (:class:`envs.serve.client.RemotePlanner`).
+    """The planner that plans through the server at ``spec`` (:class:`envs.serve.client.RemotePlanner`,
+    registered by :mod:`envs.serve.client` in :mod:`envs.simulation.hooks`).
 
     :param spec: ``http://HOST:PORT``
     :param shielded: shield it here, in the client (:class:`envs.serve.client.RemoteShield`: a missed
         deadline gets the shield's fallback)
     :raises ValueError: the server cannot be reached or refuses (a wrong token)
     """
-    from envs.serve.client import RemotePlanner, RemoteShield
-
-    planner = RemotePlanner(check_remote_spec(spec))
-    return RemoteShield(planner) if shielded else planner
+    return hooks.maker("remote_planner")(check_remote_spec(spec), shielded=shielded)
 
 
 def remote_planner_name(spec: str) -> str:
@@ -137,10 +157,17 @@ def remote_planner_name(spec: str) -> str:
     :param spec: ``http://HOST:PORT``
     :raises ValueError: the server cannot be reached or refuses
     """
-    from envs.serve.client import PlannerClient, remote_name
+    return hooks.maker("remote_planner_name")(check_remote_spec(spec))
 
-    client = PlannerClient(check_remote_spec(spec))
-    try:
-        return remote_name(client.version(), client)
-    finally:
-        client.disconnect()
+
+def model_name(path: Path) -> str:
+    """Report name of a model file: ``RL:<folder>`` for ``best_model.zip`` (or ``.safetensors``) and the
+    like, else ``RL:<stem>``.
+
+    :param path: the model file
+    :return: the name
+    """
+    stem = path.stem
+    if stem in ("best_model", "final_model", "model") and path.parent.name:
+        return f"RL:{path.parent.name}"
+    return f"RL:{stem}"

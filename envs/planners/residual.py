@@ -45,14 +45,3 @@ class ResidualPlanner(Planner):
         correction = np.asarray(self.correction.act(scene), dtype=float).reshape(n)
         return np.clip(base + self.scale * correction, scene.a_min, scene.a_max)
 
-
-def make_residual_base(name: str | None):
-    """The base planner of a residual policy (``residual_base``), or ``None``.
-
-    :param name: ``None`` or one of :data:`envs.simulation.config.RESIDUAL_BASES`
-    """
-    if name is None:
-        return None
-    from envs.planners import make_planner
-
-    return make_planner(name)

@@ -71,15 +71,14 @@ from envs.planners.base import Planner
 from envs.planners.errors import PlannerError, checked_accelerations
 from envs.planners.fifo import FIFOPlanner
 from envs.planners.watchdog import WATCHDOG_AFTER, WATCHDOG_HOLD, LivenessWatchdog
+from envs.simulation.commitment import STANDING, STOP_SLACK
 from envs.simulation.layouts import CONFLICT_DISTANCE, ZONE_MARGIN, body_hull
 from envs.simulation.scene import Scene
 
 _INT = np.int64
-# A vehicle counts as standing below this speed [m/s] (speeds are clipped to exactly 0 when braking).
-_STANDING = 1e-6
-# Slack on "can stop before the zone" [m]: the simulation's trapezoid integration overshoots the
-# exact stopping distance by at most ``a_max * h^2 / 8`` (4 mm at 15 Hz).
-_STOP_SLACK = 0.05
+# Standing speed [m/s] and the stopping slack [m] of the commitment rule (:mod:`envs.simulation.commitment`).
+_STANDING = STANDING
+_STOP_SLACK = STOP_SLACK
 # Liveness: inside the intersection, a planner may slow a vehicle down to this speed but not further
 # (below it, the fallback's command or, before the vehicle commits, going on is checked instead) [m/s].
 LIVE_SPEED = 2.0
@@ -143,26 +142,6 @@ class _Plan:
             merge_exit=f(self.merge_exit),
             merge_sep=f(self.merge_sep),
         )
-
-
-def committed_vehicles(scene: Scene, zone_margin: float = ZONE_MARGIN) -> np.ndarray:
-    """``(n,)`` bool: the vehicles of a scene that can no longer stop before their first conflict zone,
-    or have left their last one: :meth:`Shield.committed`, from the scene alone (the observation's
-    ``committed`` feature reads it).
-
-    :param scene: a scene with its layout and arcs
-    :param zone_margin: padding of every zone [m] (the shield's default)
-    """
-    hull_start, hull_end = body_hull(scene.layout, scene.route, scene.length, zone_margin)
-    return _shield_kernel.committed_rows(
-        np.ascontiguousarray(scene.arc, dtype=float),
-        np.ascontiguousarray(scene.speed, dtype=float),
-        np.ascontiguousarray(hull_start, dtype=float),
-        np.ascontiguousarray(hull_end, dtype=float),
-        float(scene.a_max),
-        _STANDING,
-        _STOP_SLACK,
-    )
 
 
 class Shield(Planner):
@@ -618,8 +597,6 @@ def _blame_pairs(blamed: np.ndarray, free: np.ndarray, second: np.ndarray, first
     blamed[pick[free[pick]]] = True
 
 
-
-
 _PARTING: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
@@ -675,3 +652,31 @@ def envelope_table(layout, deceleration: float) -> _shield_kernel.EnvelopeTable:
             sq.ravel(), dsq.ravel(), limit, int(sq.shape[1]), int(sq.shape[1] - 1), float(layout.ds)
         )
     return tables[key]
+
+
+class _Proposal:
+    """Stands for the policy inside the training shield, which checks proposals with ``Shield.check``."""
+
+    name = "policy"
+
+    def reset(self, seed: int | None = None) -> None:
+        pass
+
+    def act(self, scene: Scene) -> np.ndarray:
+        raise RuntimeError("the training shield checks the policy's proposals; it asks no planner")
+
+
+def training_shield(simulation_frequency: float, max_speed: float, governor_deceleration: float) -> Shield:
+    """The shield of training with ``shield`` (:mod:`envs.simulation.hooks`): it checks the policy's
+    proposals with :meth:`Shield.check` and asks no planner.
+
+    :param simulation_frequency: the environment's ``simulation_frequency`` [Hz]
+    :param max_speed: its ``max_speed`` [m/s]
+    :param governor_deceleration: its ``governor_deceleration`` [m/s^2]
+    """
+    return Shield(
+        _Proposal(),
+        simulation_frequency=simulation_frequency,
+        max_speed=max_speed,
+        governor_deceleration=governor_deceleration,
+    )

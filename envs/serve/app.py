@@ -47,8 +47,11 @@ from fastapi.responses import Response
 from pydantic import BaseModel, ValidationError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
+from envs.evaluation.harness import env_config
+from envs.planners import SHIELD_SUFFIX, check_planner_spec, make_planner, planner_name
 from envs.planners.base import Planner
 from envs.serve.access import Access
+from envs.serve.limits import ConnectionGuard, guarded_protocol, limit_logging, uvicorn_protocol
 from envs.serve.schema import (
     ErrorReply,
     Health,
@@ -138,9 +141,6 @@ class PlannerService:
     """
 
     def __init__(self, spec: str, env_id: str, env_kwargs: dict[str, Any] | None = None, shield: bool = False) -> None:
-        from envs.evaluation.harness import env_config
-        from envs.planners import SHIELD_SUFFIX, check_planner_spec, make_planner
-
         key = check_planner_spec(spec)
         if shield and not key.endswith(SHIELD_SUFFIX):
             key += SHIELD_SUFFIX
@@ -171,8 +171,7 @@ class PlannerService:
 
     def info(self) -> dict[str, Any]:
         """What the planners are (the server adds its limits): :class:`~envs.serve.schema.ServerInfo`'s fields."""
-        from envs.planners import planner_name
-        from sb3_graph import __version__
+        from sb3_graph import __version__  # torch: loaded only when asked
 
         cfg = self.builder.config
         return dict(
@@ -612,8 +611,6 @@ def uvicorn_config(
     :return: the ``uvicorn.Config`` (its logging already rate-limited)
     """
     import uvicorn
-
-    from envs.serve.limits import ConnectionGuard, guarded_protocol, limit_logging, uvicorn_protocol
 
     guard = ConnectionGuard(max_connections, header_timeout, body_timeout)
     config = uvicorn.Config(

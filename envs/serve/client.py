@@ -35,14 +35,15 @@ import time
 import weakref
 from pathlib import Path
 from typing import Any
-from urllib.parse import urlsplit
 
 import numpy as np
 
 from envs.planners.base import Planner
+from envs.planners.loading import parse_url
 from envs.planners.shield import Shield
 from envs.serve.access import default_token_path, read_tokens
 from envs.serve.wire import scene_to_wire
+from envs.simulation import hooks
 from envs.simulation.scene import Scene
 
 TOKEN_FILE_VARIABLE = "SB3_GRAPH_TOKEN_FILE"
@@ -71,27 +72,6 @@ class RemotePlannerError(ValueError):
 
 class DeadlineMissed(RemotePlannerError):
     """No answer within the decision's deadline."""
-
-
-def parse_url(url: str) -> tuple[str, str, int]:
-    """Scheme, host and port of ``http://HOST:PORT`` or ``https://HOST:PORT`` (no path, query, user or fragment).
-
-    :param url: the address
-    :return: ``(scheme, host, port)``
-    :raises ValueError: anything else, naming the part
-    """
-    parts = urlsplit(str(url).strip())
-    if parts.scheme not in ("http", "https"):
-        raise ValueError(f"planner server {url!r}: the address must start with http:// or https://")
-    if parts.path not in ("", "/") or parts.query or parts.fragment or parts.username or parts.password:
-        raise ValueError(f"planner server {url!r}: give only http://HOST:PORT (no path, query or user)")
-    try:
-        port = parts.port
-    except ValueError:
-        raise ValueError(f"planner server {url!r}: the port must be a number from 1 to 65535") from None
-    if not parts.hostname or port is None:
-        raise ValueError(f"planner server {url!r}: give both host and port, http://HOST:PORT")
-    return parts.scheme, parts.hostname, port
 
 
 def parse_address(url: str) -> tuple[str, int]:
@@ -482,3 +462,35 @@ def _deadline(value: float | None) -> float | None:
 def remote_name(info: dict[str, Any], client: PlannerClient) -> str:
     """Report name of a remote planner: ``<planner>@HOST:PORT``."""
     return f"{info['planner']}@{client.host}:{client.port}"
+
+
+def make_remote_planner(address: str, shielded: bool = False) -> Planner:
+    """The planner that plans through the server at ``address`` (:class:`RemotePlanner`), registered
+    for :func:`envs.planners.loading.make_remote_planner`.
+
+    :param address: ``http://HOST:PORT``, normalised
+    :param shielded: shield it here, in the client (:class:`RemoteShield`: a missed deadline gets the
+        shield's fallback)
+    :raises ValueError: the server cannot be reached or refuses (a wrong token)
+    """
+    planner = RemotePlanner(address)
+    return RemoteShield(planner) if shielded else planner
+
+
+def remote_planner_name(address: str) -> str:
+    """Report name of a remote planner, asked from the server: ``<its planner's name>@HOST:PORT``,
+    registered for :func:`envs.planners.loading.remote_planner_name`.
+
+    :param address: ``http://HOST:PORT``, normalised
+    :raises ValueError: the server cannot be reached or refuses
+    """
+    client = PlannerClient(address)
+    try:
+        return remote_name(client.version(), client)
+    finally:
+        client.disconnect()
+
+
+# Planner words ``http://HOST:PORT`` build these (envs.planners.loading asks envs.simulation.hooks).
+hooks.register("remote_planner", make_remote_planner)
+hooks.register("remote_planner_name", remote_planner_name)

@@ -26,6 +26,8 @@ from typing import Any
 
 import numpy as np
 
+from envs.simulation.engine import Simulation
+from envs.simulation.layouts import build_layout
 from envs.simulation.scene import Scene
 
 # Version of the wire schema; a change that old clients cannot read increments it (2: steps carry `seq`).
@@ -89,9 +91,6 @@ class SceneBuilder:
     """
 
     def __init__(self, config: dict[str, Any]) -> None:
-        from envs.simulation.engine import Simulation
-        from envs.simulation.layouts import build_layout
-
         self.config = dict(config)
         self.layout = build_layout(config["layout"], lateral_acceleration=float(config["lateral_acceleration"]))
         # The environment's own construction (its reset calls the same): the derived quantities use these settings.

@@ -47,6 +47,7 @@ from highway_env.road.road import Road
 from highway_env.vehicle.graphics import VehicleGraphics
 from highway_env.vehicle.kinematics import Vehicle
 
+from envs.simulation import hooks
 from envs.simulation.config import validate_config
 from envs.simulation.engine import Simulation, StepEvents
 from envs.simulation.graph import DEFAULT_S_SCALE, NUM_RELATIONS, build_observation, min_mahalanobis, num_node_features
@@ -280,15 +281,11 @@ class CoopIntersectionEnv(AbstractEnv):
         self._shield = self._make_shield() if cfg["shield"] else None
         self._base = None
         if cfg["residual_base"] is not None:
-            from envs.planners.residual import make_residual_base
-
-            self._base = make_residual_base(cfg["residual_base"])
+            self._base = hooks.maker("residual_base")(cfg["residual_base"])
             self._base.reset(seed)
         self._scheduler = None
         if cfg["action"]["type"] == "priority":
-            from envs.planners.glide import GlidePlanner
-
-            self._scheduler = GlidePlanner()
+            self._scheduler = hooks.maker("priority")()
             self._scheduler.reset(seed)
         self._scene = self.sim.scene()
         obs = build_observation(
@@ -433,11 +430,7 @@ class CoopIntersectionEnv(AbstractEnv):
 
     def _scheduled(self, scores: np.ndarray) -> np.ndarray:
         """Glide's accelerations with its order shifted by the priority scores (``action`` ``"priority"``)."""
-        from envs.planners.errors import checked_accelerations
-
-        self._scheduler.set_priority(self.config["action"]["scale"] * scores)
-        scene = self._scene
-        return checked_accelerations(self._scheduler.act(scene.copy()), scene, self._scheduler.name)
+        return self._scheduler.schedule(self._scene, self.config["action"]["scale"] * scores)
 
     def _as_commanded(self, acc: np.ndarray) -> np.ndarray:
         """Accelerations as a planner's command reaches the simulation in an evaluation (through the
@@ -447,11 +440,8 @@ class CoopIntersectionEnv(AbstractEnv):
         return np.clip(action.astype(np.float64), -1.0, 1.0) * a_max
 
     def _make_shield(self):
-        from envs.planners.shield import Shield
-
         cfg = self.config
-        return Shield(
-            _Proposal(),
+        return hooks.maker("shield")(
             simulation_frequency=cfg["simulation_frequency"],
             max_speed=cfg["max_speed"],
             governor_deceleration=cfg["governor_deceleration"],
@@ -569,18 +559,6 @@ class CoopIntersectionEnv(AbstractEnv):
             vehicles.append(v)
         self.road.vehicles = vehicles
         return super().render()
-
-
-class _Proposal:
-    """Stands for the policy inside the training shield, which checks proposals with ``Shield.check``."""
-
-    name = "policy"
-
-    def reset(self, seed: int | None = None) -> None:
-        pass
-
-    def act(self, scene: Scene) -> np.ndarray:
-        raise RuntimeError("the training shield checks the policy's proposals; it asks no planner")
 
 
 class CoopIntersection4WayEnv(CoopIntersectionEnv):

@@ -134,12 +134,12 @@ def zone_arc(scene: Scene) -> np.ndarray:
 
 
 def committed(scene: Scene) -> np.ndarray:
-    """``(n,)`` bool: the shield's rule (:func:`envs.planners.shield.committed_vehicles`): braking at
+    """``(n,)`` bool: the shield's rule (:func:`envs.simulation.commitment.committed_vehicles`): braking at
     ``a_max`` can no longer stop the body before its first zone, or it has left its last one.
 
     :raises ValueError: a scene without its layout or arcs (hand-built)
     """
-    from envs.planners.shield import committed_vehicles  # compiled: loaded only when asked for
+    from envs.simulation.commitment import committed_vehicles  # compiled (numba): loaded only when asked for
 
     _needs_layout(scene)
     return committed_vehicles(scene)

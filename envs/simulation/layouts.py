@@ -359,61 +359,70 @@ def _maneuver(h_in: np.ndarray, h_out: np.ndarray) -> int:
 
 
 # ---------------------------------------------------------------------- building
+# A lane of the road network: (from node, to node, index).
+_LaneKey = tuple[str, str, int]
+# A route while the layout is built: (name, lanes, maneuver, priority, entry arm, exit arm, upstream lanes).
+_Route = tuple[str, list[_LaneKey], int, int, str, str, int]
+
+
 def _build(name: str, arms: list[ArmSpec], ds: float, lateral_acceleration: float) -> Layout:
+    """The layout of ``arms``: its road network, its routes from every arm to every other one, their
+    sampled geometry and speed limits, its spawn lanes and its conflict zones."""
     net = RoadNetwork()
-    c, s, n = LineType.CONTINUOUS, LineType.STRIPED, LineType.NONE
+    stops, exits = _add_arms(net, arms)
+    routes = _add_routes(net, arms, stops, exits)
+    tables = _route_tables(net, routes, ds, lateral_acceleration)
+    spawn_lanes, route_spawn, priority, spawn_priority = _spawn_lanes(routes)
+    conflicts, zone_start, zone_end = _conflicts(routes, tables["xy"], tables["entry_arc"], tables["exit_arc"], ds)
+    return Layout(
+        name=name,
+        network=net,
+        route_names=tuple(r[0] for r in routes),
+        route_lanes=tuple(tuple(r[1]) for r in routes),
+        maneuver=np.array([r[2] for r in routes], np.int64),
+        priority=priority,
+        entry_arc=tables["entry_arc"],
+        exit_arc=tables["exit_arc"],
+        length=tables["length"],
+        conflicts=conflicts,
+        arm_angle={arm.name: float(ARM_ANGLES[arm.name]) for arm in arms},
+        entry_arm=tuple(r[4] for r in routes),
+        exit_arm=tuple(r[5] for r in routes),
+        spawn_lanes=tuple(spawn_lanes),
+        route_spawn_lane=route_spawn,
+        spawn_priority=spawn_priority,
+        ds=ds,
+        xy=tables["xy"],
+        heading=tables["heading"],
+        speed_limit=tables["speed_limit"],
+        lanes=tables["lanes"],
+        route_lane_ids=tables["route_lane_ids"],
+        route_lane_starts=tables["route_lane_starts"],
+        lane_start=tables["lane_start"],
+        touch_arc=tables["route_lane_starts"][:, 1].copy(),
+        zone_start=zone_start,
+        zone_end=zone_end,
+        lateral_acceleration=lateral_acceleration,
+    )
+
+
+def _add_arms(net: RoadNetwork, arms: list[ArmSpec]) -> tuple[dict, dict]:
+    """Add every arm's approach and exit lanes to ``net``.
+
+    :return: ``stops``: ``(arm, maneuver) -> (stop node, stop point, inward heading, upstream lanes)``;
+        ``exits``: ``arm -> (exit node, exit point, outward heading, exit lane)``
+    """
+    c, n = LineType.CONTINUOUS, LineType.NONE
     w = LANE_WIDTH
-    incoming: dict[str, list[tuple[str, str, int]]] = {}  # arm -> shared upstream lanes
     stops: dict[tuple[str, int], tuple[str, np.ndarray, np.ndarray, list]] = {}
-    exits: dict[str, tuple[str, np.ndarray, np.ndarray, tuple[str, str, int]]] = {}
-    arm_angle: dict[str, float] = {}
+    exits: dict[str, tuple[str, np.ndarray, np.ndarray, _LaneKey]] = {}
     for arm in arms:
         angle = ARM_ANGLES[arm.name]
-        arm_angle[arm.name] = float(angle)
         out = np.array([np.cos(angle), np.sin(angle)])  # outward
-        h_in = -out
-        right_in = _right_of(h_in)
         far = arm.stop_distance + arm.access_length
         prio = 3 if arm.priority == MAJOR else 1
+        stops.update(_add_approach(net, arm, out, far, prio))
         a = arm.name
-        if arm.left_pocket:
-            # Shared upstream lane, then the through lane moves one lane to the right while the
-            # left-turn pocket continues straight on: the left turn gets an isolated lane.
-            split = arm.stop_distance + 30.0
-            p_far = out * far + right_in * (w / 2)
-            p_split = out * split + right_in * (w / 2)
-            net.add_lane(
-                f"{a}_in",
-                f"{a}_split",
-                StraightLane(p_far, p_split, line_types=(s, c), priority=prio, speed_limit=APPROACH_SPEED_LIMIT),
-            )
-            p_stop = out * arm.stop_distance + right_in * (1.5 * w)
-            net.add_lane(
-                f"{a}_split",
-                f"{a}_stop",
-                StraightLane(p_split, p_stop, line_types=(n, c), priority=prio, speed_limit=APPROACH_SPEED_LIMIT),
-            )
-            p_lstop = out * arm.stop_distance + right_in * (w / 2)
-            net.add_lane(
-                f"{a}_split",
-                f"{a}_lstop",
-                StraightLane(p_split, p_lstop, line_types=(s, n), priority=prio, speed_limit=APPROACH_SPEED_LIMIT),
-            )
-            up = [(f"{a}_in", f"{a}_split", 0)]
-            stops[(a, STRAIGHT)] = (f"{a}_stop", p_stop, h_in, up + [(f"{a}_split", f"{a}_stop", 0)])
-            stops[(a, RIGHT)] = stops[(a, STRAIGHT)]
-            stops[(a, LEFT)] = (f"{a}_lstop", p_lstop, h_in, up + [(f"{a}_split", f"{a}_lstop", 0)])
-        else:
-            p_far = out * far + right_in * (w / 2)
-            p_stop = out * arm.stop_distance + right_in * (w / 2)
-            net.add_lane(
-                f"{a}_in",
-                f"{a}_stop",
-                StraightLane(p_far, p_stop, line_types=(s, c), priority=prio, speed_limit=APPROACH_SPEED_LIMIT),
-            )
-            for m in (LEFT, STRAIGHT, RIGHT):
-                stops[(a, m)] = (f"{a}_stop", p_stop, h_in, [(f"{a}_in", f"{a}_stop", 0)])
-        incoming[a] = []
         # Exit lane: right-hand side of the outgoing direction.
         right_out = _right_of(out)
         p_exit = out * arm.stop_distance + right_out * (w / 2)
@@ -424,8 +433,64 @@ def _build(name: str, arms: list[ArmSpec], ds: float, lateral_acceleration: floa
             StraightLane(p_exit, p_out, line_types=(n, c), priority=prio, speed_limit=APPROACH_SPEED_LIMIT),
         )
         exits[a] = (f"{a}_exit", p_exit, out, (f"{a}_exit", f"{a}_out", 0))
+    return stops, exits
 
-    routes: list[tuple[str, list[tuple[str, str, int]], int, int, str, str, float]] = []
+
+def _add_approach(net: RoadNetwork, arm: ArmSpec, out: np.ndarray, far: float, prio: int) -> dict:
+    """Add one arm's approach lanes to ``net``: one lane to the stop line, or with ``left_pocket`` a
+    shared lane that splits into a through lane and an isolated left-turn pocket.
+
+    :return: ``(arm, maneuver) -> (stop node, stop point, inward heading, upstream lanes)``
+    """
+    c, s, n = LineType.CONTINUOUS, LineType.STRIPED, LineType.NONE
+    w = LANE_WIDTH
+    h_in = -out
+    right_in = _right_of(h_in)
+    a = arm.name
+    if not arm.left_pocket:
+        p_far = out * far + right_in * (w / 2)
+        p_stop = out * arm.stop_distance + right_in * (w / 2)
+        net.add_lane(
+            f"{a}_in",
+            f"{a}_stop",
+            StraightLane(p_far, p_stop, line_types=(s, c), priority=prio, speed_limit=APPROACH_SPEED_LIMIT),
+        )
+        return {(a, m): (f"{a}_stop", p_stop, h_in, [(f"{a}_in", f"{a}_stop", 0)]) for m in (LEFT, STRAIGHT, RIGHT)}
+    # Shared upstream lane, then the through lane moves one lane to the right while the
+    # left-turn pocket continues straight on: the left turn gets an isolated lane.
+    split = arm.stop_distance + 30.0
+    p_far = out * far + right_in * (w / 2)
+    p_split = out * split + right_in * (w / 2)
+    net.add_lane(
+        f"{a}_in",
+        f"{a}_split",
+        StraightLane(p_far, p_split, line_types=(s, c), priority=prio, speed_limit=APPROACH_SPEED_LIMIT),
+    )
+    p_stop = out * arm.stop_distance + right_in * (1.5 * w)
+    net.add_lane(
+        f"{a}_split",
+        f"{a}_stop",
+        StraightLane(p_split, p_stop, line_types=(n, c), priority=prio, speed_limit=APPROACH_SPEED_LIMIT),
+    )
+    p_lstop = out * arm.stop_distance + right_in * (w / 2)
+    net.add_lane(
+        f"{a}_split",
+        f"{a}_lstop",
+        StraightLane(p_split, p_lstop, line_types=(s, n), priority=prio, speed_limit=APPROACH_SPEED_LIMIT),
+    )
+    up = [(f"{a}_in", f"{a}_split", 0)]
+    through = (f"{a}_stop", p_stop, h_in, up + [(f"{a}_split", f"{a}_stop", 0)])
+    return {
+        (a, STRAIGHT): through,
+        (a, RIGHT): through,
+        (a, LEFT): (f"{a}_lstop", p_lstop, h_in, up + [(f"{a}_split", f"{a}_lstop", 0)]),
+    }
+
+
+def _add_routes(net: RoadNetwork, arms: list[ArmSpec], stops: dict, exits: dict) -> list[_Route]:
+    """Add the connector lanes from every arm to every other one to ``net``; the routes, in the order
+    of ``arms`` (entry, then exit)."""
+    routes: list[_Route] = []
     for arm_in in arms:
         for arm_out in arms:
             if arm_in.name == arm_out.name:
@@ -445,20 +510,15 @@ def _build(name: str, arms: list[ArmSpec], ds: float, lateral_acceleration: floa
                 net.add_lane(nodes[k], nodes[k + 1], lane)
                 con_lanes.append((nodes[k], nodes[k + 1], len(net.graph[nodes[k]][nodes[k + 1]]) - 1))
             lanes = list(up_lanes) + con_lanes + [exit_lane]
-            routes.append(
-                (
-                    f"{arm_in.name}->{arm_out.name}",
-                    lanes,
-                    m,
-                    arm_in.priority,
-                    arm_in.name,
-                    arm_out.name,
-                    len(up_lanes),
-                )
-            )
+            name = f"{arm_in.name}->{arm_out.name}"
+            routes.append((name, lanes, m, arm_in.priority, arm_in.name, arm_out.name, len(up_lanes)))
+    return routes
 
-    # Global lane table and per-route arc lengths.
-    all_lanes: list[tuple[str, str, int]] = []
+
+def _route_tables(net: RoadNetwork, routes: list[_Route], ds: float, lateral_acceleration: float) -> dict:
+    """The global lane table, every route's lanes and arc lengths, and its geometry sampled every
+    ``ds`` metres (positions, headings, speed limits; padded with the last sample to one length)."""
+    all_lanes: list[_LaneKey] = []
     for _, lanes, *_ in routes:
         for li in lanes:
             if li not in all_lanes:
@@ -486,12 +546,9 @@ def _build(name: str, arms: list[ArmSpec], ds: float, lateral_acceleration: floa
         arcs = np.arange(0.0, lengths[r] + ds, ds)
         arcs[-1] = min(arcs[-1], lengths[r])
         k_of = np.clip(np.searchsorted(starts, arcs, side="right") - 1, 0, len(objs) - 1)
-        xy = np.array([objs[k].position(a - starts[k], 0.0) for a, k in zip(arcs, k_of)])
-        h = np.unwrap(np.array([objs[k].heading_at(a - starts[k]) for a, k in zip(arcs, k_of)]))
-        v = np.array([_lane_limit(objs[k], lateral_acceleration) for k in k_of])
-        samples_xy.append(xy)
-        samples_h.append(h)
-        samples_v.append(v)
+        samples_xy.append(np.array([objs[k].position(a - starts[k], 0.0) for a, k in zip(arcs, k_of)]))
+        samples_h.append(np.unwrap(np.array([objs[k].heading_at(a - starts[k]) for a, k in zip(arcs, k_of)])))
+        samples_v.append(np.array([_lane_limit(objs[k], lateral_acceleration) for k in k_of]))
     m_max = max(len(x) for x in samples_xy)
 
     def pad(arrs: list[np.ndarray]) -> np.ndarray:
@@ -499,47 +556,31 @@ def _build(name: str, arms: list[ArmSpec], ds: float, lateral_acceleration: floa
 
     xy, heading, speed_limit = pad(samples_xy), pad(samples_h), pad(samples_v)
     speed_limit = np.minimum(speed_limit, _kink_limits(heading, speed_limit, ds, lateral_acceleration))
+    return {
+        "lanes": tuple(all_lanes),
+        "route_lane_ids": route_lane_ids,
+        "route_lane_starts": route_lane_starts,
+        "lane_start": lane_start,
+        "length": lengths,
+        "entry_arc": entry_arc,
+        "exit_arc": exit_arc,
+        "xy": xy,
+        "heading": heading,
+        "speed_limit": speed_limit,
+    }
 
-    # Spawn lanes: distinct first lanes of the routes.
-    spawn_lanes: list[tuple[str, str, int]] = []
+
+def _spawn_lanes(routes: list[_Route]) -> tuple[list[_LaneKey], np.ndarray, np.ndarray, np.ndarray]:
+    """The spawn lanes (the distinct first lanes of the routes), each route's spawn lane, the routes'
+    priorities and each spawn lane's priority."""
+    spawn_lanes: list[_LaneKey] = []
     for _, lanes, *_ in routes:
         if lanes[0] not in spawn_lanes:
             spawn_lanes.append(lanes[0])
     route_spawn = np.array([spawn_lanes.index(r[1][0]) for r in routes], np.int64)
     priority = np.array([r[3] for r in routes], np.int64)
     spawn_priority = np.array([priority[route_spawn == k][0] for k in range(len(spawn_lanes))], np.int64)
-
-    conflicts, zone_start, zone_end = _conflicts(routes, xy, entry_arc, exit_arc, ds)
-    return Layout(
-        name=name,
-        network=net,
-        route_names=tuple(r[0] for r in routes),
-        route_lanes=tuple(tuple(r[1]) for r in routes),
-        maneuver=np.array([r[2] for r in routes], np.int64),
-        priority=priority,
-        entry_arc=entry_arc,
-        exit_arc=exit_arc,
-        length=lengths,
-        conflicts=conflicts,
-        arm_angle=arm_angle,
-        entry_arm=tuple(r[4] for r in routes),
-        exit_arm=tuple(r[5] for r in routes),
-        spawn_lanes=tuple(spawn_lanes),
-        route_spawn_lane=route_spawn,
-        spawn_priority=spawn_priority,
-        ds=ds,
-        xy=xy,
-        heading=heading,
-        speed_limit=speed_limit,
-        lanes=tuple(all_lanes),
-        route_lane_ids=route_lane_ids,
-        route_lane_starts=route_lane_starts,
-        lane_start=lane_start,
-        touch_arc=route_lane_starts[:, 1].copy(),
-        zone_start=zone_start,
-        zone_end=zone_end,
-        lateral_acceleration=lateral_acceleration,
-    )
+    return spawn_lanes, route_spawn, priority, spawn_priority
 
 
 # Half-width of the stretch around a kink over which its limit holds [m]: more than a vehicle moves in one

@@ -12,9 +12,10 @@ shows the simulated time, the planner, the conflict zones and every vehicle colo
 - *collided*: the vehicles of a collision in that step, drawn where they were when it happened
   (the harness removes them from the scene) for :data:`COLLIDED_SHOWN_S` seconds.
 
-:func:`record_episode` runs the evaluation harness's loop (:func:`envs.evaluation.harness.run_episode`),
-so that a recorded run is the run of the report; :func:`write_animation` draws one or several
-recorded episodes side by side (the same scenario under different planners).
+:class:`EpisodeRecorder` keeps the frames of a run (:func:`envs.evaluation.recording.record_episode` runs
+the evaluation harness's loop with it, so that a recorded run is the run of the report);
+:func:`write_animation` draws one or several recorded episodes side by side (the same scenario under
+different planners).
 """
 
 from __future__ import annotations
@@ -36,6 +37,7 @@ from matplotlib import animation  # noqa: E402
 from matplotlib.collections import PolyCollection  # noqa: E402
 from matplotlib.patches import Patch  # noqa: E402
 
+from envs.simulation.layouts import LANE_WIDTH  # noqa: E402
 from envs.simulation.scene import STOP_SPEED, Scene  # noqa: E402
 from envs.simulation.step_record import StepRecord  # noqa: E402
 
@@ -171,34 +173,6 @@ class EpisodeRecorder:
             self.tick()
 
 
-def record_episode(
-    env,
-    planner,
-    name: str,
-    scenario: Any,
-    duration: float,
-    seed: int | None = None,
-    tick: Callable[[], Any] | None = None,
-) -> Episode:
-    """Run one planner through one scenario with the harness's loop, keeping a frame per policy step.
-
-    :param env: the harness's environment (:func:`envs.evaluation.harness.evaluation_env_kwargs`)
-    :param planner: a :class:`envs.planners.Planner`
-    :param name: its report name
-    :param scenario: a :class:`envs.simulation.traffic.Scenario` (or a file)
-    :param duration: simulated seconds
-    :param seed: seed of the environment's reset and of the planner (the harness's ``seed + index``)
-    :param tick: called once per policy step (progress)
-    :return: the episode, its facts with the run's ``crossed`` and ``collided`` vehicles
-    """
-    from envs.evaluation.harness import run_episode
-
-    recorder = EpisodeRecorder(planner, tick)
-    vehicles, facts = run_episode(env, planner, scenario, duration, seed=seed, on_step=recorder)
-    facts = {**facts, "crossed": int(vehicles["crossed"].notna().sum()), "collided": int(vehicles["collided"].sum())}
-    return Episode(name, env.unwrapped.layout, recorder.frames, facts)
-
-
 def _band(xy: np.ndarray, half_width: float) -> np.ndarray:
     """The outline of a strip ``half_width`` either side of a polyline ``(m, 2)``: ``(2m, 2)``."""
     d = np.gradient(xy, axis=0)
@@ -238,8 +212,6 @@ def zone_outlines(layout, half_width: float = 1.0) -> list[np.ndarray]:
 
 
 def _draw_background(ax, layout, view: float) -> None:
-    from envs.simulation.layouts import LANE_WIDTH
-
     roads = [_band(_route_samples(layout, r), LANE_WIDTH / 2) for r in range(layout.num_routes)]
     ax.add_collection(PolyCollection(roads, facecolors=ROAD_COLOR, edgecolors="none", zorder=0))
     ax.add_collection(

@@ -140,7 +140,7 @@ def relational_layout(
     per_edge: bool = False,
 ) -> RelationalLayout:
     """Aggregation indices of :func:`relational_conv`, cached per batch (see
-    :class:`~sb3_graph.batching.DerivedIndexCache`).
+    :class:`~sb3_graph.common.batching.DerivedIndexCache`).
 
     :param edge_index: ``(2, E)`` long ``(source, target)`` rows
     :param edge_type: ``(E,)`` relation ids

@@ -172,7 +172,7 @@ def _compiled_forward(
     num_relations: int,
     stride: int,
 ) -> Tensor:
-    """:class:`_RelationalMax`'s forward pass with :func:`sb3_graph._max_kernel.relational_max_forward`."""
+    """:class:`_RelationalMax`'s forward pass with the compiled ``_max_kernel.relational_max_forward``."""
     kernels = _COMPILED["kernels"]
     rows = rows.detach().contiguous()
     channels = rows.size(1)

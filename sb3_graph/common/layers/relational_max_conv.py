@@ -68,7 +68,7 @@ class RelationalMaxConv(MessagePassing):
     Without edge features, repeated edges are merged for the maximum and the aggregation runs
     over per-vertex rows (a message is a row of :math:`\mathbf{x} \mathbf{W}_r`); with them, every
     edge carries its own message. On CPU the max aggregation runs in compiled kernels
-    (:mod:`sb3_graph._max_kernel`, numba), which also add the bias and, with edge features, form
+    (:mod:`sb3_graph.common.layers._max_kernel`, numba), which also add the bias and, with edge features, form
     each edge's message as they reduce; :func:`use_compiled_kernels` switches them off for the
     PyTorch formulation, the reference they are tested against (with edge features it builds the
     ``(E, F_out)`` messages and reduces them with :func:`segment_max`).

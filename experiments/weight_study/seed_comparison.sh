@@ -3,22 +3,22 @@
 # that was run"). Trains each set from scratch under the protocol of the study's trials, evaluates the
 # final models on the main job's held-out scenarios, with and without the shield, and aggregates.
 #
-#   bash scripts/seed_comparison.sh [STEPS] [SEED ...]      (default: 54000 steps, seeds 0 1 2)
+#   bash experiments/weight_study/seed_comparison.sh [STEPS] [SEED ...]      (default: 54000 steps, seeds 0 1 2)
 #
 # Two trainings run at once, one per core. Existing run folders and reports are refused, never
 # overwritten (sb3-graph's own checks).
 set -euo pipefail
-cd "$(dirname "$0")/.."
+cd "$(dirname "$0")/../.."
 STEPS=${1:-54000}
 SEEDS=(0 1 2)
 if [ $# -gt 1 ]; then SEEDS=("${@:2}"); fi
-# The tuning preset (envs.evaluation.tuning.TUNING_PRESET), the study's best weights (examples/weight_study,
+# The tuning preset (envs.evaluation.tuning.TUNING_PRESET), the study's best weights (experiments/weight_study,
 # trial 0 of weights_fair) and the full environment's graph sizes, read where they are defined.
 read -r PRESET TUNED FULL_NODES FULL_EDGES < <(python -c "
 import json, yaml
 from envs.simulation.env import CoopIntersectionEnv
 from envs.evaluation.tuning import TUNING_PRESET
-entry = yaml.safe_load(open('examples/weight_study/best_params.yml'))['CoopIntersection4Way-v0']
+entry = yaml.safe_load(open('experiments/weight_study/best_params.yml'))['CoopIntersection4Way-v0']
 full = CoopIntersectionEnv.default_config()
 print(json.dumps(TUNING_PRESET, separators=(',', ':'))[1:-1],
       json.dumps(entry['env_kwargs']['config']['reward_weights'], separators=(',', ':')),

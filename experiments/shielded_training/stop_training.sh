@@ -1,10 +1,10 @@
 #!/usr/bin/env bash
-# Issue #22, stops: fine-tune the residual + feature planners of scripts/feature_training.sh (stored
-# action fixed, examples/shielded_training/features_proposal_s*) behind the shield with a new stop
+# Issue #22, stops: fine-tune the residual + feature planners of experiments/shielded_training/feature_training.sh (stored
+# action fixed, experiments/shielded_training/features_proposal_s*) behind the shield with a new stop
 # charged 10 s of delay instead of 2 s (reward_weights.stop 1.0), each vertex's exploration noise kept
 # with its vehicle (VertexNoiseCallback), and the actor held for the first WARMUP steps while the
 # critics learn the new reward. Then exported and evaluated behind the shield over demand.
-#   bash scripts/stop_training.sh STEPS SCENARIOS SEED...   (the run in docs/training.md: 30000 10 0 1)
+#   bash experiments/shielded_training/stop_training.sh STEPS SCENARIOS SEED...   (the run in docs/training.md: 30000 10 0 1)
 set -euo pipefail
 steps=${1:-30000}
 scenarios=${2:-10}
@@ -21,7 +21,7 @@ callbacks="[{sb3_graph.callbacks.ActorWarmupCallback: {steps: $warmup, zero_outp
 for s in ${seeds[@]}; do
   sb3-graph train --config zoo_configs/td3_residual_features.yml --env CoopIntersection4Way-v0 \
     --out "$runs/stops_s$s" --n-timesteps "$steps" --seed "$s" --no-progress \
-    --init-weights "examples/shielded_training/features_proposal_s$s/final_model.safetensors" \
+    --init-weights "experiments/shielded_training/features_proposal_s$s/final_model.safetensors" \
     --env-kwargs "{\"config\": {\"reward_weights\": {\"stop\": $stop}}}" \
     --hyperparams "learning_starts:1000" "callback:$callbacks" > "$runs/stops_s$s.log" 2>&1 &
 done

@@ -1,27 +1,27 @@
 #!/usr/bin/env bash
-# Issue #23 item 4: the default task weights against the study's best (examples/weight_study/shield_fine),
+# Issue #23 item 4: the default task weights against the study's best (experiments/weight_study/shield_fine),
 # trained the same way with 3 training seeds each, then evaluated behind the shield on held-out scenarios.
 # Both fine-tune the shipped planner behind the shield for STEPS steps (the protocol of the study's trials
 # and of the one-seed preview); the checkpoint kept is the best on train's own validation
-# (another seed). The six planners are exported as weights-only files into examples/weight_study/seeds/.
+# (another seed). The six planners are exported as weights-only files into experiments/weight_study/seeds/.
 #
-#   bash scripts/weight_seeds.sh [STEPS] [SCENARIOS]     (the run in docs/tuning.md: 30000 20)
+#   bash experiments/weight_study/weight_seeds.sh [STEPS] [SCENARIOS]     (the run in docs/tuning.md: 30000 20)
 #
 # Two trainings run at once, one torch thread each. Existing run folders and reports are refused,
 # never overwritten (sb3-graph's own checks); RUNS and REPORTS move them elsewhere.
 set -euo pipefail
-cd "$(dirname "$0")/.."
+cd "$(dirname "$0")/../.."
 STEPS=${1:-30000}
 SCENARIOS=${2:-20}
 RUNS=${RUNS:-runs/weight_seeds}
 REPORTS=${REPORTS:-reports/weight_seeds}
 SHIPPED=envs/pretrained/coop_4way_fair/best_model.safetensors
-OUT=${OUT:-examples/weight_study/seeds}
+OUT=${OUT:-experiments/weight_study/seeds}
 export OMP_NUM_THREADS=1
 
 train() { # SET SEED
   local config=zoo_configs/td3_shield.yml
-  [ "$1" = tuned ] && config=examples/weight_study/shield_fine/best_params.yml
+  [ "$1" = tuned ] && config=experiments/weight_study/shield_fine/best_params.yml
   sb3-graph train --config "$config" --env CoopIntersection4Way-v0 --out "$RUNS/$1/seed_$2" --seed "$2" \
     --init-weights "$SHIPPED" --hyperparams learning_starts:500 --n-timesteps "$STEPS" --threads 1 \
     --no-progress > "$RUNS/$1_seed_$2.log" 2>&1

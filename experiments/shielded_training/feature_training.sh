@@ -1,10 +1,10 @@
 #!/usr/bin/env bash
-# Issue #22's feature comparison: the residual policy of scripts/shielded_training.sh (a correction of
+# Issue #22's feature comparison: the residual policy of experiments/shielded_training/shielded_training.sh (a correction of
 # always-full-throttle behind the shield, task reward) with the observation features of
 # zoo_configs/td3_residual_features.yml, 3 training seeds from scratch, then evaluated behind the
 # shield on the main job's scenarios beside the residual policies without them, AIM and
 # always-full-throttle + shield.
-#   bash scripts/feature_training.sh STEPS SCENARIOS   (the run in docs/training.md: 50000 10)
+#   bash experiments/shielded_training/feature_training.sh STEPS SCENARIOS   (the run in docs/training.md: 50000 10)
 # The trainings run in parallel, one torch thread each; a killed one is exported from its latest checkpoint.
 set -euo pipefail
 steps=${1:-50000}
@@ -26,7 +26,7 @@ for s in 0 1 2; do
     --planner-config "$config"
 done
 P=$runs/planners
-E=examples/shielded_training
+E=experiments/shielded_training
 sb3-graph evaluate --planner aim --planner envs/planners/adversarial.py:FullThrottle+shield \
   --planner "$P/features_s0/final_model.safetensors+shield" --planner "$P/features_s1/final_model.safetensors+shield" \
   --planner "$P/features_s2/final_model.safetensors+shield" \

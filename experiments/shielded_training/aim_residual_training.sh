@@ -1,9 +1,9 @@
 #!/usr/bin/env bash
-# Issue #22 item 5 with AIM as the base: the residual + feature policy of scripts/feature_training.sh
+# Issue #22 item 5 with AIM as the base: the residual + feature policy of experiments/shielded_training/feature_training.sh
 # (zoo_configs/td3_residual_features.yml) correcting AIM instead of always-full-throttle, from scratch
 # (a zero actor is AIM; the critics learn AIM's value for the first 10,000 steps), then evaluated
 # behind the shield over demand beside AIM and full throttle + shield.
-#   bash scripts/aim_residual_training.sh STEPS SCENARIOS SEED...   (the run in docs/training.md: 30000 10 0 1)
+#   bash experiments/shielded_training/aim_residual_training.sh STEPS SCENARIOS SEED...   (the run in docs/training.md: 30000 10 0 1)
 set -euo pipefail
 steps=${1:-30000}
 scenarios=${2:-10}

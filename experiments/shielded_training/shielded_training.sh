@@ -2,7 +2,7 @@
 # Issue #22's comparison: residual policies over always-full-throttle (3 training seeds) and one plain
 # policy, all trained from scratch behind the shield on the task reward, then evaluated behind the
 # shield on main-job scenarios against AIM, always-full-throttle + shield and the shipped planner.
-#   bash scripts/shielded_training.sh STEPS SCENARIOS   (run with 50000 10; the plain policy
+#   bash experiments/shielded_training/shielded_training.sh STEPS SCENARIOS   (run with 50000 10; the plain policy
 #   was stopped at its 40,000-step checkpoint)
 # The trainings run in parallel, one torch thread each. Stop one early with `kill` and this script
 # exports its latest checkpoint instead of a final model.
