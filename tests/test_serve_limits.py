@@ -193,10 +193,13 @@ def test_half_open_connections_leave_a_good_client_served(service):
         assert cap < used + 130 - 32
         with ThreadServer(service, max_connections=cap, header_timeout=2.0) as server:
             guard = server.config.guard
-            attack = _fd_attack(server.url, 3 * cap, seconds=4.0)
+            attack = _fd_attack(server.url, 3 * cap, seconds=60.0)
             client = PlannerClient(server.url, token=TOKEN, timeout=5)
             stream = client.open("4way")
-            time.sleep(1.0)  # the attack fills the cap
+            deadline = time.monotonic() + 20  # the short backlog makes the kernel, not the server, hold the flood
+            while len(guard.open) < cap and time.monotonic() < deadline:
+                time.sleep(0.1)
+            assert len(guard.open) == cap  # the attack fills the cap
             peak, tic = 0, time.monotonic()
             for k in range(20):
                 client.disconnect()  # a new connection each time: the hard case

@@ -54,6 +54,7 @@ def mean_return(model, env, episodes):
     return float(evaluate_policy(model, env, n_eval_episodes=episodes)[0])
 
 
+@pytest.mark.slow  # test_algorithms.py checks the same in a few hundred steps; this is the longer run
 def test_learns_toy_task():
     env = Monitor(MaxNeighbourEnv())
     random_return = mean_return(None, MaxNeighbourEnv(), 30)

@@ -51,7 +51,7 @@ from envs.evaluation.harness import env_config
 from envs.planners import SHIELD_SUFFIX, check_planner_spec, make_planner, planner_name
 from envs.planners.base import Planner
 from envs.serve.access import Access
-from envs.serve.limits import ConnectionGuard, guarded_protocol, limit_logging, uvicorn_protocol
+from envs.serve.limits import ACCEPT_BURST, ConnectionGuard, guarded_protocol, limit_logging, uvicorn_protocol
 from envs.serve.schema import (
     ErrorReply,
     Health,
@@ -616,7 +616,7 @@ def uvicorn_config(
     config = uvicorn.Config(
         create_app(gateway), log_level="warning", access_log=False, timeout_graceful_shutdown=2,
         http=guarded_protocol(uvicorn_protocol(), guard), limit_concurrency=max_connections + 1,
-        timeout_keep_alive=keep_alive, **(tls or {}),
+        timeout_keep_alive=keep_alive, backlog=ACCEPT_BURST, **(tls or {}),
     )  # fmt: skip
     config.guard = guard
     limit_logging()  # after uvicorn's own logging set-up (in Config), which would drop the filters

@@ -23,6 +23,11 @@ import logging
 import time
 from typing import Any
 
+# The listening socket's backlog. asyncio accepts up to ``backlog`` connections in one go, and an evicted
+# connection's descriptor closes only a few loop iterations later, so a flood can hold about three bursts
+# over the cap: 3 x 16 stays inside the 64 descriptors the server keeps in reserve (``RESERVED_FDS``).
+ACCEPT_BURST = 16
+
 
 class ConnectionGuard:
     """The open connections of one server, their caps and read timeouts (shared by its protocol objects).
