@@ -19,7 +19,7 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
-from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.callbacks import BaseCallback, EvalCallback
 
 #: ``info`` key of an environment whose vertices come and go: for each vertex of the new observation,
 #: its slot in the previous one (``-1`` for a new vertex), see :class:`VertexNoiseCallback`
@@ -226,3 +226,26 @@ class VertexNoiseCallback(BaseCallback):
             moved[: origin.size][known] = state[origin[known]]
             process.noise_prev = moved
         return True
+
+
+class FixedEpisodesEvalCallback(EvalCallback):
+    """SB3's :class:`~stable_baselines3.common.callbacks.EvalCallback`, on the same validation episodes every time.
+
+    SB3's callback resets its evaluation env without a seed, so its n-th validation draws the episodes that follow
+    those of the one before: in a domain whose episodes differ much in difficulty (traffic demand, say), the
+    validation curve then follows the episodes, and ``best_model.zip`` is picked by their draw. This one reseeds
+    the evaluation env with ``seed`` before each validation, so that validations compare policies.
+
+    :param eval_env: the evaluation environment (as SB3's)
+    :param seed: seed of the first evaluation env at each validation (a VecEnv adds its index per env)
+    :param kwargs: SB3's ``EvalCallback`` arguments
+    """
+
+    def __init__(self, eval_env: Any, seed: int, **kwargs: Any) -> None:
+        super().__init__(eval_env, **kwargs)
+        self.seed = int(seed)
+
+    def _on_step(self) -> bool:
+        if self.eval_freq > 0 and self.n_calls % self.eval_freq == 0:
+            self.eval_env.seed(self.seed)  # applied at the reset that starts the validation
+        return super()._on_step()

@@ -145,3 +145,25 @@ def test_info_logger_takes_0d_arrays_and_skips_strings():
     assert logger.name_to_value["info/flag"] == pytest.approx(0.5)
     assert logger.name_to_value["info/terms/a"] == pytest.approx(1.0)
     assert not any("label" in key or "nothing" in key for key in logger.name_to_value)
+
+
+@pytest.mark.parametrize("fixed", [True, False])
+def test_validations_see_the_same_episodes(fixed, tmp_path):
+    """A policy that does not change scores the same at every validation of FixedEpisodesEvalCallback; under
+    SB3's EvalCallback (the oracle that the episodes do differ) the scores drift with the episodes."""
+    from stable_baselines3.common.callbacks import EvalCallback
+    from stable_baselines3.common.env_util import make_vec_env
+
+    from sb3_graph import TD3
+    from sb3_graph.callbacks import FixedEpisodesEvalCallback
+    from sb3_graph.toy_envs import MaxNeighbourEnv
+
+    eval_env = make_vec_env(MaxNeighbourEnv, n_envs=1, seed=7)
+    common = dict(eval_freq=40, n_eval_episodes=3, deterministic=True, verbose=0, log_path=str(tmp_path))
+    callback = FixedEpisodesEvalCallback(eval_env, seed=7, **common) if fixed else EvalCallback(eval_env, **common)
+    model = TD3("GraphPolicy", MaxNeighbourEnv(), learning_starts=10_000, seed=0)  # no update: a fixed policy
+    model.learn(160, callback=callback)
+    rewards = callback.evaluations_results
+    assert len(rewards) == 4
+    same = all(np.array_equal(rewards[0], r) for r in rewards[1:])
+    assert same == fixed, rewards

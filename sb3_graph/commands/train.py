@@ -5,7 +5,7 @@ A run folder holds::
     config.yml          the experiment entry as resolved (file entry + command-line overrides)
     run.json            seed, versions, command, steps, wall time, best validation reward
     best_model.zip      the model with the best validation reward so far (paper: "Experiments")
-    evaluations.npz     every validation result (SB3 EvalCallback's log)
+    evaluations.npz     every validation result (SB3 EvalCallback's log; the same episodes each time)
     checkpoints/        model_<steps>_steps.zip and the latest replay buffer, for --resume, with
                         signatures.json (see below)
     final_model.zip     the model at the end of training
@@ -632,8 +632,9 @@ def _run_seeds(args: argparse.Namespace) -> int:
 
 def _run_one(args: argparse.Namespace) -> int:
     import torch as th
-    from stable_baselines3.common.callbacks import CallbackList, EvalCallback
+    from stable_baselines3.common.callbacks import CallbackList
 
+    from sb3_graph.callbacks import FixedEpisodesEvalCallback
     from sb3_graph.files.experiment_files import ExperimentError, build_callbacks
     from sb3_graph.files.signing import write_signed
 
@@ -718,8 +719,9 @@ def _run_one(args: argparse.Namespace) -> int:
         write_signed(config_path, yaml.safe_dump(entry, sort_keys=False))
     write_signed(out / "run.json", json.dumps(record, indent=2))
 
-    eval_callback = EvalCallback(
+    eval_callback = FixedEpisodesEvalCallback(
         eval_env,
+        seed=seed + VALIDATION_SEED_OFFSET,
         n_eval_episodes=args.eval_episodes,
         eval_freq=max(args.eval_freq // n_envs, 1),
         best_model_save_path=str(out),
