@@ -285,9 +285,9 @@ def test_seeds_train_one_run_per_seed_and_never_overwrite(tmp_path, capsys):
     assert json.loads((out / "seed_2" / "run.json").read_text())["seed"] == 2
 
 
-@pytest.mark.parametrize("name", ["td3_fair.yml", "td3_tune.yml"])
+@pytest.mark.parametrize("name", ["td3_fair.yml", "td3_tune.yml", "td3_priority.yml", "td3_glide_clone.yml"])
 def test_intersection_zoo_entries_read_and_build(name):
-    # The retraining and study entries are read without eval and make the environment they name.
+    # The retraining, study and cloning entries are read without eval and make the environment they name.
     from sb3_graph.files.experiment_files import build_algorithm_kwargs, build_callbacks, read_experiment
 
     entry = read_experiment(ROOT / "zoo_configs" / name, "CoopIntersection4Way-v0")
