@@ -6,7 +6,7 @@ two convolutions of 32, ``gamma=0``, untuned settings; error over 30 evaluation 
 policy: ~0.57). The expert is the task's exact answer (``sb3_graph.toy_envs.max_neighbour_expert``);
 cloning collects ``--transitions`` demonstrations (1 environment) and takes N gradient steps of batch
 64 (off-policy: plus N // 4 critic warm-up steps). RL alone runs ``--rl-steps`` environment steps, RL on
-top of the clone ``--rl-after`` (default: the same). Every row is scored on the same 30 evaluation
+top of the clone ``--rl-after`` (default: the same). Every model is scored on the same 30 evaluation
 episodes. RL gradient steps are SB3's updates: one critic step per environment step after
 ``learning_starts`` off-policy, ``n_epochs`` passes of minibatches per rollout for PPO. One torch thread.
 """
