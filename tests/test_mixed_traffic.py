@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -116,3 +117,33 @@ def test_metrics_split_automated_and_human():
     assert row["vehicles_human"] == int(vehicles["human"].sum()) > 0
     assert row["flow_rate_automated"] + row["flow_rate_human"] == pytest.approx(row["flow_rate"])
     assert row["collisions_automated"] + row["collisions_human"] == row["collided"]
+
+
+def _cut_in(aware: bool) -> tuple[int, dict[int, float]]:
+    """A human on the major road (precedence) and an automated vehicle on the minor road driven at
+    full throttle behind the shield, both 30 m before their lines at 10 m/s."""
+    env = CoopIntersectionEnv(
+        {"spawn_probability": 0.0, "initial_spawn_probability": 0.0, "spawn_queue": 0, "collision_handling": "remove"}
+    )
+    env.reset(seed=0)
+    lay = env.layout
+    entry = [lay.entry_arc[lay.route_id(r)] for r in ("west->east", "south->north")]
+    env.place_vehicles(
+        ["west->east", "south->north"], np.array(entry) - 30.0, [10.0, 10.0], vehicle_id=[1, 2], human=[True, False]
+    )
+    shield = make_planner("fullthrottle+shield")
+    shield.reset(0)
+    collisions, crossed = 0, {}
+    for _ in range(60):
+        scene = env.scene()
+        seen = scene if aware else dataclasses.replace(scene, human=None)  # blind: takes the human for automated
+        _, _, _, _, info = env.step(env.accelerations_to_action(shield.act(seen.copy())))
+        collisions += len(info["record"].collisions)
+        crossed.update(dict.fromkeys(info["record"].crossed.tolist(), info["record"].time))
+    return collisions, crossed
+
+
+def test_the_shield_keeps_an_automated_vehicle_from_cutting_in_front_of_a_human():
+    collisions, crossed = _cut_in(aware=True)
+    assert collisions == 0 and crossed[1] < crossed[2]  # the human went first, the automated one waited
+    assert _cut_in(aware=False)[0] > 0  # a shield that took the human for commandable lets them collide
