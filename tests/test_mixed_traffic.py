@@ -147,3 +147,52 @@ def test_the_shield_keeps_an_automated_vehicle_from_cutting_in_front_of_a_human(
     collisions, crossed = _cut_in(aware=True)
     assert collisions == 0 and crossed[1] < crossed[2]  # the human went first, the automated one waited
     assert _cut_in(aware=False)[0] > 0  # a shield that took the human for commandable lets them collide
+
+
+TINY = ["--scenarios", "1", "--duration", "20", "--seed", "2", "--jobs", "1", "--no-progress"]
+
+
+def test_the_penetration_sweep_writes_the_share_column_and_figure(tmp_path, capsys):
+    from sb3_graph.cli import main
+
+    out = tmp_path / "sweep"
+    args = ["sweep", "--planner", "pr", "--planner", "fifo", "--human-share", "1", "0", "--out", str(out)]
+    assert main([*args, *TINY]) == 0
+    assert "  human share 0: " in capsys.readouterr().out
+    table = pd.read_csv(out / "sweep.csv")
+    assert list(table.columns[:2]) == ["planner", "human_share"]
+    assert {"collisions_automated", "collisions_human"} <= set(table.columns) and "demand" not in table
+    assert sorted(set(table["human_share"])) == [0.0, 1.0]
+    assert (out / "sweep.png").stat().st_size > 10_000 and "Penetration sweep" in (out / "sweep.md").read_text()
+    for share in (0, 1):
+        scenario = Scenario.load(next((out / f"human_share_{share}" / "scenarios").iterdir()))
+        assert scenario.human.all() if share else not scenario.human.any()
+    # Only human drivers: FIFO's runs are PR's.
+    everyone = table[table["human_share"] == 1].set_index("planner")
+    for column in ("flow_rate", "delay_mean_s", "stop_ratio", "collision_rate"):
+        assert everyone.loc["FIFO", column] == pytest.approx(everyone.loc["PR", column], nan_ok=True), column
+    # No human driver: the figures of a plain evaluation on the same seeds.
+    assert main(["evaluate", "--planner", "fifo", "--out", str(tmp_path / "plain"), *TINY]) == 0
+    plain = json.loads((tmp_path / "plain" / "summary.json").read_text())["FIFO"]
+    none = table[(table["human_share"] == 0) & (table["planner"] == "FIFO")].iloc[0]
+    assert none["flow_rate"] == plain["flow_rate"]["mean"] and none["delay_mean_s"] == plain["delay_s"]["mean"]
+    assert main(["evaluate", "--planner", "fifo", "--human-share", "0.5", "--out", str(tmp_path / "half"), *TINY]) == 0
+    half = Scenario.load(next((tmp_path / "half" / "scenarios").iterdir()))
+    assert 0 < half.human.sum() < half.num_vehicles
+
+
+@pytest.mark.parametrize(
+    "extra, message",
+    [
+        (["--human-share", "1.5"], "--human-share: each share must be in [0, 1]"),
+        (["--human-share", "0", "0"], "--human-share: a share is given twice"),
+        (["--human-share", "0", "1", "--demand", "0.1", "0.2"], "--demand: with --human-share, give at most one"),
+    ],
+)
+def test_bad_shares_are_one_line_errors(tmp_path, capsys, extra, message):
+    from sb3_graph.cli import main
+
+    out = tmp_path / "sweep"
+    assert main(["sweep", "--planner", "pr", *extra, "--out", str(out), *TINY]) == 2
+    err = capsys.readouterr().err.strip()
+    assert message in err and len(err.splitlines()) == 1 and not out.exists()
