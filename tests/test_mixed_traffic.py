@@ -196,3 +196,12 @@ def test_bad_shares_are_one_line_errors(tmp_path, capsys, extra, message):
     assert main(["sweep", "--planner", "pr", *extra, "--out", str(out), *TINY]) == 2
     err = capsys.readouterr().err.strip()
     assert message in err and len(err.splitlines()) == 1 and not out.exists()
+
+
+@pytest.mark.parametrize("spec, share", [("glide+shield", 0.25), ("fullthrottle+shield", 0.5)])
+def test_the_shield_keeps_automated_vehicles_from_running_into_a_slowing_human(spec, share):
+    # The 4-way penetration sweep's scenario 4: without the cap behind humans, glide+shield ran into a
+    # human slowing for its turn (0.25) and full throttle into an automated vehicle braking behind one (0.5).
+    scenario = generate_scenario("4way", 60.0, 4, human_share=share)
+    _, row = _run(spec, scenario)
+    assert row["collided"] == 0 and row["crossed"] > 10

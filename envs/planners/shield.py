@@ -335,6 +335,11 @@ class Shield(Planner):
         # (checked like any proposal: where going on conflicts, the fallback brakes it).
         lifted = self._parked_past_the_line(scene, plan, acc) & ~forced & ~human
         acc = np.where(lifted, min(self.proceed_acceleration, float(scene.a_max)), acc)
+        capped = np.zeros(n, bool)
+        if human.any():  # behind a human: keep a gap from which it can stop if the human brakes hard
+            cap = self._behind_human_cap(scene, human, human_acc)
+            capped = acc > cap + 1e-9
+            acc, fallback = np.minimum(acc, cap), np.minimum(fallback, cap)
         deviates = (np.abs(acc - fallback) > 1e-9) & ~human
         overridden = forced | self._awaited_and_braked(scene, plan, acc, fallback)
         overridden |= self._committed_and_braked(scene, plan, acc, fallback)
@@ -355,11 +360,48 @@ class Shield(Planner):
                 overridden = forced | (np.abs(acc - command) > 1e-9)
                 break
             overridden |= blamed & ~human
-        overridden = overridden | lifted
+        overridden = overridden | lifted | capped
         self.last_overridden = overridden
         self.interventions += int(overridden.sum())
         self.vehicle_steps += n - int(human.sum())
         return command
+
+    def _behind_human_cap(self, scene: Scene, human: np.ndarray, human_acc: np.ndarray) -> np.ndarray:
+        """``(n,)`` the highest acceleration of an automated vehicle in a queue behind a human driver
+        (``inf`` for the others): after one period at it, the vehicle can still stop ``gap_margin``
+        behind its leader if the leader brakes at ``-a_min`` from then on (a human leader's command
+        for the period is known; an automated leader in such a queue is assumed to brake at ``a_min``
+        in it too). The prediction cannot hold a human to a plan, so the follow check, which compares
+        predicted motions, would let an automated vehicle close up on a human who slows down, and the
+        vehicles behind it on it when it is then made to brake.
+        """
+        n = scene.num_vehicles
+        cap = np.full(n, np.inf)
+        lead = np.asarray(scene.leader)
+        has = lead >= 0
+        queued = np.zeros(n, bool)  # somewhere behind a human on the same path
+        queued[has] = human[lead[has]]
+        for _ in range(n):  # a queue is at most n long; each pass follows one more leader
+            more = queued.copy()
+            more[has] |= queued[lead[has]] & ~human[lead[has]]
+            if np.array_equal(more, queued):
+                break
+            queued = more
+        f = np.flatnonzero(queued & ~human)
+        if f.size == 0:
+            return cap
+        h, dt, brake = lead[f], float(scene.dt), -float(scene.a_min)
+        vh = np.asarray(scene.speed, float)[h]
+        lead_acc = np.where(human[h], np.clip(human_acc[h], scene.a_min, scene.a_max), scene.a_min)
+        vh1 = np.maximum(vh + lead_acc * dt, 0.0)
+        room = np.asarray(scene.gap, float)[f] + 0.5 * (vh + vh1) * dt + vh1**2 / (2 * brake) - self.gap_margin
+        v = np.asarray(scene.speed, float)[f]
+        # v dt + a dt^2 / 2 + (v + a dt)^2 / (2 brake) <= room, solved for a
+        qa, qb, qc = dt**2 / (2 * brake), 0.5 * dt**2 + v * dt / brake, v * dt + v**2 / (2 * brake) - room
+        disc = qb**2 - 4 * qa * qc
+        top = (-qb + np.sqrt(np.maximum(disc, 0.0))) / (2 * qa)
+        cap[f] = np.where(disc >= 0, np.clip(top, scene.a_min, np.inf), scene.a_min)
+        return cap
 
     def _parked_past_the_line(self, scene: Scene, plan: _Plan, acc: np.ndarray) -> np.ndarray:
         """``(n,)`` bool: vehicles whose front is past their stop line, that have not yet committed
