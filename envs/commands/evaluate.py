@@ -95,6 +95,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="read the scenario files (*.json) from this folder instead of generating --scenarios of them",
     )
+    parser.add_argument(
+        "--human-share",
+        type=float,
+        default=0.0,
+        metavar="SHARE",
+        help="share of human drivers in the generated scenarios, in [0, 1] (mixed traffic; default: 0, every "
+        "vehicle automated; scenario files of --scenario-dir carry their own flags)",
+    )
 
 
 def add_run_arguments(parser: argparse.ArgumentParser, scenarios: int, out: str, per: str = "") -> None:
@@ -297,6 +305,11 @@ def run(args: argparse.Namespace) -> int:
     planners = _check(args)
     config = checked_env(args.env, args.env_kwargs)
     layout = str(config["layout"])
+    share = getattr(args, "human_share", 0.0)
+    if not 0 <= share <= 1:
+        raise UserError(f"--human-share must be in [0, 1], got {share:g}")
+    if share and args.scenario_dir is not None:
+        raise UserError("--human-share: not with --scenario-dir (the scenario files carry their own human flags)")
     if args.scenario_dir is not None:
         try:
             scenarios = find_scenarios(args.scenario_dir)
@@ -311,7 +324,9 @@ def run(args: argparse.Namespace) -> int:
         with staged_folder(out) as stage:
             if args.scenario_dir is None:
                 say(f"generating {args.scenarios} scenario files of {args.duration:g} s ({layout}, seed {args.seed})")
-                scenarios = generate_scenarios(stage / "scenarios", args.scenarios, args.duration, args.seed, layout)
+                scenarios = generate_scenarios(
+                    stage / "scenarios", args.scenarios, args.duration, args.seed, layout, human_share=share
+                )
                 say(f"scenarios ready ({time.perf_counter() - tic:.1f} s)")
                 source = f"generated into {out / 'scenarios'} (seed {args.seed} + index)"
             else:

@@ -17,6 +17,13 @@ report in ``demand_<level>/``, and ``run.json`` (runs, wall time, runs per secon
 runs execute where ``--executor`` says, as for ``evaluate`` (``--executor dask
 --scheduler-address tcp://host:8786`` runs the sweep on an existing Dask cluster, docs/cluster.md).
 An existing ``--out`` is refused, never overwritten.
+
+**Penetration sweep** (mixed traffic, issue 39): ``--human-share 0 0.25 0.5 0.75 1`` sweeps the share of
+human drivers instead of the demand. Scenario ``i`` of every share has the same arrivals (seed
+``seed + i``; a share only flags vehicles as human-driven), drawn at the paper's rates or at one
+``--demand`` level; each share's report is in ``human_share_<share>/``, ``sweep.csv`` has a
+``human_share`` column in place of ``demand`` plus ``collisions_automated`` and ``collisions_human``
+(:data:`envs.evaluation.sweep.SHARE_COLUMNS`), and ``sweep.png`` shows the metrics over the share.
 """
 
 from __future__ import annotations
@@ -50,10 +57,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--demand",
         type=float,
         nargs="+",
-        default=list(DEFAULT_DEMAND),
+        default=None,
         metavar="RATE",
         help=f"arrival rates per major-road lane [veh/s], each in [{MIN_DEMAND:g}, 1); minor-road lanes get half "
-        f"(default: {' '.join(f'{d:g}' for d in DEFAULT_DEMAND)})",
+        f"(default: {' '.join(f'{d:g}' for d in DEFAULT_DEMAND)}; with --human-share: at most one level, default "
+        "the paper's rates drawn per scenario)",
+    )
+    parser.add_argument(
+        "--human-share",
+        type=float,
+        nargs="+",
+        default=None,
+        metavar="SHARE",
+        help="sweep the share of human drivers instead of the demand (mixed traffic): each share in [0, 1], "
+        "e.g. 0 0.25 0.5 0.75 1",
     )
 
 
@@ -74,11 +91,40 @@ def checked_demand(values: Sequence[float]) -> list[float]:
     return sorted(float(v) for v in values)
 
 
+def checked_shares(values: Sequence[float]) -> list[float]:
+    """The ``--human-share`` levels, sorted.
+
+    :param values: the shares given
+    :raises UserError: a share outside [0, 1], or one given twice
+    """
+    for value in values:
+        if not 0 <= value <= 1:
+            raise UserError(f"--human-share: each share must be in [0, 1], got {value:g}")
+    if len(set(values)) != len(values):
+        raise UserError(f"--human-share: a share is given twice in {' '.join(f'{v:g}' for v in values)}")
+    return sorted(float(v) for v in values)
+
+
+def _levels(args: argparse.Namespace) -> tuple[str, list[float], float | None]:
+    """``(axis, levels, demand of every scenario)`` of the sweep asked for."""
+    if args.human_share is None:
+        return "demand", checked_demand(args.demand or DEFAULT_DEMAND), None
+    shares = checked_shares(args.human_share)
+    if args.demand is not None and len(args.demand) > 1:
+        raise UserError("--demand: with --human-share, give at most one level (the sweep is over the share)")
+    return "human_share", shares, checked_demand(args.demand)[0] if args.demand else None
+
+
+def level_name(axis: str, level: float) -> str:
+    """``demand 0.1`` or ``human share 0.25``: a level for people."""
+    return f"{axis.replace('_', ' ')} {level:g}"
+
+
 def run(args: argparse.Namespace) -> int:
     from envs.evaluation.sweep import capacities, capacity_text
     from sb3_graph.files.output_folders import OutputError, staged_folder
 
-    demand = checked_demand(args.demand)
+    axis, demand, fixed = _levels(args)
     planners = _check(args)
     config = checked_env(args.env, args.env_kwargs)
     layout = str(config["layout"])
@@ -87,38 +133,41 @@ def run(args: argparse.Namespace) -> int:
     tic = time.perf_counter()
     try:
         with staged_folder(out) as stage:
-            table, wall, stats = _sweep(args, planners, demand, layout, stage, tic)
+            table, wall, stats = _sweep(args, planners, demand, layout, stage, tic, axis, fixed)
     except OutputError as error:
         raise UserError(str(error)) from None
-    for planner, cap in capacities(table).items():
-        flow = table.loc[table["planner"] == planner, "flow_rate"].max()
-        text = capacity_text(cap, demand[-1]) + ("" if cap is None else " veh/s per major-road lane")
-        print(f"{planner:>10}: capacity {text}, highest flow {flow:.3f} veh/s")
+    if axis == "demand":
+        for planner, cap in capacities(table).items():
+            flow = table.loc[table["planner"] == planner, "flow_rate"].max()
+            text = capacity_text(cap, demand[-1]) + ("" if cap is None else " veh/s per major-road lane")
+            print(f"{planner:>10}: capacity {text}, highest flow {flow:.3f} veh/s")
     print(run_line(stats))
-    print_level_verdicts(out, demand)
+    print_level_verdicts(out, demand, axis)
     print(f"sweep written to {out} ({wall:.1f} s)")
 
 
-def print_level_verdicts(out, demand: Sequence[float]) -> None:
-    """Who leads at each demand level, one line each (the full verdict opens each level's report.md).
+def print_level_verdicts(out, demand: Sequence[float], axis: str = "demand") -> None:
+    """Who leads at each level, one line each (the full verdict opens each level's report.md).
 
     :param out: the sweep folder
     :param demand: the levels
+    :param axis: ``"demand"`` or ``"human_share"``
     """
     import pandas as pd
 
     from envs.evaluation.sweep import level_folder
     from envs.evaluation.verdict import compact_verdict
 
-    print("Who leads at each demand level, against its strongest baseline (each level's report.md: by how much):")
+    what = "demand level" if axis == "demand" else "human share"
+    print(f"Who leads at each {what}, against its strongest baseline (each level's report.md: by how much):")
     for level in demand:
-        path = out / level_folder(level) / "paired.csv"
+        path = out / level_folder(level, axis) / "paired.csv"
         paired = pd.read_csv(path) if path.is_file() and path.stat().st_size else pd.DataFrame()
-        print(f"  demand {level:g}: {compact_verdict(paired)}")
+        print(f"  {level_name(axis, level)}: {compact_verdict(paired)}")
     return 0
 
 
-def _sweep(args, planners, demand, layout, out, tic):
+def _sweep(args, planners, demand, layout, out, tic, axis="demand", fixed=None):
     """Run every level into ``out`` (the staging folder); return the sweep table, the wall time and the
     harness's stats."""
     from envs.evaluation.comparison import paired_differences
@@ -126,19 +175,30 @@ def _sweep(args, planners, demand, layout, out, tic):
     from envs.evaluation.report import write_report
     from envs.evaluation.sweep import level_folder, write_sweep
 
-    scenarios = [
-        path
-        for level in demand
-        for path in generate_scenarios(
-            out / level_folder(level) / "scenarios", args.scenarios, args.duration, args.seed, layout, demand=level
+    def draw(level: float) -> list:
+        folder = out / level_folder(level, axis) / "scenarios"
+        if axis == "demand":
+            return generate_scenarios(folder, args.scenarios, args.duration, args.seed, layout, demand=level)
+        return generate_scenarios(
+            folder, args.scenarios, args.duration, args.seed, layout, demand=fixed, human_share=level
         )
-    ]
+
+    scenarios = [path for level in demand for path in draw(level)]
     runs, vehicles, stats = run_harness(args, planners, scenarios)
     wall = time.perf_counter() - tic
     meta = {
         "environment": args.env,
         "planners": ", ".join(f"{name} ({word})" for word, name in planners),
-        "demand levels": ", ".join(f"{d:g}" for d in demand) + " veh/s per major-road lane (minor: half)",
+        **(
+            {"demand levels": ", ".join(f"{d:g}" for d in demand) + " veh/s per major-road lane (minor: half)"}
+            if axis == "demand"
+            else {
+                "human shares": ", ".join(f"{d:g}" for d in demand),
+                "demand": "the paper's rates, drawn per scenario"
+                if fixed is None
+                else f"{fixed:g} veh/s per major-road lane (minor: half)",
+            }
+        ),
         "scenarios per level": f"{args.scenarios} (scenario i: seed {args.seed} + i)",
         "duration per run": f"{args.duration:g} s",
         "jobs": args.jobs,
@@ -146,7 +206,7 @@ def _sweep(args, planners, demand, layout, out, tic):
         "wall time": f"{wall:.1f} s",
         "python": platform.python_version(),
     }
-    levels = []
+    levels, level_runs_all = [], []
     for k, level in enumerate(demand):
         # evaluate() numbered the runs over all levels: level k holds runs k*N .. (k+1)*N - 1
         first = k * args.scenarios
@@ -154,9 +214,13 @@ def _sweep(args, planners, demand, layout, out, tic):
         level_runs = runs[mine].assign(run=runs.loc[mine, "run"] - first)
         taken = vehicles["run"].between(first, first + args.scenarios - 1)
         level_vehicles = vehicles[taken].assign(run=vehicles.loc[taken, "run"] - first)
-        level_meta = {**meta, "demand": f"{level:g} veh/s per major-road lane (minor: half)"}
-        summary = write_report(out / level_folder(level), level_runs, level_vehicles, level_meta)
+        if axis == "demand":
+            level_meta = {**meta, "demand": f"{level:g} veh/s per major-road lane (minor: half)"}
+        else:
+            level_meta = {**meta, "human share": f"{level:g}"}
+        summary = write_report(out / level_folder(level, axis), level_runs, level_vehicles, level_meta)
         levels.append((level, summary, paired_differences(level_runs)))
-    table = write_sweep(out, levels, meta)
+        level_runs_all.append(level_runs)
+    table = write_sweep(out, levels, meta, axis, level_runs_all)
     write_run_info(out, stats, time.perf_counter() - tic)
     return table, wall, stats

@@ -327,7 +327,13 @@ def is_baseline(spec: str) -> bool:
 
 
 def generate_scenarios(
-    folder: str | Path, count: int, duration: float, seed: int, layout: str, demand: float | None = None
+    folder: str | Path,
+    count: int,
+    duration: float,
+    seed: int,
+    layout: str,
+    demand: float | None = None,
+    human_share: float = 0.0,
 ) -> list[Path]:
     """Generate ``count`` scenario files ``scenario_000.json``... into ``folder``.
 
@@ -340,6 +346,8 @@ def generate_scenarios(
     :param layout: name of the intersection layout (see :func:`layout_of`)
     :param demand: arrival rate per major-road lane [veh/s] (minor lanes get half); default: a
         rate drawn per scenario from the paper's range (:func:`envs.simulation.traffic.generate_scenario`)
+    :param human_share: probability that a vehicle is human-driven (mixed traffic, issue 39); it only
+        adds flags, so the arrivals of scenario ``i`` are the same at every share
     :return: the files, in order
     """
     if count < 1:
@@ -355,9 +363,9 @@ def generate_scenarios(
         if path.exists():
             raise FileExistsError(f"{path} exists: scenario files are never overwritten")
         if demand is None:
-            generate_scenario(layout, duration, seed + i).save(path)
+            generate_scenario(layout, duration, seed + i, human_share=human_share).save(path)
         else:
-            demand_scenario(layout, duration, seed + i, demand).save(path)
+            demand_scenario(layout, duration, seed + i, demand, human_share=human_share).save(path)
         paths.append(path)
     return paths
 

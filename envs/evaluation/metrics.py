@@ -28,6 +28,13 @@ look better by keeping vehicles out of the scene.
   bound of the delay it will have when it crosses, so saturated planners are, if anything,
   flattered; never rewarded for a queue.
 - **travel time**: vehicles that crossed, from the scheduled appearance to the crossing.
+- **mixed traffic** (issue 39): ``human`` marks a human-driven vehicle (``Scene.human``; the
+  schedule's flag for one that never appeared). :func:`run_metrics` repeats the flow rate, mean
+  delay, stop ratio and collided vehicles for automated and for human vehicles
+  (``flow_rate_automated``, ``delay_mean_human`` ...). ``collisions_human`` counts the vehicles of
+  collisions with a human driver in them (``collided_with_human``; a human ignores the planner's
+  gaps), ``collisions_automated`` those of collisions between automated vehicles only (the
+  planner's and the shield's own).
 - **speed-limit violations**: vehicle-steps (scenes the planner answered) in which a vehicle
   drove faster than its lane's limit by more than :data:`SPEED_TOLERANCE`.
 - **slow ratio**, **hard brakes per vehicle** and **energy per vehicle** (:func:`motion_metrics`), from the
@@ -92,7 +99,11 @@ VEHICLE_COLUMNS = (
     "min_speed",
     "hard_brakes",
     "traction_energy_j",
+    "human",
+    "collided_with_human",
 )
+# Mixed traffic (issue 39): the main figures again for each kind of driver (``<figure>_<kind>``).
+DRIVER_KINDS = ("automated", "human")
 PRIORITIES = ("major", "minor")
 STOP_GROUPS = ("all",) + PRIORITIES + tuple(MANEUVERS)
 # A vehicle faster than its lane's limit by more than this [m/s] violates it (issue 11).
@@ -141,6 +152,7 @@ class VehicleLog:
             row.update(
                 vehicle_id=vid, route="", priority="", maneuver="", spawned=True, stopped=False, collided=False,
                 speed_violations=0, steps=0, governed_steps=0, route_index=-1, start_arc=np.nan, start_speed=np.nan,
+                human=False, collided_with_human=False,
             )  # fmt: skip
             self._rows[vid] = row
         return row
@@ -158,6 +170,7 @@ class VehicleLog:
         arc = scene.arc if scene.arc is not None else np.full(len(ids), np.nan)
         new = np.flatnonzero(~np.isin(ids, self._seen))
         self._seen = np.concatenate([self._seen, ids[new]])
+        human = scene.humans
         for k in new.tolist():  # once per vehicle, not per step
             row = self._row(int(ids[k]))
             row.update(
@@ -171,6 +184,7 @@ class VehicleLog:
                 route_index=int(scene.route[k]),
                 start_arc=float(arc[k]),
                 start_speed=float(scene.speed[k]),
+                human=bool(human[k]),
             )
         speeding = np.zeros(len(ids), bool)
         self._lowest.append((ids.copy(), np.asarray(scene.speed, float).copy()))
@@ -206,6 +220,9 @@ class VehicleLog:
         self._governed.append(record.governed)
         for vid in record.collisions.reshape(-1).tolist():
             self._row(vid)["collided"] = True
+        for a, b in record.collisions.reshape(-1, 2).tolist():  # once per collision
+            if self._row(a)["human"] or self._row(b)["human"]:
+                self._row(a)["collided_with_human"] = self._row(b)["collided_with_human"] = True
         if record.has_motion:
             self._record_motion(record)
 
@@ -302,6 +319,8 @@ class VehicleLog:
                 "min_speed": 0.0,  # it stands
                 "hard_brakes": 0.0 if self._energy else np.nan,
                 "traction_energy_j": np.nan,
+                "human": schedule.human[missing],
+                "collided_with_human": False,
                 "route_index": route,
                 "start_arc": start,
                 "start_speed": schedule.speed[missing],
@@ -337,7 +356,7 @@ def vehicle_frame(rows: Iterable[Mapping[str, Any]]) -> pd.DataFrame:
     frame = pd.DataFrame(list(rows), columns=list(VEHICLE_COLUMNS))
     for column in _FLOAT_COLUMNS:
         frame[column] = frame[column].astype(float)
-    for column in ("stopped", "collided"):
+    for column in ("stopped", "collided", "human", "collided_with_human"):
         frame[column] = frame[column].fillna(False).astype(bool)
     frame["spawned"] = frame["spawned"].fillna(True).astype(bool)
     for column in ("speed_violations", "steps", "governed_steps"):
@@ -486,7 +505,9 @@ def run_metrics(vehicles: pd.DataFrame, duration: float) -> dict[str, float | in
         ``travel_time_mean`` [s], ``speed_limit_violations`` [vehicle-steps], ``governor_share``,
         ``longest_standstill_s``, ``stuck`` (the watchdog, :func:`standstill` against
         :data:`STANDSTILL_LIMIT`), ``last_crossing_s``, and ``slow_ratio``, ``hard_brakes_per_vehicle``,
-        ``energy_kj_per_vehicle`` (:func:`motion_metrics`)
+        ``energy_kj_per_vehicle`` (:func:`motion_metrics`), and for mixed traffic (:func:`driver_metrics`)
+        ``vehicles_<kind>``, ``flow_rate_<kind>``, ``delay_mean_<kind>``, ``stop_ratio_<kind>``,
+        ``collided_<kind>`` for each kind of :data:`DRIVER_KINDS`, ``collisions_automated``, ``collisions_human``
     """
     if duration <= 0:
         raise ValueError(f"duration must be positive, got {duration}")
@@ -519,6 +540,31 @@ def run_metrics(vehicles: pd.DataFrame, duration: float) -> dict[str, float | in
     row["stuck"] = bool(longest >= STANDSTILL_LIMIT)
     row["last_crossing_s"] = last
     row.update(motion_metrics(vehicles))
+    row.update(driver_metrics(timed, duration))
+    return row
+
+
+def driver_metrics(timed: pd.DataFrame, duration: float) -> dict[str, float | int]:
+    """The main figures per kind of driver, and the collisions with and without a human in them.
+
+    :param timed: a vehicle log with ``delay`` (:func:`add_travel_times`)
+    :param duration: simulated duration of the run [s]
+    :return: see :func:`run_metrics`
+    """
+    human = _column(timed, "human", False).fillna(False).astype(bool).to_numpy()
+    with_human = _column(timed, "collided_with_human", False).fillna(False).astype(bool).to_numpy()
+    collided = timed["collided"].to_numpy(bool)
+    row: dict[str, float | int] = {}
+    for kind, mask in zip(DRIVER_KINDS, (~human, human)):
+        part = timed[mask]
+        delays = part["delay"].dropna()
+        row[f"vehicles_{kind}"] = int(mask.sum())
+        row[f"flow_rate_{kind}"] = float(part["crossed"].notna().sum()) / duration
+        row[f"delay_mean_{kind}"] = float(delays.mean()) if len(delays) else float("nan")
+        row[f"stop_ratio_{kind}"] = _ratio(int(part["stopped"].sum()), len(part))
+        row[f"collided_{kind}"] = int(part["collided"].sum())
+    row["collisions_automated"] = int((collided & ~with_human).sum())
+    row["collisions_human"] = int((collided & with_human).sum())
     return row
 
 

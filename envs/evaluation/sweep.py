@@ -17,6 +17,12 @@ scheduled vehicles that would have crossed within the run in free flow (``offere
 ``None`` when even the lowest level is not served, and the highest level when every level is (the
 capacity is then at least that). The highest flow a planner reaches over the sweep is its
 saturation flow, shown beside it.
+
+**Penetration sweep** (mixed traffic, issue 39): the same with the share of human drivers
+(``human_share``) as the level instead of the demand (:data:`SHARE_COLUMNS`: ``human_share`` in
+place of ``demand``, plus ``collisions_automated`` and ``collisions_human``, summed over the runs:
+vehicles in collisions between automated vehicles only, and in collisions with a human driver in
+them). It has no capacity.
 """
 
 from __future__ import annotations
@@ -47,26 +53,42 @@ SWEEP_COLUMNS = (
     "hard_brakes_per_vehicle",
     "energy_kj_per_vehicle",
 )
+SHARE_COLUMNS = (
+    "planner",
+    "human_share",
+    *SWEEP_COLUMNS[2:],
+    "collisions_automated",
+    "collisions_human",
+)
+AXIS_LABELS = {"demand": "demand [veh/s per major-road lane]", "human_share": "share of human drivers"}
 SERVED_FRACTION = 0.9
 SWEEP_FILES = ("sweep.csv", "sweep.png", "sweep.md")
 
 
-def level_folder(demand: float) -> str:
-    """Name of a demand level's subfolder, e.g. ``demand_0.05``."""
-    return f"demand_{demand:g}"
+def level_folder(demand: float, axis: str = "demand") -> str:
+    """Name of a level's subfolder, e.g. ``demand_0.05`` or ``human_share_0.25``."""
+    return f"{axis}_{demand:g}"
 
 
-def sweep_rows(demand: float, summary: Mapping[str, Mapping[str, Any]]) -> list[dict[str, Any]]:
-    """The ``sweep.csv`` rows of one demand level (plus ``offered_flow``, used for the capacity).
+def sweep_rows(
+    demand: float,
+    summary: Mapping[str, Mapping[str, Any]],
+    axis: str = "demand",
+    runs: pd.DataFrame | None = None,
+) -> list[dict[str, Any]]:
+    """The ``sweep.csv`` rows of one level (plus ``offered_flow``, used for the capacity).
 
-    :param demand: the level [veh/s per major-road lane]
+    :param demand: the level [veh/s per major-road lane, or the share of human drivers]
     :param summary: that level's :func:`envs.evaluation.metrics.summarize` output
+    :param axis: what the level is: ``"demand"`` or ``"human_share"``
+    :param runs: that level's runs (``metrics.csv`` rows); with the ``human_share`` axis, the
+        collisions per kind of driver are summed from it
     :return: one row per planner
     """
-    return [
+    rows = [
         {
             "planner": name,
-            "demand": float(demand),
+            axis: float(demand),
             "flow_rate": s["flow_rate"]["mean"],
             "delay_mean_s": s["delay_s"]["mean"],
             "stop_ratio": s["stop_ratio"]["all"],
@@ -79,6 +101,12 @@ def sweep_rows(demand: float, summary: Mapping[str, Mapping[str, Any]]) -> list[
         }
         for name, s in summary.items()
     ]
+    if axis == "human_share":
+        for row in rows:
+            mine = runs[runs["planner"] == row["planner"]] if runs is not None else pd.DataFrame()
+            for column in ("collisions_automated", "collisions_human"):
+                row[column] = int(mine[column].sum()) if column in mine else None
+    return rows
 
 
 def capacities(table: pd.DataFrame, fraction: float = SERVED_FRACTION) -> dict[str, float | None]:
@@ -108,13 +136,16 @@ def capacity_text(capacity: float | None, top: float) -> str:
     return f">= {capacity:g}" if capacity >= top else f"{capacity:g}"
 
 
-def sweep_figure(table: pd.DataFrame, capacity: Mapping[str, float | None], path: Path) -> None:
+def sweep_figure(
+    table: pd.DataFrame, capacity: Mapping[str, float | None], path: Path, axis: str = "demand"
+) -> None:
     """Flow, mean delay, stop ratio (top row), slow ratio, hard brakes per vehicle and energy per vehicle
-    (bottom row) against demand, one line per planner, capacities marked.
+    (bottom row) against the level, one line per planner, capacities marked.
 
     :param table: sweep rows (with ``offered_flow``)
-    :param capacity: :func:`capacities` output
+    :param capacity: :func:`capacities` output (empty for the ``human_share`` axis)
     :param path: PNG file to write
+    :param axis: the level's column, ``"demand"`` or ``"human_share"``
     """
     panels = (
         ("flow_rate", "flow [veh/s]"),
@@ -127,26 +158,27 @@ def sweep_figure(table: pd.DataFrame, capacity: Mapping[str, float | None], path
     fig, axes = plt.subplots(2, 3, figsize=(12, 7.2))
     axes = axes.ravel()
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
-    offered = table.groupby("demand")["offered_flow"].mean()
+    offered = table.groupby(axis)["offered_flow"].mean()
     axes[0].plot(offered.index, offered.to_numpy(float), "k--", lw=1, label="offered (free flow)")
     for k, (planner, rows) in enumerate(table.groupby("planner", sort=False)):
-        rows = rows.sort_values("demand")
+        rows = rows.sort_values(axis)
         color = colors[k % len(colors)]
         cap = capacity.get(str(planner))
-        label = f"{planner} (capacity {capacity_text(cap, table['demand'].max())})"
+        label = str(planner) if axis != "demand" else f"{planner} (capacity {capacity_text(cap, table[axis].max())})"
         for ax, (column, _) in zip(axes, panels):
             values = rows[column].astype(float) if column in rows else np.full(len(rows), np.nan)
-            ax.plot(rows["demand"], values, "o-", color=color, label=label)
+            ax.plot(rows[axis], values, "o-", color=color, label=label)
             if cap is not None:
                 ax.axvline(cap, color=color, ls=":", lw=1)
         if cap is not None:
-            at = rows[rows["demand"] == cap]
-            axes[0].plot(at["demand"], at["flow_rate"].astype(float), "*", ms=14, color=color, mec="k")
+            at = rows[rows[axis] == cap]
+            axes[0].plot(at[axis], at["flow_rate"].astype(float), "*", ms=14, color=color, mec="k")
     for ax, (_, label) in zip(axes, panels):
-        ax.set_xlabel("demand [veh/s per major-road lane]")
+        ax.set_xlabel(AXIS_LABELS[axis])
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
-    axes[0].set_title(f"★ / dotted: capacity (flow >= {100 * SERVED_FRACTION:.0f} % of offered)", fontsize=8)
+    if axis == "demand":
+        axes[0].set_title(f"★ / dotted: capacity (flow >= {100 * SERVED_FRACTION:.0f} % of offered)", fontsize=8)
     axes[0].legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=150)
@@ -154,44 +186,53 @@ def sweep_figure(table: pd.DataFrame, capacity: Mapping[str, float | None], path
 
 
 def sweep_markdown(
-    table: pd.DataFrame, capacity: Mapping[str, float | None], paired: pd.DataFrame, meta: Mapping[str, Any]
+    table: pd.DataFrame,
+    capacity: Mapping[str, float | None],
+    paired: pd.DataFrame,
+    meta: Mapping[str, Any],
+    axis: str = "demand",
 ) -> str:
-    """``sweep.md``: settings, capacities, the sweep table and the paired differences per level.
+    """``sweep.md``: settings, capacities (demand axis), the sweep table and the paired differences per level.
 
     :param table: sweep rows (with ``offered_flow``)
     :param capacity: :func:`capacities` output
-    :param paired: every level's :func:`envs.evaluation.comparison.paired_differences` with a ``demand`` column
+    :param paired: every level's :func:`envs.evaluation.comparison.paired_differences` with the ``axis`` column
     :param meta: settings shown as a list
+    :param axis: the level's column, ``"demand"`` or ``"human_share"``
     :return: Markdown text
     """
-    top = table["demand"].max()
-    lines = ["# Demand sweep", "", *(f"- {key}: {value}" for key, value in meta.items()), ""]
-    lines += ["## Capacity", "", f"Highest demand level up to which a planner serves >= {100 * SERVED_FRACTION:.0f} %"]
-    lines += ["of the offered flow; saturation flow: the highest flow it reaches in the sweep.", ""]
-    lines += ["| planner | capacity [veh/s per major lane] | saturation flow [veh/s] |", "|---|---:|---:|"]
-    for planner, rows in table.groupby("planner", sort=False):
-        text = capacity_text(capacity.get(str(planner)), top)
-        lines.append(f"| {planner} | {text} | {format_number(rows['flow_rate'].astype(float).max())} |")
-    lines += ["", "## Every level", "", "![sweep](sweep.png)", ""]
-    columns = [*SWEEP_COLUMNS, "offered_flow"]
+    title = "Demand sweep" if axis == "demand" else "Penetration sweep (share of human drivers)"
+    lines = [f"# {title}", "", *(f"- {key}: {value}" for key, value in meta.items()), ""]
+    if axis == "demand":
+        top = table["demand"].max()
+        lines += ["## Capacity", ""]
+        lines += [f"Highest demand level up to which a planner serves >= {100 * SERVED_FRACTION:.0f} %"]
+        lines += ["of the offered flow; saturation flow: the highest flow it reaches in the sweep.", ""]
+        lines += ["| planner | capacity [veh/s per major lane] | saturation flow [veh/s] |", "|---|---:|---:|"]
+        for planner, rows in table.groupby("planner", sort=False):
+            text = capacity_text(capacity.get(str(planner)), top)
+            lines.append(f"| {planner} | {text} | {format_number(rows['flow_rate'].astype(float).max())} |")
+        lines.append("")
+    lines += ["## Every level", "", "![sweep](sweep.png)", ""]
+    columns = [*(SWEEP_COLUMNS if axis == "demand" else SHARE_COLUMNS), "offered_flow"]
     lines += ["| " + " | ".join(columns) + " |", "|---|" + "---:|" * (len(columns) - 1)]
     for _, row in table.iterrows():
-        cells = [str(row["planner"]), f"{row['demand']:g}"] + [format_number(row[c]) for c in columns[2:]]
+        cells = [str(row["planner"]), f"{row[axis]:g}"] + [format_number(row[c]) for c in columns[2:]]
         cells[columns.index("speed_limit_violations")] = f"{row['speed_limit_violations']:.0f}"
         lines.append("| " + " | ".join(cells) + " |")
     if not paired.empty:
         lines += ["", "## Against the strongest baseline of each level (mean per-scenario difference, 95 % CI)", ""]
         labels = list(PAIRED_METRICS.values())
-        lines += ["| demand | planner | baseline | " + " | ".join(f"Δ {x}" for x in labels) + " |"]
+        lines += [f"| {axis} | planner | baseline | " + " | ".join(f"Δ {x}" for x in labels) + " |"]
         lines.append("|---:|---|---|" + "---:|" * len(labels))
-        for (demand, planner), rows in paired.groupby(["demand", "planner"], sort=False):
+        for (level, planner), rows in paired.groupby([axis, "planner"], sort=False):
             by = rows.set_index("metric").reindex(list(PAIRED_METRICS))  # a missing metric reads n/a
             cells = [
                 f"{format_number(by.loc[m, 'mean_difference'])} "
                 f"[{format_number(by.loc[m, 'ci_low'])}, {format_number(by.loc[m, 'ci_high'])}]"
                 for m in PAIRED_METRICS
             ]
-            lines.append(f"| {demand:g} | {planner} | {rows['baseline'].iloc[0]} | " + " | ".join(cells) + " |")
+            lines.append(f"| {level:g} | {planner} | {rows['baseline'].iloc[0]} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 
@@ -199,22 +240,32 @@ def write_sweep(
     out: str | Path,
     levels: Sequence[tuple[float, Mapping[str, Mapping[str, Any]], pd.DataFrame]],
     meta: Mapping[str, Any],
+    axis: str = "demand",
+    runs: Sequence[pd.DataFrame] | None = None,
 ) -> pd.DataFrame:
     """Write :data:`SWEEP_FILES` into ``out``.
 
     :param out: the sweep folder (exists)
-    :param levels: per demand level: ``(demand, summary, paired differences)``
+    :param levels: per level: ``(level, summary, paired differences)``
     :param meta: settings shown at the top of ``sweep.md``
+    :param axis: what the levels are: ``"demand"`` (:data:`SWEEP_COLUMNS`) or ``"human_share"``
+        (:data:`SHARE_COLUMNS`, no capacity)
+    :param runs: per level, its runs (needed for the collisions per kind of driver of the share axis)
     :return: the sweep table (``sweep.csv`` plus ``offered_flow``)
     """
+    if axis not in AXIS_LABELS:
+        raise ValueError(f"axis must be one of {', '.join(AXIS_LABELS)}, got {axis!r}")
     out = Path(out)
-    table = pd.DataFrame([row for demand, summary, _ in levels for row in sweep_rows(demand, summary)])
+    per_level = list(runs) if runs is not None else [None] * len(levels)
+    table = pd.DataFrame(
+        [row for (level, summary, _), r in zip(levels, per_level) for row in sweep_rows(level, summary, axis, r)]
+    )
     numbers = [c for c in table.columns if c != "planner"]
     table[numbers] = table[numbers].apply(pd.to_numeric)  # JSON's None -> NaN
-    paired = [p.assign(demand=d) for d, _, p in levels if not p.empty]
-    paired = pd.concat(paired, ignore_index=True) if paired else pd.DataFrame(columns=["demand", "planner"])
-    capacity = capacities(table)
-    table[list(SWEEP_COLUMNS)].to_csv(out / "sweep.csv", index=False)
-    sweep_figure(table, capacity, out / "sweep.png")
-    (out / "sweep.md").write_text(sweep_markdown(table, capacity, paired, meta))
+    paired = [p.assign(**{axis: d}) for d, _, p in levels if not p.empty]
+    paired = pd.concat(paired, ignore_index=True) if paired else pd.DataFrame(columns=[axis, "planner"])
+    capacity = capacities(table) if axis == "demand" else {}
+    table[list(SWEEP_COLUMNS if axis == "demand" else SHARE_COLUMNS)].to_csv(out / "sweep.csv", index=False)
+    sweep_figure(table, capacity, out / "sweep.png", axis)
+    (out / "sweep.md").write_text(sweep_markdown(table, capacity, paired, meta, axis))
     return table

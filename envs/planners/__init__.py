@@ -23,6 +23,7 @@ from envs.planners.aim import AIMPlanner
 from envs.planners.base import Planner
 from envs.planners.fifo import FIFOPlanner
 from envs.planners.glide import GlidePlanner
+from envs.planners.human import HumanDriver
 from envs.planners.loading import (
     check_remote_spec,
     class_planner_name,
@@ -167,6 +168,7 @@ def planner_name(spec: str) -> str:
 hooks.register("shield", training_shield)
 hooks.register("residual_base", make_residual_base)
 hooks.register("priority", GlidePlanner)
+hooks.register("human", HumanDriver)
 
 __all__ = [
     "AIMPlanner",

@@ -47,6 +47,14 @@ waited before their lines, a live planner (FIFO by default) proposes instead unt
 (:mod:`envs.planners.watchdog`, docs/shield.md).
 An invalid proposal is a planner error (:mod:`envs.planners.errors`), answered with the fallback.
 
+Human drivers (mixed traffic, issue 39; docs/shield.md): they cannot be commanded. Their command for the
+first period is the human model's (:func:`envs.planners.human.human_commands`, what the environment will
+apply); they are never overridden nor blamed. After it, a human that the priority rules let go and that
+is within ``human_lookahead`` seconds plus its comfortable stopping distance (``human_deceleration``) of
+its first zone is predicted as committed: it proceeds and does not stop for automated vehicles, which
+must keep out of its zones. Every other human is predicted with the fallback (it stops before its zones,
+as the priority rules make it yield). Whether a human ends the prediction stuck is not checked.
+
 Only the pairs that can conflict are checked (:meth:`Shield._may_commit`). Vectorized over vehicles
 and pairs; the only loops run over the horizon's time steps and over the
 few rounds of overrides. The prediction (step 2), the fallback, the scan of a prediction for
@@ -61,7 +69,7 @@ bit for bit. Who is blamed for a conflict is decided in NumPy.
 from __future__ import annotations
 
 import weakref
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import partial
 
 import numpy as np
@@ -70,6 +78,8 @@ from envs.planners import _shield_kernel
 from envs.planners.base import Planner
 from envs.planners.errors import PlannerError, checked_accelerations
 from envs.planners.fifo import FIFOPlanner
+from envs.planners.human import human_commands
+from envs.planners.idm import DEFAULT_IDM, travel_time
 from envs.planners.watchdog import WATCHDOG_AFTER, WATCHDOG_HOLD, LivenessWatchdog
 from envs.simulation.commitment import STANDING, STOP_SLACK
 from envs.simulation.layouts import CONFLICT_DISTANCE, ZONE_MARGIN, body_hull
@@ -114,6 +124,13 @@ class _Plan:
     cross_already: np.ndarray  # (c,) bool
     cross_back: np.ndarray  # (c,) column of the one behind
     cross_stop: np.ndarray  # (c,) its arc now plus the stopping slack [m]
+    human: np.ndarray  # (n,) bool: human drivers (not commanded: their end state is not checked)
+    # Crossing pairs of a going human and an automated vehicle: the pair, the human's column and the
+    # time window in which the human may be in the pair's zone (`Shield._human_windows`) [s].
+    human_pair: np.ndarray = field(default_factory=lambda: np.zeros(0, _INT))
+    human_col: np.ndarray = field(default_factory=lambda: np.zeros(0, _INT))
+    human_from: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    human_until: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     def __post_init__(self) -> None:
         # The compiled kernels' view, contiguous and of one dtype per field (one compiled signature);
@@ -170,6 +187,12 @@ class Shield(Planner):
     :param watchdog_hold: seconds after the first vehicle entered under a takeover before ``planner`` proposes again
     :param live_planner: the planner of a takeover, its proposals checked as any other (default:
         :class:`envs.planners.fifo.FIFOPlanner` with this ``governor_deceleration``)
+    :param human_lookahead: a human driver that the priority rules let go is predicted not to stop for
+        automated vehicles once it is this many seconds (at its speed), plus its stopping distance at
+        ``human_deceleration``, from its first conflict zone [s]
+    :param human_deceleration: the braking a human driver is assumed to use at most [m/s^2]
+    :param human_margin: seconds added on both sides of the time window in which a going human driver
+        may occupy a conflict zone (``_human_windows``); an automated vehicle must keep out of it
     """
 
     def __init__(
@@ -187,8 +210,14 @@ class Shield(Planner):
         watchdog_after: float | None = WATCHDOG_AFTER,
         watchdog_hold: float = WATCHDOG_HOLD,
         live_planner: Planner | None = None,
+        human_lookahead: float = 3.0,
+        human_deceleration: float = 2.0,
+        human_margin: float = 1.0,
     ) -> None:
         super().__init__(name or f"{planner.name}+shield")
+        self.human_lookahead = float(human_lookahead)
+        self.human_deceleration = float(human_deceleration)
+        self.human_margin = float(human_margin)
         self.planner = planner
         self.watchdog = None if watchdog_after is None else LivenessWatchdog(watchdog_after, watchdog_hold)
         self.live_planner = (
@@ -291,16 +320,30 @@ class Shield(Planner):
             return acc
         if scene.layout is None or scene.arc is None:
             raise ValueError("the shield needs the scene's layout and arcs (scenes built by the simulation have them)")
-        plan = self._plan(scene)
+        human = scene.humans
+        going = np.zeros(n, bool)
+        if human.any():  # what they will do, whatever is proposed: never overridden, never blamed
+            human_acc, going = human_commands(scene)
+            acc = np.where(human, np.clip(human_acc, scene.a_min, scene.a_max), acc)
+            forced = forced & ~human
+        plan = self._plan(scene, going)
+        if going.any():
+            self._human_windows(scene, plan, going)
         fallback = self._fallback(scene, plan, plan.arc, plan.speed)
         acc = np.where(forced, fallback, acc)
         # Liveness: a vehicle past its stop line that the proposal brakes is proposed onwards instead
         # (checked like any proposal: where going on conflicts, the fallback brakes it).
-        lifted = self._parked_past_the_line(scene, plan, acc) & ~forced
+        lifted = self._parked_past_the_line(scene, plan, acc) & ~forced & ~human
         acc = np.where(lifted, min(self.proceed_acceleration, float(scene.a_max)), acc)
-        deviates = np.abs(acc - fallback) > 1e-9
+        capped = np.zeros(n, bool)
+        if human.any():  # behind a human: keep a gap from which it can stop if the human brakes hard
+            cap = self._behind_human_cap(scene, human, human_acc)
+            capped = acc > cap + 1e-9
+            acc, fallback = np.minimum(acc, cap), np.minimum(fallback, cap)
+        deviates = (np.abs(acc - fallback) > 1e-9) & ~human
         overridden = forced | self._awaited_and_braked(scene, plan, acc, fallback)
         overridden |= self._committed_and_braked(scene, plan, acc, fallback)
+        overridden &= ~human
         command = acc
         for _ in range(n + 1):
             command = np.where(overridden, fallback, acc)
@@ -313,15 +356,52 @@ class Shield(Planner):
                 # The fallback itself fails (the leader relations it follows changed since the
                 # last step, or the scene started unsafe): everyone brakes. Counted in `unresolved`.
                 self.unresolved += 1
-                command = np.full(n, float(scene.a_min))
+                command = np.where(human, acc, float(scene.a_min))
                 overridden = forced | (np.abs(acc - command) > 1e-9)
                 break
-            overridden |= blamed
-        overridden = overridden | lifted
+            overridden |= blamed & ~human
+        overridden = overridden | lifted | capped
         self.last_overridden = overridden
         self.interventions += int(overridden.sum())
-        self.vehicle_steps += n
+        self.vehicle_steps += n - int(human.sum())
         return command
+
+    def _behind_human_cap(self, scene: Scene, human: np.ndarray, human_acc: np.ndarray) -> np.ndarray:
+        """``(n,)`` the highest acceleration of an automated vehicle in a queue behind a human driver
+        (``inf`` for the others): after one period at it, the vehicle can still stop ``gap_margin``
+        behind its leader if the leader brakes at ``-a_min`` from then on (a human leader's command
+        for the period is known; an automated leader in such a queue is assumed to brake at ``a_min``
+        in it too). The prediction cannot hold a human to a plan, so the follow check, which compares
+        predicted motions, would let an automated vehicle close up on a human who slows down, and the
+        vehicles behind it on it when it is then made to brake.
+        """
+        n = scene.num_vehicles
+        cap = np.full(n, np.inf)
+        lead = np.asarray(scene.leader)
+        has = lead >= 0
+        queued = np.zeros(n, bool)  # somewhere behind a human on the same path
+        queued[has] = human[lead[has]]
+        for _ in range(n):  # a queue is at most n long; each pass follows one more leader
+            more = queued.copy()
+            more[has] |= queued[lead[has]] & ~human[lead[has]]
+            if np.array_equal(more, queued):
+                break
+            queued = more
+        f = np.flatnonzero(queued & ~human)
+        if f.size == 0:
+            return cap
+        h, dt, brake = lead[f], float(scene.dt), -float(scene.a_min)
+        vh = np.asarray(scene.speed, float)[h]
+        lead_acc = np.where(human[h], np.clip(human_acc[h], scene.a_min, scene.a_max), scene.a_min)
+        vh1 = np.maximum(vh + lead_acc * dt, 0.0)
+        room = np.asarray(scene.gap, float)[f] + 0.5 * (vh + vh1) * dt + vh1**2 / (2 * brake) - self.gap_margin
+        v = np.asarray(scene.speed, float)[f]
+        # v dt + a dt^2 / 2 + (v + a dt)^2 / (2 brake) <= room, solved for a
+        qa, qb, qc = dt**2 / (2 * brake), 0.5 * dt**2 + v * dt / brake, v * dt + v**2 / (2 * brake) - room
+        disc = qb**2 - 4 * qa * qc
+        top = (-qb + np.sqrt(np.maximum(disc, 0.0))) / (2 * qa)
+        cap[f] = np.where(disc >= 0, np.clip(top, scene.a_min, np.inf), scene.a_min)
+        return cap
 
     def _parked_past_the_line(self, scene: Scene, plan: _Plan, acc: np.ndarray) -> np.ndarray:
         """``(n,)`` bool: vehicles whose front is past their stop line, that have not yet committed
@@ -361,11 +441,16 @@ class Shield(Planner):
         return awaited & (acc < np.minimum(fallback, 0.0) - 1e-9)
 
     # ------------------------------------------------------------------ scene -> plan
-    def _plan(self, scene: Scene) -> _Plan:
+    def _plan(self, scene: Scene, going: np.ndarray | None = None) -> _Plan:
         lay, route, length = scene.layout, scene.route, scene.length
         arc, speed = np.asarray(scene.arc, float), np.asarray(scene.speed, float)
         m = self.zone_margin
         hull_start, hull_end = body_hull(lay, route, length, m)
+        if going is not None and going.any():
+            # A human that goes and is near its zones: predicted as committed (the kernels' rule), by
+            # moving its first zone behind it; it then proceeds and the others keep out of its zones.
+            near = arc + speed * self.human_lookahead + speed**2 / (2 * self.human_deceleration) + _STOP_SLACK
+            hull_start = np.where(going & (near > hull_start), np.minimum(hull_start, arc - 1.0), hull_start)
         # Same path: the leader and the leader's leader (a leader that turns off a shared lane
         # uncovers the next one).
         lead = scene.leader
@@ -428,6 +513,7 @@ class Shield(Planner):
         already = ((x0 > cross_lo) & (x0 < cross_hi)).all(axis=1) & (speed[cross[pair, back]] <= _STANDING)
         stop = x0[pair, back] + _STOP_SLACK
         return _Plan(
+            human=scene.humans,
             route=route,
             arc=arc,
             speed=speed,
@@ -449,6 +535,39 @@ class Shield(Planner):
             cross_back=back,
             cross_stop=stop,
         )
+
+    def _human_windows(self, scene: Scene, plan: _Plan, going: np.ndarray) -> None:
+        """The time windows of the going human drivers in the zones they share with automated vehicles
+        (into ``plan``): from the earliest entry (accelerating at IDM's ``acc_max`` up to the lane limit,
+        or now if already in) to the latest exit at its speed now (at least ``LIVE_SPEED``), widened by
+        ``human_margin`` on both sides; the whole horizon for a human at a crawl."""
+        cross, human = plan.cross, plan.human
+        mixed = going[cross].any(axis=1) & ~human[cross].all(axis=1)
+        pair = np.flatnonzero(mixed)
+        if pair.size == 0:
+            return
+        col = np.where(going[cross[pair, 0]], 0, 1)
+        h = cross[pair, col]
+        x0, v = plan.arc[h], plan.speed[h]
+        lo, hi = plan.cross_lo[pair, col], plan.cross_hi[pair, col]
+        limit = np.maximum(np.asarray(scene.speed_limit, float)[h], v)
+        start = travel_time(lo - x0, v, limit, DEFAULT_IDM.acc_max)
+        until = np.where(v > LIVE_SPEED, (hi - x0) / np.maximum(v, LIVE_SPEED), self.horizon)
+        plan.human_pair, plan.human_col = pair, col
+        plan.human_from = np.maximum(start - self.human_margin, 0.0)
+        plan.human_until = until + self.human_margin
+
+    def _in_human_windows(self, scene: Scene, plan: _Plan, arc: np.ndarray) -> np.ndarray:
+        """``(p,)`` bool: the automated vehicle of a human pair is predicted in the pair's zone within
+        the human's window (``arc``: the prediction's arcs, row 0 now)."""
+        substeps = max(1, int(round(self.simulation_frequency * float(scene.dt))))
+        t = np.arange(arc.shape[0]) * (float(scene.dt) / substeps)  # (T + 1,)
+        pair, other = plan.human_pair, 1 - plan.human_col
+        a = plan.cross[pair, other]
+        x = arc[:, a]  # (T + 1, p)
+        inside = (x > plan.cross_lo[pair, other]) & (x < plan.cross_hi[pair, other])
+        during = (t[:, None] >= plan.human_from) & (t[:, None] <= plan.human_until)
+        return (inside & during).any(axis=0)
 
     def _may_commit(self, scene: Scene, arc: np.ndarray, speed: np.ndarray, hull_start: np.ndarray) -> np.ndarray:
         """``(n,)`` bool: vehicles that may commit within a prediction; the others meet no one in it.
@@ -554,6 +673,13 @@ class Shield(Planner):
         """
         arc, speed = self.predict(scene, plan, command)
         bad_follow, bad_cross, bad_merge, stuck = self._conflicts(scene, plan, arc, speed)
+        stuck = stuck & ~plan.human
+        if plan.human_pair.size:  # an automated vehicle in a going human's zone within the human's window
+            bad_human = self._in_human_windows(scene, plan, arc)
+            if bad_human.any():  # the automated one is to blame (when its command can still change)
+                rows = plan.cross[plan.human_pair[bad_human], 1 - plan.human_col[bad_human]]
+                bad_cross = bad_cross.copy()
+                bad_cross[plan.human_pair[bad_human][free[rows]]] = True
         if not (bad_follow.any() or bad_cross.any() or bad_merge.any() or stuck.any()):
             return None
         later = arc[1:]

@@ -19,6 +19,7 @@ import numpy as np
 from envs.simulation.graph import EDGE_FEATURES, VERTEX_FEATURES
 from envs.simulation.layouts import LAYOUT_NAMES
 from envs.simulation.rewards import REWARD_PRESETS, REWARD_TERMS, preset_weights
+from envs.simulation.traffic import HUMAN_SHARE_ALLOWED, check_human_share
 
 # What a collision does: "terminate" ends the episode (training, as in the paper); "remove" takes
 # the vehicles involved out of the scene and goes on (evaluation: collision rate over a whole run).
@@ -141,6 +142,14 @@ def action_config(value: dict[str, Any] | None) -> dict[str, Any]:
     return {"type": value.get("type", ACTION_TYPES[0]), "scale": float(value.get("scale", DEFAULT_PRIORITY_SCALE))}
 
 
+def _human_share(x: Any) -> bool:
+    try:
+        check_human_share(x)
+    except ValueError:
+        return False
+    return True
+
+
 def _distinct_names(allowed) -> Rule:
     """A list of distinct names from ``allowed`` (feature lists)."""
     return Rule(
@@ -194,6 +203,7 @@ RULES: dict[str, Rule] = {
         f"(priority only, default {DEFAULT_PRIORITY_SCALE:g})}}",
     ),
     "collision_handling": Rule(lambda x: x in COLLISION_HANDLING, f"one of {COLLISION_HANDLING}"),
+    "human_share": Rule(_human_share, HUMAN_SHARE_ALLOWED),
     # Rendering (highway-env's viewer reads these).
     "screen_width": _int(1),
     "screen_height": _int(1),

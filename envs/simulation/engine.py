@@ -139,6 +139,7 @@ class Simulation:
         self.width = np.zeros(0)
         self.vehicle_id = np.zeros(0, _INT)
         self.appearance_time = np.zeros(0)
+        self.human = np.zeros(0, bool)  # human-driven: the environment replaces their commands
         self._cache: dict[str, tuple[tuple[np.ndarray, ...], Any]] = {}
         # Speeds and arcs at the sub-step boundaries of the last step, rows as before it
         # (diagnostics and tests: the trajectory the collision check saw).
@@ -161,6 +162,7 @@ class Simulation:
         length: np.ndarray | float = 5.0,
         width: np.ndarray | float = 2.0,
         arc: np.ndarray | None = None,
+        human: np.ndarray | bool | None = None,
     ) -> None:
         """Append vehicles (new rows at the end: existing rows keep their order).
 
@@ -170,6 +172,7 @@ class Simulation:
         :param length: vehicle lengths [m]
         :param width: vehicle widths [m]
         :param arc: ``(k,)`` centre positions along the route; default: rear at the route's start
+        :param human: ``(k,)`` bool: human-driven vehicles (default: none)
         :raises ValueError: when the scene would exceed ``max_vehicles`` or an id is already present
         """
         route = np.atleast_1d(np.asarray(route, _INT))
@@ -189,9 +192,11 @@ class Simulation:
         self.width = np.concatenate([self.width, width])
         self.vehicle_id = np.concatenate([self.vehicle_id, vehicle_id])
         self.appearance_time = np.concatenate([self.appearance_time, np.full(k, self.time)])
+        human = np.zeros(k, bool) if human is None else np.broadcast_to(np.asarray(human, bool), (k,))
+        self.human = np.concatenate([self.human, human])
 
     def _keep(self, keep: np.ndarray) -> None:
-        for name in ("route", "arc", "speed", "length", "width", "vehicle_id", "appearance_time"):
+        for name in ("route", "arc", "speed", "length", "width", "vehicle_id", "appearance_time", "human"):
             setattr(self, name, getattr(self, name)[keep])
 
     # ------------------------------------------------------------------ spawning
@@ -488,6 +493,7 @@ class Simulation:
             s_ref=self.s_ref,
             arc=self.arc.copy(),
             layout=lay,
+            human=self.human.copy(),
         )
 
 

@@ -63,7 +63,7 @@ from envs.simulation.rewards import (
 )
 from envs.simulation.scene import MAJOR, MANEUVERS, Scene
 from envs.simulation.step_record import StepRecord
-from envs.simulation.traffic import Scenario, ScenarioTraffic, TrainingTraffic
+from envs.simulation.traffic import Scenario, ScenarioTraffic, TrainingTraffic, human_flags, human_rng
 from sb3_graph.callbacks import VERTEX_ORIGIN
 from sb3_graph.common.spaces import GraphSpace
 
@@ -90,6 +90,8 @@ class CoopIntersectionEnv(AbstractEnv):
         self._scene: Scene | None = None
         self._duration = 0.0
         self._collided: set[int] = set()
+        self._human_rng: np.random.Generator | None = None
+        self._human_model = None
         super().__init__(config, render_mode)
 
     @classmethod
@@ -148,6 +150,12 @@ class CoopIntersectionEnv(AbstractEnv):
           ``glide`` (``glide+shield`` with ``shield``) does in an evaluation. Needs ``residual_base`` null.
         - ``collision_handling``: ``"terminate"`` (a collision ends the episode) or ``"remove"``
           (the vehicles involved leave the scene and the episode goes on)
+        - ``human_share``: mixed traffic (issue 39): each training spawn is human-driven with this
+          probability, or ``[low, high]`` to draw it per episode (default 0: none, no draw); a
+          replayed scenario brings its own flags. Human drivers follow the static priority rules
+          (:class:`envs.planners.human.HumanDriver`) inside :meth:`step`: the action (and the
+          shield's command) for their slots is ignored; ``Scene.human`` and the vertex feature
+          ``"human"`` mark them
         - rendering: ``screen_width``, ``screen_height``, ``scaling``, ``centering_position``,
           ``offscreen_rendering``, ``real_time_rendering``, ``render_agent``, ``show_trajectories``
         """
@@ -184,6 +192,7 @@ class CoopIntersectionEnv(AbstractEnv):
             "residual_scale": 0.5,
             "action": {"type": "acceleration"},
             "collision_handling": "terminate",
+            "human_share": 0.0,
             "screen_width": 600,
             "screen_height": 600,
             "scaling": 3.0,
@@ -267,6 +276,11 @@ class CoopIntersectionEnv(AbstractEnv):
                 min_gap=cfg["spawn_min_gap"],
                 queue=cfg["spawn_queue"],
             )
+            if cfg["human_share"] != 0:  # a share of 0 draws nothing: today's episodes bit for bit
+                if seed is not None or self._human_rng is None:
+                    self._human_rng = human_rng(self.np_random if seed is None else seed)
+                self.traffic.human_rng = self._human_rng
+                self.traffic.human_share = human_flags(0, cfg["human_share"], self._human_rng)[1]
             self._duration = float(cfg["duration"])
             entered = self.traffic.spawn(
                 self.sim, self.np_random, probability=cfg["initial_spawn_probability"]
@@ -336,6 +350,9 @@ class CoopIntersectionEnv(AbstractEnv):
         shield_gap = float(np.abs(proposal - acc).sum()) / a_max
         if self._scheduler is not None:
             acc = self._as_commanded(acc)
+        if sim.human.any():  # human drivers ignore every command: they drive by the priority rules,
+            # their command rounded as a planner's is in an evaluation (all human = PR bit for bit)
+            acc = np.where(sim.human, self._as_commanded(self._human_accelerations()), acc)
         remove = cfg["collision_handling"] == "remove"
         events = sim.step(acc, remove_collided=remove)
         kept = events.kept
@@ -439,6 +456,12 @@ class CoopIntersectionEnv(AbstractEnv):
         action = np.clip(acc / a_max, -1.0, 1.0).astype(np.float32)
         return np.clip(action.astype(np.float64), -1.0, 1.0) * a_max
 
+    def _human_accelerations(self) -> np.ndarray:
+        """The human driver model's accelerations for every row of the current scene."""
+        if self._human_model is None:
+            self._human_model = hooks.maker("human")()
+        return np.asarray(self._human_model.act(self._scene.copy()), float).reshape(self.sim.num_vehicles)
+
     def _make_shield(self):
         cfg = self.config
         return hooks.maker("shield")(
@@ -499,6 +522,7 @@ class CoopIntersectionEnv(AbstractEnv):
         vehicle_id: np.ndarray | None = None,
         length: np.ndarray | float | None = None,
         width: np.ndarray | float | None = None,
+        human: np.ndarray | bool | None = None,
     ) -> Scene:
         """Put vehicles into the current episode by hand (tests, hand-built situations).
 
@@ -508,6 +532,7 @@ class CoopIntersectionEnv(AbstractEnv):
         :param vehicle_id: their ids (default: ``1_000_000`` upwards, unused by traffic)
         :param length: lengths [m] (default: ``vehicle_length``)
         :param width: widths [m] (default: ``vehicle_width``)
+        :param human: human-driven vehicles (default: none; see ``human_share``)
         :return: the new scene (the next observation of ``step`` is built from the new state)
         """
         if self.sim is None:
@@ -525,6 +550,7 @@ class CoopIntersectionEnv(AbstractEnv):
             self.config["vehicle_length"] if length is None else length,
             self.config["vehicle_width"] if width is None else width,
             arc=np.asarray(arc, float),
+            human=human,
         )
         self._scene = self.sim.scene()
         return self._scene

@@ -35,7 +35,9 @@ features do not say (issue #22):
 - ``"zone"``: metres from the centre to where the body reaches its route's first conflict zone (padded by
   the shield's ``ZONE_MARGIN``) times ``s_scale``, clipped to ``[-1, 4]`` (4 for a route without any),
 - ``"committed"``: 1 when braking at ``a_max`` can no longer stop the body before that zone, or the
-  vehicle has left its last zone (the shield's :meth:`~envs.planners.shield.Shield.committed`), else 0.
+  vehicle has left its last zone (the shield's :meth:`~envs.planners.shield.Shield.committed`), else 0,
+- ``"human"``: 1 for a human-driven vehicle (``Scene.human``: it follows the static priority rules and
+  ignores the planner's command, issue 39), else 0.
 
 ``zone`` and ``committed`` need the scene's layout (every simulated scene has it).
 
@@ -69,7 +71,7 @@ EDGE_FEATURES = ("distance", "bearing", "zone_receiver", "zone_sender")
 NUM_RELATIONS = 2
 NODE_FEATURES = 3  # the paper's [s, v, d]
 # Optional vertex features and the columns each adds (config ``vertex_features``).
-VERTEX_FEATURES = {"maneuver": 3, "priority": 1, "limit": 1, "line": 1, "zone": 1, "committed": 1}
+VERTEX_FEATURES = {"maneuver": 3, "priority": 1, "limit": 1, "line": 1, "zone": 1, "committed": 1, "human": 1}
 # Distances past this many units of s_scale (100 m by default) look the same to the network.
 DISTANCE_CLIP = (-1.0, 4.0)
 LIMIT_SCALE = 0.1  # 1 / (10 m/s)
@@ -192,6 +194,8 @@ def node_features(
                 columns.append(_distance_feature(zone_arc(scene) - scene.arc, s_scale))
         elif name == "committed":
             columns.append(committed(scene))
+        elif name == "human":
+            columns.append(scene.humans)
     return np.stack(columns, axis=1).astype(np.float32)
 
 

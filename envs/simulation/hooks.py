@@ -12,6 +12,8 @@ Makers (name -> what it is called with -> what it returns):
 - ``"shield"``: ``(simulation_frequency, max_speed, governor_deceleration)`` -> the training shield
   (``check(scene, proposal)`` -> accelerations, ``last_overridden``),
 - ``"residual_base"``: ``(name)`` -> the base planner of a residual policy (``reset(seed)``, ``act(scene)``),
+- ``"human"``: ``()`` -> the human driver model of mixed traffic (``act(scene)`` -> accelerations of
+  every row; the environment applies those of the human-driven rows),
 - ``"priority"``: ``()`` -> the arrival-time scheduler (``reset(seed)``, ``schedule(scene, shift)`` ->
   checked accelerations).
 
@@ -28,7 +30,7 @@ import importlib
 from collections.abc import Callable
 from typing import Any
 
-HOOKS = ("shield", "residual_base", "priority", "remote_planner", "remote_planner_name")
+HOOKS = ("shield", "residual_base", "priority", "human", "remote_planner", "remote_planner_name")
 _MAKERS: dict[str, Callable[..., Any]] = {}
 _PROVIDERS: list[str] = []
 

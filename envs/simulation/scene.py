@@ -58,6 +58,8 @@ class Scene:
         ``None`` when unknown (hand-built scenes)
     :param layout: the intersection (:class:`envs.simulation.layouts.Layout`: route geometry, speed-limit
         profiles, conflict zones); ``None`` when unknown (hand-built scenes)
+    :param human: ``(n,)`` bool: human-driven vehicles, which follow the static priority rules and
+        ignore a planner's command (issue 39); ``None`` means none (hand-built scenes)
     """
 
     time: float
@@ -84,10 +86,16 @@ class Scene:
     s_ref: float = 25.0
     arc: np.ndarray | None = None
     layout: Any = None
+    human: np.ndarray | None = None
 
     @property
     def num_vehicles(self) -> int:
         return int(self.vehicle_id.shape[0])
+
+    @property
+    def humans(self) -> np.ndarray:
+        """``(n,)`` bool: human-driven vehicles (all ``False`` when the scene does not say)."""
+        return np.zeros(self.num_vehicles, bool) if self.human is None else np.asarray(self.human, bool)
 
     @property
     def approaching(self) -> np.ndarray:

@@ -12,6 +12,12 @@
   appears per lane and policy step. Scenario files are JSON
   (:meth:`Scenario.save`, :meth:`Scenario.load`) and replay exactly: the same planner actions give
   the same trajectories.
+- Mixed traffic (``human_share``, issue 39): each scheduled vehicle is human-driven with that
+  probability (:func:`human_flags`), drawn from the scenario's seed with a random stream of its own,
+  so that a share of 0 draws nothing and leaves every other draw as it was. Human drivers follow
+  the static priority rules (:class:`envs.planners.priority_rules.PriorityRulesPlanner`) inside the
+  simulation; a planner's command for them is ignored. Files store the flag per vehicle (format
+  version 2); version-1 files read as all automated.
 """
 
 from __future__ import annotations
@@ -28,8 +34,12 @@ from envs.simulation.engine import Simulation
 from envs.simulation.layouts import LAYOUT_NAMES, Layout, build_layout
 
 SCENARIO_FORMAT = "sb3-graph-scenario"
-SCENARIO_VERSION = 1
-VEHICLE_FIELDS = ("id", "time", "route", "speed", "length", "width")
+SCENARIO_VERSION = 2
+SCENARIO_VERSIONS = (1, 2)  # readable; version 1 has no "human" field (all automated)
+VEHICLE_FIELDS = ("id", "time", "route", "speed", "length", "width", "human")
+# Tag of the human-driver random stream: the flags come from ``default_rng([HUMAN_STREAM, seed])``,
+# never from the stream that draws the arrivals, so a share of 0 changes no other draw.
+HUMAN_STREAM = 0x48554D414E
 # Bounds of a scenario file (docs/security.md): a file from someone else cannot ask for
 # a run that never ends, a vehicle larger than a lane, or more memory than a machine has.
 MAX_DURATION = 86_400.0  # one simulated day [s]
@@ -52,6 +62,8 @@ class Scenario:
     :param length: ``(k,)`` vehicle lengths [m]
     :param width: ``(k,)`` vehicle widths [m]
     :param meta: free-form information (e.g. the drawn rates), saved with the file
+    :param human: ``(k,)`` bool: the vehicle is human-driven (the planner cannot command it);
+        default all automated
     """
 
     layout: str
@@ -64,6 +76,7 @@ class Scenario:
     length: np.ndarray
     width: np.ndarray
     meta: dict[str, Any] = field(default_factory=dict)
+    human: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.vehicle_id = np.asarray(self.vehicle_id, np.int64).reshape(-1)
@@ -72,6 +85,9 @@ class Scenario:
         self.speed = np.asarray(self.speed, float).reshape(-1)
         self.length = np.asarray(self.length, float).reshape(-1)
         self.width = np.asarray(self.width, float).reshape(-1)
+        if self.human is None:
+            self.human = np.zeros(self.vehicle_id.shape[0], bool)
+        self.human = np.asarray(self.human, bool).reshape(-1)
         self.duration = float(self.duration)
         self.validate()
 
@@ -90,7 +106,7 @@ class Scenario:
         k = self.vehicle_id.shape[0]
         if k > MAX_VEHICLES:
             raise ValueError(f"{source}: field 'vehicles' holds {k} vehicles, more than the {MAX_VEHICLES} accepted")
-        for name in ("time", "speed", "length", "width"):
+        for name in ("time", "speed", "length", "width", "human"):
             if getattr(self, name).shape[0] != k:
                 raise ValueError(
                     f"{source}: field '{name}' has {getattr(self, name).shape[0]} entries, expected {k}"
@@ -133,9 +149,10 @@ class Scenario:
                 "speed": float(v),
                 "length": float(a),
                 "width": float(b),
+                "human": bool(h),
             }
-            for i, t, r, v, a, b in zip(
-                self.vehicle_id, self.time, self.route, self.speed, self.length, self.width
+            for i, t, r, v, a, b, h in zip(
+                self.vehicle_id, self.time, self.route, self.speed, self.length, self.width, self.human
             )
         ]
         return {
@@ -175,11 +192,12 @@ class Scenario:
             raise ValueError(
                 f"{source}: field 'format' must be {SCENARIO_FORMAT!r}, got {data.get('format')!r}"
             )
-        if data.get("version", SCENARIO_VERSION) != SCENARIO_VERSION or isinstance(data.get("version"), bool):
+        version = data.get("version", SCENARIO_VERSION)
+        if isinstance(version, bool) or version not in SCENARIO_VERSIONS:
             raise ValueError(
-                f"{source}: field 'version' must be {SCENARIO_VERSION} (the only scenario format version), "
-                f"got {data.get('version')!r}"
+                f"{source}: field 'version' must be one of {list(SCENARIO_VERSIONS)}, got {data.get('version')!r}"
             )
+        fields_ = VEHICLE_FIELDS if version >= 2 else VEHICLE_FIELDS[:-1]
         for key in ("layout", "duration", "vehicles"):
             if key not in data:
                 raise ValueError(f"{source}: missing field {key!r}")
@@ -199,15 +217,20 @@ class Scenario:
         cols: dict[str, list] = {k: [] for k in VEHICLE_FIELDS}
         for i, v in enumerate(vehicles):
             if not isinstance(v, dict):
-                raise ValueError(f"{source}: vehicles[{i}] must be an object with fields {VEHICLE_FIELDS}")
+                raise ValueError(f"{source}: vehicles[{i}] must be an object with fields {fields_}")
             for key in ("id", "time", "route", "speed"):
                 if key not in v:
                     raise ValueError(f"{source}: vehicles[{i}] is missing field {key!r}")
-            unknown = set(v) - set(VEHICLE_FIELDS)
+            unknown = set(v) - set(fields_)
             if unknown:
                 raise ValueError(
-                    f"{source}: vehicles[{i}] has unknown fields {sorted(unknown)}; allowed: {VEHICLE_FIELDS}"
+                    f"{source}: vehicles[{i}] has unknown fields {sorted(unknown)}; allowed (version {version}): "
+                    f"{fields_}"
                 )
+            human = v.get("human", False)
+            if not isinstance(human, bool):
+                raise ValueError(f"{source}: vehicles[{i}].human must be true or false, got {human!r}")
+            cols["human"].append(human)
             if isinstance(v["id"], bool) or not isinstance(v["id"], int) or not -(2**63) <= v["id"] < 2**63:
                 raise ValueError(f"{source}: vehicles[{i}].id must be a 64-bit integer, got {v['id']!r}")
             if not isinstance(v["route"], str):
@@ -227,6 +250,7 @@ class Scenario:
                 layout=data["layout"], duration=float(duration), seed=seed,
                 vehicle_id=np.asarray(cols["id"], np.int64), time=cols["time"], route=tuple(cols["route"]),
                 speed=cols["speed"], length=cols["length"], width=cols["width"], meta=meta,
+                human=np.asarray(cols["human"], bool),
             )  # fmt: skip
         except ValueError as err:
             raise ValueError(str(err).replace("scenario:", f"{source}:", 1)) from None
@@ -267,6 +291,53 @@ def _fits_float(value: int | float) -> bool:
     return True
 
 
+HUMAN_SHARE_ALLOWED = "a number in [0, 1] or a pair [low, high] with 0 <= low <= high <= 1"
+
+
+def check_human_share(value: Any, name: str = "human_share") -> tuple[float, float]:
+    """The share of human drivers as a range ``(low, high)`` (a number ``x`` gives ``(x, x)``).
+
+    :param value: a number in [0, 1], or a pair ``[low, high]`` (a share drawn per episode or scenario)
+    :param name: the name shown in the error
+    :raises ValueError: naming ``name`` and the allowed values
+    """
+    import numbers
+
+    def number(x: Any) -> bool:
+        return isinstance(x, numbers.Real) and not isinstance(x, (bool, np.bool_)) and 0 <= x <= 1
+
+    if number(value):
+        return float(value), float(value)
+    if isinstance(value, (list, tuple)) and len(value) == 2 and all(number(x) for x in value) and value[0] <= value[1]:
+        return float(value[0]), float(value[1])
+    raise ValueError(f"{name} must be {HUMAN_SHARE_ALLOWED}, got {value!r}")
+
+
+def human_rng(seed: int | np.random.Generator | None) -> np.random.Generator:
+    """The human drivers' own random stream for ``seed`` (a generator: a child of its seed sequence,
+    which takes no draw from it)."""
+    if isinstance(seed, np.random.Generator):
+        return np.random.default_rng(seed.bit_generator.seed_seq.spawn(1)[0])
+    return np.random.default_rng(None if seed is None else [HUMAN_STREAM, int(seed)])
+
+
+def human_flags(
+    count: int, share: Any, rng: np.random.Generator
+) -> tuple[np.ndarray, float]:
+    """Which of ``count`` vehicles are human-driven.
+
+    :param count: number of vehicles
+    :param share: ``human_share`` (see :func:`check_human_share`); a range draws the share first
+    :param rng: the human drivers' stream (:func:`human_rng`); a share of 0 takes no draw from it
+    :return: ``(count,)`` bool flags and the share used
+    """
+    lo, hi = check_human_share(share)
+    if hi == 0:
+        return np.zeros(count, bool), 0.0
+    value = float(rng.uniform(lo, hi)) if hi > lo else lo
+    return rng.random(count) < value, value
+
+
 def generate_scenario(
     layout: Layout | str,
     duration: float,
@@ -277,6 +348,7 @@ def generate_scenario(
     speed_range: tuple[float, float] = (0.6, 1.0),
     length: float = 5.0,
     width: float = 2.0,
+    human_share: float | tuple[float, float] = 0.0,
 ) -> Scenario:
     """Draw an evaluation scenario.
 
@@ -295,10 +367,13 @@ def generate_scenario(
     :param speed_range: initial speed as fractions of the lane speed limit
     :param length: vehicle length [m]
     :param width: vehicle width [m]
-    :return: the scenario
+    :param human_share: probability that a vehicle is human-driven, or a range ``[low, high]`` to draw
+        it from; drawn with :func:`human_rng` of the seed (default 0: no draw, all automated)
+    :return: the scenario; ``meta["human_share"]`` records the share when it is not 0
     """
     lay = build_layout(layout) if isinstance(layout, str) else layout
     seed = None
+    humans = human_rng(rng) if check_human_share(human_share)[1] > 0 else None
     if not isinstance(rng, np.random.Generator):
         seed = int(rng)
         rng = np.random.default_rng(seed)
@@ -335,15 +410,25 @@ def generate_scenario(
     order = np.argsort(t_all, kind="stable")
     r_all = np.concatenate(routes)[order]
     k_all = order.size
+    meta = {"rate_major": base, "rate_minor": base * minor_factor, "min_headway": min_headway}
+    human = np.zeros(k_all, bool)
+    if humans is not None:
+        human, meta["human_share"] = human_flags(k_all, human_share, humans)
     return Scenario(
         layout=lay.name, duration=float(duration), seed=seed,
         vehicle_id=np.arange(k_all), time=t_all[order], route=tuple(lay.route_names[i] for i in r_all),
         speed=np.concatenate(speeds)[order], length=np.full(k_all, length), width=np.full(k_all, width),
-        meta={"rate_major": base, "rate_minor": base * minor_factor, "min_headway": min_headway},
+        meta=meta, human=human,
     )  # fmt: skip
 
 
-def demand_scenario(layout: Layout | str, duration: float, rng: np.random.Generator | int, demand: float) -> Scenario:
+def demand_scenario(
+    layout: Layout | str,
+    duration: float,
+    rng: np.random.Generator | int,
+    demand: float,
+    human_share: float | tuple[float, float] = 0.0,
+) -> Scenario:
     """Draw an evaluation scenario at a fixed demand (the demand sweep's generator).
 
     :func:`generate_scenario` with the rate fixed to ``demand`` per major-road lane and half of it
@@ -354,12 +439,13 @@ def demand_scenario(layout: Layout | str, duration: float, rng: np.random.Genera
     :param duration: scenario length [s]
     :param rng: random generator, or an integer seed
     :param demand: arrivals per second and major-road lane, in ``(0, 1)`` (the 1 s minimum headway)
+    :param human_share: share of human drivers (see :func:`generate_scenario`)
     :return: the scenario; ``meta["demand"]`` records ``demand``
     """
     demand = float(demand)
     if not 0 < demand < 1:
         raise ValueError(f"demand must be in (0, 1) veh/s per major-road lane (1 s minimum headway), got {demand}")
-    scenario = generate_scenario(layout, duration, rng, rate_range=(demand, demand))
+    scenario = generate_scenario(layout, duration, rng, rate_range=(demand, demand), human_share=human_share)
     scenario.meta["demand"] = demand
     return scenario
 
@@ -398,6 +484,10 @@ class TrainingTraffic:
         self.width = float(width)
         self.min_gap = float(min_gap)
         self.next_id = 0
+        # Mixed traffic: each spawn is human-driven with this probability, drawn from ``human_rng``
+        # (the environment sets both per episode; 0 draws nothing).
+        self.human_share = 0.0
+        self.human_rng: np.random.Generator | None = None
         # Routes grouped by spawn lane, for drawing one destination per lane in one gather.
         num_lanes = len(layout.spawn_lanes)
         self._counts = np.bincount(layout.route_spawn_lane, minlength=num_lanes)
@@ -434,6 +524,9 @@ class TrainingTraffic:
         counts = self._counts
         route = self._by_lane[self._first + np.minimum((pick * counts).astype(np.int64), counts - 1)]
         speed = frac * lay.speed_limit[route, 0]
+        human = None
+        if self.human_share > 0:  # the same number of draws every call, from the human stream
+            human = self.human_rng.random(num_lanes) < self.human_share
         if self.queue_limit:
             self.queue = np.minimum(self.queue + draw, self.queue_limit)
             draw = self.queue > 0
@@ -447,7 +540,9 @@ class TrainingTraffic:
         ids = np.arange(self.next_id, self.next_id + lanes.size, dtype=np.int64)
         self.next_id += lanes.size
         if lanes.size:
-            sim.add(route[lanes], speed[lanes], ids, self.length, self.width)
+            sim.add(
+                route[lanes], speed[lanes], ids, self.length, self.width, human=None if human is None else human[lanes]
+            )
         return ids
 
 
@@ -477,6 +572,7 @@ class ScenarioTraffic:
         self.length = scenario.length[order]
         self.width = scenario.width[order]
         self.vehicle_id = scenario.vehicle_id[order]
+        self.human = scenario.human[order]
         num_lanes = len(layout.spawn_lanes)
         self.lane_begin = np.searchsorted(self.lane, np.arange(num_lanes))
         self.lane_end = np.searchsorted(self.lane, np.arange(num_lanes), side="right")
@@ -507,6 +603,7 @@ class ScenarioTraffic:
                     self.vehicle_id[rows],
                     self.length[rows],
                     self.width[rows],
+                    human=self.human[rows],
                 )
                 self.cursor[self.lane[rows]] += 1
                 new_ids = self.vehicle_id[rows]
