@@ -50,9 +50,10 @@ def test_each_vertex_column_is_its_definition():
     seen_committed = set()
     for scene in scenes:
         x = node_features(scene, vertex_feature_names=ALL_VERTEX)
-        assert x.shape == (scene.num_vehicles, num_node_features(ALL_VERTEX)) == (scene.num_vehicles, 11)
+        assert x.shape == (scene.num_vehicles, num_node_features(ALL_VERTEX)) == (scene.num_vehicles, 12)
         np.testing.assert_array_equal(x[:, :3], node_features(scene))  # the paper's [s, v, d] first
         maneuver, priority, limit, line, zone, done = x[:, 3:6], x[:, 6], x[:, 7], x[:, 8], x[:, 9], x[:, 10]
+        np.testing.assert_array_equal(x[:, 11], scene.humans.astype(np.float32))  # no human drivers here: 0
         np.testing.assert_array_equal(maneuver.argmax(axis=1), scene.maneuver)
         np.testing.assert_array_equal(maneuver.sum(axis=1), 1.0)
         np.testing.assert_array_equal(priority, (scene.priority == 1).astype(np.float32))

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import socket
 import sys
 from pathlib import Path
@@ -77,8 +78,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 RESERVED_FDS = 64
 
 
+def _held_descriptors() -> int:
+    """Descriptors this process holds already (0 where the system does not list them)."""
+    try:
+        return len(os.listdir("/proc/self/fd"))
+    except OSError:
+        return 0
+
+
 def connection_cap(requested: int | None, workers: int) -> int:
-    """The connection cap: ``requested``, or 1000, kept below the open-file limit.
+    """The connection cap: ``requested``, or 1000, kept below the open-file limit less the descriptors
+    the process holds already (a server started inside a larger program has fewer to give).
 
     :raises UserError: ``--max-connections`` at or over what the open-file limit allows
     """
@@ -89,7 +99,7 @@ def connection_cap(requested: int | None, workers: int) -> int:
         soft = soft if soft != resource.RLIM_INFINITY else 1 << 20
     except ImportError:  # not on Unix: no per-process descriptor limit to stay under
         soft = 1 << 20
-    room = soft - RESERVED_FDS - 2 * workers
+    room = soft - _held_descriptors() - RESERVED_FDS - 2 * workers
     if room < 8:
         raise UserError(f"the open-file limit ({soft}) is too low for a server: raise it (ulimit -n)")
     if requested is None:
