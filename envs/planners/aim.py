@@ -31,6 +31,12 @@ intersection:
 4. **Control**: each vehicle follows the first phase of its plan (accelerate, change speed
    towards ``u`` or stop at the line), capped by IDM car following.
 
+Human drivers (mixed traffic, issue 39) ignore their reservations: one that the priority rules let go
+now is booked first, in every candidate alike, with the window the shield predicts for it
+(:func:`envs.planners.human.human_window`, ``human_margin``, ``human_horizon``), and the automated
+vehicles reserve around it; one that the rules hold books nothing (it yields). Without humans none of
+this runs.
+
 Steps 1 and 3 run compiled (:mod:`envs.planners._aim_kernel`, numba), the only implementation;
 ``tests/aim_reference.py`` holds their NumPy form, the oracle that the kernels match bit for bit
 (``tests/test_planner_regression.py``).
@@ -44,6 +50,7 @@ import numpy as np
 
 from envs.planners import _aim_kernel
 from envs.planners.base import Planner
+from envs.planners.human import CRAWL_SPEED, human_commands, human_window
 from envs.planners.idm import (
     DEFAULT_IDM,
     IDMParams,
@@ -70,6 +77,9 @@ class AIMParams:
     :param wait_horizon: latest start time of a plan that stops, after coming to rest [s]
     :param passes: most passes to settle the reservations
     :param governor_deceleration: the simulation's governor deceleration [m/s^2]
+    :param human_margin: seconds added on both sides of a going human driver's predicted window in a
+        zone (:func:`envs.planners.human.human_window`, the shield's rule)
+    :param human_horizon: latest exit predicted for a going human driver at a crawl [s]
     """
 
     accel: float = 3.09
@@ -83,6 +93,8 @@ class AIMParams:
     wait_horizon: float = 12.0
     passes: int = 12
     governor_deceleration: float = 3.0
+    human_margin: float = 1.0
+    human_horizon: float = 8.0
 
 
 @dataclass(frozen=True)
@@ -286,14 +298,19 @@ class AIMPlanner(Planner):
         zone_enter, zone_leave, base, score = _aim_kernel.windows(
             zi, d_in, d_out, arrival, speed_at_line, v_in, *self.leader_terms(scene, ref), a, kind == 2, p.stop_penalty
         )
+        human = scene.humans
+        going = self._book_humans(scene, zi, zq, zone_enter, zone_leave) if human.any() else human
 
-        # Order: committed first, in the order they committed, then FIFO by the remembered arrival keys.
+        # Order: going human drivers first (fixed reservations), then the committed, in the order they
+        # committed, then FIFO by the remembered arrival keys.
         keys, since = self.arrival_keys(scene, cand["earliest"], committed)
         keys = self.order_keys(scene, keys)
         order = np.empty(n, np.int64)
-        order[np.lexsort((scene.vehicle_id, keys, since))] = np.arange(n)
+        order[np.lexsort((scene.vehicle_id, keys, np.where(going, -np.inf, since)))] = np.arange(n)
         pair = lay.conflicts[route[:, None], route[None, :]] & zone[:, route] & zone[:, route].T
         pair &= order[None, :] < order[:, None]  # (i, j): j reserves before i
+        if human.any():  # a human's own plan is moot; one that the rules hold books nothing (it yields)
+            pair &= ~human[:, None] & ~(human & ~going)[None, :]
         np.fill_diagonal(pair, False)
         # Only the pairs that must not clash: i, j, and the rows of i's zone with j and j's zone with i.
         pi, pj = np.nonzero(pair)
@@ -323,6 +340,40 @@ class AIMPlanner(Planner):
             committed=committed,
             order=order,
         )
+
+    def _book_humans(
+        self, scene: Scene, zi: np.ndarray, zq: np.ndarray, zone_enter: np.ndarray, zone_leave: np.ndarray
+    ) -> np.ndarray:
+        """Overwrite the zone windows of the going human drivers (in place) with their predicted
+        windows (:func:`envs.planners.human.human_window`, the shield's rule), the same for every
+        candidate: a human ignores its reservation, so it is fixed, and the others plan around it.
+
+        :param scene: the vehicles now (with human drivers)
+        :param zi: ``(k,)`` vehicle of each zone row
+        :param zq: ``(k,)`` route of the zone's other side
+        :param zone_enter: ``(k, C)`` zone windows' starts [s from now], modified
+        :param zone_leave: ``(k, C)`` and ends, modified
+        :return: ``(n,)`` bool: the going human drivers (the priority rules let them go now)
+        """
+        p = self.params
+        going = human_commands(scene)[1]
+        rows = np.flatnonzero(going[zi])
+        if rows.size:
+            h, q, r = zi[rows], zq[rows], scene.route[zi[rows]]
+            front = scene.arc[h] + scene.length[h] / 2
+            v = scene.speed[h]
+            start, until = human_window(
+                scene.layout.zone_start[r, q] - front,
+                scene.layout.zone_end[r, q] + scene.length[h] - front,
+                v,
+                np.maximum(scene.speed_limit[h], v),
+                p.human_margin,
+                CRAWL_SPEED,
+                p.human_horizon,
+            )
+            zone_enter[rows] = start[:, None]
+            zone_leave[rows] = until[:, None]
+        return going
 
     def leader_terms(self, scene: Scene, ref: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """What bounds when a vehicle's front can be ``d`` metres past ``ref``: its leader's rear must

@@ -10,12 +10,17 @@ The times a vehicle arrives at and clears the intersection come from the vehicle
 (:func:`envs.planners.vehicle_model.model_crossing_times`: lane limits, the governor's braking,
 the acceleration of the crossing), with small margins tuned under a zero-collision constraint
 (``docs/baselines.md``) instead of fixed rules of thumb.
+
+Human drivers (mixed traffic) ignore the order: one that the priority rules let go comes first, with
+the shield's predicted window (:func:`envs.planners.human.human_window`) as its arrival and clearing;
+one that they hold comes last (FIFO holds no automated vehicle for a human who yields to it).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from envs.planners.human import CRAWL_SPEED, human_commands, human_window
 from envs.planners.idm import DEFAULT_IDM, CrossingParams, IDMParams, blocked_by_rank
 from envs.planners.vehicle_model import model_crossing_times
 from envs.planners.yielding import YieldingPlanner, rank_by
@@ -33,6 +38,8 @@ class FIFOPlanner(YieldingPlanner):
     :param idm: IDM constants (default: highway-env's)
     :param crossing: timing rules of the admission logic (default: :data:`FIFO_CROSSING`)
     :param governor_deceleration: the simulation's governor deceleration [m/s^2]
+    :param human_margin: seconds added on both sides of a going human driver's predicted window
+    :param human_horizon: latest clearing predicted for a going human driver at a crawl [s]
     """
 
     default_name = "FIFO"
@@ -43,9 +50,13 @@ class FIFOPlanner(YieldingPlanner):
         idm: IDMParams = DEFAULT_IDM,
         crossing: CrossingParams | None = None,
         governor_deceleration: float = 3.0,
+        human_margin: float = 1.0,
+        human_horizon: float = 8.0,
     ) -> None:
         super().__init__(name, idm, crossing if crossing is not None else FIFO_CROSSING)
         self.governor_deceleration = governor_deceleration
+        self.human_margin = human_margin
+        self.human_horizon = human_horizon
 
     def rank(self, scene: Scene) -> np.ndarray:
         """Closest to the stop line first, ties by id."""
@@ -55,4 +66,33 @@ class FIFOPlanner(YieldingPlanner):
         if scene.layout is None:  # hand-built scene without geometry: the rules of thumb
             return blocked_by_rank(scene, self.rank(scene), CrossingParams())
         times = model_crossing_times(scene, self.crossing, self.governor_deceleration)
-        return blocked_by_rank(scene, self.rank(scene), self.crossing, times=times)
+        rank = self.rank(scene)
+        if scene.humans.any():
+            rank, times = self._human_terms(scene, rank, times)
+        return blocked_by_rank(scene, rank, self.crossing, times=times)
+
+    def _human_terms(
+        self, scene: Scene, rank: np.ndarray, times: tuple[np.ndarray, ...]
+    ) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
+        """Human drivers ignore the order: one that the priority rules let go comes first, with the
+        window of the shield's rule (:func:`envs.planners.human.human_window`) as its arrival and
+        clearing; one that they hold comes last (it yields: FIFO holds no one for it)."""
+        human = scene.humans
+        going = human_commands(scene)[1]
+        n = scene.num_vehicles
+        rank = np.where(going, rank - n, np.where(human, rank + n, rank))
+        arrival, clearing, inside, committed = times
+        v = scene.speed
+        start, until = human_window(
+            scene.dist_to_entry,
+            scene.dist_to_exit,
+            v,
+            np.maximum(scene.speed_limit, v),
+            self.human_margin,
+            CRAWL_SPEED,
+            self.human_horizon,
+        )
+        approaching = scene.dist_to_exit > 0
+        arrival = np.where(going, start, arrival)
+        clearing = np.where(going & approaching, until, clearing)
+        return rank, (arrival, clearing, inside, committed)

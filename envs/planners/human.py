@@ -11,9 +11,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from envs.planners.idm import accelerations_with_stops
+from envs.planners.idm import DEFAULT_IDM, accelerations_with_stops, travel_time
 from envs.planners.priority_rules import PriorityRulesPlanner
 from envs.simulation.scene import Scene
+
+# A going human at or below this speed [m/s] is predicted in its zones up to the planner's horizon
+# (the shield's LIVE_SPEED): its speed now bounds no exit.
+CRAWL_SPEED = 2.0
 
 
 class HumanDriver(PriorityRulesPlanner):
@@ -37,3 +41,32 @@ def human_commands(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
     blocked = driver.blocked(scene)
     acc = accelerations_with_stops(scene, blocked, driver.crossing, driver.idm)
     return acc, human & ~blocked
+
+
+def human_window(
+    gap_in: np.ndarray,
+    gap_out: np.ndarray,
+    speed: np.ndarray,
+    limit: np.ndarray,
+    margin: float,
+    crawl_speed: float,
+    crawl_until: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """When a going human driver (one the priority rules let go, :func:`human_commands`) may occupy a
+    zone: from its earliest entry (accelerating at IDM's ``acc_max`` up to ``limit``; now if already
+    in) to its latest exit at its speed now, widened by ``margin`` on both sides; up to ``crawl_until``
+    for a human at a crawl (at most ``crawl_speed``), whose exit the speed now cannot bound. The
+    shield's prediction of humans, which AIM, FIFO and glide book as fixed reservations too.
+
+    :param gap_in: ``(h,)`` metres the human moves before its body enters the zone (<= 0: in it)
+    :param gap_out: ``(h,)`` metres it moves until its body has left the zone
+    :param speed: ``(h,)`` its speed now [m/s]
+    :param limit: ``(h,)`` the highest speed it reaches [m/s]
+    :param margin: seconds added on both sides
+    :param crawl_speed: at or below this speed [m/s] the exit is ``crawl_until``
+    :param crawl_until: latest exit of a crawling human [s from now]
+    :return: ``(h,)`` start (at least 0) and end of the window [s from now]
+    """
+    start = travel_time(gap_in, speed, limit, DEFAULT_IDM.acc_max)
+    until = np.where(speed > crawl_speed, gap_out / np.maximum(speed, crawl_speed), crawl_until)
+    return np.maximum(start - margin, 0.0), until + margin

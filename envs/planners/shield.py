@@ -78,8 +78,7 @@ from envs.planners import _shield_kernel
 from envs.planners.base import Planner
 from envs.planners.errors import PlannerError, checked_accelerations
 from envs.planners.fifo import FIFOPlanner
-from envs.planners.human import human_commands
-from envs.planners.idm import DEFAULT_IDM, travel_time
+from envs.planners.human import human_commands, human_window
 from envs.planners.watchdog import WATCHDOG_AFTER, WATCHDOG_HOLD, LivenessWatchdog
 from envs.simulation.commitment import STANDING, STOP_SLACK
 from envs.simulation.layouts import CONFLICT_DISTANCE, ZONE_MARGIN, body_hull
@@ -551,11 +550,10 @@ class Shield(Planner):
         x0, v = plan.arc[h], plan.speed[h]
         lo, hi = plan.cross_lo[pair, col], plan.cross_hi[pair, col]
         limit = np.maximum(np.asarray(scene.speed_limit, float)[h], v)
-        start = travel_time(lo - x0, v, limit, DEFAULT_IDM.acc_max)
-        until = np.where(v > LIVE_SPEED, (hi - x0) / np.maximum(v, LIVE_SPEED), self.horizon)
         plan.human_pair, plan.human_col = pair, col
-        plan.human_from = np.maximum(start - self.human_margin, 0.0)
-        plan.human_until = until + self.human_margin
+        plan.human_from, plan.human_until = human_window(
+            lo - x0, hi - x0, v, limit, self.human_margin, LIVE_SPEED, self.horizon
+        )
 
     def _in_human_windows(self, scene: Scene, plan: _Plan, arc: np.ndarray) -> np.ndarray:
         """``(p,)`` bool: the automated vehicle of a human pair is predicted in the pair's zone within
