@@ -285,7 +285,9 @@ def test_seeds_train_one_run_per_seed_and_never_overwrite(tmp_path, capsys):
     assert json.loads((out / "seed_2" / "run.json").read_text())["seed"] == 2
 
 
-@pytest.mark.parametrize("name", ["td3_fair.yml", "td3_tune.yml", "td3_priority.yml", "td3_glide_clone.yml"])
+@pytest.mark.parametrize(
+    "name", ["td3_fair.yml", "td3_tune.yml", "td3_priority.yml", "td3_glide_clone.yml", "td3_mixed.yml"]
+)
 def test_intersection_zoo_entries_read_and_build(name):
     # The retraining, study and cloning entries are read without eval and make the environment they name.
     from sb3_graph.files.experiment_files import build_algorithm_kwargs, build_callbacks, read_experiment
@@ -295,6 +297,9 @@ def test_intersection_zoo_entries_read_and_build(name):
     assert env.unwrapped.config["spawn_probability_range"] == [0.01, 0.07]
     assert build_algorithm_kwargs(entry, action_dim=1)["learning_rate"] > 0
     assert build_callbacks(entry)
+    if name == "td3_mixed.yml":  # mixed traffic: a share per episode, and the vertices say who is human
+        assert env.unwrapped.config["human_share"] == [0.0, 0.75]
+        assert "human" in env.unwrapped.config["vertex_features"]
     env.close()
 
 
