@@ -283,11 +283,11 @@ def test_the_next_vehicle_on_the_same_route_is_followed_where_lanes_split():
 
 def test_a_vehicle_ahead_on_a_lane_that_split_off_is_followed_until_the_lanes_part():
     # inD, east approach, the collision of scenario 17 (FullThrottle+shield): vehicle 0 (east->north)
-    # stands just past where the scene stops calling it vehicle 1's leader (its rear 15 m past the
-    # split at 50 m), but the two lanes run closer than a body width apart until 69 m.
+    # stands with its rear 15 m past the split at 50 m, but the two lanes run closer than a body width
+    # apart until 69 m (the parting arc): the shield follows it there, and so does the scene's leader.
     vehicles = [("east->north", 67.52, 0.0), ("east->south", 61.49, 0.0)]
     sim = _sim(vehicles, "inD")
-    assert (sim.scene().leader == -1).all()
+    assert sim.scene().leader.tolist() == [-1, 0]
     assert _run(sim, Fixed({0: -5.0}), 30)[0]  # without the shield, vehicle 1 drives into 0
     sim = _sim(vehicles, "inD")
     shield = Shield(Fixed({0: -5.0}))

@@ -7,8 +7,8 @@ import pytest
 from highway_env import utils as hw_utils
 from highway_env.vehicle.kinematics import Vehicle
 
-from envs.simulation.engine import Simulation, overlapping_pairs
-from envs.simulation.layouts import build_layout
+from envs.simulation.engine import SPLIT_CLEARANCE, Simulation, overlapping_pairs
+from envs.simulation.layouts import build_layout, parting_arcs
 from envs.simulation.scene import STOP_SPEED
 
 
@@ -235,6 +235,33 @@ def test_left_turner_entering_its_pocket_stays_the_leader_of_through_traffic(lea
         p_leader, _ = lay.pose(np.array([es]), np.array([rear]))
         p_follower, _ = lay.pose(np.array([ew]), np.array([rear]))
         assert np.hypot(*(p_leader - p_follower)[0]) < 2.0
+        events = sim.step(np.array([0.0, 0.0]))  # at 8 m/s without braking it hits the leader
+        assert events.collisions.tolist() == [[0, 1]]
+    else:
+        assert np.isinf(gap[1])
+
+
+@pytest.mark.parametrize("leader_arc, is_leader", [(67.55, True), (76.0, False)])
+def test_through_car_leaving_the_pocket_stays_the_leader_of_a_left_turner(leader_arc, is_leader):
+    """inD, the other way round: a through car whose rear is 15 m past the split (its clearance point
+    has passed it) still overlaps the pocket's first metres, so the left-turner behind must keep it
+    as its leader (regression: a human left-turner lost it and rear-ended a crawling human through
+    car in the penetration sweep). It stays the leader while its rear is short of the arc where the
+    two centre lines part by the conflict distance (the shield's rule, ``parting_arcs``)."""
+    lay = build_layout("inD")
+    es, ew = lay.route_id("east->south"), lay.route_id("east->west")
+    follower_arc = leader_arc - 5.5
+    sim = Simulation(lay)
+    sim.add([ew, es], [0.0, 8.0], [0, 1], arc=[leader_arc, follower_arc])
+    rear = leader_arc - sim.length[0] / 2
+    assert rear - SPLIT_CLEARANCE > 50.0  # the old rule's clearance point is past the split at 50 m
+    leader, gap = sim.leaders()
+    assert leader.tolist() == [-1, 0 if is_leader else -1]
+    assert (rear < parting_arcs(lay)[ew, es]) == is_leader
+    if is_leader:
+        p_leader, _ = lay.pose(np.array([ew]), np.array([rear]))
+        p_follower, _ = lay.pose(np.array([es]), np.array([rear]))
+        assert np.hypot(*(p_leader - p_follower)[0]) < 2.5
         events = sim.step(np.array([0.0, 0.0]))  # at 8 m/s without braking it hits the leader
         assert events.collisions.tolist() == [[0, 1]]
     else:

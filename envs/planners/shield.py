@@ -81,7 +81,7 @@ from envs.planners.fifo import FIFOPlanner
 from envs.planners.human import human_commands, human_window
 from envs.planners.watchdog import WATCHDOG_AFTER, WATCHDOG_HOLD, LivenessWatchdog
 from envs.simulation.commitment import STANDING, STOP_SLACK
-from envs.simulation.layouts import CONFLICT_DISTANCE, ZONE_MARGIN, body_hull
+from envs.simulation.layouts import ZONE_MARGIN, body_hull, parting_arcs
 from envs.simulation.scene import Scene
 
 _INT = np.int64
@@ -464,7 +464,7 @@ class Shield(Planner):
         # where the two centre lines part (inD: lanes that split at 50 m run side by side to 69 m).
         span = arc[None, :] - arc[:, None] - (length[:, None] + length[None, :]) / 2  # [behind, ahead]
         d_behind, d_ahead = np.nonzero(
-            (span > 0) & (arc[None, :] - length[None, :] / 2 < _parting_arcs(lay)[route[None, :], route[:, None]])
+            (span > 0) & (arc[None, :] - length[None, :] / 2 < parting_arcs(lay)[route[None, :], route[:, None]])
         )
         behind, ahead = np.concatenate([behind, d_behind]), np.concatenate([ahead, d_ahead])
         follow = np.stack(
@@ -719,25 +719,6 @@ def _blame_pairs(blamed: np.ndarray, free: np.ndarray, second: np.ndarray, first
     """Mark, per conflicting pair, the free one; ``second`` if both are free (in place)."""
     pick = np.where(free[second], second, first)
     blamed[pick[free[pick]]] = True
-
-
-_PARTING: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-
-
-def _parting_arcs(layout) -> np.ndarray:
-    """``(R, R)`` arc on route ``r`` (row) from which its centre line stays at least the layout's
-    conflict distance from route ``q``'s (column), for two routes that leave the same spawn lane;
-    ``-inf`` for every other pair (their vehicles meet in conflict zones or on one lane)."""
-    if layout not in _PARTING:
-        num_r, ds = layout.num_routes, layout.ds
-        out = np.full((num_r, num_r), -np.inf)
-        spawn = layout.route_spawn_lane
-        for a, b in zip(*np.nonzero((spawn[:, None] == spawn[None, :]) & ~np.eye(num_r, dtype=bool))):
-            n = int(layout.length[a] / ds) + 1
-            near = np.linalg.norm(layout.xy[a, :n, None] - layout.xy[b, None], axis=-1).min(axis=1) < CONFLICT_DISTANCE
-            out[a, b] = (np.flatnonzero(near).max() + 1) * ds
-        _PARTING[layout] = out
-    return _PARTING[layout]
 
 
 _MERGING: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()

@@ -28,11 +28,12 @@ from typing import Any
 
 import numpy as np
 
-from envs.simulation.layouts import Layout
+from envs.simulation.layouts import Layout, parting_arcs
 from envs.simulation.scene import STOP_SPEED, Scene
 
-# Metres behind a vehicle's rear over which diverging paths still overlap a vehicle's width
-# (the inD through lane leaves its left-turn pocket at 7.6 deg: 2 m apart after ~15 m).
+# Metres behind a vehicle's rear over which diverging paths still overlap a vehicle's width (the inD
+# through lane leaves its left-turn pocket at 7.6 deg: 2 m apart after ~15 m); where paths part more
+# slowly than that, the layout's parting arcs (`parting_arcs`) keep the leader longer.
 SPLIT_CLEARANCE = 15.0
 _INT = np.int64
 
@@ -441,7 +442,11 @@ class Simulation:
         if missing.any():
             into_back = self.arc - lay.lane_start[self.route, back_lane]
             x_back = lay.lane_start[self.route[:, None], back_lane[None, :]] + into_back[None, :]
-            x = np.where(missing, x_back, x)
+            # Where the paths part more slowly (inD's turn pockets), j stays the leader while its rear
+            # is short of the arc where its path leaves i's by the conflict distance (the shield's rule).
+            rear = self.arc - self.length / 2
+            overlaps = rear[None, :] < parting_arcs(lay)[self.route[None, :], self.route[:, None]]
+            x = np.where(missing, np.where(np.isnan(x_back) & overlaps, self.arc[None, :], x_back), x)
         ahead = x - self.arc[:, None]
         valid = np.isfinite(ahead) & (ahead > 0)
         np.fill_diagonal(valid, False)

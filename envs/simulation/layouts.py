@@ -249,6 +249,28 @@ class Layout:
         return self.route_lane_ids[route, np.maximum(k, 0)]
 
 
+_PARTING: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def parting_arcs(layout: Layout) -> np.ndarray:
+    """``(R, R)`` arc on route ``r`` (row) from which its centre line stays at least the layout's
+    conflict distance from route ``q``'s (column), for two routes that leave the same spawn lane;
+    ``-inf`` for every other pair (their vehicles meet in conflict zones or on one lane). Where two
+    such paths split, a vehicle whose rear is still before this arc of its route overlaps the other
+    path: the simulation keeps it the leader of the other branch's vehicles, and the shield predicts
+    the pair as a follow pair until then. Cached per layout."""
+    if layout not in _PARTING:
+        num_r, ds = layout.num_routes, layout.ds
+        out = np.full((num_r, num_r), -np.inf)
+        spawn = layout.route_spawn_lane
+        for a, b in zip(*np.nonzero((spawn[:, None] == spawn[None, :]) & ~np.eye(num_r, dtype=bool))):
+            n = int(layout.length[a] / ds) + 1
+            near = np.linalg.norm(layout.xy[a, :n, None] - layout.xy[b, None], axis=-1).min(axis=1) < CONFLICT_DISTANCE
+            out[a, b] = (np.flatnonzero(near).max() + 1) * ds
+        _PARTING[layout] = out
+    return _PARTING[layout]
+
+
 _HULLS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
