@@ -236,7 +236,9 @@ class SimpleCar:
 
 def start_server(planner: str, *extra: str, wait: float = 300.0) -> tuple[subprocess.Popen, str]:
     """``sb3-graph serve --port 0 ...`` in its own process, once it listens: ``(process, url)``."""
-    command = [sys.executable, "-m", "sb3_graph.cli", "serve", "--planner", planner, "--port", "0", *extra]
+    # a step over --time-limit loses its stream: a stall of a loaded machine must not change a compared run
+    command = [sys.executable, "-m", "sb3_graph.cli", "serve", "--planner", planner, "--port", "0",
+               "--time-limit", "60", *extra]  # fmt: skip
     env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
     process = subprocess.Popen(command, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     deadline = time.monotonic() + wait

@@ -167,8 +167,14 @@ def test_remote_planner_without_a_server_is_a_clear_error(tmp_path, capsys):
 
 # ---------------------------------------------------------------------- a real server process
 def start_server(planner: str, *extra: str, env: dict | None = None, wait: float = 300.0):
-    """Start ``sb3-graph serve --port 0`` and return ``(process, url)`` once it listens."""
-    command = [sys.executable, "-m", "sb3_graph.cli", "serve", "--planner", planner, "--port", "0", *extra]
+    """Start ``sb3-graph serve --port 0`` and return ``(process, url)`` once it listens.
+
+    ``--time-limit 60`` unless ``extra`` says otherwise: a step over it kills its worker and loses its stream,
+    and these tests compare whole runs with in-process planning, so a stall of the shared machine must not
+    count as an overrun (the time limit has its own tests in test_serve_workers.py).
+    """
+    command = [sys.executable, "-m", "sb3_graph.cli", "serve", "--planner", planner, "--port", "0",
+               "--time-limit", "60", *extra]  # fmt: skip
     process = subprocess.Popen(command, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                                env={**os.environ, "PYTHONPATH": str(ROOT), **(env or {})})  # fmt: skip
     deadline = time.monotonic() + wait

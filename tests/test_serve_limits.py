@@ -253,7 +253,7 @@ def test_log_is_rate_limited():
 
 def test_workers_plan_streams_in_parallel_under_a_time_limit():
     """A slow scene on one worker holds neither the streams of the other worker nor its client past the
-    time limit; the step it timed out on completes, and its retry gets that answer without a second plan."""
+    time limit; its worker is killed and replaced, so that its retry finds the stream lost (404)."""
     from envs.serve.app import PlannerService
 
     service = PlannerService(f"{SUPPORT}:SlowPlanner", ENV)
@@ -282,11 +282,15 @@ def test_workers_plan_streams_in_parallel_under_a_time_limit():
         thread.join()
         assert outcome["error"] == (503, "time_limit") and time.monotonic() - tic < SlowPlanner.SLOW_SECONDS + 0.5
         assert max(times) < 0.35, times  # not held by the slow scene of the other worker
-        time.sleep(SlowPlanner.SLOW_SECONDS)
         body = json.dumps({**big, "seq": 1}).encode()
         headers = {"Authorization": f"Bearer {TOKEN}", "Content-Type": "application/json"}
         status, reply = raw(server.url, "POST", f"/streams/{a}/step", body, headers)
-        assert status == 200 and reply["step"] == 1 and reply["accelerations"] == [-1.0] * SlowPlanner.SLOW_VEHICLES
+        assert (status, reply["field"]) == (404, "stream")
+        deadline = time.monotonic() + 10
+        while server.gateway.pool.alive_count() < 2:  # the killed worker's replacement
+            assert time.monotonic() < deadline
+            time.sleep(0.02)
+        assert server.gateway.pool.restarts == 1 and len(fast.step(b, wire_scene(2, 1.0, layout))) == 2
 
 
 def _certificates(tmp_path: Path):

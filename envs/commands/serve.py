@@ -71,7 +71,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     limits.add_argument("--workers", type=int, default=1, help="planning processes; a stream stays in one; 0: plan on "
                         "the event loop, one decision at a time (default: 1)")  # fmt: skip
     limits.add_argument("--time-limit", type=float, default=1.0, help="seconds a step may take before the client gets "
-                        "503 (it still completes; the same seq then answers it); needs --workers >= 1 (default: 1)")
+                        "503 and its worker is killed and replaced (its streams are lost: 404, the client "
+                        "reopens); needs --workers >= 1 (default: 1)")  # fmt: skip
 
 
 # File descriptors the server needs besides its connections (listening socket, workers' sockets, log, libraries).

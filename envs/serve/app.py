@@ -306,8 +306,12 @@ class Gateway:
     :param max_streams_per_client: most streams one client holds
     :param stream_timeout: a stream unused for this long [s] is closed (checked on a timer)
     :param max_body: largest request body [bytes]
-    :param time_limit: a request not answered within this many seconds gets 503 (its step still completes
-        in the worker, and a retry with the same ``seq`` gets its answer); needs ``workers >= 1``
+    :param time_limit: a step not answered within this many seconds gets 503, and its worker is killed and
+        replaced (its streams are lost: 404, the client reopens); needs ``workers >= 1`` (in the server's
+        process a step is not timed)
+    :param max_restarts: restarts of one worker slot allowed within ``restart_window`` seconds; past them
+        the slot stays down and new streams go to the other workers
+    :param restart_window: the window of the restart cap [s]
     """
 
     def __init__(
@@ -320,15 +324,21 @@ class Gateway:
         stream_timeout: float = 600.0,
         max_body: int = 1 << 20,
         time_limit: float = 1.0,
+        max_restarts: int = 3,
+        restart_window: float = 60.0,
     ) -> None:
         self.service, self.access = service, access
-        self.pool: InlinePool | ProcessPool = ProcessPool(service, workers) if workers > 0 else InlinePool(service)
+        self.pool: InlinePool | ProcessPool = (
+            ProcessPool(service, workers, max_restarts, restart_window) if workers > 0 else InlinePool(service)
+        )
+        self.pool.on_exit = self._lost
         self.workers = int(workers)
         self.max_streams, self.max_streams_per_client = int(max_streams), int(max_streams_per_client)
         self.stream_timeout, self.max_body, self.time_limit = float(stream_timeout), int(max_body), float(time_limit)
         self.streams: dict[str, _Entry] = {}
         self.per_client: Counter[str] = Counter()
         self.expired = 0
+        self.lost = 0  # streams lost with their worker
         self._info = service.info()
 
     def info(self) -> dict[str, Any]:
@@ -339,11 +349,20 @@ class Gateway:
         try:
             return await self.pool.call(worker, op, sid, body, self.time_limit if op == "step" else None)
         except TimeoutError:
-            raise RequestError(503, "time_limit", f"no answer within {self.time_limit} s; the step completes "
-                                                  "on the server: send the same seq again for its answer") from None
+            # a scene that overran must not hold its worker: it is killed and replaced, its streams lost
+            self.pool.stop(worker)
+            raise RequestError(503, "time_limit", f"no answer within {self.time_limit} s; its planning process "
+                                                  "was stopped and this stream is lost: open a new one") from None
         except WorkerGone:
             self._drop(sid)
             raise RequestError(404, "stream", "lost (its planning process ended); open a new one") from None
+
+    def _lost(self, worker: int) -> None:
+        """The worker ``worker`` ended: its streams are gone with it (their next request gets 404)."""
+        gone = [sid for sid, entry in self.streams.items() if entry.worker == worker]
+        for sid in gone:
+            self._drop(sid)
+        self.lost += len(gone)
 
     def _drop(self, sid: str) -> None:
         entry = self.streams.pop(sid, None)
@@ -360,7 +379,8 @@ class Gateway:
                                                "client may; close one first")  # fmt: skip
         alive = [k for k in range(self.pool.size) if self.pool.alive(k)]
         if not alive:
-            raise RequestError(503, "server", "no planning process is running; restart the server")
+            raise RequestError(503, "server", "no planning process is running (being replaced, or each past its "
+                                               "restart cap); try again")
         worker = min(alive, key=lambda k: self.pool.load[k])
         sid = secrets.token_hex(16)
         # counted before the worker answers: concurrent opens cannot overrun the quotas
@@ -528,7 +548,8 @@ def create_app(gateway: Gateway) -> FastAPI:
 
     @app.get("/health", response_model=Health)
     async def health() -> dict[str, Any]:
-        return {"status": "ok", "streams": len(gateway.streams)}
+        return {"status": "ok", "streams": len(gateway.streams), "workers": gateway.pool.alive_count(),
+                "restarts": gateway.pool.restarts, "lost_streams": gateway.lost}
 
     @app.get("/version", response_model=ServerInfo, responses=ERRORS)
     async def version() -> dict[str, Any]:

@@ -118,6 +118,10 @@ class Health(BaseModel):
 
     status: str = Field(description="'ok'")
     streams: int = Field(description="streams open now")
+    workers: int = Field(description="planning processes running now (0: planning in the server's process)")
+    restarts: int = Field(description="planning processes replaced since the start (ended, or killed over the "
+                                      "time limit)")
+    lost_streams: int = Field(description="streams lost with their planning process since the start")
 
 
 class ErrorReply(BaseModel):

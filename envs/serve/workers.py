@@ -10,21 +10,34 @@ A request crosses to a worker as its raw body and comes back as the answer's sta
 the worker parses, checks, plans and encodes (:meth:`envs.serve.app.PlannerService.handle`), so that
 this CPU work runs in parallel too. Frames on the socket pair: a 4-byte length and a pickle of a tuple
 of plain values (the server talking to its own children; no user data is ever unpickled).
+
+A worker that ends (a crash, or killed by the server because a step overran the time limit) is replaced
+by a fresh one built the same way (forked from the server, whose planners are unchanged since they were
+built, or sent the pickled service where there is no ``fork``); its streams are lost (their clients get
+404 and reopen). At most ``max_restarts`` restarts per slot within ``restart_window`` seconds: past
+that the slot stays down (logged once), so that a crash loop cannot spin the CPU.
 """
 
 from __future__ import annotations
 
 import asyncio
+import collections
+import contextlib
 import itertools
+import logging
 import multiprocessing
 import os
 import pickle
 import signal
 import socket
+import stat
 import struct
+import time
+from collections.abc import Callable
 from typing import Any
 
 _LENGTH = struct.Struct("!I")
+logger = logging.getLogger("envs.serve.workers")
 
 
 class WorkerGone(RuntimeError):
@@ -38,10 +51,16 @@ class InlinePool:
     """
 
     size = 1
+    restarts = 0
+    on_exit: Callable[[int], None] | None = None
 
     def __init__(self, service: Any) -> None:
         self.service = service
         self.load = [0]
+
+    def alive_count(self) -> int:
+        """Planning processes running (none: the planning is the server's own)."""
+        return 0
 
     async def start(self) -> None:
         pass
@@ -80,12 +99,35 @@ def _frame(value: Any) -> bytes:
     return _LENGTH.pack(len(data)) + data
 
 
-def _worker_main(sock: socket.socket, service: Any, others: list[socket.socket]) -> None:
+def _drop_sockets(keep: int) -> None:
+    """In a forked worker: let go of every socket but ``keep`` (the listening socket, the clients'
+    connections, the other workers' pairs), so that a connection the server closes really closes.
+
+    Each is pointed at ``/dev/null`` rather than closed: the number stays taken, so that no object still
+    holding it can later close another file that reused it.
+    """
+    folder = "/proc/self/fd" if os.path.isdir("/proc/self/fd") else "/dev/fd"
+    null = os.open(os.devnull, os.O_RDWR)
+    try:
+        for name in os.listdir(folder):
+            fd = int(name)
+            if fd in (0, 1, 2, keep, null):
+                continue
+            try:
+                if stat.S_ISSOCK(os.fstat(fd).st_mode):
+                    os.dup2(null, fd)
+            except OSError:  # the listing's own descriptor, already gone
+                continue
+    finally:
+        os.close(null)
+
+
+def _worker_main(sock: socket.socket, service: Any, forked: bool) -> None:
     """A worker's loop: requests in, answers out, in order, until the server closes its end."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C stops the server, which then closes the socket
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
-    for other in others:
-        other.close()
+    if forked:
+        _drop_sockets(sock.fileno())
     try:
         import torch
 
@@ -105,41 +147,56 @@ def _worker_main(sock: socket.socket, service: Any, others: list[socket.socket])
 
 
 class ProcessPool:
-    """``workers`` planning processes (forked from the server once its planner is built and warm).
+    """``workers`` planning processes (forked from the server once its planner is built and warm), each
+    replaced when it ends, at most ``max_restarts`` times per slot within ``restart_window`` seconds.
 
     :param service: the planners, copied into each worker
     :param workers: number of processes
+    :param max_restarts: restarts of one slot allowed within ``restart_window``; past them it stays down
+    :param restart_window: the window of the restart cap [s]
     """
 
-    def __init__(self, service: Any, workers: int) -> None:
+    def __init__(self, service: Any, workers: int, max_restarts: int = 3, restart_window: float = 60.0) -> None:
         self.size = int(workers)
-        method = "fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn"
-        context = multiprocessing.get_context(method)
-        pairs = [socket.socketpair() for _ in range(self.size)]
-        self.processes, self.sockets = [], []
-        for k, (mine, theirs) in enumerate(pairs):
-            # the child keeps only its own end: every server end, and the later pairs' child ends, are closed there
-            others = [s for j, (a, b) in enumerate(pairs) for s in ((a, b) if j > k else (a,))]
-            process = context.Process(target=_worker_main, args=(theirs, service, others), daemon=True,
-                                      name=f"sb3-graph-planner-{k}")  # fmt: skip
-            process.start()
-            theirs.close()
-            self.processes.append(process)
-            self.sockets.append(mine)
+        self.service = service
+        self.max_restarts, self.restart_window = int(max_restarts), float(restart_window)
+        self._forked = "fork" in multiprocessing.get_all_start_methods()
+        self._context = multiprocessing.get_context("fork" if self._forked else "spawn")
+        self.processes: list[Any] = [None] * self.size
+        self.sockets: list[socket.socket | None] = [None] * self.size
+        for k in range(self.size):
+            self._spawn(k)
         self.load = [0] * self.size  # streams per worker (kept by the server)
+        self.restarts = 0  # processes replaced since the start
+        self.on_exit: Callable[[int], None] | None = None  # told a slot's worker ended (its streams are lost)
         self._pending: dict[int, asyncio.Future] = {}
         self._ids = itertools.count()
         self._writers: list[asyncio.StreamWriter | None] = [None] * self.size
         self._readers: list[asyncio.Task] = []
         self._dead = [False] * self.size
+        self._down = [False] * self.size  # past the restart cap
+        self._history = [collections.deque() for _ in range(self.size)]  # restart times per slot
+        self._closing = False
+
+    def _spawn(self, worker: int) -> None:
+        mine, theirs = socket.socketpair()
+        process = self._context.Process(target=_worker_main, args=(theirs, self.service, self._forked),
+                                        daemon=True, name=f"sb3-graph-planner-{worker}")  # fmt: skip
+        process.start()
+        theirs.close()
+        self.processes[worker], self.sockets[worker] = process, mine
+
+    async def _connect(self, worker: int) -> None:
+        sock = self.sockets[worker]
+        sock.setblocking(False)
+        reader, writer = await asyncio.open_connection(sock=sock, limit=1 << 26)
+        self._writers[worker] = writer
+        self._readers.append(asyncio.get_running_loop().create_task(self._read(worker, reader)))
 
     async def start(self) -> None:
         """Connect the sockets to the running event loop (the server's startup)."""
-        for k, sock in enumerate(self.sockets):
-            sock.setblocking(False)
-            reader, writer = await asyncio.open_connection(sock=sock, limit=1 << 26)
-            self._writers[k] = writer
-            self._readers.append(asyncio.get_running_loop().create_task(self._read(k, reader)))
+        for k in range(self.size):
+            await self._connect(k)
 
     async def _read(self, worker: int, reader: asyncio.StreamReader) -> None:
         try:
@@ -150,19 +207,61 @@ class ProcessPool:
                 if future is not None and not future.done():
                     future.set_result((status, payload))
         except (asyncio.IncompleteReadError, ConnectionError, OSError):
-            self._dead[worker] = True
-            for request, future in list(self._pending.items()):
-                if getattr(future, "worker", None) == worker and not future.done():
-                    self._pending.pop(request, None)
-                    future.set_exception(WorkerGone(f"planning process {worker} ended"))
+            pass
+        self._dead[worker] = True
+        for request, future in list(self._pending.items()):
+            if getattr(future, "worker", None) == worker and not future.done():
+                self._pending.pop(request, None)
+                future.set_exception(WorkerGone(f"planning process {worker} ended"))
+        if self._closing:
+            return
+        if self.on_exit is not None:
+            self.on_exit(worker)
+        await self._restart(worker)
+
+    async def _restart(self, worker: int) -> None:
+        """Replace the ended worker of slot ``worker``, unless the slot is past its restart cap."""
+        old = self.processes[worker]
+        with contextlib.suppress(OSError):
+            os.kill(old.pid, signal.SIGKILL)  # it may have only closed its socket
+        await asyncio.get_running_loop().run_in_executor(None, old.join, 5.0)
+        self._writers[worker].close()
+        now = time.monotonic()
+        history = self._history[worker]
+        while history and now - history[0] > self.restart_window:
+            history.popleft()
+        if len(history) >= self.max_restarts:
+            self._down[worker] = True
+            logger.error("planning process %d ended (exit code %s) %d times within %.0f s: not restarted again; "
+                         "new streams go to the other workers", worker, old.exitcode, len(history) + 1,
+                         self.restart_window)  # fmt: skip
+            return
+        history.append(now)
+        logger.warning("planning process %d ended (exit code %s); its streams are lost; restarting it",
+                       worker, old.exitcode)  # fmt: skip
+        self._spawn(worker)
+        await self._connect(worker)
+        self.restarts += 1
+        self._dead[worker] = False
 
     def alive(self, worker: int) -> bool:
         return not self._dead[worker] and self.processes[worker].is_alive()
 
+    def alive_count(self) -> int:
+        """Planning processes running now."""
+        return sum(self.alive(k) for k in range(self.size))
+
+    def stop(self, worker: int) -> None:
+        """Kill ``worker`` (a step overran the time limit): its requests and streams are lost, and the slot
+        gets a fresh process."""
+        self._dead[worker] = True  # nothing more is sent there, from now
+        with contextlib.suppress(OSError):
+            os.kill(self.processes[worker].pid, signal.SIGKILL)
+
     async def call(self, worker: int, op: str, sid: str, body: bytes, timeout: float | None) -> tuple[int, bytes]:
         """One request to ``worker``: its status and JSON answer.
 
-        :raises TimeoutError: no answer within ``timeout`` seconds (the worker still finishes it)
+        :raises TimeoutError: no answer within ``timeout`` seconds (the caller may :meth:`stop` the worker)
         :raises WorkerGone: the worker ended
         """
         if not self.alive(worker):
@@ -179,6 +278,7 @@ class ProcessPool:
             raise TimeoutError(f"no answer within {timeout} s") from None
 
     async def close(self) -> None:
+        self._closing = True
         for writer in self._writers:
             if writer is not None:
                 writer.close()
