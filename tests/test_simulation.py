@@ -7,7 +7,7 @@ import pytest
 from highway_env import utils as hw_utils
 from highway_env.vehicle.kinematics import Vehicle
 
-from envs.simulation.engine import SPLIT_CLEARANCE, Simulation, overlapping_pairs
+from envs.simulation.engine import Simulation, overlapping_pairs
 from envs.simulation.layouts import build_layout, parting_arcs
 from envs.simulation.scene import STOP_SPEED
 
@@ -212,55 +212,38 @@ def test_corner_grazes_between_15hz_substeps_are_found():
 
 
 @pytest.mark.parametrize(
-    "leader_arc, is_leader",
-    [(50.0, True), (58.0, True), (75.0, False)],
+    "leader_route, follower_route, leader_arc, is_leader",
+    [
+        ("east->south", "east->west", 50.0, True),
+        ("east->south", "east->west", 58.0, True),
+        ("east->south", "east->west", 75.0, False),
+        ("east->west", "east->south", 67.55, True),
+        ("east->west", "east->south", 76.0, False),
+    ],
 )
-def test_left_turner_entering_its_pocket_stays_the_leader_of_through_traffic(leader_arc, is_leader):
-    """inD: the through lane leaves the left-turn pocket at a shallow angle, so a left-turner that has
-    just taken the pocket still blocks the through lane (regression: the car behind lost its leader
-    and rear-ended it). Once its rear is well past the split (here 22 m, over 2.9 m apart
-    sideways), it no longer does."""
+def test_a_car_that_took_the_other_branch_stays_the_leader_while_the_lanes_overlap(
+    leader_route, follower_route, leader_arc, is_leader
+):
+    """inD: the through lane leaves the left-turn pocket at a shallow angle, so a car that has just
+    taken the other branch still blocks the lane of the car behind it, both ways: a left-turner in its
+    pocket ahead of a through car (regression: the through car lost its leader and rear-ended it), and
+    a through car ahead of a left-turner (regression: with its rear 15 m past the split at 50 m, a
+    human left-turner lost it and rear-ended it in the penetration sweep). It stays the leader while
+    its rear is short of the arc where the two centre lines part by the conflict distance (69 m, the
+    shield's rule, ``parting_arcs``), and no longer once it is past."""
     lay = build_layout("inD")
-    es, ew = lay.route_id("east->south"), lay.route_id("east->west")
-    follower_arc = leader_arc - 5.5
+    lr, fr = lay.route_id(leader_route), lay.route_id(follower_route)
     sim = Simulation(lay)
-    sim.add([es, ew], [0.0, 8.0], [0, 1], arc=[leader_arc, follower_arc])
+    sim.add([lr, fr], [0.0, 8.0], [0, 1], arc=[leader_arc, leader_arc - 5.5])
     leader, gap = sim.leaders()
     assert leader.tolist() == [-1, 0 if is_leader else -1]
+    rear = leader_arc - sim.length[0] / 2
+    assert (rear < parting_arcs(lay)[lr, fr]) == is_leader
     if is_leader:
         assert gap[1] == pytest.approx(0.5)
-        # Brute force: the follower's front reaches the leader's rear on its own path within 0.5 m,
-        # and the two centre lines there are less than a vehicle width apart.
-        rear = leader_arc - 2.5
-        p_leader, _ = lay.pose(np.array([es]), np.array([rear]))
-        p_follower, _ = lay.pose(np.array([ew]), np.array([rear]))
-        assert np.hypot(*(p_leader - p_follower)[0]) < 2.0
-        events = sim.step(np.array([0.0, 0.0]))  # at 8 m/s without braking it hits the leader
-        assert events.collisions.tolist() == [[0, 1]]
-    else:
-        assert np.isinf(gap[1])
-
-
-@pytest.mark.parametrize("leader_arc, is_leader", [(67.55, True), (76.0, False)])
-def test_through_car_leaving_the_pocket_stays_the_leader_of_a_left_turner(leader_arc, is_leader):
-    """inD, the other way round: a through car whose rear is 15 m past the split (its clearance point
-    has passed it) still overlaps the pocket's first metres, so the left-turner behind must keep it
-    as its leader (regression: a human left-turner lost it and rear-ended a crawling human through
-    car in the penetration sweep). It stays the leader while its rear is short of the arc where the
-    two centre lines part by the conflict distance (the shield's rule, ``parting_arcs``)."""
-    lay = build_layout("inD")
-    es, ew = lay.route_id("east->south"), lay.route_id("east->west")
-    follower_arc = leader_arc - 5.5
-    sim = Simulation(lay)
-    sim.add([ew, es], [0.0, 8.0], [0, 1], arc=[leader_arc, follower_arc])
-    rear = leader_arc - sim.length[0] / 2
-    assert rear - SPLIT_CLEARANCE > 50.0  # the old rule's clearance point is past the split at 50 m
-    leader, gap = sim.leaders()
-    assert leader.tolist() == [-1, 0 if is_leader else -1]
-    assert (rear < parting_arcs(lay)[ew, es]) == is_leader
-    if is_leader:
-        p_leader, _ = lay.pose(np.array([ew]), np.array([rear]))
-        p_follower, _ = lay.pose(np.array([es]), np.array([rear]))
+        # Brute force: where the leader's rear is, the two centre lines run closer than the conflict distance.
+        p_leader, _ = lay.pose(np.array([lr]), np.array([rear]))
+        p_follower, _ = lay.pose(np.array([fr]), np.array([rear]))
         assert np.hypot(*(p_leader - p_follower)[0]) < 2.5
         events = sim.step(np.array([0.0, 0.0]))  # at 8 m/s without braking it hits the leader
         assert events.collisions.tolist() == [[0, 1]]
