@@ -57,7 +57,7 @@ import numpy as np
 
 from envs.simulation.engine import SPLIT_CLEARANCE, Simulation
 from envs.simulation.graph import NODE_FEATURES, NUM_RELATIONS, build_observation, min_mahalanobis
-from envs.simulation.layouts import Layout, build_layout
+from envs.simulation.layouts import Layout, build_layout, parting_arcs
 from sb3_graph.common.spaces import GraphSpace
 
 COUNTS = (10, 20, 50, 100)
@@ -87,13 +87,14 @@ class Tables:
     exit: np.ndarray
     touch: np.ndarray
     conflicts: np.ndarray
+    parting: np.ndarray
 
 
 def tables(lay: Layout) -> Tables:
     return Tables(
         lay.ds, lay.xy.shape[1] - 1, lay.xy, lay.heading, lay.speed_envelope(B_GOV) ** 2, lay.speed_limit,
         lay.lane_start, lay.route_lane_starts, lay.route_lane_ids, lay.entry_arc, lay.exit_arc,
-        lay.touch_arc, lay.conflicts,
+        lay.touch_arc, lay.conflicts, parting_arcs(lay),
     )  # fmt: skip
 
 
@@ -113,7 +114,10 @@ def _pose_leaders(t: Tables, route, arc, length):
     lane = t.lane_ids[route, np.maximum(k, 0)]  # (2, n)
     into = arc - t.lane_start[route[None], lane]
     x = t.lane_start[route[:, None], lane[0][None, :]] + into[0][None, :]
-    x = np.where(np.isfinite(x), x, t.lane_start[route[:, None], lane[1][None, :]] + into[1][None, :])
+    x_back = t.lane_start[route[:, None], lane[1][None, :]] + into[1][None, :]
+    overlaps = (arc - length / 2)[None, :] < t.parting[route[None, :], route[:, None]]  # lanes part slowly
+    x_back = np.where(np.isnan(x_back) & overlaps, arc[None, :], x_back)
+    x = np.where(np.isfinite(x), x, x_back)
     ahead = x - arc[:, None]
     ahead[~(ahead > 0)] = np.inf  # nan and behind
     ahead[np.arange(n), np.arange(n)] = np.inf
