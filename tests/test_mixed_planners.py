@@ -13,7 +13,7 @@ from envs.planners import make_planner
 from envs.planners.aim import AIMPlanner
 from envs.planners.fifo import FIFOPlanner
 from envs.planners.glide import GlidePlanner
-from envs.planners.human import CRAWL_SPEED, human_commands, human_window
+from envs.planners.human import human_commands, human_window
 from envs.simulation.env import CoopIntersectionEnv
 from envs.simulation.traffic import generate_scenario
 
@@ -56,7 +56,6 @@ def test_no_slot_overlaps_a_going_humans_predicted_window(planner):
         scene.speed[[h]],
         np.maximum(scene.speed_limit[[h]], scene.speed[[h]]),
         p.human_margin,
-        CRAWL_SPEED,
         p.human_horizon,
     )
     enter, leave = _windows(scene, planner())

@@ -50,7 +50,7 @@ import numpy as np
 
 from envs.planners import _aim_kernel
 from envs.planners.base import Planner
-from envs.planners.human import CRAWL_SPEED, human_commands, human_window
+from envs.planners.human import human_commands, human_window
 from envs.planners.idm import (
     DEFAULT_IDM,
     IDMParams,
@@ -368,7 +368,6 @@ class AIMPlanner(Planner):
                 v,
                 np.maximum(scene.speed_limit[h], v),
                 p.human_margin,
-                CRAWL_SPEED,
                 p.human_horizon,
             )
             zone_enter[rows] = start[:, None]

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from envs.planners.human import CRAWL_SPEED, human_commands, human_window
+from envs.planners.human import human_commands, human_window
 from envs.planners.idm import DEFAULT_IDM, CrossingParams, IDMParams, blocked_by_rank
 from envs.planners.vehicle_model import model_crossing_times
 from envs.planners.yielding import YieldingPlanner, rank_by
@@ -89,7 +89,6 @@ class FIFOPlanner(YieldingPlanner):
             v,
             np.maximum(scene.speed_limit, v),
             self.human_margin,
-            CRAWL_SPEED,
             self.human_horizon,
         )
         approaching = scene.dist_to_exit > 0

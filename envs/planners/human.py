@@ -16,7 +16,7 @@ from envs.planners.priority_rules import PriorityRulesPlanner
 from envs.simulation.scene import Scene
 
 # A going human at or below this speed [m/s] is predicted in its zones up to the planner's horizon
-# (the shield's LIVE_SPEED): its speed now bounds no exit.
+# (the speed the shield keeps vehicles above inside the box): its speed now bounds no exit.
 CRAWL_SPEED = 2.0
 
 
@@ -49,8 +49,8 @@ def human_window(
     speed: np.ndarray,
     limit: np.ndarray,
     margin: float,
-    crawl_speed: float,
     crawl_until: float,
+    crawl_speed: float = CRAWL_SPEED,
 ) -> tuple[np.ndarray, np.ndarray]:
     """When a going human driver (one the priority rules let go, :func:`human_commands`) may occupy a
     zone: from its earliest entry (accelerating at IDM's ``acc_max`` up to ``limit``; now if already
@@ -63,8 +63,8 @@ def human_window(
     :param speed: ``(h,)`` its speed now [m/s]
     :param limit: ``(h,)`` the highest speed it reaches [m/s]
     :param margin: seconds added on both sides
-    :param crawl_speed: at or below this speed [m/s] the exit is ``crawl_until``
     :param crawl_until: latest exit of a crawling human [s from now]
+    :param crawl_speed: at or below this speed [m/s] the exit is ``crawl_until``
     :return: ``(h,)`` start (at least 0) and end of the window [s from now]
     """
     start = travel_time(gap_in, speed, limit, DEFAULT_IDM.acc_max)

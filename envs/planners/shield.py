@@ -78,7 +78,7 @@ from envs.planners import _shield_kernel
 from envs.planners.base import Planner
 from envs.planners.errors import PlannerError, checked_accelerations
 from envs.planners.fifo import FIFOPlanner
-from envs.planners.human import human_commands, human_window
+from envs.planners.human import CRAWL_SPEED, human_commands, human_window
 from envs.planners.watchdog import WATCHDOG_AFTER, WATCHDOG_HOLD, LivenessWatchdog
 from envs.simulation.commitment import STANDING, STOP_SLACK
 from envs.simulation.layouts import ZONE_MARGIN, body_hull, parting_arcs
@@ -90,7 +90,7 @@ _STANDING = STANDING
 _STOP_SLACK = STOP_SLACK
 # Liveness: inside the intersection, a planner may slow a vehicle down to this speed but not further
 # (below it, the fallback's command or, before the vehicle commits, going on is checked instead) [m/s].
-LIVE_SPEED = 2.0
+LIVE_SPEED = CRAWL_SPEED  # also the human window's crawl speed
 # Planner-error lines a shield keeps per run (the count is complete).
 MAX_ERROR_LINES = 5
 # Rounding allowance on the bound of a vehicle's stopping point over a prediction (`Shield._may_commit`) [m].
@@ -538,7 +538,7 @@ class Shield(Planner):
     def _human_windows(self, scene: Scene, plan: _Plan, going: np.ndarray) -> None:
         """The time windows of the going human drivers in the zones they share with automated vehicles
         (into ``plan``): from the earliest entry (accelerating at IDM's ``acc_max`` up to the lane limit,
-        or now if already in) to the latest exit at its speed now (at least ``LIVE_SPEED``), widened by
+        or now if already in) to the latest exit at its speed now (at least ``CRAWL_SPEED``), widened by
         ``human_margin`` on both sides; the whole horizon for a human at a crawl."""
         cross, human = plan.cross, plan.human
         mixed = going[cross].any(axis=1) & ~human[cross].all(axis=1)
@@ -552,7 +552,7 @@ class Shield(Planner):
         limit = np.maximum(np.asarray(scene.speed_limit, float)[h], v)
         plan.human_pair, plan.human_col = pair, col
         plan.human_from, plan.human_until = human_window(
-            lo - x0, hi - x0, v, limit, self.human_margin, LIVE_SPEED, self.horizon
+            lo - x0, hi - x0, v, limit, self.human_margin, self.horizon
         )
 
     def _in_human_windows(self, scene: Scene, plan: _Plan, arc: np.ndarray) -> np.ndarray:
