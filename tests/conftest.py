@@ -4,6 +4,8 @@ import os
 import tempfile
 from pathlib import Path
 
+import pytest
+
 
 def pytest_configure(config):
     # Checkpoint signatures (sb3_graph.files.signing) use a key of the test session, not the user's.
@@ -13,3 +15,11 @@ def pytest_configure(config):
     from checkout_entry_points import install
 
     install(Path(__file__).parents[1], Path(tempfile.mkdtemp(prefix="sb3-graph-entry-points-")))
+
+
+@pytest.fixture(scope="module")
+def service():
+    """The PR planner's service on the 4-way layout, for the serve tests' in-thread servers."""
+    from envs.serve.app import PlannerService
+
+    return PlannerService("pr", "CoopIntersection4Way-v0")

@@ -46,13 +46,6 @@ def scene(builder, n: int, time_s: float, committed: bool = False):
     return builder.scene(lay.name, time_s, cars)
 
 
-@pytest.fixture(scope="module")
-def service():
-    from envs.serve.app import PlannerService
-
-    return PlannerService("pr", ENV)
-
-
 def test_a_server_restart_is_survived(builder, service):
     """The stream is reopened on the restarted server (404 on the old one) and sent this decision's scene;
     while the server is down, decisions miss their deadline, get the fallback and are counted."""

@@ -32,13 +32,6 @@ ENV = "CoopIntersection4Way-v0"
 SUPPORT = Path(__file__).resolve().parent / "serve_support.py"
 
 
-@pytest.fixture(scope="module")
-def service():
-    from envs.serve.app import PlannerService
-
-    return PlannerService("pr", ENV)
-
-
 def raw(url: str, method: str, path: str, body: bytes = b"", headers: dict | None = None) -> tuple[int, dict]:
     """One request on a fresh connection, headers exactly as given (plus Host unless given)."""
     host, port = url.split("//")[1].split(":")

@@ -23,13 +23,6 @@ ENV = "CoopIntersection4Way-v0"
 SUPPORT = Path(__file__).resolve().parent / "serve_support.py"
 
 
-@pytest.fixture(scope="module")
-def service():
-    from envs.serve.app import PlannerService
-
-    return PlannerService("pr", ENV)
-
-
 def wait_for(condition, seconds: float = 10.0) -> None:
     deadline = time.monotonic() + seconds
     while not condition():
