@@ -237,6 +237,30 @@ def test_two_vehicles_standing_in_one_conflict_zone_are_separated_without_deadlo
     assert sim.num_vehicles == 0 or (sim.arc > 100.0).all()
 
 
+# glide+shield on the main job's scenario 0 (seed 0) at 51-55 s: four vehicles standing inside the
+# box, north->south (index 3) before the zones of two that stand inside theirs. The fallback drains
+# it (they go, then it), but slower than the 8 s horizon, so its prediction ends with index 3 still
+# inside; braking everyone instead kept all of them standing to the end of the run.
+TANGLE = [("west->east", 85.41, 0.0), ("west->east", 79.22, 0.0), ("east->south", 102.27, 0.0),
+          ("north->south", 82.79, 0.0), ("east->west", 95.77, 0.0), ("south->north", 81.82, 0.0),
+          ("east->south", 75.22, 0.0)]  # fmt: skip
+
+
+@pytest.mark.parametrize("drain_horizon", [8.0, 24.0])
+def test_a_tangle_in_the_box_that_drains_slower_than_the_horizon_drains(drain_horizon):
+    sim = _sim(TANGLE)
+    inside = sim.scene().dist_to_entry < 0
+    start = sim.arc.copy()
+    shield = Shield(Fixed(dict.fromkeys(range(len(TANGLE)), -5.0)), drain_horizon=drain_horizon, watchdog_after=None)
+    collided, _ = _run(sim, shield, steps=60)
+    assert not collided and sim.num_vehicles == len(TANGLE)
+    moved = sim.arc - start
+    if drain_horizon > shield.horizon:
+        assert shield.unresolved == 0
+        assert (moved[inside] > 8.0).all()  # every vehicle in the box moves on
+    else:  # the look that ends at the horizon: no command passes, and nobody moves
+        assert shield.unresolved == 60 and np.abs(moved).max() < 1e-9
+
 def test_a_committed_vehicle_waits_before_a_later_zone_that_a_crossing_vehicle_occupies():
     # Vehicle 0 can no longer stop before its first zone (from 80.5 m), but can before the zone it
     # shares with vehicle 1 (from 82.5 m), which vehicle 1 is already in. The fallback must hold

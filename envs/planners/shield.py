@@ -36,8 +36,9 @@ new vehicles appear far upstream with a braking gap (the simulation's spawn chec
 leaders the fallback follows are those of the scene, the next vehicle on the same route, the vehicle
 ahead on another route from the same spawn lane until the two centre lines part (lanes that split
 run side by side for a while: inD), and merges along the common exit lane. Should
-the fallback still fail, every vehicle brakes at ``a_max`` and the step is counted in
-:attr:`Shield.unresolved`.
+the fallback still fail, it is predicted once more over ``drain_horizon`` and taken if it passes
+then (vehicles tangled in the box, after such steps, can take longer than ``horizon`` to drain);
+failing that, every vehicle brakes at ``a_max`` and the step is counted in :attr:`Shield.unresolved`.
 
 Liveness: inside the intersection a planner may not brake a vehicle below :data:`LIVE_SPEED`. A committed
 vehicle gets the fallback's command instead, and one past its stop line that has not committed is
@@ -169,6 +170,9 @@ class Shield(Planner):
     :param planner: the planner whose proposals are checked
     :param horizon: longest prediction [s]; the prediction stops earlier once every vehicle
         stands before its zones or has left the intersection
+    :param drain_horizon: where no command passes and the whole fallback fails only by leaving a
+        vehicle inside the intersection at the horizon's end, the fallback is predicted this long
+        [s] and taken if it passes then (``<= horizon``: never; everyone brakes, as on other failures)
     :param zone_margin: padding of every conflict zone on both ends [m]; at least the distance a
         vehicle moves in one simulation sub-step, so that checks at sub-step times see every overlap
     :param gap_margin: bumper gap the fallback keeps to a leader that brakes at ``a_max`` [m]; a
@@ -198,6 +202,7 @@ class Shield(Planner):
         self,
         planner: Planner,
         horizon: float = 8.0,
+        drain_horizon: float = 24.0,
         zone_margin: float = ZONE_MARGIN,
         gap_margin: float = 2.0,
         merge_margin: float = 2.0,
@@ -223,6 +228,7 @@ class Shield(Planner):
             live_planner if live_planner is not None else FIFOPlanner(governor_deceleration=governor_deceleration)
         )
         self.horizon = float(horizon)
+        self.drain_horizon = float(drain_horizon)
         self.zone_margin = float(zone_margin)
         self.gap_margin = float(gap_margin)
         self.merge_margin = float(merge_margin)
@@ -352,8 +358,15 @@ class Shield(Planner):
             if not blamed.any():  # a conflict no single proposal explains: take the whole fallback
                 blamed = deviates & ~overridden
             if not blamed.any():
-                # The fallback itself fails (the leader relations it follows changed since the
-                # last step, or the scene started unsafe): everyone brakes. Counted in `unresolved`.
+                # The fallback itself fails. Where it only does not finish within the horizon (a
+                # tangle in the box that drains slowly: a vehicle still inside at the end), a longer
+                # look can show it finish; braking everyone would keep that vehicle inside for good.
+                if self.drain_horizon > self.horizon and self._blame(
+                    scene, plan, command, np.zeros(n, bool), self.drain_horizon
+                ) is None:
+                    break
+                # Else (the leader relations it follows changed since the last step, or the scene
+                # started unsafe): everyone brakes. Counted in `unresolved`.
                 self.unresolved += 1
                 command = np.where(human, acc, float(scene.a_min))
                 overridden = forced | (np.abs(acc - command) > 1e-9)
@@ -614,17 +627,20 @@ class Shield(Planner):
         )
 
     # ------------------------------------------------------------------ prediction and check
-    def predict(self, scene: Scene, plan: _Plan, command: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def predict(
+        self, scene: Scene, plan: _Plan, command: np.ndarray, horizon: float | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Arcs at every simulation sub-step: ``command`` for one period, then the fallback.
 
         Compiled (:mod:`envs.planners._shield_kernel`): the periods are sequential and the arrays
         small, so NumPy's per-call overhead made most of the shield's cost.
 
+        :param horizon: longest prediction [s] (default: the shield's ``horizon``)
         :return: ``(T + 1, n)`` arcs (row 0: now) and ``(T + 1, n)`` speeds
         """
         dt = float(scene.dt)
         substeps = max(1, int(round(self.simulation_frequency * dt)))
-        steps = max(1, int(np.ceil(self.horizon / dt - 1e-9)))
+        steps = max(1, int(np.ceil((self.horizon if horizon is None else horizon) / dt - 1e-9)))
         arcs = np.empty((steps * substeps + 1, len(plan.arc)))
         speeds = np.empty_like(arcs)
         arcs[0], speeds[0] = plan.arc, plan.speed
@@ -660,16 +676,19 @@ class Shield(Planner):
         """
         return _shield_kernel.conflicts(plan.kernel_arrays, arc, speed[-1], float(scene.a_max), _STANDING, _STOP_SLACK)
 
-    def _blame(self, scene: Scene, plan: _Plan, command: np.ndarray, free: np.ndarray) -> np.ndarray | None:
+    def _blame(
+        self, scene: Scene, plan: _Plan, command: np.ndarray, free: np.ndarray, horizon: float | None = None
+    ) -> np.ndarray | None:
         """Vehicles to override so that the plan gets through, ``None`` if it passes as it is.
 
         A conflict is blamed on a vehicle whose command still differs from the fallback
         (``free``); when both of a pair's do, on the one that comes second: the follower, or the
         later to enter the zone.
 
+        :param horizon: longest prediction [s] (default: the shield's ``horizon``)
         :return: ``(n,)`` bool (all ``False``: conflicts that no free vehicle explains), or ``None``
         """
-        arc, speed = self.predict(scene, plan, command)
+        arc, speed = self.predict(scene, plan, command, horizon)
         bad_follow, bad_cross, bad_merge, stuck = self._conflicts(scene, plan, arc, speed)
         stuck = stuck & ~plan.human
         if plan.human_pair.size:  # an automated vehicle in a going human's zone within the human's window
