@@ -635,6 +635,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--skip-gnn", action="store_true", help="AIM only")
     parser.add_argument("--planners", nargs="+", help="only these planners in the latency tables (words of "
                         "`serve --planner`, `+shield` for its `--shield`; e.g. aim+shield glide+shield)")
+    parser.add_argument("--server-workers", type=int, default=1, help="the server's --workers in the latency "
+                        "tables (default: 1; 0 plans on the server's event loop)")
     parser.add_argument("--latency-only", action="store_true", help="only the latency tables")
     parser.add_argument("--bad-input-only", action="store_true", help="only the malformed-input table")
     parser.add_argument("--components", action="store_true", help="only: CPU per piece of a decision, in process")
@@ -700,7 +702,7 @@ def main(argv: list[str] | None = None) -> int:
         gnn = spec == str(MODEL)
         sizes = sorted({min(n, 64) if gnn else n for n in args.sizes})
         env_kwargs = () if gnn else ("--env-kwargs", kwargs)  # the GNN's graphs hold 64 vehicles
-        process, url = start_server(spec, *extra, *env_kwargs)
+        process, url = start_server(spec, *extra, *env_kwargs, "--workers", str(args.server_workers))
         try:
             local_spec = spec + ("+shield" if extra else "")
             print(f"### {label}\n")

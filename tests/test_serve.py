@@ -165,6 +165,14 @@ def test_remote_planner_without_a_server_is_a_clear_error(tmp_path, capsys):
     assert "--planner" in capsys.readouterr().err and not (tmp_path / "r").exists()
 
 
+@pytest.mark.parametrize("flag, value", [("--max-restarts", "-1"), ("--restart-window", "0"), ("--workers", "-2"),
+                                         ("--time-limit", "0")])  # fmt: skip
+def test_bad_server_limits_are_one_line_naming_the_flag(flag, value, capsys):
+    assert main(["serve", "--planner", "fullthrottle", "--port", "0", flag, value]) == 2
+    err = capsys.readouterr().err
+    assert flag in err and "Traceback" not in err
+
+
 # ---------------------------------------------------------------------- a real server process
 def start_server(planner: str, *extra: str, env: dict | None = None, wait: float = 300.0):
     """Start ``sb3-graph serve --port 0`` and return ``(process, url)`` once it listens.

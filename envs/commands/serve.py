@@ -73,6 +73,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     limits.add_argument("--time-limit", type=float, default=1.0, help="seconds a step may take before the client gets "
                         "503 and its worker is killed and replaced (its streams are lost: 404, the client "
                         "reopens); needs --workers >= 1 (default: 1)")  # fmt: skip
+    limits.add_argument("--max-restarts", type=int, default=3, help="restarts of one worker allowed within "
+                        "--restart-window; past them its slot stays down and new streams go to the other "
+                        "workers (default: 3)")  # fmt: skip
+    limits.add_argument("--restart-window", type=float, default=60.0, help="seconds of the --max-restarts cap "
+                        "(default: 60)")  # fmt: skip
 
 
 # File descriptors the server needs besides its connections (listening socket, workers' sockets, log, libraries).
@@ -122,8 +127,10 @@ def _check(args: argparse.Namespace):
     if args.max_streams < 1 or args.max_streams_per_client < 1 or args.stream_timeout <= 0 or args.max_body < 1024:
         raise UserError("--max-streams and --max-streams-per-client must be >= 1, --stream-timeout > 0 and "
                         "--max-body >= 1024")  # fmt: skip
-    if min(args.header_timeout, args.body_timeout, args.keep_alive, args.time_limit) <= 0 or args.workers < 0:
-        raise UserError("--header-timeout, --body-timeout, --keep-alive and --time-limit must be > 0, --workers >= 0")
+    if min(args.header_timeout, args.body_timeout, args.keep_alive, args.time_limit, args.restart_window) <= 0:
+        raise UserError("--header-timeout, --body-timeout, --keep-alive, --time-limit and --restart-window must be > 0")
+    if min(args.workers, args.max_restarts) < 0:
+        raise UserError("--workers and --max-restarts must be >= 0")
     if args.env_kwargs is not None and not isinstance(args.env_kwargs, dict):
         raise UserError("--env-kwargs must be a JSON object")
     if args.no_token and args.token_file is not None:
@@ -187,7 +194,8 @@ def run(args: argparse.Namespace) -> int:
     # The planning processes are forked now, before the socket exists (they never hold it).
     gateway = Gateway(service, Access([], []), workers=args.workers, max_streams=args.max_streams,
                       max_streams_per_client=args.max_streams_per_client, stream_timeout=args.stream_timeout,
-                      max_body=args.max_body, time_limit=args.time_limit)  # fmt: skip
+                      max_body=args.max_body, time_limit=args.time_limit, max_restarts=args.max_restarts,
+                      restart_window=args.restart_window)  # fmt: skip
     family = socket.AF_INET6 if ":" in args.host else socket.AF_INET
     # proto IPPROTO_TCP, not 0: asyncio sets TCP_NODELAY only on sockets that say they are TCP, and
     # without it every answer waits for the client's delayed ACK (about 40 ms on Linux).
