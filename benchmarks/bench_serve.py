@@ -592,16 +592,26 @@ def identity(scenarios: int, duration: float, seed: int, skip_gnn: bool = False)
 
 def components(n: int, repeat: int = 200) -> str:
     """CPU time per call of each piece of one remote decision, in this process (``time.process_time``)."""
-    from envs.planners import AIMPlanner
-    from envs.serve.schema import SceneIn
+    from envs.planners import AIMPlanner, make_planner
+    from envs.serve.app import PlannerService
+    from envs.serve.schema import OpenRequest, SceneIn
     from envs.serve.wire import scene_to_wire
 
     scene, builder = dense_scene(n)
-    wire = scene_to_wire(scene)
+    wire = {**scene_to_wire(scene), "seq": 1}
     body = json.dumps(wire).encode()
     parsed = SceneIn.model_validate_json(body)
     planner = AIMPlanner()
     planner.reset(0)
+    shielded = make_planner("aim+shield")
+    shielded.reset(0)
+    service = PlannerService("aim", ENV, {"config": {"max_vehicles": max(n, 64)}}, shield=True)
+    sid = service.open(OpenRequest(layout=builder.layout.name)).id
+
+    def handle() -> None:  # a new step each call: the stream's last step answered again would not plan
+        service.streams[sid].seq, service.streams[sid].reply = 0, None
+        service.handle("step", sid, body)
+
     pieces = {
         "client: scene_to_wire": lambda: scene_to_wire(scene),
         "client: json.dumps of the scene": lambda: json.dumps(wire),
@@ -609,6 +619,8 @@ def components(n: int, repeat: int = 200) -> str:
         "server: json.loads + SceneIn.model_validate": lambda: SceneIn.model_validate(json.loads(body)),
         "server: rebuild the scene (SceneBuilder.scene)": lambda: builder.scene("4way", 0.0, parsed.vehicles),
         "AIM act (in process)": lambda: planner.act(scene),
+        "AIM+shield act (in process)": lambda: shielded.act(scene),
+        "server: a whole step of AIM+shield without HTTP (PlannerService.handle)": handle,
     }
     rows = []
     for name, call in pieces.items():

@@ -242,6 +242,7 @@ class Shield(Planner):
         self.planner_errors = 0
         self.errors: list[PlannerError] = []
         self.last_overridden = np.zeros(0, bool)
+        self._stuck_only = False  # the last check failed only by a vehicle left inside at the horizon's end
         self._prune = True  # only the pairs that can conflict (`_may_commit`); False: every pair (tests, benchmarks)
 
     # ------------------------------------------------------------------ planner face
@@ -361,7 +362,9 @@ class Shield(Planner):
                 # The fallback itself fails. Where it only does not finish within the horizon (a
                 # tangle in the box that drains slowly: a vehicle still inside at the end), a longer
                 # look can show it finish; braking everyone would keep that vehicle inside for good.
-                if self.drain_horizon > self.horizon and self._blame(
+                # (A longer prediction repeats the shorter one's first rows, so only a failure that
+                # was no conflict but a vehicle left inside can pass it: only then is it tried.)
+                if self._stuck_only and self.drain_horizon > self.horizon and self._blame(
                     scene, plan, command, np.zeros(n, bool), self.drain_horizon
                 ) is None:
                     break
@@ -697,7 +700,9 @@ class Shield(Planner):
                 rows = plan.cross[plan.human_pair[bad_human], 1 - plan.human_col[bad_human]]
                 bad_cross = bad_cross.copy()
                 bad_cross[plan.human_pair[bad_human][free[rows]]] = True
-        if not (bad_follow.any() or bad_cross.any() or bad_merge.any() or stuck.any()):
+        conflict = bad_follow.any() or bad_cross.any() or bad_merge.any()
+        self._stuck_only = not conflict and stuck.any()
+        if not (conflict or stuck.any()):
             return None
         later = arc[1:]
         blamed = np.zeros(scene.num_vehicles, bool)
