@@ -142,6 +142,11 @@ def test_wire_refuses_what_the_intersection_cannot_hold(recorded):
     assert builder.scene("4way", 1.0, good).num_vehicles == len(good)  # the builder goes on
 
 
+def test_the_benchmarks_pieces_of_a_step_run_on_the_current_schema():
+    table = _bench().components(10, repeat=2)
+    assert "PlannerService.handle" in table and table.count("\n| ") >= 8  # one row per piece, none failed
+
+
 def test_remote_spec_is_checked_without_a_server():
     assert check_planner_spec("http://127.0.0.1:8765") == "http://127.0.0.1:8765"
     assert check_planner_spec("http://localhost:8765/+shield") == "http://localhost:8765+shield"
