@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -13,8 +14,9 @@ from envs.planners import make_planner
 from envs.planners.aim import AIMPlanner
 from envs.planners.fifo import FIFOPlanner
 from envs.planners.glide import GlidePlanner
-from envs.planners.human import human_commands, human_window
+from envs.planners.human import approach_limit, human_commands, human_window
 from envs.simulation.env import CoopIntersectionEnv
+from envs.simulation.layouts import build_layout
 from envs.simulation.traffic import generate_scenario
 
 
@@ -111,3 +113,20 @@ def test_aim_at_share_half_is_no_longer_stuck():
     row = run_metrics(vehicles, facts["duration"])
     assert not row["stuck"] and row["flow_rate"] > 0.15  # 0.2 now (PR: 0.25)
     assert row["collided"] == 0
+
+
+def test_a_humans_earliest_entry_uses_the_highest_limit_before_its_zone():
+    # inD's east->west is limited to 2.34 m/s for a few metres around 81 m, then to 10 m/s: a human
+    # there reaches a zone 9 m ahead faster than its limit now allows (the shield once let an
+    # automated vehicle go in front of such a human, then found no safe plan when it sped up).
+    lay = build_layout("inD")
+    route, arc = lay.route_id("east->west"), 81.0
+    assert lay.limit_at(np.array([route]), np.array([arc]))[0] < 3.0
+    scene = SimpleNamespace(layout=lay, arc=np.array([arc]), route=np.array([route]), speed=np.array([2.3]))
+    ahead = approach_limit(scene, np.array([0]), np.array([9.0]))
+    assert ahead[0] == pytest.approx(10.0)
+    here = approach_limit(scene, np.array([0]), np.array([-1.0]))  # in its zone: the limit where it is
+    assert here[0] == pytest.approx(max(lay.limit_at(np.array([route]), np.array([arc]))[0], 2.3))
+    late, _ = human_window(np.array([9.0]), np.array([20.0]), np.array([2.3]), here, 0.0, 8.0)
+    early, _ = human_window(np.array([9.0]), np.array([20.0]), np.array([2.3]), ahead, 0.0, 8.0)
+    assert early[0] < late[0]

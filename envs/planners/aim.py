@@ -50,7 +50,7 @@ import numpy as np
 
 from envs.planners import _aim_kernel
 from envs.planners.base import Planner
-from envs.planners.human import human_commands, human_window
+from envs.planners.human import approach_limit, human_commands, human_window
 from envs.planners.idm import (
     DEFAULT_IDM,
     IDMParams,
@@ -362,11 +362,12 @@ class AIMPlanner(Planner):
             h, q, r = zi[rows], zq[rows], scene.route[zi[rows]]
             front = scene.arc[h] + scene.length[h] / 2
             v = scene.speed[h]
+            gap_in = scene.layout.zone_start[r, q] - front
             start, until = human_window(
-                scene.layout.zone_start[r, q] - front,
+                gap_in,
                 scene.layout.zone_end[r, q] + scene.length[h] - front,
                 v,
-                np.maximum(scene.speed_limit[h], v),
+                approach_limit(scene, h, gap_in),
                 p.human_margin,
                 p.human_horizon,
             )

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from envs.planners.human import human_commands, human_window
+from envs.planners.human import approach_limit, human_commands, human_window
 from envs.planners.idm import DEFAULT_IDM, CrossingParams, IDMParams, blocked_by_rank
 from envs.planners.vehicle_model import model_crossing_times
 from envs.planners.yielding import YieldingPlanner, rank_by
@@ -87,7 +87,7 @@ class FIFOPlanner(YieldingPlanner):
             scene.dist_to_entry,
             scene.dist_to_exit,
             v,
-            np.maximum(scene.speed_limit, v),
+            approach_limit(scene, np.arange(n), scene.dist_to_entry),
             self.human_margin,
             self.human_horizon,
         )

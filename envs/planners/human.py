@@ -43,6 +43,27 @@ def human_commands(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
     return acc, human & ~blocked
 
 
+def approach_limit(scene: Scene, rows: np.ndarray, gap_in: np.ndarray) -> np.ndarray:
+    """The highest speed a human driver can reach before it enters a zone: the highest lane limit on its
+    route from where it is to the zone (the limit where it is may be a curve's, and rise before the zone),
+    at least its speed now. The bound that :func:`human_window`'s earliest entry needs.
+
+    :param scene: the vehicles now
+    :param rows: ``(h,)`` the human drivers' rows
+    :param gap_in: ``(h,)`` metres each moves before entering its zone (<= 0: in it)
+    :return: ``(h,)`` [m/s]
+    """
+    lay = scene.layout
+    arc = np.asarray(scene.arc, float)[rows]
+    last = lay.speed_limit.shape[1] - 1
+    first = np.clip((arc / lay.ds).astype(np.int64), 0, last)  # the sample limit_at reads now
+    end = np.clip(((arc + np.maximum(gap_in, 0.0)) / lay.ds).astype(np.int64), first, last)
+    k = np.arange(last + 1)
+    ahead = (k >= first[:, None]) & (k <= end[:, None])
+    limit = np.where(ahead, lay.speed_limit[np.asarray(scene.route)[rows]], -np.inf).max(axis=1)
+    return np.maximum(limit, np.asarray(scene.speed, float)[rows])
+
+
 def human_window(
     gap_in: np.ndarray,
     gap_out: np.ndarray,

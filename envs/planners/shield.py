@@ -79,7 +79,7 @@ from envs.planners import _shield_kernel
 from envs.planners.base import Planner
 from envs.planners.errors import PlannerError, checked_accelerations
 from envs.planners.fifo import FIFOPlanner
-from envs.planners.human import CRAWL_SPEED, human_commands, human_window
+from envs.planners.human import CRAWL_SPEED, approach_limit, human_commands, human_window
 from envs.planners.watchdog import WATCHDOG_AFTER, WATCHDOG_HOLD, LivenessWatchdog
 from envs.simulation.commitment import STANDING, STOP_SLACK
 from envs.simulation.layouts import ZONE_MARGIN, body_hull, parting_arcs
@@ -565,7 +565,7 @@ class Shield(Planner):
         h = cross[pair, col]
         x0, v = plan.arc[h], plan.speed[h]
         lo, hi = plan.cross_lo[pair, col], plan.cross_hi[pair, col]
-        limit = np.maximum(np.asarray(scene.speed_limit, float)[h], v)
+        limit = approach_limit(scene, h, lo - x0)
         plan.human_pair, plan.human_col = pair, col
         plan.human_from, plan.human_until = human_window(
             lo - x0, hi - x0, v, limit, self.human_margin, self.horizon
