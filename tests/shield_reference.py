@@ -114,6 +114,8 @@ def fallback_given(
     f, ahead, gap = leaders_now(shield, plan, arc, go)
     if f.size:
         ok = safe_gap_after(gap, speed[f], speed[ahead], proceed, a_max, dt, shield.gap_margin)
+        # a human driver keeps no gap to a merging vehicle (its model sees it once it leads on the lane)
+        ok |= (np.arange(f.size) >= len(plan.follow)) & np.asarray(plan.human, bool)[f]
         acc[f[~ok & go[f]]] = min(proceed, -a_max)
     return acc
 

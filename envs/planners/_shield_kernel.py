@@ -65,6 +65,7 @@ class PlanArrays(NamedTuple):
     merge_lo: np.ndarray
     merge_exit: np.ndarray
     merge_sep: np.ndarray
+    merge_yields: np.ndarray  # (n,) bool: keeps its gap to a merging vehicle ahead (a human driver does not)
 
 
 class EnvelopeTable(NamedTuple):
@@ -291,7 +292,7 @@ def _fallback(
         if not active:
             continue
         gap = distance + 0.5 * gap_margin  # kept at gap_margin: half a margin more than the check's distance
-        if go[f] and _unsafe(gap, speed[f], speed[ahead], proceed, a_max, dt, gap_margin):
+        if go[f] and plan.merge_yields[f] and _unsafe(gap, speed[f], speed[ahead], proceed, a_max, dt, gap_margin):
             acc[f] = slow
 
 

@@ -158,6 +158,8 @@ class _Plan:
             merge_lo=f(self.merge_lo),
             merge_exit=f(self.merge_exit),
             merge_sep=f(self.merge_sep),
+            # A human driver's model sees a merging vehicle only once it leads on the same lane.
+            merge_yields=np.ascontiguousarray(~np.asarray(self.human, bool)),
         )
 
 
