@@ -205,3 +205,18 @@ def test_the_shield_keeps_automated_vehicles_from_running_into_a_slowing_human(s
     scenario = generate_scenario("4way", 60.0, 4, human_share=share)
     _, row = _run(spec, scenario)
     assert row["collided"] == 0 and row["crossed"] > 10
+
+
+def test_an_automated_vehicle_yields_before_merging_beside_a_human():
+    # inD at share 0.25, seed 4 (the penetration sweep's scenario 4): a human on the major road and an
+    # automated right-turner reach the east exit side by side. A shield that predicted the human keeping
+    # a gap to the merging vehicle let the automated one in, found no safe plan, braked it in front of
+    # the human and the human ran into it (the human's model sees it only once it leads on its lane).
+    from envs.simulation.env import CoopIntersectionInDEnv
+
+    env = CoopIntersectionInDEnv(evaluation_env_kwargs({})["config"])
+    scenario = generate_scenario(env.layout, 60.0, 4, human_share=0.25)
+    shield = make_planner("glide+shield")
+    vehicles, _ = run_episode(env, shield, scenario, scenario.duration, seed=0)
+    assert vehicles["human"].any() and not vehicles["collided"].any()
+    assert shield.unresolved == 0
