@@ -30,6 +30,7 @@ Usage::
     PYTHONPATH=$PWD python benchmarks/bench_serve.py --components --sizes 100
     PYTHONPATH=$PWD python benchmarks/bench_serve.py --latency-only --planners aim+shield glide+shield \
         fullthrottle+shield
+    PYTHONPATH=$PWD python benchmarks/bench_serve.py --latency-only --scene queue --sizes 10 48  # a full queue
 """
 
 from __future__ import annotations
@@ -224,6 +225,37 @@ def dense_scene(n: int, time_s: float = 0.0, env: str = ENV, spacing: float = 6.
                 car.id = k
 
 
+def queue_scene(n: int, time_s: float = 0.0, env: str = ENV, spacing: float = 6.5):
+    """``n`` vehicles standing in queues before the stop lines of ``env``'s layout, ``spacing`` apart from 3 m
+    before each line back to the route start, the nearest first over the lanes (a jam in which every
+    vehicle waits; no vehicle in the intersection).
+
+    :raises ValueError: more vehicles than the queues hold (the 4-way layout: 48)
+    """
+    import gymnasium as gym
+
+    import envs  # noqa: F401
+    from envs.serve.wire import SceneBuilder
+
+    made = gym.make(env, config={"max_vehicles": max(n, 64)})
+    builder = SceneBuilder(dict(made.unwrapped.config))
+    made.close()
+    lay = builder.layout
+    slots = []  # (distance from the line, spawn lane, k, arc)
+    for spawn in sorted(set(lay.route_spawn_lane.tolist())):
+        routes = np.flatnonzero(lay.route_spawn_lane == spawn)
+        entry = float(lay.entry_arc[routes].min())
+        for k, arc in enumerate(np.arange(entry - 3.0, 3.0, -spacing)):
+            slots.append((entry - arc, spawn, k, float(arc)))
+    if n > len(slots):
+        raise ValueError(f"the queues of layout {lay.name!r} hold at most {len(slots)} vehicles")
+    cars = []
+    for _, spawn, k, arc in sorted(slots)[:n]:
+        routes = np.flatnonzero(lay.route_spawn_lane == spawn)
+        cars.append(SimpleCar(len(cars), lay.route_names[int(routes[k % routes.size])], arc, 0.0))
+    return builder.scene(lay.name, time_s, cars), builder
+
+
 @dataclass
 class SimpleCar:
     id: int
@@ -289,8 +321,11 @@ def cpu_s(pid: int) -> float:
     return own + sum(cpu_s(int(child)) for child in children)
 
 
-def latency(url: str, pid: int, planner_spec: str, sizes: list[int], decisions: int, seconds: float) -> list[dict]:
-    """Per-decision latency through the server and in process, per scene size, and CPU per decision."""
+def latency(
+    url: str, pid: int, planner_spec: str, sizes: list[int], decisions: int, seconds: float, scene_kind: str = "dense"
+) -> list[dict]:
+    """Per-decision latency through the server and in process, per scene size, and CPU per decision
+    (``scene_kind``: :func:`dense_scene` or :func:`queue_scene`)."""
     from envs.planners import make_planner
     from envs.serve.client import PlannerClient
     from envs.serve.wire import scene_to_wire
@@ -299,7 +334,7 @@ def latency(url: str, pid: int, planner_spec: str, sizes: list[int], decisions: 
     client = PlannerClient(url)
     local = make_planner(planner_spec)
     for n in sizes:
-        scene, builder = dense_scene(n)
+        scene, builder = (queue_scene if scene_kind == "queue" else dense_scene)(n)
         stream = client.open("4way", dt=scene.dt, seed=0)
         local.reset(0)
         remote_t, server_t, local_t = [], [], []
@@ -647,6 +682,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--skip-gnn", action="store_true", help="AIM only")
     parser.add_argument("--planners", nargs="+", help="only these planners in the latency tables (words of "
                         "`serve --planner`, `+shield` for its `--shield`; e.g. aim+shield glide+shield)")
+    parser.add_argument("--scene", choices=["dense", "queue"], default="dense", help="the latency tables' scene: "
+                        "'dense' (moving, 6.5 m apart, in the intersection too: the shield finds no safe plan) or "
+                        "'queue' (standing before the lines; the 4-way holds 48) (default: dense)")  # fmt: skip
     parser.add_argument("--server-workers", type=int, default=1, help="the server's --workers in the latency "
                         "tables (default: 1; 0 plans on the server's event loop)")
     parser.add_argument("--latency-only", action="store_true", help="only the latency tables")
@@ -718,7 +756,8 @@ def main(argv: list[str] | None = None) -> int:
         try:
             local_spec = spec + ("+shield" if extra else "")
             print(f"### {label}\n")
-            print(_table(latency(url, process.pid, local_spec, sizes, args.decisions, args.seconds)) + "\n", flush=True)
+            rows = latency(url, process.pid, local_spec, sizes, args.decisions, args.seconds, args.scene)
+            print(_table(rows) + "\n", flush=True)
         finally:
             stop_server(process)
     if args.latency_only:

@@ -147,6 +147,13 @@ def test_the_benchmarks_pieces_of_a_step_run_on_the_current_schema():
     assert "PlannerService.handle" in table and table.count("\n| ") >= 8  # one row per piece, none failed
 
 
+def test_the_benchmarks_queue_scene_stands_before_the_lines():
+    scene, _ = _bench().queue_scene(48)
+    assert scene.num_vehicles == 48 and (scene.speed == 0).all() and (scene.dist_to_entry > 0).all()
+    with pytest.raises(ValueError, match="at most 48"):
+        _bench().queue_scene(49)
+
+
 def test_remote_spec_is_checked_without_a_server():
     assert check_planner_spec("http://127.0.0.1:8765") == "http://127.0.0.1:8765"
     assert check_planner_spec("http://localhost:8765/+shield") == "http://localhost:8765+shield"
