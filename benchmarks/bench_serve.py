@@ -180,18 +180,25 @@ def send(url: str, case: BadCase, stream: str, token: str | None = None, seq: in
 
 
 # ---------------------------------------------------------------------- scenes and servers
-def dense_scene(n: int, time_s: float = 0.0, env: str = ENV, spacing: float = 6.5):
-    """A synthetic scene of ``n`` vehicles on the layout of ``env``, ``spacing`` apart (see the module docstring;
-    6 m where 6.5 m does not hold ``n``)."""
+def _scene_builder(env_id: str, n: int):
+    """The server's scene builder for ``env_id``, sized for ``n`` vehicles (at least 64)."""
     import gymnasium as gym
 
     import envs  # noqa: F401
-    from envs.serve.wire import SceneBuilder, WireError
+    from envs.serve.wire import SceneBuilder
 
-    env_id = env
     env = gym.make(env_id, config={"max_vehicles": max(n, 64)})
     builder = SceneBuilder(dict(env.unwrapped.config))
     env.close()
+    return builder
+
+
+def dense_scene(n: int, time_s: float = 0.0, env: str = ENV, spacing: float = 6.5):
+    """A synthetic scene of ``n`` vehicles on the layout of ``env``, ``spacing`` apart (see the module docstring;
+    6 m where 6.5 m does not hold ``n``)."""
+    from envs.serve.wire import WireError
+
+    builder = _scene_builder(env, n)
     lay = builder.layout
     spawns = sorted(set(lay.route_spawn_lane.tolist()))
     slots = []  # (distance from the entry, spawn lane, k)
@@ -213,7 +220,7 @@ def dense_scene(n: int, time_s: float = 0.0, env: str = ENV, spacing: float = 6.
     while True:
         if len(chosen) < n:
             if spacing > 6.0:
-                return dense_scene(n, time_s, env_id, 6.0)
+                return dense_scene(n, time_s, env, 6.0)
             raise ValueError(f"at most {len(chosen)} vehicles fit the synthetic scene")
         try:
             return builder.scene(lay.name, time_s, chosen), builder
@@ -232,14 +239,7 @@ def queue_scene(n: int, time_s: float = 0.0, env: str = ENV, spacing: float = 6.
 
     :raises ValueError: more vehicles than the queues hold (the 4-way layout: 48)
     """
-    import gymnasium as gym
-
-    import envs  # noqa: F401
-    from envs.serve.wire import SceneBuilder
-
-    made = gym.make(env, config={"max_vehicles": max(n, 64)})
-    builder = SceneBuilder(dict(made.unwrapped.config))
-    made.close()
+    builder = _scene_builder(env, n)
     lay = builder.layout
     slots = []  # (distance from the line, spawn lane, k, arc)
     for spawn in sorted(set(lay.route_spawn_lane.tolist())):

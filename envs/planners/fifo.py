@@ -82,16 +82,17 @@ class FIFOPlanner(YieldingPlanner):
         n = scene.num_vehicles
         rank = np.where(going, rank - n, np.where(human, rank + n, rank))
         arrival, clearing, inside, committed = times
-        v = scene.speed
+        rows = np.flatnonzero(going)  # only the going humans' windows are read
+        entry, leave = scene.dist_to_entry[rows], scene.dist_to_exit[rows]
         start, until = human_window(
-            scene.dist_to_entry,
-            scene.dist_to_exit,
-            v,
-            approach_limit(scene, np.arange(n), scene.dist_to_entry),
+            entry,
+            leave,
+            scene.speed[rows],
+            approach_limit(scene, rows, entry),
             self.human_margin,
             self.human_horizon,
         )
-        approaching = scene.dist_to_exit > 0
-        arrival = np.where(going, start, arrival)
-        clearing = np.where(going & approaching, until, clearing)
+        arrival, clearing = arrival.copy(), clearing.copy()
+        arrival[rows] = start
+        clearing[rows[leave > 0]] = until[leave > 0]  # one that has left keeps its clearing
         return rank, (arrival, clearing, inside, committed)

@@ -555,9 +555,10 @@ class Shield(Planner):
 
     def _human_windows(self, scene: Scene, plan: _Plan, going: np.ndarray) -> None:
         """The time windows of the going human drivers in the zones they share with automated vehicles
-        (into ``plan``): from the earliest entry (accelerating at IDM's ``acc_max`` up to the lane limit,
-        or now if already in) to the latest exit at its speed now (at least ``CRAWL_SPEED``), widened by
-        ``human_margin`` on both sides; the whole horizon for a human at a crawl."""
+        (into ``plan``): from the earliest entry (accelerating at IDM's ``acc_max`` up to the highest lane
+        limit before the zone, :func:`~envs.planners.human.approach_limit`; now if already in) to the
+        latest exit at its speed now (at least ``CRAWL_SPEED``), widened by ``human_margin`` on both
+        sides; the whole horizon for a human at a crawl."""
         cross, human = plan.cross, plan.human
         mixed = going[cross].any(axis=1) & ~human[cross].all(axis=1)
         pair = np.flatnonzero(mixed)
