@@ -71,17 +71,18 @@ class ThreadServer:
     :param header_timeout: header read timeout [s]
     :param body_timeout: body read timeout [s]
     :param tls: uvicorn's ``ssl_*`` settings
+    :param http: uvicorn's HTTP implementation (``auto``, ``httptools``, ``h11``)
     :param gateway: :class:`envs.serve.app.Gateway`'s keyword arguments (``workers``, quotas, timeouts)
     """
 
     def __init__(self, service, port: int = 0, tokens=(TOKEN,), hosts=(), max_connections: int = 64,
                  header_timeout: float = 5.0, body_timeout: float = 10.0, tls: dict | None = None,
-                 **gateway: Any) -> None:  # fmt: skip
+                 http: str = "auto", **gateway: Any) -> None:  # fmt: skip
         from envs.serve.access import LOOPBACK_HOSTS, Access
         from envs.serve.app import Gateway
 
         self.gateway = Gateway(service, Access(list(tokens), [*LOOPBACK_HOSTS, *hosts]), **gateway)
-        self.port, self.tls = port, tls
+        self.port, self.tls, self.http = port, tls, http
         self.settings = SimpleNamespace(max_connections=max_connections, header_timeout=header_timeout,
                                         body_timeout=body_timeout)  # fmt: skip
 
@@ -96,7 +97,8 @@ class ThreadServer:
         self.sock.listen(128)
         self.port = self.sock.getsockname()[1]
         s = self.settings
-        self.config = uvicorn_config(self.gateway, s.max_connections, s.header_timeout, s.body_timeout, 5.0, self.tls)
+        self.config = uvicorn_config(self.gateway, s.max_connections, s.header_timeout, s.body_timeout, 5.0, self.tls,
+                                     self.http)  # fmt: skip
         self.server = uvicorn.Server(self.config)
         self.thread = threading.Thread(target=self.server.run, kwargs={"sockets": [self.sock]}, daemon=True)
         self.thread.start()

@@ -215,8 +215,16 @@ def test_half_open_connections_leave_a_good_client_served(service):
     assert len(records) <= 25  # rate-limited
 
 
-def test_a_half_sent_request_is_closed_after_the_header_timeout(service):
-    with ThreadServer(service, header_timeout=0.5) as server:
+@pytest.mark.parametrize("http", ["h11", "httptools"])
+def test_a_half_sent_request_is_closed_after_the_header_timeout(service, http):
+    """With either HTTP implementation (the serve extra installs httptools, which uvicorn then prefers)."""
+    if http == "httptools":
+        pytest.importorskip("httptools")
+    with ThreadServer(service, header_timeout=0.5, http=http) as server:
+        expected = {"h11": "GuardedH11Protocol", "httptools": "GuardedHttpToolsProtocol"}[http]
+        assert server.config.http.__name__ == expected
+        client = PlannerClient(server.url, token=TOKEN, timeout=5)
+        assert client.step(client.open("4way"), wire_scene(2, 0.0, service.builder.layout)).shape == (2,)
         with socket.create_connection(("127.0.0.1", server.port)) as lazy, socket.create_connection(
             ("127.0.0.1", server.port)
         ) as silent:
@@ -336,3 +344,10 @@ def test_openapi_states_the_token_enums_and_limits(service):
     assert schema["paths"]["/streams"]["post"]["requestBody"]["content"]["application/json"]["schema"] == {
         "$ref": "#/components/schemas/OpenRequest"
     }
+
+
+def test_an_unknown_http_implementation_is_refused_naming_the_choices():
+    from envs.serve.limits import uvicorn_protocol
+
+    with pytest.raises(ValueError, match="http must be one of 'auto', 'httptools', 'h11', got 'h2'"):
+        uvicorn_protocol("h2")

@@ -619,6 +619,7 @@ def uvicorn_config(
     body_timeout: float = 10.0,
     keep_alive: float = 5.0,
     tls: dict[str, Any] | None = None,
+    http: str = "auto",
 ):
     """uvicorn's settings for a :class:`Gateway`: the guarded HTTP protocol (connection cap, header and body read
     timeouts, :mod:`envs.serve.limits`), ``limit_concurrency`` just above the cap, the keep-alive timeout and TLS.
@@ -629,6 +630,7 @@ def uvicorn_config(
     :param body_timeout: seconds for its body to arrive after them
     :param keep_alive: seconds an idle connection stays open
     :param tls: uvicorn's ``ssl_*`` settings (``ssl_certfile``, ``ssl_keyfile``, ``ssl_ca_certs``, ``ssl_cert_reqs``)
+    :param http: uvicorn's HTTP implementation: ``auto`` (httptools when installed, else h11), ``httptools`` or ``h11``
     :return: the ``uvicorn.Config`` (its logging already rate-limited)
     """
     import uvicorn
@@ -636,7 +638,7 @@ def uvicorn_config(
     guard = ConnectionGuard(max_connections, header_timeout, body_timeout)
     config = uvicorn.Config(
         create_app(gateway), log_level="warning", access_log=False, timeout_graceful_shutdown=2,
-        http=guarded_protocol(uvicorn_protocol(), guard), limit_concurrency=max_connections + 1,
+        http=guarded_protocol(uvicorn_protocol(http), guard), limit_concurrency=max_connections + 1,
         timeout_keep_alive=keep_alive, backlog=ACCEPT_BURST, **(tls or {}),
     )  # fmt: skip
     config.guard = guard

@@ -120,7 +120,12 @@ def guarded_protocol(base: type, guard: ConnectionGuard) -> type:
 
 
 def uvicorn_protocol(kind: str = "auto") -> type:
-    """The HTTP protocol class uvicorn picks for ``http=kind`` (httptools when installed, else h11)."""
+    """The HTTP protocol class uvicorn picks for ``http=kind`` (httptools when installed, else h11).
+
+    :raises ValueError: ``kind`` is not ``auto``, ``httptools`` or ``h11``
+    """
+    if kind not in ("auto", "httptools", "h11"):
+        raise ValueError(f"http must be one of 'auto', 'httptools', 'h11', got {kind!r}")
     if kind in ("auto", "httptools"):
         try:
             from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
