@@ -14,7 +14,10 @@ from __future__ import annotations
 import dataclasses
 import math
 
+import numpy as np
+
 from envs.planners.glide import GlideParams, GlidePlanner
+from envs.simulation.scene import MINOR
 
 # The recipe: advice within 30 m of the line, no cruise below 2 m/s, a follower within 2.5 s of its
 # leader batched behind it, 1.0 s headway at the line (the other values as shipped).
@@ -33,3 +36,113 @@ class GlideRecipeWhole(GlidePlanner):
 
     def __init__(self) -> None:
         super().__init__("GlideRecipeWhole", dataclasses.replace(RECIPE, window=math.inf))
+
+
+# Probes of what a learned planner over glide could move (docs/training.md, "How much a policy over glide
+# can move"): shifts of glide's order (what the "priority" action type does) and a window per vehicle.
+
+
+class _Shifted(GlidePlanner):
+    """glide with its order shifted every step by :meth:`shift` [s] per vehicle."""
+
+    def reset(self, seed: int | None = None) -> None:
+        super().reset(seed)
+        self._rng = np.random.default_rng(seed)
+
+    def shift(self, scene) -> np.ndarray:
+        raise NotImplementedError
+
+    def act(self, scene) -> np.ndarray:
+        if scene.num_vehicles:
+            self.set_priority(self.shift(scene))
+        return super().act(scene)
+
+
+class RandomShift5(_Shifted):
+    """Every vehicle's key shifted by a uniform draw in +-5 s, anew each step (the priority action's own range)."""
+
+    def __init__(self) -> None:
+        super().__init__("RandomShift5")
+
+    def shift(self, scene) -> np.ndarray:
+        return self._rng.uniform(-5.0, 5.0, scene.num_vehicles)
+
+
+class RandomShift20(RandomShift5):
+    """As :class:`RandomShift5`, +-20 s."""
+
+    def __init__(self) -> None:
+        GlidePlanner.__init__(self, "RandomShift20")
+
+    def shift(self, scene) -> np.ndarray:
+        return self._rng.uniform(-20.0, 20.0, scene.num_vehicles)
+
+
+class StandingLast(_Shifted):
+    """Standing vehicles (below 1 m/s) 20 s later in the order: one that has stopped loses no stop by waiting."""
+
+    def __init__(self) -> None:
+        super().__init__("StandingLast")
+
+    def shift(self, scene) -> np.ndarray:
+        return np.where(scene.speed < 1.0, 20.0, 0.0)
+
+
+class StandingFirst(StandingLast):
+    """Standing vehicles 20 s earlier in the order."""
+
+    def __init__(self) -> None:
+        GlidePlanner.__init__(self, "StandingFirst")
+
+    def shift(self, scene) -> np.ndarray:
+        return -super().shift(scene)
+
+
+class _Widened(GlidePlanner):
+    """glide's advice over the whole approach for the vehicles :meth:`wide` selects, its window for the rest."""
+
+    def wide(self, scene) -> np.ndarray:
+        raise NotImplementedError
+
+    def advice_window(self, scene) -> np.ndarray:
+        return np.where(self.wide(scene), math.inf, self.params.window)
+
+
+class WideMinor(_Widened):
+    """The whole approach for vehicles of the minor road."""
+
+    def __init__(self) -> None:
+        super().__init__("WideMinor")
+
+    def wide(self, scene) -> np.ndarray:
+        return scene.priority == MINOR
+
+
+class WideMajor(_Widened):
+    """The whole approach for vehicles of the major road."""
+
+    def __init__(self) -> None:
+        super().__init__("WideMajor")
+
+    def wide(self, scene) -> np.ndarray:
+        return scene.priority != MINOR
+
+
+class WideAll(_Widened):
+    """The whole approach for every vehicle (glide's tuned values otherwise)."""
+
+    def __init__(self) -> None:
+        super().__init__("WideAll")
+
+    def wide(self, scene) -> np.ndarray:
+        return np.ones(scene.num_vehicles, bool)
+
+
+class WideRandom(_Widened):
+    """The whole approach for a fixed random half of the vehicles (a hash of the id)."""
+
+    def __init__(self) -> None:
+        super().__init__("WideRandom")
+
+    def wide(self, scene) -> np.ndarray:
+        return scene.vehicle_id * 2654435761 % 1000 < 500

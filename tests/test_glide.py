@@ -74,6 +74,37 @@ def test_glide_slows_early_instead_of_stopping():
     assert ft_speeds.min() < 0.3  # full throttle raced to the line and stopped there
 
 
+class _WindowPerVehicle(GlidePlanner):
+    def __init__(self, windows) -> None:
+        super().__init__("Windows")
+        self.windows = windows
+
+    def advice_window(self, scene):
+        return self.windows(scene)
+
+
+def test_a_window_per_vehicle_equal_to_glides_drives_as_glide_and_zero_as_full_throttle():
+    """``advice_window`` may give one window per vehicle: glide's own window for every vehicle commands exactly
+    what glide does; a zero window for every vehicle leaves no advice, so everyone gets full throttle."""
+    env = empty_env()
+    base = env.unwrapped
+    platoon_and_minor(base)
+    glide, same = make_planner("glide"), _WindowPerVehicle(lambda scene: np.full(scene.num_vehicles, 16.3))
+    none = _WindowPerVehicle(lambda scene: np.zeros(scene.num_vehicles))
+    assert GlideParams().window == 16.3
+    for planner in (glide, same, none):
+        planner.reset(0)
+    slowed = 0
+    for _ in range(40):
+        scene = base.scene()
+        a = glide.act(scene.copy())
+        assert np.array_equal(same.act(scene.copy()), a)
+        assert np.array_equal(none.act(scene.copy()), np.full(scene.num_vehicles, scene.a_max))
+        slowed += int((a < scene.a_max).sum())
+        env.step(base.accelerations_to_action(a))
+    assert slowed > 0  # glide did advise someone, so the comparison saw advice
+
+
 def conflict_scene(base, minor_ahead: float = 4.0):
     """A west->east leader and its follower 9 m behind; a south->north vehicle due between them."""
     lay = base.layout

@@ -142,6 +142,11 @@ class GlidePlanner(AIMPlanner):
         return u[u >= self.params.floor - 1e-9], waits
 
     # ------------------------------------------------------------------ control
+    def advice_window(self, scene: Scene) -> float | np.ndarray:
+        """How close to its line a vehicle follows its plan [m]: ``params.window`` (a subclass may set one
+        per vehicle, an ``(n,)`` array)."""
+        return self.params.window
+
     def act(self, scene: Scene) -> np.ndarray:
         if scene.num_vehicles == 0:
             self._shift = None
@@ -150,7 +155,7 @@ class GlidePlanner(AIMPlanner):
         planned = self.control(scene, plan)
         dist = scene.dist_to_entry
         slowed = plan.kind[plan.choice] != 0
-        advised = slowed & (dist > 0) & (scene.dist_to_exit > 0) & (dist <= self.params.window)
+        advised = slowed & (dist > 0) & (scene.dist_to_exit > 0) & (dist <= self.advice_window(scene))
         # Never brake below the floor, nor hold a vehicle that is slower: a stop, if one is needed, is the shield's.
         keep_floor = np.clip((self.params.floor - scene.speed) / scene.dt, scene.a_min, scene.a_max)
         return np.where(advised, np.maximum(planned, keep_floor), scene.a_max)
