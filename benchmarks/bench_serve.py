@@ -687,6 +687,8 @@ def main(argv: list[str] | None = None) -> int:
                         "'queue' (standing before the lines; the 4-way holds 48) (default: dense)")  # fmt: skip
     parser.add_argument("--server-workers", type=int, default=1, help="the server's --workers in the latency "
                         "tables (default: 1; 0 plans on the server's event loop)")
+    parser.add_argument("--server-http", default="auto", choices=["auto", "httptools", "h11"], help="the server's "
+                        "--http (uvicorn's HTTP parser) in the latency tables (default: auto)")  # fmt: skip
     parser.add_argument("--latency-only", action="store_true", help="only the latency tables")
     parser.add_argument("--bad-input-only", action="store_true", help="only the malformed-input table")
     parser.add_argument("--components", action="store_true", help="only: CPU per piece of a decision, in process")
@@ -752,7 +754,8 @@ def main(argv: list[str] | None = None) -> int:
         gnn = spec == str(MODEL)
         sizes = sorted({min(n, 64) if gnn else n for n in args.sizes})
         env_kwargs = () if gnn else ("--env-kwargs", kwargs)  # the GNN's graphs hold 64 vehicles
-        process, url = start_server(spec, *extra, *env_kwargs, "--workers", str(args.server_workers))
+        process, url = start_server(spec, *extra, *env_kwargs, "--workers", str(args.server_workers),
+                                     "--http", args.server_http)  # fmt: skip
         try:
             local_spec = spec + ("+shield" if extra else "")
             print(f"### {label}\n")

@@ -178,7 +178,7 @@ def test_remote_planner_without_a_server_is_a_clear_error(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("flag, value", [("--max-restarts", "-1"), ("--restart-window", "0"), ("--workers", "-2"),
-                                         ("--time-limit", "0")])  # fmt: skip
+                                         ("--time-limit", "0"), ("--http", "h2")])  # fmt: skip
 def test_bad_server_limits_are_one_line_naming_the_flag(flag, value, capsys):
     assert main(["serve", "--planner", "fullthrottle", "--port", "0", flag, value]) == 2
     err = capsys.readouterr().err

@@ -15,6 +15,7 @@ used by scripts. Endpoints, schema, errors and the threat model: docs/serve.md.
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import logging
 import os
 import socket
@@ -78,6 +79,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "workers (default: 3)")  # fmt: skip
     limits.add_argument("--restart-window", type=float, default=60.0, help="seconds of the --max-restarts cap "
                         "(default: 60)")  # fmt: skip
+    limits.add_argument("--http", default="auto", help="uvicorn's HTTP parser: auto (httptools when installed, "
+                        "else h11), httptools or h11 (default: auto)")  # fmt: skip
 
 
 # File descriptors the server needs besides its connections (listening socket, workers' sockets, log, libraries).
@@ -131,6 +134,10 @@ def _check(args: argparse.Namespace):
         raise UserError("--header-timeout, --body-timeout, --keep-alive, --time-limit and --restart-window must be > 0")
     if min(args.workers, args.max_restarts) < 0:
         raise UserError("--workers and --max-restarts must be >= 0")
+    if args.http not in ("auto", "httptools", "h11"):
+        raise UserError(f"--http must be one of 'auto', 'httptools', 'h11', got {args.http!r}")
+    if args.http == "httptools" and importlib.util.find_spec("httptools") is None:
+        raise UserError("--http httptools: httptools is not installed (pip install 'sb3-graph[serve]')")
     if args.env_kwargs is not None and not isinstance(args.env_kwargs, dict):
         raise UserError("--env-kwargs must be a JSON object")
     if args.no_token and args.token_file is not None:
@@ -215,7 +222,7 @@ def run(args: argparse.Namespace) -> int:
         tls = {"ssl_certfile": args.ssl_certfile, "ssl_keyfile": args.ssl_keyfile}
         if args.ssl_ca_certs:
             tls.update(ssl_ca_certs=args.ssl_ca_certs, ssl_cert_reqs=ssl.CERT_REQUIRED)
-    config = uvicorn_config(gateway, cap, args.header_timeout, args.body_timeout, args.keep_alive, tls)
+    config = uvicorn_config(gateway, cap, args.header_timeout, args.body_timeout, args.keep_alive, tls, args.http)
     scheme = "https" if tls else "http"
     print(f"serving {service.info()['planner']} on {scheme}://{shown}:{port}", flush=True)
     try:
