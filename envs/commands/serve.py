@@ -124,6 +124,7 @@ def _check(args: argparse.Namespace):
     from envs.commands.evaluate import check_env_id
     from envs.planners.loading import is_remote_spec
     from envs.serve.access import is_loopback, read_tokens
+    from envs.serve.limits import HTTP_PARSERS
 
     if not 0 <= args.port <= 65535:
         raise UserError(f"--port must be from 0 to 65535, got {args.port}")
@@ -134,8 +135,8 @@ def _check(args: argparse.Namespace):
         raise UserError("--header-timeout, --body-timeout, --keep-alive, --time-limit and --restart-window must be > 0")
     if min(args.workers, args.max_restarts) < 0:
         raise UserError("--workers and --max-restarts must be >= 0")
-    if args.http not in ("auto", "httptools", "h11"):
-        raise UserError(f"--http must be one of 'auto', 'httptools', 'h11', got {args.http!r}")
+    if args.http not in HTTP_PARSERS:
+        raise UserError(f"--http must be one of {', '.join(map(repr, HTTP_PARSERS))}, got {args.http!r}")
     if args.http == "httptools" and importlib.util.find_spec("httptools") is None:
         raise UserError("--http httptools: httptools is not installed (pip install 'sb3-graph[serve]')")
     if args.env_kwargs is not None and not isinstance(args.env_kwargs, dict):

@@ -27,6 +27,8 @@ from typing import Any
 # connection's descriptor closes only a few loop iterations later, so a flood can hold about three bursts
 # over the cap: 3 x 16 stays inside the 64 descriptors the server keeps in reserve (``RESERVED_FDS``).
 ACCEPT_BURST = 16
+# uvicorn's HTTP parsers that the server may be told to use (``serve --http``); ``auto``: httptools when installed
+HTTP_PARSERS = ("auto", "httptools", "h11")
 
 
 class ConnectionGuard:
@@ -124,8 +126,8 @@ def uvicorn_protocol(kind: str = "auto") -> type:
 
     :raises ValueError: ``kind`` is not ``auto``, ``httptools`` or ``h11``
     """
-    if kind not in ("auto", "httptools", "h11"):
-        raise ValueError(f"http must be one of 'auto', 'httptools', 'h11', got {kind!r}")
+    if kind not in HTTP_PARSERS:
+        raise ValueError(f"http must be one of {', '.join(map(repr, HTTP_PARSERS))}, got {kind!r}")
     if kind in ("auto", "httptools"):
         try:
             from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
