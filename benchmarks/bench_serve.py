@@ -668,6 +668,8 @@ def components(n: int, repeat: int = 200) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from envs.serve.limits import HTTP_PARSERS
+
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", type=int, nargs="+", default=[10, 50, 100])
     parser.add_argument("--decisions", type=int, default=300, help="decisions per size (default: 300)")
@@ -687,7 +689,7 @@ def main(argv: list[str] | None = None) -> int:
                         "'queue' (standing before the lines; the 4-way holds 48) (default: dense)")  # fmt: skip
     parser.add_argument("--server-workers", type=int, default=1, help="the server's --workers in the latency "
                         "tables (default: 1; 0 plans on the server's event loop)")
-    parser.add_argument("--server-http", default="auto", choices=["auto", "httptools", "h11"], help="the server's "
+    parser.add_argument("--server-http", default="auto", choices=HTTP_PARSERS, help="the server's "
                         "--http (uvicorn's HTTP parser) in the latency tables (default: auto)")  # fmt: skip
     parser.add_argument("--latency-only", action="store_true", help="only the latency tables")
     parser.add_argument("--bad-input-only", action="store_true", help="only the malformed-input table")

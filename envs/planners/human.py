@@ -53,14 +53,8 @@ def approach_limit(scene: Scene, rows: np.ndarray, gap_in: np.ndarray) -> np.nda
     :param gap_in: ``(h,)`` metres each moves before entering its zone (<= 0: in it)
     :return: ``(h,)`` [m/s]
     """
-    lay = scene.layout
     arc = np.asarray(scene.arc, float)[rows]
-    last = lay.speed_limit.shape[1] - 1
-    first = np.clip((arc / lay.ds).astype(np.int64), 0, last)  # the sample limit_at reads now
-    end = np.clip(((arc + np.maximum(gap_in, 0.0)) / lay.ds).astype(np.int64), first, last)
-    k = np.arange(last + 1)
-    ahead = (k >= first[:, None]) & (k <= end[:, None])
-    limit = np.where(ahead, lay.speed_limit[np.asarray(scene.route)[rows]], -np.inf).max(axis=1)
+    limit = scene.layout.highest_limit(np.asarray(scene.route)[rows], arc, arc + np.maximum(gap_in, 0.0))
     return np.maximum(limit, np.asarray(scene.speed, float)[rows])
 
 

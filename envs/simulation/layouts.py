@@ -235,8 +235,20 @@ class Layout:
 
     def limit_at(self, route: np.ndarray, arc: np.ndarray) -> np.ndarray:
         """Lane speed limit at points on routes [m/s]."""
-        i = np.minimum(np.maximum((arc / self.ds).astype(np.int64), 0), self.speed_limit.shape[1] - 1)
-        return self.speed_limit[route, i]
+        return self.speed_limit[route, self._sample(arc)]
+
+    def highest_limit(self, route: np.ndarray, arc: np.ndarray, until: np.ndarray) -> np.ndarray:
+        """The highest lane speed limit on each route from ``arc`` to ``until`` (the samples that
+        :meth:`limit_at` reads there and between; ``until <= arc``: the limit at ``arc``) [m/s]."""
+        first = self._sample(np.asarray(arc, float))
+        last = np.maximum(self._sample(np.asarray(until, float)), first)
+        k = np.arange(self.speed_limit.shape[1])
+        between = (k >= first[:, None]) & (k <= last[:, None])
+        return np.where(between, self.speed_limit[route], -np.inf).max(axis=1)
+
+    def _sample(self, arc: np.ndarray) -> np.ndarray:
+        """Index of the limit-table sample that holds each arc (clipped to the table)."""
+        return np.minimum(np.maximum((arc / self.ds).astype(np.int64), 0), self.speed_limit.shape[1] - 1)
 
     def lane_at(self, route: np.ndarray, arc: np.ndarray) -> np.ndarray:
         """Global lane id of points on routes (exact: compares with the lanes' start arcs).
