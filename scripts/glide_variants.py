@@ -42,7 +42,14 @@ class GlideRecipeWhole(GlidePlanner):
 # can move"): shifts of glide's order (what the "priority" action type does) and a window per vehicle.
 
 
-class _Shifted(GlidePlanner):
+class _Probe(GlidePlanner):
+    """glide (its tuned values), named after the probe's class."""
+
+    def __init__(self) -> None:
+        super().__init__(type(self).__name__)
+
+
+class _Shifted(_Probe):
     """glide with its order shifted every step by :meth:`shift` [s] per vehicle."""
 
     def reset(self, seed: int | None = None) -> None:
@@ -61,44 +68,34 @@ class _Shifted(GlidePlanner):
 class RandomShift5(_Shifted):
     """Every vehicle's key shifted by a uniform draw in +-5 s, anew each step (the priority action's own range)."""
 
-    def __init__(self) -> None:
-        super().__init__("RandomShift5")
+    spread = 5.0
 
     def shift(self, scene) -> np.ndarray:
-        return self._rng.uniform(-5.0, 5.0, scene.num_vehicles)
+        return self._rng.uniform(-self.spread, self.spread, scene.num_vehicles)
 
 
 class RandomShift20(RandomShift5):
     """As :class:`RandomShift5`, +-20 s."""
 
-    def __init__(self) -> None:
-        GlidePlanner.__init__(self, "RandomShift20")
-
-    def shift(self, scene) -> np.ndarray:
-        return self._rng.uniform(-20.0, 20.0, scene.num_vehicles)
+    spread = 20.0
 
 
 class StandingLast(_Shifted):
     """Standing vehicles (below 1 m/s) 20 s later in the order: one that has stopped loses no stop by waiting."""
 
-    def __init__(self) -> None:
-        super().__init__("StandingLast")
+    later = 20.0
 
     def shift(self, scene) -> np.ndarray:
-        return np.where(scene.speed < 1.0, 20.0, 0.0)
+        return np.where(scene.speed < 1.0, self.later, 0.0)
 
 
 class StandingFirst(StandingLast):
     """Standing vehicles 20 s earlier in the order."""
 
-    def __init__(self) -> None:
-        GlidePlanner.__init__(self, "StandingFirst")
-
-    def shift(self, scene) -> np.ndarray:
-        return -super().shift(scene)
+    later = -20.0
 
 
-class _Widened(GlidePlanner):
+class _Widened(_Probe):
     """glide's advice over the whole approach for the vehicles :meth:`wide` selects, its window for the rest."""
 
     def wide(self, scene) -> np.ndarray:
@@ -111,18 +108,12 @@ class _Widened(GlidePlanner):
 class WideMinor(_Widened):
     """The whole approach for vehicles of the minor road."""
 
-    def __init__(self) -> None:
-        super().__init__("WideMinor")
-
     def wide(self, scene) -> np.ndarray:
         return scene.priority == MINOR
 
 
 class WideMajor(_Widened):
     """The whole approach for vehicles of the major road."""
-
-    def __init__(self) -> None:
-        super().__init__("WideMajor")
 
     def wide(self, scene) -> np.ndarray:
         return scene.priority != MINOR
@@ -131,18 +122,12 @@ class WideMajor(_Widened):
 class WideAll(_Widened):
     """The whole approach for every vehicle (glide's tuned values otherwise)."""
 
-    def __init__(self) -> None:
-        super().__init__("WideAll")
-
     def wide(self, scene) -> np.ndarray:
         return np.ones(scene.num_vehicles, bool)
 
 
 class WideRandom(_Widened):
     """The whole approach for a fixed random half of the vehicles (a hash of the id)."""
-
-    def __init__(self) -> None:
-        super().__init__("WideRandom")
 
     def wide(self, scene) -> np.ndarray:
         return scene.vehicle_id * 2654435761 % 1000 < 500
