@@ -1,6 +1,9 @@
-"""Glide (arrival-time planning behind the shield) and the ``"priority"`` action type over its scheduler."""
+"""Glide (arrival-time planning behind the shield), and the ``"priority"`` and ``"advice"`` action types
+over its scheduler."""
 
 from __future__ import annotations
+
+import json
 
 import gymnasium as gym
 import numpy as np
@@ -90,16 +93,20 @@ def test_a_window_per_vehicle_equal_to_glides_drives_as_glide_and_zero_as_full_t
     base = env.unwrapped
     platoon_and_minor(base)
     glide, same = make_planner("glide"), _WindowPerVehicle(lambda scene: np.full(scene.num_vehicles, 16.3))
-    none = _WindowPerVehicle(lambda scene: np.zeros(scene.num_vehicles))
+    none, forgets = GlidePlanner(), GlidePlanner()
     assert GlideParams().window == 16.3
-    for planner in (glide, same, none):
+    for planner in (glide, same, none, forgets):
         planner.reset(0)
     slowed = 0
     for _ in range(40):
         scene = base.scene()
         a = glide.act(scene.copy())
         assert np.array_equal(same.act(scene.copy()), a)
+        none.set_windows(np.zeros(scene.num_vehicles))  # as the "advice" action type's -1 for everyone
         assert np.array_equal(none.act(scene.copy()), np.full(scene.num_vehicles, scene.a_max))
+        forgets.set_windows(np.zeros(scene.num_vehicles))
+        forgets.act(scene.copy())  # the windows hold for one act, then glide's own window again
+        assert np.array_equal(forgets.act(scene.copy()), a)
         slowed += int((a < scene.a_max).sum())
         env.step(base.accelerations_to_action(a))
     assert slowed > 0  # glide did advise someone, so the comparison saw advice
@@ -141,14 +148,15 @@ def test_priority_shift_changes_the_order_and_zero_does_not():
     assert np.argsort(planner.reserve(scene).order)[0] == 0
 
 
-def test_priority_with_a_zero_action_drives_as_glide_behind_the_shield_bit_for_bit():
-    """A whole run of the priority environment with zero scores, and the evaluation's way of running
-    glide+shield (planned_accelerations, then the float32 action) on the same scenario: every
+@pytest.mark.parametrize("kind", ["priority", "advice"])
+def test_scores_of_zero_drive_as_glide_behind_the_shield_bit_for_bit(kind):
+    """A whole run of the priority (advice) environment with zero scores, and the evaluation's way of
+    running glide+shield (planned_accelerations, then the float32 action) on the same scenario: every
     vehicle's position and speed equal at every step."""
     scenario = generate_scenario("4way", 40.0, 7)
     kwargs = evaluation_env_kwargs({})
     reference = gym.make("CoopIntersection4Way-v0", **kwargs)
-    config = {**kwargs["config"], "action": {"type": "priority"}, "shield": True}
+    config = {**kwargs["config"], "action": {"type": kind}, "shield": True}
     priority = gym.make("CoopIntersection4Way-v0", config=config)
     reference.reset(seed=7, options={"scenario": scenario})
     priority.reset(seed=7, options={"scenario": scenario})
@@ -178,6 +186,7 @@ def test_priority_with_a_zero_action_drives_as_glide_behind_the_shield_bit_for_b
         ({"type": "speed"}, "config key 'action'"),
         ({"type": "priority", "scale": 0}, "config key 'action'"),
         ({"type": "priority", "horizon": 3}, "config key 'action'"),
+        ({"type": "advice", "scale": -10.0}, "config key 'action'"),
         ("priority", "config key 'action'"),
     ],
 )
@@ -186,9 +195,35 @@ def test_bad_action_config_names_the_key(action, message):
         gym.make("CoopIntersection4Way-v0", config={"action": action})
 
 
-def test_priority_action_refuses_a_residual_base():
-    with pytest.raises(ValueError, match="residual_base"):
-        gym.make("CoopIntersection4Way-v0", config={"action": {"type": "priority"}, "residual_base": "aim"})
+@pytest.mark.parametrize("kind", ["priority", "advice"])
+def test_scheduler_actions_refuse_a_residual_base(kind):
+    with pytest.raises(ValueError, match=f"'residual_base' must be null with action type '{kind}'"):
+        gym.make("CoopIntersection4Way-v0", config={"action": {"type": kind}, "residual_base": "aim"})
+
+
+def test_advice_scores_move_each_vehicles_window():
+    """``"advice"``: -1 takes a vehicle out of glide's advice (full throttle), +1 advises it from
+    ``16.3 + scale`` metres; the window of a vehicle is its own, and the default scale is 64 m."""
+    env = empty_env(action={"type": "advice"}, shield=False)
+    base = env.unwrapped
+    assert base.config["action"] == {"type": "advice", "scale": 64.0}
+    scene = conflict_scene(base)  # the minor-road vehicle 40 m out must yield to the major-road pair
+    glide = GlidePlanner()
+    glide.reset(0)
+    assert np.array_equal(glide.act(scene.copy()), np.full(3, scene.a_max))  # all beyond glide's 16.3 m
+    planned = GlidePlanner()
+    planned.reset(0)
+    planned.set_windows(np.full(3, np.inf))
+    wide = planned.act(scene.copy())
+    assert wide[2] < scene.a_max  # advised over the whole approach, it slows
+    other = empty_env(action={"type": "advice"}, shield=False).unwrapped
+    conflict_scene(other)
+    scores = np.zeros(base.action_space.shape, np.float32)
+    other.step(scores)  # glide's own windows: nobody advised
+    scores[2] = 1.0  # 80.3 m for the minor-road vehicle alone
+    base.step(scores)
+    slowed, same = base.scene().speed, other.scene().speed
+    assert slowed[2] < same[2] and np.array_equal(slowed[:2], same[:2])
 
 
 @pytest.mark.parametrize("field, value", [("window", -1.0), ("floor", float("nan")), ("platoon_gap", "2")])
@@ -197,10 +232,15 @@ def test_bad_glide_parameter_names_the_field(field, value):
         GlideParams(**{field: value})
 
 
-@pytest.mark.parametrize("algo", ["td3", "ddpg", "sac", "tqc", "crossq", "ppo", "a2c"])
-def test_every_algorithm_trains_on_priority_actions(algo, tmp_path):
-    """A short run of every registered algorithm in the priority action space behind the shield; the
-    exported file's header says it is a priority policy, and ``make_planner`` runs it over glide."""
+@pytest.mark.parametrize(
+    "algo, kind",
+    [(algo, "priority") for algo in ("td3", "ddpg", "sac", "tqc", "crossq", "ppo", "a2c")]
+    + [("td3", "advice"), ("ppo", "advice")],
+)
+def test_every_algorithm_trains_on_scheduler_actions(algo, kind, tmp_path):
+    """A short run of every registered algorithm in the priority action space (two in the advice one)
+    behind the shield; the exported file's header says what its scores mean, and ``make_planner``
+    runs it over glide."""
     import torch
     from test_registry import RUNS, SMALL, STEPS
 
@@ -210,7 +250,7 @@ def test_every_algorithm_trains_on_priority_actions(algo, tmp_path):
 
     torch.set_num_threads(1)
     entry = ALGORITHMS[algo]
-    config = {"action": {"type": "priority", "scale": 4.0}, "shield": True}
+    config = {"action": {"type": kind, "scale": 4.0}, "shield": True}
     policy_kwargs = dict(SMALL, n_quantiles=5) if algo == "tqc" else dict(SMALL)
     env = gym.make("CoopIntersection4Way-v0", config=config)
     model = entry.load_class()("GraphPolicy", env, seed=0, policy_kwargs=policy_kwargs, device="cpu", **RUNS[algo])
@@ -219,16 +259,19 @@ def test_every_algorithm_trains_on_priority_actions(algo, tmp_path):
     assert any(not torch.equal(a, b) for a, b in zip(before, model.policy.parameters())), "no gradient step ran"
     model.save(tmp_path / "model.zip")
     out = tmp_path / "planner.safetensors"
-    header = '{"action": {"type": "priority", "scale": 4.0}}'
+    header = json.dumps({"action": {"type": kind, "scale": 4.0}})
     assert main(["export", str(tmp_path / "model.zip"), str(out), "--planner-config", header]) == 0
     planner = make_planner(f"{out}+shield")
     inner = planner.planner
-    assert isinstance(inner, PriorityPlanner) and inner.scale == 4.0
+    assert isinstance(inner, PriorityPlanner) and inner.scale == 4.0 and inner.kind == kind
     env.reset(seed=1)
     for _ in range(10):
         env.step(np.zeros(env.action_space.shape, np.float32))
     scene = env.unwrapped.scene()
     scores = inner.scores.act(scene) / scene.a_max
     glide = GlidePlanner()
-    glide.set_priority(4.0 * scores)
+    if kind == "priority":
+        glide.set_priority(4.0 * scores)
+    else:
+        glide.set_windows(np.maximum(glide.params.window + 4.0 * scores, 0.0))
     np.testing.assert_array_equal(inner.act(scene), glide.act(scene))

@@ -113,3 +113,10 @@ def test_other_planners_are_refused_with_priority_scores_in_one_line():
         assert "\n" not in str(e.value)
     shielded, _ = one_vehicle_env(shield=True, **PRIORITY)
     assert not PlannerExpert("glide+shield", shielded)(None).any()
+
+
+def test_advice_scores_take_glide_as_their_expert_and_refuse_others():
+    venv, _ = one_vehicle_env(action={"type": "advice"})
+    assert not PlannerExpert("glide", venv)(None).any()
+    with pytest.raises(ValueError, match=re.escape("planner 'aim' has no exact label for action type 'advice'")):
+        PlannerExpert("aim", venv)

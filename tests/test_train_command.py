@@ -286,7 +286,8 @@ def test_seeds_train_one_run_per_seed_and_never_overwrite(tmp_path, capsys):
 
 
 @pytest.mark.parametrize(
-    "name", ["td3_fair.yml", "td3_tune.yml", "td3_priority.yml", "td3_glide_clone.yml", "td3_mixed.yml"]
+    "name",
+    ["td3_fair.yml", "td3_tune.yml", "td3_priority.yml", "td3_advice.yml", "td3_glide_clone.yml", "td3_mixed.yml"],
 )
 def test_intersection_zoo_entries_read_and_build(name):
     # The retraining, study and cloning entries are read without eval and make the environment they name.

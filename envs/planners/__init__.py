@@ -127,8 +127,9 @@ def make_planner(spec: str, trust_files: bool = False) -> Planner:
 
     planner = GNNPlanner(key, trust_files=trust_files)
     config = planner.planner_config  # checked at load
-    if "action" in config:  # a priority policy: its scores shift glide's order
-        return PriorityPlanner(GlidePlanner(), planner, config["action"]["scale"], name=planner.name)
+    if "action" in config:  # a scheduling policy: its scores shift glide's order or its advice windows
+        action = config["action"]
+        return PriorityPlanner(GlidePlanner(), planner, action["scale"], name=planner.name, kind=action["type"])
     if config.get("residual_base") is None:
         return planner
     base = make_residual_base(config["residual_base"])

@@ -13,11 +13,12 @@ accelerations into the environment's action:
   policy proposes, so the policy learns to propose what the planner proposes (a word ending in
   ``+shield`` labels with the shielded command instead).
 
-With the environment's ``action`` type ``"priority"`` an action is a score per vehicle that shifts the
-arrival order of glide's scheduler, not an acceleration. ``glide`` is the one planner with an exact
-score: zero for every vehicle (the environment then drives exactly as ``glide``, shielded with
-``shield``; ``glide+shield`` is exact only with ``shield`` on). No score reproduces another planner's
-accelerations (they come from another order *and* other profiles), so any other planner is refused.
+With the environment's ``action`` type ``"priority"`` or ``"advice"`` an action is a score per vehicle
+that shifts the arrival order of glide's scheduler or moves its advice window, not an acceleration.
+``glide`` is the one planner with an exact score: zero for every vehicle (the environment then drives
+exactly as ``glide``, shielded with ``shield``; ``glide+shield`` is exact only with ``shield`` on). No
+score reproduces another planner's accelerations (they come from another order *and* other
+profiles), so any other planner is refused.
 """
 
 from __future__ import annotations
@@ -27,8 +28,9 @@ from typing import Any
 import numpy as np
 
 from envs.planners import SHIELD_SUFFIX, check_planner_spec, make_planner, make_residual_base
+from envs.simulation.config import SCHEDULER_ACTION_TYPES
 
-#: The planner whose exact label, with the ``"priority"`` action type, is the zero score.
+#: The planner whose exact label, with the ``"priority"`` and ``"advice"`` action types, is the zero score.
 PRIORITY_PLANNER = "glide"
 
 
@@ -42,7 +44,7 @@ class PlannerExpert:
         ``"fullthrottle"``, a class spec ``file.py:Class``, a policy file...)
     :param vec_env: an SB3 VecEnv of intersection environments
     :param trust_files: passed to :func:`~envs.planners.make_planner`
-    :raises ValueError: with the ``"priority"`` action type, a planner other than ``glide`` (one line)
+    :raises ValueError: with the ``"priority"`` or ``"advice"`` action type, a planner other than ``glide`` (one line)
     """
 
     def __init__(self, spec: str, vec_env: Any, trust_files: bool = False) -> None:
@@ -65,7 +67,7 @@ class PlannerExpert:
 
         :param obs: the VecEnv's observation (unused: the scenes are read from the environments)
         :return: ``(n_envs, max_vehicles)`` float32 actions in ``[-1, 1]``, 0 in padded slots (with the
-            ``"priority"`` action type, glide's zero scores)
+            ``"priority"`` or ``"advice"`` action type, glide's zero scores)
         """
         if self.zero_scores:
             return np.zeros((self.vec_env.num_envs, self.max_nodes), dtype=np.float32)
@@ -91,10 +93,13 @@ class PlannerExpert:
 
 
 def _priority_expert(spec: str, configs: list[dict[str, Any]]) -> bool:
-    """Whether the environments take priority scores (then ``spec`` must be glide's word), or a ValueError."""
+    """Whether the environments take scores over glide's scheduler (then ``spec`` must be glide's word),
+    or a ValueError."""
     types = {(c.get("action") or {}).get("type", "acceleration") for c in configs}
-    if "priority" not in types:
+    scheduled = types & set(SCHEDULER_ACTION_TYPES)
+    if not scheduled:
         return False
+    kind = sorted(scheduled)[0]
     key = check_planner_spec(spec)
     shielded = key.endswith(SHIELD_SUFFIX)
     base = key[: -len(SHIELD_SUFFIX)] if shielded else key
@@ -102,7 +107,7 @@ def _priority_expert(spec: str, configs: list[dict[str, Any]]) -> bool:
     if len(types) > 1 or base != PRIORITY_PLANNER or (shielded and not shield):
         exact = f"{PRIORITY_PLANNER!r}" + (f" or '{PRIORITY_PLANNER}{SHIELD_SUFFIX}'" if shield else "")
         raise ValueError(
-            f"planner {spec!r} has no exact label for action type 'priority' (scores that shift glide's order): "
+            f"planner {spec!r} has no exact label for action type {kind!r} (scores over glide's scheduler): "
             f"only {exact} can be cloned there (zero scores); use action type 'acceleration' to clone {spec!r}"
         )
     return True

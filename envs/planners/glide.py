@@ -19,8 +19,10 @@ windows per conflict zone), with three changes:
   creeps just above the stop threshold on glide's advice: a stop, where one is still needed, is the
   shield's, which lets the vehicle go as soon as its gap is safe.
 
-The order can be shifted per vehicle (:meth:`GlidePlanner.set_priority`): the ``"priority"`` action
-type of the intersection environments lets a policy do so (a zero shift drives exactly as glide).
+The order can be shifted per vehicle (:meth:`GlidePlanner.set_priority`), and the advice window
+widened or narrowed per vehicle (:meth:`GlidePlanner.set_windows`): the ``"priority"`` and
+``"advice"`` action types of the intersection environments let a policy do so (a zero score drives
+exactly as glide).
 """
 
 from __future__ import annotations
@@ -81,10 +83,11 @@ class GlidePlanner(AIMPlanner):
     def __init__(self, name: str = "Glide", params: GlideParams | None = None, idm: IDMParams = DEFAULT_IDM) -> None:
         super().__init__(name, params if params is not None else GlideParams(), idm)
         self._shift: np.ndarray | None = None
+        self._windows: np.ndarray | None = None
 
     def reset(self, seed: int | None = None) -> None:
         super().reset(seed)
-        self._shift = None
+        self._shift = self._windows = None
 
     def set_priority(self, shift: np.ndarray | None) -> None:
         """Shift the order of the next :meth:`act` (then forgotten).
@@ -94,15 +97,26 @@ class GlidePlanner(AIMPlanner):
         """
         self._shift = None if shift is None else np.asarray(shift, dtype=float)
 
-    def schedule(self, scene: Scene, shift: np.ndarray) -> np.ndarray:
-        """Accelerations for ``scene`` with the order shifted by ``shift``, checked as a planner's
-        output (the environment's ``"action": {"type": "priority"}``, :mod:`envs.simulation.hooks`).
+    def set_windows(self, windows: np.ndarray | None) -> None:
+        """Set each vehicle's advice window for the next :meth:`act` (then forgotten).
+
+        :param windows: ``(n,)`` metres, >= 0: a vehicle follows its plan only this close to its line
+            (0: never, full throttle); ``None``: ``params.window`` for all (glide's own)
+        """
+        self._windows = None if windows is None else np.asarray(windows, dtype=float)
+
+    def schedule(self, scene: Scene, shift: np.ndarray | None = None, windows: np.ndarray | None = None) -> np.ndarray:
+        """Accelerations for ``scene`` with the order shifted by ``shift`` and the advice windows
+        ``windows``, checked as a planner's output (the environment's ``"action"`` types
+        ``"priority"`` and ``"advice"``, :mod:`envs.simulation.hooks`).
 
         :param scene: the scene now (not modified: :meth:`act` gets a copy)
         :param shift: see :meth:`set_priority`
+        :param windows: see :meth:`set_windows`
         :raises envs.planners.errors.PlannerError: an invalid output
         """
         self.set_priority(shift)
+        self.set_windows(windows)
         return checked_accelerations(self.act(scene.copy()), scene, self.name)
 
     # ------------------------------------------------------------------ order
@@ -143,19 +157,27 @@ class GlidePlanner(AIMPlanner):
 
     # ------------------------------------------------------------------ control
     def advice_window(self, scene: Scene) -> float | np.ndarray:
-        """How close to its line a vehicle follows its plan [m]: ``params.window`` (a subclass may set one
-        per vehicle, an ``(n,)`` array)."""
-        return self.params.window
+        """How close to its line a vehicle follows its plan [m]: :meth:`set_windows`' windows, else
+        ``params.window`` (a subclass may set one per vehicle, an ``(n,)`` array)."""
+        if self._windows is None:
+            return self.params.window
+        if self._windows.shape != (scene.num_vehicles,):
+            raise ValueError(
+                f"glide's advice windows must have one value per vehicle ({scene.num_vehicles}), "
+                f"got {self._windows.shape}"
+            )
+        return self._windows
 
     def act(self, scene: Scene) -> np.ndarray:
         if scene.num_vehicles == 0:
-            self._shift = None
+            self._shift = self._windows = None
             return np.zeros(0)
         plan = self.reserve(scene)
         planned = self.control(scene, plan)
         dist = scene.dist_to_entry
         slowed = plan.kind[plan.choice] != 0
-        advised = slowed & (dist > 0) & (scene.dist_to_exit > 0) & (dist <= self.advice_window(scene))
+        window, self._windows = self.advice_window(scene), None
+        advised = slowed & (dist > 0) & (scene.dist_to_exit > 0) & (dist <= window)
         # Never brake below the floor, nor hold a vehicle that is slower: a stop, if one is needed, is the shield's.
         keep_floor = np.clip((self.params.floor - scene.speed) / scene.dt, scene.a_min, scene.a_max)
         return np.where(advised, np.maximum(planned, keep_floor), scene.a_max)

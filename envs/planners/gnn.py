@@ -19,7 +19,7 @@ import numpy as np
 
 from envs.planners.base import Planner
 from envs.planners.loading import model_name
-from envs.simulation.config import RULES, action_config
+from envs.simulation.config import RULES, SCHEDULER_ACTION_TYPES, action_config
 from envs.simulation.graph import build_graph_batch, build_observation, num_node_features
 from envs.simulation.scene import Scene
 from sb3_graph.common.batching import concat_graph_batches
@@ -59,10 +59,11 @@ def check_planner_config(config: Any, source: str) -> dict[str, Any]:
         for a residual policy; ``vertex_features`` and ``edge_features``, the observation's feature
         names (the environment config's keys of the same names); ``action``, what the policy's action
         means (the environment config's key: ``{"type": "priority", "scale": 5.0}`` for a policy
-        that shifts glide's order, default accelerations)
+        that shifts glide's order, ``{"type": "advice", "scale": 64.0}`` for one that moves glide's
+        advice windows, default accelerations)
     :param source: what to name in errors (the file)
     :return: ``vertex_features`` and ``edge_features`` (tuples, default empty), plus ``residual_base``
-        and ``residual_scale`` for a residual policy, plus ``action`` (type and scale) for a priority policy
+        and ``residual_scale`` for a residual policy, plus ``action`` (type and scale) for a priority or advice policy
     :raises ValueError: an unknown key, base or feature name, or a scale outside ``(0, 2]`` (as the
         environment config's rules of the same keys)
     """
@@ -78,9 +79,9 @@ def check_planner_config(config: Any, source: str) -> dict[str, Any]:
             raise ValueError(f"{source}: planner config {key} must be {RULES[key].allowed}, got {values[key]!r}")
     checked: dict[str, Any] = {key: tuple(values[key]) for key in ("vertex_features", "edge_features")}
     action = action_config(values["action"])
-    if action["type"] == "priority":
+    if action["type"] in SCHEDULER_ACTION_TYPES:
         if values["residual_base"] is not None:
-            raise ValueError(f"{source}: planner config residual_base must be null for a priority policy")
+            raise ValueError(f"{source}: planner config residual_base must be null for a {action['type']} policy")
         checked["action"] = action
     if values["residual_base"] is None:
         return checked

@@ -42,10 +42,21 @@ MAX_SIMULATION_FREQUENCY = 1000
 # Base planners of a residual policy (``residual_base``): the policy's action corrects their command.
 RESIDUAL_BASES = ("fullthrottle", "aim", "fifo", "pr", "glide")
 # What the action means (``action``'s ``type``, highway-env's convention): one acceleration per
-# vehicle, or one priority score per vehicle that shifts the arrival order of glide's scheduler.
-ACTION_TYPES = ("acceleration", "priority")
+# vehicle, or one score per vehicle over glide's scheduler: a shift of its arrival order
+# (``"priority"``) or of the distance from its line within which it follows its slot (``"advice"``).
+ACTION_TYPES = ("acceleration", "priority", "advice")
+SCHEDULER_ACTION_TYPES = ACTION_TYPES[1:]
 # A priority score of +-1 shifts a vehicle's arrival key by this many seconds (``action``'s ``scale``).
 DEFAULT_PRIORITY_SCALE = 5.0
+# An advice score of +-1 moves a vehicle's advice window by this many metres (``action``'s ``scale``):
+# +1 advises it from 80 m, the 4-way's whole approach.
+DEFAULT_ADVICE_SCALE = 64.0
+# (An acceleration action ignores its scale; it keeps the priority default, as before advice existed.)
+DEFAULT_ACTION_SCALES = {
+    "acceleration": DEFAULT_PRIORITY_SCALE,
+    "priority": DEFAULT_PRIORITY_SCALE,
+    "advice": DEFAULT_ADVICE_SCALE,
+}
 MAX_PRIORITY_SCALE = 3600.0
 
 
@@ -139,7 +150,8 @@ def action_config(value: dict[str, Any] | None) -> dict[str, Any]:
     :param value: a checked ``action`` setting, or ``None`` (accelerations)
     """
     value = dict(value or {})
-    return {"type": value.get("type", ACTION_TYPES[0]), "scale": float(value.get("scale", DEFAULT_PRIORITY_SCALE))}
+    kind = value.get("type", ACTION_TYPES[0])
+    return {"type": kind, "scale": float(value.get("scale", DEFAULT_ACTION_SCALES[kind]))}
 
 
 def _human_share(x: Any) -> bool:
@@ -199,8 +211,9 @@ RULES: dict[str, Rule] = {
     "residual_scale": Rule(lambda x: _is_number(x) and 0 < x <= 2, "a number in (0, 2]"),
     "action": Rule(
         _action,
-        f"a dict {{'type': one of {list(ACTION_TYPES)}, 'scale': seconds in (0, {MAX_PRIORITY_SCALE:g}] "
-        f"(priority only, default {DEFAULT_PRIORITY_SCALE:g})}}",
+        f"a dict {{'type': one of {list(ACTION_TYPES)}, 'scale': a number in (0, {MAX_PRIORITY_SCALE:g}] "
+        f"(seconds for priority, default {DEFAULT_PRIORITY_SCALE:g}; metres for advice, "
+        f"default {DEFAULT_ADVICE_SCALE:g})}}",
     ),
     "collision_handling": Rule(lambda x: x in COLLISION_HANDLING, f"one of {COLLISION_HANDLING}"),
     "human_share": Rule(_human_share, HUMAN_SHARE_ALLOWED),
@@ -271,9 +284,10 @@ def validate_config(config: dict[str, Any], defaults: dict[str, Any]) -> dict[st
     merged["initial_speed_range"] = [float(v) for v in merged["initial_speed_range"]]
     if "action" in merged:
         merged["action"] = action_config(merged["action"])
-        if merged["action"]["type"] == "priority" and merged.get("residual_base") is not None:
+        kind = merged["action"]["type"]
+        if kind in SCHEDULER_ACTION_TYPES and merged.get("residual_base") is not None:
             raise ValueError(
-                "config key 'residual_base' must be null with action type 'priority' (the scores shift "
-                f"glide's order; there is no acceleration to correct), got {merged['residual_base']!r}"
+                f"config key 'residual_base' must be null with action type {kind!r} (the scores drive "
+                f"glide's scheduler; there is no acceleration to correct), got {merged['residual_base']!r}"
             )
     return merged

@@ -48,7 +48,7 @@ from highway_env.vehicle.graphics import VehicleGraphics
 from highway_env.vehicle.kinematics import Vehicle
 
 from envs.simulation import hooks
-from envs.simulation.config import validate_config
+from envs.simulation.config import SCHEDULER_ACTION_TYPES, validate_config
 from envs.simulation.engine import Simulation, StepEvents
 from envs.simulation.graph import DEFAULT_S_SCALE, NUM_RELATIONS, build_observation, min_mahalanobis, num_node_features
 from envs.simulation.layouts import Layout, build_layout
@@ -146,8 +146,12 @@ class CoopIntersectionEnv(AbstractEnv):
           vehicle in ``[-1, 1]`` that shifts the vehicle's arrival key in the order of glide's
           scheduler (:class:`envs.planners.glide.GlidePlanner`) by ``scale`` seconds per unit
           (default 5; lower goes earlier); the scheduler turns the order into approach profiles and
-          accelerations, behind the shield with ``shield``. A zero action drives exactly as
-          ``glide`` (``glide+shield`` with ``shield``) does in an evaluation. Needs ``residual_base`` null.
+          accelerations, behind the shield with ``shield``; or ``"advice"``: one score per vehicle in
+          ``[-1, 1]`` that moves the distance from its line within which glide advises the vehicle
+          (its ``window``, 16.3 m) by ``scale`` metres per unit (default 64: +1 is the 4-way's whole
+          approach; never below 0 m, where the vehicle drives at full throttle behind the shield).
+          With either, a zero action drives exactly as ``glide`` (``glide+shield`` with ``shield``)
+          does in an evaluation. Needs ``residual_base`` null.
         - ``collision_handling``: ``"terminate"`` (a collision ends the episode) or ``"remove"``
           (the vehicles involved leave the scene and the episode goes on)
         - ``human_share``: mixed traffic (issue 39): each training spawn is human-driven with this
@@ -298,7 +302,7 @@ class CoopIntersectionEnv(AbstractEnv):
             self._base = hooks.maker("residual_base")(cfg["residual_base"])
             self._base.reset(seed)
         self._scheduler = None
-        if cfg["action"]["type"] == "priority":
+        if cfg["action"]["type"] in SCHEDULER_ACTION_TYPES:
             self._scheduler = hooks.maker("priority")()
             self._scheduler.reset(seed)
         self._scene = self.sim.scene()
@@ -446,8 +450,13 @@ class CoopIntersectionEnv(AbstractEnv):
         return info
 
     def _scheduled(self, scores: np.ndarray) -> np.ndarray:
-        """Glide's accelerations with its order shifted by the priority scores (``action`` ``"priority"``)."""
-        return self._scheduler.schedule(self._scene, self.config["action"]["scale"] * scores)
+        """Glide's accelerations with its order shifted by the scores (``action`` ``"priority"``) or its
+        advice windows moved by them (``"advice"``, never below 0 m)."""
+        action = self.config["action"]
+        if action["type"] == "priority":
+            return self._scheduler.schedule(self._scene, shift=action["scale"] * scores)
+        windows = np.maximum(self._scheduler.params.window + action["scale"] * scores, 0.0)
+        return self._scheduler.schedule(self._scene, windows=windows)
 
     def _as_commanded(self, acc: np.ndarray) -> np.ndarray:
         """Accelerations as a planner's command reaches the simulation in an evaluation (through the
