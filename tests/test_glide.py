@@ -275,3 +275,20 @@ def test_every_algorithm_trains_on_scheduler_actions(algo, kind, tmp_path):
     else:
         glide.set_windows(np.maximum(glide.params.window + 4.0 * scores, 0.0))
     np.testing.assert_array_equal(inner.act(scene), glide.act(scene))
+
+
+def test_advice_once_given_holds_to_the_line():
+    """A vehicle within its window at one step stays advised when a later window shrinks (a policy
+    that flips between advice and full throttle would brake and accelerate in turn)."""
+    scene = conflict_scene(empty_env().unwrapped)
+    held, fresh = GlidePlanner(), GlidePlanner()
+    held.reset(0)
+    held.set_windows(np.full(3, np.inf))
+    first = held.act(scene.copy())
+    assert first[2] < scene.a_max  # advised over the whole approach
+    held.set_windows(np.zeros(3))  # "never": but the advice was given
+    fresh.reset(0)
+    fresh.act(scene.copy())
+    fresh.set_windows(np.zeros(3))
+    assert np.array_equal(held.act(scene.copy()), first)
+    assert np.array_equal(fresh.act(scene.copy()), np.full(3, scene.a_max))  # never advised: full throttle

@@ -84,10 +84,12 @@ class GlidePlanner(AIMPlanner):
         super().__init__(name, params if params is not None else GlideParams(), idm)
         self._shift: np.ndarray | None = None
         self._windows: np.ndarray | None = None
+        self._held = np.zeros(0, dtype=np.int64)
 
     def reset(self, seed: int | None = None) -> None:
         super().reset(seed)
         self._shift = self._windows = None
+        self._held = np.zeros(0, dtype=np.int64)
 
     def set_priority(self, shift: np.ndarray | None) -> None:
         """Shift the order of the next :meth:`act` (then forgotten).
@@ -99,6 +101,8 @@ class GlidePlanner(AIMPlanner):
 
     def set_windows(self, windows: np.ndarray | None) -> None:
         """Set each vehicle's advice window for the next :meth:`act` (then forgotten).
+
+        A vehicle that was once within its window stays advised until its line, whatever later windows say.
 
         :param windows: ``(n,)`` metres, >= 0: a vehicle follows its plan only this close to its line
             (0: never, full throttle); ``None``: ``params.window`` for all (glide's own)
@@ -177,7 +181,12 @@ class GlidePlanner(AIMPlanner):
         dist = scene.dist_to_entry
         slowed = plan.kind[plan.choice] != 0
         window, self._windows = self.advice_window(scene), None
-        advised = slowed & (dist > 0) & (scene.dist_to_exit > 0) & (dist <= window)
+        # Advice once given holds to the line: a window that shrinks between steps (a policy's) must not
+        # switch a vehicle between its slot's slow approach and full throttle. A fixed window changes
+        # nothing (a vehicle's distance to its line never grows).
+        within = (dist > 0) & ((dist <= window) | np.isin(scene.vehicle_id, self._held))
+        self._held = scene.vehicle_id[within]
+        advised = slowed & within & (scene.dist_to_exit > 0)
         # Never brake below the floor, nor hold a vehicle that is slower: a stop, if one is needed, is the shield's.
         keep_floor = np.clip((self.params.floor - scene.speed) / scene.dt, scene.a_min, scene.a_max)
         return np.where(advised, np.maximum(planned, keep_floor), scene.a_max)
