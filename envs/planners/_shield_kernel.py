@@ -466,3 +466,149 @@ def conflicts(
     for i in range(arc.shape[0]):
         stuck[i] = not ((speed[i] <= standing and not go[i]) or arc[i] > plan.hull_end[i])
     return bad_follow, bad_cross, bad_merge, stuck
+
+
+@numba.njit(cache=True)
+def pairs(
+    route: np.ndarray,
+    arc: np.ndarray,
+    speed: np.ndarray,
+    length: np.ndarray,
+    gap: np.ndarray,
+    leader: np.ndarray,
+    vehicle_id: np.ndarray,
+    hull_start: np.ndarray,
+    candidate: np.ndarray,
+    prune: bool,
+    conflicts: np.ndarray,
+    merging: np.ndarray,
+    parting: np.ndarray,
+    zone_start: np.ndarray,
+    zone_end: np.ndarray,
+    exit_arc: np.ndarray,
+    zone_margin: float,
+    merge_margin: float,
+    standing: float,
+    slack: float,
+) -> tuple[np.ndarray, ...]:
+    """The pairs of a scene that the shield checks (``Shield._plan``), in the order and with the
+    arithmetic of its former NumPy form, which built and scanned ``(n, n)`` arrays in about 40 calls.
+
+    :param route: ``(n,)`` route indices
+    :param arc: ``(n,)`` centre arcs [m]
+    :param speed: ``(n,)`` speeds [m/s]
+    :param length: ``(n,)`` lengths [m]
+    :param gap: ``(n,)`` bumper gaps to the leaders [m]
+    :param leader: ``(n,)`` leader rows (-1: none)
+    :param vehicle_id: ``(n,)`` ids
+    :param hull_start: ``(n,)`` centre arcs from which the bodies may touch a zone (padded) [m]
+    :param candidate: ``(n,)`` bool: may commit within the prediction (``Shield._may_commit``)
+    :param prune: leave out the conflicting pairs of non-candidates and crossing pairs one of which has
+        passed the zone
+    :param conflicts: ``(R, R)`` the layout's conflicting routes
+    :param merging: ``(R, R)`` those that merge
+    :param parting: ``(R, R)`` :func:`envs.simulation.layouts.parting_arcs`
+    :param zone_start: ``(R, R)`` the layout's zone starts
+    :param zone_end: ``(R, R)`` and ends
+    :param exit_arc: ``(R,)`` the routes' exit arcs
+    :param zone_margin: the shield's ``zone_margin``
+    :param merge_margin: the shield's ``merge_margin``
+    :param standing: speed below which a vehicle stands [m/s]
+    :param slack: the stopping slack [m]
+    :return: ``follow`` ``(k, 2)``, ``follow_gap`` ``(k,)``, ``cross`` ``(c, 2)``, ``cross_lo``,
+        ``cross_hi`` ``(c, 2)``, ``cross_already``, ``cross_back``, ``cross_stop`` ``(c,)``, ``merge``
+        ``(g, 2)``, ``merge_lo``, ``merge_exit`` ``(g, 2)``, ``merge_sep`` ``(g,)``, ``rank`` ``(n,)``
+        (the fields of :class:`envs.planners.shield._Plan`)
+    """
+    n = route.shape[0]
+    # Follow pairs: the leader, the leader's leader, the next vehicle ahead on the same route, and a
+    # vehicle ahead on another route from the same spawn lane until its rear has passed the parting arc.
+    by_arc = np.argsort(arc, kind="mergesort")  # by route, then arc, then row: np.lexsort((arc, route))
+    by_route = by_arc[np.argsort(route[by_arc], kind="mergesort")]
+    most = 2 * n + max(n - 1, 0) + n * n
+    follower, ahead, follow_gap = np.empty(most, np.int64), np.empty(most, np.int64), np.empty(most)
+    k = 0
+    for i in range(n):
+        if leader[i] >= 0:
+            follower[k], ahead[k], follow_gap[k] = i, leader[i], gap[i]
+            k += 1
+    for i in range(n):
+        lead = leader[i]
+        if lead >= 0 and leader[lead] >= 0:
+            follower[k], ahead[k] = i, leader[lead]
+            follow_gap[k] = gap[i] + length[lead] + gap[lead]
+            k += 1
+    for s in range(n - 1):
+        b, a = by_route[s], by_route[s + 1]
+        if route[b] == route[a]:
+            follower[k], ahead[k] = b, a
+            follow_gap[k] = arc[a] - arc[b] - (length[a] + length[b]) / 2
+            k += 1
+    for b in range(n):
+        for a in range(n):
+            span = arc[a] - arc[b] - (length[b] + length[a]) / 2
+            if span > 0 and arc[a] - length[a] / 2 < parting[route[a], route[b]]:
+                follower[k], ahead[k] = b, a
+                follow_gap[k] = arc[a] - arc[b] - (length[a] + length[b]) / 2
+                k += 1
+    follow = np.empty((k, 2), np.int64)
+    follow[:, 0], follow[:, 1] = follower[:k], ahead[:k]
+    # Conflicting pairs (i < j) among the candidates, split into crossing and merging ones.
+    c_all, g_all = 0, 0
+    for i in range(n):
+        if not candidate[i]:
+            continue
+        for j in range(i + 1, n):
+            if candidate[j] and conflicts[route[i], route[j]]:
+                if merging[route[i], route[j]]:
+                    g_all += 1
+                else:
+                    c_all += 1
+    cross, cross_lo, cross_hi = np.empty((c_all, 2), np.int64), np.empty((c_all, 2)), np.empty((c_all, 2))
+    merge, merge_lo, merge_exit = np.empty((g_all, 2), np.int64), np.empty((g_all, 2)), np.empty((g_all, 2))
+    merge_sep = np.empty(g_all)
+    c, g = 0, 0
+    for i in range(n):
+        if not candidate[i]:
+            continue
+        for j in range(i + 1, n):
+            if not (candidate[j] and conflicts[route[i], route[j]]):
+                continue
+            ri, rj = route[i], route[j]
+            if merging[ri, rj]:
+                merge[g, 0], merge[g, 1] = i, j
+                merge_lo[g, 0] = zone_start[ri, rj] - zone_margin - length[i] / 2
+                merge_lo[g, 1] = zone_start[rj, ri] - zone_margin - length[j] / 2
+                merge_exit[g, 0], merge_exit[g, 1] = exit_arc[ri], exit_arc[rj]
+                merge_sep[g] = (length[i] + length[j]) / 2 + merge_margin
+                g += 1
+                continue
+            lo_i = zone_start[ri, rj] - zone_margin - length[i] / 2
+            lo_j = zone_start[rj, ri] - zone_margin - length[j] / 2
+            hi_i = zone_end[ri, rj] + zone_margin + length[i] / 2
+            hi_j = zone_end[rj, ri] + zone_margin + length[j] / 2
+            if prune and not (arc[i] < hi_i and arc[j] < hi_j):  # one has passed the zone
+                continue
+            cross[c, 0], cross[c, 1] = i, j
+            cross_lo[c, 0], cross_lo[c, 1], cross_hi[c, 0], cross_hi[c, 1] = lo_i, lo_j, hi_i, hi_j
+            c += 1
+    cross, cross_lo, cross_hi = cross[:c], cross_lo[:c], cross_hi[:c]
+    # Both in the zone now, the one less far through (`back`) standing: it must not move past `stop`.
+    back, already, stop = np.zeros(c, np.int64), np.empty(c, np.bool_), np.empty(c)
+    for p in range(c):
+        i, j = cross[p, 0], cross[p, 1]
+        if _less_far(arc[j], cross_lo[p, 1], cross_hi[p, 1], vehicle_id[j], arc[i], cross_lo[p, 0], cross_hi[p, 0],
+                     vehicle_id[i]):  # fmt: skip
+            back[p] = 1
+        inside = cross_lo[p, 0] < arc[i] < cross_hi[p, 0] and cross_lo[p, 1] < arc[j] < cross_hi[p, 1]
+        x_back = arc[cross[p, back[p]]]
+        already[p] = inside and speed[cross[p, back[p]]] <= standing
+        stop[p] = x_back + slack
+    # A total order (farthest into the hull first, then the lowest id): np.lexsort((vehicle_id, hull_start - arc)).
+    by_id = np.argsort(vehicle_id, kind="mergesort")
+    order = by_id[np.argsort((hull_start - arc)[by_id], kind="mergesort")]
+    rank = np.empty(n, np.int64)
+    for s in range(n):
+        rank[order[s]] = s
+    return (follow, follow_gap[:k].copy(), cross, cross_lo, cross_hi, already, back, stop, merge, merge_lo,
+            merge_exit, merge_sep, rank)  # fmt: skip
