@@ -1,6 +1,7 @@
 """The shield's rules in NumPy: the oracle that the compiled kernels (``envs/planners/_shield_kernel.py``,
 the only implementation the shield runs) match bit for bit.
 
+:func:`plan_pairs_numpy` builds the pairs of ``Shield._plan`` (compiled: ``_shield_kernel.pairs``);
 :func:`fallback_numpy`, :func:`predict_numpy` and :func:`conflicts_numpy` compute what
 ``Shield._fallback``, ``Shield.predict`` and ``Shield._conflicts`` compute, from the same plan
 (``Shield._plan``): the prediction with :func:`envs.simulation.engine.integrate` itself, on a NumPy view
@@ -16,8 +17,9 @@ import weakref
 
 import numpy as np
 
-from envs.planners.shield import _STANDING, _STOP_SLACK, Shield, _Plan, envelope_table
+from envs.planners.shield import _STANDING, _STOP_SLACK, Shield, _merging_routes, _Plan, envelope_table
 from envs.simulation.engine import integrate
+from envs.simulation.layouts import parting_arcs
 from envs.simulation.scene import Scene
 
 
@@ -27,6 +29,76 @@ def can_stop_before(arc: np.ndarray, speed: np.ndarray, line: np.ndarray, a_max:
     A standing vehicle outside the line can always wait (the slack is for moving ones only).
     """
     return (arc <= line) & ((speed <= _STANDING) | (arc + speed**2 / (2 * a_max) + _STOP_SLACK <= line))
+
+
+def plan_pairs_numpy(shield: Shield, scene: Scene, plan: _Plan) -> dict[str, np.ndarray]:
+    """The pairs of ``Shield._plan`` and what it derives from them (the fields of :class:`_Plan` that
+    ``_shield_kernel.pairs`` returns), from the scene and the plan's hulls.
+
+    :return: field name -> array
+    """
+    lay, route, length = scene.layout, scene.route, scene.length
+    arc, speed, hull_start, m = plan.arc, plan.speed, plan.hull_start, shield.zone_margin
+    # Same path: the leader and the leader's leader; the next vehicle ahead on the same route; a
+    # vehicle ahead on another route from the same spawn lane until the centre lines part.
+    lead = scene.leader
+    rows = np.flatnonzero(lead >= 0)
+    second = rows[lead[lead[rows]] >= 0]
+    by_route = np.lexsort((arc, route))
+    same = route[by_route[:-1]] == route[by_route[1:]]
+    behind, ahead = by_route[:-1][same], by_route[1:][same]
+    span = arc[None, :] - arc[:, None] - (length[:, None] + length[None, :]) / 2  # [behind, ahead]
+    d_behind, d_ahead = np.nonzero(
+        (span > 0) & (arc[None, :] - length[None, :] / 2 < parting_arcs(lay)[route[None, :], route[:, None]])
+    )
+    behind, ahead = np.concatenate([behind, d_behind]), np.concatenate([ahead, d_ahead])
+    follow = np.stack(
+        [np.concatenate([rows, second, behind]), np.concatenate([lead[rows], lead[lead[second]], ahead])], axis=1
+    ).astype(np.int64)
+    follow_gap = np.concatenate(
+        [
+            scene.gap[rows],
+            scene.gap[second] + length[lead[second]] + scene.gap[lead[second]],
+            arc[ahead] - arc[behind] - (length[ahead] + length[behind]) / 2,
+        ]
+    )
+    # Conflicting routes, among the vehicles that may commit.
+    rows = np.flatnonzero(shield._may_commit(scene, arc, speed, hull_start)) if shield._prune else np.arange(len(arc))
+    i, j = np.nonzero(lay.conflicts[route[rows, None], route[None, rows]])
+    i, j = rows[i[i < j]], rows[j[i < j]]
+    is_merge = _merging_routes(lay)[route[i], route[j]]
+    pairs = np.stack([i, j], axis=1).astype(np.int64)
+    cross, merge = pairs[~is_merge], pairs[is_merge]
+    r = route[cross]
+    half = length[cross] / 2
+    cross_lo = lay.zone_start[r, r[:, ::-1]] - m - half
+    cross_hi = lay.zone_end[r, r[:, ::-1]] + m + half
+    if shield._prune:
+        ahead = (arc[cross] < cross_hi).all(axis=1)
+        cross, cross_lo, cross_hi = cross[ahead], cross_lo[ahead], cross_hi[ahead]
+    r = route[merge]
+    order = np.lexsort((scene.vehicle_id, hull_start - arc))
+    rank = np.empty(len(order), np.int64)
+    rank[order] = np.arange(len(order))
+    x0 = arc[cross]
+    less = less_far_through(x0, cross_lo, cross_hi, np.asarray(scene.vehicle_id)[cross])
+    back = less[:, 1].astype(np.int64)
+    pair = np.arange(len(back))
+    return {
+        "follow": follow,
+        "follow_gap": follow_gap,
+        "cross": cross,
+        "cross_lo": cross_lo,
+        "cross_hi": cross_hi,
+        "cross_already": ((x0 > cross_lo) & (x0 < cross_hi)).all(axis=1) & (speed[cross[pair, back]] <= _STANDING),
+        "cross_back": back,
+        "cross_stop": x0[pair, back] + _STOP_SLACK,
+        "merge": merge,
+        "merge_lo": lay.zone_start[r, r[:, ::-1]] - m - length[merge] / 2,
+        "merge_exit": lay.exit_arc[r],
+        "merge_sep": length[merge].sum(axis=1) / 2 + shield.merge_margin,
+        "rank": rank,
+    }
 
 
 def less_far_through(x: np.ndarray, lo: np.ndarray, hi: np.ndarray, ids: np.ndarray) -> np.ndarray:

@@ -171,6 +171,10 @@ def test_prediction_layout_is_bitwise_the_layout(layout):
 def _assert_prediction_is_numpy(shield: Shield, scene: Scene, command: np.ndarray) -> None:
     """The shield's compiled fallback, prediction and check are the oracle's (``tests/shield_reference.py``)."""
     plan = shield._plan(scene)
+    for name, expected in reference.plan_pairs_numpy(shield, scene, plan).items():
+        compiled = getattr(plan, name)
+        assert compiled.dtype == expected.dtype, name
+        np.testing.assert_array_equal(compiled, expected, err_msg=name)
     fallback = shield._fallback(scene, plan, plan.arc, plan.speed)
     np.testing.assert_array_equal(fallback, reference.fallback_numpy(shield, scene, plan, plan.arc, plan.speed))
     arc, speed = shield.predict(scene, plan, command)
