@@ -1,8 +1,9 @@
 """AIM's rules in NumPy: the oracle that the compiled kernels (``envs/planners/_aim_kernel.py``, the
 only implementation the planner runs) match bit for bit.
 
-:func:`candidates_numpy`, :func:`windows_numpy` and :func:`settle_numpy` take the arguments and
-return the results of ``_aim_kernel.candidates``, ``windows`` and ``settle``. :data:`REFERENCE` is
+:func:`candidates_numpy`, :func:`windows_numpy`, :func:`settle_numpy`, :func:`pairs_numpy` and
+:func:`zone_obstacle_numpy` take the arguments and return the results of ``_aim_kernel.candidates``,
+``windows``, ``settle``, ``pairs`` and ``zone_obstacle``. :data:`REFERENCE` is
 a stand-in for the kernel module: with ``envs.planners.aim._aim_kernel`` replaced by it (see
 :func:`reference_kernels`), :class:`~envs.planners.aim.AIMPlanner` runs these NumPy rules end to end.
 A change to a rule is made in the kernel; these functions change with it only if the test that
@@ -200,8 +201,63 @@ def settle_numpy(
     return choice
 
 
+def pairs_numpy(
+    route: np.ndarray, zone: np.ndarray, conflicts: np.ndarray, order: np.ndarray, human: np.ndarray, going: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The pairs that must not clash and their zone rows (the reference of :func:`envs.planners._aim_kernel.pairs`,
+    same parameters)."""
+    pair = conflicts[route[:, None], route[None, :]] & zone[:, route] & zone[:, route].T
+    pair &= order[None, :] < order[:, None]  # (i, j): j reserves before i
+    if human.any():  # a human's own plan is moot; one that the rules hold books nothing (it yields)
+        pair &= ~human[:, None] & ~(human & ~going)[None, :]
+    np.fill_diagonal(pair, False)
+    pi, pj = np.nonzero(pair)
+    zi, zq = np.nonzero(zone)
+    at = np.full(zone.shape, -1, np.int64)  # row of (i, q) in the zone windows
+    at[zi, zq] = np.arange(zi.size)
+    return pi, pj, at[pi, route[pj]], at[pj, route[pi]]
+
+
+def zone_obstacle_numpy(
+    route: np.ndarray,
+    arc: np.ndarray,
+    length: np.ndarray,
+    dist_to_exit: np.ndarray,
+    zone_start: np.ndarray,
+    zone_end: np.ndarray,
+    zone: np.ndarray,
+    zone_enter: np.ndarray,
+    zone_leave: np.ndarray,
+    base: np.ndarray,
+    choice: np.ndarray,
+    jam_distance: float,
+) -> np.ndarray:
+    """:func:`envs.planners.aim.zone_obstacle` of the chosen plans (the reference of
+    :func:`envs.planners._aim_kernel.zone_obstacle`, same parameters)."""
+    zi, zq = np.nonzero(zone)
+    chosen = []
+    for windows in (zone_enter, zone_leave):  # Reservations.chosen()
+        full = np.repeat(base[np.arange(choice.size), choice][:, None], zone.shape[1], axis=1)
+        full[zi, zq] = windows[np.arange(zi.size), choice[zi]]
+        chosen.append(full)
+    enter, until = chosen[0][:, route], chosen[1][:, route].T
+    front, rear = arc + length / 2, arc - length / 2
+    start, end = zone_start[route[:, None], route[None, :]], zone_end[route[:, None], route[None, :]]
+    occupies = (front[:, None] >= start) & (rear[:, None] <= end)  # (j, i): j's body in its zone with i
+    to_zone = start - front[:, None]  # (i, j): metres from i's front to its zone with j
+    blocking = occupies.T & (to_zone > 0) & ~(enter >= until) & (dist_to_exit > 0)[:, None]
+    gap = np.where(blocking, to_zone, np.inf).min(axis=1)
+    return np.where(np.isfinite(gap), gap + jam_distance, np.inf)
+
+
 #: Stand-in for ``envs.planners._aim_kernel``: the NumPy rules under the kernels' names.
-REFERENCE = SimpleNamespace(candidates=candidates_numpy, windows=windows_numpy, settle=settle_numpy)
+REFERENCE = SimpleNamespace(
+    candidates=candidates_numpy,
+    windows=windows_numpy,
+    settle=settle_numpy,
+    pairs=pairs_numpy,
+    zone_obstacle=zone_obstacle_numpy,
+)
 
 
 @contextlib.contextmanager

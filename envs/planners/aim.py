@@ -292,7 +292,6 @@ class AIMPlanner(Planner):
         z_start, z_end = lay.zone_start[route], lay.zone_end[route]  # (n, R)
         zone = approaching[:, None] & np.isfinite(z_start) & (z_end + L[:, None] - ref[:, None] > 0)
         zi, zq = np.nonzero(zone)
-        k = zi.size
         d_in = np.maximum(z_start[zi, zq] - ref[zi], 0.0)
         d_out = z_end[zi, zq] + L[zi] - ref[zi]
         zone_enter, zone_leave, base, score = _aim_kernel.windows(
@@ -307,22 +306,17 @@ class AIMPlanner(Planner):
         keys = self.order_keys(scene, keys)
         order = np.empty(n, np.int64)
         order[np.lexsort((scene.vehicle_id, keys, np.where(going, -np.inf, since)))] = np.arange(n)
-        pair = lay.conflicts[route[:, None], route[None, :]] & zone[:, route] & zone[:, route].T
-        pair &= order[None, :] < order[:, None]  # (i, j): j reserves before i
-        if human.any():  # a human's own plan is moot; one that the rules hold books nothing (it yields)
-            pair &= ~human[:, None] & ~(human & ~going)[None, :]
-        np.fill_diagonal(pair, False)
-        # Only the pairs that must not clash: i, j, and the rows of i's zone with j and j's zone with i.
-        pi, pj = np.nonzero(pair)
-        at = np.full(zone.shape, -1, np.int64)  # row of (i, q) in the zone windows
-        at[zi, zq] = np.arange(k)
+        # Only the pairs that must not clash (conflicting routes, both still before their zones with
+        # each other, j reserving before i; a human's own plan is moot, and one that the rules hold
+        # books nothing): i, j, and the rows of i's zone with j and j's zone with i (compiled).
+        pi, pj, row_i, row_j = _aim_kernel.pairs(route, zone, lay.conflicts, order, human, going)
         leader = scene.leader
         follows = (leader >= 0) & before & before[np.maximum(leader, 0)]  # both still before the line
         # Without a clash-free plan: wait longest if it can stop, else arrive as late as it can.
         latest_go = np.where(feasible & (kind != 2)[None, :], arrival, -np.inf).argmax(axis=1)
         fallback = np.where(can_stop, arrival.shape[1] - 1, latest_go)
         choice = _aim_kernel.settle(
-            p.passes, pi, pj, at[pi, route[pj]], at[pj, route[pi]], zone_enter, zone_leave, p.buffer,
+            p.passes, pi, pj, row_i, row_j, zone_enter, zone_leave, p.buffer,
             arrival, feasible, score, fallback, follows, np.maximum(leader, 0), p.follow_headway,
         )  # fmt: skip
         return Reservations(
@@ -423,8 +417,11 @@ class AIMPlanner(Planner):
         # vehicle must not enter (zone_guard), plain car following (follow_leaders).
         leader = scene.leader
         leader_speed = np.where(leader >= 0, scene.speed[np.maximum(leader, 0)], 0.0)
-        chosen_enter, chosen_leave = plan.chosen()  # (n, R)
-        obstacle = zone_obstacle(scene, chosen_enter[:, scene.route], chosen_leave[:, scene.route].T, self.idm)
+        # zone_obstacle(scene, enter[:, route], leave[:, route].T) of the chosen plans (plan.chosen()), compiled
+        obstacle = _aim_kernel.zone_obstacle(
+            scene.route, scene.arc, scene.length, scene.dist_to_exit, scene.layout.zone_start, scene.layout.zone_end,
+            plan.zone, plan.zone_enter, plan.zone_leave, plan.base, plan.choice, self.idm.jam_distance,
+        )  # fmt: skip
         to_stop = np.maximum(dist, 0.0) + self.idm.jam_distance  # stop_line_acceleration(scene, 0.0, idm)
         to_stop_target = np.where(dist <= 0.5, 0.0, scene.speed_limit)  # ... with its settle = 0.5
         far = np.full(n, 1e3)
