@@ -108,10 +108,14 @@ def _integrate(
     substeps: int,
     h: float,
     max_speed: float,
+    caps: np.ndarray,
 ) -> None:
     """One policy period of :func:`envs.simulation.engine.integrate`, written into ``arcs`` and ``speeds``.
 
-    Vehicles are independent in the model, so each runs its sub-steps on its own.
+    Vehicles are independent in the model. A vehicle's sub-steps form one chain of dependent
+    divisions and square roots (the envelope look-ups), so the loop runs sub-step by sub-step over
+    all vehicles, not vehicle by vehicle: the processor then overlaps the chains of several vehicles.
+    Each vehicle sees the same operations in the same order either way.
 
     :param table: the governor's envelope
     :param route: ``(n,)`` route indices
@@ -123,28 +127,31 @@ def _integrate(
     :param substeps: sub-steps per period
     :param h: sub-step length [s]
     :param max_speed: speed cap [m/s]
+    :param caps: ``(n,)`` scratch: each vehicle's envelope at its last arc
     """
-    for i in range(route.shape[0]):
-        r = route[i]
-        v0, x0 = speeds[row, i], arcs[row, i]
-        if v0 == 0.0 and acc[i] < 0.0:
-            # Standing and braking: every sub-step below gives v = 0 and x = x0 + 0.0 (the envelope,
-            # never below 0, cannot cap a speed of 0), so the look-ups are skipped, bitwise alike.
-            for k in range(substeps):
-                speeds[row + k + 1, i], arcs[row + k + 1, i] = 0.0, x0 + 0.0
-            continue
-        cap_now = _envelope(table, r, x0)
-        for k in range(substeps):
+    n = route.shape[0]
+    for i in range(n):
+        if not (speeds[row, i] == 0.0 and acc[i] < 0.0):
+            caps[i] = _envelope(table, route[i], arcs[row, i])
+    for k in range(substeps):
+        src, dst = row + k, row + k + 1
+        for i in range(n):
+            if speeds[row, i] == 0.0 and acc[i] < 0.0:
+                # Standing and braking: every sub-step gives v = 0 and x = x0 + 0.0 (the envelope,
+                # never below 0, cannot cap a speed of 0), so the look-ups are skipped, bitwise alike.
+                speeds[dst, i], arcs[dst, i] = 0.0, arcs[row, i] + 0.0
+                continue
+            v0, x0 = speeds[src, i], arcs[src, i]
             v = min(max(v0 + acc[i] * h, 0.0), max_speed)
             x = x0 + 0.5 * (v0 + v) * h
-            cap_x = _envelope(table, r, x)
-            cap = min(cap_now, cap_x)
+            cap_x = _envelope(table, route[i], x)
+            cap = min(caps[i], cap_x)
             if v > cap:  # the governor: the sub-step ends at the envelope, looked up again there
                 v = cap
                 x = x0 + 0.5 * (v0 + v) * h
-                cap_x = _envelope(table, r, x)
-            speeds[row + k + 1, i], arcs[row + k + 1, i] = v, x
-            v0, x0, cap_now = v, x, cap_x
+                cap_x = _envelope(table, route[i], x)
+            speeds[dst, i], arcs[dst, i] = v, x
+            caps[i] = cap_x
 
 
 @numba.njit(cache=True)
@@ -411,10 +418,10 @@ def predict(
     """
     n = plan.route.shape[0]
     acc = command.copy()
-    go, hold = np.zeros(n, np.bool_), np.zeros(n, np.bool_)
+    go, hold, caps = np.zeros(n, np.bool_), np.zeros(n, np.bool_), np.empty(n)
     row = 0
     for _ in range(steps):
-        _integrate(table, plan.route, acc, arcs, speeds, row, substeps, h, max_speed)
+        _integrate(table, plan.route, acc, arcs, speeds, row, substeps, h, max_speed, caps)
         row += substeps
         if _all_committed(plan, arcs[row], speeds[row], go, a_max, standing, slack):
             break  # everyone stands before its zones or has left them: the fallback keeps it so
