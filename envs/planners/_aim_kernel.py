@@ -19,7 +19,8 @@ recorded scenes, and :func:`settle` on random inputs):
 
 - :func:`candidates`: ``candidates_numpy`` (with :func:`envs.planners.vehicle_model.earliest_arrival`),
 - :func:`windows`: ``windows_numpy`` (with :func:`envs.planners.idm.travel_time`),
-- :func:`settle`: ``settle_numpy``.
+- :func:`settle`: ``settle_numpy``,
+- :func:`pairs`: ``pairs_numpy``; :func:`zone_obstacle`: ``zone_obstacle_numpy``.
 
 ``cache=True`` stores the machine code next to this file (or in numba's cache directory), so only
 the first process compiles it.

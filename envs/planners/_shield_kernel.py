@@ -23,6 +23,7 @@ NumPy form (no ``fastmath``, so no reassociation or fused multiply-add), so that
   (with ``yielding``, ``leaders_now`` and ``safe_gap_after``),
 - :func:`predict`: the reference's ``predict_numpy``; :func:`fallback`: ``fallback_numpy``,
 - :func:`conflicts`: ``conflicts_numpy``, the check of a prediction (its blame stays in NumPy).
+- :func:`pairs`: ``plan_pairs_numpy``, the pairs that ``Shield._plan`` checks.
 
 The first call compiles the kernels (about 6 s on the loaded 2-core development machine);
 ``cache=True`` stores the machine code next to this file (``__pycache__``, or numba's cache
