@@ -1,5 +1,6 @@
 """The GNN planners shipped with the package load (weights only) and act on every layout: the default
-(a residual policy trained behind the shield) and the paper's planner retrained under the fair physics."""
+(an advice policy over glide, trained behind the shield), the residual policy that was the default
+before it, and the paper's planner retrained under the fair physics."""
 
 import gymnasium as gym
 import numpy as np
@@ -8,9 +9,11 @@ import torch as th
 import yaml
 
 import envs  # noqa: F401 - registers the environments
-from envs.commands.evaluate import DEFAULT_MODEL, PAPER_MODEL
+from envs.commands.evaluate import DEFAULT_MODEL, PAPER_MODEL, RESIDUAL_MODEL
 from envs.planners import make_planner
+from envs.planners.glide import GlidePlanner
 from envs.planners.gnn import planner_config_of
+from envs.planners.priority import PriorityPlanner
 from envs.planners.residual import ResidualPlanner
 from sb3_graph import TD3
 from sb3_graph.files.policy_files import read_weights_file
@@ -18,7 +21,7 @@ from sb3_graph.files.policy_files import read_weights_file
 SHIPPED_ZIP = PAPER_MODEL.with_suffix(".zip")
 
 
-@pytest.mark.parametrize("model", [DEFAULT_MODEL, PAPER_MODEL], ids=["default", "paper"])
+@pytest.mark.parametrize("model", [DEFAULT_MODEL, RESIDUAL_MODEL, PAPER_MODEL], ids=["default", "residual", "paper"])
 def test_shipped_model_comes_with_its_run_record(model):
     folder = model.parent
     assert model.is_file() and model.suffix == ".safetensors"
@@ -28,19 +31,55 @@ def test_shipped_model_comes_with_its_run_record(model):
     assert "/" not in (folder / "run.json").read_text().split('"command": "')[1].split()[0]  # no machine path
 
 
-def test_default_model_is_the_residual_policy_of_its_training_config():
-    """The header carries what the environment did around the policy in training (its config.yml),
-    so that `--planner FILE` builds the same residual planner over the same observation."""
+def test_default_model_is_the_advice_policy_of_its_training_config():
+    """The header carries what the environment did around the policy in training (its config.yml):
+    the action type and scale, and the features, so that `--planner FILE` builds the same planner."""
     config = yaml.safe_load((DEFAULT_MODEL.parent / "config.yml").read_text())["env_kwargs"]["config"]
     header = planner_config_of(DEFAULT_MODEL)
+    assert config["shield"] is True and config["action"] == {"type": "advice", "scale": 64.0}
+    for key in ("action", "vertex_features", "edge_features"):
+        assert header[key] == config[key], key
+
+
+@pytest.mark.parametrize("env_id", ["CoopIntersection4Way-v0", "CoopIntersection3Way-v0", "CoopIntersectionInD-v0"])
+def test_default_model_moves_glides_windows_on_every_layout(env_id):
+    """The shipped scores run over glide: some vehicle's window differs from glide's 16.3 m, so the
+    commands differ from glide's somewhere, and every command is a valid acceleration."""
+    planner = make_planner(str(DEFAULT_MODEL))
+    assert isinstance(planner, PriorityPlanner) and planner.kind == "advice" and planner.scale == 64.0
+    glide = GlidePlanner()
+    env = gym.make(env_id, config={"spawn_probability": 0.07})
+    env.reset(seed=0)
+    moved = differs = 0
+    for _ in range(100):
+        scene = env.unwrapped.scene()
+        scores = np.asarray(planner.scores.act(scene), float) / scene.a_max
+        moved += int(np.sum(np.abs(scores) > 0.05))
+        acc = planner.act(scene)
+        differs += int(np.sum(acc != glide.act(scene)))
+        n = scene.num_vehicles
+        assert acc.shape == (n,) and np.isfinite(acc).all()
+        assert np.all(acc >= scene.a_min) and np.all(acc <= scene.a_max)
+        _, _, terminated, truncated, _ = env.step(np.append(acc / scene.a_max, np.zeros(env.action_space.shape[0] - n)))
+        if terminated or truncated:
+            env.reset()
+            planner.reset()
+            glide.reset()
+    assert moved > 0 and differs > 0
+
+
+def test_residual_model_is_the_residual_policy_of_its_training_config():
+    """The former default's header carries its residual base and features (its config.yml)."""
+    config = yaml.safe_load((RESIDUAL_MODEL.parent / "config.yml").read_text())["env_kwargs"]["config"]
+    header = planner_config_of(RESIDUAL_MODEL)
     assert config["shield"] is True
     for key in ("residual_base", "residual_scale", "vertex_features", "edge_features"):
         assert header[key] == config[key], key
 
 
 @pytest.mark.parametrize("env_id", ["CoopIntersection4Way-v0", "CoopIntersection3Way-v0", "CoopIntersectionInD-v0"])
-def test_default_model_acts_on_every_layout_and_corrects_its_base(env_id):
-    planner = make_planner(str(DEFAULT_MODEL))
+def test_residual_model_acts_on_every_layout_and_corrects_its_base(env_id):
+    planner = make_planner(str(RESIDUAL_MODEL))
     assert isinstance(planner, ResidualPlanner) and planner.base.name == "FullThrottle"
     env = gym.make(env_id, config={"spawn_probability": 0.07})
     env.reset(seed=0)

@@ -58,8 +58,11 @@ from sb3_graph.commands.arguments import finite_float, json_object, seed_value
 MAX_SCENARIOS = 10_000
 DEFAULT_ENV = "CoopIntersection4Way-v0"
 # The GNN planner shipped with the package (trained by `sb3-graph train` behind the shield, see its
-# README.md), in the weights-only format (`sb3-graph export`, with its residual base in the header).
-DEFAULT_MODEL = Path(__file__).resolve().parents[1] / "pretrained" / "coop_4way_residual" / "best_model.safetensors"
+# README.md), in the weights-only format (`sb3-graph export`, with its action type in the header):
+# scores that set glide's advice window per vehicle.
+DEFAULT_MODEL = Path(__file__).resolve().parents[1] / "pretrained" / "coop_4way_advice" / "best_model.safetensors"
+# The default before it, kept for comparison: a residual over full throttle (it ties full throttle + shield).
+RESIDUAL_MODEL = DEFAULT_MODEL.parents[1] / "coop_4way_residual" / "best_model.safetensors"
 # The paper's planner retrained under the fair benchmark's physics (shipped before the residual
 # one, with its training checkpoint best_model.zip beside it).
 PAPER_MODEL = DEFAULT_MODEL.parents[1] / "coop_4way_fair" / "best_model.safetensors"

@@ -3,9 +3,9 @@
 Examples::
 
     sb3-graph record --seed 3 --duration 30 --out gnn.gif   # the shipped planner behind the shield
-    sb3-graph record --planner aim --planner envs/pretrained/coop_4way_residual/best_model.safetensors+shield \\
+    sb3-graph record --planner aim --planner envs/pretrained/coop_4way_advice/best_model.safetensors+shield \\
         --seed 3 --duration 30 --out aim_vs_gnn.gif          # side by side, the same scenario
-    sb3-graph record --planner gnn=envs/pretrained/coop_4way_residual/best_model.safetensors+shield \\
+    sb3-graph record --planner gnn=envs/pretrained/coop_4way_advice/best_model.safetensors+shield \\
         --seed 3 --out gnn.html                              # labelled: the panel's title is "gnn"
     sb3-graph record --report reports/main100 --run 33 --planner aim --out aim_run33.mp4
 
@@ -41,7 +41,7 @@ from sb3_graph.commands.arguments import finite_float, json_object
 
 DEFAULT_DURATION = 30.0
 # The planner recorded when neither --planner nor --report is given: the shipped GNN planner behind the shield.
-_SHIPPED = "coop_4way_residual/best_model.safetensors"
+_SHIPPED = "coop_4way_advice/best_model.safetensors"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
