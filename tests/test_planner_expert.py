@@ -76,6 +76,31 @@ def test_train_pretrain_from_aim_runs_end_to_end(tmp_path):
     assert record["num_timesteps"] == 40 and (out / "final_model.zip").is_file()
 
 
+def test_the_shipped_advice_recipe_clones_trains_and_exports_end_to_end(tmp_path):
+    """zoo_configs/td3_advice.yml (the shipped planner's recipe) for a few hundred steps: cloning glide,
+    RL, then the export with the config's action type and features, which runs as an advice planner."""
+    import yaml
+
+    from envs.planners.priority import PriorityPlanner
+
+    out = tmp_path / "run"
+    status = main(
+        ["train", "--config", str(ROOT / "zoo_configs" / "td3_advice.yml"), "--env", ENV_ID, "--out", str(out),
+         "--n-timesteps", "200", "--eval-freq", "200", "--eval-episodes", "1", "--no-progress",
+         "--hyperparams", "pretrain_transitions:40", "pretrain_steps:8", "learning_starts:64", "batch_size:16",
+         "buffer_size:1000", "n_envs:2", "--env-kwargs", json.dumps({"config": {"duration": 6.0}})]
+    )  # fmt: skip
+    assert status == 0
+    record = json.loads((out / "run.json").read_text())
+    assert record["pretrain"]["from"] == "glide" and record["num_timesteps"] == 200
+    config = yaml.safe_load((out / "config.yml").read_text())["env_kwargs"]["config"]
+    header = {key: config[key] for key in ("action", "vertex_features", "edge_features")}
+    target = tmp_path / "advice.safetensors"
+    assert main(["export", str(out / "final_model.zip"), str(target), "--planner-config", json.dumps(header)]) == 0
+    planner = make_planner(f"{target}+shield").planner
+    assert isinstance(planner, PriorityPlanner) and planner.kind == "advice" and planner.scale == 64.0
+
+
 def test_train_pretrain_from_an_unknown_planner_is_one_line(tmp_path, capsys):
     status = main(
         ["train", "--config", str(ROOT / "zoo_configs" / "td3.yml"), "--env", ENV_ID, "--out", str(tmp_path / "r"),

@@ -115,3 +115,22 @@ def test_the_compact_verdict_names_each_leader_and_whether_it_is_clear():
     ])  # fmt: skip
     assert compact_verdict(paired) == "flow: A (clear), delay: PR (no clear lead), stops: tie"
     assert compact_verdict(paired.iloc[:0]) == "no verdict (a single planner)"
+
+
+def test_a_planner_whose_vehicles_collided_cannot_lead_and_is_named():
+    paired = _paired([
+        ("Crasher", "Glide", "flow_rate", 10, 0.010, 0.002, 0.020),
+        ("Crasher", "Glide", "delay_mean", 10, -3.0, -4.0, -2.0),
+        ("Crasher", "Glide", "stop_ratio_all", 10, -0.40, -0.45, -0.35),
+        ("Safe", "Glide", "flow_rate", 10, -0.003, -0.010, 0.005),
+        ("Safe", "Glide", "delay_mean", 10, 0.35, 0.04, 0.64),
+        ("Safe", "Glide", "stop_ratio_all", 10, -0.096, -0.12, -0.07),
+    ])  # fmt: skip
+    lines = verdict_lines(paired, collided={"Crasher": 2439, "Safe": 0, "Glide": 0})
+    assert _line(lines, "stops").startswith("- stops: **Safe** leads by 9.6 pp over Glide")
+    assert _line(lines, "flow").startswith("- flow: **Glide** leads by 0.003 veh/s over Safe")
+    assert lines[-1] == "- not in the lead, as their vehicles collided: Crasher (2,439 vehicles)"
+    assert "Crasher" not in "".join(lines[:-1])
+    alone = verdict_lines(paired[paired["planner"] == "Crasher"], collided={"Crasher": 5})  # no one else
+    assert _line(alone, "flow").startswith("- flow: **Crasher** leads")
+    assert alone[-1] == "- every planner compared with Glide collided: Crasher (5 vehicles)"

@@ -415,7 +415,10 @@ def report_verdict(runs: pd.DataFrame, paired: pd.DataFrame) -> list[str]:
     """
     table, kind = reference_comparison(runs, paired)
     means = reference_means(runs, table, list(VERDICT_METRICS))
-    return verdict_lines(table, reference_means=means, reference_kind=kind, level=f"{100 * CONFIDENCE:.0f} %")
+    collided = runs.groupby("planner")["collided"].sum().to_dict() if "collided" in runs else None
+    return verdict_lines(
+        table, reference_means=means, reference_kind=kind, level=f"{100 * CONFIDENCE:.0f} %", collided=collided
+    )
 
 
 def write_report(

@@ -174,6 +174,7 @@ def verdict_lines(
     reference_means: Mapping[str, float] | None = None,
     reference_kind: str = "the strongest baseline",
     level: str = "95 %",
+    collided: Mapping[str, int] | None = None,
 ) -> list[str]:
     """The verdict section of a report: a heading, one sentence, one line per metric.
 
@@ -182,12 +183,17 @@ def verdict_lines(
     :param reference_means: the reference's mean per metric (``metrics.csv`` units), for relative differences
     :param reference_kind: what the reference is, for the sentence
     :param level: the intervals' confidence, as text
+    :param collided: collided vehicles per planner; a planner other than the reference with any cannot
+        lead (a planner that crashes cars buys its flow, delay and stops with them), and a last line names them
     :return: Markdown lines (without a trailing empty line); a one-line "no verdict" when ``paired`` is empty
     """
     metrics = VERDICT_METRICS if metrics is None else metrics
     if paired is None or paired.empty:
         return [HEADING, "", "No verdict: a single planner ran (nothing to compare it with)."]
     reference = str(paired["baseline"].iloc[0])
+    unsafe = {p: int(n) for p, n in (collided or {}).items() if n > 0 and p != reference}
+    if unsafe and not paired["planner"].isin(list(unsafe)).all():
+        paired = paired[~paired["planner"].isin(list(unsafe))]
     lines = [
         HEADING,
         "",
@@ -200,6 +206,11 @@ def verdict_lines(
         if not rows.empty:
             mean = None if reference_means is None else reference_means.get(column)
             lines.append(metric_verdict(rows, metric, mean, level))
+    crashed = ", ".join(f"{p} ({n:,} vehicles)" for p, n in unsafe.items())
+    if unsafe and not paired["planner"].isin(list(unsafe)).any():
+        lines.append(f"- not in the lead, as their vehicles collided: {crashed}")
+    elif unsafe:  # every planner but the reference collided: the lead is among them, and says so
+        lines.append(f"- every planner compared with {reference} collided: {crashed}")
     return lines
 
 
