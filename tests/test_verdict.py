@@ -131,6 +131,9 @@ def test_a_planner_whose_vehicles_collided_cannot_lead_and_is_named():
     assert _line(lines, "flow").startswith("- flow: **Glide** leads by 0.003 veh/s over Safe")
     assert lines[-1] == "- not in the lead, as their vehicles collided: Crasher (2,439 vehicles)"
     assert "Crasher" not in "".join(lines[:-1])
+    assert compact_verdict(paired, collided={"Crasher": 2439}) == (
+        "flow: Glide (no clear lead), delay: Glide (clear), stops: Safe (clear), not in the lead (collided): Crasher"
+    )
     alone = verdict_lines(paired[paired["planner"] == "Crasher"], collided={"Crasher": 5})  # no one else
     assert _line(alone, "flow").startswith("- flow: **Crasher** leads")
     assert alone[-1] == "- every planner compared with Glide collided: Crasher (5 vehicles)"

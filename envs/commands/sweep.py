@@ -163,7 +163,12 @@ def print_level_verdicts(out, demand: Sequence[float], axis: str = "demand") -> 
     for level in demand:
         path = out / level_folder(level, axis) / "paired.csv"
         paired = pd.read_csv(path) if path.is_file() and path.stat().st_size else pd.DataFrame()
-        print(f"  {level_name(axis, level)}: {compact_verdict(paired)}")
+        runs = out / level_folder(level, axis) / "metrics.csv"
+        collided = None
+        if runs.is_file() and not paired.empty:
+            rows = pd.read_csv(runs, usecols=lambda c: c in ("planner", "collided"))
+            collided = rows.groupby("planner")["collided"].sum().to_dict() if "collided" in rows else None
+        print(f"  {level_name(axis, level)}: {compact_verdict(paired, collided=collided)}")
     return 0
 
 

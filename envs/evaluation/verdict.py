@@ -146,15 +146,36 @@ def metric_verdict(
     return f"- {metric.word}: {text}; {detail} over {found.pairs} scenarios; {judgement}"
 
 
-def compact_verdict(paired: pd.DataFrame, metrics: Mapping[str, VerdictMetric] | None = None) -> str:
+def without_collided(
+    paired: pd.DataFrame, collided: Mapping[str, int] | None
+) -> tuple[pd.DataFrame, dict[str, int]]:
+    """The paired rows of the planners that may lead: none whose vehicles collided, unless every
+    planner compared with the reference did (then all stay, and the caller says so).
+
+    :param paired: a non-empty paired table (one reference)
+    :param collided: collided vehicles per planner (``None``: all may lead)
+    :return: ``(rows, {planner: collided vehicles})`` of the planners other than the reference that collided
+    """
+    reference = str(paired["baseline"].iloc[0])
+    unsafe = {p: int(n) for p, n in (collided or {}).items() if n > 0 and p != reference}
+    if unsafe and not paired["planner"].isin(list(unsafe)).all():
+        paired = paired[~paired["planner"].isin(list(unsafe))]
+    return paired, unsafe
+
+
+def compact_verdict(
+    paired: pd.DataFrame, metrics: Mapping[str, VerdictMetric] | None = None, collided: Mapping[str, int] | None = None
+) -> str:
     """The verdict in one line, e.g. ``"flow: AIM (clear), delay: AIM (clear), stops: tie"`` (a sweep's level).
 
     :param paired: :func:`envs.evaluation.comparison.paired_differences` output
     :param metrics: the metrics that enter (default :data:`VERDICT_METRICS`)
+    :param collided: collided vehicles per planner: as in :func:`verdict_lines`, those cannot lead
     :return: the line; ``"no verdict (a single planner)"`` for an empty table
     """
     if paired is None or paired.empty:
         return "no verdict (a single planner)"
+    paired, unsafe = without_collided(paired, collided)
     parts = []
     for column, metric in (VERDICT_METRICS if metrics is None else metrics).items():
         rows = paired[paired["metric"] == column]
@@ -165,6 +186,8 @@ def compact_verdict(paired: pd.DataFrame, metrics: Mapping[str, VerdictMetric] |
             parts.append(f"{metric.word}: {'tie' if found.tie else 'n/a'}")
         else:
             parts.append(f"{metric.word}: {found.leader} ({'clear' if found.clear else 'no clear lead'})")
+    if unsafe and not paired["planner"].isin(list(unsafe)).any():
+        parts.append(f"not in the lead (collided): {', '.join(unsafe)}")
     return ", ".join(parts)
 
 
@@ -191,9 +214,7 @@ def verdict_lines(
     if paired is None or paired.empty:
         return [HEADING, "", "No verdict: a single planner ran (nothing to compare it with)."]
     reference = str(paired["baseline"].iloc[0])
-    unsafe = {p: int(n) for p, n in (collided or {}).items() if n > 0 and p != reference}
-    if unsafe and not paired["planner"].isin(list(unsafe)).all():
-        paired = paired[~paired["planner"].isin(list(unsafe))]
+    paired, unsafe = without_collided(paired, collided)
     lines = [
         HEADING,
         "",

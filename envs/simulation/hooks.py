@@ -1,7 +1,7 @@
 """What a floor asks from the floors above it, by name: the planners that the environment trains
 with, and the client of a planner server.
 
-The environment's ``shield``, ``residual_base`` and ``"action": {"type": "priority"}`` keys run a
+The environment's ``shield``, ``residual_base`` and ``"action"`` (``"priority"``, ``"advice"``) keys run a
 planner inside :meth:`envs.simulation.env.CoopIntersectionEnv.step`. Planners live above the simulation
 (:mod:`envs.planners` imports it), so the environment does not build them: it asks this registry for
 a maker by name. :mod:`envs.planners` registers its makers when imported; ``envs/__init__.py`` names
@@ -14,8 +14,8 @@ Makers (name -> what it is called with -> what it returns):
 - ``"residual_base"``: ``(name)`` -> the base planner of a residual policy (``reset(seed)``, ``act(scene)``),
 - ``"human"``: ``()`` -> the human driver model of mixed traffic (``act(scene)`` -> accelerations of
   every row; the environment applies those of the human-driven rows),
-- ``"priority"``: ``()`` -> the arrival-time scheduler (``reset(seed)``, ``schedule(scene, shift)`` ->
-  checked accelerations).
+- ``"priority"``: ``()`` -> the arrival-time scheduler of the ``"priority"`` and ``"advice"`` action
+  types (``reset(seed)``, ``params.window``, ``schedule(scene, shift=..., windows=...)`` -> checked accelerations).
 
 Planner words ``http://HOST:PORT`` (:mod:`envs.planners.loading`) name a planner server, whose client
 lives above the planners (:mod:`envs.serve.client` registers these; ``envs/__init__.py`` names it):
