@@ -61,7 +61,7 @@ DEFAULT_ENV = "CoopIntersection4Way-v0"
 # README.md), in the weights-only format (`sb3-graph export`, with its action type in the header):
 # scores that set glide's advice window per vehicle.
 DEFAULT_MODEL = Path(__file__).resolve().parents[1] / "pretrained" / "coop_4way_advice" / "best_model.safetensors"
-# The default before it, kept for comparison: a residual over full throttle (it ties full throttle + shield).
+# Shipped for comparison: a residual over full throttle (it ties full throttle + shield).
 RESIDUAL_MODEL = DEFAULT_MODEL.parents[1] / "coop_4way_residual" / "best_model.safetensors"
 # The paper's planner retrained under the fair benchmark's physics (shipped before the residual
 # one, with its training checkpoint best_model.zip beside it).
