@@ -14,11 +14,13 @@ from __future__ import annotations
 
 import contextlib
 from collections.abc import Iterator
+from dataclasses import replace
 from types import SimpleNamespace
 
 import numpy as np
 
-from envs.planners.idm import travel_time
+from envs.planners.aim import Reservations, zone_obstacle
+from envs.planners.idm import DEFAULT_IDM, travel_time
 from envs.planners.vehicle_model import earliest_arrival
 
 
@@ -232,22 +234,14 @@ def zone_obstacle_numpy(
     choice: np.ndarray,
     jam_distance: float,
 ) -> np.ndarray:
-    """:func:`envs.planners.aim.zone_obstacle` of the chosen plans (the reference of
-    :func:`envs.planners._aim_kernel.zone_obstacle`, same parameters)."""
-    zi, zq = np.nonzero(zone)
-    chosen = []
-    for windows in (zone_enter, zone_leave):  # Reservations.chosen()
-        full = np.repeat(base[np.arange(choice.size), choice][:, None], zone.shape[1], axis=1)
-        full[zi, zq] = windows[np.arange(zi.size), choice[zi]]
-        chosen.append(full)
-    enter, until = chosen[0][:, route], chosen[1][:, route].T
-    front, rear = arc + length / 2, arc - length / 2
-    start, end = zone_start[route[:, None], route[None, :]], zone_end[route[:, None], route[None, :]]
-    occupies = (front[:, None] >= start) & (rear[:, None] <= end)  # (j, i): j's body in its zone with i
-    to_zone = start - front[:, None]  # (i, j): metres from i's front to its zone with j
-    blocking = occupies.T & (to_zone > 0) & ~(enter >= until) & (dist_to_exit > 0)[:, None]
-    gap = np.where(blocking, to_zone, np.inf).min(axis=1)
-    return np.where(np.isfinite(gap), gap + jam_distance, np.inf)
+    """:func:`envs.planners.aim.zone_obstacle` of :meth:`envs.planners.aim.Reservations.chosen` (the reference of
+    :func:`envs.planners._aim_kernel.zone_obstacle`, same parameters): the NumPy code itself, fed the arrays."""
+    plan = SimpleNamespace(zone=zone, zone_enter=zone_enter, zone_leave=zone_leave, base=base, choice=choice)
+    enter, leave = Reservations.chosen(plan)
+    layout = SimpleNamespace(zone_start=zone_start, zone_end=zone_end)
+    scene = SimpleNamespace(layout=layout, route=route, arc=arc, length=length, dist_to_exit=dist_to_exit)
+    idm = replace(DEFAULT_IDM, jam_distance=jam_distance)
+    return zone_obstacle(scene, enter[:, route], leave[:, route].T, idm)
 
 
 #: Stand-in for ``envs.planners._aim_kernel``: the NumPy rules under the kernels' names.
