@@ -345,22 +345,6 @@ def leaders(plan: PlanArrays, arc: np.ndarray, go: np.ndarray) -> tuple[np.ndarr
 
 
 @numba.njit(cache=True)
-def behind(x: np.ndarray, lo: np.ndarray, hi: np.ndarray, vid: np.ndarray) -> np.ndarray:
-    """``(c,)`` int64 over crossing pairs: the column (0 or 1) of the one less far through the pair's zone.
-
-    :param x: ``(c, 2)`` centre arcs
-    :param lo: ``(c, 2)`` where each one's occupancy of the zone starts
-    :param hi: ``(c, 2)`` and ends
-    :param vid: ``(c, 2)`` vehicle ids
-    """
-    out = np.zeros(x.shape[0], np.int64)
-    for p in range(x.shape[0]):
-        if _less_far(x[p, 1], lo[p, 1], hi[p, 1], vid[p, 1], x[p, 0], lo[p, 0], hi[p, 0], vid[p, 0]):
-            out[p] = 1
-    return out
-
-
-@numba.njit(cache=True)
 def fallback(
     plan: PlanArrays,
     arc: np.ndarray,
@@ -554,27 +538,17 @@ def pairs(
             k += 1
     for b in range(n):
         for a in range(n):
-            span = arc[a] - arc[b] - (length[b] + length[a]) / 2
+            span = arc[a] - arc[b] - (length[a] + length[b]) / 2
             if span > 0 and arc[a] - length[a] / 2 < parting[route[a], route[b]]:
-                follower[k], ahead[k] = b, a
-                follow_gap[k] = arc[a] - arc[b] - (length[a] + length[b]) / 2
+                follower[k], ahead[k], follow_gap[k] = b, a, span
                 k += 1
     follow = np.empty((k, 2), np.int64)
     follow[:, 0], follow[:, 1] = follower[:k], ahead[:k]
     # Conflicting pairs (i < j) among the candidates, split into crossing and merging ones.
-    c_all, g_all = 0, 0
-    for i in range(n):
-        if not candidate[i]:
-            continue
-        for j in range(i + 1, n):
-            if candidate[j] and conflicts[route[i], route[j]]:
-                if merging[route[i], route[j]]:
-                    g_all += 1
-                else:
-                    c_all += 1
-    cross, cross_lo, cross_hi = np.empty((c_all, 2), np.int64), np.empty((c_all, 2)), np.empty((c_all, 2))
-    merge, merge_lo, merge_exit = np.empty((g_all, 2), np.int64), np.empty((g_all, 2)), np.empty((g_all, 2))
-    merge_sep = np.empty(g_all)
+    most = n * (n - 1) // 2
+    cross, cross_lo, cross_hi = np.empty((most, 2), np.int64), np.empty((most, 2)), np.empty((most, 2))
+    merge, merge_lo, merge_exit = np.empty((most, 2), np.int64), np.empty((most, 2)), np.empty((most, 2))
+    merge_sep = np.empty(most)
     c, g = 0, 0
     for i in range(n):
         if not candidate[i]:
@@ -600,7 +574,7 @@ def pairs(
             cross[c, 0], cross[c, 1] = i, j
             cross_lo[c, 0], cross_lo[c, 1], cross_hi[c, 0], cross_hi[c, 1] = lo_i, lo_j, hi_i, hi_j
             c += 1
-    cross, cross_lo, cross_hi = cross[:c], cross_lo[:c], cross_hi[:c]
+    cross, cross_lo, cross_hi = cross[:c].copy(), cross_lo[:c].copy(), cross_hi[:c].copy()
     # Both in the zone now, the one less far through (`back`) standing: it must not move past `stop`.
     back, already, stop = np.zeros(c, np.int64), np.empty(c, np.bool_), np.empty(c)
     for p in range(c):
@@ -618,5 +592,5 @@ def pairs(
     rank = np.empty(n, np.int64)
     for s in range(n):
         rank[order[s]] = s
-    return (follow, follow_gap[:k].copy(), cross, cross_lo, cross_hi, already, back, stop, merge, merge_lo,
-            merge_exit, merge_sep, rank)  # fmt: skip
+    return (follow, follow_gap[:k].copy(), cross, cross_lo, cross_hi, already, back, stop, merge[:g].copy(),
+            merge_lo[:g].copy(), merge_exit[:g].copy(), merge_sep[:g].copy(), rank)  # fmt: skip
