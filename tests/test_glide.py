@@ -272,7 +272,7 @@ def test_every_algorithm_trains_on_scheduler_actions(algo, kind, tmp_path):
     glide = GlidePlanner()
     if kind == "priority":
         glide.set_priority(4.0 * scores)
-    else:
+    else:  # the window moved by the scaled score, never below 0 m (set_scores written out)
         glide.set_windows(np.maximum(glide.params.window + 4.0 * scores, 0.0))
     np.testing.assert_array_equal(inner.act(scene), glide.act(scene))
 

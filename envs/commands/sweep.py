@@ -156,7 +156,7 @@ def print_level_verdicts(out, demand: Sequence[float], axis: str = "demand") -> 
     import pandas as pd
 
     from envs.evaluation.sweep import level_folder
-    from envs.evaluation.verdict import compact_verdict
+    from envs.evaluation.verdict import collided_by_planner, compact_verdict
 
     what = "demand level" if axis == "demand" else "human share"
     print(f"Who leads at each {what}, against its strongest baseline (each level's report.md: by how much):")
@@ -166,8 +166,7 @@ def print_level_verdicts(out, demand: Sequence[float], axis: str = "demand") -> 
         runs = out / level_folder(level, axis) / "metrics.csv"
         collided = None
         if runs.is_file() and not paired.empty:
-            rows = pd.read_csv(runs, usecols=lambda c: c in ("planner", "collided"))
-            collided = rows.groupby("planner")["collided"].sum().to_dict() if "collided" in rows else None
+            collided = collided_by_planner(pd.read_csv(runs, usecols=lambda c: c in ("planner", "collided")))
         print(f"  {level_name(axis, level)}: {compact_verdict(paired, collided=collided)}")
     return 0
 

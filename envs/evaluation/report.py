@@ -35,6 +35,7 @@ from envs.evaluation.comparison import CONFIDENCE, PAIRED_METRICS, paired_differ
 from envs.evaluation.metrics import PRIORITIES, SPEED_TOLERANCE, stop_counts, summarize  # noqa: E402
 from envs.evaluation.verdict import (  # noqa: E402
     VERDICT_METRICS,
+    collided_by_planner,
     reference_comparison,
     reference_means,
     verdict_lines,
@@ -415,9 +416,12 @@ def report_verdict(runs: pd.DataFrame, paired: pd.DataFrame) -> list[str]:
     """
     table, kind = reference_comparison(runs, paired)
     means = reference_means(runs, table, list(VERDICT_METRICS))
-    collided = runs.groupby("planner")["collided"].sum().to_dict() if "collided" in runs else None
     return verdict_lines(
-        table, reference_means=means, reference_kind=kind, level=f"{100 * CONFIDENCE:.0f} %", collided=collided
+        table,
+        reference_means=means,
+        reference_kind=kind,
+        level=f"{100 * CONFIDENCE:.0f} %",
+        collided=collided_by_planner(runs),
     )
 
 

@@ -148,19 +148,25 @@ def metric_verdict(
 
 def without_collided(
     paired: pd.DataFrame, collided: Mapping[str, int] | None
-) -> tuple[pd.DataFrame, dict[str, int]]:
+) -> tuple[pd.DataFrame, dict[str, int], bool]:
     """The paired rows of the planners that may lead: none whose vehicles collided, unless every
     planner compared with the reference did (then all stay, and the caller says so).
 
     :param paired: a non-empty paired table (one reference)
     :param collided: collided vehicles per planner (``None``: all may lead)
-    :return: ``(rows, {planner: collided vehicles})`` of the planners other than the reference that collided
+    :return: ``(rows, {planner: collided vehicles} of the planners other than the reference that collided,
+        whether those were left out)``
     """
     reference = str(paired["baseline"].iloc[0])
     unsafe = {p: int(n) for p, n in (collided or {}).items() if n > 0 and p != reference}
-    if unsafe and not paired["planner"].isin(list(unsafe)).all():
-        paired = paired[~paired["planner"].isin(list(unsafe))]
-    return paired, unsafe
+    crashed = paired["planner"].isin(list(unsafe))
+    left_out = bool(unsafe) and not crashed.all()
+    return (paired[~crashed] if left_out else paired), unsafe, left_out
+
+
+def collided_by_planner(runs: pd.DataFrame) -> dict[str, int] | None:
+    """Collided vehicles per planner over ``metrics.csv`` rows (``None`` without the column)."""
+    return runs.groupby("planner")["collided"].sum().to_dict() if "collided" in runs else None
 
 
 def compact_verdict(
@@ -175,7 +181,7 @@ def compact_verdict(
     """
     if paired is None or paired.empty:
         return "no verdict (a single planner)"
-    paired, unsafe = without_collided(paired, collided)
+    paired, unsafe, left_out = without_collided(paired, collided)
     parts = []
     for column, metric in (VERDICT_METRICS if metrics is None else metrics).items():
         rows = paired[paired["metric"] == column]
@@ -186,7 +192,7 @@ def compact_verdict(
             parts.append(f"{metric.word}: {'tie' if found.tie else 'n/a'}")
         else:
             parts.append(f"{metric.word}: {found.leader} ({'clear' if found.clear else 'no clear lead'})")
-    if unsafe and not paired["planner"].isin(list(unsafe)).any():
+    if left_out:
         parts.append(f"not in the lead (collided): {', '.join(unsafe)}")
     return ", ".join(parts)
 
@@ -214,7 +220,7 @@ def verdict_lines(
     if paired is None or paired.empty:
         return [HEADING, "", "No verdict: a single planner ran (nothing to compare it with)."]
     reference = str(paired["baseline"].iloc[0])
-    paired, unsafe = without_collided(paired, collided)
+    paired, unsafe, left_out = without_collided(paired, collided)
     lines = [
         HEADING,
         "",
@@ -228,7 +234,7 @@ def verdict_lines(
             mean = None if reference_means is None else reference_means.get(column)
             lines.append(metric_verdict(rows, metric, mean, level))
     crashed = ", ".join(f"{p} ({n:,} vehicles)" for p, n in unsafe.items())
-    if unsafe and not paired["planner"].isin(list(unsafe)).any():
+    if left_out:
         lines.append(f"- not in the lead, as their vehicles collided: {crashed}")
     elif unsafe:  # every planner but the reference collided: the lead is among them, and says so
         lines.append(f"- every planner compared with {reference} collided: {crashed}")

@@ -109,18 +109,28 @@ class GlidePlanner(AIMPlanner):
         """
         self._windows = None if windows is None else np.asarray(windows, dtype=float)
 
-    def schedule(self, scene: Scene, shift: np.ndarray | None = None, windows: np.ndarray | None = None) -> np.ndarray:
-        """Accelerations for ``scene`` with the order shifted by ``shift`` and the advice windows
-        ``windows``, checked as a planner's output (the environment's ``"action"`` types
-        ``"priority"`` and ``"advice"``, :mod:`envs.simulation.hooks`).
+    def set_scores(self, kind: str, offsets: np.ndarray) -> None:
+        """Apply a scheduling policy's scores, scaled, to the next :meth:`act`.
+
+        :param kind: ``"priority"``: ``offsets`` shift the order (:meth:`set_priority`, seconds);
+            ``"advice"``: they move glide's window (:meth:`set_windows` of ``window + offsets``, never below 0 m)
+        :param offsets: ``(n,)`` scores times the action's ``scale``
+        """
+        if kind == "priority":
+            self.set_priority(offsets)
+        else:
+            self.set_windows(np.maximum(self.params.window + offsets, 0.0))
+
+    def schedule(self, scene: Scene, kind: str, offsets: np.ndarray) -> np.ndarray:
+        """Accelerations for ``scene`` under the scores (:meth:`set_scores`), checked as a planner's
+        output (the environment's ``"action"`` types ``"priority"`` and ``"advice"``, :mod:`envs.simulation.hooks`).
 
         :param scene: the scene now (not modified: :meth:`act` gets a copy)
-        :param shift: see :meth:`set_priority`
-        :param windows: see :meth:`set_windows`
+        :param kind: ``"priority"`` or ``"advice"``
+        :param offsets: see :meth:`set_scores`
         :raises envs.planners.errors.PlannerError: an invalid output
         """
-        self.set_priority(shift)
-        self.set_windows(windows)
+        self.set_scores(kind, offsets)
         return checked_accelerations(self.act(scene.copy()), scene, self.name)
 
     # ------------------------------------------------------------------ order

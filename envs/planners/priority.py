@@ -58,8 +58,5 @@ class PriorityPlanner(Planner):
     def act(self, scene: Scene) -> np.ndarray:
         n = scene.num_vehicles
         score = np.clip(np.asarray(self.scores.act(scene), dtype=float).reshape(n) / scene.a_max, -1.0, 1.0)
-        if self.kind == "priority":
-            self.scheduler.set_priority(self.scale * score)
-        else:  # as the environment's advice action (envs.simulation.env)
-            self.scheduler.set_windows(np.maximum(self.scheduler.params.window + self.scale * score, 0.0))
+        self.scheduler.set_scores(self.kind, self.scale * score)  # as the environment's action does
         return self.scheduler.act(scene)

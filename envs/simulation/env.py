@@ -453,10 +453,7 @@ class CoopIntersectionEnv(AbstractEnv):
         """Glide's accelerations with its order shifted by the scores (``action`` ``"priority"``) or its
         advice windows moved by them (``"advice"``, never below 0 m)."""
         action = self.config["action"]
-        if action["type"] == "priority":
-            return self._scheduler.schedule(self._scene, shift=action["scale"] * scores)
-        windows = np.maximum(self._scheduler.params.window + action["scale"] * scores, 0.0)
-        return self._scheduler.schedule(self._scene, windows=windows)
+        return self._scheduler.schedule(self._scene, action["type"], action["scale"] * scores)
 
     def _as_commanded(self, acc: np.ndarray) -> np.ndarray:
         """Accelerations as a planner's command reaches the simulation in an evaluation (through the

@@ -15,7 +15,7 @@ Makers (name -> what it is called with -> what it returns):
 - ``"human"``: ``()`` -> the human driver model of mixed traffic (``act(scene)`` -> accelerations of
   every row; the environment applies those of the human-driven rows),
 - ``"priority"``: ``()`` -> the arrival-time scheduler of the ``"priority"`` and ``"advice"`` action
-  types (``reset(seed)``, ``params.window``, ``schedule(scene, shift=..., windows=...)`` -> checked accelerations).
+  types (``reset(seed)``, ``schedule(scene, kind, offsets)`` -> checked accelerations).
 
 Planner words ``http://HOST:PORT`` (:mod:`envs.planners.loading`) name a planner server, whose client
 lives above the planners (:mod:`envs.serve.client` registers these; ``envs/__init__.py`` names it):
