@@ -103,5 +103,5 @@ def test_the_planners_register_what_the_environment_asks_for():
 
     assert hooks.maker("shield") is training_shield
     assert hooks.maker("residual_base") is envs.planners.make_residual_base
-    assert hooks.maker("priority") is envs.planners.GlidePlanner
+    assert hooks.maker("priority") is envs.planners.glide.glide_scheduler
     assert hooks.maker("remote_planner") is make_remote_planner

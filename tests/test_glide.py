@@ -3,6 +3,7 @@ over its scheduler."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import gymnasium as gym
@@ -12,7 +13,8 @@ import pytest
 import envs  # noqa: F401  (registers the environments)
 from envs.evaluation.harness import evaluation_env_kwargs, planned_accelerations
 from envs.planners import make_planner
-from envs.planners.glide import GlideParams, GlidePlanner
+from envs.planners.glide import GLIDE_VERSIONS, GUARDED, GlideParams, GlidePlanner, glide_scheduler
+from envs.planners.gnn import check_planner_config
 from envs.planners.shield import Shield
 from envs.simulation.traffic import generate_scenario
 
@@ -92,9 +94,9 @@ def test_a_window_per_vehicle_equal_to_glides_drives_as_glide_and_zero_as_full_t
     env = empty_env()
     base = env.unwrapped
     platoon_and_minor(base)
-    glide, same = make_planner("glide"), _WindowPerVehicle(lambda scene: np.full(scene.num_vehicles, 16.3))
+    window = GlideParams().window
+    glide, same = make_planner("glide+shield").planner, _WindowPerVehicle(lambda s: np.full(s.num_vehicles, window))
     none, forgets = GlidePlanner(), GlidePlanner()
-    assert GlideParams().window == 16.3
     for planner in (glide, same, none, forgets):
         planner.reset(0)
     slowed = 0
@@ -203,10 +205,10 @@ def test_scheduler_actions_refuse_a_residual_base(kind):
 
 def test_advice_scores_move_each_vehicles_window():
     """``"advice"``: -1 takes a vehicle out of glide's advice (full throttle), +1 advises it from
-    ``16.3 + scale`` metres; the window of a vehicle is its own, and the default scale is 64 m."""
+    ``window + scale`` metres; the window of a vehicle is its own, and the default scale is 64 m."""
     env = empty_env(action={"type": "advice"}, shield=False)
     base = env.unwrapped
-    assert base.config["action"] == {"type": "advice", "scale": 64.0}
+    assert base.config["action"] == {"type": "advice", "scale": 64.0, "glide": "first_phase"}
     scene = conflict_scene(base)  # the minor-road vehicle 40 m out must yield to the major-road pair
     glide = GlidePlanner()
     glide.reset(0)
@@ -220,16 +222,75 @@ def test_advice_scores_move_each_vehicles_window():
     conflict_scene(other)
     scores = np.zeros(base.action_space.shape, np.float32)
     other.step(scores)  # glide's own windows: nobody advised
-    scores[2] = 1.0  # 80.3 m for the minor-road vehicle alone
+    scores[2] = 1.0  # window + 64 m for the minor-road vehicle alone
     base.step(scores)
     slowed, same = base.scene().speed, other.scene().speed
     assert slowed[2] < same[2] and np.array_equal(slowed[:2], same[:2])
 
 
-@pytest.mark.parametrize("field, value", [("window", -1.0), ("floor", float("nan")), ("platoon_gap", "2")])
+@pytest.mark.parametrize(
+    "field, value",
+    [
+        ("window", -1.0),
+        ("floor", float("nan")),
+        ("floor", float("inf")),
+        ("platoon_gap", "2"),
+        ("decel", -3.0),
+        ("stop_penalty", float("nan")),
+        ("follow_headway", True),
+        ("control", "idm"),
+    ],
+)
 def test_bad_glide_parameter_names_the_field(field, value):
-    with pytest.raises(ValueError, match=field):
+    with pytest.raises(ValueError, match=f"^glide's {field} must be") as error:
         GlideParams(**{field: value})
+    assert "\n" not in str(error.value)
+
+
+def test_glide_window_may_be_infinite():
+    assert GlideParams(window=float("inf")).window == float("inf")
+
+
+def test_first_phase_control_has_no_car_following_and_guarded_has():
+    """Behind the shield glide commands its plan's first phase alone: the gaps to the leaders do not change
+    it (the shield keeps them). The guarded control (glide without the shield) caps it by IDM car following."""
+    scene = conflict_scene(empty_env().unwrapped)
+    close = dataclasses.replace(scene, gap=np.full_like(scene.gap, 0.5))
+    for control, follows in (("first_phase", False), ("guarded", True)):
+        planner = GlidePlanner(params=GlideParams(window=float("inf"), control=control))
+        plan = planner.reserve(scene.copy())
+        command = planner.first_phase if control == "first_phase" else planner.control
+        same = np.array_equal(command(scene, plan), command(close, plan))
+        assert same != follows, control
+
+
+def test_glide_without_the_shield_keeps_its_guard():
+    assert make_planner("glide").params == GUARDED
+    assert make_planner("glide+shield").planner.params == GlideParams()
+    assert GlideParams().control == "first_phase"
+
+
+@pytest.mark.parametrize(
+    "action, version",
+    [
+        ({"type": "advice", "scale": 64.0}, "guarded"),  # written before glide had versions
+        ({"type": "advice", "scale": 64.0, "glide": "first_phase"}, "first_phase"),
+        ({"type": "priority", "glide": "guarded"}, "guarded"),
+    ],
+)
+def test_policy_files_run_over_the_glide_they_were_trained_over(action, version):
+    config = check_planner_config({"action": action}, "policy.safetensors")
+    assert config["action"]["glide"] == version
+    assert glide_scheduler(version).params == GLIDE_VERSIONS[version]
+
+
+def test_environment_builds_the_named_glide_and_refuses_an_unknown_one():
+    env = empty_env(action={"type": "advice", "glide": "guarded"})
+    assert env.unwrapped._scheduler.params == GUARDED
+    with pytest.raises(ValueError, match="config key 'action'.*'glide': one of"):
+        gym.make("CoopIntersection4Way-v0", config={"action": {"type": "advice", "glide": "v0"}})
+    with pytest.raises(ValueError, match="glide version must be one of"):
+        glide_scheduler("v0")
 
 
 @pytest.mark.parametrize(

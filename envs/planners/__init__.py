@@ -16,13 +16,14 @@ residual policy (its header's planner configuration names a ``residual_base``) i
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 from envs.planners.adversarial import FullThrottle
 from envs.planners.aim import AIMPlanner
 from envs.planners.base import Planner
 from envs.planners.fifo import FIFOPlanner
-from envs.planners.glide import GlidePlanner
+from envs.planners.glide import GUARDED, GlidePlanner, glide_scheduler
 from envs.planners.human import HumanDriver
 from envs.planners.loading import (
     check_remote_spec,
@@ -35,6 +36,7 @@ from envs.planners.loading import (
     model_name,
     remote_planner_name,
 )
+from envs.planners.lookahead import LookaheadPlanner
 from envs.planners.priority import PriorityPlanner
 from envs.planners.priority_rules import PriorityRulesPlanner
 from envs.planners.residual import ResidualPlanner
@@ -49,7 +51,10 @@ BASELINES: dict[str, type[Planner]] = {
     "signal": SignalPlanner,
     "fullthrottle": FullThrottle,
     "glide": GlidePlanner,
+    "lookahead": LookaheadPlanner,
 }
+# Without the shield, glide keeps IDM car following and AIM's zone guard on its advice (nothing else keeps a gap).
+UNSHIELDED: dict[str, Callable[[], Planner]] = {"glide": lambda: GlidePlanner(params=GUARDED)}
 # Report names of the built-in planners.
 BASELINE_NAMES = {
     "pr": "PR",
@@ -58,6 +63,7 @@ BASELINE_NAMES = {
     "signal": "SIGNAL",
     "fullthrottle": "FullThrottle",
     "glide": "Glide",
+    "lookahead": "Lookahead",
 }
 # A planner word ending in this is the planner wrapped in the safety shield.
 SHIELD_SUFFIX = "+shield"
@@ -116,9 +122,11 @@ def make_planner(spec: str, trust_files: bool = False) -> Planner:
         inner = key[: -len(SHIELD_SUFFIX)]
         if is_remote_spec(inner):  # its misses get the shield's fallback
             return make_remote_planner(inner, shielded=True)
+        if inner in BASELINES:
+            return Shield(BASELINES[inner]())
         return Shield(make_planner(inner, trust_files=trust_files))
     if key in BASELINES:
-        return BASELINES[key]()
+        return UNSHIELDED.get(key, BASELINES[key])()
     if is_remote_spec(key):
         return make_remote_planner(key)
     if is_class_spec(key):
@@ -129,7 +137,8 @@ def make_planner(spec: str, trust_files: bool = False) -> Planner:
     config = planner.planner_config  # checked at load
     if "action" in config:  # a scheduling policy: its scores shift glide's order or its advice windows
         action = config["action"]
-        return PriorityPlanner(GlidePlanner(), planner, action["scale"], name=planner.name, kind=action["type"])
+        scheduler = glide_scheduler(action["glide"])
+        return PriorityPlanner(scheduler, planner, action["scale"], name=planner.name, kind=action["type"])
     if config.get("residual_base") is None:
         return planner
     base = make_residual_base(config["residual_base"])
@@ -168,7 +177,7 @@ def planner_name(spec: str) -> str:
 # What the environments train with (envs.simulation.hooks): the planners live on this floor.
 hooks.register("shield", training_shield)
 hooks.register("residual_base", make_residual_base)
-hooks.register("priority", GlidePlanner)
+hooks.register("priority", glide_scheduler)
 hooks.register("human", HumanDriver)
 
 __all__ = [

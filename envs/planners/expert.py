@@ -16,9 +16,13 @@ accelerations into the environment's action:
 With the environment's ``action`` type ``"priority"`` or ``"advice"`` an action is a score per vehicle
 that shifts the arrival order of glide's scheduler or moves its advice window, not an acceleration.
 ``glide`` is the one planner with an exact score: zero for every vehicle (the environment then drives
-exactly as ``glide``, shielded with ``shield``; ``glide+shield`` is exact only with ``shield`` on). No
-score reproduces another planner's accelerations (they come from another order *and* other
-profiles), so any other planner is refused.
+exactly as ``glide``, shielded with ``shield``; ``glide+shield`` is exact only with ``shield`` on).
+``lookahead`` (:mod:`envs.planners.lookahead`) chooses glide's advice windows by search: with ``"advice"``
+its label is the score that moves each vehicle's window to the one it chose, ``(window - glide's
+window) / scale`` clipped to ``[-1, 1]`` (the whole approach: +1), searched from the memory of the
+environment's own scheduler (its order and the advice it already holds), with the action's ``glide``
+parameters. No score reproduces another planner's accelerations (they come from another order *and*
+other profiles), so any other planner is refused.
 """
 
 from __future__ import annotations
@@ -28,10 +32,14 @@ from typing import Any
 import numpy as np
 
 from envs.planners import SHIELD_SUFFIX, check_planner_spec, make_planner, make_residual_base
+from envs.planners.glide import GLIDE_VERSIONS
+from envs.planners.lookahead import LookaheadPlanner
 from envs.simulation.config import SCHEDULER_ACTION_TYPES
 
 #: The planner whose exact label, with the ``"priority"`` and ``"advice"`` action types, is the zero score.
 PRIORITY_PLANNER = "glide"
+#: The planner whose label, with the ``"advice"`` action type, is the window its search chose.
+SEARCH_PLANNER = "lookahead"
 
 
 class PlannerExpert:
@@ -53,8 +61,15 @@ class PlannerExpert:
         n_envs = vec_env.num_envs
         configs = vec_env.get_attr("config")
         self.max_nodes = int(vec_env.action_space.shape[0])
-        self.zero_scores = _priority_expert(spec, configs)
+        scheduled = _priority_expert(spec, configs)
+        self.zero_scores = scheduled == PRIORITY_PLANNER
         if self.zero_scores:  # glide's own order: nothing to ask a planner
+            return
+        self.searches = scheduled == SEARCH_PLANNER
+        if self.searches:
+            self.planners = [LookaheadPlanner(glide=GLIDE_VERSIONS[c["action"]["glide"]]) for c in configs]
+            self.scales = [c["action"]["scale"] for c in configs]
+            self._last_step = [-1] * n_envs
             return
         self.planners = [make_planner(spec, trust_files=trust_files) for _ in range(n_envs)]
         self.max_acceleration = np.array([c["max_acceleration"] for c in configs], dtype=np.float64)
@@ -73,15 +88,27 @@ class PlannerExpert:
             return np.zeros((self.vec_env.num_envs, self.max_nodes), dtype=np.float32)
         scenes = self.vec_env.env_method("scene")
         steps = self.vec_env.get_attr("steps")
+        schedulers = self.vec_env.get_attr("scheduler") if self.searches else None
         actions = np.zeros((len(scenes), self.max_nodes), dtype=np.float32)
         for i, scene in enumerate(scenes):  # one planner call per sub-environment
             if steps[i] == 0 or steps[i] <= self._last_step[i]:  # a new episode
                 self.planners[i].reset()
-                if self.bases[i] is not None:
+                if not self.searches and self.bases[i] is not None:
                     self.bases[i].reset()
             self._last_step[i] = steps[i]
-            actions[i, : scene.num_vehicles] = self._action(i, scene, self.planners[i].act(scene))
+            if self.searches:
+                actions[i, : scene.num_vehicles] = self._scores(i, scene, schedulers[i])
+            else:
+                actions[i, : scene.num_vehicles] = self._action(i, scene, self.planners[i].act(scene))
         return actions
+
+    def _scores(self, i: int, scene: Any, scheduler: Any) -> np.ndarray:
+        """The advice scores that move each vehicle's window to the one the search chose."""
+        planner = self.planners[i]
+        planner.adopt(scheduler)
+        windows = planner.windows_for(scene)
+        offset = (windows - planner.params.window) / self.scales[i]
+        return np.clip(np.where(np.isinf(windows), 1.0, offset), -1.0, 1.0)
 
     def _action(self, i: int, scene: Any, acc: np.ndarray) -> np.ndarray:
         acc = np.asarray(acc, dtype=np.float64).reshape(scene.num_vehicles)
@@ -92,25 +119,27 @@ class PlannerExpert:
         return np.clip((acc - base) / (self.residual_scale[i] * a_max), -1.0, 1.0)
 
 
-def _priority_expert(spec: str, configs: list[dict[str, Any]]) -> bool:
-    """Whether the environments take scores over glide's scheduler (then ``spec`` must be glide's word),
-    or a ValueError."""
+def _priority_expert(spec: str, configs: list[dict[str, Any]]) -> str | None:
+    """``None`` where the environments take accelerations; where they take scores over glide's scheduler,
+    the planner that labels them (``"glide"``, or ``"lookahead"`` with ``"advice"``), or a ValueError."""
     types = {(c.get("action") or {}).get("type", "acceleration") for c in configs}
     scheduled = types & set(SCHEDULER_ACTION_TYPES)
     if not scheduled:
-        return False
+        return None
     kind = sorted(scheduled)[0]
     key = check_planner_spec(spec)
     shielded = key.endswith(SHIELD_SUFFIX)
     base = key[: -len(SHIELD_SUFFIX)] if shielded else key
     shield = all(c["shield"] for c in configs)
-    if len(types) > 1 or base != PRIORITY_PLANNER or (shielded and not shield):
+    search = base == SEARCH_PLANNER and kind == "advice"
+    if len(types) > 1 or not (base == PRIORITY_PLANNER or search) or (shielded and not shield):
         exact = f"{PRIORITY_PLANNER!r}" + (f" or '{PRIORITY_PLANNER}{SHIELD_SUFFIX}'" if shield else "")
         raise ValueError(
             f"planner {spec!r} has no exact label for action type {kind!r} (scores over glide's scheduler): "
-            f"only {exact} can be cloned there (zero scores); use action type 'acceleration' to clone {spec!r}"
+            f"only {exact} can be cloned there (zero scores), and {SEARCH_PLANNER!r} with 'advice' (the windows it "
+            f"searched); use action type 'acceleration' to clone {spec!r}"
         )
-    return True
+    return base
 
 
 def make_expert(spec: str, vec_env: Any) -> PlannerExpert:

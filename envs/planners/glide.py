@@ -12,12 +12,19 @@ windows per conflict zone), with three changes:
   arrival, as AIM's, but a vehicle first seen within ``platoon_gap`` seconds of its leader's arrival
   takes its place right behind the leader, so a same-lane platoon crosses as one and the junction
   switches direction less often.
-- **Advice only where it pays, never a crawl**: a vehicle follows its plan's first phase (slow to a
-  cruise speed, or stop at the line) only within ``window`` metres of its line and only when its
-  plan would slow or stop it; everyone else goes at full throttle. Glide never brakes a vehicle
-  below ``floor`` m/s (a plan that would stop it slows it to the floor instead), so no vehicle
-  creeps just above the stop threshold on glide's advice: a stop, where one is still needed, is the
-  shield's, which lets the vehicle go as soon as its gap is safe.
+- **Advice only where it pays, and nothing but the plan**: a vehicle follows its plan's first phase
+  only within ``window`` metres of its line and only when its plan would slow or stop it; everyone
+  else goes at full throttle. A slowed plan brakes at most ``decel`` towards its cruise speed (never
+  below ``floor``) and speeds up at full throttle once its line speed calls for it (AIM's rule); a
+  stop plan brakes with IDM towards its line and goes at full throttle there once its start time has
+  come. There is no car following and no zone guard on top: the shield keeps every gap, and adding
+  both again duplicates it and costs flow and delay (``control="first_phase"``, the default).
+
+``control="guarded"`` is glide as it was first shipped: the plan's command capped by IDM car following
+and AIM's zone guard (:meth:`~envs.planners.aim.AIMPlanner.control`), every advised command floored at
+``floor`` and no cruise speed below it. ``make_planner("glide")`` without the shield builds that one
+(:data:`GUARDED`), since there nothing else keeps a gap; ``glide+shield`` runs the first-phase control.
+Glide is a planner for behind the shield either way: outside its window it drives at full throttle.
 
 The order can be shifted per vehicle (:meth:`GlidePlanner.set_priority`), and the advice window
 widened or narrowed per vehicle (:meth:`GlidePlanner.set_windows`): the ``"priority"`` and
@@ -27,46 +34,85 @@ exactly as glide).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+from dataclasses import dataclass, fields
 
 import numpy as np
 
-from envs.planners.aim import AIMParams, AIMPlanner
+from envs.planners.aim import AIMParams, AIMPlanner, Reservations
 from envs.planners.errors import checked_accelerations
-from envs.planners.idm import DEFAULT_IDM, IDMParams, leader_chain_max
+from envs.planners.idm import DEFAULT_IDM, IDMParams, idm_acceleration, leader_chain_max
+from envs.simulation.config import GLIDE_VERSION_NAMES
 from envs.simulation.scene import Scene
 
 # Added per link of a platoon so that its members keep their order (AIM's own chain offset).
 _CHAIN_OFFSET = 1e-3
+# How an advised vehicle follows its plan (see the module docstring).
+GLIDE_CONTROLS = ("first_phase", "guarded")
 
 
 @dataclass(frozen=True)
 class GlideParams(AIMParams):
-    """Free parameters of :class:`GlidePlanner` (defaults: tuned, see ``docs/baselines.md``);
-    AIM's parameters (:class:`~envs.planners.aim.AIMParams`) with tight reservations, plus:
+    """Free parameters of :class:`GlidePlanner` (defaults: tuned for the first-phase control, see
+    ``docs/baselines.md``); AIM's parameters (:class:`~envs.planners.aim.AIMParams`) with tight
+    reservations, plus:
 
     :param window: a vehicle follows its plan only this close to its line [m] (``inf``: on the
         whole approach); farther out it drives at full throttle
-    :param floor: glide brakes no vehicle below this speed [m/s] (the slowest cruise of a slowed approach)
+    :param floor: the slowest cruise of a slowed approach [m/s]; with ``control="guarded"`` also the
+        floor of every advised command, stops included
     :param platoon_gap: a vehicle first seen within this many seconds of its leader's arrival key
         goes right behind its leader in the order [s] (0: AIM's plain first come, first served)
+    :param control: ``"first_phase"`` (the plan's first phase alone, for behind the shield) or
+        ``"guarded"`` (capped by IDM car following and AIM's zone guard, see the module docstring)
     """
 
     accel: float = 5.0
-    decel: float = 1.87
-    commit_decel: float = 3.83
+    decel: float = 3.0
+    commit_decel: float = 5.0
     buffer: float = 0.0
-    follow_headway: float = 0.91
-    stop_penalty: float = 1.36
-    window: float = 16.3
-    floor: float = 3.49
-    platoon_gap: float = 1.28
+    follow_headway: float = 1.0
+    stop_penalty: float = 1.9
+    window: float = 30.0
+    floor: float = 2.0
+    platoon_gap: float = 2.5
+    control: str = "first_phase"
 
     def __post_init__(self) -> None:
-        for field in ("window", "floor", "platoon_gap"):
-            value = getattr(self, field)
-            if not (isinstance(value, (int, float)) and value >= 0 and not np.isnan(value)):
-                raise ValueError(f"glide's {field} must be a number >= 0, got {value!r}")
+        for field in fields(self):
+            value = getattr(self, field.name)
+            if field.name == "control":
+                if value not in GLIDE_CONTROLS:
+                    raise ValueError(f"glide's control must be one of {list(GLIDE_CONTROLS)}, got {value!r}")
+                continue
+            ok = (
+                isinstance(value, (int, float)) and not isinstance(value, bool) and value >= 0 and not math.isnan(value)
+            )
+            if not ok or (math.isinf(value) and field.name != "window"):
+                allowed = "a number >= 0 or inf" if field.name == "window" else "a finite number >= 0"
+                raise ValueError(f"glide's {field.name} must be {allowed}, got {value!r}")
+
+
+#: Glide as first shipped: AIM's control (IDM car following, zone guard) floored at ``floor``, with the
+#: values tuned for it. ``make_planner("glide")`` without the shield, and the scheduler of policy files
+#: trained over it (their header's ``action`` names no ``glide``).
+GUARDED = GlideParams(
+    decel=1.87, commit_decel=3.83, follow_headway=0.91, stop_penalty=1.36, window=16.3, floor=3.49,
+    platoon_gap=1.28, control="guarded",
+)  # fmt: skip
+#: Glide's parameter sets by name: the ``action``'s ``glide`` key of the environments and of policy files.
+GLIDE_VERSIONS: dict[str, GlideParams] = dict(zip(GLIDE_VERSION_NAMES, (GlideParams(), GUARDED)))
+
+
+def glide_scheduler(version: str = "first_phase") -> GlidePlanner:
+    """The scheduler of the ``"priority"`` and ``"advice"`` action types.
+
+    :param version: a key of :data:`GLIDE_VERSIONS`
+    :raises ValueError: an unknown version, naming the allowed ones
+    """
+    if version not in GLIDE_VERSIONS:
+        raise ValueError(f"glide version must be one of {list(GLIDE_VERSIONS)}, got {version!r}")
+    return GlidePlanner(params=GLIDE_VERSIONS[version])
 
 
 class GlidePlanner(AIMPlanner):
@@ -90,6 +136,18 @@ class GlidePlanner(AIMPlanner):
         super().reset(seed)
         self._shift = self._windows = None
         self._held = np.zeros(0, dtype=np.int64)
+
+    def adopt(self, other: GlidePlanner) -> None:
+        """Take ``other``'s memory (order, commitments, held advice): plan on from where it stands."""
+        self._ids, self._keys, self._committed_at = other._ids, other._keys, other._committed_at
+        self._held = other._held
+
+    def fork(self) -> GlidePlanner:
+        """A plain glide with this one's parameters and memory (order, commitments, held advice), to plan
+        ahead in a copy of the world; the arrays are shared, since glide replaces them and never writes in them."""
+        twin = GlidePlanner(self.name, self.params, self.idm)
+        twin.adopt(self)
+        return twin
 
     def set_priority(self, shift: np.ndarray | None) -> None:
         """Shift the order of the next :meth:`act` (then forgotten).
@@ -165,9 +223,11 @@ class GlidePlanner(AIMPlanner):
 
     # ------------------------------------------------------------------ planning
     def _grids(self, top_speed: float) -> tuple[np.ndarray, np.ndarray]:
-        """AIM's grids without the cruise speeds below ``floor``."""
+        """AIM's grids; with ``control="guarded"`` without the cruise speeds below ``floor``."""
         u, waits = super()._grids(top_speed)
-        return u[u >= self.params.floor - 1e-9], waits
+        if self.params.control == "guarded":
+            u = u[u >= self.params.floor - 1e-9]
+        return u, waits
 
     # ------------------------------------------------------------------ control
     def advice_window(self, scene: Scene) -> float | np.ndarray:
@@ -187,7 +247,8 @@ class GlidePlanner(AIMPlanner):
             self._shift = self._windows = None
             return np.zeros(0)
         plan = self.reserve(scene)
-        planned = self.control(scene, plan)
+        guarded = self.params.control == "guarded"
+        planned = self.control(scene, plan) if guarded else self.first_phase(scene, plan)
         dist = scene.dist_to_entry
         slowed = plan.kind[plan.choice] != 0
         window, self._windows = self.advice_window(scene), None
@@ -197,6 +258,33 @@ class GlidePlanner(AIMPlanner):
         within = (dist > 0) & ((dist <= window) | np.isin(scene.vehicle_id, self._held))
         self._held = scene.vehicle_id[within]
         advised = slowed & within & (scene.dist_to_exit > 0)
-        # Never brake below the floor, nor hold a vehicle that is slower: a stop, if one is needed, is the shield's.
-        keep_floor = np.clip((self.params.floor - scene.speed) / scene.dt, scene.a_min, scene.a_max)
-        return np.where(advised, np.maximum(planned, keep_floor), scene.a_max)
+        if guarded:  # never brake below the floor, nor hold a slower vehicle: a stop, if needed, is the shield's
+            planned = np.maximum(
+                planned, np.clip((self.params.floor - scene.speed) / scene.dt, scene.a_min, scene.a_max)
+            )
+        return np.where(advised, planned, scene.a_max)
+
+    def first_phase(self, scene: Scene, plan: Reservations) -> np.ndarray:
+        """Each vehicle's command to follow the first phase of its reservation and nothing else (no car
+        following, no zone guard: the shield keeps the gaps).
+
+        :param scene: the vehicles now
+        :param plan: the reservations of this step (:meth:`reserve`)
+        :return: ``(n,)`` accelerations within the scene's bounds (meant for the advised vehicles)
+        """
+        p = self.params
+        n = scene.num_vehicles
+        rows = np.arange(n)
+        kind, u = plan.kind[plan.choice], plan.cruise[plan.choice]
+        v, dist, dt = scene.speed, scene.dist_to_entry, scene.dt
+        # Slowed approach: towards its cruise speed (not below the floor), at full throttle once the line speed calls.
+        w = plan.line_speed[rows, plan.choice]
+        speed_up = (w > v) & (dist <= (w**2 - v**2) / (2.0 * p.accel) + v * dt)
+        cruise = np.maximum(np.where(np.isnan(u), 0.0, u), p.floor)
+        slowed = np.where(speed_up, scene.a_max, np.clip((cruise - v) / dt, -p.decel, p.accel))
+        # Stop: IDM towards the line, full throttle there once the start time has come.
+        at_line = (plan.rest <= 0.0) & (plan.start[rows, plan.choice] <= 1e-9)
+        to_stop = np.maximum(dist, 0.0) + self.idm.jam_distance
+        target = np.where(dist <= 0.5, 0.0, scene.speed_limit)
+        stop = np.where(at_line, scene.a_max, idm_acceleration(v, target, to_stop, np.zeros(n), dt, self.idm))
+        return np.clip(np.where(kind == 1, slowed, stop), scene.a_min, scene.a_max)

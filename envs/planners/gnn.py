@@ -79,6 +79,8 @@ def check_planner_config(config: Any, source: str) -> dict[str, Any]:
             raise ValueError(f"{source}: planner config {key} must be {RULES[key].allowed}, got {values[key]!r}")
     checked: dict[str, Any] = {key: tuple(values[key]) for key in ("vertex_features", "edge_features")}
     action = action_config(values["action"])
+    if "glide" not in values["action"]:  # written before glide had versions: trained over the first one
+        action["glide"] = "guarded"
     if action["type"] in SCHEDULER_ACTION_TYPES:
         if values["residual_base"] is not None:
             raise ValueError(f"{source}: planner config residual_base must be null for a {action['type']} policy")

@@ -266,11 +266,12 @@ class Shield(Planner):
         return [error.line() for error in self.errors]
 
     def stats(self) -> dict[str, float]:
-        """The counters of the run since the last reset: interventions and the vehicle-steps they are
-        a share of, unresolved steps (everyone braked), planner errors (steps), the watchdog's
-        takeovers and the vehicle-steps under them (0 without a watchdog)."""
+        """The wrapped planner's counters (:meth:`Planner.stats`) and the shield's since the last reset:
+        interventions and the vehicle-steps they are a share of, unresolved steps (everyone braked), planner
+        errors (steps), the watchdog's takeovers and the vehicle-steps under them (0 without a watchdog)."""
         watchdog = self.watchdog
         return {
+            **self.planner.stats(),  # the wrapped planner's own counters (a search's fallbacks ...)
             "shield_interventions": self.interventions,
             "shield_vehicle_steps": self.vehicle_steps,
             "shield_unresolved": self.unresolved,

@@ -51,6 +51,9 @@ DEFAULT_PRIORITY_SCALE = 5.0
 # An advice score of +-1 moves a vehicle's advice window by this many metres (``action``'s ``scale``):
 # +1 advises it from 80 m, the 4-way's whole approach.
 DEFAULT_ADVICE_SCALE = 64.0
+# Glide's parameter sets (``action``'s ``glide``, envs.planners.glide.GLIDE_VERSIONS): the first-phase control
+# tuned for behind the shield (default), or glide as first shipped, with IDM following and AIM's zone guard.
+GLIDE_VERSION_NAMES = ("first_phase", "guarded")
 # (An acceleration action ignores its scale; it keeps the priority default, as before advice existed.)
 DEFAULT_ACTION_SCALES = {
     "acceleration": DEFAULT_PRIORITY_SCALE,
@@ -138,20 +141,22 @@ def _weights(x: Any) -> bool:
 def _action(x: Any) -> bool:
     return (
         isinstance(x, dict)
-        and set(x) <= {"type", "scale"}
+        and set(x) <= {"type", "scale", "glide"}
         and x.get("type", ACTION_TYPES[0]) in ACTION_TYPES
+        and x.get("glide", GLIDE_VERSION_NAMES[0]) in GLIDE_VERSION_NAMES
         and ("scale" not in x or (_is_number(x["scale"]) and 0 < x["scale"] <= MAX_PRIORITY_SCALE))
     )
 
 
 def action_config(value: dict[str, Any] | None) -> dict[str, Any]:
-    """The ``action`` setting with its defaults filled in (``type`` and ``scale``).
+    """The ``action`` setting with its defaults filled in (``type``, ``scale`` and ``glide``).
 
     :param value: a checked ``action`` setting, or ``None`` (accelerations)
     """
     value = dict(value or {})
     kind = value.get("type", ACTION_TYPES[0])
-    return {"type": kind, "scale": float(value.get("scale", DEFAULT_ACTION_SCALES[kind]))}
+    scale = float(value.get("scale", DEFAULT_ACTION_SCALES[kind]))
+    return {"type": kind, "scale": scale, "glide": value.get("glide", GLIDE_VERSION_NAMES[0])}
 
 
 def _human_share(x: Any) -> bool:
@@ -213,7 +218,8 @@ RULES: dict[str, Rule] = {
         _action,
         f"a dict {{'type': one of {list(ACTION_TYPES)}, 'scale': a number in (0, {MAX_PRIORITY_SCALE:g}] "
         f"(seconds for priority, default {DEFAULT_PRIORITY_SCALE:g}; metres for advice, "
-        f"default {DEFAULT_ADVICE_SCALE:g})}}",
+        f"default {DEFAULT_ADVICE_SCALE:g}), 'glide': one of {list(GLIDE_VERSION_NAMES)} (the scheduler's "
+        f"parameters, default {GLIDE_VERSION_NAMES[0]!r})}}",
     ),
     "collision_handling": Rule(lambda x: x in COLLISION_HANDLING, f"one of {COLLISION_HANDLING}"),
     "human_share": Rule(_human_share, HUMAN_SHARE_ALLOWED),

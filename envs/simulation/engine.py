@@ -78,6 +78,8 @@ class Simulation:
     :param governor_deceleration: deceleration with which the speed governor slows vehicles down
         for a lower limit ahead [m/s^2]
     :param collision_resolution: largest distance a body moves between two collision checks [m]
+    :param check_collisions: look for collisions in each step (off: a rollout behind a shield, which
+        keeps every gap, skips the check; :attr:`StepEvents.collisions` is then always empty)
     """
 
     @classmethod
@@ -111,6 +113,7 @@ class Simulation:
         max_vehicles: int = 64,
         governor_deceleration: float = 3.0,
         collision_resolution: float = 0.1,
+        check_collisions: bool = True,
     ) -> None:
         if simulation_frequency % policy_frequency:
             raise ValueError(
@@ -127,6 +130,7 @@ class Simulation:
         self.max_vehicles = int(max_vehicles)
         self.governor_deceleration = float(governor_deceleration)
         self.collision_resolution = float(collision_resolution)
+        self.check_collisions = bool(check_collisions)
         self.reset()
 
     # ------------------------------------------------------------------ state
@@ -253,7 +257,7 @@ class Simulation:
         period = self.dt
         exit_arc = self.layout.exit_arc[self.route]
         before_exit = self.arc < exit_arc
-        candidates = self._collision_candidates() if n > 1 else None
+        candidates = self._collision_candidates() if n > 1 and self.check_collisions else None
         speed, arc, governed = self._integrate(acc)
         stopped = (speed[1:] < STOP_SPEED).any(axis=0)
         collisions = self._collisions_along(speed, arc, *candidates) if candidates else np.zeros((0, 2), _INT)

@@ -148,10 +148,12 @@ class CoopIntersectionEnv(AbstractEnv):
           (default 5; lower goes earlier); the scheduler turns the order into approach profiles and
           accelerations, behind the shield with ``shield``; or ``"advice"``: one score per vehicle in
           ``[-1, 1]`` that moves the distance from its line within which glide advises the vehicle
-          (its ``window``, 16.3 m) by ``scale`` metres per unit (default 64: +1 is the 4-way's whole
+          (its ``window``) by ``scale`` metres per unit (default 64: +1 is the 4-way's whole
           approach; never below 0 m, where the vehicle drives at full throttle behind the shield).
-          With either, a zero action drives exactly as ``glide`` (``glide+shield`` with ``shield``)
-          does in an evaluation. Needs ``residual_base`` null.
+          ``glide`` names the scheduler's parameters (``"first_phase"``, the default, as ``glide+shield``
+          runs; ``"guarded"``, glide as first shipped, :data:`envs.planners.glide.GUARDED`).
+          With either type, a zero action drives exactly as that glide does behind the shield in an
+          evaluation (``glide+shield`` for the default). Needs ``residual_base`` null.
         - ``collision_handling``: ``"terminate"`` (a collision ends the episode) or ``"remove"``
           (the vehicles involved leave the scene and the episode goes on)
         - ``human_share``: mixed traffic (issue 39): each training spawn is human-driven with this
@@ -303,7 +305,7 @@ class CoopIntersectionEnv(AbstractEnv):
             self._base.reset(seed)
         self._scheduler = None
         if cfg["action"]["type"] in SCHEDULER_ACTION_TYPES:
-            self._scheduler = hooks.maker("priority")()
+            self._scheduler = hooks.maker("priority")(cfg["action"]["glide"])
             self._scheduler.reset(seed)
         self._scene = self.sim.scene()
         obs = build_observation(
@@ -500,6 +502,12 @@ class CoopIntersectionEnv(AbstractEnv):
         return action
 
     # ------------------------------------------------------------------ public helpers
+    @property
+    def scheduler(self) -> Any:
+        """Glide's scheduler that the ``"priority"`` and ``"advice"`` actions drive (``None`` for accelerations):
+        a search that labels those actions plans from its memory (:mod:`envs.planners.expert`)."""
+        return self._scheduler
+
     def scene(self) -> Scene:
         """The current snapshot of all vehicles (row ``i`` = vertex ``i`` = action slot ``i``)."""
         if self._scene is None:

@@ -14,8 +14,9 @@ Makers (name -> what it is called with -> what it returns):
 - ``"residual_base"``: ``(name)`` -> the base planner of a residual policy (``reset(seed)``, ``act(scene)``),
 - ``"human"``: ``()`` -> the human driver model of mixed traffic (``act(scene)`` -> accelerations of
   every row; the environment applies those of the human-driven rows),
-- ``"priority"``: ``()`` -> the arrival-time scheduler of the ``"priority"`` and ``"advice"`` action
-  types (``reset(seed)``, ``schedule(scene, kind, offsets)`` -> checked accelerations).
+- ``"priority"``: ``(glide)`` -> the arrival-time scheduler of the ``"priority"`` and ``"advice"`` action
+  types, with the parameter set named by the action's ``glide`` (``reset(seed)``, ``schedule(scene, kind,
+  offsets)`` -> checked accelerations).
 
 Planner words ``http://HOST:PORT`` (:mod:`envs.planners.loading`) name a planner server, whose client
 lives above the planners (:mod:`envs.serve.client` registers these; ``envs/__init__.py`` names it):

@@ -145,6 +145,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help=f"gradient steps of cloning (default {PRETRAIN_STEPS}; entry key pretrain_steps; the critics' warm-up, "
         "off-policy, takes pretrain_critic_steps, default M // 4)",
     )
+    parser.add_argument(
+        "--pretrain-cache",
+        default=None,
+        metavar="FOLDER",
+        help="keep the cloning's labelled transitions and the cloned model in FOLDER, under a hash of everything "
+        "they depend on, and reuse them when a fresh run asks for the same (a costly expert labels once)",
+    )
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (see benchmarks/)")
     parser.add_argument("--device", default="auto", help="torch device (auto, cpu, cuda)")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
@@ -330,6 +337,8 @@ def _check_flags(args: argparse.Namespace) -> None:
         raise UserError(f"--seed must be >= 0, got {args.seed}")
     if args.trust_run_files and not args.resume:
         raise UserError("--trust-run-files applies to --resume only")
+    if args.pretrain_cache is not None and args.resume:
+        raise UserError("--pretrain-cache applies to a fresh run, not --resume (a resumed run has cloned already)")
     pretrain = {flag: getattr(args, flag, None) for flag in ("pretrain_from", "pretrain_transitions", "pretrain_steps")}
     if args.resume and any(value is not None for value in pretrain.values()):
         raise UserError("--pretrain-from/--pretrain-transitions/--pretrain-steps apply to a fresh run, not --resume")
@@ -510,13 +519,20 @@ def _make_expert(spec: str, env_id: str, train_env) -> Any:
         raise UserError(f"pretrain_from: {error} (for {env_id!r}: {found[1]})") from None
 
 
-def _pretrain(model, entry: dict[str, Any], env_id: str, train_env) -> dict[str, Any] | None:
-    """Clone the entry's ``pretrain_from`` expert into the model (nothing without one); its summary."""
+def _pretrain(
+    model, entry: dict[str, Any], env_id: str, train_env, cache: str | None = None, algo: str = "td3"
+) -> dict[str, Any] | None:
+    """Clone the entry's ``pretrain_from`` expert into the model (nothing without one); its summary.
+    With ``cache`` (a folder) the labelled transitions and the clone are kept and reused there."""
     from sb3_graph.common.cloning import behaviour_clone
+    from sb3_graph.tuning.pretrain import dagger_arguments, pretrain_trial
 
     spec = entry.get("pretrain_from")
     if spec is None:
         return None
+    if cache is not None:
+        print(f"sb3-graph train: cloning {spec!r} through the cache {cache}", flush=True)
+        return pretrain_trial(model, entry, env_id, train_env, algo, Path(cache))
     expert = _make_expert(str(spec), env_id, train_env)
     transitions = int(entry.get("pretrain_transitions", PRETRAIN_TRANSITIONS))
     steps = int(entry.get("pretrain_steps", PRETRAIN_STEPS))
@@ -529,6 +545,7 @@ def _pretrain(model, entry: dict[str, Any], env_id: str, train_env) -> dict[str,
         gradient_steps=steps,
         batch_size=int(getattr(model, "batch_size", 256) or 256),
         critic_steps=None if critic_steps is None else int(critic_steps),
+        **dagger_arguments(entry),
     )
     summary = {
         "from": str(spec),
@@ -707,7 +724,7 @@ def _run_one(args: argparse.Namespace) -> int:
         model = _build_model(entry, train_env, seed, args, tensorboard_log)
         if args.init_weights:
             record["init_weights"] = str(args.init_weights)
-        pretrained = _pretrain(model, entry, args.env, train_env)
+        pretrained = _pretrain(model, entry, args.env, train_env, args.pretrain_cache, args.algo)
         if pretrained is not None:
             record["pretrain"] = pretrained
 

@@ -31,7 +31,10 @@ from sb3_graph.files.safe_values import UnsafeValueError, load_yaml, parse_value
 # Keys the trainer consumes itself; all others go to the algorithm's constructor.
 TRAINER_KEYS = {"n_timesteps", "n_envs", "env_kwargs", "noise_type", "noise_std", "callback", "policy"}
 # Keys of behaviour cloning before training (sb3-graph train --pretrain-from; see sb3_graph.behaviour_clone).
-PRETRAIN_KEYS = {"pretrain_from", "pretrain_transitions", "pretrain_steps", "pretrain_critic_steps"}
+PRETRAIN_KEYS = {
+    "pretrain_from", "pretrain_transitions", "pretrain_steps", "pretrain_critic_steps", "pretrain_rounds",
+    "pretrain_beta",
+}  # fmt: skip
 TRAINER_KEYS |= PRETRAIN_KEYS
 # Keys of rl-zoo3 that this trainer does not implement: refused rather than silently ignored.
 UNSUPPORTED_KEYS = {"normalize", "frame_stack", "env_wrapper", "vec_env_wrapper", "monitor_kwargs"}
@@ -207,6 +210,8 @@ ENTRY_RULES: dict[str, tuple[Any, str]] = {
     "pretrain_transitions": _integer(1, MAX_BUFFER),
     "pretrain_steps": _integer(0, MAX_TIMESTEPS),
     "pretrain_critic_steps": _integer(0, MAX_TIMESTEPS),
+    "pretrain_rounds": _integer(1, 1000),
+    "pretrain_beta": _number(0.0, 1.0),
     "bc_coef": (
         lambda v: _number(0.0)[0](v) or (isinstance(v, str) and _lin_start(v) is not None),
         "a number >= 0 or 'lin_<number>'",

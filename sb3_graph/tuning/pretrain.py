@@ -59,13 +59,24 @@ def demonstrations_key(entry: dict[str, Any], env_id: str) -> dict[str, Any]:
     """What the collected demonstrations depend on."""
     from sb3_graph.commands.train import PRETRAIN_TRANSITIONS
 
-    return {
+    key = {
         "expert": str(entry["pretrain_from"]),
         "env": env_id,
         "env_kwargs": entry.get("env_kwargs") or {},
         "n_envs": int(entry.get("n_envs", 1)),
         "transitions": int(entry.get("pretrain_transitions", PRETRAIN_TRANSITIONS)),
     }
+    for name in ("pretrain_rounds", "pretrain_beta"):  # DAgger: who acted shapes what was labelled
+        if name in entry:
+            key[name] = entry[name]
+    return key
+
+
+def dagger_arguments(entry: dict[str, Any]) -> dict[str, Any]:
+    """``behaviour_clone``'s ``rounds`` and ``beta`` of an entry: ``pretrain_rounds`` rounds (default 1), round ``k``
+    acting with the expert with probability ``pretrain_beta ** k`` (default 1: the expert always acts)."""
+    rounds, beta = int(entry.get("pretrain_rounds", 1)), float(entry.get("pretrain_beta", 1.0))
+    return {"rounds": rounds, "beta": lambda k: beta**k}
 
 
 def clone_key(entry: dict[str, Any], env_id: str, algo: str, init_weights_sha256: str) -> dict[str, Any]:
@@ -184,6 +195,7 @@ def pretrain_trial(
         critic_steps=0 if state is not None else (None if critic_steps is None else int(critic_steps)),
         demonstrations=demonstrations,
         record=demonstrations is None,
+        **({} if demonstrations is not None else dagger_arguments(entry)),
     )
     if state is not None:
         _load_torch_state(model, state)

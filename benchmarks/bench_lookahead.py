@@ -1,0 +1,127 @@
+"""The cost of one ``lookahead`` search, as a ratio to one shielded simulation step measured in the same run.
+
+Scenes:
+
+- ``run N``: scenes of a ``fullthrottle+shield`` run on the 4-way layout at 0.5 veh/s per major lane whose
+  vehicle count is within 4 of ``N`` (``--run-sizes``, default 30: the goal's 30-vehicle search);
+- ``dense N``: the synthetic scene of ``benchmarks/bench_serve.py`` (vehicles queued 6.5 m apart on every lane
+  at 90 % of the limit), at ``--sizes`` (default 20, 50, 100).
+
+Per scene kind, interleaved call by call so that the load of a shared machine hits both alike: one search of
+:class:`~envs.planners.lookahead.LookaheadPlanner` (its default parameters, or ``--rollout-frequency``) and one
+``fullthrottle+shield`` decision plus the simulation step it drives (``Simulation.step``), the reference. Each
+cell is the median wall time over the scenes and ``--repeat`` rounds, one thread, after a warm-up that compiles.
+
+Usage::
+
+    PYTHONPATH=$PWD python benchmarks/bench_lookahead.py                 # a few minutes
+    PYTHONPATH=$PWD python benchmarks/bench_lookahead.py --sizes 20 --run-sizes 30 --repeat 3
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import gymnasium as gym  # noqa: E402
+import numpy as np  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from bench_serve import dense_scene  # noqa: E402
+
+import envs  # noqa: E402, F401  (registers the environments)
+from envs.evaluation.harness import evaluation_env_kwargs  # noqa: E402
+from envs.planners import make_planner  # noqa: E402
+from envs.planners.lookahead import LookaheadParams, LookaheadPlanner  # noqa: E402
+from envs.simulation.engine import Simulation  # noqa: E402
+from envs.simulation.scene import Scene  # noqa: E402
+from envs.simulation.traffic import generate_scenario  # noqa: E402
+
+
+def run_scenes(size: int, seed: int = 3, slack: int = 4, most: int = 12) -> list[Scene]:
+    """Up to ``most`` scenes (spread over the run) of a busy ``fullthrottle+shield`` run with ``size`` +- ``slack``
+    vehicles."""
+    env = gym.make("CoopIntersection4Way-v0", **evaluation_env_kwargs(None))
+    env.reset(seed=seed, options={"scenario": generate_scenario("4way", 80.0, seed, rate_range=(0.5, 0.5))})
+    planner, scenes, done = make_planner("fullthrottle+shield"), [], False
+    planner.reset(seed)
+    while not done:
+        scene = env.unwrapped.scene()
+        if abs(scene.num_vehicles - size) <= slack:
+            scenes.append(scene)
+        _, _, terminated, truncated, _ = env.step(env.unwrapped.accelerations_to_action(planner.act(scene)))
+        done = terminated or truncated
+    env.close()
+    return scenes[:: max(1, len(scenes) // most)][:most]
+
+
+def step_of(scene: Scene) -> Simulation:
+    """A simulation set to ``scene`` (the reference's step runs in it)."""
+    sim = Simulation(scene.layout, max_vehicles=max(256, scene.num_vehicles), max_acceleration=float(scene.a_max))
+    sim.route, sim.arc, sim.speed = scene.route.copy(), scene.arc.copy(), scene.speed.copy()
+    sim.length = scene.length.copy()
+    sim.width = np.full(scene.num_vehicles, 2.0) if scene.width is None else scene.width.copy()
+    sim.vehicle_id = scene.vehicle_id.copy()
+    sim.appearance_time = np.zeros(scene.num_vehicles)
+    sim.human = scene.humans.copy()
+    return sim
+
+
+def measure(scenes: list[Scene], params: LookaheadParams, repeat: int) -> tuple[float, float, int]:
+    """Median wall ms of a search and of a shielded step, interleaved, and the searches' rollouts each."""
+    search, step = [], []
+    planner = LookaheadPlanner(params=params)
+    shield = make_planner("fullthrottle+shield")
+    for p in (planner, shield):
+        p.reset(0)
+    planner._search(scenes[0])  # warm-up: compiles the kernels
+    rollouts = planner.rollouts
+    for _ in range(repeat):
+        for scene in scenes:
+            sim = step_of(scene)
+            tic = time.perf_counter()
+            sim.step(shield.act(scene))
+            step.append(time.perf_counter() - tic)
+            tic = time.perf_counter()
+            planner._search(scene)
+            search.append(time.perf_counter() - tic)
+    per_search = (planner.rollouts - rollouts) // max(1, len(search))
+    return 1e3 * float(np.median(search)), 1e3 * float(np.median(step)), per_search
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--sizes", type=int, nargs="*", default=[20, 50, 100])
+    parser.add_argument("--run-sizes", type=int, nargs="*", default=[30])
+    parser.add_argument("--repeat", type=int, default=2)
+    parser.add_argument("--rollout-frequency", type=int, default=LookaheadParams().rollout_frequency)
+    args = parser.parse_args()
+    import torch
+
+    torch.set_num_threads(1)
+    params = LookaheadParams(rollout_frequency=args.rollout_frequency)
+    print(f"machine: {platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}, one thread")
+    print(f"command: python {' '.join(sys.argv)}")
+    print(f"lookahead: {params}\n")
+    print("| scenes | vehicles | rollouts per search | search [ms] | shielded step [ms] | search / step |")
+    print("|---|---:|---:|---:|---:|---:|")
+    kinds = [(f"run {n}", run_scenes(n)) for n in args.run_sizes]
+    kinds += [(f"dense {n}", [dense_scene(n)[0]]) for n in args.sizes]
+    for label, scenes in kinds:
+        if not scenes:
+            print(f"| {label} | no scene of that size | | | | |")
+            continue
+        search, step, rollouts = measure(scenes, params, args.repeat if label.startswith("run") else 3 * args.repeat)
+        vehicles = np.mean([s.num_vehicles for s in scenes])
+        print(f"| {label} | {vehicles:.0f} | {rollouts} | {search:.1f} | {step:.2f} | {search / step:.0f} |")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,146 @@
+"""The ``lookahead`` planner: a search by rollouts over glide's advice windows."""
+
+from __future__ import annotations
+
+import math
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import envs  # noqa: F401  (registers the environments)
+from envs.evaluation.harness import evaluation_env_kwargs
+from envs.planners import make_planner, planner_name
+from envs.planners.glide import GlideParams, GlidePlanner
+from envs.planners.lookahead import LookaheadParams, LookaheadPlanner
+from envs.planners.shield import Shield
+from envs.simulation.traffic import generate_scenario
+
+
+def drive(planner, seconds: float = 30.0, seed: int = 11) -> list[np.ndarray]:
+    """The commands of ``planner`` over a run of ``seconds`` on a generated 4-way scenario."""
+    env = gym.make("CoopIntersection4Way-v0", **evaluation_env_kwargs({}))
+    env.reset(seed=seed, options={"scenario": generate_scenario("4way", seconds, seed, rate_range=(0.4, 0.4))})
+    planner.reset(seed)
+    commands, done = [], False
+    while not done:
+        acc = planner.act(env.unwrapped.scene())
+        commands.append(acc)
+        _, _, terminated, truncated, _ = env.step(env.unwrapped.accelerations_to_action(acc))
+        done = terminated or truncated
+    return commands
+
+
+@pytest.mark.parametrize(
+    "field, value",
+    [
+        ("horizon", 0.0),
+        ("horizon", math.inf),
+        ("windows", ()),
+        ("windows", (10.0, -1.0)),
+        ("windows", (float("nan"),)),
+        ("period", 0),
+        ("stop_price", -1.0),
+        ("energy_price", float("nan")),
+        ("budget", 0.0),
+        ("per_approach", "yes"),
+        ("rollout_frequency", 4),
+        ("shield_horizon", 0.0),
+    ],
+)
+def test_bad_lookahead_parameter_names_it_in_one_line(field, value):
+    with pytest.raises(ValueError, match=f"^lookahead's {field} must be") as error:
+        LookaheadParams(**{field: value})
+    assert "\n" not in str(error.value)
+
+
+def test_one_candidate_equal_to_glides_window_drives_as_glide_bit_for_bit():
+    """With glide's own window as its only candidate the search changes nothing: the same commands as
+    glide + shield at every step (and the searches ran)."""
+    only = LookaheadPlanner(params=LookaheadParams(windows=(GlideParams().window,), horizon=2.0))
+    shielded = Shield(only)
+    got = drive(shielded)
+    want = drive(Shield(GlidePlanner()))
+    assert len(got) == len(want) and all(np.array_equal(a, b) for a, b in zip(got, want))
+    stats = shielded.stats()
+    assert stats["lookahead_searches"] > 10 and stats["lookahead_fallbacks"] == 0
+    assert stats["lookahead_rollouts"] == stats["lookahead_searches"]
+
+
+def test_a_search_past_its_budget_falls_back_to_glide_and_is_counted():
+    tight = LookaheadPlanner(params=LookaheadParams(budget=1e-9))
+    got = drive(Shield(tight), seconds=20.0)
+    assert tight.fallbacks == tight.searches > 0
+    want = drive(Shield(GlidePlanner()), seconds=20.0)
+    assert all(np.array_equal(a, b) for a, b in zip(got, want))
+
+
+def test_the_search_keeps_the_cheapest_candidate_and_the_greedy_pass_never_costs_more():
+    env = gym.make("CoopIntersection4Way-v0", **evaluation_env_kwargs({}))
+    env.reset(seed=5, options={"scenario": generate_scenario("4way", 40.0, 5, rate_range=(0.5, 0.5))})
+    planner = make_planner("fullthrottle+shield")
+    for _ in range(60):
+        env.step(env.unwrapped.accelerations_to_action(planner.act(env.unwrapped.scene())))
+    scene = env.unwrapped.scene()
+    assert scene.num_vehicles >= 8
+    params = LookaheadParams(windows=(0.0, 30.0, math.inf), horizon=4.0)
+    flat = LookaheadPlanner(params=params)
+    flat.reset(0)
+    roads = 4
+    costs = {w: flat.rollout(scene, np.full(roads, w)) for w in params.windows}
+    chosen = flat._search(scene)
+    assert np.all(chosen == chosen[0]) and costs[chosen[0]] == min(costs.values())
+    greedy = LookaheadPlanner(params=LookaheadParams(windows=params.windows, horizon=4.0, per_approach=True))
+    greedy.reset(0)
+    picked = greedy._search(scene)
+    assert greedy.rollout(scene, picked) <= min(costs.values())
+    assert flat.rollout(scene, np.full(roads, 30.0)) == costs[30.0]  # a rollout leaves no trace
+
+
+def test_a_stop_is_priced():
+    """The same rollout costs more with a higher stop price exactly when a vehicle stops in it."""
+    env = gym.make("CoopIntersection4Way-v0", **evaluation_env_kwargs({}))
+    env.reset(seed=5, options={"scenario": generate_scenario("4way", 40.0, 5, rate_range=(0.5, 0.5))})
+    planner = make_planner("fullthrottle+shield")
+    for _ in range(60):
+        env.step(env.unwrapped.accelerations_to_action(planner.act(env.unwrapped.scene())))
+    scene = env.unwrapped.scene()
+    free, priced = (LookaheadPlanner(params=LookaheadParams(stop_price=p, horizon=6.0)) for p in (0.0, 100.0))
+    for p in (free, priced):
+        p.reset(0)
+    zero = np.zeros(4)  # full throttle: the shield stops vehicles at the line in this busy scene
+    assert priced.rollout(scene, zero) - free.rollout(scene, zero) >= 100.0
+
+
+def test_lookahead_is_a_planner_word():
+    planner = make_planner("lookahead+shield")
+    assert isinstance(planner.planner, LookaheadPlanner)
+    assert planner_name("lookahead+shield") == "Lookahead+shield"
+
+
+def test_lookahead_labels_advice_with_the_windows_it_searched():
+    """The expert's score per vehicle moves glide's window to the one the search chose for the vehicle's
+    approach road (the whole approach: +1), and the search plans from the environment's own scheduler."""
+    from stable_baselines3.common.env_util import make_vec_env
+
+    from envs.planners.expert import PlannerExpert
+    from envs.planners.lookahead import _roads
+
+    config = {"action": {"type": "advice"}, "shield": True, "spawn_probability_range": [0.05, 0.05]}
+    vec = make_vec_env("CoopIntersection4Way-v0", n_envs=1, seed=3, env_kwargs={"config": config})
+    expert = PlannerExpert("lookahead", vec)
+    vec.reset()
+    window, scale = GlideParams().window, 64.0
+    labelled = 0
+    for _ in range(15):
+        scene = vec.env_method("scene")[0]
+        scores = expert()
+        planner = expert.planners[0]
+        assert planner._held is vec.get_attr("scheduler")[0]._held  # adopted before the search
+        if scene.num_vehicles:
+            chosen = planner._road_windows[_roads(scene.layout)[scene.route]]
+            want = np.where(np.isinf(chosen), 1.0, np.clip((chosen - window) / scale, -1.0, 1.0))
+            np.testing.assert_allclose(scores[0, : scene.num_vehicles], want, rtol=0, atol=1e-6)
+            labelled += 1
+        vec.step(scores)
+    assert expert.planners[0].searches >= 3 and labelled >= 10
