@@ -1,12 +1,14 @@
-"""glide with the hand-set values of its first recipe, as planner classes for ``--planner FILE:CLASS``.
+"""glide's other parameter sets, as planner classes for ``--planner FILE:CLASS``, to draw its stops-for-delay front.
 
-The shipped ``glide`` uses the values tuned by ``scripts/tune_baselines.py`` (docs/baselines.md).
-These classes keep the recipe glide started from, to compare the two on other scenarios and demand::
+The shipped ``glide`` uses the values tuned by ``scripts/tune_baselines.py`` for the first-phase control
+(docs/baselines.md). These classes keep the hand-set recipe glide started from (window 30 m, floor 2 m/s,
+platoon gap 2.5 s, headway 1.0 s, decel 3.0, commit_decel 5.0, stop_penalty 1.9), over the same control,
+and glide as first shipped (``GUARDED``: IDM following and AIM's zone guard on its advice)::
 
-    sb3-graph sweep --planner glide+shield --planner fullthrottle+shield \\
+    sb3-graph evaluate --planner glide+shield --planner fullthrottle+shield \\
         --planner scripts/glide_variants.py:GlideRecipe+shield \\
         --planner scripts/glide_variants.py:GlideRecipeWhole+shield \\
-        --demand 0.2 0.35 0.5 --scenarios 8 --seed 5000 --jobs 1
+        --planner scripts/glide_variants.py:GlideGuarded+shield --scenarios 20 --seed 5000 --jobs 2
 """
 
 from __future__ import annotations
@@ -16,16 +18,19 @@ import math
 
 import numpy as np
 
-from envs.planners.glide import GlideParams, GlidePlanner
+from envs.planners.glide import GUARDED, GlideParams, GlidePlanner
 from envs.simulation.scene import MINOR
 
 # The recipe: advice within 30 m of the line, no cruise below 2 m/s, a follower within 2.5 s of its
-# leader batched behind it, 1.0 s headway at the line (the other values as shipped).
-RECIPE = GlideParams(window=30.0, floor=2.0, platoon_gap=2.5, follow_headway=1.0)
+# leader batched behind it, 1.0 s headway at the line, tight plan constants.
+RECIPE = GlideParams(
+    window=30.0, floor=2.0, platoon_gap=2.5, follow_headway=1.0, decel=3.0, commit_decel=5.0, stop_penalty=1.9,
+    buffer=0.0,
+)  # fmt: skip
 
 
 class GlideRecipe(GlidePlanner):
-    """glide with :data:`RECIPE`."""
+    """glide with :data:`RECIPE` (the arrival-time yardstick's values)."""
 
     def __init__(self) -> None:
         super().__init__("GlideRecipe", RECIPE)
@@ -36,6 +41,13 @@ class GlideRecipeWhole(GlidePlanner):
 
     def __init__(self) -> None:
         super().__init__("GlideRecipeWhole", dataclasses.replace(RECIPE, window=math.inf))
+
+
+class GlideGuarded(GlidePlanner):
+    """glide as first shipped (:data:`envs.planners.glide.GUARDED`)."""
+
+    def __init__(self) -> None:
+        super().__init__("GlideGuarded", GUARDED)
 
 
 # Probes of what a learned planner over glide could move (docs/training.md, "How much a policy over glide

@@ -204,28 +204,27 @@ def test_scheduler_actions_refuse_a_residual_base(kind):
 
 
 def test_advice_scores_move_each_vehicles_window():
-    """``"advice"``: -1 takes a vehicle out of glide's advice (full throttle), +1 advises it from
-    ``window + scale`` metres; the window of a vehicle is its own, and the default scale is 64 m."""
+    """``"advice"``: 0 keeps glide's window, -1 takes a vehicle out of glide's advice (its window moves by the
+    default scale of 64 m, never below 0 m: full throttle); the window of a vehicle is its own."""
     env = empty_env(action={"type": "advice"}, shield=False)
     base = env.unwrapped
     assert base.config["action"] == {"type": "advice", "scale": 64.0, "glide": "first_phase"}
-    scene = conflict_scene(base)  # the minor-road vehicle 40 m out must yield to the major-road pair
-    glide = GlidePlanner()
-    glide.reset(0)
-    assert np.array_equal(glide.act(scene.copy()), np.full(3, scene.a_max))  # all beyond glide's 16.3 m
-    planned = GlidePlanner()
-    planned.reset(0)
-    planned.set_windows(np.full(3, np.inf))
-    wide = planned.act(scene.copy())
-    assert wide[2] < scene.a_max  # advised over the whole approach, it slows
+    assert GlideParams().window < 64.0
+    scene = conflict_scene(base)  # the minor-road vehicle, within glide's window, must yield to the major-road pair
+    glide, never = GlidePlanner(), GlidePlanner()
+    for planner in (glide, never):
+        planner.reset(0)
+    assert glide.act(scene.copy())[2] < scene.a_max  # advised: it slows
+    never.set_windows(np.zeros(3))
+    assert np.array_equal(never.act(scene.copy()), np.full(3, scene.a_max))  # no advice: full throttle
     other = empty_env(action={"type": "advice"}, shield=False).unwrapped
     conflict_scene(other)
     scores = np.zeros(base.action_space.shape, np.float32)
-    other.step(scores)  # glide's own windows: nobody advised
-    scores[2] = 1.0  # window + 64 m for the minor-road vehicle alone
+    other.step(scores)  # glide's own windows: the minor-road vehicle slows
+    scores[2] = -1.0  # window 0 m for the minor-road vehicle alone
     base.step(scores)
-    slowed, same = base.scene().speed, other.scene().speed
-    assert slowed[2] < same[2] and np.array_equal(slowed[:2], same[:2])
+    fast, same = base.scene().speed, other.scene().speed
+    assert fast[2] > same[2] and np.array_equal(fast[:2], same[:2])
 
 
 @pytest.mark.parametrize(
@@ -349,6 +348,7 @@ def test_advice_once_given_holds_to_the_line():
     assert first[2] < scene.a_max  # advised over the whole approach
     held.set_windows(np.zeros(3))  # "never": but the advice was given
     fresh.reset(0)
+    fresh.set_windows(np.zeros(3))
     fresh.act(scene.copy())
     fresh.set_windows(np.zeros(3))
     assert np.array_equal(held.act(scene.copy()), first)

@@ -68,14 +68,14 @@ class GlideParams(AIMParams):
     """
 
     accel: float = 5.0
-    decel: float = 3.0
-    commit_decel: float = 5.0
-    buffer: float = 0.0
-    follow_headway: float = 1.0
-    stop_penalty: float = 1.9
-    window: float = 30.0
-    floor: float = 2.0
-    platoon_gap: float = 2.5
+    decel: float = 3.829
+    commit_decel: float = 3.903
+    buffer: float = 0.007
+    follow_headway: float = 1.075
+    stop_penalty: float = 0.095
+    window: float = 37.449
+    floor: float = 2.795
+    platoon_gap: float = 3.941
     control: str = "first_phase"
 
     def __post_init__(self) -> None:

@@ -160,11 +160,18 @@ class LookaheadPlanner(GlidePlanner):
             if windows not in costs:
                 if time.perf_counter() > deadline:
                     raise TimeoutError
-                costs[windows] = self.rollout(scene, np.array(windows))
+                # A cost only grows along a rollout: one past the cheapest so far cannot win, so it stops there.
+                costs[windows] = self.rollout(scene, np.array(windows), bound=min(costs.values(), default=math.inf))
             return costs[windows]
 
         try:
-            best = min(((w,) * n_roads for w in self.search.windows), key=cost)
+            # The windows of the last search first: usually still the cheapest, so the others stop early.
+            first = () if self._road_windows is None else (tuple(self._road_windows.tolist()),)
+            flat = [(w,) * n_roads for w in self.search.windows]
+            ordered = [w for w in first if w in flat] + [w for w in flat if w not in first]
+            for windows in ordered:
+                cost(windows)
+            best = min(flat, key=lambda w: (costs[w], flat.index(w)))
             if self.search.per_approach:
                 for road in range(n_roads):
                     tried = (best[:road] + (w,) + best[road + 1 :] for w in self.search.windows)
@@ -175,11 +182,13 @@ class LookaheadPlanner(GlidePlanner):
         self.search_seconds += time.perf_counter() - tic
         return None if best is None else np.array(best)
 
-    def rollout(self, scene: Scene, road_windows: np.ndarray) -> float:
+    def rollout(self, scene: Scene, road_windows: np.ndarray, bound: float = math.inf) -> float:
         """The cost of driving ``horizon`` seconds from ``scene`` with these windows per approach road.
 
         :param scene: the scene now (not modified)
         :param road_windows: ``(roads,)`` advice windows [m], indexed like the layout's approach roads
+        :param bound: stop as soon as the cost so far exceeds this (it only grows): the cost returned is
+            then above ``bound`` but not the whole horizon's
         :return: seconds lost against the lane limits, plus the prices of new stops and of energy
         """
         self.rollouts += 1
@@ -207,6 +216,8 @@ class LookaheadPlanner(GlidePlanner):
             if new.size:
                 stopped = np.union1d(stopped, new)
                 lost += self.search.stop_price * new.size
+            if lost > bound:
+                break
         return lost + self.search.energy_price * energy / 1e3
 
     def _load(self, scene: Scene) -> Simulation:
