@@ -220,7 +220,7 @@ def test_labels_are_report_names_and_tell_files_of_one_folder_name_apart(tmp_pat
         (["FIFO=pr", "fifo"], "'fifo' and 'FIFO=pr' both get the report name 'FIFO'"),
         (["two words=pr"], "label 'two words' in 'two words=pr' is not a valid label"),
         (["empty="], "label 'empty' names no planner"),
-        (["x=nobody"], "planner 'nobody' is neither a baseline"),
+        (["x=nobody"], "planner 'nobody' is unknown"),
     ],
 )
 def test_a_label_clash_or_a_bad_label_is_one_line(words, message, tmp_path, capsys):
