@@ -246,7 +246,7 @@ def _figure_width(planners: Sequence[str]) -> float:
 
 
 #: Widest figure, width over height: wider ones shrink their labels below reading size in a Markdown viewer.
-MAX_ASPECT = 2.4
+MAX_ASPECT = 2.2  # the stop figures gain a little width when their legend is cropped to fit
 #: Grey and black are the key swatches of the stop figures ("vehicles", "stopped"): no planner is drawn in them.
 KEY_COLORS = ("black",)
 
