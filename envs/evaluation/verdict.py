@@ -187,7 +187,9 @@ def summary_sentence(
         words = unclear[0] if len(unclear) == 1 else f"{', '.join(unclear[:-1])} or {unclear[-1]}"
         parts.append(f"no planner leads clearly on {words}")
     if left_out:
-        parts.append(f"{', '.join(unsafe)} cannot lead, as {'its' if len(unsafe) == 1 else 'their'} vehicles collided")
+        names = list(unsafe)
+        listed = names[0] if len(names) == 1 else f"{', '.join(names[:-1])} and {names[-1]}"
+        parts.append(f"{listed} cannot lead, as {'its' if len(names) == 1 else 'their'} vehicles collided")
     text = "; ".join(parts)
     return f"**In short:** {text[0].upper()}{text[1:]}." if text else "**In short:** no verdict."
 
