@@ -106,7 +106,7 @@ class CoopIntersectionEnv(AbstractEnv):
         - ``edge_features``: edge features of the observation, any of ``["distance", "bearing",
           "zone_receiver", "zone_sender"]`` (default none; see :mod:`envs.simulation.graph`)
         - ``vertex_features``: vertex features after the paper's ``[s, v, d]``, any of
-          ``["maneuver", "priority", "limit", "line", "zone", "committed"]`` (default none: the paper's)
+          ``["maneuver", "priority", "limit", "line", "zone", "committed", "human"]`` (default none: the paper's)
         - ``spawn_probability``: training spawn probability per lane and step (paper: up to 0.05)
         - ``spawn_probability_range``: ``None``, or ``[low, high]``: each training episode draws its
           spawn probability uniformly from it (one planner for light and heavy traffic); it
@@ -154,7 +154,7 @@ class CoopIntersectionEnv(AbstractEnv):
           does in an evaluation. Needs ``residual_base`` null.
         - ``collision_handling``: ``"terminate"`` (a collision ends the episode) or ``"remove"``
           (the vehicles involved leave the scene and the episode goes on)
-        - ``human_share``: mixed traffic (issue 39): each training spawn is human-driven with this
+        - ``human_share``: mixed traffic: each training spawn is human-driven with this
           probability, or ``[low, high]`` to draw it per episode (default 0: none, no draw); a
           replayed scenario brings its own flags. Human drivers follow the static priority rules
           (:class:`envs.planners.human.HumanDriver`) inside :meth:`step`: the action (and the
