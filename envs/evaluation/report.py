@@ -205,7 +205,7 @@ PAIRED_DISPLAY = {
 }
 
 
-def _signed(value: float, digits: int) -> str:
+def signed_number(value: float, digits: int) -> str:
     return "n/a" if value is None or not np.isfinite(value) else f"{value:+.{digits}f}"
 
 
@@ -229,7 +229,7 @@ def _paired_section(paired: pd.DataFrame) -> list[str]:
             r = by_metric.loc[metric]
             _, scale, digits = PAIRED_DISPLAY.get(metric, ("", 1.0, 3))
             low, mean, high = (scale * float(r[c]) for c in ("ci_low", "mean_difference", "ci_high"))
-            cells.append(f"{_signed(mean, digits)} [{_signed(low, digits)}, {_signed(high, digits)}]")
+            cells.append(f"{signed_number(mean, digits)} [{signed_number(low, digits)}, {signed_number(high, digits)}]")
         lines.append(f"| {planner} | {int(rows['pairs'].max())} | " + " | ".join(cells) + " |")
     return lines
 

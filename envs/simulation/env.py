@@ -485,7 +485,7 @@ class CoopIntersectionEnv(AbstractEnv):
         A residual correction that the acceleration bounds clip (any positive one over full throttle)
         is stored as proposed, as SB3 stores an action that an environment clips: storing the clipped
         value would hide those actions from the critic, which then extrapolates into them and drives
-        the actor there (the feature-trained residual policies of issue #22 saturated at +1 so).
+        the actor there (the feature-trained residual policies saturated at +1 so).
         """
         a_max = self.config["max_acceleration"]
         action = np.zeros(self.action_space.shape, np.float32)

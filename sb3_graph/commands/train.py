@@ -49,7 +49,7 @@ from sb3_graph.commands.arguments import json_object, seed_value
 from sb3_graph.registry import ALGORITHMS
 
 CHECKPOINT_PATTERN = re.compile(r"model_(\d+)_steps\.zip$")
-#: Defaults of --pretrain-transitions and --pretrain-steps (issue #37's budget: minutes on 2 cores).
+#: Defaults of --pretrain-transitions and --pretrain-steps (a budget of minutes on 2 cores).
 PRETRAIN_TRANSITIONS = 10_000
 PRETRAIN_STEPS = 2_000
 # Said when TensorBoard is missing (it is not in the base install): the run goes on without tb/.
