@@ -70,8 +70,8 @@ def test_package_names_load_on_first_use():
     assert result.stdout.split() == ["sb3_graph.td3.td3", "5"]
 
 
-# What a command's --help must not import: the network stack, highway-env and the evaluation harness.
-HEAVY = ("torch", "stable_baselines3", "torch_geometric", "highway_env", "envs.evaluation.harness", "numba")
+# What a command's --help must not import: the network stack, highway-env, the evaluation harness, pandas.
+HEAVY = ("torch", "stable_baselines3", "torch_geometric", "highway_env", "envs.evaluation.harness", "numba", "pandas")
 
 
 def test_no_command_help_imports_the_heavy_modules():
