@@ -419,7 +419,7 @@ def _load_weights(model, path: str) -> None:
     # SB3's set_parameters reads only the zip's .pth files, with torch.load(weights_only=True); a
     # .safetensors policy file is tensors by construction (sb3_graph.files.policy_files).
     if not Path(path).is_file():
-        raise UserError(f"--init-weights: no such file {path!r}")
+        raise UserError(f"--init-weights: file not found: {path!r}")
     if Path(path).suffix == ".safetensors":
         from sb3_graph.files.policy_files import PolicyFileError, init_from_file
 
