@@ -96,8 +96,10 @@ def check_planner_spec(spec: str) -> str:
         except OSError as error:
             raise ValueError(f"planner {spec!r}: model file is not readable ({error})") from error
         return key
-    if path.suffix in MODEL_SUFFIXES or "/" in key or "\\" in key:
-        raise ValueError(f"planner {spec!r}: file not found ({path.resolve()})")
+    if path.suffix in MODEL_SUFFIXES:
+        raise ValueError(f"planner {spec!r}: file not found ({path.resolve()}); {PLANNER_WORDS}")
+    if path.is_dir():
+        raise ValueError(f"planner {spec!r} is a folder, not a model file; {PLANNER_WORDS}")
     raise _UnknownWord(f"planner {spec!r} is unknown{_suggestion(key)}; {PLANNER_WORDS}")
 
 
