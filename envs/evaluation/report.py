@@ -320,7 +320,7 @@ def delay_collision_figure(runs: pd.DataFrame, planners: Sequence[str], path: Pa
     :param path: PNG file to write
     """
     width = _figure_width(planners)
-    if 2 * width <= MAX_ASPECT * 3.6:  # side by side
+    if 2 * width <= 2.5 * 3.6:  # side by side (no legend below it widens a cropped figure), up to 3 planners
         fig, (left, right) = plt.subplots(1, 2, figsize=(2 * width, 3.6))
     else:  # one above the other: side by side, many planners make the figure too wide to read
         fig, (left, right) = plt.subplots(2, 1, figsize=_figsize(width, 7.2))
