@@ -9,7 +9,8 @@ After a new main job (``sb3-graph evaluate --scenarios 100 --jobs 2 --out report
 
     python scripts/results_tables.py --report reports/main100
 
-reads the report into ``docs/results/main.json`` and rewrites both pages; without ``--report`` it
+reads the report into ``docs/results/main.json`` (and its figures into ``docs/figures/main/``) and rewrites
+both pages; without ``--report`` it
 rewrites them from the committed file, and ``--check`` only says whether they are up to date (exit
 status 1 when not; ``tests/test_results_tables.py`` runs it).
 """
@@ -31,8 +32,11 @@ DATA = ROOT / "docs" / "results" / "main.json"
 #: page -> the tables it holds
 PAGES = {
     ROOT / "README.md": ("main-summary", "main-table"),
-    ROOT / "docs" / "results.md": ("main-summary", "main-table", "main-groups", "main-paired"),
+    ROOT / "docs" / "results.md": ("main-summary", "main-table", "main-groups", "main-paired", "main-figures"),
 }
+#: the report's figures that the results page shows, copied by --report into FIGURES_DIR
+FIGURES = ("flow_rate.png", "delay_collisions.png", "stops_by_maneuver.png")
+FIGURES_DIR = ROOT / "docs" / "figures" / "main"
 #: report name -> how the tables name a planner (a name not listed shows as it is)
 LABELS = {
     "PR": "PR (static priority rules)",
@@ -253,8 +257,16 @@ def summary_text(data: Mapping[str, Any]) -> list[str]:
     return [what, "", summary_sentence(named, collided=collided)]
 
 
+def figures_text(data: Mapping[str, Any]) -> list[str]:
+    """The report's figures copied into ``docs/figures/main/`` (none: a line that says how to get them)."""
+    present = [name for name in FIGURES if (FIGURES_DIR / name).is_file()]
+    if not present:
+        return [f"The figures of `{data['source']}` are in its folder (`{'`, `'.join(FIGURES)}`)."]
+    return [f"![{name[:-4].replace('_', ' ')}](figures/main/{name})" for name in present]
+
+
 TABLES = {"main-summary": summary_text, "main-table": main_table, "main-groups": groups_table,
-          "main-paired": paired_table}  # fmt: skip
+          "main-paired": paired_table, "main-figures": figures_text}  # fmt: skip
 
 
 def render_page(text: str, data: Mapping[str, Any], names: tuple[str, ...], page: str = "page") -> str:
@@ -275,7 +287,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--report", type=Path, help="an evaluate report folder: read it into the summary file first")
     parser.add_argument("--command", help="the command that made --report, as the pages show it")
-    parser.add_argument("--data", type=Path, default=DATA, help=f"the summary file (default: {DATA.relative_to(ROOT)})")
+    parser.add_argument("--data", type=Path, default=DATA, help="the summary file (default: docs/results/main.json)")
     parser.add_argument("--check", action="store_true", help="write nothing; exit 1 when a page is out of date")
     args = parser.parse_args(argv)
     if args.report is not None:
@@ -284,6 +296,12 @@ def main(argv: list[str] | None = None) -> int:
             return 2
         args.data.parent.mkdir(parents=True, exist_ok=True)
         args.data.write_text(json.dumps(read_report(args.report, args.command), indent=1) + "\n")
+        import shutil
+
+        FIGURES_DIR.mkdir(parents=True, exist_ok=True)
+        for name in FIGURES:
+            if (args.report / name).is_file():
+                shutil.copyfile(args.report / name, FIGURES_DIR / name)
     data = json.loads(args.data.read_text())
     stale = []
     for page, names in PAGES.items():

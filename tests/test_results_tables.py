@@ -51,8 +51,9 @@ def test_an_edited_table_is_found_out():
         results_tables.render_page("no markers", data, names, "README.md")
 
 
-def test_a_report_is_read_into_the_summary_file(tmp_path):
-    # A small report written by the report code itself: what --report reads after a new main job.
+@pytest.fixture(scope="module")
+def report(tmp_path_factory):
+    """A small evaluate report written by the report code itself: what --report reads after a new main job."""
     from envs.evaluation.metrics import run_metrics
     from envs.evaluation.report import write_report
 
@@ -69,11 +70,14 @@ def test_a_report_is_read_into_the_summary_file(tmp_path):
             row.update(run_metrics(frame, 100.0))
             runs.append(row)
             vehicles.append(frame.assign(planner=planner, scenario=row["scenario"]))
-    report = tmp_path / "report"
-    report.mkdir()
-    write_report(report, pd.DataFrame(runs), pd.concat(vehicles, ignore_index=True), {"environment": "stub"})
+    folder = tmp_path_factory.mktemp("report")
+    write_report(folder, pd.DataFrame(runs), pd.concat(vehicles, ignore_index=True), {"environment": "stub"})
     replay = {"env": "CoopIntersection4Way-v0", "seed": 0, "duration": 100.0}
-    (report / "run.json").write_text(json.dumps({"replay": replay}))
+    (folder / "run.json").write_text(json.dumps({"replay": replay}))
+    return folder
+
+
+def test_a_report_is_read_into_the_summary_file(report):
     data = results_tables.read_report(report)
     summary = json.loads((report / "summary.json").read_text())
     assert list(data["planners"]) == list(summary)
@@ -85,3 +89,24 @@ def test_a_report_is_read_into_the_summary_file(tmp_path):
     assert lines[-1].startswith("**In short:** The GNN advice policy + shield has fewer stopped vehicles than glide")
     table = results_tables.main_table(data)
     assert table[2].startswith("| glide (arrival times) + shield |") and len(table) == 2 + 2 + 2
+
+
+def test_one_command_rewrites_both_pages_from_a_new_report(report, tmp_path, monkeypatch):
+    # What the main job's rerun takes: `python scripts/results_tables.py --report DIR`, on copies of the pages.
+    pages = {}
+    for page, names in results_tables.PAGES.items():
+        copy = tmp_path / page.name
+        copy.write_text(page.read_text())
+        pages[copy] = names
+    monkeypatch.setattr(results_tables, "PAGES", pages)
+    monkeypatch.setattr(results_tables, "ROOT", tmp_path)
+    monkeypatch.setattr(results_tables, "FIGURES_DIR", tmp_path / "figures" / "main")
+    data = tmp_path / "main.json"
+    assert results_tables.main(["--report", str(report), "--data", str(data)]) == 0
+    assert results_tables.main(["--check", "--data", str(data)]) == 0
+    readme, page = (tmp_path / "README.md").read_text(), (tmp_path / "results.md").read_text()
+    assert _block(readme, "main-table") == _block(page, "main-table")
+    assert "| FIFO |" not in _block(readme, "main-table")  # the old planners are gone, the report's are there
+    assert "| GNN advice policy (shipped) + shield |" in _block(readme, "main-table")
+    assert (tmp_path / "figures" / "main" / "flow_rate.png").is_file()
+    assert "![flow rate](figures/main/flow_rate.png)" in _block(page, "main-figures")
