@@ -245,10 +245,12 @@ def summary_text(data: Mapping[str, Any]) -> list[str]:
     from envs.evaluation.verdict import summary_sentence
 
     vehicles = data["vehicles"]
+    length = "" if data.get("duration_s") is None else f" of {data['duration_s']:g} s"
+    where = "" if data.get("environment") is None else f" on `{data['environment']}`"
+    seed = "" if data.get("seed") is None else f" (seed {data['seed']})"
     what = (
-        f"`{data['command']}` ({data['date']}): every planner on the same {data['scenarios']} generated scenarios "
-        f"of {data['duration_s']:g} s on `{data['environment']}` (seed {data['seed']}), {vehicles:,} vehicles "
-        "scheduled per planner."
+        f"`{data['command']}` ({data['date']}): every planner on the same {data['scenarios']} generated scenarios"
+        f"{length}{where}{seed}, {vehicles:,} vehicles scheduled per planner."
     )
     paired = pd.DataFrame(data["paired"], columns=list(PAIRED_COLUMNS))
     named = paired.assign(planner=paired["planner"].map(lambda n: SHORT.get(n, n)))
