@@ -430,14 +430,14 @@ def run(args: argparse.Namespace) -> int:
             summary = _write(args, stage, recordings, mapped, planners, tic)
     except OutputError as error:
         raise UserError(str(error)) from None
-    from envs.evaluation.report import format_number
+    from envs.evaluation.report import percent
 
     for name, s in summary.items():
         sr = s["stop_ratio"]
         print(
-            f"{name:>10}: {s['vehicles']} vehicles, stops left {format_number(sr['left'])} "
-            f"straight {format_number(sr['straight'])} right {format_number(sr['right'])}, "
-            f"collisions {format_number(s['collision_rate'])}"
+            f"{name:>10}: {s['vehicles']} vehicles, stopped: left {percent(sr['left'])} "
+            f"straight {percent(sr['straight'])} right {percent(sr['right'])}, "
+            f"collided vehicles {percent(s['collision_rate'])}"
         )
     from envs.commands.evaluate import print_verdict
 
