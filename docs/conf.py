@@ -1,76 +1,70 @@
 """Sphinx configuration of the sb3-graph documentation.
 
-Build it with ``pip install -e ".[docs]"`` and ``sphinx-build -W -b html docs docs/_build/html``.
-The API reference is one page per public module of ``sb3_graph`` and ``envs``, written into
-``docs/_api/`` at every build from the packages on disk, so that a module that moves or appears
-is documented without editing this file.
+Build it with ``pip install -e ".[docs]"`` and ``sphinx-build -W -b html docs docs/_build/html``: the docs extra
+alone is enough. Two kinds of pages are written at every build from the code on disk (``docs/_ext/site_pages.py``),
+so that they cannot drift from it:
+
+- the API reference, one page per package group, in ``docs/_api/``;
+- the environment reference's tables (environments, observation, action types, reward terms, every
+  ``default_config()`` key), in ``docs/_generated/``.
 """
 
 from __future__ import annotations
 
-import pkgutil
 import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "docs" / "_ext"))
+
+import site_pages  # noqa: E402
 
 project = "sb3-graph"
 author = "sb3-graph contributors"
+copyright = "sb3-graph contributors"
 release = "0.1.0"
 
 extensions = ["myst_parser", "sphinx.ext.autodoc", "sphinx.ext.napoleon"]
 source_suffix = {".rst": "restructuredtext", ".md": "markdown"}
-exclude_patterns = ["_build", "README.md"]
+# _generated/ holds tables that pages include; results/ the summary file of the results tables
+exclude_patterns = ["_build", "README.md", "_generated", "results", "_ext"]
 myst_heading_anchors = 3
-html_theme = "alabaster"
+html_theme = "furo"
+html_title = "sb3-graph"
 html_static_path: list[str] = []
 
 autodoc_default_options = {"members": True, "show-inheritance": True, "ignore-module-all": True}
 autodoc_inherit_docstrings = False  # torch's and SB3's docstrings belong to their own docs
 autodoc_member_order = "bysource"
+# The optional extras' packages: the site builds from the docs extra alone, without the server stack
+# (serve), the cluster executors (cluster, ray), PostgreSQL (postgres), rl-zoo3 (zoo) or video (video).
+autodoc_mock_imports = [
+    "fastapi",
+    "pydantic",
+    "starlette",
+    "uvicorn",
+    "httptools",
+    "uvloop",
+    "dask",
+    "distributed",
+    "ray",
+    "psycopg2",
+    "rl_zoo3",
+    "tensorboard",
+    "imageio_ffmpeg",
+]
 napoleon_google_docstring = False
 
-#: Packages whose modules the API reference documents, and module names it leaves out: the command
-#: line (documented by ``sb3-graph COMMAND --help``) and private modules (compiled kernels).
-API_PACKAGES = ("sb3_graph", "envs")
-API_SKIP = ("commands", "cli")
 
-
-def api_modules() -> list[str]:
-    """Every public module of :data:`API_PACKAGES`, found on disk without importing it.
-
-    :return: dotted module names, sorted
-    """
-    names = []
-    for package in API_PACKAGES:
-        names.append(package)
-        for info in pkgutil.walk_packages([str(ROOT / package)], prefix=f"{package}."):
-            parts = info.name.split(".")
-            if any(part.startswith("_") or part in API_SKIP for part in parts[1:]):
-                continue
-            names.append(info.name)
-    return sorted(names)
-
-
-def write_api_pages(app) -> None:
-    """Write ``docs/_api/<module>.rst`` for every module of :func:`api_modules`, removing stale ones.
+def write_generated_pages(app) -> None:
+    """Write the API pages and the environment reference's tables (see the module docstring).
 
     :param app: the Sphinx application
     """
-    out = Path(app.srcdir) / "_api"
-    out.mkdir(exist_ok=True)
-    wanted = {
-        f"{name}.rst": f"``{name}``\n{'=' * (len(name) + 4)}\n\n.. automodule:: {name}\n" for name in api_modules()
-    }
-    for stale in out.glob("*.rst"):
-        if stale.name not in wanted:
-            stale.unlink()
-    for file, text in wanted.items():
-        path = out / file
-        if not path.exists() or path.read_text() != text:
-            path.write_text(text)
+    site_pages.write_api_pages(Path(app.srcdir))
+    site_pages.write_environment_tables(Path(app.srcdir))
 
 
 def setup(app) -> None:
-    app.connect("builder-inited", write_api_pages)
+    app.connect("builder-inited", write_generated_pages)

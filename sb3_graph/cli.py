@@ -25,7 +25,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "export": ("sb3_graph.commands.export", "write a model's policy as a weights-only file that cannot run code"),
 }
 
-__all__ = ["COMMANDS", "UserError", "all_commands", "build_parser", "main"]
+__all__ = ["COMMANDS", "UserError", "all_commands", "build_parser", "command_parser", "main"]
 
 
 def all_commands() -> dict[str, tuple[str, str]]:
@@ -78,6 +78,18 @@ def build_parser(
     return parser
 
 
+def command_parser(parser: argparse.ArgumentParser, command: str) -> argparse.ArgumentParser:
+    """The sub-parser of one command (``parser`` itself when it has none of that name).
+
+    :param parser: the parser of :func:`build_parser`
+    :param command: a command name
+    """
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction) and command in action.choices:
+            return action.choices[command]
+    return parser
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``sb3-graph`` console script."""
     argv = list(sys.argv[1:] if argv is None else argv)
@@ -92,7 +104,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             f"unknown command {argv[0]!r} (commands: {', '.join(table)}; a domain's commands come from its "
             "installed entry points: run `pip install -e .` in its repository)"
         )
-    args = parser.parse_args(argv)
+    args, extra = parser.parse_known_args(argv)
+    if extra:  # argparse would blame the top-level parser: name the command and its --help instead
+        command_parser(parser, args.command).error(f"unrecognized arguments: {' '.join(extra)}")
     args.argv = ["sb3-graph", *argv]  # the command as typed (run records), whoever called main
     if getattr(args, "_missing", None):
         parser.error(f"command {args.command!r} is unavailable: {args._missing}")

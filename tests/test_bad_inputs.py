@@ -468,6 +468,7 @@ CASES = [
     ("export-not-zip", ["export", "{notzip}", "{out}.safetensors"], ["MODEL", "notzip.zip"]),
     ("export-ppo", ["export", "{ppo}", "{out}.safetensors"], ["MODEL", "ppo.zip", "policy_class"]),
     ("export-suffix", ["export", "{small}", "{out}.pt"], ["OUT", ".safetensors"]),
+    ("export-missing", ["export", "{out}_missing.zip", "{out}.safetensors"], ["MODEL", "file not found"]),
     ("export-out-exists", ["export", "{small}", "{small_st}"], ["OUT", "exists"]),
 ]
 

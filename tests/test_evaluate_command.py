@@ -198,17 +198,18 @@ def test_labels_are_report_names_and_tell_files_of_one_folder_name_apart(tmp_pat
     args = ["evaluate", "--planner", "base=pr", "--planner", f"default={files[0]}", "--planner", f"tuned={files[1]}",
             "--shield", "--out", str(out), *SMALL]  # fmt: skip
     assert main(args) == 0
-    last = capsys.readouterr().out.splitlines()[-5:]  # the command ends with the verdict, then the report's path
-    assert last[0].startswith("Who leads, against base+shield (the strongest baseline)")
-    assert [line.split(":")[0] for line in last[1:4]] == ["- flow", "- delay", "- stops"]
-    assert last[4].startswith(f"report written to {out}")
+    last = capsys.readouterr().out.splitlines()[-6:]  # the command ends with the verdict, then the report's path
+    assert last[0].startswith("In short: ")  # one sentence first
+    assert last[1].startswith("Who leads, against base+shield (the strongest baseline)")
+    assert [line.split(":")[0] for line in last[2:5]] == ["- flow", "- delay", "- stops"]
+    assert last[5].startswith(f"report written to {out}")
     names = ["base+shield", "default+shield", "tuned+shield"]
     assert list(pd.unique(pd.read_csv(out / "metrics.csv")["planner"])) == names
     assert list(json.loads((out / "summary.json").read_text())) == names
     report = (out / "report.md").read_text()
     assert all(f"| {name} |" in report for name in names)
     assert report.splitlines()[2] == "## Verdict"  # report.md opens with the same verdict as the console
-    assert [line.replace("**", "") for line in report.splitlines()[6:9]] == last[1:4]
+    assert [line.replace("**", "") for line in report.splitlines()[8:11]] == last[2:5]
     replay = json.loads((out / "run.json").read_text())["replay"]["planners"]
     assert [name for _, name in replay] == names and replay[1][0] == f"{files[0]}+shield"
 
@@ -220,7 +221,7 @@ def test_labels_are_report_names_and_tell_files_of_one_folder_name_apart(tmp_pat
         (["FIFO=pr", "fifo"], "'fifo' and 'FIFO=pr' both get the report name 'FIFO'"),
         (["two words=pr"], "label 'two words' in 'two words=pr' is not a valid label"),
         (["empty="], "label 'empty' names no planner"),
-        (["x=nobody"], "planner 'nobody' is neither a baseline"),
+        (["x=nobody"], "planner 'nobody' is unknown"),
     ],
 )
 def test_a_label_clash_or_a_bad_label_is_one_line(words, message, tmp_path, capsys):

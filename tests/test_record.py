@@ -104,7 +104,7 @@ def test_record_replays_a_run_of_an_evaluate_report(tmp_path, capsys):
         (["--out", "x.gif", "--planner", "x=fifo", "--planner", "x=aim"], "both get the label 'x'"),
         (["--out", "x.gif", "--planner", "fifo", "--duration", "-1"], "--duration must be positive"),
         (["--out", "x.gif", "--planner", "fifo", "--duration", "5", "--from", "5"], "--from must be in [0, 5)"),
-        (["--out", "x.gif", "--planner", "fifo", "--scenario", "missing.json"], "--scenario: 'missing.json'"),
+        (["--out", "x.gif", "--planner", "fifo", "--scenario", "missing.json"], "file not found: 'missing.json'"),
     ],
 )
 def test_bad_input_is_one_line(extra, message, tmp_path, monkeypatch, capsys):

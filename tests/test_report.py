@@ -10,9 +10,9 @@ from envs.evaluation.metrics import run_metrics
 from envs.evaluation.report import FIGURES, collided_text, write_report
 
 
-def _results(collided_in_fifo: int) -> tuple[pd.DataFrame, pd.DataFrame]:
+def _results(collided_in_fifo: int, extra: int = 0) -> tuple[pd.DataFrame, pd.DataFrame]:
     runs, vehicles = [], []
-    names = ("PR", "FIFO", "RL:coop_4way_fair", "RL:coop_4way_fair+shield")
+    names = ("PR", "FIFO", "RL:coop_4way_fair", "RL:coop_4way_fair+shield", *(f"planner_{k}" for k in range(extra)))
     for planner in names:
         for k in range(2):
             n = 500  # 2 of 1,000 vehicles: 0.2 %, "0.0 %" once rounded to a tenth of a percent of 10 %
@@ -88,3 +88,52 @@ def test_figures_have_titles_and_a_log_axis_where_one_bar_dwarfs_the_others(tmp_
     labels = [text.get_text() for text in legend.get_texts()]
     assert labels == [*planners, "vehicles (light)", "stopped (dark)"]  # one entry per planner, not two
     assert min(text.get_fontsize() for text in legend.get_texts()) >= 9
+
+
+def test_figures_are_at_most_two_and_a_half_times_as_wide_as_high_with_many_planners(tmp_path):
+    for extra in (0, 4, 8):  # 4, 8 and 12 planners
+        out = tmp_path / str(extra)
+        out.mkdir()
+        runs, vehicles = _results(collided_in_fifo=1, extra=extra)
+        write_report(out, runs, vehicles, {"environment": "stub"})
+        for figure in FIGURES:
+            height, width = matplotlib.image.imread(out / figure).shape[:2]
+            assert width / height <= 2.5, (extra, figure, width, height)
+
+
+def test_no_planner_is_drawn_in_a_key_swatch_colour():
+    from matplotlib import colors as mcolors
+
+    from envs.evaluation.report import KEY_COLORS, planner_colors
+
+    colors = planner_colors(20)
+    assert len(set(colors[:18])) == 18  # 18 distinct colours before they repeat
+    for color in colors:
+        r, g, b = mcolors.to_rgb(color)
+        assert len({round(r, 2), round(g, 2), round(b, 2)}) > 1, color  # not grey, not black
+        assert color not in {mcolors.to_hex(key) for key in KEY_COLORS}
+
+
+def test_report_units_one_per_quantity(tmp_path):
+    runs, vehicles = _results(collided_in_fifo=2)
+    write_report(tmp_path, runs, vehicles, {"environment": "stub"})
+    report = (tmp_path / "report.md").read_text()
+    assert "governor held back [% of vehicle-steps]" in report
+    from envs.evaluation.comparison import PAIRED_COLUMNS
+    from envs.evaluation.report import _paired_section
+
+    paired = pd.DataFrame(
+        [
+            ("A", "PR", "stop_ratio_all", 10, -0.096, -0.12, -0.07),
+            ("A", "PR", "energy_kj_per_vehicle", 10, 11.8, 7.6, 15.7),
+        ],
+        columns=list(PAIRED_COLUMNS),
+    )
+    table = _paired_section(paired)
+    assert table[-3].endswith("| Δ stops [pp] | Δ energy [kJ per crossed vehicle] |")
+    assert table[-1] == "| A | 10 | -9.6 [-12.0, -7.0] | +12 [+8, +16] |"  # points of a share; kJ, no decimals
+    from envs.evaluation.report import _motion_table
+
+    summary = {"A": {"slow_ratio": 0.506, "stop_ratio": {"all": 0.183}, "hard_brakes_per_vehicle": 0.86,
+                     "energy_kj_per_vehicle": 103.4}}  # fmt: skip
+    assert _motion_table(summary)[-1] == "| A | 50.6 % | 18.3 % | 0.86 | 103 |"  # percent; kJ with no decimals

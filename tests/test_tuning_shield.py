@@ -232,7 +232,7 @@ def test_init_weights_of_another_architecture_is_a_one_line_error(tmp_path, caps
     assert "--init-weights: " in err and "a TD3 policy of another architecture than the GraphPolicy to train" in err
     assert "in the file, [8, 8] in the policy" in err  # the first tensor whose shape differs
     assert main([*base, "--init-weights", str(tmp_path / "none.safetensors")]) == 2
-    assert "--init-weights: no such file" in capsys.readouterr().err
+    assert "--init-weights: file not found" in capsys.readouterr().err
     (tmp_path / "junk.safetensors").write_bytes(b"not a file")
     assert main([*base, "--init-weights", str(tmp_path / "junk.safetensors")]) == 2
     assert "not a .safetensors policy file" in capsys.readouterr().err

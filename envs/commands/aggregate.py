@@ -31,11 +31,13 @@ from __future__ import annotations
 import argparse
 import re
 from pathlib import Path
-
-import pandas as pd
+from typing import TYPE_CHECKING
 
 from sb3_graph.commands import UserError
 from sb3_graph.commands.arguments import seed_value
+
+if TYPE_CHECKING:  # pandas loads when the command runs, not for --help
+    import pandas as pd
 
 DEFAULT_METRICS = ("flow_rate", "stop_ratio_all", "delay_mean", "collision_rate")
 DEFAULT_SEED_PATTERN = r"seed_(\d+)"
@@ -112,6 +114,8 @@ def read_runs(items: list[str], metrics: list[str], seed_pattern: str) -> pd.Dat
     :param metrics: metric columns that every input must have
     :param seed_pattern: regular expression, its first group the seed in a planner name
     """
+    import pandas as pd
+
     pattern = compile_seed_pattern(seed_pattern)
     frames = []
     for label, file in _inputs(items):
@@ -138,6 +142,7 @@ def read_runs(items: list[str], metrics: list[str], seed_pattern: str) -> pd.Dat
 def _check_metrics(frame: pd.DataFrame, metrics: list[str], file: Path) -> None:
     """Every metric a number: finite, or empty (undefined, e.g. the delay of a run without vehicles)."""
     import numpy as np
+    import pandas as pd
 
     for name in metrics:
         values = pd.to_numeric(frame[name], errors="coerce")

@@ -379,7 +379,7 @@ def print_verdict(report: Path) -> None:
 
 def print_summary(summary: dict[str, dict[str, Any]]) -> None:
     """One line per planner on the console, the shield's counters and the planner errors after it."""
-    from envs.evaluation.report import collided_text, format_number
+    from envs.evaluation.report import collided_text, format_number, percent
 
     width = max([10, *(len(name) for name in summary)])
     for name, s in summary.items():
@@ -387,7 +387,7 @@ def print_summary(summary: dict[str, dict[str, Any]]) -> None:
             f, sr = s["flow_rate"], s["stop_ratio"]
             print(
                 f"{name:>{width}}: flow median {format_number(f['median'])} veh/s,"
-                f" stops major {format_number(sr['major'])} minor {format_number(sr['minor'])},"
+                f" stops major {percent(sr['major'])} minor {percent(sr['minor'])},"
                 f" collided {collided_text(s.get('collided'), s['vehicles'])}, delay mean"
                 f" {format_number(s['delay_s']['mean'], 2)} s, {s['speed_limit_violations']} speed-limit violations"
                 f" ({s['vehicles']} scheduled vehicles, {s['not_spawned']} not spawned (jam)),"
@@ -395,7 +395,7 @@ def print_summary(summary: dict[str, dict[str, Any]]) -> None:
             )
         if "shield_interventions" in s:
             print(
-                f"{'':>{width}}  shield: interventions {format_number(s['shield_interventions'])},"
+                f"{'':>{width}}  shield: interventions {percent(s['shield_interventions'])} of vehicle-steps,"
                 f" unresolved steps {s.get('shield_unresolved', 0)}, planner errors {s.get('planner_errors', 0)},"
                 f" watchdog takeovers {s.get('watchdog_takeovers', 0)}"
             )
@@ -450,8 +450,10 @@ def announce_runs(args: argparse.Namespace, planners: Sequence[tuple[str, str]],
         ("AIM's", any(spec.split("+")[0] == "aim" for spec, _ in planners)),
     ) if used]  # fmt: skip
     if kernels:
-        say(f"the first run of an installation compiles {' and '.join(kernels)} numba kernels (about 6 s; "
-            "later runs load them in about 1 s)")  # fmt: skip
+        say(
+            f"the first run of an installation compiles {' and '.join(kernels)} numba kernels: this can take up "
+            "to a minute on a busy machine, with the bar standing still; later runs load them in about 1 s"
+        )
 
 
 def harness(args: argparse.Namespace, planners: Sequence[tuple[str, str]], scenarios: Sequence[Path], duration):

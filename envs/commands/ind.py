@@ -26,10 +26,7 @@ import platform
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
-
-import numpy as np
-import pandas as pd
+from typing import TYPE_CHECKING, Any
 
 from envs.commands.evaluate import (
     DEFAULT_PLANNERS_HELP,
@@ -41,6 +38,9 @@ from envs.commands.evaluate import (
 )
 from sb3_graph.commands import UserError
 from sb3_graph.commands.arguments import json_object, seed_value
+
+if TYPE_CHECKING:  # pandas loads when the command runs, not for --help
+    import pandas as pd
 
 DEFAULT_ENV = "CoopIntersectionInD-v0"
 DEFAULT_LAYOUT = "inD"
@@ -231,6 +231,8 @@ def dataset_vehicle_log(mapped, recording: int | None = None) -> pd.DataFrame:
     :param recording: keep one recording
     :return: vehicle log rows with ``planner = "inD"`` and ``scenario``
     """
+    import pandas as pd
+
     from envs.evaluation.metrics import vehicle_frame
 
     rows = mapped.mapped
@@ -270,6 +272,8 @@ def dataset_runs(mapped, recordings: Sequence) -> tuple[pd.DataFrame, pd.DataFra
     :param recordings: the recordings
     :return: ``(runs, vehicles)`` in the harness's schema, planner ``"inD"``
     """
+    import pandas as pd
+
     from envs.evaluation.metrics import run_metrics
 
     runs, logs = [], []
@@ -331,6 +335,8 @@ def write_scenarios(mapped, recordings: Sequence, folder: Path, layout: str = DE
 
 def _mapping_section(mapped, recordings: Sequence, dataset_table: pd.DataFrame) -> str:
     """Markdown about the data and its mapping, appended to ``report.md``."""
+    import numpy as np
+
     from envs.ind.format import LOCATIONS
     from envs.ind.loader import class_table
 
@@ -424,14 +430,14 @@ def run(args: argparse.Namespace) -> int:
             summary = _write(args, stage, recordings, mapped, planners, tic)
     except OutputError as error:
         raise UserError(str(error)) from None
-    from envs.evaluation.report import format_number
+    from envs.evaluation.report import percent
 
     for name, s in summary.items():
         sr = s["stop_ratio"]
         print(
-            f"{name:>10}: {s['vehicles']} vehicles, stops left {format_number(sr['left'])} "
-            f"straight {format_number(sr['straight'])} right {format_number(sr['right'])}, "
-            f"collisions {format_number(s['collision_rate'])}"
+            f"{name:>10}: {s['vehicles']} vehicles, stopped: left {percent(sr['left'])} "
+            f"straight {percent(sr['straight'])} right {percent(sr['right'])}, "
+            f"collided vehicles {percent(s['collision_rate'])}"
         )
     from envs.commands.evaluate import print_verdict
 
@@ -442,6 +448,8 @@ def run(args: argparse.Namespace) -> int:
 
 def _write(args: argparse.Namespace, out: Path, recordings, mapped, planners, tic: float) -> dict:
     """Every report file into ``out`` (the staging folder); returns the summary."""
+    import pandas as pd
+
     from envs.ind.dataset_metrics import dataset_summary, stop_table
     from envs.ind.loader import class_table
 

@@ -167,7 +167,7 @@ def _settings(args: argparse.Namespace) -> dict[str, Any]:
     else:
         settings = {"seed": 0 if args.seed is None else args.seed, "scenario": args.scenario}
         if args.scenario is not None and not Path(args.scenario).is_file():
-            raise UserError(f"--scenario: {args.scenario!r} is not a file")
+            raise UserError(f"--scenario: file not found: {args.scenario!r}")
     if settings["seed"] < 0:
         raise UserError(f"--seed must be >= 0, got {settings['seed']}")
     settings["env"] = args.env or settings.get("env") or DEFAULT_ENV

@@ -24,10 +24,12 @@ from __future__ import annotations
 import argparse
 import math
 from pathlib import Path
-
-import pandas as pd
+from typing import TYPE_CHECKING
 
 from sb3_graph.commands import UserError
+
+if TYPE_CHECKING:  # pandas loads when the command runs, not for --help
+    import pandas as pd
 
 TASK_COLUMNS = ("flow_rate", "delay_mean", "stop_ratio_all", "collision_rate")
 
@@ -53,6 +55,8 @@ def read_runs(reports: list[str]) -> pd.DataFrame:
 
     :raises UserError: a missing file, or a file without the task and return columns
     """
+    import pandas as pd
+
     frames = []
     for report in reports:
         path = Path(report)
@@ -80,6 +84,8 @@ def reward_table(runs: pd.DataFrame) -> tuple[pd.DataFrame, pd.DataFrame]:
     :return: ``(planners, correlations)``: ``planners`` indexed by planner with the task columns and
         one column per reward; ``correlations`` indexed by reward with ``rho_flow``, ``rho_delay`` and ``rho_stops``
     """
+    import pandas as pd
+
     returns = sorted(c for c in runs if c.startswith("return_"))
     for column in (*TASK_COLUMNS, *returns):
         runs[column] = pd.to_numeric(runs[column], errors="coerce")

@@ -18,7 +18,7 @@ runs execute where ``--executor`` says, as for ``evaluate`` (``--executor dask
 --scheduler-address tcp://host:8786`` runs the sweep on an existing Dask cluster, docs/cluster.md).
 An existing ``--out`` is refused, never overwritten.
 
-**Penetration sweep** (mixed traffic, issue 39): ``--human-share 0 0.25 0.5 0.75 1`` sweeps the share of
+**Penetration sweep** (mixed traffic): ``--human-share 0 0.25 0.5 0.75 1`` sweeps the share of
 human drivers instead of the demand. Scenario ``i`` of every share has the same arrivals (seed
 ``seed + i``; a share only flags vehicles as human-driven), drawn at the paper's rates or at one
 ``--demand`` level; each share's report is in ``human_share_<share>/``, ``sweep.csv`` has a

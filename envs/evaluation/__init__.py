@@ -9,33 +9,18 @@
 - :mod:`~envs.evaluation.tuning`: the objective of ``sb3-graph tune`` (a trained model on validation scenarios).
 - :mod:`~envs.evaluation.recording`: one episode run with a frame per step, for ``sb3-graph record``.
 
-This package re-exports the harness's names (``from envs.evaluation import evaluate, run_episode``);
-the other modules load only when imported (the report and the sweep pull in matplotlib).
+This package re-exports the harness's names (``from envs.evaluation import evaluate, run_episode``), loaded on
+first use; the other modules load only when imported (the report and the sweep pull in matplotlib).
 """
 
 from __future__ import annotations
 
-from envs.evaluation.harness import (
-    EVALUATION_CONFIG,
-    SCENARIO_SUFFIX,
-    Job,
-    check_scenarios,
-    env_config,
-    evaluate,
-    evaluation_env_kwargs,
-    find_scenarios,
-    generate_scenarios,
-    is_baseline,
-    layout_of,
-    planned_accelerations,
-    preset_returns,
-    run_episode,
-    run_job,
-    run_seed,
-    run_shared_job,
-)
+import importlib
+from typing import TYPE_CHECKING, Any
 
-__all__ = [
+# The harness's names load on first use (PEP 562 ``__getattr__``): a command's parser imports
+# ``envs.evaluation.executors`` for its choices, and ``--help`` must not pay for torch and highway-env.
+_HARNESS_NAMES = (
     "EVALUATION_CONFIG",
     "SCENARIO_SUFFIX",
     "Job",
@@ -53,4 +38,33 @@ __all__ = [
     "run_job",
     "run_seed",
     "run_shared_job",
-]
+)
+
+if TYPE_CHECKING:
+    from envs.evaluation.harness import (  # noqa: F401
+        EVALUATION_CONFIG,
+        SCENARIO_SUFFIX,
+        Job,
+        check_scenarios,
+        env_config,
+        evaluate,
+        evaluation_env_kwargs,
+        find_scenarios,
+        generate_scenarios,
+        is_baseline,
+        layout_of,
+        planned_accelerations,
+        preset_returns,
+        run_episode,
+        run_job,
+        run_seed,
+        run_shared_job,
+    )
+
+__all__ = list(_HARNESS_NAMES)
+
+
+def __getattr__(name: str) -> Any:
+    if name in _HARNESS_NAMES:
+        return getattr(importlib.import_module("envs.evaluation.harness"), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -346,7 +346,7 @@ def generate_scenarios(
     :param layout: name of the intersection layout (see :func:`layout_of`)
     :param demand: arrival rate per major-road lane [veh/s] (minor lanes get half); default: a
         rate drawn per scenario from the paper's range (:func:`envs.simulation.traffic.generate_scenario`)
-    :param human_share: probability that a vehicle is human-driven (mixed traffic, issue 39); it only
+    :param human_share: probability that a vehicle is human-driven (mixed traffic); it only
         adds flags, so the arrivals of scenario ``i`` are the same at every share
     :return: the files, in order
     """

@@ -28,7 +28,7 @@ look better by keeping vehicles out of the scene.
   bound of the delay it will have when it crosses, so saturated planners are, if anything,
   flattered; never rewarded for a queue.
 - **travel time**: vehicles that crossed, from the scheduled appearance to the crossing.
-- **mixed traffic** (issue 39): ``human`` marks a human-driven vehicle (``Scene.human``; the
+- **mixed traffic**: ``human`` marks a human-driven vehicle (``Scene.human``; the
   schedule's flag for one that never appeared). :func:`run_metrics` repeats the flow rate, mean
   delay, stop ratio and collided vehicles for automated and for human vehicles
   (``flow_rate_automated``, ``delay_mean_human`` ...). ``collisions_human`` counts the vehicles of
@@ -102,11 +102,11 @@ VEHICLE_COLUMNS = (
     "human",
     "collided_with_human",
 )
-# Mixed traffic (issue 39): the main figures again for each kind of driver (``<figure>_<kind>``).
+# Mixed traffic: the main figures again for each kind of driver (``<figure>_<kind>``).
 DRIVER_KINDS = ("automated", "human")
 PRIORITIES = ("major", "minor")
 STOP_GROUPS = ("all",) + PRIORITIES + tuple(MANEUVERS)
-# A vehicle faster than its lane's limit by more than this [m/s] violates it (issue 11).
+# A vehicle faster than its lane's limit by more than this [m/s] violates it.
 SPEED_TOLERANCE = 0.1
 # The liveness watchdog: a run is *stuck* when for this long no vehicle crossed the intersection while
 # some vehicle waited to (appeared, or was due to appear, and had neither crossed nor left) [s].

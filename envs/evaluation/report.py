@@ -77,7 +77,8 @@ FIGURES = ("flow_rate.png", "stops_by_priority.png", "stops_by_maneuver.png", "d
 REPORT_FILES = ("metrics.csv", "vehicles.csv", "summary.json", "report.md", "paired.csv") + FIGURES
 
 
-def _pct(value: float | None) -> str:
+def percent(value: float | None) -> str:
+    """A share as ``"12.3 %"`` (``"n/a"`` for a missing or non-finite value)."""
     return "n/a" if value is None or not np.isfinite(value) else f"{100 * value:.1f} %"
 
 
@@ -134,12 +135,12 @@ def markdown_report(
     lines += ["| planner | " + " | ".join(groups) + " |", "|---|" + "---:|" * len(groups)]
     for name, s in summary.items():
         counts = stop_counts(vehicles[vehicles["planner"] == name])
-        cells = [f"{_pct(s['stop_ratio'][g])} ({counts[g][1]}/{counts[g][0]})" for g in groups]
+        cells = [f"{percent(s['stop_ratio'][g])} ({counts[g][1]}/{counts[g][0]})" for g in groups]
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     lines += ["", "## Collisions, delay and speed limits", ""]
     lines.append(
         "| planner | vehicles (scheduled) | collided vehicles | delay median [s] | delay mean [s] "
-        "| speed-limit violations [vehicle-steps] | governor held back [vehicle-steps] |"
+        "| speed-limit violations [vehicle-steps] | governor held back [% of vehicle-steps] |"
     )
     lines.append("|---|---:|---:|---:|---:|---:|---:|")
     for name, s in summary.items():
@@ -148,7 +149,7 @@ def markdown_report(
             f"| {name} | {s['vehicles']} ({s.get('vehicles_scheduled', 'n/a')}) "
             f"| {collided_text(s.get('collided'), s['vehicles'])} "
             f"| {format_number(d['median'], 2)} | {format_number(d['mean'], 2)} "
-            f"| {s.get('speed_limit_violations', 'n/a')} | {_pct(s.get('governor_share'))} |"
+            f"| {s.get('speed_limit_violations', 'n/a')} | {percent(s.get('governor_share'))} |"
         )
     lines += _motion_table(summary)
     if paired is not None and not paired.empty:
@@ -161,7 +162,7 @@ def markdown_report(
         ]
         lines += ["|---|---:|---:|---:|---:|---:|"]
         lines += [
-            f"| {name} | {_pct(s['shield_interventions'])} | {s.get('shield_unresolved', 'n/a')} "
+            f"| {name} | {percent(s['shield_interventions'])} | {s.get('shield_unresolved', 'n/a')} "
             f"| {s.get('planner_errors', 'n/a')} | {s.get('watchdog_takeovers', 'n/a')} "
             f"| {s.get('stuck_runs', 'n/a')} |"
             for name, s in shielded
@@ -181,16 +182,31 @@ def _motion_table(summary: Mapping[str, Mapping[str, Any]]) -> list[str]:
     lines = ["", "## Crawling, hard braking and energy (the executed motion)", ""]
     lines.append(
         f"| planner | slow ratio (below {SLOW_SPEED:g} m/s) | stop ratio (below {STOP_SPEED:g} m/s) "
-        f"| hard brakes per vehicle (below {HARD_BRAKE_ACCELERATION:g} m/s^2) | energy per crossed vehicle [kJ] |"
+        f"| hard brakes per vehicle (below {HARD_BRAKE_ACCELERATION:g} m/s²) | energy per crossed vehicle [kJ] |"
     )
     lines.append("|---|---:|---:|---:|---:|")
     for name, s in summary.items():
         lines.append(
-            f"| {name} | {_pct(s.get('slow_ratio'))} | {_pct(s['stop_ratio']['all'])} "
+            f"| {name} | {percent(s.get('slow_ratio'))} | {percent(s['stop_ratio']['all'])} "
             f"| {format_number(s.get('hard_brakes_per_vehicle'), 2)} "
-            f"| {format_number(s.get('energy_kj_per_vehicle'), 1)} |"
+            f"| {format_number(s.get('energy_kj_per_vehicle'), 0)} |"
         )
     return lines
+
+
+#: ``paired.csv`` metric -> (column heading, factor to its unit, decimals): shares as percentage points.
+PAIRED_DISPLAY = {
+    "flow_rate": ("Δ flow [veh/s]", 1.0, 3),
+    "delay_mean": ("Δ mean delay [s]", 1.0, 2),
+    "stop_ratio_all": ("Δ stops [pp]", 100.0, 1),
+    "slow_ratio": ("Δ slowed below 2 m/s [pp]", 100.0, 1),
+    "hard_brakes_per_vehicle": ("Δ hard brakes per vehicle", 1.0, 2),
+    "energy_kj_per_vehicle": ("Δ energy [kJ per crossed vehicle]", 1.0, 0),
+}
+
+
+def signed_number(value: float, digits: int) -> str:
+    return "n/a" if value is None or not np.isfinite(value) else f"{value:+.{digits}f}"
 
 
 def _paired_section(paired: pd.DataFrame) -> list[str]:
@@ -198,20 +214,22 @@ def _paired_section(paired: pd.DataFrame) -> list[str]:
     baseline = paired["baseline"].iloc[0]
     level = f"{100 * CONFIDENCE:.0f} %"
     lines = ["", f"## Against the strongest baseline ({baseline}): per-scenario differences", ""]
-    lines.append(f"Mean of (planner - {baseline}) over paired scenarios, [{level} bootstrap interval].")
+    lines.append(
+        f"Mean of (planner - {baseline}) over paired scenarios, [{level} bootstrap interval]; "
+        "pp: percentage points (a difference of two shares)."
+    )
     metrics = [metric for metric in PAIRED_METRICS if metric in set(paired["metric"])]
-    lines += ["", "| planner | scenarios | " + " | ".join(f"Δ {PAIRED_METRICS[m]}" for m in metrics) + " |"]
+    heading = [PAIRED_DISPLAY.get(m, (f"Δ {PAIRED_METRICS[m]}", 1.0, 3))[0] for m in metrics]
+    lines += ["", "| planner | scenarios | " + " | ".join(heading) + " |"]
     lines.append("|---|---:|" + "---:|" * len(metrics))
     for planner, rows in paired.groupby("planner", sort=False):
         by_metric = rows.set_index("metric")
         cells = []
         for metric in metrics:
             r = by_metric.loc[metric]
-            digits = 2 if metric == "delay_mean" else 3
-            cells.append(
-                f"{format_number(r['mean_difference'], digits)} "
-                f"[{format_number(r['ci_low'], digits)}, {format_number(r['ci_high'], digits)}]"
-            )
+            _, scale, digits = PAIRED_DISPLAY.get(metric, ("", 1.0, 3))
+            low, mean, high = (scale * float(r[c]) for c in ("ci_low", "mean_difference", "ci_high"))
+            cells.append(f"{signed_number(mean, digits)} [{signed_number(low, digits)}, {signed_number(high, digits)}]")
         lines.append(f"| {planner} | {int(rows['pairs'].max())} | " + " | ".join(cells) + " |")
     return lines
 
@@ -227,6 +245,35 @@ def _figure_width(planners: Sequence[str]) -> float:
     return max(4.0, 1.5 + 0.9 * len(planners))
 
 
+#: Widest figure, width over height: wider ones shrink their labels below reading size in a Markdown viewer.
+MAX_ASPECT = 2.2  # the stop figures gain a little width when their legend is cropped to fit
+#: Grey and black are the key swatches of the stop figures ("vehicles", "stopped"): no planner is drawn in them.
+KEY_COLORS = ("black",)
+
+
+def _figsize(width: float, height: float) -> tuple[float, float]:
+    """``(width, height)`` in inches, the height raised where the figure would be wider than :data:`MAX_ASPECT`."""
+    return width, max(height, width / MAX_ASPECT)
+
+
+def planner_colors(count: int) -> list[str]:
+    """One colour per planner, none grey or black (those are the legends' key swatches): matplotlib's
+    ``tab10`` without its grey, then ``tab20``'s light shades without theirs, repeated beyond 18 planners.
+
+    :param count: number of planners
+    :return: hex colours, in planner order
+    """
+    from matplotlib import colors as mcolors
+
+    palette = [
+        mcolors.to_hex(c)
+        for name in ("tab10", "tab20")
+        for c in plt.get_cmap(name).colors[(0 if name == "tab10" else 1) :: (1 if name == "tab10" else 2)]
+    ]
+    palette = [c for c in palette if len({c[1:3], c[3:5], c[5:7]}) > 1]  # an equal R, G and B is a grey
+    return [palette[k % len(palette)] for k in range(count)]
+
+
 def flow_rate_figure(runs: pd.DataFrame, planners: Sequence[str], path: Path) -> None:
     """Box plot of the flow rate per planner (one point per run), and the offered flow (mean over
     runs, dashed): the flow a perfect planner reaches.
@@ -235,7 +282,7 @@ def flow_rate_figure(runs: pd.DataFrame, planners: Sequence[str], path: Path) ->
     :param planners: planners in display order
     :param path: PNG file to write
     """
-    fig, ax = plt.subplots(figsize=(_figure_width(planners), 3.6))
+    fig, ax = plt.subplots(figsize=_figsize(_figure_width(planners), 3.6))
     data = [runs.loc[runs["planner"] == p, "flow_rate"].to_numpy(float) for p in planners]
     ax.boxplot(data, showfliers=True, widths=0.5)
     _planner_axis(ax, planners)
@@ -273,7 +320,10 @@ def delay_collision_figure(runs: pd.DataFrame, planners: Sequence[str], path: Pa
     :param path: PNG file to write
     """
     width = _figure_width(planners)
-    fig, (left, right) = plt.subplots(1, 2, figsize=(2 * width, 3.6))
+    if 2 * width <= 2.5 * 3.6:  # side by side (no legend below it widens a cropped figure), up to 3 planners
+        fig, (left, right) = plt.subplots(1, 2, figsize=(2 * width, 3.6))
+    else:  # one above the other: side by side, many planners make the figure too wide to read
+        fig, (left, right) = plt.subplots(2, 1, figsize=_figsize(width, 7.2))
     delays = [runs.loc[runs["planner"] == p, "delay_mean"].to_numpy(float) for p in planners]
     left.boxplot([d[np.isfinite(d)] for d in delays], showfliers=True, widths=0.5)
     _planner_axis(left, planners)
@@ -314,10 +364,10 @@ def stop_figure(
     :param groups: the values of ``column`` to show
     :param path: PNG file to write
     """
-    fig, ax = plt.subplots(figsize=(1.6 + 1.4 * len(groups) * max(len(planners), 1) / 2, 3.4))
+    fig, ax = plt.subplots(figsize=_figsize(min(10.0, 1.6 + 0.7 * len(groups) * max(len(planners), 1)), 3.4))
     width = 0.8 / max(len(planners), 1)
     x = np.arange(len(groups))
-    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    colors = planner_colors(len(planners))
     top = 1.0
     for k, planner in enumerate(planners):
         sub = vehicles[vehicles["planner"] == planner]
@@ -338,7 +388,8 @@ def stop_figure(
     from matplotlib.patches import Patch
 
     handles, _ = ax.get_legend_handles_labels()
-    handles += [Patch(color="grey", alpha=0.35, label="vehicles (light)"), Patch(color="grey", label="stopped (dark)")]
+    key = KEY_COLORS[0]
+    handles += [Patch(color=key, alpha=0.35, label="vehicles (light)"), Patch(color=key, label="stopped (dark)")]
     columns = min(len(handles), max(2, int(fig.get_figwidth() // 1.8)))
     ax.legend(handles=handles, fontsize=9, ncol=columns, loc="upper center", bbox_to_anchor=(0.5, -0.12))
     what = "road priority" if column == "priority" else column

@@ -18,7 +18,7 @@ scheduled vehicles that would have crossed within the run in free flow (``offere
 capacity is then at least that). The highest flow a planner reaches over the sweep is its
 saturation flow, shown beside it.
 
-**Penetration sweep** (mixed traffic, issue 39): the same with the share of human drivers
+**Penetration sweep** (mixed traffic): the same with the share of human drivers
 (``human_share``) as the level instead of the demand (:data:`SHARE_COLUMNS`: ``human_share`` in
 place of ``demand``, plus ``collisions_automated`` and ``collisions_human``, summed over the runs:
 vehicles in collisions between automated vehicles only, and in collisions with a human driver in
@@ -39,7 +39,7 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
 from envs.evaluation.comparison import PAIRED_METRICS  # noqa: E402
-from envs.evaluation.report import format_number  # noqa: E402
+from envs.evaluation.report import PAIRED_DISPLAY, format_number, planner_colors, signed_number  # noqa: E402
 
 SWEEP_COLUMNS = (
     "planner",
@@ -63,6 +63,33 @@ SHARE_COLUMNS = (
 AXIS_LABELS = {"demand": "demand [veh/s per major-road lane]", "human_share": "share of human drivers"}
 SERVED_FRACTION = 0.9
 SWEEP_FILES = ("sweep.csv", "sweep.png", "sweep.md")
+
+
+def _share(value: float) -> str:
+    """A share in percent: one decimal, more significant digits below 0.1 % (a rare collision stays visible)."""
+    if value is None or not np.isfinite(value):
+        return "n/a"
+    return f"{100 * value:.2g} %" if 0 < value < 0.001 else f"{100 * value:.1f} %"
+
+
+def _count(value: float) -> str:
+    return "n/a" if value is None or not np.isfinite(value) else f"{value:,.0f}"
+
+
+#: ``sweep.csv`` column -> (its heading in ``sweep.md``, how a value is written): percent for shares, kJ whole
+SWEEP_DISPLAY = {
+    "flow_rate": ("flow [veh/s]", format_number),
+    "delay_mean_s": ("mean delay [s]", lambda v: format_number(v, 2)),
+    "stop_ratio": ("stopped (below 0.3 m/s)", _share),
+    "collision_rate": ("collided vehicles", _share),
+    "speed_limit_violations": ("speed-limit violations [vehicle-steps]", _count),
+    "slow_ratio": ("slowed below 2 m/s", _share),
+    "hard_brakes_per_vehicle": ("hard brakes per vehicle", lambda v: format_number(v, 2)),
+    "energy_kj_per_vehicle": ("energy [kJ per crossed vehicle]", lambda v: format_number(v, 0)),
+    "collisions_automated": ("vehicles in collisions of automated vehicles only", _count),
+    "collisions_human": ("vehicles in collisions with a human driver", _count),
+    "offered_flow": ("offered flow [veh/s]", format_number),
+}
 
 
 def level_folder(demand: float, axis: str = "demand") -> str:
@@ -157,7 +184,7 @@ def sweep_figure(
     )
     fig, axes = plt.subplots(2, 3, figsize=(12, 7.2))
     axes = axes.ravel()
-    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    colors = planner_colors(table["planner"].nunique())  # never black: the offered flow's line
     offered = table.groupby(axis)["offered_flow"].mean()
     axes[0].plot(offered.index, offered.to_numpy(float), "k--", lw=1, label="offered (free flow)")
     for k, (planner, rows) in enumerate(table.groupby("planner", sort=False)):
@@ -215,23 +242,27 @@ def sweep_markdown(
         lines.append("")
     lines += ["## Every level", "", "![sweep](sweep.png)", ""]
     columns = [*(SWEEP_COLUMNS if axis == "demand" else SHARE_COLUMNS), "offered_flow"]
-    lines += ["| " + " | ".join(columns) + " |", "|---|" + "---:|" * (len(columns) - 1)]
+    headings = ["planner", AXIS_LABELS[axis], *(SWEEP_DISPLAY.get(c, (c, format_number))[0] for c in columns[2:])]
+    lines += ["| " + " | ".join(headings) + " |", "|---|" + "---:|" * (len(columns) - 1)]
     for _, row in table.iterrows():
-        cells = [str(row["planner"]), f"{row[axis]:g}"] + [format_number(row[c]) for c in columns[2:]]
-        cells[columns.index("speed_limit_violations")] = f"{row['speed_limit_violations']:.0f}"
+        cells = [str(row["planner"]), f"{row[axis]:g}"]
+        cells += [SWEEP_DISPLAY.get(c, (c, format_number))[1](row[c]) for c in columns[2:]]
         lines.append("| " + " | ".join(cells) + " |")
     if not paired.empty:
         lines += ["", "## Against the strongest baseline of each level (mean per-scenario difference, 95 % CI)", ""]
-        labels = list(PAIRED_METRICS.values())
-        lines += [f"| {axis} | planner | baseline | " + " | ".join(f"Δ {x}" for x in labels) + " |"]
-        lines.append("|---:|---|---|" + "---:|" * len(labels))
+        lines += ["pp: percentage points (a difference of two shares).", ""]
+        headings = [PAIRED_DISPLAY.get(m, (f"Δ {x}", 1.0, 3))[0] for m, x in PAIRED_METRICS.items()]
+        lines += [f"| {axis} | planner | baseline | " + " | ".join(headings) + " |"]
+        lines.append("|---:|---|---|" + "---:|" * len(headings))
         for (level, planner), rows in paired.groupby([axis, "planner"], sort=False):
             by = rows.set_index("metric").reindex(list(PAIRED_METRICS))  # a missing metric reads n/a
-            cells = [
-                f"{format_number(by.loc[m, 'mean_difference'])} "
-                f"[{format_number(by.loc[m, 'ci_low'])}, {format_number(by.loc[m, 'ci_high'])}]"
-                for m in PAIRED_METRICS
-            ]
+            cells = []
+            for m in PAIRED_METRICS:
+                _, scale, digits = PAIRED_DISPLAY.get(m, ("", 1.0, 3))
+                mean, low, high = (scale * float(by.loc[m, c]) for c in ("mean_difference", "ci_low", "ci_high"))
+                cells.append(
+                    f"{signed_number(mean, digits)} [{signed_number(low, digits)}, {signed_number(high, digits)}]"
+                )
             lines.append(f"| {level:g} | {planner} | {rows['baseline'].iloc[0]} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 

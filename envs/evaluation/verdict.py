@@ -4,12 +4,13 @@ It reads the paired comparison (:func:`envs.evaluation.comparison.paired_differe
 metric, the mean per-scenario difference against a reference planner with a bootstrap interval) and
 says, per metric of :data:`VERDICT_METRICS`:
 
-- the leader: the planner with the best mean difference (the reference itself when every other
-  planner is worse);
-- by how much: the mean difference between the leader and the reference (or, when the reference
-  leads, its closest follower), in the metric's unit, relative to the reference's mean where that
-  makes sense;
-- whether the paired interval excludes zero (a clear lead) or includes it (no clear lead).
+- a leader only where the paired interval excludes zero: the planner with the best mean difference (the
+  reference itself when every other planner is clearly worse), by how much (the mean difference between
+  the leader and the reference, or, when the reference leads, its closest follower), in the metric's unit,
+  relative to the reference's mean where that makes sense;
+- otherwise "no clear lead", with the best difference and its interval, and no planner named as leader.
+
+The section opens with one sentence (:func:`summary_sentence`) that names the clear leads only.
 
 Only the metrics of :data:`VERDICT_METRICS` enter the verdict; a report's other columns (or a new
 paired metric) enter it when a line is added there.
@@ -35,10 +36,11 @@ class VerdictMetric:
 
     :param word: its name in the verdict (``"flow"``)
     :param direction: ``+1`` when more is better, ``-1`` when less is
-    :param unit: unit of a difference, after ``scale`` (``"veh/s"``, ``"s"``, ``"pp"``)
+    :param unit: unit of a difference, after ``scale`` (``"veh/s"``, ``"s"``, ``"percentage points"``)
     :param digits: decimals of a difference
     :param scale: factor from the ``metrics.csv`` unit to ``unit`` (100 for a share in percentage points)
     :param relative: also give the difference relative to the reference's mean (in %)
+    :param gain: what leading on it means, for the summary sentence (``"more flow"``; default: ``"a better <word>"``)
     """
 
     word: str
@@ -47,13 +49,16 @@ class VerdictMetric:
     digits: int = 3
     scale: float = 1.0
     relative: bool = True
+    gain: str = ""
 
 
 #: ``metrics.csv`` column -> how it enters the verdict (in the verdict's order)
 VERDICT_METRICS: dict[str, VerdictMetric] = {
-    "flow_rate": VerdictMetric("flow", +1, "veh/s", 3),
-    "delay_mean": VerdictMetric("delay", -1, "s", 2),
-    "stop_ratio_all": VerdictMetric("stops", -1, "pp", 1, scale=100.0, relative=False),
+    "flow_rate": VerdictMetric("flow", +1, "veh/s", 3, gain="more flow"),
+    "delay_mean": VerdictMetric("delay", -1, "s", 2, gain="less delay"),
+    "stop_ratio_all": VerdictMetric(
+        "stops", -1, "percentage points", 1, scale=100.0, relative=False, gain="fewer stopped vehicles"
+    ),
 }
 
 
@@ -115,7 +120,7 @@ def lead(rows: pd.DataFrame, metric: VerdictMetric) -> Lead:
 def metric_verdict(
     rows: pd.DataFrame, metric: VerdictMetric, reference_mean: float | None = None, level: str = "95 %"
 ) -> str:
-    """One metric's verdict line.
+    """One metric's verdict line: a leader only where the paired interval excludes zero.
 
     :param rows: the paired rows of one metric (columns of :data:`envs.evaluation.comparison.PAIRED_COLUMNS`),
         one per planner other than the reference
@@ -123,27 +128,70 @@ def metric_verdict(
     :param reference_mean: the reference's mean of the metric over the runs (for the relative difference)
     :param level: the interval's confidence, as text
     :return: a Markdown list item, e.g. ``"- flow: **A** leads by 0.052 veh/s (13.0 % of PR's mean) over PR; ..."``
+        or ``"- flow: no clear lead; the best difference, A - PR = +0.004 [-0.010, +0.018] veh/s, ..."``
     """
     found = lead(rows, metric)
     reference, diff = found.reference, found.difference
     if not np.isfinite(diff):
         return f"- {metric.word}: no verdict (no scenario where both {found.planner} and {reference} have a value)"
     if found.tie:
-        return f"- {metric.word}: **tie**, {found.planner} and {reference} equal on all {found.pairs} paired scenarios"
+        return f"- {metric.word}: tie, {found.planner} and {reference} equal on all {found.pairs} paired scenarios"
+    interval = f" [{_signed(found.low, metric)}, {_signed(found.high, metric)}]" if found.clear is not None else ""
+    detail = f"{found.planner} - {reference} = {_signed(diff, metric)}{interval} {metric.unit} over {found.pairs}"
+    detail += " scenario" if found.pairs == 1 else " scenarios"
+    if not found.clear:
+        why = "one scenario, no interval" if found.clear is None else f"its {level} interval includes zero"
+        return f"- {metric.word}: no clear lead; the best difference, {detail} ({why})"
     size = f"{abs(metric.scale * diff):.{metric.digits}f} {metric.unit}"
     if metric.relative and reference_mean is not None and np.isfinite(reference_mean) and reference_mean != 0:
         size += f" ({100 * abs(diff) / abs(reference_mean):.1f} % of {reference}'s mean)"
     closest = " (the closest)" if found.leader == reference and len(rows) > 1 else ""
-    text = f"**{found.leader}** leads by {size} over {found.other}{closest}"
-    if found.clear is None:
-        judgement = "one scenario, no interval: no clear lead"
-    elif found.clear:
-        judgement = f"its {level} interval excludes zero: a clear lead"
-    else:
-        judgement = f"its {level} interval includes zero: no clear lead"
-    interval = f"[{_signed(found.low, metric)}, {_signed(found.high, metric)}]" if found.clear is not None else ""
-    detail = f"{found.planner} - {reference} = {_signed(diff, metric)} {interval} {metric.unit}".replace("  ", " ")
-    return f"- {metric.word}: {text}; {detail} over {found.pairs} scenarios; {judgement}"
+    return (
+        f"- {metric.word}: **{found.leader}** leads by {size} over {found.other}{closest}; {detail} "
+        f"(its {level} interval excludes zero)"
+    )
+
+
+def summary_sentence(
+    paired: pd.DataFrame, metrics: Mapping[str, VerdictMetric] | None = None, collided: Mapping[str, int] | None = None
+) -> str:
+    """The verdict in one sentence, naming a planner only where its paired interval excludes zero, e.g.
+    ``"In short: AIM has fewer stopped vehicles than FullThrottle+shield (-15.4 percentage points); no planner
+    leads clearly on flow or delay."``
+
+    :param paired: :func:`envs.evaluation.comparison.paired_differences` output (one reference)
+    :param metrics: the metrics that enter (default :data:`VERDICT_METRICS`)
+    :param collided: collided vehicles per planner: as in :func:`verdict_lines`, those cannot lead
+    :return: the sentence (Markdown, ``"**In short:**"`` first)
+    """
+    if paired is None or paired.empty:
+        return "**In short:** a single planner ran; there is nothing to compare it with."
+    paired, unsafe, left_out = without_collided(paired, collided)
+    clear, unclear = [], []
+    for column, metric in (VERDICT_METRICS if metrics is None else metrics).items():
+        rows = paired[paired["metric"] == column]
+        if rows.empty:
+            continue
+        found = lead(rows, metric)
+        if not found.clear or found.tie or not np.isfinite(found.difference):
+            unclear.append(metric.word)
+            continue
+        gain = metric.gain or f"a better {metric.word}"
+        difference = f"{_signed(found.difference, metric)} {metric.unit}"
+        if found.leader == found.reference:
+            clear.append(f"{found.leader} has {gain} than the closest, {found.other} ({difference} for it)")
+        else:
+            clear.append(f"{found.leader} has {gain} than {found.reference} ({difference})")
+    parts = ["; ".join(clear)] if clear else []
+    if unclear:
+        words = unclear[0] if len(unclear) == 1 else f"{', '.join(unclear[:-1])} or {unclear[-1]}"
+        parts.append(f"no planner leads clearly on {words}")
+    if left_out:
+        names = list(unsafe)
+        listed = names[0] if len(names) == 1 else f"{', '.join(names[:-1])} and {names[-1]}"
+        parts.append(f"{listed} cannot lead, as {'its' if len(names) == 1 else 'their'} vehicles collided")
+    text = "; ".join(parts)
+    return f"**In short:** {text[0].upper()}{text[1:]}." if text else "**In short:** no verdict."
 
 
 def without_collided(
@@ -172,7 +220,8 @@ def collided_by_planner(runs: pd.DataFrame) -> dict[str, int] | None:
 def compact_verdict(
     paired: pd.DataFrame, metrics: Mapping[str, VerdictMetric] | None = None, collided: Mapping[str, int] | None = None
 ) -> str:
-    """The verdict in one line, e.g. ``"flow: AIM (clear), delay: AIM (clear), stops: tie"`` (a sweep's level).
+    """The verdict in one line, e.g. ``"flow: AIM, delay: no clear lead, stops: tie"`` (a sweep's level): a planner
+    is named only where its paired interval excludes zero.
 
     :param paired: :func:`envs.evaluation.comparison.paired_differences` output
     :param metrics: the metrics that enter (default :data:`VERDICT_METRICS`)
@@ -191,7 +240,7 @@ def compact_verdict(
         if found.tie or not np.isfinite(found.difference):
             parts.append(f"{metric.word}: {'tie' if found.tie else 'n/a'}")
         else:
-            parts.append(f"{metric.word}: {found.leader} ({'clear' if found.clear else 'no clear lead'})")
+            parts.append(f"{metric.word}: {found.leader if found.clear else 'no clear lead'}")
     if left_out:
         parts.append(f"not in the lead (collided): {', '.join(unsafe)}")
     return ", ".join(parts)
@@ -205,7 +254,8 @@ def verdict_lines(
     level: str = "95 %",
     collided: Mapping[str, int] | None = None,
 ) -> list[str]:
-    """The verdict section of a report: a heading, one sentence, one line per metric.
+    """The verdict section of a report: a heading, the summary sentence (:func:`summary_sentence`), what the
+    comparison is, one line per metric.
 
     :param paired: :func:`envs.evaluation.comparison.paired_differences` output (any reference)
     :param metrics: the metrics that enter (default :data:`VERDICT_METRICS`); one absent from ``paired`` is left out
@@ -220,9 +270,12 @@ def verdict_lines(
     if paired is None or paired.empty:
         return [HEADING, "", "No verdict: a single planner ran (nothing to compare it with)."]
     reference = str(paired["baseline"].iloc[0])
+    sentence = summary_sentence(paired, metrics, collided)
     paired, unsafe, left_out = without_collided(paired, collided)
     lines = [
         HEADING,
+        "",
+        sentence,
         "",
         f"Who leads, against {reference} ({reference_kind}): mean per-scenario difference and its {level} "
         "paired bootstrap interval.",

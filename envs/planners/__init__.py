@@ -83,7 +83,10 @@ def check_planner_spec(spec: str) -> str:
     """
     key = str(spec).strip()
     if key.endswith(SHIELD_SUFFIX):
-        return check_planner_spec(key[: -len(SHIELD_SUFFIX)]) + SHIELD_SUFFIX
+        try:
+            return check_planner_spec(key[: -len(SHIELD_SUFFIX)]) + SHIELD_SUFFIX
+        except _UnknownWord:  # name the word as typed, suffix and all
+            raise _UnknownWord(f"planner {spec!r} is unknown{_suggestion(key)}; {PLANNER_WORDS}") from None
     if key.lower() in BASELINES:
         return key.lower()
     if is_remote_spec(key):
@@ -99,13 +102,43 @@ def check_planner_spec(spec: str) -> str:
         except OSError as error:
             raise ValueError(f"planner {spec!r}: model file is not readable ({error})") from error
         return key
-    raise ValueError(
-        f"planner {spec!r} is neither a baseline ({', '.join(BASELINES)}) "
-        "nor a readable model file (a .safetensors policy file written by sb3-graph export, "
-        "or a .zip written by model.save) "
-        "nor a class (path/to/file.py:ClassName or package.module:ClassName) "
-        "nor a planner server (http://HOST:PORT)"
-    )
+    if path.suffix in MODEL_SUFFIXES:
+        raise ValueError(f"planner {spec!r}: file not found ({path.resolve()}); {PLANNER_WORDS}")
+    if path.is_dir():
+        raise ValueError(f"planner {spec!r} is a folder, not a model file; {PLANNER_WORDS}")
+    raise _UnknownWord(f"planner {spec!r} is unknown{_suggestion(key)}; {PLANNER_WORDS}")
+
+
+#: What a planner word may be, for the errors of :func:`check_planner_spec`.
+PLANNER_WORDS = (
+    f"expected a baseline ({', '.join(BASELINES)}), "
+    "a model file (a .safetensors policy file written by sb3-graph export, or a .zip written by model.save), "
+    "a class (path/to/file.py:ClassName or package.module:ClassName) "
+    f"or a planner server (http://HOST:PORT), each optionally followed by {SHIELD_SUFFIX}"
+)
+
+
+class _UnknownWord(ValueError):
+    """A planner word that is none of the accepted kinds (not a file that is missing or unreadable)."""
+
+
+def _suggestion(word: str) -> str:
+    """``" (did you mean 'glide'?)"`` for a near miss of a baseline (with or without a misspelt suffix), else ``""``.
+
+    :param word: a planner word that is none of the accepted ones
+    """
+    import difflib
+
+    head, plus, suffix = word.lower().partition("+")
+    close = difflib.get_close_matches(head, list(BASELINES), n=1, cutoff=0.6)
+    if not close:
+        return ""
+    guess = close[0]
+    if plus:
+        if not difflib.get_close_matches(plus + suffix, [SHIELD_SUFFIX], n=1, cutoff=0.6):
+            return ""
+        guess += SHIELD_SUFFIX
+    return f" (did you mean {guess!r}?)" if guess != word else ""
 
 
 def make_planner(spec: str, trust_files: bool = False) -> Planner:

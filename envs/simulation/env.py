@@ -106,7 +106,7 @@ class CoopIntersectionEnv(AbstractEnv):
         - ``edge_features``: edge features of the observation, any of ``["distance", "bearing",
           "zone_receiver", "zone_sender"]`` (default none; see :mod:`envs.simulation.graph`)
         - ``vertex_features``: vertex features after the paper's ``[s, v, d]``, any of
-          ``["maneuver", "priority", "limit", "line", "zone", "committed"]`` (default none: the paper's)
+          ``["maneuver", "priority", "limit", "line", "zone", "committed", "human"]`` (default none: the paper's)
         - ``spawn_probability``: training spawn probability per lane and step (paper: up to 0.05)
         - ``spawn_probability_range``: ``None``, or ``[low, high]``: each training episode draws its
           spawn probability uniformly from it (one planner for light and heavy traffic); it
@@ -156,7 +156,7 @@ class CoopIntersectionEnv(AbstractEnv):
           evaluation (``glide+shield`` for the default). Needs ``residual_base`` null.
         - ``collision_handling``: ``"terminate"`` (a collision ends the episode) or ``"remove"``
           (the vehicles involved leave the scene and the episode goes on)
-        - ``human_share``: mixed traffic (issue 39): each training spawn is human-driven with this
+        - ``human_share``: mixed traffic: each training spawn is human-driven with this
           probability, or ``[low, high]`` to draw it per episode (default 0: none, no draw); a
           replayed scenario brings its own flags. Human drivers follow the static priority rules
           (:class:`envs.planners.human.HumanDriver`) inside :meth:`step`: the action (and the
@@ -487,7 +487,7 @@ class CoopIntersectionEnv(AbstractEnv):
         A residual correction that the acceleration bounds clip (any positive one over full throttle)
         is stored as proposed, as SB3 stores an action that an environment clips: storing the clipped
         value would hide those actions from the critic, which then extrapolates into them and drives
-        the actor there (the feature-trained residual policies of issue #22 saturated at +1 so).
+        the actor there (the feature-trained residual policies saturated at +1 so).
         """
         a_max = self.config["max_acceleration"]
         action = np.zeros(self.action_space.shape, np.float32)

@@ -25,7 +25,7 @@ crossing edges between the closest vehicle pairs.
 
 Optional vertex features (config ``vertex_features``, any of :data:`VERTEX_FEATURES`, in the order
 given, after ``[s, v, d]``): what AIM and the shield know about a vehicle and the paper's three
-features do not say (issue #22):
+features do not say:
 
 - ``"maneuver"``: one-hot ``[left, straight, right]`` (3 columns),
 - ``"priority"``: 1 on the major road, 0 on the minor one,
@@ -37,7 +37,7 @@ features do not say (issue #22):
 - ``"committed"``: 1 when braking at ``a_max`` can no longer stop the body before that zone, or the
   vehicle has left its last zone (the shield's :meth:`~envs.planners.shield.Shield.committed`), else 0,
 - ``"human"``: 1 for a human-driven vehicle (``Scene.human``: it follows the static priority rules and
-  ignores the planner's command, issue 39), else 0.
+  ignores the planner's command), else 0.
 
 ``zone`` and ``committed`` need the scene's layout (every simulated scene has it).
 

@@ -59,7 +59,7 @@ class Scene:
     :param layout: the intersection (:class:`envs.simulation.layouts.Layout`: route geometry, speed-limit
         profiles, conflict zones); ``None`` when unknown (hand-built scenes)
     :param human: ``(n,)`` bool: human-driven vehicles, which follow the static priority rules and
-        ignore a planner's command (issue 39); ``None`` means none (hand-built scenes)
+        ignore a planner's command; ``None`` means none (hand-built scenes)
     """
 
     time: float

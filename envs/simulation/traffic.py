@@ -12,7 +12,7 @@
   appears per lane and policy step. Scenario files are JSON
   (:meth:`Scenario.save`, :meth:`Scenario.load`) and replay exactly: the same planner actions give
   the same trajectories.
-- Mixed traffic (``human_share``, issue 39): each scheduled vehicle is human-driven with that
+- Mixed traffic (``human_share``): each scheduled vehicle is human-driven with that
   probability (:func:`human_flags`), drawn from the scenario's seed with a random stream of its own,
   so that a share of 0 draws nothing and leaves every other draw as it was. Human drivers follow
   the static priority rules (:class:`envs.planners.priority_rules.PriorityRulesPlanner`) inside the

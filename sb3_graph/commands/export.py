@@ -61,6 +61,8 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"OUT: {str(out)!r} must end with {SUFFIX}")
     if out.exists():
         raise UserError(f"OUT: {str(out)!r} exists; choose a new file name")
+    if not model.exists():
+        raise UserError(f"MODEL: file not found: {str(model)!r}")
     if not model.is_file():
         raise UserError(f"MODEL: {str(model)!r} is not a file")
     try:

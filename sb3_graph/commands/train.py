@@ -49,7 +49,7 @@ from sb3_graph.commands.arguments import json_object, seed_value
 from sb3_graph.registry import ALGORITHMS
 
 CHECKPOINT_PATTERN = re.compile(r"model_(\d+)_steps\.zip$")
-#: Defaults of --pretrain-transitions and --pretrain-steps (issue #37's budget: minutes on 2 cores).
+#: Defaults of --pretrain-transitions and --pretrain-steps (a budget of minutes on 2 cores).
 PRETRAIN_TRANSITIONS = 10_000
 PRETRAIN_STEPS = 2_000
 # Said when TensorBoard is missing (it is not in the base install): the run goes on without tb/.
@@ -428,7 +428,7 @@ def _load_weights(model, path: str) -> None:
     # SB3's set_parameters reads only the zip's .pth files, with torch.load(weights_only=True); a
     # .safetensors policy file is tensors by construction (sb3_graph.files.policy_files).
     if not Path(path).is_file():
-        raise UserError(f"--init-weights: no such file {path!r}")
+        raise UserError(f"--init-weights: file not found: {path!r}")
     if Path(path).suffix == ".safetensors":
         from sb3_graph.files.policy_files import PolicyFileError, init_from_file
 

@@ -681,7 +681,7 @@ def read_policy_tensors(path: str | Path) -> tuple[PolicyDescription, dict[str, 
     path = Path(path)
     source = str(path)
     if not path.is_file():
-        raise PolicyFileError(f"{source}: no such file")
+        raise PolicyFileError(f"{source}: file not found")
     if path.suffix == SUFFIX:
         description, state = read_weights_file(path)
     elif path.suffix == ".zip":
@@ -765,7 +765,7 @@ def load_policy(path: str | Path, device: str = "cpu", trust: bool = False) -> L
     path = Path(path)
     source = str(path)
     if not path.is_file():
-        raise PolicyFileError(f"{source}: no such file")
+        raise PolicyFileError(f"{source}: file not found")
     if path.suffix == SUFFIX:
         description, state = read_weights_file(path)
         return LoadedPolicy(build_policy(description, state, source, device), description)

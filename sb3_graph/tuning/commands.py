@@ -418,7 +418,7 @@ def _check_init_weights(args: argparse.Namespace, entry: dict[str, Any], env_kwa
     from sb3_graph.tuning.runner import load_init_weights
 
     if not path.is_file():
-        raise UserError(f"--init-weights: no such file {str(path)!r}")
+        raise UserError(f"--init-weights: file not found: {str(path)!r}")
     probe = make_vec_env(args.env, n_envs=1, seed=0, env_kwargs=env_kwargs)
     try:
         kwargs = build_algorithm_kwargs(entry, int(np.prod(probe.action_space.shape)))
