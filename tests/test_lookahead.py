@@ -31,6 +31,16 @@ def drive(planner, seconds: float = 30.0, seed: int = 11) -> list[np.ndarray]:
     return commands
 
 
+def busy_scene():
+    """The scene after 12 s of full throttle + shield at 0.5 veh/s per major lane."""
+    env = gym.make("CoopIntersection4Way-v0", **evaluation_env_kwargs({}))
+    env.reset(seed=5, options={"scenario": generate_scenario("4way", 40.0, 5, rate_range=(0.5, 0.5))})
+    planner = make_planner("fullthrottle+shield")
+    for _ in range(60):
+        env.step(env.unwrapped.accelerations_to_action(planner.act(env.unwrapped.scene())))
+    return env.unwrapped.scene()
+
+
 @pytest.mark.parametrize(
     "field, value",
     [
@@ -76,12 +86,7 @@ def test_a_search_past_its_budget_falls_back_to_glide_and_is_counted():
 
 
 def test_the_search_keeps_the_cheapest_candidate_and_the_greedy_pass_never_costs_more():
-    env = gym.make("CoopIntersection4Way-v0", **evaluation_env_kwargs({}))
-    env.reset(seed=5, options={"scenario": generate_scenario("4way", 40.0, 5, rate_range=(0.5, 0.5))})
-    planner = make_planner("fullthrottle+shield")
-    for _ in range(60):
-        env.step(env.unwrapped.accelerations_to_action(planner.act(env.unwrapped.scene())))
-    scene = env.unwrapped.scene()
+    scene = busy_scene()
     assert scene.num_vehicles >= 8
     params = LookaheadParams(windows=(0.0, 30.0, math.inf), horizon=4.0)
     flat = LookaheadPlanner(params=params)
@@ -99,12 +104,7 @@ def test_the_search_keeps_the_cheapest_candidate_and_the_greedy_pass_never_costs
 
 def test_a_stop_is_priced():
     """The same rollout costs more with a higher stop price exactly when a vehicle stops in it."""
-    env = gym.make("CoopIntersection4Way-v0", **evaluation_env_kwargs({}))
-    env.reset(seed=5, options={"scenario": generate_scenario("4way", 40.0, 5, rate_range=(0.5, 0.5))})
-    planner = make_planner("fullthrottle+shield")
-    for _ in range(60):
-        env.step(env.unwrapped.accelerations_to_action(planner.act(env.unwrapped.scene())))
-    scene = env.unwrapped.scene()
+    scene = busy_scene()
     free, priced = (LookaheadPlanner(params=LookaheadParams(stop_price=p, horizon=6.0)) for p in (0.0, 100.0))
     for p in (free, priced):
         p.reset(0)

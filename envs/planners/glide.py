@@ -97,8 +97,8 @@ class GlideParams(AIMParams):
 #: values tuned for it. ``make_planner("glide")`` without the shield, and the scheduler of policy files
 #: trained over it (their header's ``action`` names no ``glide``).
 GUARDED = GlideParams(
-    decel=1.87, commit_decel=3.83, follow_headway=0.91, stop_penalty=1.36, window=16.3, floor=3.49,
-    platoon_gap=1.28, control="guarded",
+    accel=5.0, decel=1.87, commit_decel=3.83, buffer=0.0, follow_headway=0.91, stop_penalty=1.36, window=16.3,
+    floor=3.49, platoon_gap=1.28, control="guarded",
 )  # fmt: skip
 #: Glide's parameter sets by name: the ``action``'s ``glide`` key of the environments and of policy files.
 GLIDE_VERSIONS: dict[str, GlideParams] = dict(zip(GLIDE_VERSION_NAMES, (GlideParams(), GUARDED)))
