@@ -74,6 +74,7 @@ DEFAULT_PLANNERS_HELP = (
 )
 PLANNER_WORDS_HELP = (
     "'pr' (priority rules), 'fifo', 'aim', 'signal', 'fullthrottle', 'glide' (arrival times, meant with +shield), "
+    "'lookahead' (a search by rollouts over glide, meant with +shield; slow), "
     "a policy file .safetensors (sb3-graph export) "
     "or a saved model .zip, or a Planner class (path/to/file.py:ClassName or package.module:ClassName); '+shield' "
     "after any of them wraps it in the safety shield"
