@@ -190,7 +190,7 @@ def run(args: argparse.Namespace) -> int:
         import uvicorn
 
         from envs.serve.access import Access
-        from envs.serve.app import Gateway, uvicorn_config
+        from envs.serve.app import Gateway, tls_context, uvicorn_config
     except ImportError as error:
         raise UserError(f"the server needs the 'serve' extra (pip install 'sb3-graph[serve]'): {error}") from None
     import ssl
@@ -215,14 +215,16 @@ def run(args: argparse.Namespace) -> int:
     except OSError as error:
         sock.close()
         raise UserError(f"--host/--port: cannot bind {args.host}:{args.port} ({error})") from None
+    tls = None
+    if args.ssl_certfile:  # loaded now, so that a key that does not match its certificate stops the start here
+        try:
+            tls = tls_context(args.ssl_certfile, args.ssl_keyfile, args.ssl_ca_certs)
+        except (ssl.SSLError, OSError) as error:
+            sock.close()
+            raise UserError(f"--ssl-certfile/--ssl-keyfile/--ssl-ca-certs: {error}") from None
     host, port = sock.getsockname()[:2]
     gateway.access = _access(args, tokens, host, port)
     shown = f"[{host}]" if family == socket.AF_INET6 else host
-    tls = {}
-    if args.ssl_certfile:
-        tls = {"ssl_certfile": args.ssl_certfile, "ssl_keyfile": args.ssl_keyfile}
-        if args.ssl_ca_certs:
-            tls.update(ssl_ca_certs=args.ssl_ca_certs, ssl_cert_reqs=ssl.CERT_REQUIRED)
     config = uvicorn_config(gateway, cap, args.header_timeout, args.body_timeout, args.keep_alive, tls, args.http)
     scheme = "https" if tls else "http"
     print(f"serving {service.info()['planner']} on {scheme}://{shown}:{port}", flush=True)
