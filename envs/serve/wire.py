@@ -20,6 +20,7 @@ This module needs only numpy: the client (:mod:`envs.serve.client`) and the serv
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -113,29 +114,69 @@ class SceneBuilder:
             ``arc`` beyond the route's end, a ``speed`` above the cap or two vehicles in one place
             (:func:`_check_overlaps`), naming the field
         """
-        lay = self.layout
-        if layout != lay.name:
-            raise WireError("layout", f"this server plans for layout {lay.name!r}, got {layout!r}")
-        n = len(vehicles)
-        if n > self.limits.max_vehicles:
-            raise WireError("vehicles", f"{n} vehicles, this server takes at most {self.limits.max_vehicles}")
-        index = lay.route_index
+        return self.build(time, *self.columns(layout, vehicles))
+
+    def columns(self, layout: str, vehicles: Sequence[Any]) -> tuple[np.ndarray, ...]:
+        """The columns of a wire scene's vehicles: ids, route indices, arcs, speeds, lengths, widths.
+
+        :raises WireError: another layout, too many vehicles, an unknown route
+        """
+        n = self._check_size(layout, len(vehicles))
+        index = self.layout.route_index
         try:
             route = np.fromiter((index[v.route] for v in vehicles), np.int64, n)
         except KeyError:
             i = next(i for i, v in enumerate(vehicles) if v.route not in index)
-            raise WireError(f"vehicles[{i}].route", f"layout {lay.name!r} has no route {vehicles[i].route!r}") from None
+            raise WireError(f"vehicles[{i}].route", f"layout {layout!r} has no route {vehicles[i].route!r}") from None
         ids = np.fromiter((v.id for v in vehicles), np.int64, n)
         arc = np.fromiter((v.arc for v in vehicles), float, n)
         speed = np.fromiter((v.speed for v in vehicles), float, n)
         length = np.fromiter((v.length for v in vehicles), float, n)
         width = np.fromiter((v.width for v in vehicles), float, n)
-        _check_rows(ids, route, arc, speed, lay.length, self.limits.max_speed)
+        return ids, route, arc, speed, length, width
+
+    def table_columns(self, layout: str, routes: Sequence[str], ids: np.ndarray, route: np.ndarray, *rest: np.ndarray
+                      ) -> tuple[np.ndarray, ...]:  # fmt: skip
+        """The columns of a fast-path frame (:mod:`envs.serve.frames`), its route indices into the frame's names
+        turned into this layout's.
+
+        :raises WireError: another layout, too many vehicles, an unknown route name
+        """
+        self._check_size(layout, len(ids))
+        index = self.layout.route_index
+        table = np.fromiter((index.get(name, -1) for name in routes), np.int64, len(routes))
+        mine = table[route]
+        unknown = np.flatnonzero(mine < 0)
+        if unknown.size:
+            i = int(unknown[0])
+            raise WireError(f"vehicles[{i}].route", f"layout {layout!r} has no route {routes[int(route[i])]!r}")
+        return (ids, mine, *rest)
+
+    def _check_size(self, layout: str, n: int) -> int:
+        if layout != self.layout.name:
+            raise WireError("layout", f"this server plans for layout {self.layout.name!r}, got {layout!r}")
+        if n > self.limits.max_vehicles:
+            raise WireError("vehicles", f"{n} vehicles, this server takes at most {self.limits.max_vehicles}")
+        return n
+
+    def build(self, time: float, ids: np.ndarray, route: np.ndarray, arc: np.ndarray, speed: np.ndarray,
+              length: np.ndarray, width: np.ndarray) -> Scene:  # fmt: skip
+        """The scene of checked columns, by the simulation's own code (its state set in place: no copies, no
+        concatenation; the arrays are this request's own).
+
+        :raises WireError: a duplicate id, an ``arc`` beyond the route's end, a ``speed`` above the cap or two
+            vehicles in one place, naming the field
+        """
+        _check_rows(ids, route, arc, speed, self.layout.length, self.limits.max_speed)
+        n = len(ids)
         sim = self._sim
         sim.reset()
         sim.time = float(time)
-        if n:
-            sim.add(route, speed, ids, length=length, width=width, arc=arc)
+        if n:  # what Simulation.add would store, without its checks (done above) and concatenations
+            sim.route, sim.vehicle_id, sim.arc, sim.length, sim.width = route, ids, arc, length, width
+            sim.speed = np.clip(speed, 0.0, sim.max_speed)
+            sim.appearance_time = np.full(n, sim.time)
+            sim.human = np.zeros(n, bool)
         scene = sim.scene()
         _check_overlaps(scene)
         return scene
@@ -188,3 +229,12 @@ def _check_overlaps(scene: Scene) -> None:
         raise WireError(f"vehicles[{i}].arc", f"vehicle {int(scene.vehicle_id[i])} overlaps vehicle "
                                               f"{int(scene.vehicle_id[j])} by {-float(scene.gap[i]):.2f} m: two "
                                               "vehicles cannot be in one place")  # fmt: skip
+
+
+def digest(layout: str, time: float, columns: Sequence[np.ndarray]) -> bytes:
+    """A hash of a step's content (layout, time and columns), the same whichever codec carried it: a step
+    retried over the other path is recognised as the same step."""
+    h = hashlib.blake2b(f"{layout}|{float(time)!r}|{len(columns[0])}".encode(), digest_size=16)
+    for column in columns:
+        h.update(np.ascontiguousarray(column).tobytes())
+    return h.digest()
