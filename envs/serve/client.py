@@ -296,6 +296,7 @@ class PlannerClient:
             return self.step(stream, scene_to_wire(scene), timeout)
         if not np.array_equal(reply["ids"], scene.vehicle_id) or reply["accelerations"].shape != (n,):
             raise RemotePlannerError(0, "ids", f"planner server {self.url}: the answer is for other vehicles")
+        self.server_ms = float("nan")  # no Server-Timing on the fast path
         shield = reply["shield"]
         self.last_shield = None if shield is None else {"overridden": shield["overridden"].tolist(),
                                                         "unresolved": shield["unresolved"]}  # fmt: skip
