@@ -150,3 +150,21 @@ def test_the_fast_path_over_tls(tmp_path, service):
                                                                                                           "ca.pem")))
         stream = client.open("4way")
         assert client.step_scene(stream, _scene(service, 3, 0.0)).shape == (3,) and stream in client._sockets
+
+
+def test_the_compiled_close_pair_check_finds_the_numpy_checks_first_pair():
+    """``wire._first_close_pair`` (compiled) against the (n, n) NumPy form it replaced, on random crowds."""
+    from envs.serve.wire import _first_close_pair
+
+    rng = np.random.default_rng(3)
+    found = 0
+    for n in (2, 5, 20, 100) * 10:
+        x, y, half = rng.uniform(0, 40, n), rng.uniform(0, 40, n), rng.uniform(0.4, 2.5, n)
+        squared = np.square(x[:, None] - x[None, :]) + np.square(y[:, None] - y[None, :])
+        close = squared < np.square(np.minimum(half[:, None], half[None, :]))
+        np.fill_diagonal(close, False)
+        pairs = np.argwhere(np.triu(close, k=1))
+        expected = tuple(int(k) for k in pairs[0]) if len(pairs) else (-1, -1)
+        assert _first_close_pair(x, y, half) == expected
+        found += expected[0] >= 0
+    assert 0 < found < 40

@@ -14,8 +14,9 @@ simulation's own code (:meth:`envs.simulation.engine.Simulation.scene`), so a pl
 the scene that it would see in process, to the bit. Row ``i`` of the scene is ``vehicles[i]``, and
 the answer's acceleration ``i`` is that vehicle's.
 
-This module needs only numpy: the client (:mod:`envs.serve.client`) and the server
-(:mod:`envs.serve.app`, with the pydantic schema of :mod:`envs.serve.schema`) both use it.
+This module needs numpy (and numba, which the package depends on, for one of the server's checks): the
+client (:mod:`envs.serve.client`) and the server (:mod:`envs.serve.app`, with the pydantic schema of
+:mod:`envs.serve.schema`) both use it.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
+import numba
 import numpy as np
 
 from envs.simulation.engine import Simulation
@@ -208,15 +210,10 @@ def _check_overlaps(scene: Scene) -> None:
     n = scene.num_vehicles
     if n < 2:
         return
-    position = np.asarray(scene.position, float)
-    x, y = position[:, 0], position[:, 1]
-    half = 0.5 * np.asarray(scene.width, float)
-    squared = np.square(x[:, None] - x[None, :]) + np.square(y[:, None] - y[None, :])
-    close = squared < np.square(np.minimum(half[:, None], half[None, :]))
-    np.fill_diagonal(close, False)
-    if close.any():
-        j, i = (int(k) for k in np.argwhere(np.triu(close, k=1))[0])
-        apart = float(np.sqrt(squared[j, i]))
+    position = np.ascontiguousarray(scene.position, float)
+    j, i = _first_close_pair(position[:, 0].copy(), position[:, 1].copy(), 0.5 * np.asarray(scene.width, float))
+    if j >= 0:
+        apart = float(np.sqrt(np.square(position[j, 0] - position[i, 0]) + np.square(position[j, 1] - position[i, 1])))
         raise WireError(f"vehicles[{i}].arc", f"vehicle {int(scene.vehicle_id[i])} is {apart:.2f} m from "
                                               f"vehicle {int(scene.vehicle_id[j])}: two vehicles cannot be in one "
                                               "place")  # fmt: skip
@@ -229,6 +226,19 @@ def _check_overlaps(scene: Scene) -> None:
         raise WireError(f"vehicles[{i}].arc", f"vehicle {int(scene.vehicle_id[i])} overlaps vehicle "
                                               f"{int(scene.vehicle_id[j])} by {-float(scene.gap[i]):.2f} m: two "
                                               "vehicles cannot be in one place")  # fmt: skip
+
+
+@numba.njit(cache=True)
+def _first_close_pair(x: np.ndarray, y: np.ndarray, half: np.ndarray) -> tuple[int, int]:
+    """The first pair ``(j, i)``, ``j < i``, whose centres are closer than half the narrower width, in row order;
+    ``(-1, -1)`` if none (one pass over the pairs: the server checks every scene it rebuilds)."""
+    n = x.shape[0]
+    for j in range(n):
+        for i in range(j + 1, n):
+            limit = min(half[j], half[i])
+            if (x[j] - x[i]) ** 2 + (y[j] - y[i]) ** 2 < limit * limit:
+                return j, i
+    return -1, -1
 
 
 def digest(layout: str, time: float, columns: Sequence[np.ndarray]) -> bytes:
