@@ -118,10 +118,18 @@ def test_the_upgrade_needs_the_token_the_host_and_the_streams_owner(service):
         assert any(type(p).__name__.startswith("GuardedWebSocket") for p in server.config.guard.open)
         ws.send(_frame(_scene(service, 2, 0.0), 1))
         assert frames.decode_reply(ws.recv(10))["status"] == 200
-        # the stream closed over HTTP: its socket's next step is a 404 frame, the client reopens
+        # one socket per stream: a second one replaces the first (a client's sockets are bounded by its streams)
+        second = _socket(server, stream)
+        with pytest.raises(ConnectionError):
+            ws.recv(10)
+        second.send(_frame(_scene(service, 2, 0.2), 2))
+        assert frames.decode_reply(second.recv(10))["step"] == 2
+        # the stream closed over HTTP: the server closes its socket, and a new upgrade for it is refused
         client.request("DELETE", f"/streams/{stream}")
-        ws.send(_frame(_scene(service, 2, 0.2), 2))
-        assert frames.decode_reply(ws.recv(10))["field"] == "stream"
+        with pytest.raises(ConnectionError):
+            second.recv(10)
+        with pytest.raises(websocket.UpgradeRefused):
+            _socket(server, stream)
 
 
 def test_a_refused_upgrade_falls_back_to_http_for_that_step(service):

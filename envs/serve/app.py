@@ -41,7 +41,7 @@ from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
-from fastapi import FastAPI, Request, WebSocket
+from fastapi import FastAPI, Request, WebSocket, WebSocketDisconnect
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import Response
 from pydantic import BaseModel, ValidationError
@@ -425,6 +425,7 @@ class Gateway:
         self.expired = 0
         self.lost = 0  # streams lost with their worker
         self.failures = FailureLimit()  # failed authentications per source address
+        self.sockets: dict[str, Any] = {}  # each stream's WebSocket (the fast path), at most one
         self._info = service.info()
 
     def info(self) -> dict[str, Any]:
@@ -455,6 +456,9 @@ class Gateway:
         if entry is not None:
             self.per_client[entry.client] -= 1
             self.pool.load[entry.worker] -= 1
+        socket = self.sockets.pop(sid, None)
+        if socket is not None:  # a closed, expired or lost stream keeps no connection open
+            asyncio.get_running_loop().create_task(_close_socket(socket))
 
     async def open(self, client: str, body: bytes) -> tuple[int, bytes]:
         if len(self.streams) >= self.max_streams:
@@ -503,19 +507,30 @@ class Gateway:
             await websocket.close(code=4404, reason="stream")
             return
         await websocket.accept()
-        while True:
-            message = await websocket.receive()
-            if message["type"] == "websocket.disconnect":
-                return
-            data = message.get("bytes")
-            if data is None:
-                payload = frames.encode_error(415, "body", "frames must be binary MessagePack (envs.serve.frames)")
-            else:
-                try:
-                    _, payload = await self.forward(client, "frame", sid, data)
-                except RequestError as error:
-                    payload = frames.encode_error(error.status, error.field, error.message, error.extra.get("expected"))
-            await websocket.send({"type": "websocket.send", "bytes": payload})
+        # One socket per stream (so a client's sockets are bounded by its stream quota): a new one replaces the old
+        old, self.sockets[sid] = self.sockets.get(sid), websocket
+        if old is not None:
+            await _close_socket(old)
+        try:
+            while True:
+                message = await websocket.receive()
+                if message["type"] == "websocket.disconnect":
+                    return
+                data = message.get("bytes")
+                if data is None:
+                    payload = frames.encode_error(415, "body", "frames must be binary MessagePack (envs.serve.frames)")
+                else:
+                    try:
+                        _, payload = await self.forward(client, "frame", sid, data)
+                    except RequestError as error:
+                        payload = frames.encode_error(error.status, error.field, error.message,
+                                                      error.extra.get("expected"))  # fmt: skip
+                await websocket.send({"type": "websocket.send", "bytes": payload})
+        except (WebSocketDisconnect, RuntimeError, OSError):  # the client went, or the socket was replaced
+            return
+        finally:
+            if self.sockets.get(sid) is websocket:
+                del self.sockets[sid]
 
     async def expire(self) -> int:
         """Close the streams unused for longer than ``stream_timeout``; how many."""
@@ -535,6 +550,11 @@ class Gateway:
         while True:
             await asyncio.sleep(period)
             await self.expire()
+
+
+async def _close_socket(websocket: Any) -> None:
+    with contextlib.suppress(Exception):  # already closing or closed
+        await websocket.close(code=1000)
 
 
 class _Guard:
