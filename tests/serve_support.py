@@ -23,9 +23,10 @@ OTHER_TOKEN = "second-client-token-abcdef"
 
 
 def serve_extra() -> bool:
-    """Whether the ``serve`` extra (FastAPI, uvicorn) is installed."""
+    """Whether the ``serve`` extra (FastAPI, uvicorn, msgspec) is installed."""
     try:
         import fastapi  # noqa: F401
+        import msgspec  # noqa: F401
         import uvicorn  # noqa: F401
     except ImportError:
         return False

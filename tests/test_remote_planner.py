@@ -140,7 +140,7 @@ def test_a_restarted_server_process_with_a_fresh_token_is_survived_idle_and_busy
         for k in range(3):
             s = scene(builder, 3, 0.2 * k)
             np.testing.assert_array_equal(remote.act(s), local.act(s))
-        assert remote.client._sockets  # the fast path was used
+        assert remote.client._sockets or not remote.client.fast  # the fast path, where the server has one
         first_token = token_file.read_text()
         process.terminate()
         process.wait(timeout=30)

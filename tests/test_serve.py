@@ -46,6 +46,7 @@ TOKEN = "test-token-0123456789"
 def _has_serve_extra() -> bool:
     try:
         import fastapi  # noqa: F401
+        import msgspec  # noqa: F401
         import pydantic  # noqa: F401
         import uvicorn  # noqa: F401
     except ImportError:

@@ -19,6 +19,7 @@ from serve_support import OTHER_TOKEN, TOKEN, ThreadServer, serve_extra, wire_sc
 from envs.serve.client import PlannerClient, RemotePlannerError
 
 pytestmark = pytest.mark.skipif(not serve_extra(), reason="the 'serve' extra (fastapi, uvicorn) is not installed")
+pytest.importorskip("websockets")  # the server's WebSocket (uvicorn picks it)
 frames = pytest.importorskip("msgspec") and pytest.importorskip("envs.serve.frames")
 websocket = pytest.importorskip("envs.serve.websocket")
 

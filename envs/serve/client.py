@@ -1,6 +1,8 @@
 """A small Python client of the planner server, and the planner that plans through it.
 
-Standard library only (``http.client`` over one kept-alive connection), no ``sb3_graph``::
+The standard library and numpy (``http.client`` over one kept-alive connection; with ``msgspec``, the fast path:
+one WebSocket per stream, :mod:`envs.serve.websocket`, with binary frames, :mod:`envs.serve.frames`), no
+``sb3_graph``::
 
     from envs.serve.client import PlannerClient
 

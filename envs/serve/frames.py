@@ -12,7 +12,8 @@ Each message is a MessagePack array (no keys, so no duplicate key can hide a sec
 
 Floats cross as their 8 bytes: exact, and no text to parse. Decoding checks the columns with a few vectorized
 comparisons and names the field of the first bad row (``vehicles[3].speed``), as the JSON path does.
-Needs ``msgspec`` (the ``serve`` extra); the client falls back to JSON over HTTP without it.
+Needs ``msgspec`` (the ``serve`` extra) and numpy, not the server's stack; the client falls back to JSON over HTTP
+without msgspec.
 """
 
 from __future__ import annotations
@@ -22,8 +23,7 @@ from typing import Any
 import msgspec
 import numpy as np
 
-from envs.serve.schema import LENGTH_RANGE, MAX_VEHICLES, WIDTH_RANGE
-from envs.serve.wire import WireError
+from envs.serve.wire import LENGTH_RANGE, MAX_VEHICLES, WIDTH_RANGE, WireError
 
 _I8, _F8 = np.dtype("<i8"), np.dtype("<f8")
 _COLUMNS = ("ids", "route", "arc", "speed", "length", "width")

@@ -36,6 +36,12 @@ from envs.simulation.scene import Scene
 # Version of the wire schema; a change that old clients cannot read increments it (2: steps carry `seq`).
 SCHEMA_VERSION = 2
 VEHICLE_FIELDS = ("id", "route", "arc", "speed", "length", "width")
+# Largest number of vehicles the schema takes in one scene (the server's own limit is its
+# environment's max_vehicles, usually far lower: its OpenAPI schema states that one).
+MAX_VEHICLES = 1024
+# Physical bounds of a vehicle's size [m]: from a small car to a road train, from a narrow car to a wide load.
+LENGTH_RANGE = (1.5, 30.0)
+WIDTH_RANGE = (0.8, 5.0)
 
 
 class WireError(ValueError):
