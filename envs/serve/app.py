@@ -8,7 +8,9 @@ Built with FastAPI (pydantic models, OpenAPI schema at ``/openapi.json`` and ``/
   signal phases), ``201`` with its id;
 - ``POST /streams/{id}/step``: a scene (:class:`~envs.serve.schema.SceneIn`) with its sequence number
   ``seq``, answered with one acceleration per vehicle (the same ``seq`` again: the cached answer);
-  ``POST /streams/{id}/reset``: a new episode; ``DELETE /streams/{id}``: close.
+  ``POST /streams/{id}/reset``: a new episode; ``DELETE /streams/{id}``: close;
+- ``GET /streams/{id}/ws``: the fast path, a WebSocket that carries the stream's steps as binary frames
+  (:mod:`envs.serve.frames`), one answer frame per step.
 
 Two layers: the :class:`Gateway` (the event loop's process) checks every request (``Host``, token,
 ``Content-Type``, size) and keeps the open streams, whose client owns each, the quotas and the idle
@@ -19,10 +21,11 @@ given to (:mod:`envs.serve.workers`).
 Bad input gets a 4xx whose body names the field (:class:`~envs.serve.schema.ErrorReply`), and the
 stream and the server go on: 400 an unknown ``Host``, 401 a missing or wrong token, 404 an unknown
 stream or path, 405 a wrong method, 409 a ``seq`` out of order, 413 a body over the limit, 415 a body
-that is not JSON, 422 a malformed scene (wrong type, unknown field, NaN or infinity, out of range,
-impossible size, two vehicles in one place, unknown route, duplicate id, time going back, another
-layout, too many vehicles), 429 too many streams, 503 no answer within the time limit. Every answer
-carries ``Server-Timing: app;dur=<ms>``, the server's own time for it.
+that is not JSON, 422 a malformed scene (wrong type, unknown field, a key given twice, NaN or infinity, out of
+range, impossible size, two vehicles in one place, unknown route, duplicate id, time going back, another
+layout, too many vehicles), 429 too many streams or failed tokens, 431 a request head over the limits, 503 no
+answer within the time limit. Every HTTP answer carries ``Server-Timing: app;dur=<ms>``, the server's own time
+for it.
 """
 
 from __future__ import annotations
