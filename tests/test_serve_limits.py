@@ -451,6 +451,12 @@ def test_streamed_and_numerous_headers_are_cut_off_with_either_parser(service, h
         assert sorted(times)[len(times) // 2] < 0.25, times
         many = {f"X-Header-{k}": "1" for k in range(MAX_HEADERS + 1)}
         assert raw(server.url, "GET", "/health", headers=many)[0] == 431
+        # a refused head is not acted on, even where its request arrived whole: no stream is opened
+        opened = len(server.gateway.streams)
+        bearer = {"Authorization": f"Bearer {TOKEN}", "Content-Type": "application/json"}
+        assert raw(server.url, "POST", "/streams", b'{"layout": "4way"}', {**bearer, **many})[0] == 431
+        time.sleep(0.2)
+        assert len(server.gateway.streams) == opened
         assert raw(server.url, "GET", "/health", headers={"X-Big": "a" * (MAX_HEADER_BYTES + 1)})[0] in (400, 431)
         assert raw(server.url, "GET", "/health", headers={f"X-Header-{k}": "1" for k in range(8)})[0] == 200
 

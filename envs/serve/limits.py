@@ -227,6 +227,10 @@ def guarded_protocol(base: type, guard: ConnectionGuard) -> type:
                                        f"{guard.max_headers} headers")  # fmt: skip
 
         def _guard_refuse(self, what: str) -> None:
+            cycle = getattr(self, "cycle", None)
+            if cycle is not None:  # its request reads as a disconnect: the app, if it started, does nothing for it
+                cycle.disconnected = True
+                cycle.message_event.set()
             guard.too_large += 1
             guard.drop(self)
             self.connections.discard(self)
