@@ -36,6 +36,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import gc
 import http.client
 import json
 import os
@@ -321,17 +322,39 @@ def cpu_s(pid: int) -> float:
     return own + sum(cpu_s(int(child)) for child in children)
 
 
+def _remote_step(client, stream: str, scene, transport: str) -> float:
+    """Wall time of one remote decision, its encoding included (as in ``RemotePlanner.act``) [s]."""
+    from envs.serve.wire import scene_to_wire
+
+    tic = time.perf_counter()
+    if transport == "fast":
+        client.step_scene(stream, scene)
+    else:
+        client.step(stream, scene_to_wire(scene))
+    return time.perf_counter() - tic
+
+
+def _local_step(planner, scene) -> tuple[float, float]:
+    """Wall and CPU time of one decision in this process [s]."""
+    tic, cpu = time.perf_counter(), time.process_time()
+    planner.act(scene)
+    return time.perf_counter() - tic, time.process_time() - cpu
+
+
 def latency(
-    url: str, pid: int, planner_spec: str, sizes: list[int], decisions: int, seconds: float, scene_kind: str = "dense"
+    url: str, pid: int, planner_spec: str, sizes: list[int], decisions: int, seconds: float, scene_kind: str = "dense",
+    transport: str = "fast",
 ) -> list[dict]:
     """Per-decision latency through the server and in process, per scene size, and CPU per decision
-    (``scene_kind``: :func:`dense_scene` or :func:`queue_scene`)."""
+    (``scene_kind``: :func:`dense_scene` or :func:`queue_scene`; ``transport``: ``fast``, the client's
+    WebSocket with binary frames, or ``http``, JSON over HTTP). The two are timed alternately on the same scene,
+    the order swapped every decision, so that both see the same load."""
     from envs.planners import make_planner
     from envs.serve.client import PlannerClient
     from envs.serve.wire import scene_to_wire
 
     rows = []
-    client = PlannerClient(url)
+    client = PlannerClient(url, fast=transport == "fast")
     local = make_planner(planner_spec)
     for n in sizes:
         scene, builder = (queue_scene if scene_kind == "queue" else dense_scene)(n)
@@ -341,21 +364,24 @@ def latency(
         server_cpu = local_cpu = 0.0
         stop = time.monotonic() + seconds
         warm = 5  # untimed first decisions (the planners' first calls load compiled kernels)
+        cars = [SimpleCar(**v) for v in scene_to_wire(scene)["vehicles"]]
         for k in range(-warm, decisions):
             if time.monotonic() > stop:
                 break
             if k == 0:
                 server_cpu = -cpu_s(pid)
-            t = (k + warm) * scene.dt
-            at_t = builder.scene("4way", t, [SimpleCar(**v) for v in scene_to_wire(scene)["vehicles"]])
-            tic = time.perf_counter()
-            client.step(stream, scene_to_wire(at_t))
-            remote = time.perf_counter() - tic
-            tic, cpu = time.perf_counter(), time.process_time()
-            local.act(at_t)
+                # this process's long-lived objects (torch, numba, the planner) out of the collector's reach, as
+                # the server's are: a full collection walks them for a few hundred ms, in either measurement
+                gc.collect()
+                gc.freeze()
+            at_t = builder.scene("4way", (k + warm) * scene.dt, cars)
+            if k % 2:
+                (wall, cpu), remote = _local_step(local, at_t), _remote_step(client, stream, at_t, transport)
+            else:
+                remote, (wall, cpu) = _remote_step(client, stream, at_t, transport), _local_step(local, at_t)
             if k >= 0:
-                local_t.append(time.perf_counter() - tic)
-                local_cpu += time.process_time() - cpu
+                local_t.append(wall)
+                local_cpu += cpu
                 remote_t.append(remote)
                 server_t.append(client.server_ms / 1e3)
         server_cpu += cpu_s(pid)
@@ -365,9 +391,9 @@ def latency(
         s50, s99, _ = _ms(server_t)
         l50, l99, _ = _ms(local_t)
         rows.append({"vehicles": n, "decisions": count, "p50": p50, "p99": p99, "max": worst,
-                     "server p50": s50, "server p99": s99, "in-proc p50": l50, "in-proc p99": l99,
-                     "added p50": p50 - l50, "server CPU": 1e3 * server_cpu / count,
-                     "in-proc CPU": 1e3 * local_cpu / count})  # fmt: skip
+                     "in-proc p50": l50, "in-proc p99": l99, "p50 ratio": p50 / l50, "p99 ratio": p99 / l99,
+                     "added p50": p50 - l50, "server p50": s50, "server p99": s99,
+                     "server CPU": 1e3 * server_cpu / count, "in-proc CPU": 1e3 * local_cpu / count})  # fmt: skip
     client.disconnect()
     return rows
 
@@ -628,6 +654,7 @@ def identity(scenarios: int, duration: float, seed: int, skip_gnn: bool = False)
 def components(n: int, repeat: int = 200) -> str:
     """CPU time per call of each piece of one remote decision, in this process (``time.process_time``)."""
     from envs.planners import AIMPlanner, make_planner
+    from envs.serve import frames
     from envs.serve.app import PlannerService
     from envs.serve.schema import OpenRequest, SceneIn
     from envs.serve.wire import scene_to_wire
@@ -635,6 +662,12 @@ def components(n: int, repeat: int = 200) -> str:
     scene, builder = dense_scene(n)
     wire = {**scene_to_wire(scene), "seq": 1}
     body = json.dumps(wire).encode()
+    columns = (scene.layout.name, 0.0, scene.route_names, scene.vehicle_id, scene.route, scene.arc, scene.speed,
+               scene.length, scene.width)  # fmt: skip
+    frame = frames.encode_step(1, *columns)
+    decoded = frames.decode_step(frame)
+    table = builder.table_columns(decoded.layout, decoded.routes, decoded.ids, decoded.route, decoded.arc,
+                                  decoded.speed, decoded.length, decoded.width)  # fmt: skip
     parsed = SceneIn.model_validate_json(body)
     planner = AIMPlanner()
     planner.reset(0)
@@ -644,8 +677,12 @@ def components(n: int, repeat: int = 200) -> str:
     sid = service.open(OpenRequest(layout=builder.layout.name)).id
 
     def handle() -> None:  # a new step each call: the stream's last step answered again would not plan
-        service.streams[sid].seq, service.streams[sid].reply = 0, None
+        service.streams[sid].seq, service.streams[sid].answer = 0, None
         service.handle("step", sid, body)
+
+    def handle_frame() -> None:
+        service.streams[sid].seq, service.streams[sid].answer = 0, None
+        service.handle("frame", sid, frame)
 
     pieces = {
         "client: scene_to_wire": lambda: scene_to_wire(scene),
@@ -653,9 +690,13 @@ def components(n: int, repeat: int = 200) -> str:
         "server: SceneIn.model_validate_json": lambda: SceneIn.model_validate_json(body),
         "server: json.loads + SceneIn.model_validate": lambda: SceneIn.model_validate(json.loads(body)),
         "server: rebuild the scene (SceneBuilder.scene)": lambda: builder.scene("4way", 0.0, parsed.vehicles),
+        "client: encode a step frame (frames.encode_step)": lambda: frames.encode_step(1, *columns),
+        "server: decode and check a step frame (frames.decode_step)": lambda: frames.decode_step(frame),
+        "server: rebuild the scene from a frame's columns (SceneBuilder.build)": lambda: builder.build(0.0, *table),
         "AIM act (in process)": lambda: planner.act(scene),
         "AIM+shield act (in process)": lambda: shielded.act(scene),
         "server: a whole step of AIM+shield without HTTP (PlannerService.handle)": handle,
+        "server: a whole fast-path step of AIM+shield without the socket (PlannerService.handle, frame)": handle_frame,
     }
     rows = []
     for name, call in pieces.items():
@@ -665,6 +706,17 @@ def components(n: int, repeat: int = 200) -> str:
             call()
         rows.append({"piece": name, "CPU ms per call": 1e3 * (time.process_time() - tic) / repeat})
     return f"{len(body)} bytes of JSON for {n} vehicles\n\n" + _table(rows, 3)
+
+
+def _cpu_model() -> str:
+    """The processor's name (Linux ``/proc/cpuinfo``; else what ``platform`` says)."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -691,6 +743,9 @@ def main(argv: list[str] | None = None) -> int:
                         "tables (default: 1; 0 plans on the server's event loop)")
     parser.add_argument("--server-http", default="auto", choices=HTTP_PARSERS, help="the server's "
                         "--http (uvicorn's HTTP parser) in the latency tables (default: auto)")  # fmt: skip
+    parser.add_argument("--transport", choices=["fast", "http"], default="fast", help="the client's path in the "
+                        "latency tables: 'fast' (a WebSocket per stream, binary frames; the client's default) or "
+                        "'http' (JSON over HTTP) (default: fast)")  # fmt: skip
     parser.add_argument("--latency-only", action="store_true", help="only the latency tables")
     parser.add_argument("--bad-input-only", action="store_true", help="only the malformed-input table")
     parser.add_argument("--components", action="store_true", help="only: CPU per piece of a decision, in process")
@@ -714,7 +769,7 @@ def main(argv: list[str] | None = None) -> int:
     import torch
 
     torch.set_num_threads(1)
-    print(f"machine: {platform.node()}, nproc={os.cpu_count()}, load average {os.getloadavg()[0]:.1f}, "
+    print(f"machine: {platform.node()}, {_cpu_model()}, nproc={os.cpu_count()}, load average {os.getloadavg()[0]:.1f}, "
           f"Python {platform.python_version()}, torch {torch.__version__}")  # fmt: skip
     print(f"command: python benchmarks/bench_serve.py {' '.join(argv if argv is not None else sys.argv[1:])}\n")
     if args.load_test:
@@ -748,10 +803,13 @@ def main(argv: list[str] | None = None) -> int:
     big = max(max(args.sizes), args.load_vehicles, 64)
     kwargs = json.dumps({"config": {"max_vehicles": big}})
     print("## Latency per decision [ms]\n")
-    print("p50/p99/max: wall clock of client.step (encode, round trip, decode); server: the server's own wall "
-          "time (Server-Timing: parse, build the scene, plan, encode); in-proc: planner.act in this process; "
-          "added p50: p50 - in-proc p50; server CPU: the server process's CPU time over the decisions / "
-          "decisions; in-proc CPU: planner.act's CPU time / decisions\n")  # fmt: skip
+    print(f"transport: {args.transport}; server: --workers {args.server_workers} --http {args.server_http}\n")
+    print("p50/p99/max: wall clock of one remote decision (client.step_scene on the fast path, client.step over "
+          "HTTP: encode, round trip, decode); in-proc: planner.act in this process on the same scene, timed "
+          "alternately with it (the order swapped each decision); ratio: remote / in-proc; added p50: p50 - "
+          "in-proc p50; server: the server's own wall time (Server-Timing, HTTP only); server CPU: the server "
+          "process's and its workers' CPU time over the decisions / decisions; in-proc CPU: planner.act's CPU "
+          "time / decisions\n")  # fmt: skip
     for spec, label, extra in configs:
         gnn = spec == str(MODEL)
         sizes = sorted({min(n, 64) if gnn else n for n in args.sizes})
@@ -761,7 +819,8 @@ def main(argv: list[str] | None = None) -> int:
         try:
             local_spec = spec + ("+shield" if extra else "")
             print(f"### {label}\n")
-            rows = latency(url, process.pid, local_spec, sizes, args.decisions, args.seconds, args.scene)
+            rows = latency(url, process.pid, local_spec, sizes, args.decisions, args.seconds, args.scene,
+                           args.transport)  # fmt: skip
             print(_table(rows) + "\n", flush=True)
         finally:
             stop_server(process)

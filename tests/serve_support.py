@@ -23,9 +23,10 @@ OTHER_TOKEN = "second-client-token-abcdef"
 
 
 def serve_extra() -> bool:
-    """Whether the ``serve`` extra (FastAPI, uvicorn) is installed."""
+    """Whether the ``serve`` extra (FastAPI, uvicorn, msgspec) is installed."""
     try:
         import fastapi  # noqa: F401
+        import msgspec  # noqa: F401
         import uvicorn  # noqa: F401
     except ImportError:
         return False
@@ -115,3 +116,28 @@ class ThreadServer:
         self.server.should_exit = True
         self.thread.join(timeout=20)
         self.sock.close()
+
+
+def serve_process(*arguments: str, env: dict | None = None, wait: float = 300.0):
+    """``sb3-graph serve ARGUMENTS`` in its own process, once it listens: ``(process, url)``."""
+    import os
+    import select
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    command = [sys.executable, "-m", "sb3_graph.cli", "serve", *arguments]
+    process = subprocess.Popen(command, cwd=root, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                               env={**os.environ, "PYTHONPATH": str(root), **(env or {})})  # fmt: skip
+    deadline = time.monotonic() + wait
+    while time.monotonic() < deadline:
+        ready, _, _ = select.select([process.stdout], [], [], 1.0)
+        if ready:
+            line = process.stdout.readline()
+            if line.startswith("serving "):
+                return process, line.split(" on ")[-1].strip()
+            if not line and process.poll() is not None:
+                break
+    process.kill()
+    raise RuntimeError(f"the server did not start: {process.stderr.read()[-2000:]}")

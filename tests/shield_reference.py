@@ -2,8 +2,8 @@
 the only implementation the shield runs) match bit for bit.
 
 :func:`plan_pairs_numpy` builds the pairs of ``Shield._plan`` (compiled: ``_shield_kernel.pairs``);
-:func:`fallback_numpy`, :func:`predict_numpy` and :func:`conflicts_numpy` compute what
-``Shield._fallback``, ``Shield.predict`` and ``Shield._conflicts`` compute, from the same plan
+:func:`fallback_numpy`, :func:`predict_numpy`, :func:`conflicts_numpy` and :func:`blame_numpy` compute what
+``Shield._fallback``, ``Shield.predict``, ``Shield._conflicts`` and ``Shield._blame`` compute, from the same plan
 (``Shield._plan``): the prediction with :func:`envs.simulation.engine.integrate` itself, on a NumPy view
 (:class:`PredictionLayout`) of the speed-envelope tables that the kernels read. The helpers below
 (:func:`committed`, :func:`waits`, :func:`leaders_now`, ...) are the rules the kernels implement
@@ -285,6 +285,62 @@ class PredictionLayout:
 
 
 _VIEWS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def _blame_pairs(blamed: np.ndarray, free: np.ndarray, second: np.ndarray, first: np.ndarray) -> None:
+    """Mark, per conflicting pair, the free one; ``second`` if both are free (in place)."""
+    pick = np.where(free[second], second, first)
+    blamed[pick[free[pick]]] = True
+
+
+def blame_numpy(
+    shield: Shield,
+    scene: Scene,
+    plan: _Plan,
+    arc: np.ndarray,
+    speed: np.ndarray,
+    free: np.ndarray,
+    bad_follow: np.ndarray,
+    bad_cross: np.ndarray,
+    bad_merge: np.ndarray,
+    stuck: np.ndarray,
+) -> np.ndarray:
+    """Who ``Shield._blame`` overrides for the conflicts of a prediction (``_shield_kernel.blame``): a conflict is
+    blamed on a free vehicle; when both of a pair are free, on the one that comes second (the follower, the
+    later to enter the zone, the one behind after a merge); stuck free vehicles but the first in order, and the
+    free vehicle ahead of a stuck committed one.
+
+    :param arc: ``(T + 1, n)`` predicted arcs, ``speed`` the speeds (as ``Shield.predict`` returns them)
+    :return: ``(n,)`` bool
+    """
+    later = arc[1:]
+    blamed = np.zeros(scene.num_vehicles, bool)
+    if bad_follow.any():
+        _blame_pairs(blamed, free, plan.follow[bad_follow, 0], plan.follow[bad_follow, 1])
+    if bad_cross.any():
+        entered = later > plan.hull_start
+        t_in = np.where(entered.any(axis=0), entered.argmax(axis=0), len(later))
+        key = t_in * (len(plan.rank) + 1) + plan.rank
+        pairs = plan.cross[bad_cross]
+        second = (key[pairs[:, 1]] > key[pairs[:, 0]]).astype(np.int64)
+        rows = np.arange(len(pairs))
+        _blame_pairs(blamed, free, pairs[rows, second], pairs[rows, 1 - second])
+    if bad_merge.any():
+        e0 = plan.arc[plan.merge[bad_merge]] - plan.merge_exit[bad_merge]
+        back = (e0[:, 0] >= e0[:, 1]).astype(np.int64)
+        rows = np.arange(len(back))
+        pairs = plan.merge[bad_merge]
+        _blame_pairs(blamed, free, pairs[rows, back], pairs[rows, 1 - back])
+    if stuck.any():
+        stuck_free = stuck & free
+        if stuck_free.sum() > 1:
+            stuck_free[np.flatnonzero(stuck_free)[np.argmin(plan.rank[stuck_free])]] = False
+        blamed |= stuck_free
+        go = committed(plan, arc[-1], speed[-1], float(scene.a_max))
+        follower, ahead, _ = leaders_now(shield, plan, arc[-1], go)
+        culprit = ahead[stuck[follower] & ~free[follower] & free[ahead]]
+        blamed[culprit] = True
+    return blamed
 
 
 def prediction_layout(layout, deceleration: float) -> PredictionLayout:

@@ -112,3 +112,76 @@ def test_shield_spec_of_a_server_builds_the_remote_shield(service, monkeypatch):
         planner = make_planner(server.url + "+shield")
         assert isinstance(planner, RemoteShield) and isinstance(planner, Shield)
         assert planner.planner.raise_on_miss and planner.name.endswith("+shield")
+
+
+def test_a_restarted_server_process_with_a_fresh_token_is_survived_idle_and_busy(builder, tmp_path, monkeypatch):
+    """A real ``sb3-graph serve`` with its default token file, restarted twice on the same port, each time with a
+    new token: once while the planner is idle (its kept-alive connection and socket are stale, its token too),
+    once while it decides back-to-back (``kill -9``). No decision raises; each gets the server's answer or the
+    fallback, and the planner finds the new token and reopens its stream by itself."""
+    import signal
+    import threading
+
+    from serve_support import serve_process
+
+    from envs.serve.access import default_token_path
+
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path))
+    monkeypatch.delenv("SB3_GRAPH_TOKEN_FILE", raising=False)
+    port = free_port()
+    arguments = ("--planner", "pr", "--port", str(port), "--workers", "0")
+    local = make_planner("pr")
+    local.reset(0)
+    token_file = default_token_path("127.0.0.1", port)
+    process, url = serve_process(*arguments, env={"XDG_RUNTIME_DIR": str(tmp_path)})
+    try:
+        remote = RemotePlanner(url, deadline=10.0)
+        remote.reset(0)
+        for k in range(3):
+            s = scene(builder, 3, 0.2 * k)
+            np.testing.assert_array_equal(remote.act(s), local.act(s))
+        assert remote.client._sockets or not remote.client.fast  # the fast path, where the server has one
+        first_token = token_file.read_text()
+        process.terminate()
+        process.wait(timeout=30)
+        process, _ = serve_process(*arguments, env={"XDG_RUNTIME_DIR": str(tmp_path)})
+        assert token_file.read_text() != first_token
+        s = scene(builder, 4, 0.8)  # idle restart: the first decision after it
+        np.testing.assert_array_equal(remote.act(s), local.act(s))
+        assert remote.reopened == 1 and remote.deadline_misses == 0
+
+        remote.deadline = 0.5
+        errors, answered = [], []
+        stop = threading.Event()
+
+        def decide() -> None:
+            k = 0
+            while not stop.is_set():
+                s = scene(builder, 3, 1.0 + 0.2 * k)
+                try:
+                    acc = remote.act(s)
+                    answered.append((remote.reopened, remote.deadline_misses, np.array_equal(acc, local.act(s))))
+                except Exception as error:  # noqa: BLE001 - the point: nothing may raise
+                    errors.append(repr(error))
+                k += 1
+                time.sleep(0.02)
+
+        thread = threading.Thread(target=decide)
+        thread.start()
+        try:
+            time.sleep(0.5)
+            process.send_signal(signal.SIGKILL)  # busy restart
+            process.wait(timeout=30)
+            process, _ = serve_process(*arguments, env={"XDG_RUNTIME_DIR": str(tmp_path)})
+            deadline = time.monotonic() + 30
+            while time.monotonic() < deadline and not any(r == 2 and same for r, _, same in answered[-3:]):
+                time.sleep(0.1)
+        finally:
+            stop.set()
+            thread.join(timeout=30)
+        assert not errors, errors[:3]
+        assert remote.reopened == 2 and remote.deadline_misses > 0  # fell back while the server was down
+        assert answered[-1][0] == 2 and answered[-1][2]  # then the restarted server's answers again
+    finally:
+        process.kill()
+        process.wait()

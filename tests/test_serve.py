@@ -46,6 +46,7 @@ TOKEN = "test-token-0123456789"
 def _has_serve_extra() -> bool:
     try:
         import fastapi  # noqa: F401
+        import msgspec  # noqa: F401
         import pydantic  # noqa: F401
         import uvicorn  # noqa: F401
     except ImportError:
@@ -362,9 +363,11 @@ def test_evaluate_remote_gives_identical_metrics(server, tmp_path, monkeypatch):
 
 @needs_server
 def test_server_side_shield_and_gnn_answer_as_in_process(recorded):
-    """The service (without HTTP) with ``--shield`` around the shipped GNN: per-stream shields, shared model."""
+    """The service (without HTTP) with ``--shield`` around the shipped GNN: per-stream shields, shared model; steps
+    alternately as JSON and as fast-path frames, each answered as in process."""
+    from envs.serve import frames
     from envs.serve.app import PlannerService
-    from envs.serve.schema import OpenRequest, SceneIn
+    from envs.serve.schema import OpenRequest
 
     model = str(ROOT / "envs" / "pretrained" / "coop_4way_fair" / "best_model.safetensors")
     service = PlannerService(model, ENV, shield=True)
@@ -375,7 +378,16 @@ def test_server_side_shield_and_gnn_answer_as_in_process(recorded):
     second = service.open(OpenRequest(layout="4way", seed=0))
     assert first.planner is not second.planner and first.planner.planner is second.planner.planner
     for seq, scene in enumerate(_scenes(recorded, "aim")[:60], start=1):
-        reply = service.step(first.id, SceneIn.model_validate({**_through_json(scene), "seq": seq}))
+        if seq % 2:
+            status, body = service.handle("step", first.id, json.dumps({**_through_json(scene), "seq": seq}).encode())
+            reply = json.loads(body)
+        else:
+            frame = frames.encode_step(seq, scene.layout.name, scene.time, scene.route_names, scene.vehicle_id,
+                                       scene.route, scene.arc, scene.speed, scene.length, scene.width)  # fmt: skip
+            status, body = service.handle("frame", first.id, frame)
+            reply = frames.decode_reply(body)
+            reply["shield"]["overridden"] = reply["shield"]["overridden"].tolist()
+        assert status == 200
         np.testing.assert_array_equal(reply["accelerations"], local.act(scene))
         assert reply["shield"]["overridden"] == local.last_overridden.tolist()
     assert first.planner.interventions == local.interventions and second.planner.interventions == 0

@@ -351,3 +351,187 @@ def test_an_unknown_http_implementation_is_refused_naming_the_choices():
 
     with pytest.raises(ValueError, match="http must be one of 'auto', 'httptools', 'h11', got 'h2'"):
         uvicorn_protocol("h2")
+
+
+def _flood(url: str, count: int, seconds: float, kind: str) -> subprocess.Popen:
+    """A process that holds ``count`` connections for ``seconds``: ``handshake``, each open and silent (a TLS
+    handshake never begun); ``headers``, each streaming header bytes without end (1 KiB per 10 ms). A connection
+    the server closes is opened again."""
+    host, port = url.split("//")[1].split(":")
+    code = f"""
+import socket, time
+held, end = [], time.monotonic() + {seconds}
+while time.monotonic() < end:
+    while len(held) < {count}:
+        s = socket.create_connection(({host!r}, {port}))
+        s.setblocking(False)
+        if {kind!r} == "headers":
+            s.sendall(b"GET /health HTTP/1.1\\r\\nHost: 127.0.0.1\\r\\nX-Stream: ")
+        held.append(s)
+    time.sleep(0.01)
+    alive = []
+    for s in held:
+        try:
+            if {kind!r} == "headers":
+                s.send(b"a" * 1024)
+            gone = s.recv(4096) == b""
+        except BlockingIOError:
+            gone = False
+        except OSError:
+            gone = True
+        (s.close() if gone else alive.append(s))
+    held = alive
+"""
+    return subprocess.Popen([sys.executable, "-c", code], stderr=subprocess.PIPE)
+
+
+def _good_requests(client: PlannerClient, count: int) -> list[float]:
+    """Wall time of ``count`` requests of a good client, each on a new connection (the hard case) [s]."""
+    times = []
+    for _ in range(count):
+        client.disconnect()
+        tic = time.monotonic()
+        assert client.version()["planner"] == "PR"
+        times.append(time.monotonic() - tic)
+        time.sleep(0.05)
+    return times
+
+
+def test_idle_tls_handshakes_leave_a_good_client_answered(tmp_path, service):
+    """Three times the connection cap in connections that never begin their TLS handshake: each counts from its
+    accept, the oldest is closed for a newcomer, and none outlives the header timeout; a good client (mutual TLS)
+    is answered at once on new connections throughout."""
+    paths = _certificates(tmp_path)
+    mutual = {"ssl_certfile": str(paths["cert"]), "ssl_keyfile": str(paths["key"]), "ssl_ca_certs": str(paths["ca"])}
+    signed = ssl.create_default_context(cafile=str(paths["ca"]))
+    signed.load_cert_chain(str(paths["client"]))
+    cap, timeout = 16, 2.0
+    with ThreadServer(service, tls=mutual, max_connections=cap, header_timeout=timeout) as server:
+        guard = server.config.guard
+        attack = _flood(server.url, 3 * cap, 30.0, "handshake")
+        try:
+            deadline = time.monotonic() + 20
+            while len(guard.open) < cap and time.monotonic() < deadline:  # the silent handshakes fill the cap
+                time.sleep(0.05)
+            assert len(guard.open) == cap
+            times = _good_requests(PlannerClient(server.url, token=TOKEN, ssl_context=signed, timeout=10), 12)
+        finally:
+            attack.kill()
+            attack.wait()
+        assert guard.evicted > 0  # counted from their accept: the oldest made room for each newcomer
+        assert sorted(times)[len(times) // 2] < timeout / 4, times  # answered, not held behind the handshakes
+        with socket.create_connection(("127.0.0.1", server.port)) as silent:  # alone: closed at the timeout
+            silent.settimeout(3 * timeout)
+            tic = time.monotonic()
+            assert silent.recv(100) == b""
+            assert 0.8 * timeout < time.monotonic() - tic < 2 * timeout
+
+
+@pytest.mark.parametrize("http", ["h11", "httptools"])
+def test_streamed_and_numerous_headers_are_cut_off_with_either_parser(service, http):
+    """Four connections streaming one endless header leave a good client answered at once; each is cut off
+    past the head limit (never buffered whole), and a request of too many headers gets 431."""
+    if http == "httptools":
+        pytest.importorskip("httptools")
+    from envs.serve.limits import MAX_HEADER_BYTES, MAX_HEADERS
+
+    with ThreadServer(service, http=http, header_timeout=30.0) as server:
+        guard = server.config.guard
+        attack = _flood(server.url, 4, 20.0, "headers")
+        try:
+            deadline = time.monotonic() + 15
+            while guard.too_large < 4 and time.monotonic() < deadline:
+                time.sleep(0.05)
+            times = _good_requests(PlannerClient(server.url, token=TOKEN, timeout=10), 12)
+        finally:
+            attack.kill()
+            attack.wait()
+        # cut off long before the 30 s header timeout, by size (h11 refuses past its own event size limit first)
+        assert guard.too_large >= 4 or (http == "h11" and guard.timed_out == 0), (guard.too_large, guard.timed_out)
+        assert sorted(times)[len(times) // 2] < 0.25, times
+        many = {f"X-Header-{k}": "1" for k in range(MAX_HEADERS + 1)}
+        assert raw(server.url, "GET", "/health", headers=many)[0] == 431
+        # a refused head is not acted on, even where its request arrived whole: no stream is opened
+        opened = len(server.gateway.streams)
+        bearer = {"Authorization": f"Bearer {TOKEN}", "Content-Type": "application/json"}
+        assert raw(server.url, "POST", "/streams", b'{"layout": "4way"}', {**bearer, **many})[0] == 431
+        time.sleep(0.2)
+        assert len(server.gateway.streams) == opened
+        assert raw(server.url, "GET", "/health", headers={"X-Big": "a" * (MAX_HEADER_BYTES + 1)})[0] in (400, 431)
+        assert raw(server.url, "GET", "/health", headers={f"X-Header-{k}": "1" for k in range(8)})[0] == 200
+
+
+def test_failed_tokens_are_rate_limited_and_logged_boundedly(service):
+    """A burst of wrong tokens from one address: the first ones get 401, the rest 429, a couple of log lines in
+    all; the right token from the same address is still served (no lockout of good clients sharing it)."""
+    records: list[logging.LogRecord] = []
+    handler = logging.Handler()
+    handler.emit = records.append
+    logger = logging.getLogger("envs.serve.access")
+    logger.addHandler(handler)
+    try:
+        with ThreadServer(service) as server:
+            limit = server.gateway.failures
+            wrong = PlannerClient(server.url, token="wrong-token-0123456789")
+            statuses = []
+            for _ in range(300):
+                try:
+                    wrong.version()
+                except RemotePlannerError as error:
+                    statuses.append((error.status, error.field))
+            assert PlannerClient(server.url, token=TOKEN).version()["planner"] == "PR"
+    finally:
+        logger.removeHandler(handler)
+    unauthorised = statuses.count((401, "authorization"))
+    assert len(statuses) == 300 and unauthorised + statuses.count((429, "authorization")) == 300
+    assert int(limit.burst) <= unauthorised < 100 and limit.limited == 300 - unauthorised
+    assert 1 <= len(records) <= 3
+
+
+def test_duplicate_json_keys_are_refused_naming_the_key(service):
+    headers = {"Authorization": f"Bearer {TOKEN}", "Content-Type": "application/json"}
+    with ThreadServer(service) as server:
+        status, reply = raw(server.url, "POST", "/streams", b'{"layout": "4way", "layout": "3way"}', headers)
+        assert (status, reply["field"]) == (422, "layout") and "twice" in reply["error"]
+        stream = PlannerClient(server.url, token=TOKEN).open("4way")
+        body = json.dumps({**wire_scene(2, 0.0, service.builder.layout), "seq": 1})
+        twice = body.replace('"speed": 5.0', '"speed": 5.0, "speed": 19.0', 1).encode()
+        status, reply = raw(server.url, "POST", f"/streams/{stream}/step", twice, headers)
+        assert (status, reply["field"]) == (422, "speed")
+        assert raw(server.url, "POST", f"/streams/{stream}/step", body.encode(), headers)[0] == 200
+
+
+def test_a_symlinked_token_folder_is_refused_and_its_target_left_alone(tmp_path, monkeypatch):
+    from envs.commands.serve import _access
+    from sb3_graph.cli import UserError
+
+    target = tmp_path / "elsewhere"
+    target.mkdir(mode=0o755)
+    os.chmod(target, 0o755)
+    runtime = tmp_path / "runtime"
+    runtime.mkdir()
+    (runtime / "sb3-graph").symlink_to(target)
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(runtime))
+    with pytest.raises(UserError, match="symbolic link"):
+        _access(Namespace(allowed_host=[], no_token=False), None, "127.0.0.1", 41234)
+    assert stat.S_IMODE(target.stat().st_mode) == 0o755 and not list(target.iterdir())
+
+
+def test_without_tokens_every_loopback_address_is_one_client():
+    from envs.serve.access import Access
+
+    access = Access([], ["localhost"])
+    assert access.client(None, "127.0.0.1") == access.client(None, "127.0.0.2") == access.client(None, "::1")
+    assert access.client(None, "192.0.2.7") != access.client(None, "127.0.0.1")
+
+
+def test_a_key_that_does_not_match_its_certificate_stops_the_start_before_serving(tmp_path):
+    paths = _certificates(tmp_path)
+    other = pytest.importorskip("trustme").CA().issue_cert("127.0.0.1")
+    other.private_key_pem.write_to_path(tmp_path / "other.pem")
+    command = [sys.executable, "-m", "sb3_graph.cli", "serve", "--planner", "pr", "--port", "0", "--workers", "0",
+               "--ssl-certfile", str(paths["cert"]), "--ssl-keyfile", str(tmp_path / "other.pem")]  # fmt: skip
+    done = subprocess.run(command, capture_output=True, text=True, timeout=180,
+                          env={**os.environ, "XDG_RUNTIME_DIR": str(tmp_path)})  # fmt: skip
+    assert done.returncode == 2 and "serving" not in done.stdout
+    assert "--ssl-certfile/--ssl-keyfile" in done.stderr and "Traceback" not in done.stderr

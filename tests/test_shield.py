@@ -168,6 +168,9 @@ def test_prediction_layout_is_bitwise_the_layout(layout):
     assert view.route_names == lay.route_names  # everything else is the layout's
 
 
+BLAMED: list[int] = []  # scenes whose blame was compared (a test that compared none would prove nothing)
+
+
 def _assert_prediction_is_numpy(shield: Shield, scene: Scene, command: np.ndarray) -> None:
     """The shield's compiled fallback, prediction and check are the oracle's (``tests/shield_reference.py``)."""
     plan = shield._plan(scene)
@@ -183,6 +186,13 @@ def _assert_prediction_is_numpy(shield: Shield, scene: Scene, command: np.ndarra
     expected = reference.conflicts_numpy(shield, scene, plan, arc, speed)
     for compiled, oracle in zip(shield._conflicts(scene, plan, arc, speed), expected):
         np.testing.assert_array_equal(compiled, oracle)
+    stuck = expected[3] & ~plan.human
+    if any(bad.any() for bad in expected[:3]) or stuck.any():  # the blame (compiled) is the oracle's too
+        n = scene.num_vehicles
+        for free in (np.ones(n, bool), np.arange(n) % 2 == 0, np.arange(n) % 3 != 0):
+            oracle = reference.blame_numpy(shield, scene, plan, arc, speed, free, *expected[:3], stuck)
+            np.testing.assert_array_equal(shield._blame(scene, plan, command, free), oracle)
+        BLAMED.append(n)
     # The rules the liveness checks and the blame read on their own, at the end of the prediction.
     a_max, end, v_end = float(scene.a_max), arc[-1], speed[-1]
     go = shield.committed(plan, end, v_end, a_max)
@@ -205,6 +215,7 @@ def test_compiled_prediction_is_bitwise_the_numpy_prediction(layout):
     lay = build_layout(layout)
     rng = np.random.default_rng(1)
     shield = Shield(Fixed())
+    BLAMED.clear()
     for count in (1, 2, 5, 12, 25) * 4:
         sim = Simulation(lay)
         route = rng.integers(0, lay.num_routes, count)
@@ -225,7 +236,7 @@ def test_compiled_prediction_is_bitwise_the_numpy_prediction(layout):
             _assert_prediction_is_numpy(shield, scene, np.full(scene.num_vehicles, scene.a_max))
         _, _, terminated, truncated, _ = env.step(env.unwrapped.accelerations_to_action(shield.act(scene)))
         done = terminated or truncated
-    assert shield.interventions > 0
+    assert shield.interventions > 0 and len(BLAMED) > 10
     env.close()
 
 

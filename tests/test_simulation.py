@@ -249,3 +249,49 @@ def test_a_car_that_took_the_other_branch_stays_the_leader_while_the_lanes_overl
         assert events.collisions.tolist() == [[0, 1]]
     else:
         assert np.isinf(gap[1])
+
+
+def _leaders_numpy(sim: Simulation) -> tuple[np.ndarray, np.ndarray]:
+    """The leader search in NumPy (every pair at once): the oracle of the compiled ``_leaders_kernel.leaders``."""
+    from envs.simulation.engine import SPLIT_CLEARANCE
+
+    lay, n = sim.layout, sim.num_vehicles
+    back_arc = sim.arc - sim.length / 2 - SPLIT_CLEARANCE
+    lane, back_lane = lay.lane_at(sim.route, np.stack([sim.arc, back_arc]))
+    into_lane = sim.arc - lay.lane_start[sim.route, lane]
+    x = lay.lane_start[sim.route[:, None], lane[None, :]] + into_lane[None, :]  # (i, j): j on i's route
+    missing = np.isnan(x)
+    if missing.any():
+        into_back = sim.arc - lay.lane_start[sim.route, back_lane]
+        x_back = lay.lane_start[sim.route[:, None], back_lane[None, :]] + into_back[None, :]
+        rear = sim.arc - sim.length / 2
+        overlaps = rear[None, :] < parting_arcs(lay)[sim.route[None, :], sim.route[:, None]]
+        x = np.where(missing, np.where(np.isnan(x_back) & overlaps, sim.arc[None, :], x_back), x)
+    ahead = x - sim.arc[:, None]
+    valid = np.isfinite(ahead) & (ahead > 0)
+    np.fill_diagonal(valid, False)
+    masked = np.where(valid, ahead, np.inf)
+    leader = masked.argmin(axis=1)
+    dist = masked[np.arange(n), leader]
+    has = np.isfinite(dist)
+    gap = np.where(has, dist - (sim.length + sim.length[leader]) / 2, np.inf)
+    return np.where(has, leader, -1).astype(np.int64), gap
+
+
+@pytest.mark.parametrize("layout", ["4way", "3way", "inD"])
+def test_compiled_leaders_are_bitwise_the_numpy_search(layout):
+    """Random scenes, dense enough that paths split under vehicles and several are equally far ahead."""
+    lay = build_layout(layout)
+    rng = np.random.default_rng(7)
+    compared = 0
+    for count in (1, 2, 8, 30, 80) * 6:
+        sim = Simulation(lay, max_vehicles=128)
+        route = rng.integers(0, lay.num_routes, count)
+        arc = np.round(rng.uniform(0.0, lay.length[route] - 1.0), 1)  # rounded: ties in distance happen
+        sim.add(route, rng.uniform(0.0, 15.0, count), np.arange(count), length=rng.uniform(3.0, 12.0, count), arc=arc)
+        leader, gap = sim.leaders()
+        expected = _leaders_numpy(sim)
+        np.testing.assert_array_equal(leader, expected[0])
+        np.testing.assert_array_equal(gap, expected[1])
+        compared += int((leader >= 0).sum())
+    assert compared > 100

@@ -22,7 +22,8 @@ NumPy form (no ``fastmath``, so no reassociation or fused multiply-add), so that
   the reference's ``committed`` and ``fallback_given``
   (with ``yielding``, ``leaders_now`` and ``safe_gap_after``),
 - :func:`predict`: the reference's ``predict_numpy``; :func:`fallback`: ``fallback_numpy``,
-- :func:`conflicts`: ``conflicts_numpy``, the check of a prediction (its blame stays in NumPy).
+- :func:`conflicts`: ``conflicts_numpy``, the check of a prediction, and :func:`blame`: ``blame_numpy``, who
+  is overridden for its conflicts.
 - :func:`pairs`: ``plan_pairs_numpy``, the pairs that ``Shield._plan`` checks.
 
 The first call compiles the kernels (about 6 s on the loaded 2-core development machine);
@@ -594,3 +595,91 @@ def pairs(
         rank[order[s]] = s
     return (follow, follow_gap[:k].copy(), cross, cross_lo, cross_hi, already, back, stop, merge[:g].copy(),
             merge_lo[:g].copy(), merge_exit[:g].copy(), merge_sep[:g].copy(), rank)  # fmt: skip
+
+
+@numba.njit(cache=True)
+def _blame_pair(blamed: np.ndarray, free: np.ndarray, second: int, first: int) -> None:
+    """Blame the free one of a conflicting pair; ``second`` if both are free."""
+    pick = second if free[second] else first
+    if free[pick]:
+        blamed[pick] = True
+
+
+@numba.njit(cache=True)
+def blame(
+    plan: PlanArrays,
+    arcs: np.ndarray,
+    speed: np.ndarray,
+    arc_now: np.ndarray,
+    rank: np.ndarray,
+    free: np.ndarray,
+    bad_follow: np.ndarray,
+    bad_cross: np.ndarray,
+    bad_merge: np.ndarray,
+    stuck: np.ndarray,
+    a_max: float,
+    standing: float,
+    slack: float,
+) -> np.ndarray:
+    """``blame_numpy``: who to override for the conflicts of a prediction (``Shield._blame``'s rules).
+
+    :param arcs: ``(T + 1, n)`` predicted arcs (row 0: now)
+    :param speed: ``(n,)`` predicted speeds at the end
+    :param arc_now: ``(n,)`` arcs now
+    :param rank: ``(n,)`` who goes first when two would enter a zone at once
+    :param free: ``(n,)`` bool: vehicles whose command still differs from the fallback
+    :param bad_follow: ``(k,)``, ``bad_cross`` ``(c,)``, ``bad_merge`` ``(g,)``: the conflicting pairs
+    :param stuck: ``(n,)`` bool: automated vehicles that end neither standing before their zones nor past them
+    :return: ``(n,)`` bool
+    """
+    n = arc_now.shape[0]
+    blamed = np.zeros(n, np.bool_)
+    for k in range(bad_follow.shape[0]):
+        if bad_follow[k]:
+            _blame_pair(blamed, free, plan.follower[k], plan.ahead[k])
+    if bad_cross.any():
+        # Who comes second: the later to enter the intersection's zones (one time per vehicle, so that the
+        # order is total and a cycle of conflicts leaves one to go).
+        later = arcs.shape[0] - 1
+        key = np.empty(n, np.int64)
+        for i in range(n):
+            t_in = later
+            for t in range(1, arcs.shape[0]):
+                if arcs[t, i] > plan.hull_start[i]:
+                    t_in = t - 1
+                    break
+            key[i] = t_in * (n + 1) + rank[i]
+        for p in range(bad_cross.shape[0]):
+            if bad_cross[p]:
+                a, b = plan.cross[p, 0], plan.cross[p, 1]
+                if key[b] > key[a]:
+                    _blame_pair(blamed, free, b, a)
+                else:
+                    _blame_pair(blamed, free, a, b)
+    for g in range(bad_merge.shape[0]):
+        if bad_merge[g]:
+            a, b = plan.merge[g, 0], plan.merge[g, 1]
+            if arc_now[a] - plan.merge_exit[g, 0] >= arc_now[b] - plan.merge_exit[g, 1]:
+                _blame_pair(blamed, free, b, a)
+            else:
+                _blame_pair(blamed, free, a, b)
+    if stuck.any():
+        # A gridlock in the prediction (each waits for another inside its zone): spare the first in order;
+        # if it still fails, the next round blames it too.
+        spare, count = -1, 0
+        for i in range(n):
+            if stuck[i] and free[i]:
+                count += 1
+                if spare < 0 or rank[i] < rank[spare]:
+                    spare = i
+        for i in range(n):
+            if stuck[i] and free[i] and not (count > 1 and i == spare):
+                blamed[i] = True
+        # A committed vehicle stuck behind a vehicle ahead: that one's command is to blame.
+        end = arcs[arcs.shape[0] - 1]
+        go = committed(plan, end, speed, a_max, standing, slack)
+        follower, ahead = leaders(plan, end, go)
+        for r in range(follower.shape[0]):
+            if stuck[follower[r]] and not free[follower[r]] and free[ahead[r]]:
+                blamed[ahead[r]] = True
+    return blamed

@@ -64,7 +64,7 @@ waits for whom, who follows whom) run compiled (:mod:`envs.planners._shield_kern
 periods are sequential and the arrays small, so in NumPy the per-call overhead was most of the
 shield's cost. The kernels are the only implementation of these rules; ``tests/shield_reference.py``
 holds their NumPy form (with :func:`envs.simulation.engine.integrate` itself), the oracle that they match
-bit for bit. Who is blamed for a conflict is decided in NumPy.
+bit for bit, the blame (who is overridden for a conflict) included.
 """
 
 from __future__ import annotations
@@ -666,45 +666,12 @@ class Shield(Planner):
         self._stuck_only = not conflict and stuck.any()
         if not (conflict or stuck.any()):
             return None
-        later = arc[1:]
-        blamed = np.zeros(scene.num_vehicles, bool)
-        if bad_follow.any():
-            _blame_pairs(blamed, free, plan.follow[bad_follow, 0], plan.follow[bad_follow, 1])
-        if bad_cross.any():
-            # Who comes second: the later to enter the intersection's zones (one time per
-            # vehicle, so that the order is total and a cycle of conflicts leaves one to go).
-            entered = later > plan.hull_start
-            t_in = np.where(entered.any(axis=0), entered.argmax(axis=0), len(later))
-            key = t_in * (len(plan.rank) + 1) + plan.rank
-            pairs = plan.cross[bad_cross]
-            second = (key[pairs[:, 1]] > key[pairs[:, 0]]).astype(_INT)
-            rows = np.arange(len(pairs))
-            _blame_pairs(blamed, free, pairs[rows, second], pairs[rows, 1 - second])
-        if bad_merge.any():
-            e0 = plan.arc[plan.merge[bad_merge]] - plan.merge_exit[bad_merge]
-            back = (e0[:, 0] >= e0[:, 1]).astype(_INT)
-            rows = np.arange(len(back))
-            pairs = plan.merge[bad_merge]
-            _blame_pairs(blamed, free, pairs[rows, back], pairs[rows, 1 - back])
-        if stuck.any():
-            stuck_free = stuck & free
-            if stuck_free.sum() > 1:
-                # A gridlock in the prediction (each waits for another inside its zone): spare the
-                # first in order; if it still fails, the next round blames it too.
-                stuck_free[np.flatnonzero(stuck_free)[np.argmin(plan.rank[stuck_free])]] = False
-            blamed |= stuck_free
-            # A committed vehicle stuck behind a vehicle ahead: that one's command is to blame.
-            go = self.committed(plan, arc[-1], speed[-1], scene.a_max)
-            fl, ah = _shield_kernel.leaders(plan.kernel_arrays, np.ascontiguousarray(arc[-1]), go)
-            culprit = ah[stuck[fl] & ~free[fl] & free[ah]]
-            blamed[culprit] = True
-        return blamed
-
-
-def _blame_pairs(blamed: np.ndarray, free: np.ndarray, second: np.ndarray, first: np.ndarray) -> None:
-    """Mark, per conflicting pair, the free one; ``second`` if both are free (in place)."""
-    pick = np.where(free[second], second, first)
-    blamed[pick[free[pick]]] = True
+        # Compiled (`_shield_kernel.blame`): a few NumPy calls per conflict kind cost more than the whole loop
+        return _shield_kernel.blame(
+            plan.kernel_arrays, arc, speed[-1], np.ascontiguousarray(plan.arc, dtype=float),
+            np.ascontiguousarray(plan.rank, dtype=_INT), np.ascontiguousarray(free, dtype=bool), bad_follow,
+            bad_cross, bad_merge, np.ascontiguousarray(stuck, dtype=bool), float(scene.a_max), _STANDING, _STOP_SLACK,
+        )  # fmt: skip
 
 
 _MERGING: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()

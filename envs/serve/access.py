@@ -8,10 +8,13 @@ from __future__ import annotations
 
 import hmac
 import ipaddress
+import logging
 import os
 import secrets
 import stat
 import tempfile
+import time
+from collections import OrderedDict
 from collections.abc import Iterable
 from pathlib import Path
 
@@ -69,16 +72,39 @@ def write_private_token(path: Path) -> str:
     """Generate a token and write it to ``path``, readable and writable by the user only (``0600``), in a folder
     that only the user may enter (``0700``).
 
+    A symbolic link in the folder's place is refused, never followed: another user who can write the parent
+    folder (the system's temporary folder) could otherwise point it at a folder of theirs, or have the
+    server change the mode of a folder it names. The folder is opened without following links and its
+    mode set through that descriptor.
+
     :param path: the token file (replaced)
     :return: the token
-    :raises ValueError: the folder belongs to another user or others may write to it
+    :raises ValueError: the folder is a symbolic link, not a folder, belongs to another user or others may
+        write to it
     """
     folder = path.parent
-    folder.mkdir(mode=0o700, parents=True, exist_ok=True)
-    info = folder.stat()
-    if (hasattr(os, "getuid") and info.st_uid != os.getuid()) or info.st_mode & (stat.S_IWGRP | stat.S_IWOTH):
-        raise ValueError(f"token folder {str(folder)!r} belongs to another user or others may write to it")
-    os.chmod(folder, 0o700)
+    folder.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
+    try:
+        folder.mkdir(mode=0o700)
+    except FileExistsError:
+        pass
+    if folder.is_symlink():
+        raise ValueError(f"token folder {str(folder)!r} is a symbolic link; remove it (the server makes the folder)")
+    flags = os.O_RDONLY | getattr(os, "O_DIRECTORY", 0) | getattr(os, "O_NOFOLLOW", 0)
+    try:
+        handle = os.open(folder, flags)
+    except OSError as error:
+        raise ValueError(f"token folder {str(folder)!r} cannot be opened as a folder ({error.strerror})") from None
+    try:
+        info = os.fstat(handle)
+        if not stat.S_ISDIR(info.st_mode):
+            raise ValueError(f"token folder {str(folder)!r} is not a folder")
+        if (hasattr(os, "getuid") and info.st_uid != os.getuid()) or info.st_mode & (stat.S_IWGRP | stat.S_IWOTH):
+            raise ValueError(f"token folder {str(folder)!r} belongs to another user or others may write to it")
+        if hasattr(os, "fchmod"):
+            os.fchmod(handle, 0o700)
+    finally:
+        os.close(handle)
     token = secrets.token_urlsafe(32)
     temporary = folder / f".{path.name}.{secrets.token_hex(4)}"
     descriptor = os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
@@ -107,7 +133,8 @@ class Access:
         :return: the client's key, ``None`` for a missing or wrong token
         """
         if not self.tokens:
-            return f"peer-{peer}"
+            # every loopback address (127.0.0.0/8, ::1) is this machine: one client, one quota
+            return "peer-loopback" if is_loopback(peer) else f"peer-{peer}"
         if authorization is None or not authorization.startswith(b"Bearer "):
             return None
         sent = authorization[7:]
@@ -129,3 +156,60 @@ class Access:
         else:
             name = text.rsplit(":", 1)[0] if text.count(":") == 1 else text
         return name in self.hosts
+
+
+logger = logging.getLogger("envs.serve.access")
+
+
+class FailureLimit:
+    """Failed authentications per source address: a token bucket each (a burst of ``burst``, then ``rate`` per
+    second), for at most ``sources`` addresses (the least recently failing forgotten first).
+
+    A source over its budget gets ``429`` for its failing requests, without the token being compared, and is
+    logged once each time it goes over; the first failure of each source is logged too (both through the
+    server's rate-limited log). A valid token is never refused here: an attacker who shares an address with good
+    clients (every program on this machine shares 127.0.0.1) cannot lock them out.
+
+    :param burst: failures a source may make at once
+    :param rate: failures per second after the burst
+    :param sources: most sources remembered
+    """
+
+    def __init__(self, burst: int = 20, rate: float = 2.0, sources: int = 4096) -> None:
+        self.burst, self.rate, self.sources = float(burst), float(rate), int(sources)
+        self._buckets: OrderedDict[str, list[float]] = OrderedDict()  # source -> [tokens, stamp, over]
+        self.failed = self.limited = 0
+
+    def over(self, source: str) -> bool:
+        """Whether ``source`` is over its budget now (its next failing request gets 429)."""
+        bucket = self._buckets.get(source)
+        if bucket is None:
+            return False
+        now = time.monotonic()
+        return min(self.burst, bucket[0] + (now - bucket[1]) * self.rate) < 1.0
+
+    def failure(self, source: str) -> bool:
+        """Count a failed authentication of ``source``; ``False`` once it is over its budget (answer 429)."""
+        now = time.monotonic()
+        self.failed += 1
+        bucket = self._buckets.get(source)
+        if bucket is None:
+            if len(self._buckets) >= self.sources:
+                self._buckets.popitem(last=False)
+            bucket = self._buckets[source] = [self.burst, now, 0.0]
+            logger.warning("failed authentication from %s (a missing or wrong token)", source)
+        else:
+            self._buckets.move_to_end(source)
+        bucket[0] = min(self.burst, bucket[0] + (now - bucket[1]) * self.rate)
+        bucket[1] = now
+        if bucket[0] < 1.0:
+            self.limited += 1
+            if not bucket[2]:
+                bucket[2] = 1.0
+                logger.warning("%s: more than %d failed authentications at once; its failing requests get 429 "
+                               "until it slows below %g per second", source, int(self.burst), self.rate)
+            return False
+        bucket[0] -= 1.0
+        if bucket[0] >= self.burst - 1.0:
+            bucket[2] = 0.0  # recovered: a later flood is logged again
+        return True

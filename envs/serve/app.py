@@ -8,7 +8,9 @@ Built with FastAPI (pydantic models, OpenAPI schema at ``/openapi.json`` and ``/
   signal phases), ``201`` with its id;
 - ``POST /streams/{id}/step``: a scene (:class:`~envs.serve.schema.SceneIn`) with its sequence number
   ``seq``, answered with one acceleration per vehicle (the same ``seq`` again: the cached answer);
-  ``POST /streams/{id}/reset``: a new episode; ``DELETE /streams/{id}``: close.
+  ``POST /streams/{id}/reset``: a new episode; ``DELETE /streams/{id}``: close;
+- ``GET /streams/{id}/ws``: the fast path, a WebSocket that carries the stream's steps as binary frames
+  (:mod:`envs.serve.frames`), one answer frame per step.
 
 Two layers: the :class:`Gateway` (the event loop's process) checks every request (``Host``, token,
 ``Content-Type``, size) and keeps the open streams, whose client owns each, the quotas and the idle
@@ -19,10 +21,11 @@ given to (:mod:`envs.serve.workers`).
 Bad input gets a 4xx whose body names the field (:class:`~envs.serve.schema.ErrorReply`), and the
 stream and the server go on: 400 an unknown ``Host``, 401 a missing or wrong token, 404 an unknown
 stream or path, 405 a wrong method, 409 a ``seq`` out of order, 413 a body over the limit, 415 a body
-that is not JSON, 422 a malformed scene (wrong type, unknown field, NaN or infinity, out of range,
-impossible size, two vehicles in one place, unknown route, duplicate id, time going back, another
-layout, too many vehicles), 429 too many streams, 503 no answer within the time limit. Every answer
-carries ``Server-Timing: app;dur=<ms>``, the server's own time for it.
+that is not JSON, 422 a malformed scene (wrong type, unknown field, a key given twice, NaN or infinity, out of
+range, impossible size, two vehicles in one place, unknown route, duplicate id, time going back, another
+layout, too many vehicles), 429 too many streams or failed tokens, 431 a request head over the limits, 503 no
+answer within the time limit. Every HTTP answer carries ``Server-Timing: app;dur=<ms>``, the server's own time
+for it.
 """
 
 from __future__ import annotations
@@ -30,10 +33,10 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import copy
-import hashlib
 import json
 import math
 import secrets
+import ssl
 import time
 from collections import Counter
 from dataclasses import dataclass, field
@@ -41,7 +44,7 @@ from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
-from fastapi import FastAPI, Request
+from fastapi import FastAPI, Request, WebSocket, WebSocketDisconnect
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import Response
 from pydantic import BaseModel, ValidationError
@@ -50,8 +53,18 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from envs.evaluation.harness import env_config
 from envs.planners import SHIELD_SUFFIX, check_planner_spec, make_planner, planner_name
 from envs.planners.base import Planner
-from envs.serve.access import Access
-from envs.serve.limits import ACCEPT_BURST, ConnectionGuard, guarded_protocol, limit_logging, uvicorn_protocol
+from envs.serve import frames
+from envs.serve.access import Access, FailureLimit
+from envs.serve.limits import (
+    ACCEPT_BURST,
+    MAX_HEADER_BYTES,
+    ConnectionGuard,
+    guarded_protocol,
+    guarded_websocket,
+    limit_logging,
+    uvicorn_protocol,
+    websocket_protocol,
+)
 from envs.serve.schema import (
     ErrorReply,
     Health,
@@ -63,6 +76,7 @@ from envs.serve.schema import (
     StreamReply,
 )
 from envs.serve.wire import SCHEMA_VERSION, SceneBuilder, WireError
+from envs.serve.wire import digest as wire_digest
 from envs.serve.workers import InlinePool, ProcessPool, WorkerGone
 
 # Paths anyone may read without the token (liveness and the schema).
@@ -91,7 +105,20 @@ class Stream:
     last_time: float = -math.inf
     seq: int = 0
     digest: bytes | None = None
-    reply: dict[str, Any] | None = None
+    answer: Answer | None = None
+
+
+@dataclass(frozen=True)
+class Answer:
+    """A step's answer, kept for a retry: its numbers, the vehicles' ids and accelerations, and what the server's
+    shield did (``(overridden, unresolved)``; ``None`` without it)."""
+
+    seq: int
+    step: int
+    time: float
+    ids: np.ndarray
+    acc: np.ndarray
+    shield: tuple[np.ndarray, bool] | None
 
 
 def _error_body(field_name: str, message: str, **extra: Any) -> bytes:
@@ -200,30 +227,34 @@ class PlannerService:
             raise RequestError(404, "stream", f"no open stream {sid[:40]!r} (closed, expired, or never opened)")
         return stream
 
-    def step(self, sid: str, scene_in: SceneIn, digest: bytes | None = None) -> dict[str, Any]:
+    def step(self, sid: str, seq: int, layout: str, time: float, columns: tuple[np.ndarray, ...]) -> Stream:
         """One decision, exactly once: ``seq`` one more than the last step's plans; the last step's ``seq``
-        again answers what it answered (without planning) if the body is the same.
+        again answers what it answered (without planning) if the scene is the same (whichever path carried it).
 
         :param sid: the stream
-        :param scene_in: the scene
-        :param digest: a hash of the request's body (``None``: not compared)
+        :param seq: the step's sequence number
+        :param layout: the scene's layout name
+        :param time: its time [s]
+        :param columns: ids, route indices (this layout's), arcs, speeds, lengths, widths
+        :return: the stream, its last answer (``answer``) that of this step
         :raises RequestError: 409 ``seq`` out of order, 422 a scene the intersection cannot hold
         """
         stream = self.stream(sid)
-        if scene_in.seq == stream.seq and stream.reply is not None:
-            if digest is not None and stream.digest is not None and digest != stream.digest:
-                raise RequestError(409, "seq", f"step {scene_in.seq} was answered for another scene; a new scene "
+        digest = wire_digest(layout, time, columns)
+        if seq == stream.seq and stream.answer is not None:
+            if stream.digest is not None and digest != stream.digest:
+                raise RequestError(409, "seq", f"step {seq} was answered for another scene; a new scene "
                                                f"is step {stream.seq + 1}", expected=stream.seq + 1)  # fmt: skip
-            return stream.reply
-        if scene_in.seq != stream.seq + 1:
+            return stream
+        if seq != stream.seq + 1:
             retry = f" or {stream.seq} (a retry)" if stream.seq else ""
-            raise RequestError(409, "seq", f"expected step {stream.seq + 1}{retry}, got {scene_in.seq}",
+            raise RequestError(409, "seq", f"expected step {stream.seq + 1}{retry}, got {seq}",
                                expected=stream.seq + 1)  # fmt: skip
-        if scene_in.time < stream.last_time:
-            raise RequestError(422, "time", f"{scene_in.time} s is before the stream's last scene "
+        if time < stream.last_time:
+            raise RequestError(422, "time", f"{time} s is before the stream's last scene "
                                             f"({stream.last_time} s); reset the stream for a new episode")  # fmt: skip
         try:
-            scene = self.builder.scene(scene_in.layout, scene_in.time, scene_in.vehicles)
+            scene = self.builder.build(time, *columns)
         except WireError as error:
             raise RequestError(422, error.field, error.message) from None
         planner = stream.planner
@@ -233,20 +264,27 @@ class PlannerService:
             raise RuntimeError(f"the planner answered {acc.shape[0]} accelerations (finite: "
                                f"{bool(np.isfinite(acc).all())}) for {scene.num_vehicles} vehicles")  # fmt: skip
         stream.steps += 1
-        stream.last_time = scene_in.time
-        reply = {"stream": sid, "seq": scene_in.seq, "step": stream.steps, "time": scene_in.time,
-                 "ids": scene.vehicle_id.tolist(), "accelerations": acc.tolist(), "shield": None}  # fmt: skip
+        stream.last_time = time
+        shield = None
         if self.shield:  # what the server's shield did, for the client's counters (the harness reports them)
-            reply["shield"] = {"overridden": planner.last_overridden.tolist(),
-                               "unresolved": planner.unresolved > unresolved}  # fmt: skip
-        stream.seq, stream.digest, stream.reply = scene_in.seq, digest, reply
-        return reply
+            shield = (np.asarray(planner.last_overridden, bool).copy(), bool(planner.unresolved > unresolved))
+        stream.seq, stream.digest = seq, digest
+        stream.answer = Answer(seq, stream.steps, time, scene.vehicle_id, acc, shield)
+        return stream
+
+    def json_reply(self, sid: str, answer: Answer) -> bytes:
+        """The JSON answer of a step (``json.dumps`` writes each float so that it reads back exactly)."""
+        reply = {"stream": sid, "seq": answer.seq, "step": answer.step, "time": answer.time,
+                 "ids": answer.ids.tolist(), "accelerations": answer.acc.tolist(), "shield": None}  # fmt: skip
+        if answer.shield is not None:
+            reply["shield"] = {"overridden": answer.shield[0].tolist(), "unresolved": answer.shield[1]}
+        return json.dumps(reply).encode()
 
     def reset(self, sid: str, request: ResetRequest) -> Stream:
         stream = self.stream(sid)
         stream.planner.reset(request.seed)
         stream.steps, stream.last_time = 0, -math.inf
-        stream.seq, stream.digest, stream.reply = 0, None, None
+        stream.seq, stream.digest, stream.answer = 0, None, None
         return stream
 
     def close(self, sid: str) -> None:
@@ -257,22 +295,31 @@ class PlannerService:
         return {"stream": stream.id, "layout": stream.layout, "dt": self.builder.dt, "steps": stream.steps}
 
     def handle(self, op: str, sid: str, body: bytes) -> tuple[int, bytes]:
-        """A request as bytes: ``op`` (``open``, ``step``, ``reset``, ``close``) on stream ``sid`` with the raw
-        JSON ``body``; the answer's status and JSON body (refusals name the field).
+        """A request as bytes: ``op`` (``open``, ``step``, ``frame``, ``reset``, ``close``) on stream ``sid`` with
+        the raw ``body`` (JSON; ``frame``: a fast-path step frame, :mod:`envs.serve.frames`); the answer's status
+        and body (JSON; for ``frame``, an answer or refusal frame). Refusals name the field.
         """
+        if op == "frame":
+            return self._frame(sid, body)
         try:
             if op == "step":
                 # pydantic's own JSON parser: about half the time of json.loads plus validation
                 scene = SceneIn.model_validate_json(body)
-                digest = hashlib.blake2b(body, digest_size=16).digest()
-                # json.dumps writes each float so that it reads back exactly (the identity with in-process runs)
-                return 200, json.dumps(self.step(sid, scene, digest)).encode()
+                _unique_keys(body)
+                try:
+                    columns = self.builder.columns(scene.layout, scene.vehicles)
+                except WireError as error:
+                    raise RequestError(422, error.field, error.message) from None
+                stream = self.step(sid, scene.seq, scene.layout, scene.time, columns)
+                return 200, self.json_reply(sid, stream.answer)
             if op == "open":
-                stream = self.open(OpenRequest.model_validate_json(body), sid)
-                return 201, json.dumps(self.stream_reply(stream)).encode()
+                request = OpenRequest.model_validate_json(body)
+                _unique_keys(body)
+                return 201, json.dumps(self.stream_reply(self.open(request, sid))).encode()
             if op == "reset":
-                stream = self.reset(sid, ResetRequest.model_validate_json(body))
-                return 200, json.dumps(self.stream_reply(stream)).encode()
+                request = ResetRequest.model_validate_json(body)
+                _unique_keys(body)
+                return 200, json.dumps(self.stream_reply(self.reset(sid, request))).encode()
             if op == "close":
                 self.close(sid)
                 return 204, b""
@@ -284,6 +331,47 @@ class PlannerService:
         except RequestError as error:
             return error.status, _error_body(error.field, error.message, **error.extra)
         raise ValueError(f"unknown operation {op!r}")
+
+    def _frame(self, sid: str, body: bytes) -> tuple[int, bytes]:
+        """A fast-path step: decoded and checked by :mod:`envs.serve.frames` (msgspec, vectorized), answered as a
+        frame."""
+        try:
+            step = frames.decode_step(body)
+            columns = self.builder.table_columns(step.layout, step.routes, step.ids, step.route, step.arc,
+                                                 step.speed, step.length, step.width)  # fmt: skip
+        except WireError as error:
+            return 422, frames.encode_error(422, error.field, error.message)
+        try:
+            answer = self.step(sid, step.seq, step.layout, step.time, columns).answer
+        except RequestError as error:
+            return error.status, frames.encode_error(error.status, error.field, error.message,
+                                                     error.extra.get("expected"))  # fmt: skip
+        shield = answer.shield or (None, None)
+        return 200, frames.encode_reply(answer.seq, answer.step, answer.time, answer.ids, answer.acc, *shield)
+
+
+class _DuplicateKey(ValueError):
+    pass
+
+
+def _no_duplicates(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    keys = [key for key, _ in pairs]
+    if len(set(keys)) != len(keys):
+        raise _DuplicateKey(next(key for key in keys if keys.count(key) > 1))
+    return dict(pairs)
+
+
+def _unique_keys(body: bytes) -> None:
+    """Refuse a JSON body in which an object names a key twice (pydantic, as JSON parsers do, keeps the last).
+
+    :raises RequestError: 422 naming the key
+    """
+    try:
+        json.loads(body, object_pairs_hook=_no_duplicates)
+    except _DuplicateKey as error:
+        key = str(error)[:64]
+        raise RequestError(422, key, f"the key {key!r} appears twice in one object; each key may appear "
+                                     "once") from None  # fmt: skip
 
 
 @dataclass
@@ -339,6 +427,8 @@ class Gateway:
         self.per_client: Counter[str] = Counter()
         self.expired = 0
         self.lost = 0  # streams lost with their worker
+        self.failures = FailureLimit()  # failed authentications per source address
+        self.sockets: dict[str, Any] = {}  # each stream's WebSocket (the fast path), at most one
         self._info = service.info()
 
     def info(self) -> dict[str, Any]:
@@ -369,6 +459,9 @@ class Gateway:
         if entry is not None:
             self.per_client[entry.client] -= 1
             self.pool.load[entry.worker] -= 1
+        socket = self.sockets.pop(sid, None)
+        if socket is not None:  # a closed, expired or lost stream keeps no connection open
+            asyncio.get_running_loop().create_task(_close_socket(socket))
 
     async def open(self, client: str, body: bytes) -> tuple[int, bytes]:
         if len(self.streams) >= self.max_streams:
@@ -407,6 +500,41 @@ class Gateway:
             self._drop(sid)
         return status, payload
 
+    async def socket(self, websocket: Any, sid: str) -> None:
+        """Serve a stream's steps over a WebSocket until the client closes it: each binary message a step frame,
+        each answer a frame (a refusal too; the connection stays open). Only the stream's own client may open it
+        (another's, or an unknown stream: the upgrade is refused, 403)."""
+        client = websocket.scope.get("state", {}).get("client", "")
+        entry = self.streams.get(sid)
+        if entry is None or entry.client != client:
+            await websocket.close(code=4404, reason="stream")
+            return
+        await websocket.accept()
+        # One socket per stream (so a client's sockets are bounded by its stream quota): a new one replaces the old
+        old, self.sockets[sid] = self.sockets.get(sid), websocket
+        if old is not None:
+            await _close_socket(old)
+        try:
+            while True:
+                message = await websocket.receive()
+                if message["type"] == "websocket.disconnect":
+                    return
+                data = message.get("bytes")
+                if data is None:
+                    payload = frames.encode_error(415, "body", "frames must be binary MessagePack (envs.serve.frames)")
+                else:
+                    try:
+                        _, payload = await self.forward(client, "frame", sid, data)
+                    except RequestError as error:
+                        payload = frames.encode_error(error.status, error.field, error.message,
+                                                      error.extra.get("expected"))  # fmt: skip
+                await websocket.send({"type": "websocket.send", "bytes": payload})
+        except (WebSocketDisconnect, RuntimeError, OSError):  # the client went, or the socket was replaced
+            return
+        finally:
+            if self.sockets.get(sid) is websocket:
+                del self.sockets[sid]
+
     async def expire(self) -> int:
         """Close the streams unused for longer than ``stream_timeout``; how many."""
         now = time.monotonic()
@@ -427,8 +555,14 @@ class Gateway:
             await self.expire()
 
 
+async def _close_socket(websocket: Any) -> None:
+    with contextlib.suppress(Exception):  # already closing or closed
+        await websocket.close(code=1000)
+
+
 class _Guard:
-    """ASGI middleware: the ``Host`` check, the token, JSON only, the body limit, all before any parsing.
+    """ASGI middleware: the ``Host`` check, the token (failures rate-limited per source), JSON only, the body limit,
+    all before any parsing; a WebSocket's upgrade passes the same ``Host`` and token checks.
 
     :param app: the application
     :param gateway: the server's front (its access rules and body limit)
@@ -437,28 +571,44 @@ class _Guard:
     def __init__(self, app, gateway: Gateway) -> None:
         self.app, self.gateway = app, gateway
 
-    async def __call__(self, scope, receive, send) -> None:
-        if scope["type"] != "http":
-            return await self.app(scope, receive, send)
-        headers = dict(scope["headers"])
-        refuse = None
+    def _refusal(self, scope, headers: dict[bytes, bytes]) -> tuple[int, str, str, dict[str, str] | None] | None:
+        """Why a request or upgrade is refused (status, field, message, headers), ``None`` if it may pass."""
         access = self.gateway.access
         if not access.host_allowed(headers.get(b"host")):
-            refuse = _error(400, "host", "this server does not answer to that Host name (see --allowed-host)")
-        elif scope["path"] not in OPEN_PATHS:
-            peer = (scope.get("client") or ("unknown", 0))[0]
-            client = access.client(headers.get(b"authorization"), peer)
-            if client is None:
-                refuse = _error(401, "authorization", "missing or wrong token (send 'Authorization: Bearer <token>')",
-                                headers={"WWW-Authenticate": "Bearer"})  # fmt: skip
-            else:
-                scope.setdefault("state", {})["client"] = client
-        if refuse is None and scope["method"] in BODY_METHODS:
+            return 400, "host", "this server does not answer to that Host name (see --allowed-host)", None
+        if scope["path"] in OPEN_PATHS:
+            return None
+        peer = (scope.get("client") or ("unknown", 0))[0]
+        limit = self.gateway.failures
+        if limit.over(peer) and headers.get(b"authorization") is None:  # a flood without a token: not even parsed
+            limit.failure(peer)
+            return 429, "authorization", "too many failed authentications from this address; slow down", None
+        client = access.client(headers.get(b"authorization"), peer)
+        if client is None:
+            if not limit.failure(peer):
+                return 429, "authorization", "too many failed authentications from this address; slow down", None
+            return (401, "authorization", "missing or wrong token (send 'Authorization: Bearer <token>')",
+                    {"WWW-Authenticate": "Bearer"})  # fmt: skip
+        scope.setdefault("state", {})["client"] = client
+        return None
+
+    async def __call__(self, scope, receive, send) -> None:
+        kind = scope["type"]
+        if kind not in ("http", "websocket"):
+            return await self.app(scope, receive, send)
+        headers = dict(scope["headers"])
+        refused = self._refusal(scope, headers)
+        if kind == "websocket":
+            if refused is not None:  # before the upgrade is accepted: uvicorn answers 403 and closes
+                await receive()
+                return await send({"type": "websocket.close", "code": 1008, "reason": refused[1]})
+            return await self.app(scope, receive, send)
+        if refused is None and scope["method"] in BODY_METHODS:
             kind = headers.get(b"content-type", b"").split(b";")[0].strip().lower()
             if kind != b"application/json":
-                refuse = _error(415, "content-type", "the body must be JSON (Content-Type: application/json)")
-        if refuse is not None:
-            return await refuse(scope, receive, send)
+                refused = (415, "content-type", "the body must be JSON (Content-Type: application/json)", None)
+        if refused is not None:
+            return await _error(*refused)(scope, receive, send)
         limit = self.gateway.max_body
         declared = headers.get(b"content-length")
         if declared is not None and (not declared.isdigit() or int(declared) > limit):
@@ -574,6 +724,11 @@ def create_app(gateway: Gateway) -> FastAPI:
     async def close(stream: str, request: Request) -> Response:
         return answer(*await gateway.forward(client_of(request), "close", stream, b""))
 
+    @app.websocket("/streams/{stream}/ws")
+    async def step_socket(websocket: WebSocket, stream: str) -> None:
+        """The fast path: the stream's steps as binary frames (:mod:`envs.serve.frames`) over one connection."""
+        await gateway.socket(websocket, stream)
+
     base_openapi = app.openapi
 
     def openapi() -> dict[str, Any]:
@@ -612,34 +767,59 @@ def _document(schema: dict[str, Any], gateway: Gateway) -> dict[str, Any]:
     return schema
 
 
+def tls_context(certfile: str, keyfile: str, ca_certs: str | None = None) -> ssl.SSLContext:
+    """The server's TLS settings: its certificate and key, and with ``ca_certs`` a client certificate required
+    (mutual TLS).
+
+    :raises ssl.SSLError: a key that does not match the certificate, or an unreadable file
+    :raises OSError: a file that cannot be read
+    """
+    context = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+    context.load_cert_chain(certfile, keyfile)
+    if ca_certs:
+        context.load_verify_locations(ca_certs)
+        context.verify_mode = ssl.CERT_REQUIRED
+    return context
+
+
 def uvicorn_config(
     gateway: Gateway,
     max_connections: int = 1000,
     header_timeout: float = 5.0,
     body_timeout: float = 10.0,
     keep_alive: float = 5.0,
-    tls: dict[str, Any] | None = None,
+    tls: ssl.SSLContext | dict[str, Any] | None = None,
     http: str = "auto",
 ):
-    """uvicorn's settings for a :class:`Gateway`: the guarded HTTP protocol (connection cap, header and body read
-    timeouts, :mod:`envs.serve.limits`), ``limit_concurrency`` just above the cap, the keep-alive timeout and TLS.
+    """uvicorn's settings for a :class:`Gateway`: the guarded HTTP and WebSocket protocols (connection cap from
+    the accept, TLS handshake, header and body read timeouts, header limits, :mod:`envs.serve.limits`),
+    ``limit_concurrency`` just above the cap, the keep-alive timeout.
 
     :param gateway: the server's front
     :param max_connections: most connections open at once (below the open-file limit)
-    :param header_timeout: seconds for a request's headers to arrive
+    :param header_timeout: seconds for the TLS handshake and a request's headers to arrive
     :param body_timeout: seconds for its body to arrive after them
     :param keep_alive: seconds an idle connection stays open
-    :param tls: uvicorn's ``ssl_*`` settings (``ssl_certfile``, ``ssl_keyfile``, ``ssl_ca_certs``, ``ssl_cert_reqs``)
+    :param tls: the server's TLS context (:func:`tls_context`), or uvicorn's ``ssl_*`` settings as a dictionary
+        (``ssl_certfile``, ``ssl_keyfile``, ``ssl_ca_certs``); the handshake is done by the guarded protocol
     :param http: uvicorn's HTTP implementation: ``auto`` (httptools when installed, else h11), ``httptools`` or ``h11``
     :return: the ``uvicorn.Config`` (its logging already rate-limited)
     """
     import uvicorn
 
-    guard = ConnectionGuard(max_connections, header_timeout, body_timeout)
+    if isinstance(tls, dict) and tls:
+        tls = tls_context(tls["ssl_certfile"], tls["ssl_keyfile"], tls.get("ssl_ca_certs"))
+    guard = ConnectionGuard(max_connections, header_timeout, body_timeout, tls=tls or None)
+    socket_class = websocket_protocol()
+    websockets = {"ws": "none"}
+    if socket_class is not None:  # the fast path (envs.serve.frames); without a WebSocket library, HTTP only
+        websockets = {"ws": guarded_websocket(socket_class, guard), "ws_max_size": gateway.max_body,
+                      "ws_per_message_deflate": False, "ws_max_queue": 4}  # fmt: skip
     config = uvicorn.Config(
         create_app(gateway), log_level="warning", access_log=False, timeout_graceful_shutdown=2,
         http=guarded_protocol(uvicorn_protocol(http), guard), limit_concurrency=max_connections + 1,
-        timeout_keep_alive=keep_alive, backlog=ACCEPT_BURST, **(tls or {}),
+        timeout_keep_alive=keep_alive, backlog=ACCEPT_BURST, h11_max_incomplete_event_size=MAX_HEADER_BYTES,
+        **websockets,
     )  # fmt: skip
     config.guard = guard
     limit_logging()  # after uvicorn's own logging set-up (in Config), which would drop the filters

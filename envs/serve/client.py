@@ -1,6 +1,8 @@
 """A small Python client of the planner server, and the planner that plans through it.
 
-Standard library only (``http.client`` over one kept-alive connection), no ``sb3_graph``::
+The standard library and numpy (``http.client`` over one kept-alive connection; with ``msgspec``, the fast path:
+one WebSocket per stream, :mod:`envs.serve.websocket`, with binary frames, :mod:`envs.serve.frames`), no
+``sb3_graph``::
 
     from envs.serve.client import PlannerClient
 
@@ -42,9 +44,15 @@ from envs.planners.base import Planner
 from envs.planners.loading import parse_url
 from envs.planners.shield import Shield
 from envs.serve.access import default_token_path, read_tokens
+from envs.serve.websocket import UpgradeRefused, WebSocket
 from envs.serve.wire import scene_to_wire
 from envs.simulation import hooks
 from envs.simulation.scene import Scene
+
+try:  # the fast path's codec (the serve extra); without it the client speaks JSON over HTTP
+    from envs.serve import frames
+except ImportError:  # pragma: no cover - msgspec missing
+    frames = None  # type: ignore[assignment]
 
 TOKEN_FILE_VARIABLE = "SB3_GRAPH_TOKEN_FILE"
 CA_FILE_VARIABLE = "SB3_GRAPH_CA_FILE"
@@ -52,8 +60,13 @@ CLIENT_CERT_VARIABLE = "SB3_GRAPH_CLIENT_CERT"
 CLIENT_KEY_VARIABLE = "SB3_GRAPH_CLIENT_KEY"
 DEADLINE_VARIABLE = "SB3_GRAPH_DEADLINE"
 REMOTE_SCHEMES = ("http://", "https://")
-# Statuses worth another try within the deadline: no answer, over the time limit, the server busy.
-TRANSIENT = frozenset({0, 502, 503, 504})
+# Statuses worth another try within the deadline: no answer, a token the server no longer takes (a restart with
+# a new token: the file is read again), too many failures or streams, over the time limit, the server busy.
+TRANSIENT = frozenset({0, 401, 429, 502, 503, 504})
+
+
+class _NoSocket(Exception):
+    """The fast path is not available for this step (it goes over HTTP)."""
 
 
 class RemotePlannerError(ValueError):
@@ -114,10 +127,12 @@ class PlannerClient:
         token file on this machine)
     :param timeout: seconds to wait for an answer
     :param ssl_context: TLS settings of an ``https://`` server (default: from the environment variables)
+    :param fast: steps of :meth:`step_scene` over a WebSocket per stream with binary frames (default: when
+        ``msgspec`` is installed; HTTP and JSON otherwise, and whenever the server refuses the upgrade)
     """
 
     def __init__(self, url: str, token: str | None = None, timeout: float = 30.0,
-                 ssl_context: ssl.SSLContext | None = None) -> None:  # fmt: skip
+                 ssl_context: ssl.SSLContext | None = None, fast: bool | None = None) -> None:  # fmt: skip
         self.url = str(url).strip().rstrip("/")
         self.scheme, self.host, self.port = parse_url(self.url)
         self._token_file: Path | None = None
@@ -130,6 +145,9 @@ class PlannerClient:
         self.timeout = float(timeout)
         self.ssl_context = ssl_context if ssl_context is not None or self.scheme == "http" else _tls_context()
         self._connection: http.client.HTTPConnection | None = None
+        self._sockets: dict[str, WebSocket] = {}  # the fast path: one WebSocket per stream
+        # steps over WebSockets with binary frames when msgspec is installed (the serve extra), else JSON over HTTP
+        self.fast = frames is not None if fast is None else bool(fast) and frames is not None
         self.seq: dict[str, int] = {}  # last answered step per stream
         # the server's own time for the last answer [ms] (its Server-Timing header; nan without one)
         self.server_ms = float("nan")
@@ -138,16 +156,20 @@ class PlannerClient:
 
     def request(self, method: str, path: str, body: dict[str, Any] | bytes | None = None,
                 timeout: float | None = None) -> Any:  # fmt: skip
-        """One request; its JSON answer. A kept-alive connection that the server closed is reopened once.
+        """One request; its JSON answer. A kept-alive connection that the server closed is reopened once, and a
+        token read from a file is read again once on a ``401`` (a restarted server wrote a new one): each
+        recovery has its own try, so a stale connection cannot use up the token's.
 
         :param timeout: seconds for this request (default: the client's)
         :raises RemotePlannerError: a 4xx/5xx answer (with the server's field and message) or no answer
         """
         data = body if isinstance(body, bytes) or body is None else json.dumps(body, allow_nan=False).encode()
-        for attempt in (0, 1):
+        reconnected = reread = False
+        while True:
             headers = {"Content-Type": "application/json"} if data is not None else {}
             if self.token:
                 headers["Authorization"] = f"Bearer {self.token}"
+            fresh = self._connection is None
             try:
                 if self._connection is None:
                     self._connection = self._connect(timeout)
@@ -158,11 +180,13 @@ class PlannerClient:
                 self.server_ms = _server_ms(response.getheader("server-timing"))
             except (ConnectionError, http.client.HTTPException, OSError) as error:
                 self.disconnect()
-                if attempt or not isinstance(error, (ConnectionResetError, http.client.RemoteDisconnected,
-                                                     BrokenPipeError)):  # fmt: skip
+                stale = isinstance(error, (ConnectionResetError, http.client.RemoteDisconnected, BrokenPipeError))
+                if fresh or reconnected or not stale:
                     raise RemotePlannerError(0, "", f"planner server {self.url}: no answer ({error})") from None
+                reconnected = True  # the server closed the kept-alive connection (an idle timeout, a restart)
                 continue
-            if response.status == 401 and not attempt and self._reread_token():
+            if response.status == 401 and not reread and self._reread_token():
+                reread = True
                 continue  # the server restarted with a new token in the same file
             break
         if response.status >= 400:
@@ -201,10 +225,12 @@ class PlannerClient:
         return connection
 
     def disconnect(self) -> None:
-        """Close the connection (the next request opens a new one)."""
+        """Close the connection and the streams' WebSockets (the next request opens new ones)."""
         if self._connection is not None:
             self._connection.close()
             self._connection = None
+        for stream in list(self._sockets):
+            self.close_socket(stream)
 
     def health(self) -> dict[str, Any]:
         return self.request("GET", "/health")
@@ -225,31 +251,117 @@ class PlannerClient:
         return stream
 
     def step(self, stream: str, scene: dict[str, Any], timeout: float | None = None) -> np.ndarray:
-        """One decision, planned once however often it is sent: a step with this stream's next sequence
-        number, sent again with the same number (and bytes) until answered or ``timeout``.
+        """One decision over HTTP (JSON), planned once however often it is sent: a step with this stream's next
+        sequence number, sent again with the same number (and bytes) until answered or ``timeout``.
 
         :param stream: stream id
         :param scene: the wire scene (:func:`envs.serve.wire.scene_to_wire`)
         :return: ``(n,)`` accelerations [m/s^2], row ``i`` for ``scene["vehicles"][i]``
         :raises RemotePlannerError: a refusal, or an answer for other vehicles
         """
-        seq = self.seq.get(stream, 0) + 1
-        try:
-            reply = self.request("POST", f"/streams/{stream}/step", {**scene, "seq": seq}, timeout)
-        except RemotePlannerError as error:
-            expected = error.reply.get("expected") if error.status == 409 and error.field == "seq" else None
-            if not isinstance(expected, int) or expected == seq:
-                raise
-            # A step of ours whose answer never came was planned after all (or the count is behind):
-            # this new scene is the server's next step.
-            self.seq[stream] = expected - 1
-            reply = self.request("POST", f"/streams/{stream}/step", {**scene, "seq": expected}, timeout)
-        self.seq[stream] = int(reply.get("seq", seq))
         ids = [v["id"] for v in scene["vehicles"]]
+
+        def send(seq: int) -> dict[str, Any]:
+            return self.request("POST", f"/streams/{stream}/step", {**scene, "seq": seq}, timeout)
+
+        reply = self._numbered(stream, send)
         if reply.get("ids") != ids or len(reply.get("accelerations", ())) != len(ids):
             raise RemotePlannerError(0, "ids", f"planner server {self.url}: the answer is for other vehicles")
         self.last_shield = reply.get("shield")
         return np.asarray(reply["accelerations"], dtype=float)
+
+    def step_scene(self, stream: str, scene: Scene, timeout: float | None = None) -> np.ndarray:
+        """One decision for an in-process scene: over the stream's WebSocket with binary frames (the fast path,
+        :mod:`envs.serve.frames`) when it can, else as :meth:`step` over HTTP. Exactly once either way: a
+        retry carries the same ``seq`` and the same content, whichever path carries it.
+
+        :param stream: stream id
+        :param scene: a scene made by the simulation (it needs ``layout`` and ``arc``)
+        :return: ``(n,)`` accelerations [m/s^2]
+        :raises RemotePlannerError: a refusal, no answer, or an answer for other vehicles
+        """
+        if not self.fast:
+            return self.step(stream, scene_to_wire(scene), timeout)
+        if scene.layout is None or scene.arc is None:
+            raise ValueError("a remote planner needs scenes with layout and arc (scenes made by the simulation)")
+        n = scene.num_vehicles
+        width = scene.width if scene.width is not None else np.full(n, 2.0)
+        columns = (scene.layout.name, float(scene.time), scene.route_names, scene.vehicle_id, scene.route,
+                   scene.arc, scene.speed, scene.length, width)  # fmt: skip
+
+        def send(seq: int) -> dict[str, Any] | None:
+            return self._frame_step(stream, frames.encode_step(seq, *columns), timeout)
+
+        try:
+            reply = self._numbered(stream, send)
+        except _NoSocket:  # no fast path to this stream now: this decision goes over HTTP
+            return self.step(stream, scene_to_wire(scene), timeout)
+        if not np.array_equal(reply["ids"], scene.vehicle_id) or reply["accelerations"].shape != (n,):
+            raise RemotePlannerError(0, "ids", f"planner server {self.url}: the answer is for other vehicles")
+        self.server_ms = float("nan")  # no Server-Timing on the fast path
+        shield = reply["shield"]
+        self.last_shield = None if shield is None else {"overridden": shield["overridden"].tolist(),
+                                                        "unresolved": shield["unresolved"]}  # fmt: skip
+        return np.array(reply["accelerations"], dtype=float)
+
+    def _numbered(self, stream: str, send) -> dict[str, Any]:
+        """``send(seq)`` with the stream's next number; after a 409 naming another expected number (a step of ours
+        whose answer never came was planned after all), once more with that one."""
+        seq = self.seq.get(stream, 0) + 1
+        try:
+            reply = send(seq)
+        except RemotePlannerError as error:
+            expected = error.reply.get("expected") if error.status == 409 and error.field == "seq" else None
+            if not isinstance(expected, int) or expected == seq:
+                raise
+            self.seq[stream] = expected - 1
+            reply = send(expected)
+        self.seq[stream] = int(reply.get("seq", seq))
+        return reply
+
+    def _frame_step(self, stream: str, frame: bytes, timeout: float | None) -> dict[str, Any]:
+        """One step frame over the stream's WebSocket (opened on first use); its answer frame, decoded.
+
+        :raises _NoSocket: the upgrade was refused (a stale token or a lost stream: HTTP tells which; a server
+            without the fast path: HTTP from now on)
+        :raises RemotePlannerError: a refusal frame, or no answer (status 0; the socket is dropped)
+        """
+        seconds = self.timeout if timeout is None else max(timeout, 1e-3)
+        ws = self._sockets.get(stream)
+        if ws is None:
+            headers = {"Authorization": f"Bearer {self.token}"} if self.token else {}
+            context = self.ssl_context if self.scheme == "https" else None
+            try:
+                ws = WebSocket.connect(self.host, self.port, f"/streams/{stream}/ws", headers, seconds, context)
+            except UpgradeRefused as error:
+                if error.status != 403:  # no WebSocket route on this server: HTTP only
+                    self.fast = False
+                raise _NoSocket() from None
+            except (OSError, ssl.SSLError) as error:
+                raise RemotePlannerError(0, "", f"planner server {self.url}: no answer ({error})") from None
+            self._sockets[stream] = ws
+        try:
+            ws.send(frame, seconds)
+            data = ws.recv(seconds)
+        except (OSError, ConnectionError) as error:
+            self.close_socket(stream)
+            raise RemotePlannerError(0, "", f"planner server {self.url}: no answer ({error})") from None
+        try:
+            reply = frames.decode_reply(data)
+        except ValueError as error:
+            self.close_socket(stream)
+            raise RemotePlannerError(0, "", f"planner server {self.url}: {error}") from None
+        if reply["status"] != 200:
+            status = int(reply["status"])
+            raise RemotePlannerError(status, reply["field"], f"planner server {self.url}: {status} {reply['error']}",
+                                     reply)  # fmt: skip
+        return reply
+
+    def close_socket(self, stream: str) -> None:
+        """Close the stream's WebSocket, if open (the next step opens another)."""
+        ws = self._sockets.pop(stream, None)
+        if ws is not None:
+            ws.close()
 
     def reset(self, stream: str, seed: int | None = None, timeout: float | None = None) -> None:
         """A new episode in the stream (the sequence numbers start over)."""
@@ -259,6 +371,7 @@ class PlannerClient:
     def close(self, stream: str) -> None:
         """Close a stream (its planner state is dropped)."""
         self.seq.pop(stream, None)
+        self.close_socket(stream)
         self.request("DELETE", f"/streams/{stream}")
 
 
@@ -345,10 +458,11 @@ class RemotePlanner(Planner):
         self.deadline_misses = self.retries = self.reopened = 0
 
     def act(self, scene: Scene) -> np.ndarray:
-        wire = scene_to_wire(scene)
+        if scene.layout is None or scene.arc is None:
+            raise ValueError("a remote planner needs scenes with layout and arc (scenes made by the simulation)")
         deadline = time.monotonic() + (self.deadline if self.deadline is not None else float(scene.dt))
         try:
-            acc = self._decide(wire, float(scene.dt), deadline)
+            acc = self._decide(scene, deadline)
         except DeadlineMissed:
             self.deadline_misses += 1
             if self.raise_on_miss:
@@ -361,8 +475,9 @@ class RemotePlanner(Planner):
             self.unresolved += bool(report["unresolved"])
         return acc
 
-    def _decide(self, wire: dict[str, Any], dt: float, deadline: float) -> np.ndarray:
-        """The server's answer to this scene before ``deadline``, retrying what an outage interrupted."""
+    def _decide(self, scene: Scene, deadline: float) -> np.ndarray:
+        """The server's answer to this scene before ``deadline``, retrying what an outage interrupted (no
+        answer, a restart with a new token, a lost stream, a busy server); never raises for an outage."""
         wait = self.backoff
         while True:
             left = deadline - time.monotonic()
@@ -370,7 +485,7 @@ class RemotePlanner(Planner):
                 raise DeadlineMissed(0, "", f"planner server {self.client.url}: no answer within the deadline")
             try:
                 if self.stream is None:
-                    self.stream = self.client.open(wire["layout"], dt=dt, seed=self._seed, timeout=left)
+                    self.stream = self.client.open(scene.layout.name, dt=float(scene.dt), seed=self._seed, timeout=left)
                     self._fresh = False
                     if self._finalizer is not None:
                         self._finalizer.detach()
@@ -378,9 +493,10 @@ class RemotePlanner(Planner):
                 elif self._fresh:
                     self.client.reset(self.stream, self._seed, timeout=left)
                     self._fresh = False
-                return self.client.step(self.stream, wire, timeout=left)
+                return self.client.step_scene(self.stream, scene, timeout=left)
             except RemotePlannerError as error:
                 if error.status == 404 and error.field == "stream":  # the server lost the stream: a new one
+                    self.client.close_socket(self.stream)
                     self.stream = None
                     self.reopened += 1
                     continue

@@ -9,13 +9,9 @@ from __future__ import annotations
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from envs.serve.wire import LENGTH_RANGE, MAX_VEHICLES, WIDTH_RANGE
+
 _STRICT = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False)
-# Largest number of vehicles the schema takes in one scene (the server's own limit is its
-# environment's max_vehicles, usually far lower: its OpenAPI schema states that one).
-MAX_VEHICLES = 1024
-# Physical bounds of a vehicle's size [m]: from a small car to a road train, from a narrow car to a wide load.
-LENGTH_RANGE = (1.5, 30.0)
-WIDTH_RANGE = (0.8, 5.0)
 
 
 class Vehicle(BaseModel):

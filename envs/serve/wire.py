@@ -14,16 +14,19 @@ simulation's own code (:meth:`envs.simulation.engine.Simulation.scene`), so a pl
 the scene that it would see in process, to the bit. Row ``i`` of the scene is ``vehicles[i]``, and
 the answer's acceleration ``i`` is that vehicle's.
 
-This module needs only numpy: the client (:mod:`envs.serve.client`) and the server
-(:mod:`envs.serve.app`, with the pydantic schema of :mod:`envs.serve.schema`) both use it.
+This module needs numpy (and numba, which the package depends on, for one of the server's checks): the
+client (:mod:`envs.serve.client`) and the server (:mod:`envs.serve.app`, with the pydantic schema of
+:mod:`envs.serve.schema`) both use it.
 """
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
+import numba
 import numpy as np
 
 from envs.simulation.engine import Simulation
@@ -33,6 +36,12 @@ from envs.simulation.scene import Scene
 # Version of the wire schema; a change that old clients cannot read increments it (2: steps carry `seq`).
 SCHEMA_VERSION = 2
 VEHICLE_FIELDS = ("id", "route", "arc", "speed", "length", "width")
+# Largest number of vehicles the schema takes in one scene (the server's own limit is its
+# environment's max_vehicles, usually far lower: its OpenAPI schema states that one).
+MAX_VEHICLES = 1024
+# Physical bounds of a vehicle's size [m]: from a small car to a road train, from a narrow car to a wide load.
+LENGTH_RANGE = (1.5, 30.0)
+WIDTH_RANGE = (0.8, 5.0)
 
 
 class WireError(ValueError):
@@ -113,29 +122,69 @@ class SceneBuilder:
             ``arc`` beyond the route's end, a ``speed`` above the cap or two vehicles in one place
             (:func:`_check_overlaps`), naming the field
         """
-        lay = self.layout
-        if layout != lay.name:
-            raise WireError("layout", f"this server plans for layout {lay.name!r}, got {layout!r}")
-        n = len(vehicles)
-        if n > self.limits.max_vehicles:
-            raise WireError("vehicles", f"{n} vehicles, this server takes at most {self.limits.max_vehicles}")
-        index = lay.route_index
+        return self.build(time, *self.columns(layout, vehicles))
+
+    def columns(self, layout: str, vehicles: Sequence[Any]) -> tuple[np.ndarray, ...]:
+        """The columns of a wire scene's vehicles: ids, route indices, arcs, speeds, lengths, widths.
+
+        :raises WireError: another layout, too many vehicles, an unknown route
+        """
+        n = self._check_size(layout, len(vehicles))
+        index = self.layout.route_index
         try:
             route = np.fromiter((index[v.route] for v in vehicles), np.int64, n)
         except KeyError:
             i = next(i for i, v in enumerate(vehicles) if v.route not in index)
-            raise WireError(f"vehicles[{i}].route", f"layout {lay.name!r} has no route {vehicles[i].route!r}") from None
+            raise WireError(f"vehicles[{i}].route", f"layout {layout!r} has no route {vehicles[i].route!r}") from None
         ids = np.fromiter((v.id for v in vehicles), np.int64, n)
         arc = np.fromiter((v.arc for v in vehicles), float, n)
         speed = np.fromiter((v.speed for v in vehicles), float, n)
         length = np.fromiter((v.length for v in vehicles), float, n)
         width = np.fromiter((v.width for v in vehicles), float, n)
-        _check_rows(ids, route, arc, speed, lay.length, self.limits.max_speed)
+        return ids, route, arc, speed, length, width
+
+    def table_columns(self, layout: str, routes: Sequence[str], ids: np.ndarray, route: np.ndarray, *rest: np.ndarray
+                      ) -> tuple[np.ndarray, ...]:  # fmt: skip
+        """The columns of a fast-path frame (:mod:`envs.serve.frames`), its route indices into the frame's names
+        turned into this layout's.
+
+        :raises WireError: another layout, too many vehicles, an unknown route name
+        """
+        self._check_size(layout, len(ids))
+        index = self.layout.route_index
+        table = np.fromiter((index.get(name, -1) for name in routes), np.int64, len(routes))
+        mine = table[route]
+        unknown = np.flatnonzero(mine < 0)
+        if unknown.size:
+            i = int(unknown[0])
+            raise WireError(f"vehicles[{i}].route", f"layout {layout!r} has no route {routes[int(route[i])]!r}")
+        return (ids, mine, *rest)
+
+    def _check_size(self, layout: str, n: int) -> int:
+        if layout != self.layout.name:
+            raise WireError("layout", f"this server plans for layout {self.layout.name!r}, got {layout!r}")
+        if n > self.limits.max_vehicles:
+            raise WireError("vehicles", f"{n} vehicles, this server takes at most {self.limits.max_vehicles}")
+        return n
+
+    def build(self, time: float, ids: np.ndarray, route: np.ndarray, arc: np.ndarray, speed: np.ndarray,
+              length: np.ndarray, width: np.ndarray) -> Scene:  # fmt: skip
+        """The scene of checked columns, by the simulation's own code (its state set in place: no copies, no
+        concatenation; the arrays are this request's own).
+
+        :raises WireError: a duplicate id, an ``arc`` beyond the route's end, a ``speed`` above the cap or two
+            vehicles in one place, naming the field
+        """
+        _check_rows(ids, route, arc, speed, self.layout.length, self.limits.max_speed)
+        n = len(ids)
         sim = self._sim
         sim.reset()
         sim.time = float(time)
-        if n:
-            sim.add(route, speed, ids, length=length, width=width, arc=arc)
+        if n:  # what Simulation.add would store, without its checks (done above) and concatenations
+            sim.route, sim.vehicle_id, sim.arc, sim.length, sim.width = route, ids, arc, length, width
+            sim.speed = np.clip(speed, 0.0, sim.max_speed)
+            sim.appearance_time = np.full(n, sim.time)
+            sim.human = np.zeros(n, bool)
         scene = sim.scene()
         _check_overlaps(scene)
         return scene
@@ -167,15 +216,10 @@ def _check_overlaps(scene: Scene) -> None:
     n = scene.num_vehicles
     if n < 2:
         return
-    position = np.asarray(scene.position, float)
-    x, y = position[:, 0], position[:, 1]
-    half = 0.5 * np.asarray(scene.width, float)
-    squared = np.square(x[:, None] - x[None, :]) + np.square(y[:, None] - y[None, :])
-    close = squared < np.square(np.minimum(half[:, None], half[None, :]))
-    np.fill_diagonal(close, False)
-    if close.any():
-        j, i = (int(k) for k in np.argwhere(np.triu(close, k=1))[0])
-        apart = float(np.sqrt(squared[j, i]))
+    position = np.ascontiguousarray(scene.position, float)
+    j, i = _first_close_pair(position[:, 0].copy(), position[:, 1].copy(), 0.5 * np.asarray(scene.width, float))
+    if j >= 0:
+        apart = float(np.sqrt(np.square(position[j, 0] - position[i, 0]) + np.square(position[j, 1] - position[i, 1])))
         raise WireError(f"vehicles[{i}].arc", f"vehicle {int(scene.vehicle_id[i])} is {apart:.2f} m from "
                                               f"vehicle {int(scene.vehicle_id[j])}: two vehicles cannot be in one "
                                               "place")  # fmt: skip
@@ -188,3 +232,25 @@ def _check_overlaps(scene: Scene) -> None:
         raise WireError(f"vehicles[{i}].arc", f"vehicle {int(scene.vehicle_id[i])} overlaps vehicle "
                                               f"{int(scene.vehicle_id[j])} by {-float(scene.gap[i]):.2f} m: two "
                                               "vehicles cannot be in one place")  # fmt: skip
+
+
+@numba.njit(cache=True)
+def _first_close_pair(x: np.ndarray, y: np.ndarray, half: np.ndarray) -> tuple[int, int]:
+    """The first pair ``(j, i)``, ``j < i``, whose centres are closer than half the narrower width, in row order;
+    ``(-1, -1)`` if none (one pass over the pairs: the server checks every scene it rebuilds)."""
+    n = x.shape[0]
+    for j in range(n):
+        for i in range(j + 1, n):
+            limit = min(half[j], half[i])
+            if (x[j] - x[i]) ** 2 + (y[j] - y[i]) ** 2 < limit * limit:
+                return j, i
+    return -1, -1
+
+
+def digest(layout: str, time: float, columns: Sequence[np.ndarray]) -> bytes:
+    """A hash of a step's content (layout, time and columns), the same whichever codec carried it: a step
+    retried over the other path is recognised as the same step."""
+    h = hashlib.blake2b(f"{layout}|{float(time)!r}|{len(columns[0])}".encode(), digest_size=16)
+    for column in columns:
+        h.update(np.ascontiguousarray(column).tobytes())
+    return h.digest()
