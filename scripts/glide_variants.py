@@ -18,15 +18,8 @@ import math
 
 import numpy as np
 
-from envs.planners.glide import GUARDED, GlideParams, GlidePlanner
+from envs.planners.glide import GUARDED, RECIPE, GlidePlanner
 from envs.simulation.scene import MINOR
-
-# The recipe: advice within 30 m of the line, no cruise below 2 m/s, a follower within 2.5 s of its
-# leader batched behind it, 1.0 s headway at the line, tight plan constants.
-RECIPE = GlideParams(
-    window=30.0, floor=2.0, platoon_gap=2.5, follow_headway=1.0, decel=3.0, commit_decel=5.0, stop_penalty=1.9,
-    buffer=0.0,
-)  # fmt: skip
 
 
 class GlideRecipe(GlidePlanner):

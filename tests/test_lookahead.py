@@ -11,7 +11,7 @@ import pytest
 import envs  # noqa: F401  (registers the environments)
 from envs.evaluation.harness import evaluation_env_kwargs
 from envs.planners import make_planner, planner_name
-from envs.planners.glide import GlideParams, GlidePlanner
+from envs.planners.glide import RECIPE, GlideParams, GlidePlanner
 from envs.planners.lookahead import LookaheadParams, LookaheadPlanner
 from envs.planners.shield import Shield
 from envs.simulation.traffic import generate_scenario
@@ -65,12 +65,13 @@ def test_bad_lookahead_parameter_names_it_in_one_line(field, value):
 
 
 def test_one_candidate_equal_to_glides_window_drives_as_glide_bit_for_bit():
-    """With glide's own window as its only candidate the search changes nothing: the same commands as
-    glide + shield at every step (and the searches ran)."""
-    only = LookaheadPlanner(params=LookaheadParams(windows=(GlideParams().window,), horizon=2.0))
+    """With its glide's own window as its only candidate the search changes nothing: the same commands as
+    that glide behind the shield at every step (and the searches ran)."""
+    only = LookaheadPlanner(params=LookaheadParams(windows=(RECIPE.window,), horizon=2.0))
+    assert only.params == RECIPE  # the default base of the search
     shielded = Shield(only)
     got = drive(shielded)
-    want = drive(Shield(GlidePlanner()))
+    want = drive(Shield(GlidePlanner(params=RECIPE)))
     assert len(got) == len(want) and all(np.array_equal(a, b) for a, b in zip(got, want))
     stats = shielded.stats()
     assert stats["lookahead_searches"] > 10 and stats["lookahead_fallbacks"] == 0
@@ -78,7 +79,7 @@ def test_one_candidate_equal_to_glides_window_drives_as_glide_bit_for_bit():
 
 
 def test_a_search_past_its_budget_falls_back_to_glide_and_is_counted():
-    tight = LookaheadPlanner(params=LookaheadParams(budget=1e-9))
+    tight = LookaheadPlanner(params=LookaheadParams(budget=1e-9), glide=GlideParams())
     got = drive(Shield(tight), seconds=20.0)
     assert tight.fallbacks == tight.searches > 0
     want = drive(Shield(GlidePlanner()), seconds=20.0)

@@ -100,8 +100,15 @@ GUARDED = GlideParams(
     accel=5.0, decel=1.87, commit_decel=3.83, buffer=0.0, follow_headway=0.91, stop_penalty=1.36, window=16.3,
     floor=3.49, platoon_gap=1.28, control="guarded",
 )  # fmt: skip
+#: Glide's first hand-set values over the first-phase control: advice within 30 m, no cruise below 2 m/s, a
+#: follower within 2.5 s of its leader batched behind it, 1.0 s headway at the line, tight plan constants.
+#: More stops saved than the tuned values for more delay; the base that ``lookahead`` searches over.
+RECIPE = GlideParams(
+    accel=5.0, decel=3.0, commit_decel=5.0, buffer=0.0, follow_headway=1.0, stop_penalty=1.9, window=30.0, floor=2.0,
+    platoon_gap=2.5,
+)  # fmt: skip
 #: Glide's parameter sets by name: the ``action``'s ``glide`` key of the environments and of policy files.
-GLIDE_VERSIONS: dict[str, GlideParams] = dict(zip(GLIDE_VERSION_NAMES, (GlideParams(), GUARDED)))
+GLIDE_VERSIONS: dict[str, GlideParams] = dict(zip(GLIDE_VERSION_NAMES, (GlideParams(), GUARDED, RECIPE)))
 
 
 def glide_scheduler(version: str = "first_phase") -> GlidePlanner:

@@ -52,8 +52,9 @@ DEFAULT_PRIORITY_SCALE = 5.0
 # +1 advises it from 80 m, the 4-way's whole approach.
 DEFAULT_ADVICE_SCALE = 64.0
 # Glide's parameter sets (``action``'s ``glide``, envs.planners.glide.GLIDE_VERSIONS): the first-phase control
-# tuned for behind the shield (default), or glide as first shipped, with IDM following and AIM's zone guard.
-GLIDE_VERSION_NAMES = ("first_phase", "guarded")
+# tuned for behind the shield (default), glide as first shipped (IDM following and AIM's zone guard), or the
+# first hand-set recipe over the first-phase control (the one that lookahead searches over).
+GLIDE_VERSION_NAMES = ("first_phase", "guarded", "recipe")
 # (An acceleration action ignores its scale; it keeps the priority default, as before advice existed.)
 DEFAULT_ACTION_SCALES = {
     "acceleration": DEFAULT_PRIORITY_SCALE,
