@@ -11,10 +11,11 @@ import yaml
 import envs  # noqa: F401 - registers the environments
 from envs.commands.evaluate import DEFAULT_MODEL, PAPER_MODEL, RESIDUAL_MODEL
 from envs.planners import make_planner
-from envs.planners.glide import GlidePlanner
+from envs.planners.glide import GUARDED, GlideParams, GlidePlanner
 from envs.planners.gnn import planner_config_of
 from envs.planners.priority import PriorityPlanner
 from envs.planners.residual import ResidualPlanner
+from envs.simulation.config import action_config
 from sb3_graph import TD3
 from sb3_graph.files.policy_files import read_weights_file
 
@@ -36,14 +37,26 @@ def test_default_model_is_the_advice_policy_of_its_training_config():
     the action type and scale, and the features, so that `--planner FILE` builds the same planner."""
     config = yaml.safe_load((DEFAULT_MODEL.parent / "config.yml").read_text())["env_kwargs"]["config"]
     header = planner_config_of(DEFAULT_MODEL)
-    assert config["shield"] is True and config["action"] == {"type": "advice", "scale": 64.0}
-    for key in ("action", "vertex_features", "edge_features"):
+    assert config["shield"] is True and action_config(config["action"])["type"] == "advice"
+    assert header["action"] == action_config(config["action"])  # glide's version named: first_phase
+    assert header["action"]["glide"] == "first_phase"
+    for key in ("vertex_features", "edge_features"):
         assert header[key] == config[key], key
+
+
+def test_the_first_advice_policy_runs_over_the_glide_it_was_trained_over():
+    """A policy file whose header names no glide version was trained before glide had versions: it runs
+    over glide as first shipped."""
+    old = DEFAULT_MODEL.parent.parent / "coop_4way_advice_guarded" / "best_model.safetensors"
+    assert "glide" not in planner_config_of(old)["action"]
+    planner = make_planner(str(old))
+    assert isinstance(planner, PriorityPlanner) and planner.scheduler.params == GUARDED
+    assert make_planner(str(DEFAULT_MODEL)).scheduler.params == GlideParams()
 
 
 @pytest.mark.parametrize("env_id", ["CoopIntersection4Way-v0", "CoopIntersection3Way-v0", "CoopIntersectionInD-v0"])
 def test_default_model_moves_glides_windows_on_every_layout(env_id):
-    """The shipped scores run over glide: some vehicle's window differs from glide's 16.3 m, so the
+    """The shipped scores run over glide: some vehicle's window differs from glide's own, so the
     commands differ from glide's somewhere, and every command is a valid acceleration."""
     planner = make_planner(str(DEFAULT_MODEL))
     assert isinstance(planner, PriorityPlanner) and planner.kind == "advice" and planner.scale == 64.0
