@@ -82,6 +82,7 @@ def measure(scenes: list[Scene], params: LookaheadParams, repeat: int) -> tuple[
     for p in (planner, shield):
         p.reset(0)
     planner._search(scenes[0])  # warm-up: compiles the kernels
+    step_of(scenes[0]).step(shield.act(scenes[0]))
     rollouts = planner.rollouts
     for _ in range(repeat):
         for scene in scenes:
