@@ -38,7 +38,8 @@ autodoc_default_options = {"members": True, "show-inheritance": True, "ignore-mo
 autodoc_inherit_docstrings = False  # torch's and SB3's docstrings belong to their own docs
 autodoc_member_order = "bysource"
 # The optional extras' packages: the site builds from the docs extra alone, without the server stack
-# (serve), the cluster executors (cluster, ray), PostgreSQL (postgres), rl-zoo3 (zoo) or video (video).
+# (serve; its frames' codec msgspec is in the docs extra), the cluster executors (cluster, ray),
+# PostgreSQL (postgres), rl-zoo3 (zoo) or video (video).
 autodoc_mock_imports = [
     "fastapi",
     "pydantic",
@@ -46,6 +47,7 @@ autodoc_mock_imports = [
     "uvicorn",
     "httptools",
     "uvloop",
+    "websockets",
     "dask",
     "distributed",
     "ray",

@@ -68,8 +68,8 @@ def test_python_block_runs(path, line, code, tmp_path, monkeypatch):
 #: What the test extra installs and the docs extra does not: the site must build without it (``.ci/run`` also builds
 #: it in a fresh venv with the docs extra alone).
 NOT_IN_DOCS_EXTRA = (
-    "fastapi", "pydantic", "starlette", "uvicorn", "httptools", "uvloop", "dask", "distributed", "ray", "psycopg2",
-    "rl_zoo3", "tensorboard", "trustme", "hypothesis", "imageio_ffmpeg",
+    "fastapi", "pydantic", "starlette", "uvicorn", "httptools", "uvloop", "websockets", "dask",
+    "distributed", "ray", "psycopg2", "rl_zoo3", "tensorboard", "trustme", "hypothesis", "imageio_ffmpeg",
 )  # fmt: skip
 def _shadow(folder: Path) -> Path:
     """A folder of stand-ins that fail to import, one per package of :data:`NOT_IN_DOCS_EXTRA`: first on
