@@ -11,11 +11,8 @@ from __future__ import annotations
 
 import importlib.util
 import json
-import os
-import select
 import subprocess
 import sys
-import time
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -23,6 +20,7 @@ import gymnasium as gym
 import numpy as np
 import pandas as pd
 import pytest
+from serve_support import serve_process
 
 import envs  # noqa: F401  (registers the environments)
 from envs.planners import AIMPlanner, check_planner_spec, make_planner, planner_name
@@ -194,21 +192,7 @@ def start_server(planner: str, *extra: str, env: dict | None = None, wait: float
     and these tests compare whole runs with in-process planning, so a stall of the shared machine must not
     count as an overrun (the time limit has its own tests in test_serve_workers.py).
     """
-    command = [sys.executable, "-m", "sb3_graph.cli", "serve", "--planner", planner, "--port", "0",
-               "--time-limit", "60", *extra]  # fmt: skip
-    process = subprocess.Popen(command, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                               env={**os.environ, "PYTHONPATH": str(ROOT), **(env or {})})  # fmt: skip
-    deadline = time.monotonic() + wait
-    while time.monotonic() < deadline:
-        ready, _, _ = select.select([process.stdout], [], [], 1.0)
-        if ready:
-            line = process.stdout.readline()
-            if line.startswith("serving "):
-                return process, line.split(" on ")[-1].strip()
-            if not line and process.poll() is not None:
-                break
-    process.kill()
-    raise RuntimeError(f"the server did not start: {process.stderr.read()[-2000:]}")
+    return serve_process("--planner", planner, "--port", "0", "--time-limit", "60", *extra, env=env, wait=wait)
 
 
 def stop_server(process) -> None:
