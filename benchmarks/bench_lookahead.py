@@ -65,12 +65,8 @@ def run_scenes(size: int, seed: int = 3, slack: int = 4, most: int = 12) -> list
 def step_of(scene: Scene) -> Simulation:
     """A simulation set to ``scene`` (the reference's step runs in it)."""
     sim = Simulation(scene.layout, max_vehicles=max(256, scene.num_vehicles), max_acceleration=float(scene.a_max))
-    sim.route, sim.arc, sim.speed = scene.route.copy(), scene.arc.copy(), scene.speed.copy()
-    sim.length = scene.length.copy()
-    sim.width = np.full(scene.num_vehicles, 2.0) if scene.width is None else scene.width.copy()
-    sim.vehicle_id = scene.vehicle_id.copy()
-    sim.appearance_time = np.zeros(scene.num_vehicles)
-    sim.human = scene.humans.copy()
+    width = np.full(scene.num_vehicles, 2.0) if scene.width is None else scene.width
+    sim.set_state(scene.time, scene.route, scene.vehicle_id, scene.arc, scene.speed, scene.length, width, scene.humans)
     return sim
 
 

@@ -235,17 +235,10 @@ class LookaheadPlanner(GlidePlanner):
                 max_vehicles=max(256, scene.num_vehicles),
                 check_collisions=False,  # behind the shield: the check would find nothing
             )
-        sim.reset()
-        n = scene.num_vehicles
-        sim.time = float(scene.time)
-        sim.route = scene.route.copy()
-        sim.arc = scene.arc.copy()
-        sim.speed = scene.speed.copy()
-        sim.length = scene.length.copy()
-        sim.width = np.full(n, 2.0) if scene.width is None else scene.width.copy()
-        sim.vehicle_id = scene.vehicle_id.copy()
-        sim.appearance_time = np.full(n, scene.time)
-        sim.human = scene.humans.copy()
+        width = np.full(scene.num_vehicles, 2.0) if scene.width is None else scene.width
+        sim.set_state(
+            scene.time, scene.route, scene.vehicle_id, scene.arc, scene.speed, scene.length, width, scene.humans
+        )
         return sim
 
 

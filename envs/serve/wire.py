@@ -176,15 +176,8 @@ class SceneBuilder:
             vehicles in one place, naming the field
         """
         _check_rows(ids, route, arc, speed, self.layout.length, self.limits.max_speed)
-        n = len(ids)
         sim = self._sim
-        sim.reset()
-        sim.time = float(time)
-        if n:  # what Simulation.add would store, without its checks (done above) and concatenations
-            sim.route, sim.vehicle_id, sim.arc, sim.length, sim.width = route, ids, arc, length, width
-            sim.speed = np.clip(speed, 0.0, sim.max_speed)
-            sim.appearance_time = np.full(n, sim.time)
-            sim.human = np.zeros(n, bool)
+        sim.set_state(time, route, ids, arc, np.clip(speed, 0.0, sim.max_speed), length, width)
         scene = sim.scene()
         _check_overlaps(scene)
         return scene

@@ -151,6 +151,39 @@ class Simulation:
         # (diagnostics and tests: the trajectory the collision check saw).
         self.last_trajectory: tuple[np.ndarray, np.ndarray] = (np.zeros((1, 0)), np.zeros((1, 0)))
 
+    def set_state(
+        self,
+        time: float,
+        route: np.ndarray,
+        vehicle_id: np.ndarray,
+        arc: np.ndarray,
+        speed: np.ndarray,
+        length: np.ndarray,
+        width: np.ndarray,
+        human: np.ndarray | None = None,
+    ) -> None:
+        """Replace the whole scene by these vehicles, all appearing now (what :meth:`reset` then :meth:`add`
+        would store, without :meth:`add`'s checks and concatenations: the caller has checked the rows). The
+        arrays are kept, not copied: the simulation replaces its state arrays and never writes in them.
+
+        :param time: the clock [s]
+        :param route: ``(n,)`` route indices
+        :param vehicle_id: ``(n,)`` unique ids
+        :param arc: ``(n,)`` centre positions along the routes [m]
+        :param speed: ``(n,)`` speeds [m/s], within ``[0, max_speed]``
+        :param length: ``(n,)`` vehicle lengths [m]
+        :param width: ``(n,)`` vehicle widths [m]
+        :param human: ``(n,)`` bool: human-driven vehicles (default: none)
+        """
+        self.reset()
+        self.time = float(time)
+        n = len(vehicle_id)
+        if n:
+            self.route, self.vehicle_id, self.arc, self.speed = route, vehicle_id, arc, speed
+            self.length, self.width = length, width
+            self.appearance_time = np.full(n, self.time)
+            self.human = np.zeros(n, bool) if human is None else human
+
     @property
     def num_vehicles(self) -> int:
         return int(self.route.shape[0])
