@@ -29,3 +29,23 @@ class Rollouts3Hz(LookaheadPlanner):
 
     def __init__(self) -> None:
         super().__init__("Lookahead3Hz", LookaheadParams(rollout_frequency=3))
+
+
+class Hold(LookaheadPlanner):
+    """Advice once given holds to the line (glide's rule for a policy's windows): a search changes only the
+    vehicles not yet advised."""
+
+    def __init__(self) -> None:
+        super().__init__("LookaheadHold", LookaheadParams(hold=True))
+
+
+class WithStudent(LookaheadPlanner):
+    """Expert iteration: the shipped student (an advice policy distilled from ``lookahead``) proposes one more
+    candidate, its own windows per vehicle, at every search; the search keeps it where it costs least."""
+
+    policy = "envs/pretrained/coop_4way_lookahead/best_model.safetensors"
+
+    def __init__(self) -> None:
+        from envs.planners import make_planner
+
+        super().__init__("LookaheadWithStudent", proposer=make_planner(self.policy))

@@ -56,6 +56,7 @@ def busy_scene():
         ("per_approach", "yes"),
         ("rollout_frequency", 4),
         ("shield_horizon", 0.0),
+        ("hold", 1),
     ],
 )
 def test_bad_lookahead_parameter_names_it_in_one_line(field, value):
@@ -145,3 +146,71 @@ def test_lookahead_labels_advice_with_the_windows_it_searched():
             labelled += 1
         vec.step(scores)
     assert expert.planners[0].searches >= 3 and labelled >= 10
+
+
+def test_without_hold_a_narrower_window_releases_the_advised_vehicles():
+    """With ``hold`` a vehicle advised on the whole approach keeps following its slot when the next window is
+    0 m; without it (the default) every vehicle follows the window of the last search: full throttle at 0 m."""
+    scene = busy_scene()
+    commands = {}
+    for hold in (True, False):
+        planner = LookaheadPlanner(params=LookaheadParams(hold=hold, period=1e6, horizon=1.0))
+        planner.reset(0)
+        planner.act(scene.copy())  # the one search of the run
+        planner._road_windows = np.full(4, math.inf)
+        wide = planner.act(scene.copy())
+        planner._road_windows = np.zeros(4)
+        commands[hold] = (wide, planner.act(scene.copy()))
+    wide, narrow = commands[False]
+    assert np.array_equal(commands[True][0], wide) and (wide < scene.a_max).any()  # some follow a slot
+    assert np.all(narrow == scene.a_max)  # released
+    assert np.array_equal(commands[True][1], wide)  # held
+
+
+class _Scores:
+    """A scoring planner with fixed scores (in units of ``a_max``)."""
+
+    name = "scores"
+
+    def __init__(self, score: float) -> None:
+        self.score = score
+
+    def reset(self, seed=None) -> None:
+        pass
+
+    def act(self, scene):
+        return np.full(scene.num_vehicles, self.score * scene.a_max)
+
+
+def test_a_proposer_must_be_an_advice_policy():
+    from envs.planners.priority import PriorityPlanner
+
+    order = PriorityPlanner(GlidePlanner(params=RECIPE), _Scores(0.0), 5.0, kind="priority")
+    with pytest.raises(ValueError, match="^lookahead's proposer must be an 'advice' policy") as error:
+        LookaheadPlanner(proposer=order)
+    assert "\n" not in str(error.value)
+
+
+def test_a_proposal_per_vehicle_costs_as_the_same_windows_per_road_and_wins_only_when_cheaper():
+    """A proposer whose windows equal a candidate's costs exactly that candidate's rollout, so it never
+    displaces it (a tie keeps the candidate); the search keeps a proposal only where it costs less."""
+    from envs.planners.priority import PriorityPlanner
+
+    scene = busy_scene()
+    params = LookaheadParams(windows=(0.0, 30.0), horizon=4.0)
+    same = LookaheadPlanner(params=params, proposer=PriorityPlanner(GlidePlanner(params=RECIPE), _Scores(0.0), 64.0,
+                                                                   kind="advice"))  # fmt: skip
+    same.reset(0)
+    ids = np.sort(scene.vehicle_id)
+    assert same.rollout(scene, None, proposed=(ids, np.full(ids.size, 30.0))) == same.rollout(scene, np.full(4, 30.0))
+    np.testing.assert_array_equal(same.propose(scene), np.full(scene.num_vehicles, 30.0))
+    chosen = same._search(scene)
+    assert not isinstance(chosen, tuple) and same.proposals_kept == 0
+    whole = LookaheadPlanner(params=params, proposer=PriorityPlanner(GlidePlanner(params=RECIPE), _Scores(1.0), 64.0,
+                                                                    kind="advice"))  # fmt: skip
+    whole.reset(0)
+    plain = {w: whole.rollout(scene, np.full(4, w)) for w in params.windows}
+    proposal = whole.rollout(scene, None, proposed=(ids, np.full(ids.size, 94.0)))
+    chosen = whole._search(scene)
+    assert isinstance(chosen, tuple) == (proposal < min(plain.values()))
+    assert whole.proposals_kept == int(isinstance(chosen, tuple))
