@@ -208,7 +208,7 @@ def test_advice_scores_move_each_vehicles_window():
     default scale of 64 m, never below 0 m: full throttle); the window of a vehicle is its own."""
     env = empty_env(action={"type": "advice"}, shield=False)
     base = env.unwrapped
-    assert base.config["action"] == {"type": "advice", "scale": 64.0, "glide": "first_phase"}
+    assert base.config["action"] == {"type": "advice", "scale": 64.0, "glide": "first_phase", "hold": True}
     assert GlideParams().window < 64.0
     scene = conflict_scene(base)  # the minor-road vehicle, within glide's window, must yield to the major-road pair
     glide, never = GlidePlanner(), GlidePlanner()
@@ -281,6 +281,26 @@ def test_policy_files_run_over_the_glide_they_were_trained_over(action, version)
     config = check_planner_config({"action": action}, "policy.safetensors")
     assert config["action"]["glide"] == version
     assert glide_scheduler(version).params == GLIDE_VERSIONS[version]
+
+
+def test_advice_without_hold_releases_a_vehicle_whose_window_shrinks():
+    """``"hold": false``: a vehicle advised on a wide window drives at full throttle once its window is 0 m;
+    with the default hold it keeps following its slot to the line. Policy files carry the key (default true)."""
+    speeds = {}
+    for hold in (True, False):
+        base = empty_env(action={"type": "advice", "hold": hold}, shield=False).unwrapped
+        assert base._scheduler.hold is hold
+        conflict_scene(base)
+        scores = np.zeros(base.action_space.shape, np.float32)
+        base.step(scores)  # glide's own window: the minor-road vehicle is advised
+        scores[2] = -1.0  # then window 0 m
+        base.step(scores)
+        speeds[hold] = base.scene().speed[2]
+    assert speeds[False] > speeds[True]
+    assert check_planner_config({"action": {"type": "advice", "hold": False}}, "p")["action"]["hold"] is False
+    assert check_planner_config({"action": {"type": "advice"}}, "p")["action"]["hold"] is True
+    with pytest.raises(ValueError, match="config key 'action'.*'hold': true or false"):
+        gym.make("CoopIntersection4Way-v0", config={"action": {"type": "advice", "hold": "no"}})
 
 
 def test_environment_builds_the_named_glide_and_refuses_an_unknown_one():

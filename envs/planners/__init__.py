@@ -170,7 +170,7 @@ def make_planner(spec: str, trust_files: bool = False) -> Planner:
     config = planner.planner_config  # checked at load
     if "action" in config:  # a scheduling policy: its scores shift glide's order or its advice windows
         action = config["action"]
-        scheduler = glide_scheduler(action["glide"])
+        scheduler = glide_scheduler(action["glide"], action["hold"])
         return PriorityPlanner(scheduler, planner, action["scale"], name=planner.name, kind=action["type"])
     if config.get("residual_base") is None:
         return planner

@@ -111,15 +111,18 @@ RECIPE = GlideParams(
 GLIDE_VERSIONS: dict[str, GlideParams] = dict(zip(GLIDE_VERSION_NAMES, (GlideParams(), GUARDED, RECIPE)))
 
 
-def glide_scheduler(version: str = "first_phase") -> GlidePlanner:
+def glide_scheduler(version: str = "first_phase", hold: bool = True) -> GlidePlanner:
     """The scheduler of the ``"priority"`` and ``"advice"`` action types.
 
     :param version: a key of :data:`GLIDE_VERSIONS`
+    :param hold: advice once given holds to the line (:attr:`GlidePlanner.hold`)
     :raises ValueError: an unknown version, naming the allowed ones
     """
     if version not in GLIDE_VERSIONS:
         raise ValueError(f"glide version must be one of {list(GLIDE_VERSIONS)}, got {version!r}")
-    return GlidePlanner(params=GLIDE_VERSIONS[version])
+    scheduler = GlidePlanner(params=GLIDE_VERSIONS[version])
+    scheduler.hold = bool(hold)
+    return scheduler
 
 
 class GlidePlanner(AIMPlanner):
@@ -138,6 +141,9 @@ class GlidePlanner(AIMPlanner):
         self._shift: np.ndarray | None = None
         self._windows: np.ndarray | None = None
         self._held = np.zeros(0, dtype=np.int64)
+        #: Advice once given holds to the line (a window that shrinks later does not release a vehicle);
+        #: ``False``: every vehicle follows the window of this step.
+        self.hold = True
 
     def reset(self, seed: int | None = None) -> None:
         super().reset(seed)
@@ -153,6 +159,7 @@ class GlidePlanner(AIMPlanner):
         """A plain glide with this one's parameters and memory (order, commitments, held advice), to plan
         ahead in a copy of the world; the arrays are shared, since glide replaces them and never writes in them."""
         twin = GlidePlanner(self.name, self.params, self.idm)
+        twin.hold = self.hold
         twin.adopt(self)
         return twin
 
@@ -262,7 +269,9 @@ class GlidePlanner(AIMPlanner):
         # Advice once given holds to the line: a window that shrinks between steps (a policy's) must not
         # switch a vehicle between its slot's slow approach and full throttle. A fixed window changes
         # nothing (a vehicle's distance to its line never grows).
-        within = (dist > 0) & ((dist <= window) | np.isin(scene.vehicle_id, self._held))
+        within = (dist > 0) & (dist <= window)
+        if self.hold:
+            within |= (dist > 0) & np.isin(scene.vehicle_id, self._held)
         self._held = scene.vehicle_id[within]
         advised = slowed & within & (scene.dist_to_exit > 0)
         if guarded:  # never brake below the floor, nor hold a slower vehicle: a stop, if needed, is the shield's

@@ -126,6 +126,7 @@ class LookaheadPlanner(GlidePlanner):
         self.search = params if params is not None else LookaheadParams()
         self.proposer = proposer
         super().__init__(name, glide if glide is not None else RECIPE)
+        self.hold = self.search.hold
 
     def reset(self, seed: int | None = None) -> None:
         super().reset(seed)
@@ -157,8 +158,6 @@ class LookaheadPlanner(GlidePlanner):
         if scene.num_vehicles and (scene.layout is None or scene.arc is None):
             raise ValueError("lookahead needs the scene's layout and arcs (scenes built by the simulation have them)")
         self.set_windows(self.windows_for(scene))
-        if not self.search.hold:
-            self._held = self._held[:0]
         return super().act(scene)
 
     def windows_for(self, scene: Scene) -> np.ndarray:
@@ -269,8 +268,6 @@ class LookaheadPlanner(GlidePlanner):
                 me.set_windows(road_windows[roads[now.route]])
             else:
                 me.set_windows(_lookup(*proposed, now.vehicle_id, self.params.window))
-            if not self.search.hold:
-                me._held = me._held[:0]
             events = sim.step(shield.act(now))
             live = sim.arc - sim.length / 2 < sim.layout.exit_arc[sim.route]
             if self.search.energy_price:  # the sub-step speeds of every vehicle of the step

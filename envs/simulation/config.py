@@ -142,22 +142,24 @@ def _weights(x: Any) -> bool:
 def _action(x: Any) -> bool:
     return (
         isinstance(x, dict)
-        and set(x) <= {"type", "scale", "glide"}
+        and set(x) <= {"type", "scale", "glide", "hold"}
         and x.get("type", ACTION_TYPES[0]) in ACTION_TYPES
+        and isinstance(x.get("hold", True), bool)
         and x.get("glide", GLIDE_VERSION_NAMES[0]) in GLIDE_VERSION_NAMES
         and ("scale" not in x or (_is_number(x["scale"]) and 0 < x["scale"] <= MAX_PRIORITY_SCALE))
     )
 
 
 def action_config(value: dict[str, Any] | None) -> dict[str, Any]:
-    """The ``action`` setting with its defaults filled in (``type``, ``scale`` and ``glide``).
+    """The ``action`` setting with its defaults filled in (``type``, ``scale``, ``glide`` and ``hold``).
 
     :param value: a checked ``action`` setting, or ``None`` (accelerations)
     """
     value = dict(value or {})
     kind = value.get("type", ACTION_TYPES[0])
     scale = float(value.get("scale", DEFAULT_ACTION_SCALES[kind]))
-    return {"type": kind, "scale": scale, "glide": value.get("glide", GLIDE_VERSION_NAMES[0])}
+    glide = value.get("glide", GLIDE_VERSION_NAMES[0])
+    return {"type": kind, "scale": scale, "glide": glide, "hold": value.get("hold", True)}
 
 
 def _human_share(x: Any) -> bool:
@@ -220,7 +222,8 @@ RULES: dict[str, Rule] = {
         f"a dict {{'type': one of {list(ACTION_TYPES)}, 'scale': a number in (0, {MAX_PRIORITY_SCALE:g}] "
         f"(seconds for priority, default {DEFAULT_PRIORITY_SCALE:g}; metres for advice, "
         f"default {DEFAULT_ADVICE_SCALE:g}), 'glide': one of {list(GLIDE_VERSION_NAMES)} (the scheduler's "
-        f"parameters, default {GLIDE_VERSION_NAMES[0]!r})}}",
+        f"parameters, default {GLIDE_VERSION_NAMES[0]!r}), 'hold': true or false (advice once given holds "
+        f"to the line, default true)}}",
     ),
     "collision_handling": Rule(lambda x: x in COLLISION_HANDLING, f"one of {COLLISION_HANDLING}"),
     "human_share": Rule(_human_share, HUMAN_SHARE_ALLOWED),

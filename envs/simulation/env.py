@@ -305,7 +305,7 @@ class CoopIntersectionEnv(AbstractEnv):
             self._base.reset(seed)
         self._scheduler = None
         if cfg["action"]["type"] in SCHEDULER_ACTION_TYPES:
-            self._scheduler = hooks.maker("priority")(cfg["action"]["glide"])
+            self._scheduler = hooks.maker("priority")(cfg["action"]["glide"], cfg["action"]["hold"])
             self._scheduler.reset(seed)
         self._scene = self.sim.scene()
         obs = build_observation(
