@@ -146,6 +146,11 @@ def _worker_main(sock: socket.socket, service: Any, forked: bool) -> None:
         sock.sendall(_frame((request, status, payload)))
 
 
+def _overran(future: asyncio.Future, timeout: float) -> None:
+    if not future.done():
+        future.set_exception(TimeoutError(f"no answer within {timeout} s"))
+
+
 class ProcessPool:
     """``workers`` planning processes (forked from the server once its planner is built and warm), each
     replaced when it ends, at most ``max_restarts`` times per slot within ``restart_window`` seconds.
@@ -264,18 +269,22 @@ class ProcessPool:
         :raises TimeoutError: no answer within ``timeout`` seconds (the caller may :meth:`stop` the worker)
         :raises WorkerGone: the worker ended
         """
-        if not self.alive(worker):
+        if self._dead[worker]:  # set by the reader at the worker's end (a dead process closes its socket), or by stop
             raise WorkerGone(f"planning process {worker} ended")
         request = next(self._ids)
-        future = asyncio.get_running_loop().create_future()
+        loop = asyncio.get_running_loop()
+        future = loop.create_future()
         future.worker = worker  # type: ignore[attr-defined]
         self._pending[request] = future
         self._writers[worker].write(_frame((request, op, sid, body)))
+        # A timer on the future itself (asyncio.wait_for and shield would add a task and two futures per request)
+        timer = None if timeout is None else loop.call_later(timeout, _overran, future, timeout)
         try:
-            return await asyncio.wait_for(asyncio.shield(future), timeout)
-        except asyncio.TimeoutError:
+            return await future
+        finally:
+            if timer is not None:
+                timer.cancel()
             self._pending.pop(request, None)
-            raise TimeoutError(f"no answer within {timeout} s") from None
 
     async def close(self) -> None:
         self._closing = True
