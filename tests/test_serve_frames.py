@@ -161,19 +161,31 @@ def test_the_fast_path_over_tls(tmp_path, service):
         assert client.step_scene(stream, _scene(service, 3, 0.0)).shape == (3,) and stream in client._sockets
 
 
-def test_the_compiled_close_pair_check_finds_the_numpy_checks_first_pair():
-    """``wire._first_close_pair`` (compiled) against the (n, n) NumPy form it replaced, on random crowds."""
-    from envs.serve.wire import _first_close_pair
+def test_the_compiled_overlap_check_finds_the_numpy_checks_first_pair():
+    """``wire._first_overlap`` (compiled) against the (n, n) NumPy forms it replaced, on random crowds: the first
+    pair closer than half the narrower width, else the first vehicle overlapping its leader by over half the
+    shorter length."""
+    from envs.serve.wire import _first_overlap
 
     rng = np.random.default_rng(3)
-    found = 0
+    found = deep_found = 0
     for n in (2, 5, 20, 100) * 10:
         x, y, half = rng.uniform(0, 40, n), rng.uniform(0, 40, n), rng.uniform(0.4, 2.5, n)
+        leader = np.where(rng.random(n) < 0.5, rng.integers(0, n, n), -1)
+        gap, length = rng.uniform(-4.0, 10.0, n), rng.uniform(1.5, 12.0, n)
         squared = np.square(x[:, None] - x[None, :]) + np.square(y[:, None] - y[None, :])
         close = squared < np.square(np.minimum(half[:, None], half[None, :]))
         np.fill_diagonal(close, False)
         pairs = np.argwhere(np.triu(close, k=1))
-        expected = tuple(int(k) for k in pairs[0]) if len(pairs) else (-1, -1)
-        assert _first_close_pair(x, y, half) == expected
-        found += expected[0] >= 0
-    assert 0 < found < 40
+        has = leader >= 0
+        deep = np.flatnonzero(has & (gap < -0.5 * np.minimum(length, length[np.where(has, leader, 0)])))
+        if len(pairs):
+            expected = (0, int(pairs[0][0]), int(pairs[0][1]))
+        elif deep.size:
+            expected = (1, int(leader[deep[0]]), int(deep[0]))
+        else:
+            expected = (-1, -1, -1)
+        assert _first_overlap(np.stack([x, y], axis=1), 2.0 * half, leader, gap, length) == expected
+        found += expected[0] == 0
+        deep_found += expected[0] == 1
+    assert 0 < found < 40 and deep_found > 0

@@ -91,6 +91,32 @@ def test_a_step_over_the_time_limit_gets_503_and_its_worker_is_replaced():
         assert client.health()["restarts"] == 1
 
 
+def test_a_step_frame_over_the_time_limit_gets_503_and_its_worker_is_replaced():
+    """The fast path is under the same time limit: a step frame that overruns gets a 503 refusal frame and its worker
+    is killed and replaced, the stream lost with it."""
+    pytest.importorskip("msgspec")
+    pytest.importorskip("websockets")
+    from types import SimpleNamespace
+
+    from envs.serve.app import PlannerService
+
+    service = PlannerService(f"{SUPPORT}:SlowPlanner", ENV)
+    builder = service.builder
+    with ThreadServer(service, workers=1, time_limit=0.3) as server:
+        client, pool = PlannerClient(server.url, token=TOKEN), server.gateway.pool
+        assert client.fast
+        sid = client.open("4way")
+        old = pool.processes[0].pid
+        cars = [SimpleNamespace(**v) for v in wire_scene(SlowPlanner.SLOW_VEHICLES, 0.0, builder.layout)["vehicles"]]
+        tic = time.monotonic()
+        with pytest.raises(RemotePlannerError) as caught:
+            client.step_scene(sid, builder.scene(builder.layout.name, 0.0, cars))
+        assert (caught.value.status, caught.value.field) == (503, "time_limit")
+        assert time.monotonic() - tic < SlowPlanner.SLOW_SECONDS
+        wait_for(lambda: pool.restarts == 1 and pool.alive_count() == 1)
+        assert pool.processes[0].pid != old
+
+
 def test_a_crash_loop_stops_at_the_restart_cap(service, caplog):
     with ThreadServer(service, workers=1, max_restarts=2, restart_window=60.0) as server:
         client, pool = PlannerClient(server.url, token=TOKEN), server.gateway.pool

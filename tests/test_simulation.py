@@ -295,3 +295,19 @@ def test_compiled_leaders_are_bitwise_the_numpy_search(layout):
         np.testing.assert_array_equal(gap, expected[1])
         compared += int((leader >= 0).sum())
     assert compared > 100
+
+
+@pytest.mark.parametrize("layout", ["4way", "3way", "inD"])
+def test_compiled_lane_lookup_is_the_layouts(layout):
+    """The leader search's compiled lane lookup gives ``Layout.lane_at``'s lanes, lane starts and ends included."""
+    from envs.simulation import _leaders_kernel
+
+    lay = build_layout(layout)
+    rng = np.random.default_rng(3)
+    route = rng.integers(0, lay.num_routes, 400)
+    starts = lay.route_lane_starts[route, rng.integers(0, lay.route_lane_starts.shape[1], 400)]
+    arc = np.where(np.isfinite(starts), starts, rng.uniform(-20.0, lay.length[route] + 20.0))
+    arc[::2] = rng.uniform(-20.0, lay.length[route[::2]] + 20.0)
+    np.testing.assert_array_equal(
+        _leaders_kernel.lanes(route, arc, lay.route_lane_starts, lay.route_lane_ids), lay.lane_at(route, arc)
+    )

@@ -84,6 +84,8 @@ OPEN_PATHS = frozenset({"/health", "/openapi.json", "/docs", "/docs/oauth2-redir
 ERRORS = {code: {"model": ErrorReply} for code in (400, 401, 404, 409, 413, 415, 422, 429, 503)}
 # Methods whose body must be JSON (refused with 415 before it is read otherwise).
 BODY_METHODS = frozenset({"POST", "PUT", "PATCH"})
+# Operations that plan (a step over HTTP, a step frame over the WebSocket): under the time limit.
+PLANNING = frozenset({"step", "frame"})
 
 
 class RequestError(Exception):
@@ -437,7 +439,7 @@ class Gateway:
 
     async def _call(self, worker: int, op: str, sid: str, body: bytes) -> tuple[int, bytes]:
         try:
-            return await self.pool.call(worker, op, sid, body, self.time_limit if op == "step" else None)
+            return await self.pool.call(worker, op, sid, body, self.time_limit if op in PLANNING else None)
         except TimeoutError:
             # a scene that overran must not hold its worker: it is killed and replaced, its streams lost
             self.pool.stop(worker)

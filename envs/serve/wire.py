@@ -187,19 +187,36 @@ def _check_rows(
     ids: np.ndarray, route: np.ndarray, arc: np.ndarray, speed: np.ndarray, route_length: np.ndarray, max_speed: float
 ) -> None:
     """Refuse what the simulation could not hold: a duplicate id, an arc past the route, a speed above the cap."""
-    if ids.size and np.unique(ids).size != ids.size:
-        _, first = np.unique(ids, return_index=True)
-        i = int(np.setdiff1d(np.arange(ids.size), first)[0])
+    rule, i = _first_bad_row(ids, route, arc, speed, route_length, max_speed)
+    if rule == 0:
         raise WireError(f"vehicles[{i}].id", f"id {int(ids[i])} appears twice in the scene")
-    beyond = np.flatnonzero(arc > route_length[route])
-    if beyond.size:
-        i = int(beyond[0])
+    if rule == 1:
         end = route_length[route[i]]
         raise WireError(f"vehicles[{i}].arc", f"{arc[i]} m is past the end of its route ({end:.2f} m)")
-    fast = np.flatnonzero(speed > max_speed)
-    if fast.size:
-        i = int(fast[0])
+    if rule == 2:
         raise WireError(f"vehicles[{i}].speed", f"{speed[i]} m/s is above the speed cap of {max_speed} m/s")
+
+
+@numba.njit(cache=True)
+def _first_bad_row(ids, route, arc, speed, route_length, max_speed):
+    """``(rule, row)`` of :func:`_check_rows`' first refusal, ``(-1, -1)`` if none: rule 0 the first row whose id
+    an earlier row has, 1 the first arc past its route's end, 2 the first speed above the cap (checked in that
+    order; one compiled pass each: the server checks every scene it rebuilds)."""
+    n = ids.shape[0]
+    order = np.argsort(ids, kind="mergesort")  # stable: within equal ids, rows in order
+    first_twice = n
+    for k in range(1, n):
+        if ids[order[k]] == ids[order[k - 1]]:
+            first_twice = min(first_twice, order[k])
+    if first_twice < n:
+        return 0, first_twice
+    for i in range(n):
+        if arc[i] > route_length[route[i]]:
+            return 1, i
+    for i in range(n):
+        if speed[i] > max_speed:
+            return 2, i
+    return -1, -1
 
 
 def _check_overlaps(scene: Scene) -> None:
@@ -209,35 +226,37 @@ def _check_overlaps(scene: Scene) -> None:
     n = scene.num_vehicles
     if n < 2:
         return
-    position = np.ascontiguousarray(scene.position, float)
-    j, i = _first_close_pair(position[:, 0].copy(), position[:, 1].copy(), 0.5 * np.asarray(scene.width, float))
-    if j >= 0:
+    position = scene.position
+    width = np.asarray(scene.width, float)
+    kind, j, i = _first_overlap(position, width, scene.leader, scene.gap, scene.length)
+    if kind == 0:
         apart = float(np.sqrt(np.square(position[j, 0] - position[i, 0]) + np.square(position[j, 1] - position[i, 1])))
         raise WireError(f"vehicles[{i}].arc", f"vehicle {int(scene.vehicle_id[i])} is {apart:.2f} m from "
                                               f"vehicle {int(scene.vehicle_id[j])}: two vehicles cannot be in one "
                                               "place")  # fmt: skip
-    leader = np.asarray(scene.leader)
-    has = leader >= 0
-    shorter = np.minimum(scene.length, scene.length[np.where(has, leader, 0)])
-    deep = np.flatnonzero(has & (scene.gap < -0.5 * shorter))
-    if deep.size:
-        i, j = int(deep[0]), int(leader[deep[0]])
+    if kind == 1:
         raise WireError(f"vehicles[{i}].arc", f"vehicle {int(scene.vehicle_id[i])} overlaps vehicle "
                                               f"{int(scene.vehicle_id[j])} by {-float(scene.gap[i]):.2f} m: two "
                                               "vehicles cannot be in one place")  # fmt: skip
 
 
 @numba.njit(cache=True)
-def _first_close_pair(x: np.ndarray, y: np.ndarray, half: np.ndarray) -> tuple[int, int]:
-    """The first pair ``(j, i)``, ``j < i``, whose centres are closer than half the narrower width, in row order;
-    ``(-1, -1)`` if none (one pass over the pairs: the server checks every scene it rebuilds)."""
-    n = x.shape[0]
+def _first_overlap(position, width, leader, gap, length):
+    """``(kind, j, i)``: kind 0 the first pair ``j < i`` (in row order) whose centres are closer than half the
+    narrower width; else kind 1, the first vehicle ``i`` that overlaps its leader ``j`` by more than half the
+    shorter one's length; ``(-1, -1, -1)`` if neither (one pass over the pairs: the server checks every scene it
+    rebuilds)."""
+    n = position.shape[0]
     for j in range(n):
         for i in range(j + 1, n):
-            limit = min(half[j], half[i])
-            if (x[j] - x[i]) ** 2 + (y[j] - y[i]) ** 2 < limit * limit:
-                return j, i
-    return -1, -1
+            limit = min(0.5 * width[j], 0.5 * width[i])
+            if (position[j, 0] - position[i, 0]) ** 2 + (position[j, 1] - position[i, 1]) ** 2 < limit * limit:
+                return 0, j, i
+    for i in range(n):
+        j = leader[i]
+        if j >= 0 and gap[i] < -0.5 * min(length[i], length[j]):
+            return 1, j, i
+    return -1, -1, -1
 
 
 def digest(layout: str, time: float, columns: Sequence[np.ndarray]) -> bytes:

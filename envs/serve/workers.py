@@ -75,23 +75,20 @@ class InlinePool:
         pass
 
 
-def _recv(sock: socket.socket) -> Any:
-    head = _recv_exactly(sock, _LENGTH.size)
-    if head is None:
-        return None
-    body = _recv_exactly(sock, _LENGTH.unpack(head)[0])
-    return None if body is None else pickle.loads(body)
-
-
-def _recv_exactly(sock: socket.socket, n: int) -> bytes | None:
-    chunks, left = [], n
-    while left:
-        chunk = sock.recv(min(left, 1 << 20))
-        if not chunk:
-            return None
-        chunks.append(chunk)
-        left -= len(chunk)
-    return b"".join(chunks)
+def _requests(sock: socket.socket):
+    """The requests on a worker's socket, in order, until the server closes it (one ``recv`` usually holds a
+    whole request: its length and its pickle)."""
+    buffer = bytearray()
+    while True:
+        while len(buffer) < _LENGTH.size or len(buffer) < _LENGTH.size + _LENGTH.unpack_from(buffer)[0]:
+            chunk = sock.recv(1 << 20)
+            if not chunk:
+                return
+            buffer += chunk
+        end = _LENGTH.size + _LENGTH.unpack_from(buffer)[0]
+        message = pickle.loads(bytes(buffer[_LENGTH.size : end]))
+        del buffer[:end]
+        yield message
 
 
 def _frame(value: Any) -> bytes:
@@ -134,16 +131,47 @@ def _worker_main(sock: socket.socket, service: Any, forked: bool) -> None:
         torch.set_num_threads(1)
     except ImportError:  # pragma: no cover - torch is a dependency
         pass
-    while True:
-        message = _recv(sock)
-        if message is None:
-            return
-        request, op, sid, body = message
+    for request, op, sid, body in _requests(sock):
         try:
             status, payload = service.handle(op, sid, body)
         except Exception as error:  # noqa: BLE001 - a planner's failure answers 500, the worker goes on
             status, payload = 500, f'{{"error": "server: {type(error).__name__}", "field": "server"}}'.encode()
         sock.sendall(_frame((request, status, payload)))
+
+
+class _Answers(asyncio.Protocol):
+    """The server's end of a worker's socket: each answer frame resolves its request's future as it arrives (no
+    reader task in between).
+
+    :param pending: the futures of the requests sent, by request number (shared with the pool)
+    """
+
+    def __init__(self, pending: dict[int, asyncio.Future]) -> None:
+        self.pending = pending
+        self.buffer = bytearray()
+        self.ended = asyncio.get_running_loop().create_future()  # done when the socket closes (the worker ended)
+
+    def data_received(self, data: bytes) -> None:
+        buffer = self.buffer
+        buffer += data
+        while len(buffer) >= _LENGTH.size:
+            end = _LENGTH.size + _LENGTH.unpack_from(buffer)[0]
+            if len(buffer) < end:
+                return
+            request, status, payload = pickle.loads(bytes(buffer[_LENGTH.size : end]))
+            del buffer[:end]
+            future = self.pending.pop(request, None)
+            if future is not None and not future.done():
+                future.set_result((status, payload))
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        if not self.ended.done():
+            self.ended.set_result(None)
+
+
+def _overran(future: asyncio.Future, timeout: float) -> None:
+    if not future.done():
+        future.set_exception(TimeoutError(f"no answer within {timeout} s"))
 
 
 class ProcessPool:
@@ -171,7 +199,7 @@ class ProcessPool:
         self.on_exit: Callable[[int], None] | None = None  # told a slot's worker ended (its streams are lost)
         self._pending: dict[int, asyncio.Future] = {}
         self._ids = itertools.count()
-        self._writers: list[asyncio.StreamWriter | None] = [None] * self.size
+        self._writers: list[asyncio.Transport | None] = [None] * self.size
         self._readers: list[asyncio.Task] = []
         self._dead = [False] * self.size
         self._down = [False] * self.size  # past the restart cap
@@ -189,25 +217,20 @@ class ProcessPool:
     async def _connect(self, worker: int) -> None:
         sock = self.sockets[worker]
         sock.setblocking(False)
-        reader, writer = await asyncio.open_connection(sock=sock, limit=1 << 26)
-        self._writers[worker] = writer
-        self._readers.append(asyncio.get_running_loop().create_task(self._read(worker, reader)))
+        loop = asyncio.get_running_loop()
+        transport, answers = await loop.create_connection(lambda: _Answers(self._pending), sock=sock)
+        self._writers[worker] = transport
+        self._readers.append(loop.create_task(self._read(worker, answers)))
 
     async def start(self) -> None:
         """Connect the sockets to the running event loop (the server's startup)."""
         for k in range(self.size):
             await self._connect(k)
 
-    async def _read(self, worker: int, reader: asyncio.StreamReader) -> None:
-        try:
-            while True:
-                head = await reader.readexactly(_LENGTH.size)
-                request, status, payload = pickle.loads(await reader.readexactly(_LENGTH.unpack(head)[0]))
-                future = self._pending.pop(request, None)
-                if future is not None and not future.done():
-                    future.set_result((status, payload))
-        except (asyncio.IncompleteReadError, ConnectionError, OSError):
-            pass
+    async def _read(self, worker: int, answers: _Answers) -> None:
+        """Wait for the end of ``worker``'s socket (its answers are delivered by ``answers`` as they come), then
+        fail its pending requests and replace it."""
+        await answers.ended
         self._dead[worker] = True
         for request, future in list(self._pending.items()):
             if getattr(future, "worker", None) == worker and not future.done():
@@ -264,18 +287,22 @@ class ProcessPool:
         :raises TimeoutError: no answer within ``timeout`` seconds (the caller may :meth:`stop` the worker)
         :raises WorkerGone: the worker ended
         """
-        if not self.alive(worker):
+        if self._dead[worker]:  # set by the reader at the worker's end (a dead process closes its socket), or by stop
             raise WorkerGone(f"planning process {worker} ended")
         request = next(self._ids)
-        future = asyncio.get_running_loop().create_future()
+        loop = asyncio.get_running_loop()
+        future = loop.create_future()
         future.worker = worker  # type: ignore[attr-defined]
         self._pending[request] = future
         self._writers[worker].write(_frame((request, op, sid, body)))
+        # A timer on the future itself (asyncio.wait_for and shield would add a task and two futures per request)
+        timer = None if timeout is None else loop.call_later(timeout, _overran, future, timeout)
         try:
-            return await asyncio.wait_for(asyncio.shield(future), timeout)
-        except asyncio.TimeoutError:
+            return await future
+        finally:
+            if timer is not None:
+                timer.cancel()
             self._pending.pop(request, None)
-            raise TimeoutError(f"no answer within {timeout} s") from None
 
     async def close(self) -> None:
         self._closing = True

@@ -473,13 +473,11 @@ class Simulation:
         # the other branch still overlaps the shared path: it stays the leader until the point
         # SPLIT_CLEARANCE behind its rear has passed the split too; where the paths part more slowly
         # (inD's turn pockets), while its rear is short of the arc where its path leaves the other's.
-        # One lane lookup for both points; the pairs in one compiled pass (bitwise the NumPy search).
-        back_arc = self.arc - self.length / 2 - SPLIT_CLEARANCE
-        lane, back_lane = lay.lane_at(self.route, np.stack([self.arc, back_arc]))
-        return _leaders_kernel.leaders(
+        # The lanes of both points and the pairs in one compiled call (bitwise the NumPy search).
+        return _leaders_kernel.leaders_at(
             np.ascontiguousarray(self.route, _INT), np.ascontiguousarray(self.arc, float),
-            np.ascontiguousarray(self.length, float), np.ascontiguousarray(lane, _INT),
-            np.ascontiguousarray(back_lane, _INT), lay.lane_start, parting_arcs(lay),
+            np.ascontiguousarray(self.length, float), SPLIT_CLEARANCE, lay.route_lane_starts, lay.route_lane_ids,
+            lay.lane_start, parting_arcs(lay),
         )  # fmt: skip
 
     def path_coordinate(self) -> np.ndarray:
