@@ -43,9 +43,11 @@ class WithStudent(LookaheadPlanner):
     """Expert iteration: the shipped student (an advice policy distilled from ``lookahead``) proposes one more
     candidate, its own windows per vehicle, at every search; the search keeps it where it costs least."""
 
-    policy = "envs/pretrained/coop_4way_lookahead/best_model.safetensors"
-
     def __init__(self) -> None:
+        from pathlib import Path
+
+        import envs
         from envs.planners import make_planner
 
-        super().__init__("LookaheadWithStudent", proposer=make_planner(self.policy))
+        policy = Path(envs.__file__).parent / "pretrained" / "coop_4way_lookahead" / "best_model.safetensors"
+        super().__init__("LookaheadWithStudent", proposer=make_planner(str(policy)))

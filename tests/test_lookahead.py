@@ -214,3 +214,20 @@ def test_a_proposal_per_vehicle_costs_as_the_same_windows_per_road_and_wins_only
     chosen = whole._search(scene)
     assert isinstance(chosen, tuple) == (proposal < min(plain.values()))
     assert whole.proposals_kept == int(isinstance(chosen, tuple))
+
+
+def test_the_shipped_student_proposes_to_the_search():
+    """``WithStudent`` (scripts/lookahead_variants.py) loads the shipped student as its proposer: an advice
+    policy over glide's recipe, whose windows for a busy scene are one per vehicle, >= 0."""
+    from pathlib import Path
+
+    from envs.planners.priority import PriorityPlanner
+
+    script = Path(__file__).resolve().parents[1] / "scripts" / "lookahead_variants.py"
+    planner = make_planner(f"{script}:WithStudent")
+    assert isinstance(planner, LookaheadPlanner) and isinstance(planner.proposer, PriorityPlanner)
+    assert planner.proposer.kind == "advice" and planner.proposer.scheduler.params == RECIPE
+    scene = busy_scene()
+    planner.reset(0)
+    windows = planner.propose(scene)
+    assert windows.shape == (scene.num_vehicles,) and np.all(windows >= 0)
