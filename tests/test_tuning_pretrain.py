@@ -132,3 +132,18 @@ def test_cache_files_are_written_atomically_and_never_replace_a_file(tmp_path):
     assert [p.name for p in path.parent.iterdir()] == ["clone-x.pt"]  # no temporary left behind
     assert default_cache_folder("journal://runs/j.log", "a") == tmp_path.__class__("runs/a.pretrain")
     assert str(default_cache_folder("postgresql://u@h/db", "a")) == "studies/a.pretrain"
+
+
+def test_dagger_demonstrations_depend_on_the_learner_that_chose_the_states():
+    """With one round the expert alone acts, so the labelled states do not depend on the learner's settings;
+    with DAgger rounds the learner acts too, so its cloning steps enter the demonstrations' key (a cache
+    labelled by another learner is not read)."""
+    from sb3_graph.tuning.pretrain import demonstrations_key
+
+    one = {"pretrain_from": "glide", "pretrain_transitions": 100}
+    dagger = {**one, "pretrain_rounds": 3, "pretrain_beta": 0.5}
+    for entry, differs in ((one, False), (dagger, True)):
+        short, long = ({**entry, "pretrain_steps": steps} for steps in (2000, 10000))
+        same = demonstrations_key(short, "E", "td3") == demonstrations_key(long, "E", "td3")
+        assert same != differs
+    assert demonstrations_key(dagger, "E", "td3") != demonstrations_key(dagger, "E", "sac")

@@ -9,7 +9,8 @@ SQLite or journal storage file):
 - ``demonstrations-<hash>.npz``: the collected transitions (:class:`~sb3_graph.Demonstrations`),
   under a hash of the expert spec, the env id, the trial's env kwargs (its whole env config: reward
   weights and config keys included, since the stored rewards and the dynamics depend on them),
-  ``n_envs`` and ``pretrain_transitions``;
+  ``n_envs``, ``pretrain_transitions`` and the DAgger settings; with DAgger rounds (``pretrain_rounds`` > 1)
+  also everything the clone's key holds, since the learner that acts in the later rounds chooses the states;
 - ``clone-<hash>.pt``: the model's parameters after cloning and the critics' warm-up (policy,
   optimizers, entropy coefficient), under the demonstrations' hash plus the algorithm, every entry key
   that shapes the model or its updates (``policy_kwargs``, ``learning_rate``, ``batch_size``, ``gamma``,
@@ -55,8 +56,11 @@ def _digest(value: Any) -> str:
     return hashlib.sha256(json.dumps(value, sort_keys=True, default=str).encode()).hexdigest()
 
 
-def demonstrations_key(entry: dict[str, Any], env_id: str) -> dict[str, Any]:
-    """What the collected demonstrations depend on."""
+def demonstrations_key(
+    entry: dict[str, Any], env_id: str, algo: str = "", init_weights_sha256: str = ""
+) -> dict[str, Any]:
+    """What the collected demonstrations depend on; with DAgger (``pretrain_rounds`` > 1) also the learner
+    that acts in the later rounds (the algorithm, its settings and its start), since it chooses the states."""
     from sb3_graph.commands.train import PRETRAIN_TRANSITIONS
 
     key = {
@@ -69,6 +73,9 @@ def demonstrations_key(entry: dict[str, Any], env_id: str) -> dict[str, Any]:
     for name in ("pretrain_rounds", "pretrain_beta"):  # DAgger: who acted shapes what was labelled
         if name in entry:
             key[name] = entry[name]
+    if int(entry.get("pretrain_rounds", 1)) > 1:
+        settings = {name: value for name, value in entry.items() if name not in NOT_CLONING_KEYS}
+        key["learner"] = {"algo": algo, "entry": settings, "init": init_weights_sha256}
     return key
 
 
@@ -82,7 +89,8 @@ def dagger_arguments(entry: dict[str, Any]) -> dict[str, Any]:
 def clone_key(entry: dict[str, Any], env_id: str, algo: str, init_weights_sha256: str) -> dict[str, Any]:
     """What the cloned parameters depend on: the demonstrations, the algorithm and its settings, the start."""
     settings = {key: value for key, value in entry.items() if key not in NOT_CLONING_KEYS}
-    return {**demonstrations_key(entry, env_id), "algo": algo, "entry": settings, "init": init_weights_sha256}
+    key = demonstrations_key(entry, env_id, algo, init_weights_sha256)
+    return {**key, "algo": algo, "entry": settings, "init": init_weights_sha256}
 
 
 def write_atomically(path: Path, write: Any) -> bool:
@@ -169,7 +177,7 @@ def pretrain_trial(
     folder = Path(folder)
     tic = time.perf_counter()
     init_hash = hashlib.sha256(init_weights.read_bytes()).hexdigest() if init_weights is not None else ""
-    demo_path = folder / f"demonstrations-{_digest(demonstrations_key(entry, env_id))[:32]}.npz"
+    demo_path = folder / f"demonstrations-{_digest(demonstrations_key(entry, env_id, algo, init_hash))[:32]}.npz"
     clone_path = folder / f"clone-{_digest(clone_key(entry, env_id, algo, init_hash))[:32]}.pt"
     expert = _make_expert(str(entry["pretrain_from"]), env_id, train_env)  # on-policy bc_coef labels with it
     demonstrations = None
