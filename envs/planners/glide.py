@@ -191,7 +191,14 @@ class GlidePlanner(AIMPlanner):
         if kind == "priority":
             self.set_priority(offsets)
         else:
-            self.set_windows(np.maximum(self.params.window + offsets, 0.0))
+            self.set_windows(self.advice_windows(offsets))
+
+    def advice_windows(self, offsets: np.ndarray) -> np.ndarray:
+        """The advice windows of an ``"advice"`` policy's offsets: glide's own window moved by them, never below 0 m.
+
+        :param offsets: ``(n,)`` metres (scores times the action's ``scale``)
+        """
+        return np.maximum(self.params.window + np.asarray(offsets, dtype=float), 0.0)
 
     def schedule(self, scene: Scene, kind: str, offsets: np.ndarray) -> np.ndarray:
         """Accelerations for ``scene`` under the scores (:meth:`set_scores`), checked as a planner's

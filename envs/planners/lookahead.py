@@ -185,9 +185,7 @@ class LookaheadPlanner(GlidePlanner):
 
         :return: ``(n,)`` windows [m], >= 0
         """
-        proposer, n = self.proposer, scene.num_vehicles
-        score = np.clip(np.asarray(proposer.scores.act(scene.copy()), float).reshape(n) / scene.a_max, -1.0, 1.0)
-        return np.maximum(proposer.scheduler.params.window + proposer.scale * score, 0.0)
+        return self.proposer.scheduler.advice_windows(self.proposer.offsets(scene.copy()))
 
     # ------------------------------------------------------------------ search
     def _search(self, scene: Scene) -> np.ndarray | tuple[np.ndarray, np.ndarray] | None:

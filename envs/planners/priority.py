@@ -55,8 +55,16 @@ class PriorityPlanner(Planner):
         self.scheduler.reset(seed)
         self.scores.reset(seed)
 
-    def act(self, scene: Scene) -> np.ndarray:
+    def offsets(self, scene: Scene) -> np.ndarray:
+        """The scoring planner's scores for ``scene``, in ``[-1, 1]``, times ``scale``: what :meth:`act` hands the
+        scheduler (seconds of arrival key, or metres of advice window).
+
+        :return: ``(n,)`` offsets
+        """
         n = scene.num_vehicles
         score = np.clip(np.asarray(self.scores.act(scene), dtype=float).reshape(n) / scene.a_max, -1.0, 1.0)
-        self.scheduler.set_scores(self.kind, self.scale * score)  # as the environment's action does
+        return self.scale * score
+
+    def act(self, scene: Scene) -> np.ndarray:
+        self.scheduler.set_scores(self.kind, self.offsets(scene))  # as the environment's action does
         return self.scheduler.act(scene)
