@@ -1,0 +1,84 @@
+"""How well does the scene now predict ``lookahead``'s pick? A probe on a labelling cache.
+
+``lookahead`` (no per-approach pass) picks one of its candidate windows for every vehicle once a second; its
+labels in a ``--pretrain-cache`` of ``zoo_configs/td3_lookahead.yml`` are that pick, as one score per vehicle.
+This script trains a graph-level classifier (the policies' relational trunk, mean and max pooling, a small head;
+cross-entropy) on the first 80 % of the cached steps and reports its accuracy on the last 20 % (the last DAgger
+round's states) against always answering the most frequent pick::
+
+    python scripts/lookahead_pick_probe.py runs/lookahead3.labels --steps 3000
+
+A held-out accuracy near the majority share means that the scene now hardly tells the picks apart: a student
+that answers from it regresses to their mean (docs/training.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+from torch_geometric.nn import global_max_pool, global_mean_pool
+
+from sb3_graph.common.batching import padded_to_batch
+from sb3_graph.common.networks import GraphTrunk
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("cache", type=Path, help="a --pretrain-cache folder with one demonstrations-*.npz")
+    parser.add_argument("--steps", type=int, default=3000, help="gradient steps (default 3000)")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args(argv)
+    files = sorted(args.cache.glob("demonstrations-*.npz"))
+    if len(files) != 1:
+        print(f"error: {args.cache} must hold one demonstrations-*.npz, found {len(files)}", file=sys.stderr)
+        return 2
+    torch.set_num_threads(1)
+    torch.manual_seed(args.seed)
+    data = np.load(files[0])
+    steps, n_envs = data["labels"].shape[:2]
+    obs = {k[4:]: data[k][:-1].reshape(steps * n_envs, *data[k].shape[2:]) for k in data.files if k.startswith("obs/")}
+    labels = data["labels"].reshape(steps * n_envs, -1)
+    mask = obs["node_mask"] > 0
+    graphs = np.flatnonzero(mask.any(axis=1))
+    first = labels[graphs, mask[graphs].argmax(axis=1)]  # every vehicle of a step has the same label
+    picks, pick = np.unique(np.round(first, 3), return_inverse=True)
+    target = np.zeros(len(labels), np.int64)
+    target[graphs] = pick
+    held = graphs // n_envs >= 0.8 * steps
+    train, test = graphs[~held], graphs[held]
+    trunk = GraphTrunk(obs["x"].shape[-1], 2, 64, (64, 64), "max", nn.ReLU, edge_dim=obs["edge_attr"].shape[-1])
+    head = nn.Sequential(nn.Linear(128, 64), nn.ReLU(), nn.Linear(64, len(picks)))
+    optimizer = torch.optim.Adam([*trunk.parameters(), *head.parameters()], lr=1e-3)
+    y = torch.as_tensor(target)
+
+    def logits(ids: np.ndarray) -> torch.Tensor:
+        g = padded_to_batch({k: torch.as_tensor(v[ids]) for k, v in obs.items()})
+        h = trunk(g.x, g.edge_index, g.edge_type, g.edge_attr)
+        pooled = [global_mean_pool(h, g.batch, g.num_graphs), global_max_pool(h, g.batch, g.num_graphs)]
+        return head(torch.cat(pooled, dim=1))
+
+    rng = np.random.default_rng(args.seed)
+    for _ in range(args.steps):
+        ids = rng.choice(train, 128)
+        loss = nn.functional.cross_entropy(logits(ids), y[ids])
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    with torch.no_grad():
+        accuracy = {name: float((logits(ids).argmax(1) == y[ids]).float().mean()) for name, ids in
+                    (("train", train), ("held out", test))}  # fmt: skip
+    shares = np.bincount(pick, minlength=len(picks)) / len(pick)
+    print(f"{len(graphs)} labelled states; picks (scores) {picks.tolist()}, shares {np.round(shares, 3).tolist()}")
+    majority = np.bincount(target[test]).max() / len(test)
+    print(f"accuracy: train {accuracy['train']:.3f}, held out {accuracy['held out']:.3f}; "
+          f"the most frequent pick on the held-out states: {majority:.3f}")  # fmt: skip
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
