@@ -408,3 +408,23 @@ def test_evaluate_behind_a_shielding_server_reports_its_counters(tmp_path, monke
     local, far = metrics.loc["AIM+shield"], metrics.drop(index="AIM+shield").iloc[0]
     columns = ["shield_interventions", "shield_vehicle_steps", "shield_unresolved", "planner_errors", "crossed"]
     assert far[columns].tolist() == local[columns].tolist() and local["shield_vehicle_steps"] > 0
+
+
+def test_the_service_compiles_the_fast_paths_kernels_before_its_first_stream():
+    """A fresh server's first fast-path frame must not compile kernels: with cold caches that took over the
+    default ``--time-limit`` of 1 s and the frame got 503. The service's warm-up decodes a frame and rebuilds its
+    scene (checked in a fresh process, where nothing else has called the kernels)."""
+    import subprocess
+    import sys
+
+    code = (
+        "from envs.serve import frames, wire\n"
+        "from envs.serve.app import PlannerService\n"
+        "kernels = [frames._first_bad, wire._first_bad_row, wire._first_overlap]\n"
+        "assert kernels and not any(k.signatures for k in kernels)\n"
+        "PlannerService('pr', 'CoopIntersection4Way-v0')\n"
+        "print(all(k.signatures for k in kernels))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip() == "True"

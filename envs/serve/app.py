@@ -190,13 +190,22 @@ class PlannerService:
         return copy.deepcopy(self.prototype, dict(self._memo_seed))
 
     def warm_up(self) -> None:
-        """One decision on a small scene, so that the first stream does not pay for compiling kernels."""
+        """One decision on a small scene, the scene also sent as a fast-path frame, so that the first stream does
+        not pay for compiling kernels (a first frame compiling them could overrun ``--time-limit``)."""
         lay = self.builder.layout
         cars = [SimpleNamespace(id=i, route=lay.route_names[i], arc=10.0 + 10.0 * i, speed=5.0, length=5.0, width=2.0)
                 for i in range(min(2, lay.num_routes))]  # fmt: skip
         planner = self.new_planner()
         planner.reset(0)
         planner.act(self.builder.scene(lay.name, 0.0, cars))
+        n = len(cars)
+        body = frames.encode_step(1, lay.name, 0.0, lay.route_names, np.arange(n), np.arange(n),
+                                  *(np.array([getattr(car, name) for car in cars], float)
+                                    for name in ("arc", "speed", "length", "width")))  # fmt: skip
+        step = frames.decode_step(body)
+        columns = self.builder.table_columns(step.layout, step.routes, step.ids, step.route, step.arc, step.speed,
+                                             step.length, step.width)  # fmt: skip
+        self.builder.build(0.0, *columns)
 
     def info(self) -> dict[str, Any]:
         """What the planners are (the server adds its limits): :class:`~envs.serve.schema.ServerInfo`'s fields."""
