@@ -115,14 +115,12 @@ def glide_scheduler(version: str = "first_phase", hold: bool = True) -> GlidePla
     """The scheduler of the ``"priority"`` and ``"advice"`` action types.
 
     :param version: a key of :data:`GLIDE_VERSIONS`
-    :param hold: advice once given holds to the line (:attr:`GlidePlanner.hold`)
+    :param hold: advice once given holds to the line (:class:`GlidePlanner`'s ``hold``)
     :raises ValueError: an unknown version, naming the allowed ones
     """
     if version not in GLIDE_VERSIONS:
         raise ValueError(f"glide version must be one of {list(GLIDE_VERSIONS)}, got {version!r}")
-    scheduler = GlidePlanner(params=GLIDE_VERSIONS[version])
-    scheduler.hold = bool(hold)
-    return scheduler
+    return GlidePlanner(params=GLIDE_VERSIONS[version], hold=hold)
 
 
 class GlidePlanner(AIMPlanner):
@@ -134,16 +132,18 @@ class GlidePlanner(AIMPlanner):
     :param name: the name shown in reports
     :param params: free parameters
     :param idm: IDM constants of car following (its ``acc_max`` is replaced by ``params.accel``)
+    :param hold: advice once given holds to the line (a window that shrinks later does not release a vehicle);
+        ``False``: every vehicle follows the window of this step
     """
 
-    def __init__(self, name: str = "Glide", params: GlideParams | None = None, idm: IDMParams = DEFAULT_IDM) -> None:
+    def __init__(
+        self, name: str = "Glide", params: GlideParams | None = None, idm: IDMParams = DEFAULT_IDM, hold: bool = True
+    ) -> None:
         super().__init__(name, params if params is not None else GlideParams(), idm)
         self._shift: np.ndarray | None = None
         self._windows: np.ndarray | None = None
         self._held = np.zeros(0, dtype=np.int64)
-        #: Advice once given holds to the line (a window that shrinks later does not release a vehicle);
-        #: ``False``: every vehicle follows the window of this step.
-        self.hold = True
+        self.hold = bool(hold)
 
     def reset(self, seed: int | None = None) -> None:
         super().reset(seed)
@@ -158,8 +158,7 @@ class GlidePlanner(AIMPlanner):
     def fork(self) -> GlidePlanner:
         """A plain glide with this one's parameters and memory (order, commitments, held advice), to plan
         ahead in a copy of the world; the arrays are shared, since glide replaces them and never writes in them."""
-        twin = GlidePlanner(self.name, self.params, self.idm)
-        twin.hold = self.hold
+        twin = GlidePlanner(self.name, self.params, self.idm, self.hold)
         twin.adopt(self)
         return twin
 

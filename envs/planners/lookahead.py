@@ -125,8 +125,7 @@ class LookaheadPlanner(GlidePlanner):
             raise ValueError(f"lookahead's proposer must be an 'advice' policy over glide, got {name!r}")
         self.search = params if params is not None else LookaheadParams()
         self.proposer = proposer
-        super().__init__(name, glide if glide is not None else RECIPE)
-        self.hold = self.search.hold
+        super().__init__(name, glide if glide is not None else RECIPE, hold=self.search.hold)
 
     def reset(self, seed: int | None = None) -> None:
         super().reset(seed)
