@@ -145,3 +145,22 @@ def test_advice_scores_take_glide_as_their_expert_and_refuse_others():
     assert not PlannerExpert("glide", venv)(None).any()
     with pytest.raises(ValueError, match=re.escape("planner 'aim' has no exact label for action type 'advice'")):
         PlannerExpert("aim", venv)
+
+
+def test_a_lookahead_class_labels_advice_over_its_own_glide_and_other_classes_are_refused():
+    """Expert iteration's teacher: a class spec of a LookaheadPlanner (the search with the shipped student as its
+    proposer) labels an advice environment over the same glide, as ``lookahead`` does; a class over another
+    glide, or a class that is no search, is refused in one line."""
+    script = Path(__file__).resolve().parents[1] / "scripts" / "lookahead_variants.py"
+    venv, base = one_vehicle_env(action={"type": "advice", "glide": "recipe"})
+    expert = PlannerExpert(f"{script}:WithStudent", venv)
+    assert expert.searches and expert.planners[0].proposer is not None
+    scores = expert(None)
+    assert scores.shape == (1, base.action_space.shape[0]) and np.all(np.abs(scores) <= 1.0)
+    other, _ = one_vehicle_env(action={"type": "advice"})  # glide's own values, not the recipe
+    with pytest.raises(ValueError, match="its glide is not the environment's") as error:
+        PlannerExpert(f"{script}:WithStudent", other)
+    assert "\n" not in str(error.value)
+    with pytest.raises(ValueError, match="a class must be a LookaheadPlanner, got") as error:
+        PlannerExpert(f"{Path(__file__).resolve().parent / 'serve_support.py'}:SlowPlanner", venv)
+    assert "\n" not in str(error.value)

@@ -21,8 +21,10 @@ exactly as ``glide``, shielded with ``shield``; ``glide+shield`` is exact only w
 its label is the score that moves each vehicle's window to the one it chose, ``(window - glide's
 window) / scale`` clipped to ``[-1, 1]`` (the whole approach: +1), searched from the memory of the
 environment's own scheduler (its order and the advice it already holds), with the action's ``glide``
-parameters. No score reproduces another planner's accelerations (they come from another order *and*
-other profiles), so any other planner is refused.
+parameters. A class spec (``file.py:Class``) of a :class:`~envs.planners.lookahead.LookaheadPlanner` over the
+same glide labels so too: a search with a learned proposer (``scripts/lookahead_variants.py:WithStudent``) is the
+teacher of the next round of expert iteration. No score reproduces another planner's accelerations (they come
+from another order *and* other profiles), so any other planner is refused.
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ import numpy as np
 
 from envs.planners import SHIELD_SUFFIX, check_planner_spec, make_planner, make_residual_base
 from envs.planners.glide import GLIDE_VERSIONS
+from envs.planners.loading import is_class_spec
 from envs.planners.lookahead import LookaheadPlanner
 from envs.simulation.config import SCHEDULER_ACTION_TYPES
 
@@ -65,9 +68,9 @@ class PlannerExpert:
         self.zero_scores = scheduled == PRIORITY_PLANNER
         if self.zero_scores:  # glide's own order: nothing to ask a planner
             return
-        self.searches = scheduled == SEARCH_PLANNER
+        self.searches = scheduled == SEARCH_PLANNER or is_class_spec(scheduled or "")
         if self.searches:
-            self.planners = [LookaheadPlanner(glide=GLIDE_VERSIONS[c["action"]["glide"]]) for c in configs]
+            self.planners = [_search_planner(scheduled, c, trust_files) for c in configs]
             self.scales = [c["action"]["scale"] for c in configs]
             self._last_step = [-1] * n_envs
             return
@@ -130,15 +133,36 @@ def _priority_expert(spec: str, configs: list[dict[str, Any]]) -> str | None:
     shielded = key.endswith(SHIELD_SUFFIX)
     base = key[: -len(SHIELD_SUFFIX)] if shielded else key
     shield = all(c["shield"] for c in configs)
-    search = base == SEARCH_PLANNER and kind == "advice"
+    search = (base == SEARCH_PLANNER or is_class_spec(base)) and kind == "advice"
     if len(types) > 1 or not (base == PRIORITY_PLANNER or search) or (shielded and not shield):
         exact = f"{PRIORITY_PLANNER!r}" + (f" or '{PRIORITY_PLANNER}{SHIELD_SUFFIX}'" if shield else "")
         raise ValueError(
             f"planner {spec!r} has no exact label for action type {kind!r} (scores over glide's scheduler): "
-            f"only {exact} can be cloned there (zero scores), and {SEARCH_PLANNER!r} with 'advice' (the windows it "
-            f"searched); use action type 'acceleration' to clone {spec!r}"
+            f"only {exact} can be cloned there (zero scores), and {SEARCH_PLANNER!r} or a class spec of a "
+            f"LookaheadPlanner with 'advice' (the windows it searched); use action type 'acceleration' to clone "
+            f"{spec!r}"
         )
     return base
+
+
+def _search_planner(spec: str, config: dict[str, Any], trust_files: bool) -> LookaheadPlanner:
+    """The search that labels an ``"advice"`` environment: ``lookahead`` over the environment's glide, or a class
+    spec of a :class:`~envs.planners.lookahead.LookaheadPlanner` (e.g. one with a proposer: expert iteration)
+    whose glide must be the environment's.
+
+    :raises ValueError: a class that is no ``LookaheadPlanner``, or one over another glide (one line)
+    """
+    glide = GLIDE_VERSIONS[config["action"]["glide"]]
+    if spec == SEARCH_PLANNER:
+        return LookaheadPlanner(glide=glide)
+    planner = make_planner(spec, trust_files=trust_files)
+    if not isinstance(planner, LookaheadPlanner):
+        raise ValueError(f"expert {spec!r}: with action type 'advice' a class must be a LookaheadPlanner, "
+                         f"got {type(planner).__name__}")  # fmt: skip
+    if planner.params != glide:
+        raise ValueError(f"expert {spec!r}: its glide is not the environment's (action glide "
+                         f"{config['action']['glide']!r}); their windows would not mean the same")  # fmt: skip
+    return planner
 
 
 def make_expert(spec: str, vec_env: Any) -> PlannerExpert:
