@@ -39,7 +39,8 @@ def test_the_probe_reports_accuracy_on_a_cache(tmp_path, capsys):
     )
     assert probe().main([str(tmp_path), "--steps", "2"]) == 0
     out = capsys.readouterr().out
-    assert "20 labelled states" in out and "held out" in out and "most frequent pick" in out
+    assert "20 labelled states with one pick for all vehicles (0 with a window per vehicle left out)" in out
+    assert "held out" in out and "most frequent pick" in out
 
 
 def test_the_probe_names_a_folder_without_one_cache(tmp_path, capsys):
