@@ -1,4 +1,4 @@
-"""Where the harness's runs execute (:mod:`envs.evaluation.executors`): local processes, a Dask cluster, one's own."""
+"""Where the harness's runs execute (:mod:`sb3_graph.common.executors`): local processes, a Dask cluster, one's own."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ import sys
 import pandas as pd
 import pytest
 
-from envs.evaluation.executors import ExecutorError, JobExecutor, LocalExecutor, check_executor, make_executor
 from sb3_graph.cli import main
+from sb3_graph.common.executors import ExecutorError, JobExecutor, LocalExecutor, check_executor, make_executor
 
 TINY = ["--planner", "pr", "--planner", "fifo", "--scenarios", "2", "--duration", "10", "--seed", "1"]
 TINY += ["--no-progress"]
@@ -137,7 +137,7 @@ def test_progress_bar_shows_runs_per_second_even_when_slow(monkeypatch):
 
 def test_unreachable_dask_scheduler_is_a_clear_error():
     pytest.importorskip("distributed")
-    from envs.evaluation.executors import DaskExecutor
+    from sb3_graph.common.executors import DaskExecutor
 
     # Port 1 on the loopback: nothing listens there; the client gives up after the timeout.
     with pytest.raises(ExecutorError, match="--scheduler-address: cannot reach the Dask scheduler"):

@@ -85,6 +85,9 @@ def test_existing_run_folder_is_refused_and_untouched(tmp_path, capsys):
         (["--hyperparams", "batch_size"], "expected KEY:VALUE"),
         (["--hyperparams", "noise_type:pink"], "noise_type must be one of"),
         (["--checkpoint-freq", "0"], "--checkpoint-freq must be at least 1, got 0"),
+        (["--label-jobs", "0"], "--label-jobs must be at least 1, got 0"),
+        (["--label-address", "tcp://127.0.0.1:1"], "--label-address needs --label-executor dask or ray"),
+        (["--label-jobs", "2"], "the entry has no pretrain_from"),
     ],
 )
 def test_user_errors_are_one_line(tmp_path, capsys, extra, message):

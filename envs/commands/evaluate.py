@@ -160,7 +160,7 @@ def add_run_arguments(parser: argparse.ArgumentParser, scenarios: int, out: str,
 
 def add_executor_arguments(parser: argparse.ArgumentParser) -> None:
     """``--jobs``, ``--executor`` and ``--scheduler-address`` (shared by the commands that run planners)."""
-    from envs.evaluation.executors import EXECUTORS
+    from sb3_graph.common.executors import EXECUTORS
 
     parser.add_argument(
         "--jobs",
@@ -190,7 +190,7 @@ def check_executor_arguments(args: argparse.Namespace) -> None:
 
     :raises UserError: naming the flag
     """
-    from envs.evaluation.executors import ExecutorError, check_executor
+    from sb3_graph.common.executors import ExecutorError, check_executor
 
     if args.jobs < 1:
         raise UserError(f"--jobs must be at least 1, got {args.jobs}")
@@ -464,8 +464,8 @@ def harness(args: argparse.Namespace, planners: Sequence[tuple[str, str]], scena
     :return: ``(runs, vehicles, stats)``
     :raises UserError: the executor cannot start (naming its flag)
     """
-    from envs.evaluation.executors import ExecutorError
     from envs.evaluation.harness import evaluate
+    from sb3_graph.common.executors import ExecutorError
 
     each = f"up to {duration:g}" if getattr(args, "command", None) == "ind" else f"{duration:g}"  # ind: per recording
     announce_runs(args, planners, len(scenarios), each)

@@ -1,7 +1,7 @@
 """How planners are compared: like-for-like runs on scenario files, their metrics and reports.
 
 - :mod:`~envs.evaluation.harness`: jobs (one planner on one scenario file), episodes, :func:`evaluate`,
-- :mod:`~envs.evaluation.executors`: where the jobs run (local processes, Dask, Ray),
+- :mod:`~sb3_graph.common.executors`: where the jobs run (local processes, Dask, Ray),
 - :mod:`~envs.evaluation.metrics`: a run's vehicle log and its metrics row, the summaries,
 - :mod:`~envs.evaluation.comparison`: paired differences between planners with intervals,
 - :mod:`~envs.evaluation.report`: ``evaluate``'s report (``report.md``, the figures, the CSV files),
@@ -19,7 +19,7 @@ import importlib
 from typing import TYPE_CHECKING, Any
 
 # The harness's names load on first use (PEP 562 ``__getattr__``): a command's parser imports
-# ``envs.evaluation.executors`` for its choices, and ``--help`` must not pay for torch and highway-env.
+# ``sb3_graph.common.executors`` for its choices, and ``--help`` must not pay for torch and highway-env.
 _HARNESS_NAMES = (
     "EVALUATION_CONFIG",
     "SCENARIO_SUFFIX",

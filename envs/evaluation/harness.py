@@ -12,7 +12,7 @@ Every planner meets exactly the same traffic: the scenario file fixes every vehi
 time, route and initial speed, and the environment's own randomness is seeded per scenario.
 
 The harness reads every scenario file once, into a table that goes to each worker once (not once per
-run), and hands the jobs to an executor (:mod:`envs.evaluation.executors`): processes on this machine
+run), and hands the jobs to an executor (:mod:`sb3_graph.common.executors`): processes on this machine
 (``local``, the default), or an existing Dask or Ray cluster; the results are the same wherever
 they ran.
 
@@ -36,7 +36,6 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from envs.evaluation.executors import JobExecutor, make_executor
 from envs.evaluation.metrics import VehicleLog, run_metrics
 from envs.evaluation.progress import RunClock, format_eta, interleaved
 from envs.planners import BASELINES, SHIELD_SUFFIX, make_planner
@@ -44,6 +43,7 @@ from envs.planners.errors import PlannerError, checked_accelerations
 from envs.simulation.rewards import REWARD_PRESETS
 from envs.simulation.step_record import StepRecord, step_record
 from envs.simulation.traffic import Scenario, demand_scenario, generate_scenario
+from sb3_graph.common.executors import JobExecutor, make_executor
 
 SCENARIO_SUFFIX = ".json"
 
@@ -449,7 +449,7 @@ def evaluate(
     :param progress: show a progress bar (with the runs per second)
     :param trust_planner_files: load model ``.zip`` files with SB3's full ``load`` (runs their pickles)
     :param executor: where the runs execute: ``"local"``, ``"dask"``, ``"ray"``
-        (:mod:`envs.evaluation.executors`), or a :class:`envs.evaluation.executors.JobExecutor` of one's own, which is
+        (:mod:`sb3_graph.common.executors`), or a :class:`sb3_graph.common.executors.JobExecutor` of one's own, which is
         used as it is and not closed here
     :param scheduler_address: address of an existing Dask scheduler or Ray cluster
     :param stats: if given, filled with the harness's facts: ``runs``, ``wall_s`` (from the start of

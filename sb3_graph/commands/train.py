@@ -152,6 +152,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="keep the cloning's labelled transitions and the cloned model in FOLDER, under a hash of everything "
         "they depend on, and reuse them when a fresh run asks for the same (a costly expert labels once)",
     )
+    parser.add_argument(
+        "--label-jobs",
+        type=int,
+        default=None,
+        metavar="N",
+        help="label the cloning's rounds on N parallel workers, one job per sub-environment and round, each kept in "
+        "--pretrain-cache as it comes (a run cut short labels only what it lacks; every round starts new episodes)",
+    )
+    parser.add_argument(
+        "--label-executor",
+        default=None,
+        choices=("local", "dask", "ray"),
+        help="where --label-jobs run: local processes (default), a Dask cluster or Ray, as evaluate's --executor",
+    )
+    parser.add_argument(
+        "--label-address", default=None, metavar="ADDRESS", help="the Dask scheduler or Ray cluster to label on"
+    )
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (see benchmarks/)")
     parser.add_argument("--device", default="auto", help="torch device (auto, cpu, cuda)")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
@@ -345,6 +362,7 @@ def _check_flags(args: argparse.Namespace) -> None:
     for flag, low in (("pretrain_transitions", 1), ("pretrain_steps", 0)):
         if pretrain[flag] is not None and pretrain[flag] < low:
             raise UserError(f"--{flag.replace('_', '-')} must be at least {low}, got {pretrain[flag]}")
+    _check_labelling(args)
     check_device(args.device)
 
 
@@ -501,6 +519,33 @@ def _build_model(entry: dict[str, Any], train_env, seed: int, args: argparse.Nam
     return model
 
 
+def _labelling(args: argparse.Namespace) -> dict[str, Any] | None:
+    """The sharded labelling's settings (``--label-jobs``/``--label-executor``/``--label-address``), or ``None``."""
+    flags = [getattr(args, name, None) for name in ("label_jobs", "label_executor", "label_address")]
+    if all(flag is None for flag in flags):
+        return None
+    workers = 1 if args.label_jobs is None else args.label_jobs
+    return {"seed": args.seed, "executor": args.label_executor or "local", "workers": workers,
+            "address": args.label_address}  # fmt: skip
+
+
+def _check_labelling(args: argparse.Namespace) -> None:
+    from sb3_graph.common.executors import ExecutorError, check_executor
+
+    labelling = _labelling(args)
+    if labelling is None:
+        return
+    if args.resume:
+        raise UserError("--label-jobs/--label-executor/--label-address apply to a fresh run, not --resume")
+    if labelling["workers"] < 1:
+        raise UserError(f"--label-jobs must be at least 1, got {labelling['workers']}")
+    try:
+        check_executor(labelling["executor"], labelling["address"])
+    except (ExecutorError, ValueError) as error:
+        raise UserError(str(error).replace("--executor", "--label-executor").replace(
+            "--scheduler-address", "--label-address")) from None  # fmt: skip
+
+
 def _make_expert(spec: str, env_id: str, train_env) -> Any:
     """The expert ``spec`` for ``env_id``'s environments, from the factory that the package or a domain
     declares for it (:func:`sb3_graph.plugins.expert_factory`)."""
@@ -520,16 +565,32 @@ def _make_expert(spec: str, env_id: str, train_env) -> Any:
 
 
 def _pretrain(
-    model, entry: dict[str, Any], env_id: str, train_env, cache: str | None = None, algo: str = "td3"
+    model,
+    entry: dict[str, Any],
+    env_id: str,
+    train_env,
+    cache: str | None = None,
+    algo: str = "td3",
+    labelling: dict[str, Any] | None = None,
 ) -> dict[str, Any] | None:
     """Clone the entry's ``pretrain_from`` expert into the model (nothing without one); its summary.
-    With ``cache`` (a folder) the labelled transitions and the clone are kept and reused there."""
+    With ``cache`` (a folder) the labelled transitions and the clone are kept and reused there; with
+    ``labelling`` the rounds are labelled on an executor (:mod:`sb3_graph.common.labelling`)."""
     from sb3_graph.common.cloning import behaviour_clone
     from sb3_graph.tuning.pretrain import dagger_arguments, pretrain_trial
 
     spec = entry.get("pretrain_from")
     if spec is None:
+        if labelling is not None:
+            raise UserError("--label-jobs/--label-executor/--label-address label a cloning: the entry has no "
+                            "pretrain_from (set it, or --pretrain-from)")  # fmt: skip
         return None
+    if labelling is not None:
+        where = f"{labelling['executor']}, {labelling['workers']} worker{'s' * (labelling['workers'] != 1)}"
+        print(f"sb3-graph train: cloning {spec!r}, labelled on {where}"
+              + (f", through the cache {cache}" if cache is not None else ""), flush=True)  # fmt: skip
+        return pretrain_trial(model, entry, env_id, train_env, algo, None if cache is None else Path(cache),
+                              labelling=labelling)  # fmt: skip
     if cache is not None:
         print(f"sb3-graph train: cloning {spec!r} through the cache {cache}", flush=True)
         return pretrain_trial(model, entry, env_id, train_env, algo, Path(cache))
@@ -724,7 +785,7 @@ def _run_one(args: argparse.Namespace) -> int:
         model = _build_model(entry, train_env, seed, args, tensorboard_log)
         if args.init_weights:
             record["init_weights"] = str(args.init_weights)
-        pretrained = _pretrain(model, entry, args.env, train_env, args.pretrain_cache, args.algo)
+        pretrained = _pretrain(model, entry, args.env, train_env, args.pretrain_cache, args.algo, _labelling(args))
         if pretrained is not None:
             record["pretrain"] = pretrained
 

@@ -38,6 +38,7 @@ def behaviour_clone(
     log_interval: int = 100,
     demonstrations: Demonstrations | None = None,
     record: bool = False,
+    collector: Callable[[int, float, int], Demonstrations] | None = None,
 ) -> dict[str, Any]:
     """Clone an expert into ``model``'s actor (and, off-policy, warm up its critics on the demonstrations).
 
@@ -81,6 +82,11 @@ def behaviour_clone(
         never asked; an on-policy model still gets it as ``bc_expert``)
     :param record: also return the collected transitions as ``result["demonstrations"]``
         (a :class:`Demonstrations`, e.g. to clone into other models without collecting again)
+    :param collector: collects each round elsewhere instead of stepping the model's VecEnv:
+        ``collector(round, beta, steps)`` returns that round's :class:`Demonstrations` of ``steps`` VecEnv
+        steps on as many sub-environments as the model's (e.g. :class:`~sb3_graph.common.labelling.ShardedCollector`,
+        which labels each sub-environment's share on an executor and resumes from its cache); not with
+        ``demonstrations`` or ``record``
     :return: ``actor_loss`` and ``critic_loss`` (one value per gradient step), ``transitions``
         collected, ``expert_share`` (the share of sub-environment steps acted by the expert),
         ``collect_s``, ``train_s`` and ``critic_s`` (wall time of collecting, of the actor's steps and of
@@ -89,6 +95,8 @@ def behaviour_clone(
     """
     _check_arguments(model, transitions, gradient_steps, batch_size, rounds, critic_steps)
     env = model.get_env()
+    if collector is not None and (demonstrations is not None or record):
+        raise ValueError("behaviour_clone: a collector keeps its own rounds (no demonstrations, no record)")
     if demonstrations is not None:
         _check_demonstrations(demonstrations, env, rounds)
         transitions = demonstrations.transitions
@@ -103,7 +111,7 @@ def behaviour_clone(
     result: dict[str, Any] = {
         "actor_loss": [], "critic_loss": [], "transitions": 0, "collect_s": 0.0, "train_s": 0.0, "critic_s": 0.0
     }
-    expert_steps, obs = 0, (env.reset() if demonstrations is None else None)
+    expert_steps, obs = 0, (env.reset() if demonstrations is None and collector is None else None)
     per_round = [_share(transitions, rounds, k) for k in range(rounds)]
     steps_per_round = [_share(gradient_steps, rounds, k) for k in range(rounds)]
     for k in range(rounds):
@@ -111,7 +119,13 @@ def behaviour_clone(
         if not 0.0 <= probability <= 1.0:
             raise ValueError(f"behaviour_clone: beta must lie in [0, 1], got {probability} in round {k}")
         start = time.perf_counter()
-        if demonstrations is None:
+        if collector is not None:
+            collected = collector(k, probability, math.ceil(per_round[k] / env.num_envs))
+            _check_demonstrations(collected, env, 1)
+            collected.replay(dataset, model.policy)
+            expert_steps += collected.expert_steps
+            result["transitions"] += collected.transitions
+        elif demonstrations is None:
             steps = math.ceil(per_round[k] / env.num_envs)
             obs, acted = _collect(model, expert, dataset, obs, steps, probability, recorder)
             expert_steps += acted
@@ -224,23 +238,12 @@ def _collect(
     """Step the VecEnv ``steps`` times, store each transition with its expert label; return the last
     observation and the number of sub-environment steps acted by the expert."""
     env, policy = model.get_env(), model.policy
-    n_envs, max_nodes = env.num_envs, buffer.max_nodes
     rng = np.random.default_rng(np.random.randint(2**31))  # noqa: NPY002 (follows the model's seed)
     acted = 0
     for _ in range(steps):
-        labels = checked_expert_actions(expert(obs), n_envs, max_nodes, obs["node_mask"])
-        use_expert = rng.random(n_envs) < probability
-        action = labels
-        if not use_expert.all():
-            with torch.no_grad():
-                own, _ = policy.predict(obs, deterministic=True)
-            action = np.where(use_expert[:, None], np.clip(labels, env.action_space.low, env.action_space.high), own)
+        step = expert_step(env, policy, expert, obs, probability, rng)
+        new_obs, stored, labels, rewards, dones, infos, use_expert = step
         acted += int(use_expert.sum())
-        new_obs, rewards, dones, infos = env.step(action)
-        stored = np.array(action, dtype=np.float32, copy=True)
-        for i, info in enumerate(infos):  # one per environment, as SB3's _store_transition
-            if EXECUTED_ACTION in info:
-                stored[i] = np.asarray(info[EXECUTED_ACTION], dtype=np.float32).reshape(max_nodes)
         rewards = _original_rewards(model, rewards)
         buffer.add(
             obs,
@@ -255,6 +258,31 @@ def _collect(
             recorder.append(obs, new_obs, stored, labels, rewards, dones, infos, use_expert)
         obs = new_obs
     return obs, acted
+
+
+def expert_step(
+    env: Any, policy: Any, expert: Expert, obs: dict, probability: float, rng: np.random.Generator
+) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray, np.ndarray, list[dict], np.ndarray]:
+    """One VecEnv step of a cloning round: each sub-environment acts with the expert with ``probability``, else
+    with ``policy``'s deterministic action (DAgger); every state gets the expert's label.
+
+    :return: ``(new_obs, executed actions, labels, rewards, dones, infos, by_expert)``, actions in the action
+        space's units (``executed``: what the environment reports it did, where it says so)
+    """
+    n_envs, max_nodes = env.num_envs, int(np.prod(env.action_space.shape))
+    labels = checked_expert_actions(expert(obs), n_envs, max_nodes, obs["node_mask"])
+    use_expert = rng.random(n_envs) < probability
+    action = labels
+    if not use_expert.all():
+        with torch.no_grad():
+            own, _ = policy.predict(obs, deterministic=True)
+        action = np.where(use_expert[:, None], np.clip(labels, env.action_space.low, env.action_space.high), own)
+    new_obs, rewards, dones, infos = env.step(action)
+    stored = np.array(action, dtype=np.float32, copy=True)
+    for i, info in enumerate(infos):  # one per environment, as SB3's _store_transition
+        if EXECUTED_ACTION in info:
+            stored[i] = np.asarray(info[EXECUTED_ACTION], dtype=np.float32).reshape(max_nodes)
+    return new_obs, stored, labels, rewards, dones, infos, use_expert
 
 
 class Demonstrations:
@@ -359,6 +387,36 @@ class Demonstrations:
                 infos,
                 expert_action=expert_targets(policy, data["labels"][t]),
             )
+
+    @classmethod
+    def stack(cls, parts: list[Demonstrations]) -> Demonstrations:
+        """The sub-environments of ``parts`` side by side (part ``p``'s environment ``i`` after those of the parts
+        before it): what collecting them in one VecEnv in lockstep would have recorded.
+
+        :raises ValueError: parts of different lengths or spaces
+        """
+        if not parts:
+            raise ValueError("Demonstrations.stack: no parts")
+        data = [part.arrays() for part in parts]
+        if len({d["actions"].shape[0] for d in data}) != 1 or len({tuple(sorted(d)) for d in data}) != 1:
+            raise ValueError("Demonstrations.stack: the parts differ in steps or arrays")
+        out = {}
+        for name in data[0]:
+            if name == "terminal_index":
+                offsets = np.cumsum([0] + [d["actions"].shape[1] for d in data[:-1]])
+                out[name] = np.concatenate([d[name] + [0, offset] for d, offset in zip(data, offsets)])
+            elif name.startswith("terminal/"):
+                out[name] = np.concatenate([d[name] for d in data])
+            else:  # (steps[+1], n_envs, ...)
+                out[name] = np.concatenate([d[name] for d in data], axis=1)
+        # terminal observations in (step, env) order, as one VecEnv's steps record them
+        order = np.lexsort((out["terminal_index"][:, 1], out["terminal_index"][:, 0]))
+        out["terminal_index"] = out["terminal_index"][order].reshape(-1, 2).astype(np.int64)
+        for name in [n for n in out if n.startswith("terminal/")]:
+            out[name] = out[name][order]
+        new = cls()
+        new._frozen = out
+        return new
 
     def save(self, file: Any) -> None:
         """Write the arrays to ``file`` (a path or a binary file object) as a compressed ``.npz``."""

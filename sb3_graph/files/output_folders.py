@@ -10,6 +10,7 @@ new one is complete: never a mix of two runs' files.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
 import signal
@@ -18,6 +19,7 @@ import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 
 class OutputError(ValueError):
@@ -189,3 +191,29 @@ def check_no_links(folder: str | Path, names: tuple[str, ...], flag: str = "--ou
     for name in names:
         if (folder / name).is_symlink():
             raise OutputError(f"{flag}: {str(folder / name)!r} is a symbolic link; a run writes only inside its folder")
+
+
+def write_atomically(path: Path, write: Any) -> bool:
+    """Write a file through ``write(file_object)`` into a temporary file of ``path``'s folder, then link it
+    to ``path`` unless ``path`` exists (another worker's, or a user's file: never replaced).
+
+    :return: whether ``path`` is the new file
+    """
+    path.parent.mkdir(parents=True, exist_ok=True)
+    handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(handle, "wb") as file:
+            write(file)
+        try:
+            os.link(temporary, path)  # fails if path exists: nothing is overwritten
+        except FileExistsError:
+            return False
+        except OSError:  # a file system without hard links
+            if path.exists():
+                return False
+            os.replace(temporary, path)
+            return True
+        return True
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(temporary)

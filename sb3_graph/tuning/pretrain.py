@@ -25,16 +25,16 @@ that never replaces an existing file) and read without unpickling (``np.load(all
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import json
-import os
 import tempfile
 import time
 from pathlib import Path
 from typing import Any
 
 import torch as th
+
+from sb3_graph.files.output_folders import write_atomically
 
 #: Entry keys that do not change the cloned model (RL's budget, callbacks, the RL-time regularizer).
 NOT_CLONING_KEYS = ("n_timesteps", "callback", "bc_coef", "env_kwargs")
@@ -93,32 +93,6 @@ def clone_key(entry: dict[str, Any], env_id: str, algo: str, init_weights_sha256
     return {**key, "algo": algo, "entry": settings, "init": init_weights_sha256}
 
 
-def write_atomically(path: Path, write: Any) -> bool:
-    """Write a file through ``write(file_object)`` into a temporary file of ``path``'s folder, then link it
-    to ``path`` unless ``path`` exists (another worker's, or a user's file: never replaced).
-
-    :return: whether ``path`` is the new file
-    """
-    path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(handle, "wb") as file:
-            write(file)
-        try:
-            os.link(temporary, path)  # fails if path exists: nothing is overwritten
-        except FileExistsError:
-            return False
-        except OSError:  # a file system without hard links
-            if path.exists():
-                return False
-            os.replace(temporary, path)
-            return True
-        return True
-    finally:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(temporary)
-
-
 def _torch_state(model: Any) -> dict[str, Any]:
     """The model's parameters, optimizer states and torch variables (SAC's ``log_ent_coef``)."""
     _, variables = model._get_torch_save_params()
@@ -153,6 +127,7 @@ def pretrain_trial(
     algo: str,
     folder: Path | None,
     init_weights: Path | None = None,
+    labelling: dict[str, Any] | None = None,
 ) -> dict[str, Any] | None:
     """Clone the entry's ``pretrain_from`` expert into a trial's model, through the study's cache.
 
@@ -163,6 +138,10 @@ def pretrain_trial(
     :param algo: the ``--algo`` name
     :param folder: the study's cache folder (``None``: clone without a cache)
     :param init_weights: the ``--init-weights`` file, if any (its hash enters the clone's key)
+    :param labelling: label on an executor, resumably (:class:`~sb3_graph.common.labelling.ShardedCollector`):
+        ``seed`` (the model's VecEnv's), ``executor``, ``workers`` and ``address``; each shard is kept in the
+        folder ``demonstrations-<hash>/`` (a new episode per round and sub-environment, so another hash than
+        the lockstep collection's ``demonstrations-<hash>.npz``)
     :return: ``None`` without ``pretrain_from``; else ``cache`` (``"none"``, ``"demonstrations"`` or
         ``"clone"``: what was reused), ``transitions``, ``seconds`` and the two files' names
     """
@@ -173,7 +152,9 @@ def pretrain_trial(
         return None
     if folder is None:  # a cache of one trial
         with tempfile.TemporaryDirectory(prefix="pretrain-") as temporary:
-            return pretrain_trial(model, entry, env_id, train_env, algo, Path(temporary), init_weights)
+            return pretrain_trial(model, entry, env_id, train_env, algo, Path(temporary), init_weights, labelling)
+    if labelling is not None:
+        return _pretrain_sharded(model, entry, env_id, train_env, algo, Path(folder), init_weights, labelling)
     folder = Path(folder)
     tic = time.perf_counter()
     init_hash = hashlib.sha256(init_weights.read_bytes()).hexdigest() if init_weights is not None else ""
@@ -218,5 +199,68 @@ def pretrain_trial(
         "transitions": int(result["transitions"]),
         "seconds": round(time.perf_counter() - tic, 2),
         "demonstrations_file": demo_path.name,
+        "clone_file": clone_path.name,
+    }
+
+
+def _pretrain_sharded(
+    model: Any,
+    entry: dict[str, Any],
+    env_id: str,
+    train_env: Any,
+    algo: str,
+    folder: Path,
+    init_weights: Path | None,
+    labelling: dict[str, Any],
+) -> dict[str, Any]:
+    """:func:`pretrain_trial` with its rounds labelled on an executor and kept one by one (``labelling``)."""
+    from sb3_graph.commands.train import PRETRAIN_STEPS, _make_expert
+    from sb3_graph.common.cloning import behaviour_clone
+    from sb3_graph.common.labelling import LabellingJob, ShardedCollector
+    from sb3_graph.plugins import expert_factory, gym_packages
+
+    tic = time.perf_counter()
+    init_hash = hashlib.sha256(init_weights.read_bytes()).hexdigest() if init_weights is not None else ""
+    key = {**demonstrations_key(entry, env_id, algo, init_hash), "labelling": "shards"}
+    rounds_folder = folder / f"demonstrations-{_digest(key)[:32]}"
+    clone = {**clone_key(entry, env_id, algo, init_hash), "labelling": "shards"}
+    clone_path = folder / f"clone-{_digest(clone)[:32]}.pt"
+    expert = _make_expert(str(entry["pretrain_from"]), env_id, train_env)  # on-policy bc_coef labels with it
+    job = LabellingJob(env_id, dict(entry.get("env_kwargs") or {}), str(entry["pretrain_from"]),
+                       expert_factory(env_id)[0], tuple(gym_packages()))  # fmt: skip
+    collector = ShardedCollector(model, job, int(labelling.get("seed", 0)), labelling.get("executor", "local"),
+                                 int(labelling.get("workers", 1)), labelling.get("address"), rounds_folder)  # fmt: skip
+    state = None
+    n_envs = int(train_env.num_envs)
+    if clone_path.is_file() and all(collector.path(k, i).is_file() for k in range(dagger_arguments(entry)["rounds"])
+                                    for i in range(n_envs)):  # fmt: skip
+        try:
+            state = th.load(clone_path, map_location="cpu", weights_only=True)
+        except Exception:  # noqa: BLE001 (any unreadable file: clone again)
+            state = None
+    steps = int(entry.get("pretrain_steps", PRETRAIN_STEPS))
+    critic_steps = entry.get("pretrain_critic_steps")
+    if state is not None:
+        _load_torch_state(model, state)
+        return {"cache": "clone", "transitions": 0, "seconds": round(time.perf_counter() - tic, 2),
+                "demonstrations_folder": rounds_folder.name, "clone_file": clone_path.name}  # fmt: skip
+    result = behaviour_clone(
+        model,
+        expert,
+        transitions=int(entry.get("pretrain_transitions", key["transitions"])),
+        gradient_steps=steps,
+        batch_size=int(getattr(model, "batch_size", 256) or 256),
+        critic_steps=None if critic_steps is None else int(critic_steps),
+        collector=collector,
+        **dagger_arguments(entry),
+    )
+    write_atomically(clone_path, lambda file: th.save(_torch_state(model), file))
+    return {
+        "cache": "none" if collector.labelled else "demonstrations",
+        "rounds_labelled": collector.labelled,
+        "transitions": int(result["transitions"]),
+        "seconds": round(time.perf_counter() - tic, 2),
+        "collect_s": round(result["collect_s"], 2),
+        "demonstrations_folder": rounds_folder.name,
         "clone_file": clone_path.name,
     }

@@ -1,6 +1,7 @@
-"""Where the evaluation harness's runs execute: local processes, a Dask cluster or Ray.
+"""Where embarrassingly parallel jobs execute: local processes, a Dask cluster or Ray.
 
-An executor runs one function over many items (the harness: one run per planner and scenario),
+An executor runs one function over many items (a domain's evaluation harness: one run per planner and
+scenario; the labelling of :mod:`sb3_graph.common.labelling`: one expert-labelled shard per sub-environment),
 with one *shared* object that every call receives (the harness: the table of loaded scenarios).
 The shared object travels to each worker once, never once per item:
 
