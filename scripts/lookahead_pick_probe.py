@@ -4,7 +4,8 @@
 labels in a ``--pretrain-cache`` of ``zoo_configs/td3_lookahead.yml`` are that pick, as one score per vehicle.
 This script trains a graph-level classifier (the policies' relational trunk, mean and max pooling, a small head;
 cross-entropy) on the first 80 % of the cached steps and reports its accuracy on the last 20 % (the last DAgger
-round's states) against always answering the most frequent pick::
+round's states; of a folder of shards, ``train --label-jobs``: the last round's) against always answering the
+most frequent pick::
 
     python scripts/lookahead_pick_probe.py runs/lookahead3.labels --steps 3000
 
@@ -29,20 +30,28 @@ from sb3_graph.common.networks import GraphTrunk
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("cache", type=Path, help="a --pretrain-cache folder with one demonstrations-*.npz")
+    parser.add_argument("cache", type=Path, help="a --pretrain-cache folder with one demonstrations-*.npz, or one "
+                        "demonstrations-*/ folder of shards (train --label-jobs)")  # fmt: skip
     parser.add_argument("--steps", type=int, default=3000, help="gradient steps (default 3000)")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
     files = sorted(args.cache.glob("demonstrations-*.npz"))
-    if len(files) != 1:
-        print(f"error: {args.cache} must hold one demonstrations-*.npz, found {len(files)}", file=sys.stderr)
+    shards = sorted(args.cache.glob("demonstrations-*/round-*-env-*.npz"))
+    if len(files) + len({f.parent for f in shards}) != 1:
+        print(f"error: {args.cache} must hold one demonstrations-*.npz or one folder of shards", file=sys.stderr)
         return 2
     torch.set_num_threads(1)
     torch.manual_seed(args.seed)
-    data = np.load(files[0])
-    steps, n_envs = data["labels"].shape[:2]
-    obs = {k[4:]: data[k][:-1].reshape(steps * n_envs, *data[k].shape[2:]) for k in data.files if k.startswith("obs/")}
-    labels = data["labels"].reshape(steps * n_envs, -1)
+    parts = [np.load(f) for f in (files or shards)]
+    rounds = [int(f.name.split("-")[1]) for f in shards]
+    obs = {k[4:]: np.concatenate([d[k][:-1].reshape(-1, *d[k].shape[2:]) for d in parts])
+           for k in parts[0].files if k.startswith("obs/")}  # fmt: skip
+    labels = np.concatenate([d["labels"].reshape(-1, d["labels"].shape[-1]) for d in parts])
+    if files:  # one lockstep file: the last 20 % of its steps (the last DAgger round's states) held out
+        steps, n_envs = parts[0]["labels"].shape[:2]
+        late = np.arange(steps * n_envs) // n_envs >= 0.8 * steps
+    else:  # shards: the last round's held out
+        late = np.concatenate([np.full(d["labels"].shape[0], r == max(rounds)) for d, r in zip(parts, rounds)])
     mask = obs["node_mask"] > 0
     low = np.where(mask, labels, np.inf).min(axis=1)
     high = np.where(mask, labels, -np.inf).max(axis=1)
@@ -53,7 +62,7 @@ def main(argv: list[str] | None = None) -> int:
     picks, pick = np.unique(np.round(first, 3), return_inverse=True)
     target = np.zeros(len(labels), np.int64)
     target[graphs] = pick
-    held = graphs // n_envs >= 0.8 * steps
+    held = late[graphs]
     train, test = graphs[~held], graphs[held]
     trunk = GraphTrunk(obs["x"].shape[-1], 2, 64, (64, 64), "max", nn.ReLU, edge_dim=obs["edge_attr"].shape[-1])
     head = nn.Sequential(nn.Linear(128, 64), nn.ReLU(), nn.Linear(64, len(picks)))
