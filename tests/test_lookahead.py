@@ -105,12 +105,18 @@ def test_the_search_keeps_the_cheapest_candidate_and_the_greedy_pass_never_costs
 
 
 def _reference_rollout(planner: LookaheadPlanner, scene, road_windows: np.ndarray) -> float:
-    """A rollout as first written (the full scene every step, glide on the shield's own copy of it, the stopped
-    ids looked up by id, glide planned even where no window is open): the oracle of the lean one."""
+    """A rollout as first written (a plain simulation, the full scene every step, glide on the shield's own copy
+    of it, the stopped ids looked up by id, glide planned even where no window is open): the oracle of the lean
+    one."""
     from envs.planners.lookahead import _roads
+    from envs.simulation.engine import Simulation
     from envs.simulation.scene import STOP_SPEED
 
-    sim = planner._load(scene)
+    sim = Simulation(
+        scene.layout, policy_frequency=planner.search.rollout_frequency, max_acceleration=float(scene.a_max),
+        s_ref=scene.s_ref, max_vehicles=256, check_collisions=False,
+    )  # fmt: skip
+    sim.set_state(scene.time, scene.route, scene.vehicle_id, scene.arc, scene.speed, scene.length, scene.width)
     me = planner.fork()
     shield = Shield(me, horizon=planner.search.shield_horizon, watchdog_after=None)
     roads, stopped, lost, dt = _roads(sim.layout), planner._stopped, 0.0, sim.dt
@@ -135,9 +141,9 @@ def _reference_rollout(planner: LookaheadPlanner, scene, road_windows: np.ndarra
 @pytest.mark.parametrize("hold", [False, True])
 def test_a_lean_rollout_costs_bit_for_bit_what_the_full_one_does(hold, monkeypatch):
     """The rollouts' lean scene (shared arrays, no poses), glide without the shield's copy, stopped rows kept as
-    a mask and full throttle without planning where no window is open cost exactly what the rollout as first
-    written did; with ``hold``, advice held from before still plans glide under closed windows. Glide and the
-    shield never write in the lean scene (its arrays are made read-only here)."""
+    a mask, full throttle without planning where no window is open and the compiled step cost exactly what the
+    rollout as first written did; with ``hold``, advice held from before still plans glide under closed windows.
+    Glide and the shield never write in the lean scene (its arrays are made read-only here)."""
     import dataclasses
 
     from envs.simulation.engine import Simulation

@@ -34,9 +34,10 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
+from envs.planners import _shield_kernel
 from envs.planners.glide import RECIPE, GlideParams, GlidePlanner
 from envs.planners.priority import PriorityPlanner
-from envs.planners.shield import Shield
+from envs.planners.shield import Shield, envelope_table
 from envs.simulation.engine import Simulation
 from envs.simulation.motion import traction_energy
 from envs.simulation.scene import STOP_SPEED, Scene
@@ -298,7 +299,7 @@ class LookaheadPlanner(GlidePlanner):
         """The simulation of the rollouts, set to ``scene`` (built once per layout and reused)."""
         sim = self._sim
         if sim is None or sim.layout is not scene.layout:
-            sim = self._sim = Simulation(
+            sim = self._sim = _RolloutSimulation(
                 scene.layout,
                 simulation_frequency=15,
                 policy_frequency=self.search.rollout_frequency,
@@ -313,6 +314,24 @@ class LookaheadPlanner(GlidePlanner):
             scene.time, scene.route, scene.vehicle_id, scene.arc, scene.speed, scene.length, width, scene.humans
         )
         return sim
+
+
+class _RolloutSimulation(Simulation):
+    """The rollouts' simulation: its steps integrate with the shield's compiled vehicle model
+    (:func:`envs.planners._shield_kernel.integrate`, bit for bit :func:`envs.simulation.engine.integrate`),
+    a tenth of a rollout step less than in NumPy."""
+
+    def _integrate(self, acc: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        return _shield_kernel.integrate(
+            envelope_table(self.layout, self.governor_deceleration),
+            np.ascontiguousarray(self.route, dtype=np.int64),
+            np.ascontiguousarray(self.arc, dtype=float),
+            np.ascontiguousarray(self.speed, dtype=float),
+            np.ascontiguousarray(acc, dtype=float),
+            self.substeps,
+            1.0 / self.simulation_frequency,
+            self.max_speed,
+        )
 
 
 def _lookup(ids: np.ndarray, values: np.ndarray, query: np.ndarray, default: float) -> np.ndarray:
