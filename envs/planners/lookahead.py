@@ -271,7 +271,7 @@ class LookaheadPlanner(GlidePlanner):
         for _ in range(int(round(self.search.horizon / dt))):
             if sim.num_vehicles == 0:
                 break
-            # The lean scene and no copy for glide: both are this module's own, trusted not to write in it.
+            # The lean scene, not copied for glide: glide and the shield never write in a scene (a test checks).
             now = sim.rollout_scene(limit)
             if throttle:
                 command = shield.check(now, np.full(now.num_vehicles, now.a_max))
