@@ -104,6 +104,75 @@ def test_the_search_keeps_the_cheapest_candidate_and_the_greedy_pass_never_costs
     assert flat.rollout(scene, np.full(roads, 30.0)) == costs[30.0]  # a rollout leaves no trace
 
 
+def _reference_rollout(planner: LookaheadPlanner, scene, road_windows: np.ndarray) -> float:
+    """A rollout as first written (a plain simulation, the full scene every step, glide on the shield's own copy
+    of it, the stopped ids looked up by id, glide planned even where no window is open): the oracle of the lean
+    one."""
+    from envs.planners.lookahead import _roads
+    from envs.simulation.engine import Simulation
+    from envs.simulation.scene import STOP_SPEED
+
+    sim = Simulation(
+        scene.layout, policy_frequency=planner.search.rollout_frequency, max_acceleration=float(scene.a_max),
+        s_ref=scene.s_ref, max_vehicles=256, check_collisions=False,
+    )  # fmt: skip
+    sim.set_state(scene.time, scene.route, scene.vehicle_id, scene.arc, scene.speed, scene.length, scene.width)
+    me = planner.fork()
+    shield = Shield(me, horizon=planner.search.shield_horizon, watchdog_after=None)
+    roads, stopped, lost, dt = _roads(sim.layout), planner._stopped, 0.0, sim.dt
+    for _ in range(int(round(planner.search.horizon / dt))):
+        if sim.num_vehicles == 0:
+            break
+        now = sim.scene()
+        me.set_windows(road_windows[roads[now.route]])
+        sim.step(shield.act(now))
+        live = sim.arc - sim.length / 2 < sim.layout.exit_arc[sim.route]
+        if not live.any():
+            continue
+        limit = np.maximum(sim.layout.limit_at(sim.route, sim.arc), 1e-3)
+        lost += float(np.clip(1.0 - sim.speed[live] / limit[live], 0.0, 1.0).sum()) * dt
+        new = np.setdiff1d(sim.vehicle_id[live & (sim.speed < STOP_SPEED)], stopped, assume_unique=True)
+        if new.size:
+            stopped = np.union1d(stopped, new)
+            lost += planner.search.stop_price * new.size
+    return lost
+
+
+@pytest.mark.parametrize("hold", [False, True])
+def test_a_lean_rollout_costs_bit_for_bit_what_the_full_one_does(hold, monkeypatch):
+    """The rollouts' lean scene (shared arrays, no poses), glide without the shield's copy, stopped rows kept as
+    a mask, full throttle without planning where no window is open and the compiled step cost exactly what the
+    rollout as first written did; with ``hold``, advice held from before still plans glide under closed windows.
+    Glide and the shield never write in the lean scene (its arrays are made read-only here)."""
+    import dataclasses
+
+    from envs.simulation.engine import Simulation
+
+    scene = busy_scene()
+    planner = LookaheadPlanner(params=LookaheadParams(hold=hold))
+    planner.reset(0)
+    planner._stopped = np.sort(scene.vehicle_id[np.argsort(scene.speed)[:4]])  # stopped before: not priced again
+    if hold:  # advice held by the real glide: planned even where every window is closed
+        planner._held = np.sort(scene.vehicle_id[scene.dist_to_entry > 0][:6])
+    lean = Simulation.rollout_scene
+
+    def read_only(sim, speed_limit=None):
+        now = lean(sim, speed_limit)
+        for f in dataclasses.fields(now):
+            value = getattr(now, f.name)
+            if isinstance(value, np.ndarray) and f.name not in ("conflicts",):
+                value.flags.writeable = False
+        return now
+
+    for windows in ([0.0] * 4, [30.0] * 4, [math.inf] * 4, [0.0, 30.0, math.inf, 0.0]):
+        want = _reference_rollout(planner, scene, np.array(windows))
+        with monkeypatch.context() as patch:
+            patch.setattr(Simulation, "rollout_scene", read_only)
+            got = planner.rollout(scene, np.array(windows))
+        assert got == want, windows
+        assert planner.rollout(scene, np.array(windows)) == want
+
+
 def test_a_stop_is_priced():
     """The same rollout costs more with a higher stop price exactly when a vehicle stops in it."""
     scene = busy_scene()

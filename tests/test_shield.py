@@ -168,6 +168,29 @@ def test_prediction_layout_is_bitwise_the_layout(layout):
     assert view.route_names == lay.route_names  # everything else is the layout's
 
 
+
+@pytest.mark.parametrize("layout", ["4way", "inD"])
+def test_the_compiled_step_is_bitwise_integrate(layout):
+    """``_shield_kernel.integrate`` (the step of ``lookahead``'s rollouts) gives integrate's speeds, arcs and
+    governed vehicles bit for bit: standing and braking, capped by the governor, past the last sample."""
+    from envs.planners.shield import envelope_table
+    from envs.simulation.engine import integrate
+
+    lay = build_layout(layout)
+    routes, samples = lay.speed_limit.shape
+    rng = np.random.default_rng(2)
+    route = rng.integers(0, routes, 5000)
+    arc = rng.uniform(-10.0, (samples + 10) * lay.ds, 5000)
+    speed, acc = rng.uniform(0.0, 20.0, 5000), rng.uniform(-5.0, 5.0, 5000)
+    speed[:500] = 0.0
+    for h, substeps in ((1 / 15, 3), (1 / 15, 5)):
+        want = integrate(lay, route, arc, speed, acc, substeps, h, 20.0, 3.0)
+        got = _shield_kernel.integrate(envelope_table(lay, 3.0), route, arc, speed, acc, substeps, h, 20.0)
+        assert want[2].any() and not want[2].all()
+        for a, b in zip(got, want):
+            assert a.dtype == b.dtype
+            np.testing.assert_array_equal(a, b)
+
 BLAMED: list[int] = []  # scenes whose blame was compared (a test that compared none would prove nothing)
 
 

@@ -135,6 +135,28 @@ def test_scene_fields(sim):
     assert scene.speed_limit[0] == lay.speed_limit[r, 0] and scene.speed_limit[1] < scene.speed_limit[0]
 
 
+def test_the_rollout_scene_is_the_scene_without_copies_and_poses(sim):
+    """``rollout_scene`` holds :meth:`scene`'s values, on the simulation's own arrays, with NaN where no planner
+    behind the shield reads (position, heading, s); a speed limit passed in is taken as it is."""
+    import dataclasses
+
+    lay = sim.layout
+    r, q = lay.route_id("north->east"), lay.route_id("south->north")
+    sim.add([r, r, q], [4.0, 6.0, 3.0], [5, 6, 9], arc=[20.0, lay.entry_arc[r] + 1.0, 30.0], length=[4.0, 5.0, 4.5])
+    full, lean = sim.scene(), sim.rollout_scene()
+    for f in dataclasses.fields(full):
+        want, got = getattr(full, f.name), getattr(lean, f.name)
+        if f.name in ("position", "heading", "s"):
+            assert got.shape == want.shape and np.isnan(got).all()
+        elif isinstance(want, np.ndarray):
+            assert got.dtype == want.dtype and np.array_equal(got, want), f.name
+        else:
+            assert got == want or got is want, f.name
+    assert lean.arc is sim.arc and lean.speed is sim.speed  # not copied
+    limit = lay.limit_at(sim.route, sim.arc)
+    assert sim.rollout_scene(limit).speed_limit is limit
+
+
 def test_spawn_free_accounts_for_braking(sim):
     lay = sim.layout
     r = lay.route_id("south->north")

@@ -17,7 +17,8 @@ NumPy form (no ``fastmath``, so no reassociation or fused multiply-add), so that
 
 - :func:`_envelope`: :meth:`envs.simulation.layouts.Layout.envelope_at` for one vehicle, from the tables of
   :func:`envs.planners.shield.envelope_table`,
-- :func:`_integrate`: :func:`envs.simulation.engine.integrate` for one policy period,
+- :func:`_integrate`: :func:`envs.simulation.engine.integrate` for one policy period (and :func:`integrate`,
+  the simulation's step compiled for ``lookahead``'s rollouts),
 - :func:`envs.simulation.commitment.is_committed` (the rule that the observation reads too), :func:`_fallback`:
   the reference's ``committed`` and ``fallback_given``
   (with ``yielding``, ``leaders_now`` and ``safe_gap_after``),
@@ -111,6 +112,7 @@ def _integrate(
     h: float,
     max_speed: float,
     caps: np.ndarray,
+    governed: np.ndarray,
 ) -> None:
     """One policy period of :func:`envs.simulation.engine.integrate`, written into ``arcs`` and ``speeds``.
 
@@ -130,6 +132,7 @@ def _integrate(
     :param h: sub-step length [s]
     :param max_speed: speed cap [m/s]
     :param caps: ``(n,)`` scratch: each vehicle's envelope at its last arc
+    :param governed: ``(n,)`` bool, set where the governor lowered the vehicle's speed in a sub-step
     """
     n = route.shape[0]
     for i in range(n):
@@ -149,11 +152,44 @@ def _integrate(
             cap_x = _envelope(table, route[i], x)
             cap = min(caps[i], cap_x)
             if v > cap:  # the governor: the sub-step ends at the envelope, looked up again there
+                governed[i] = True
                 v = cap
                 x = x0 + 0.5 * (v0 + v) * h
                 cap_x = _envelope(table, route[i], x)
             speeds[dst, i], arcs[dst, i] = v, x
             caps[i] = cap_x
+
+
+@numba.njit(cache=True)
+def integrate(
+    table: EnvelopeTable,
+    route: np.ndarray,
+    arc: np.ndarray,
+    speed: np.ndarray,
+    acc: np.ndarray,
+    substeps: int,
+    h: float,
+    max_speed: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`envs.simulation.engine.integrate` compiled, bit for bit (its outputs): a simulation that steps
+    often on few vehicles (``lookahead``'s rollouts) spends most of a step in its NumPy calls.
+
+    :param table: the governor's envelope (:func:`envs.planners.shield.envelope_table`)
+    :param route: ``(n,)`` route indices
+    :param arc: ``(n,)`` centre arcs now [m]
+    :param speed: ``(n,)`` speeds now [m/s]
+    :param acc: ``(n,)`` accelerations, already clipped to the bounds [m/s^2]
+    :param substeps: sub-steps per policy period
+    :param h: sub-step length [s]
+    :param max_speed: speed cap [m/s]
+    :return: ``(S + 1, n)`` speeds, ``(S + 1, n)`` arcs (row 0: now) and ``(n,)`` bool: governed
+    """
+    n = route.shape[0]
+    arcs, speeds = np.empty((substeps + 1, n)), np.empty((substeps + 1, n))
+    arcs[0], speeds[0] = arc, speed
+    governed = np.zeros(n, np.bool_)
+    _integrate(table, route, acc, arcs, speeds, 0, substeps, h, max_speed, np.empty(n), governed)
+    return speeds, arcs, governed
 
 
 @numba.njit(cache=True)
@@ -404,10 +440,10 @@ def predict(
     """
     n = plan.route.shape[0]
     acc = command.copy()
-    go, hold, caps = np.zeros(n, np.bool_), np.zeros(n, np.bool_), np.empty(n)
+    go, hold, caps, governed = np.zeros(n, np.bool_), np.zeros(n, np.bool_), np.empty(n), np.zeros(n, np.bool_)
     row = 0
     for _ in range(steps):
-        _integrate(table, plan.route, acc, arcs, speeds, row, substeps, h, max_speed, caps)
+        _integrate(table, plan.route, acc, arcs, speeds, row, substeps, h, max_speed, caps, governed)
         row += substeps
         if _all_committed(plan, arcs[row], speeds[row], go, a_max, standing, slack):
             break  # everyone stands before its zones or has left them: the fallback keeps it so

@@ -296,11 +296,22 @@ class Shield(Planner):
         non-finite or out-of-bounds value, or all of them when the shape or dtype is wrong, get the
         fallback for this step (counted as interventions); the other values are checked as usual.
         """
-        n = scene.num_vehicles
         planner = self.live_planner if self.watchdog is not None and self.watchdog.observe(scene) else self.planner
-        output = planner.act(scene.copy())
+        return self.check_output(scene, planner.act(scene.copy()), planner.name)
+
+    def check_output(self, scene: Scene, output: object, planner: str) -> np.ndarray:
+        """:meth:`act` for a proposal already made: a planner's raw output checked as a command (a planner error
+        answered with the fallback, see :meth:`act`), then checked for conflicts (:meth:`check`). A caller that
+        trusts its planner not to write in the scene (``lookahead``'s rollouts) saves :meth:`act`'s copy of it.
+
+        :param scene: the scene the planner answered
+        :param output: what its ``act`` returned
+        :param planner: its report name (for a planner error's line)
+        :return: ``(n,)`` accelerations to apply
+        """
+        n = scene.num_vehicles
         try:
-            proposal = checked_accelerations(output, scene, planner.name)
+            proposal = checked_accelerations(output, scene, planner)
         except PlannerError as error:
             self.planner_errors += 1
             if len(self.errors) < MAX_ERROR_LINES:

@@ -524,6 +524,45 @@ class Simulation:
             human=self.human.copy(),
         )
 
+    def rollout_scene(self, speed_limit: np.ndarray | None = None) -> Scene:
+        """A lean :meth:`scene` for planning ahead in a copy of the world (``lookahead``'s rollouts): the same
+        values, but the arrays are the simulation's own (not copied: the planners and the shield given it must
+        not write in them) and what no planner behind the shield reads (``position``, ``heading``, ``s``) is NaN.
+        :meth:`scene` copied about twenty arrays and computed the poses, a tenth of a rollout step.
+
+        :param speed_limit: ``(n,)`` ``layout.limit_at(route, arc)`` where the caller has it already
+        """
+        lay = self.layout
+        n = self.num_vehicles
+        leader, gap = self.leaders()
+        return Scene(
+            time=float(self.time),
+            dt=self.dt,
+            vehicle_id=self.vehicle_id,
+            route=self.route,
+            s=np.full(n, np.nan),
+            position=np.full((n, 2), np.nan),
+            heading=np.full(n, np.nan),
+            speed=self.speed,
+            speed_limit=lay.limit_at(self.route, self.arc) if speed_limit is None else speed_limit,
+            dist_to_entry=lay.entry_arc[self.route] - (self.arc + self.length / 2),
+            dist_to_exit=lay.exit_arc[self.route] - (self.arc - self.length / 2),
+            leader=leader,
+            gap=gap,
+            priority=lay.priority[self.route],
+            maneuver=lay.maneuver[self.route],
+            length=self.length,
+            route_names=lay.route_names,
+            conflicts=lay.conflicts,
+            a_min=-self.max_acceleration,
+            a_max=self.max_acceleration,
+            width=self.width,
+            s_ref=self.s_ref,
+            arc=self.arc,
+            layout=lay,
+            human=self.human,
+        )
+
 
 def integrate(
     layout: Layout,
