@@ -133,3 +133,18 @@ def test_a_crash_loop_stops_at_the_restart_cap(service, caplog):
             client.open("4way")
         assert (caught.value.status, caught.value.field) == (503, "server")
         assert client.health()["workers"] == 0
+
+
+def test_a_pool_freezes_what_was_built_before_it():
+    """The planners are out of the collector's reach once the pool starts (a full walk of them is a stall)."""
+    import gc
+
+    from envs.serve.workers import InlinePool
+
+    gc.unfreeze()
+    try:
+        built = [[k] for k in range(1000)]  # the planners' objects, made before the pool
+        InlinePool(object())
+        assert gc.get_freeze_count() >= len(built)
+    finally:
+        gc.unfreeze()
