@@ -111,6 +111,16 @@ def _attribute(model: Any, dotted: str) -> Any:
     return value
 
 
+def _read_clone(path: Path) -> dict[str, Any] | None:
+    """The cloned parameters kept at ``path``, or ``None`` (no such file, or unreadable: clone again)."""
+    if not path.is_file():
+        return None
+    try:
+        return th.load(path, map_location="cpu", weights_only=True)
+    except Exception:  # noqa: BLE001 (any unreadable file: clone again)
+        return None
+
+
 def _load_torch_state(model: Any, state: dict[str, Any]) -> None:
     model.set_parameters(state["parameters"], exact_match=True, device=model.device)
     with th.no_grad():
@@ -167,12 +177,7 @@ def pretrain_trial(
             demonstrations = Demonstrations.load(demo_path)
         except ValueError:
             demonstrations = None  # unreadable (cut short?): collect again, the file stays
-    state = None
-    if demonstrations is not None and clone_path.is_file():
-        try:
-            state = th.load(clone_path, map_location="cpu", weights_only=True)
-        except Exception:  # noqa: BLE001 (any unreadable file: clone again)
-            state = None
+    state = _read_clone(clone_path) if demonstrations is not None else None
     steps = int(entry.get("pretrain_steps", PRETRAIN_STEPS))
     critic_steps = entry.get("pretrain_critic_steps")
     result = behaviour_clone(
@@ -230,14 +235,8 @@ def _pretrain_sharded(
                        expert_factory(env_id)[0], tuple(gym_packages()))  # fmt: skip
     collector = ShardedCollector(model, job, int(labelling.get("seed", 0)), labelling.get("executor", "local"),
                                  int(labelling.get("workers", 1)), labelling.get("address"), rounds_folder)  # fmt: skip
-    state = None
-    n_envs = int(train_env.num_envs)
-    if clone_path.is_file() and all(collector.path(k, i).is_file() for k in range(dagger_arguments(entry)["rounds"])
-                                    for i in range(n_envs)):  # fmt: skip
-        try:
-            state = th.load(clone_path, map_location="cpu", weights_only=True)
-        except Exception:  # noqa: BLE001 (any unreadable file: clone again)
-            state = None
+    shards = [collector.path(k, i) for k in range(dagger_arguments(entry)["rounds"]) for i in range(train_env.num_envs)]
+    state = _read_clone(clone_path) if all(path.is_file() for path in shards) else None
     steps = int(entry.get("pretrain_steps", PRETRAIN_STEPS))
     critic_steps = entry.get("pretrain_critic_steps")
     if state is not None:
