@@ -34,6 +34,7 @@ def main(argv: list[str] | None = None) -> int:
                         "demonstrations-*/ folder of shards (train --label-jobs)")  # fmt: skip
     parser.add_argument("--steps", type=int, default=3000, help="gradient steps (default 3000)")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--save", type=Path, default=None, help="write the classifier (trunk, head, picks) here")
     args = parser.parse_args(argv)
     files = sorted(args.cache.glob("demonstrations-*.npz"))
     shards = sorted(args.cache.glob("demonstrations-*/round-*-env-*.npz"))
@@ -88,6 +89,9 @@ def main(argv: list[str] | None = None) -> int:
     shares = np.bincount(pick, minlength=len(picks)) / len(pick)
     print(f"{len(graphs)} labelled states with one pick for all vehicles ({mixed} with a window per vehicle left "
           f"out); picks (scores) {picks.tolist()}, shares {np.round(shares, 3).tolist()}")  # fmt: skip
+    if args.save is not None:
+        torch.save({"trunk": trunk.state_dict(), "head": head.state_dict(), "picks": picks.tolist(),
+                    "in_dim": obs["x"].shape[-1], "edge_dim": obs["edge_attr"].shape[-1]}, args.save)  # fmt: skip
     majority = np.bincount(target[test]).max() / len(test)
     print(f"accuracy: train {accuracy['train']:.3f}, held out {accuracy['held out']:.3f}; "
           f"the most frequent pick on the held-out states: {majority:.3f}")  # fmt: skip

@@ -7,6 +7,8 @@
 
 from __future__ import annotations
 
+import numpy as np
+
 from envs.planners.lookahead import LookaheadParams, LookaheadPlanner
 
 
@@ -51,3 +53,51 @@ class WithStudent(LookaheadPlanner):
 
         policy = Path(envs.__file__).parent / "pretrained" / "coop_4way_lookahead" / "best_model.safetensors"
         super().__init__("LookaheadWithStudent", proposer=make_planner(str(policy)))
+
+
+class Picker(LookaheadPlanner):
+    """No search: the pick probe's graph-level classifier (``scripts/lookahead_pick_probe.py --save``) answers the
+    search's pick, once a second, from the scene now (a student whose output is a pick, not a score per vehicle).
+    ``SB3_GRAPH_PICKER`` names the classifier file (default ``runs/sel/picker_big.pt``)."""
+
+    def __init__(self) -> None:
+        import os
+        from pathlib import Path
+
+        import torch
+        from torch import nn
+
+        import envs
+        from envs.planners import make_planner
+        from sb3_graph.common.networks import GraphTrunk
+
+        super().__init__("LookaheadPicker")
+        saved = torch.load(os.environ.get("SB3_GRAPH_PICKER", "runs/sel/picker_big.pt"), weights_only=True)
+        self.trunk = GraphTrunk(saved["in_dim"], 2, 64, (64, 64), "max", nn.ReLU, edge_dim=saved["edge_dim"])
+        self.head = nn.Sequential(nn.Linear(128, 64), nn.ReLU(), nn.Linear(64, len(saved["picks"])))
+        self.trunk.load_state_dict(saved["trunk"])
+        self.head.load_state_dict(saved["head"])
+        self.trunk.eval()
+        self.head.eval()
+        # the observation of the students of lookahead (their features), from the shipped one's file
+        student = make_planner(str(Path(envs.__file__).parent / "pretrained" / "coop_4way_lookahead"
+                                   / "best_model.safetensors"))  # fmt: skip
+        self.space, self.features = student.scores.space, student.scores._observation_kwargs()
+        order = sorted(range(len(self.search.windows)), key=lambda k: self.search.windows[k])
+        self.pick_windows = [self.search.windows[k] for k in order]  # scores ascend as the windows do
+
+    def _search(self, scene):
+        import torch
+        from torch_geometric.nn import global_max_pool, global_mean_pool
+
+        from envs.planners.lookahead import _roads
+        from envs.simulation.graph import build_graph_batch
+
+        self.searches += 1
+        g = build_graph_batch(scene, self.space, **self.features)
+        with torch.inference_mode():
+            h = self.trunk(g.x, g.edge_index, g.edge_type, g.edge_attr)
+            batch = torch.zeros(h.shape[0], dtype=torch.long)
+            pooled = torch.cat([global_mean_pool(h, batch, 1), global_max_pool(h, batch, 1)], dim=1)
+            pick = int(self.head(pooled).argmax(1))
+        return np.full(int(_roads(scene.layout).max()) + 1, self.pick_windows[pick])

@@ -300,3 +300,28 @@ def test_the_shipped_student_proposes_to_the_search():
     planner.reset(0)
     windows = planner.propose(scene)
     assert windows.shape == (scene.num_vehicles,) and np.all(windows >= 0)
+
+
+def test_the_picker_answers_one_of_the_search_windows_for_every_road(tmp_path, monkeypatch):
+    """``Picker`` (scripts/lookahead_variants.py): a classifier saved by the pick probe answers the search's pick,
+    one of its windows, the same for every approach road."""
+    from pathlib import Path
+
+    import torch
+    from torch import nn
+
+    from sb3_graph.common.networks import GraphTrunk
+
+    trunk = GraphTrunk(11, 2, 64, (64, 64), "max", nn.ReLU, edge_dim=2)
+    head = nn.Sequential(nn.Linear(128, 64), nn.ReLU(), nn.Linear(64, 3))
+    saved = tmp_path / "picker.pt"
+    torch.save({"trunk": trunk.state_dict(), "head": head.state_dict(), "picks": [-0.469, 0.0, 1.0], "in_dim": 11,
+                "edge_dim": 2}, saved)  # fmt: skip
+    monkeypatch.setenv("SB3_GRAPH_PICKER", str(saved))
+    script = Path(__file__).resolve().parents[1] / "scripts" / "lookahead_variants.py"
+    planner = make_planner(f"{script}:Picker")
+    planner.reset(0)
+    scene = busy_scene()
+    windows = planner._search(scene)
+    assert windows.shape == (4,) and len(set(windows.tolist())) == 1 and windows[0] in planner.search.windows
+    assert planner.act(scene).shape == (scene.num_vehicles,)
