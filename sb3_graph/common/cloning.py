@@ -241,8 +241,8 @@ def _collect(
     rng = np.random.default_rng(np.random.randint(2**31))  # noqa: NPY002 (follows the model's seed)
     acted = 0
     for _ in range(steps):
-        step = expert_step(env, policy, expert, obs, probability, rng)
-        new_obs, stored, labels, rewards, dones, infos, use_expert = step
+        new_obs, stored, labels, rewards, dones, infos, use_expert = expert_step(env, policy, expert, obs, probability,
+                                                                                 rng)  # fmt: skip
         acted += int(use_expert.sum())
         rewards = _original_rewards(model, rewards)
         buffer.add(
@@ -414,8 +414,13 @@ class Demonstrations:
         out["terminal_index"] = out["terminal_index"][order].reshape(-1, 2).astype(np.int64)
         for name in [n for n in out if n.startswith("terminal/")]:
             out[name] = out[name][order]
+        return cls.from_arrays(out)
+
+    @classmethod
+    def from_arrays(cls, arrays: dict[str, np.ndarray]) -> Demonstrations:
+        """Read-only demonstrations of named arrays, as :meth:`arrays` gives them (a shard sent back by a worker)."""
         new = cls()
-        new._frozen = out
+        new._frozen = arrays
         return new
 
     def save(self, file: Any) -> None:
@@ -436,9 +441,7 @@ class Demonstrations:
         missing = [name for name in cls.ARRAYS if name not in data]
         if missing or not any(name.startswith("obs/") for name in data):
             raise ValueError(f"Demonstrations.load: not a demonstrations file (missing {missing or 'obs/'})")
-        new = cls()
-        new._frozen = data
-        return new
+        return cls.from_arrays(data)
 
 
 def _next_observations(new_obs: dict, dones: np.ndarray, infos: list[dict]) -> dict:

@@ -146,7 +146,7 @@ class ShardedCollector:
             executor = make_executor(self.executor, self.workers, self.address) if own else self.executor
             try:
                 for k, arrays in executor.map_unordered(label_shard, items, job):
-                    shard = shards[missing[k]] = _frozen(arrays)
+                    shard = shards[missing[k]] = Demonstrations.from_arrays(arrays)
                     path = self.path(round_index, missing[k])
                     if path is not None:  # as it comes, atomically, never over a file that is there
                         write_atomically(path, shard.save)
@@ -165,9 +165,3 @@ def _with_policy(job: LabellingJob, policy: Any) -> LabellingJob:
     own = copy.deepcopy(policy).to(torch.device("cpu"))
     own.set_training_mode(False)
     return LabellingJob(job.env_id, job.env_kwargs, job.expert, job.factory, job.packages, own)
-
-
-def _frozen(arrays: dict[str, np.ndarray]) -> Demonstrations:
-    new = Demonstrations()
-    new._frozen = arrays
-    return new
