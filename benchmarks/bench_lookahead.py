@@ -8,9 +8,10 @@ Scenes:
   at 90 % of the limit), at ``--sizes`` (default 20, 50, 100).
 
 Per scene kind, interleaved call by call so that the load of a shared machine hits both alike: one search of
-:class:`~envs.planners.lookahead.LookaheadPlanner` (its default parameters, or ``--rollout-frequency``) and one
-``fullthrottle+shield`` decision plus the simulation step it drives (``Simulation.step``), the reference. Each
-cell is the median wall time over the scenes and ``--repeat`` rounds, one thread, after a warm-up that compiles.
+:class:`~envs.planners.lookahead.LookaheadPlanner` (its default parameters, or ``--rollout-frequency`` and
+``--per-approach``) and one ``fullthrottle+shield`` decision plus the simulation step it drives
+(``Simulation.step``), the reference. Each cell is the median wall time over the scenes and ``--repeat``
+rounds, one thread, after a warm-up that compiles.
 
 Usage::
 
@@ -99,11 +100,14 @@ def main() -> None:
     parser.add_argument("--run-sizes", type=int, nargs="*", default=[30])
     parser.add_argument("--repeat", type=int, default=2)
     parser.add_argument("--rollout-frequency", type=int, default=LookaheadParams().rollout_frequency)
+    parser.add_argument("--per-approach", choices=("true", "false"), default=None,
+                        help="the greedy pass per approach road (default: lookahead's default)")  # fmt: skip
     args = parser.parse_args()
     import torch
 
     torch.set_num_threads(1)
-    params = LookaheadParams(rollout_frequency=args.rollout_frequency)
+    per_approach = LookaheadParams().per_approach if args.per_approach is None else args.per_approach == "true"
+    params = LookaheadParams(rollout_frequency=args.rollout_frequency, per_approach=per_approach)
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}, one thread")
     print(f"command: python {' '.join(sys.argv)}")
     print(f"lookahead: {params}\n")

@@ -1,6 +1,7 @@
-"""``lookahead``'s other settings, as planner classes for ``--planner FILE:CLASS`` (docs/baselines.md)::
+"""``lookahead``'s other settings, as planner classes for ``--planner FILE:CLASS`` (docs/baselines.md). Besides
+``OneWindow``, they search one window for all roads (as measured there)::
 
-    sb3-graph evaluate --planner lookahead+shield --planner scripts/lookahead_variants.py:PerApproach+shield \\
+    sb3-graph evaluate --planner lookahead+shield --planner scripts/lookahead_variants.py:OneWindow+shield \\
         --planner scripts/lookahead_variants.py:StopPrice5+shield --trust-planner-files \\
         --scenarios 10 --duration 100 --seed 5000 --jobs 1
 """
@@ -12,25 +13,25 @@ import numpy as np
 from envs.planners.lookahead import LookaheadParams, LookaheadPlanner
 
 
-class PerApproach(LookaheadPlanner):
-    """After the global window, a greedy pass that tries each candidate on one approach road at a time."""
+class OneWindow(LookaheadPlanner):
+    """One window for all approach roads, without the default's greedy pass per road (about 4x cheaper)."""
 
     def __init__(self) -> None:
-        super().__init__("LookaheadPerApproach", LookaheadParams(per_approach=True))
+        super().__init__("LookaheadOneWindow", LookaheadParams(per_approach=False))
 
 
 class StopPrice5(LookaheadPlanner):
     """A stop priced at 5 s of delay instead of 2 s."""
 
     def __init__(self) -> None:
-        super().__init__("LookaheadStop5", LookaheadParams(stop_price=5.0))
+        super().__init__("LookaheadStop5", LookaheadParams(stop_price=5.0, per_approach=False))
 
 
 class Rollouts3Hz(LookaheadPlanner):
     """Rollouts that decide 3 times a second instead of 5 (40 % fewer planning steps per search)."""
 
     def __init__(self) -> None:
-        super().__init__("Lookahead3Hz", LookaheadParams(rollout_frequency=3))
+        super().__init__("Lookahead3Hz", LookaheadParams(rollout_frequency=3, per_approach=False))
 
 
 class Hold(LookaheadPlanner):
@@ -38,7 +39,7 @@ class Hold(LookaheadPlanner):
     vehicles not yet advised."""
 
     def __init__(self) -> None:
-        super().__init__("LookaheadHold", LookaheadParams(hold=True))
+        super().__init__("LookaheadHold", LookaheadParams(hold=True, per_approach=False))
 
 
 class WithStudent(LookaheadPlanner):
@@ -52,7 +53,8 @@ class WithStudent(LookaheadPlanner):
         from envs.planners import make_planner
 
         policy = Path(envs.__file__).parent / "pretrained" / "coop_4way_lookahead" / "best_model.safetensors"
-        super().__init__("LookaheadWithStudent", proposer=make_planner(str(policy)))
+        proposer = make_planner(str(policy))
+        super().__init__("LookaheadWithStudent", LookaheadParams(per_approach=False), proposer=proposer)
 
 
 class Picker(LookaheadPlanner):

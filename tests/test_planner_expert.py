@@ -143,6 +143,7 @@ def test_other_planners_are_refused_with_priority_scores_in_one_line():
 def test_advice_scores_take_glide_as_their_expert_and_refuse_others():
     venv, _ = one_vehicle_env(action={"type": "advice"})
     assert not PlannerExpert("glide", venv)(None).any()
+    assert PlannerExpert("glide", venv).cache_key is None  # an exact label: nothing beyond the spec
     with pytest.raises(ValueError, match=re.escape("planner 'aim' has no exact label for action type 'advice'")):
         PlannerExpert("aim", venv)
 
@@ -155,6 +156,8 @@ def test_a_lookahead_class_labels_advice_over_its_own_glide_and_other_classes_ar
     venv, base = one_vehicle_env(action={"type": "advice", "glide": "recipe"})
     expert = PlannerExpert(f"{script}:WithStudent", venv)
     assert expert.searches and expert.planners[0].proposer is not None
+    assert "per_approach=False" in expert.cache_key  # the search's parameters key a label cache
+    assert "per_approach=True" in PlannerExpert("lookahead", venv).cache_key
     scores = expert(None)
     assert scores.shape == (1, base.action_space.shape[0]) and np.all(np.abs(scores) <= 1.0)
     other, _ = one_vehicle_env(action={"type": "advice"})  # glide's own values, not the recipe

@@ -147,3 +147,31 @@ def test_dagger_demonstrations_depend_on_the_learner_that_chose_the_states():
         same = demonstrations_key(short, "E", "td3") == demonstrations_key(long, "E", "td3")
         assert same != differs
     assert demonstrations_key(dagger, "E", "td3") != demonstrations_key(dagger, "E", "sac")
+
+
+def test_an_expert_with_other_settings_labels_again(monkeypatch, tmp_path):
+    """An expert's ``cache_key`` (a search's parameters, whose defaults may change) enters the cache's keys: a cache
+    labelled with other settings is never read, while the same settings are."""
+    import sb3_graph.tuning.pretrain as pretrain
+
+    calls = []
+
+    def make_expert(spec, env, key):
+        def expert(obs):
+            calls.append(key)
+            return toy_envs.max_neighbour_expert(obs)
+
+        expert.cache_key = key
+        return expert
+
+    def clone(key):
+        monkeypatch.setattr(toy_envs, "make_expert", lambda spec, env: make_expert(spec, env, key))
+        config = settings(tmp_path / "cache")
+        study = optuna.create_study(direction="maximize")
+        study.optimize(lambda trial: run_trial(trial, config), n_trials=1)
+        return study.trials[0].user_attrs["pretrain"]["cache"]
+
+    assert pretrain._expert_settings(object()) == {}
+    assert clone("search A") == "none" and clone("search A") == "clone"
+    assert clone("search B") == "none"  # other settings: labelled again, the first files untouched
+    assert len(list((tmp_path / "cache").glob("demonstrations-*"))) == 2

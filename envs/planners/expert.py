@@ -64,6 +64,8 @@ class PlannerExpert:
         n_envs = vec_env.num_envs
         configs = vec_env.get_attr("config")
         self.max_nodes = int(vec_env.action_space.shape[0])
+        #: what the labels depend on beyond the spec (a search's parameters), for a label cache's key
+        self.cache_key: str | None = None
         scheduled = _priority_expert(spec, configs)
         self.zero_scores = scheduled == PRIORITY_PLANNER
         if self.zero_scores:  # glide's own order: nothing to ask a planner
@@ -72,6 +74,7 @@ class PlannerExpert:
         if self.searches:
             self.planners = [_search_planner(scheduled, c, trust_files) for c in configs]
             self.scales = [c["action"]["scale"] for c in configs]
+            self.cache_key = f"{self.planners[0].search!r} {self.planners[0].params!r}"
             self._last_step = [-1] * n_envs
             return
         self.planners = [make_planner(spec, trust_files=trust_files) for _ in range(n_envs)]

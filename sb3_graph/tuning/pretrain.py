@@ -111,6 +111,13 @@ def _attribute(model: Any, dotted: str) -> Any:
     return value
 
 
+def _expert_settings(expert: Any) -> dict[str, Any]:
+    """What the expert's labels depend on beyond its spec (its ``cache_key``: a search's parameters, whose defaults
+    may change between versions), for the keys; nothing for an expert without one (their keys stay as they were)."""
+    settings = getattr(expert, "cache_key", None)
+    return {} if settings is None else {"expert_settings": settings}
+
+
 def _read_clone(path: Path) -> dict[str, Any] | None:
     """The cloned parameters kept at ``path``, or ``None`` (no such file, or unreadable: clone again)."""
     if not path.is_file():
@@ -168,9 +175,11 @@ def pretrain_trial(
     folder = Path(folder)
     tic = time.perf_counter()
     init_hash = hashlib.sha256(init_weights.read_bytes()).hexdigest() if init_weights is not None else ""
-    demo_path = folder / f"demonstrations-{_digest(demonstrations_key(entry, env_id, algo, init_hash))[:32]}.npz"
-    clone_path = folder / f"clone-{_digest(clone_key(entry, env_id, algo, init_hash))[:32]}.pt"
     expert = _make_expert(str(entry["pretrain_from"]), env_id, train_env)  # on-policy bc_coef labels with it
+    settings = _expert_settings(expert)
+    key = {**demonstrations_key(entry, env_id, algo, init_hash), **settings}
+    demo_path = folder / f"demonstrations-{_digest(key)[:32]}.npz"
+    clone_path = folder / f"clone-{_digest({**clone_key(entry, env_id, algo, init_hash), **settings})[:32]}.pt"
     demonstrations = None
     if demo_path.is_file():
         try:
@@ -226,11 +235,11 @@ def _pretrain_sharded(
 
     tic = time.perf_counter()
     init_hash = hashlib.sha256(init_weights.read_bytes()).hexdigest() if init_weights is not None else ""
-    key = {**demonstrations_key(entry, env_id, algo, init_hash), "labelling": "shards"}
-    rounds_folder = folder / f"demonstrations-{_digest(key)[:32]}"
-    clone = {**clone_key(entry, env_id, algo, init_hash), "labelling": "shards"}
-    clone_path = folder / f"clone-{_digest(clone)[:32]}.pt"
     expert = _make_expert(str(entry["pretrain_from"]), env_id, train_env)  # on-policy bc_coef labels with it
+    settings = {**_expert_settings(expert), "labelling": "shards"}
+    key = {**demonstrations_key(entry, env_id, algo, init_hash), **settings}
+    rounds_folder = folder / f"demonstrations-{_digest(key)[:32]}"
+    clone_path = folder / f"clone-{_digest({**clone_key(entry, env_id, algo, init_hash), **settings})[:32]}.pt"
     job = LabellingJob(env_id, dict(entry.get("env_kwargs") or {}), str(entry["pretrain_from"]),
                        expert_factory(env_id)[0], tuple(gym_packages()))  # fmt: skip
     collector = ShardedCollector(model, job, int(labelling.get("seed", 0)), labelling.get("executor", "local"),
