@@ -173,6 +173,45 @@ def test_a_lean_rollout_costs_bit_for_bit_what_the_full_one_does(hold, monkeypat
         assert planner.rollout(scene, np.array(windows)) == want
 
 
+def test_windows_that_drive_a_road_alike_share_one_rollout_and_choose_bit_for_bit(monkeypatch):
+    """A road with no vehicle before its line, or whose farthest vehicle is within two candidate windows, is driven
+    alike by them: the search runs one rollout for both and still chooses as it does with a rollout each (the
+    same commands at every step of a run), with fewer rollouts."""
+    import envs.planners.lookahead as lookahead
+
+    def each_its_own(scene, n_roads, windows):
+        return [{w: w for w in windows} for _ in range(n_roads)]
+
+    shared = LookaheadPlanner()
+    got = drive(Shield(shared), seconds=20.0, seed=3)
+    with monkeypatch.context() as patch:
+        patch.setattr(lookahead, "_equivalent_windows", each_its_own)
+        alone = LookaheadPlanner()
+        want = drive(Shield(alone), seconds=20.0, seed=3)
+    assert len(got) == len(want) and all(np.array_equal(a, b) for a, b in zip(got, want))
+    assert shared.searches == alone.searches > 10
+    assert shared.rollouts < alone.rollouts
+
+
+def test_equivalent_windows_merge_only_what_drives_alike():
+    """Every window is one on a road with no one before the line; windows at least as wide as a road's farthest
+    vehicle are one; a narrower window stays its own."""
+    from envs.planners.lookahead import _equivalent_windows, _roads
+
+    scene = busy_scene()
+    roads = _roads(scene.layout)[scene.route]
+    windows = (0.0, 30.0, math.inf)
+    same = _equivalent_windows(scene, 4, windows)
+    for r in range(4):
+        before = scene.dist_to_entry[(roads == r) & (scene.dist_to_entry > 0)]
+        if before.size == 0:
+            assert same[r] == {0.0: 0.0, 30.0: 0.0, math.inf: 0.0}
+        elif before.max() < 30.0:
+            assert same[r] == {0.0: 0.0, 30.0: 30.0, math.inf: 30.0}
+        else:
+            assert same[r] == {w: w for w in windows}
+
+
 def test_a_stop_is_priced():
     """The same rollout costs more with a higher stop price exactly when a vehicle stops in it."""
     scene = busy_scene()

@@ -198,14 +198,16 @@ class LookaheadPlanner(GlidePlanner):
         n_roads = int(_roads(scene.layout).max()) + 1
         deadline = tic + self.search.budget
         costs: dict[tuple[float, ...], float] = {}
+        same = _equivalent_windows(scene, n_roads, self.search.windows)
 
         def cost(windows: tuple[float, ...]) -> float:
-            if windows not in costs:
+            key = tuple(same[r][w] for r, w in enumerate(windows))
+            if key not in costs:
                 if time.perf_counter() > deadline:
                     raise TimeoutError
                 # A cost only grows along a rollout: one past the cheapest so far cannot win, so it stops there.
-                costs[windows] = self.rollout(scene, np.array(windows), bound=min(costs.values(), default=math.inf))
-            return costs[windows]
+                costs[key] = self.rollout(scene, np.array(windows), bound=min(costs.values(), default=math.inf))
+            return costs[key]
 
         try:
             # The windows of the last search first: usually still the cheapest, so the others stop early.
@@ -214,7 +216,7 @@ class LookaheadPlanner(GlidePlanner):
             ordered = [w for w in first if w in flat] + [w for w in flat if w not in first]
             for windows in ordered:
                 cost(windows)
-            best = min(flat, key=lambda w: (costs[w], flat.index(w)))
+            best = min(flat, key=lambda w: (cost(w), flat.index(w)))
             if self.search.per_approach:
                 for road in range(n_roads):
                     tried = (best[:road] + (w,) + best[road + 1 :] for w in self.search.windows)
@@ -224,7 +226,7 @@ class LookaheadPlanner(GlidePlanner):
                     raise TimeoutError
                 order = np.argsort(scene.vehicle_id)
                 proposed = (scene.vehicle_id[order], self.propose(scene)[order])
-                if self.rollout(scene, None, bound=costs[best], proposed=proposed) < costs[best]:
+                if self.rollout(scene, None, bound=cost(best), proposed=proposed) < cost(best):
                     self.proposals_kept += 1
                     self.search_seconds += time.perf_counter() - tic
                     return proposed
@@ -334,6 +336,30 @@ class _RolloutSimulation(Simulation):
             1.0 / self.simulation_frequency,
             self.max_speed,
         )
+
+
+def _equivalent_windows(scene: Scene, n_roads: int, windows: tuple[float, ...]) -> list[dict[float, float]]:
+    """Per approach road, each candidate window mapped to the first candidate that drives its road's vehicles the
+    same in every rollout, so that two sets of windows that differ only there share one rollout.
+
+    No vehicle comes in a rollout and a distance to the line never grows, and glide advises a vehicle only while
+    ``0 < dist <= window``: on a road with no vehicle before its line every window is the same, and windows at
+    least as wide as the farthest vehicle's distance advise all of them from the start. The margin keeps any
+    doubt on the side of a rollout of its own.
+    """
+    margin = 1e-6
+    roads = _roads(scene.layout)[scene.route] if scene.num_vehicles else np.zeros(0, np.int64)
+    before = scene.dist_to_entry > -margin if scene.num_vehicles else np.zeros(0, bool)
+    farthest = np.full(n_roads, -math.inf)
+    np.maximum.at(farthest, roads[before], scene.dist_to_entry[before])
+    same = []
+    for r in range(n_roads):
+        if farthest[r] == -math.inf:  # no one to advise: every window drives alike
+            same.append(dict.fromkeys(windows, windows[0]))
+            continue
+        wide = [w for w in windows if w >= farthest[r] + margin]
+        same.append({w: (wide[0] if w in wide else w) for w in windows})
+    return same
 
 
 def _lookup(ids: np.ndarray, values: np.ndarray, query: np.ndarray, default: float) -> np.ndarray:
