@@ -103,3 +103,37 @@ class Picker(LookaheadPlanner):
             pooled = torch.cat([global_mean_pool(h, batch, 1), global_max_pool(h, batch, 1)], dim=1)
             pick = int(self.head(pooled).argmax(1))
         return np.full(int(_roads(scene.layout).max()) + 1, self.pick_windows[pick])
+
+
+class Chooser(LookaheadPlanner):
+    """No search: the regret probe's network (``scripts/lookahead_regret_probe.py fit --save``) picks one window
+    for all roads once a second, from the scene now and glide's plan of it. ``SB3_GRAPH_CHOOSER`` names its file
+    (default ``runs/regret/chooser.pt``)."""
+
+    def __init__(self) -> None:
+        import os
+        import sys
+        from pathlib import Path
+
+        import torch
+
+        sys.path.insert(0, str(Path(__file__).resolve().parent))
+        import lookahead_regret_probe as probe
+
+        super().__init__("LookaheadChooser", LookaheadParams(windows=probe.WINDOWS, per_approach=False))
+        saved = torch.load(os.environ.get("SB3_GRAPH_CHOOSER", "runs/regret/chooser.pt"), weights_only=True)
+        self.net = probe.make_net(len(saved["mu"]), saved["hidden"])
+        self.net.load_state_dict(saved["state"])
+        self.net.eval()
+        self.mu, self.sd, self.probe = saved["mu"].numpy(), saved["sd"].numpy(), probe
+
+    def _search(self, scene):
+        import torch
+
+        from envs.planners.lookahead import _roads
+
+        self.searches += 1
+        x = torch.as_tensor((self.probe.features(self, scene) - self.mu) / self.sd, dtype=torch.float32)
+        with torch.inference_mode():
+            pick = int(self.net(x[None]).argmax(1)[0])
+        return np.full(int(_roads(scene.layout).max()) + 1, self.search.windows[pick])

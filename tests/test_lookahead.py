@@ -364,3 +364,34 @@ def test_the_picker_answers_one_of_the_search_windows_for_every_road(tmp_path, m
     windows = planner._search(scene)
     assert windows.shape == (4,) and len(set(windows.tolist())) == 1 and windows[0] in planner.search.windows
     assert planner.act(scene).shape == (scene.num_vehicles,)
+
+
+def test_the_regret_probe_records_the_search_costs_and_its_chooser_answers_a_window(tmp_path, monkeypatch):
+    """``scripts/lookahead_regret_probe.py``: ``collect`` records the three windows' costs and the features at every
+    search (each cost as a fresh rollout of the search gives it); ``fit --save`` keeps a network that
+    ``lookahead_variants.py:Chooser`` answers with, one window for all roads; an existing output is refused."""
+    from pathlib import Path
+
+    scripts = Path(__file__).resolve().parents[1] / "scripts"
+    monkeypatch.syspath_prepend(str(scripts))
+    import lookahead_regret_probe as probe
+
+    out = tmp_path / "runs.npz"
+    args = ["collect", "--scenarios", "1", "--rates", "0.4", "--duration", "12", "--jobs", "1", "--seed", "3"]
+    assert probe.main([*args, "--out", str(out)]) == 0
+    data = np.load(out)
+    assert data["costs"].shape == (len(data["features"]), 3) and len(data["costs"]) >= 10
+    assert np.all(data["costs"] >= 0) and np.isfinite(data["features"]).all()
+    assert probe.main([*args, "--out", str(out)]) == 2
+    saved = tmp_path / "chooser.pt"
+    assert probe.main(["fit", str(out), str(out), "--steps", "20", "--save", str(saved)]) == 0
+    monkeypatch.setenv("SB3_GRAPH_CHOOSER", str(saved))
+    planner = make_planner(f"{scripts / 'lookahead_variants.py'}:Chooser")
+    planner.reset(0)
+    scene = busy_scene()
+    windows = planner._search(scene)
+    assert windows.shape == (4,) and len(set(windows.tolist())) == 1 and windows[0] in probe.WINDOWS
+    assert planner.act(scene).shape == (scene.num_vehicles,)
+    teacher = LookaheadPlanner(params=LookaheadParams(windows=probe.WINDOWS, per_approach=False))
+    teacher.reset(0)
+    assert probe.features(teacher, scene).shape == (data["features"].shape[1],)
