@@ -437,7 +437,7 @@ class Shield(Planner):
         (they can still stop before their first zone: the fallback would hold them there too) and that
         the proposal brakes below :data:`LIVE_SPEED`. A planner may hold vehicles before the line, not
         inside the intersection."""
-        go = self.committed(plan, plan.arc, plan.speed, float(scene.a_max))
+        go = self._committed_now(plan, float(scene.a_max))
         return (np.asarray(scene.dist_to_entry) < 0) & ~go & (acc < 0) & self._slowed_to_a_crawl(scene, plan, acc)
 
     def _slowed_to_a_crawl(self, scene: Scene, plan: _Plan, acc: np.ndarray) -> np.ndarray:
@@ -451,7 +451,7 @@ class Shield(Planner):
         vehicles before the line, never inside the intersection or on the exit lanes that the vehicles
         behind them must reach (the fallback itself brakes where safety needs it, and the check still
         runs on the result)."""
-        go = self.committed(plan, plan.arc, plan.speed, float(scene.a_max))
+        go = self._committed_now(plan, float(scene.a_max))
         return go & (acc < np.minimum(fallback, 0.0) - 1e-9) & self._slowed_to_a_crawl(scene, plan, acc)
 
     def _awaited_and_braked(self, scene: Scene, plan: _Plan, acc: np.ndarray, fallback: np.ndarray) -> np.ndarray:
@@ -463,7 +463,7 @@ class Shield(Planner):
         awaited = np.zeros(scene.num_vehicles, bool)
         if plan.cross.size:
             a_max = float(scene.a_max)
-            go = self.committed(plan, plan.arc, plan.speed, a_max)
+            go = self._committed_now(plan, a_max)
             arc, speed = np.ascontiguousarray(plan.arc), np.ascontiguousarray(plan.speed)
             waits = _shield_kernel.waits(plan.kernel_arrays, arc, speed, go, a_max, _STANDING, _STOP_SLACK)
             awaited[plan.cross[:, ::-1][waits]] = True
@@ -579,6 +579,13 @@ class Shield(Planner):
         return reach + _STOP_SLACK + _REACH_TOLERANCE > hull_start
 
     # ------------------------------------------------------------------ the fallback
+    def _committed_now(self, plan: _Plan, a_max: float) -> np.ndarray:
+        """:meth:`committed` in the state now, computed once per plan (three rules of a check read it)."""
+        go = getattr(plan, "committed_now", None)
+        if go is None:
+            go = plan.committed_now = self.committed(plan, plan.arc, plan.speed, a_max)
+        return go
+
     def committed(self, plan: _Plan, arc: np.ndarray, speed: np.ndarray, a_max: float) -> np.ndarray:
         """``(n,)`` bool: the vehicle can no longer stop before its first zone, or has cleared them all (compiled)."""
         arc, speed = np.ascontiguousarray(arc, dtype=float), np.ascontiguousarray(speed, dtype=float)
