@@ -137,3 +137,36 @@ class Chooser(LookaheadPlanner):
         with torch.inference_mode():
             pick = int(self.net(x[None]).argmax(1)[0])
         return np.full(int(_roads(scene.layout).max()) + 1, self.search.windows[pick])
+
+
+class ChooserOrSearch(Chooser):
+    """``Chooser`` where it is confident, the search where it is not: a search runs when the network's top
+    probability is below ``SB3_GRAPH_CONFIDENCE`` (default 0.8); ``searches_run`` counts them."""
+
+    def __init__(self) -> None:
+        import os
+
+        super().__init__()
+        self.name = "LookaheadChooserOrSearch"
+        self.confidence = float(os.environ.get("SB3_GRAPH_CONFIDENCE", "0.8"))
+
+    def reset(self, seed: int | None = None) -> None:
+        super().reset(seed)
+        self.searches_run = 0
+
+    def stats(self) -> dict[str, float]:
+        return {**super().stats(), "lookahead_searches_run": self.searches_run}
+
+    def _search(self, scene):
+        import torch
+
+        from envs.planners.lookahead import _roads
+
+        x = torch.as_tensor((self.probe.features(self, scene) - self.mu) / self.sd, dtype=torch.float32)
+        with torch.inference_mode():
+            p = torch.softmax(self.net(x[None]), 1)[0]
+        if float(p.max()) >= self.confidence:
+            self.searches += 1
+            return np.full(int(_roads(scene.layout).max()) + 1, self.search.windows[int(p.argmax())])
+        self.searches_run += 1
+        return LookaheadPlanner._search(self, scene)

@@ -395,3 +395,12 @@ def test_the_regret_probe_records_the_search_costs_and_its_chooser_answers_a_win
     teacher = LookaheadPlanner(params=LookaheadParams(windows=probe.WINDOWS, per_approach=False))
     teacher.reset(0)
     assert probe.features(teacher, scene).shape == (data["features"].shape[1],)
+    # ChooserOrSearch: the search where the network is less sure than the threshold, the network elsewhere
+    for confidence, searched in (("1.01", 1), ("0", 0)):
+        monkeypatch.setenv("SB3_GRAPH_CONFIDENCE", confidence)
+        mixed = make_planner(f"{scripts / 'lookahead_variants.py'}:ChooserOrSearch")
+        mixed.reset(0)
+        got = mixed._search(scene)
+        assert mixed.searches_run == searched and mixed.searches == 1
+        assert np.array_equal(got, teacher._search(scene) if searched else windows)
+        teacher.reset(0)
