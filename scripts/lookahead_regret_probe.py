@@ -8,13 +8,19 @@ glide would do: per road, the vehicles it would slow or stop, their planned dela
 ``fit`` trains a small network on one file's searches to pick the window of least expected regret (the softmax
 of its scores, weighted by each window's cost above the cheapest) and reports the held-out regret of its picks on
 another file's, against always answering one window; ``--save`` keeps it for ``lookahead_variants.py:Chooser``,
-which answers the pick once a second in place of the search::
+which answers the pick once a second in place of the search. ``collect --driver NET`` lets a saved network drive
+instead (the search's costs still recorded in the states it visits) and ``fit --more FILE`` adds such collections
+to the training set: DAgger rounds::
 
     python scripts/lookahead_regret_probe.py collect --scenarios 32 --rates 0.1 0.2 0.3 0.4 0.5 0.6 \\
-        --seed 30000 --out runs/regret/train.npz                      # 192 runs of 100 s, about 25 min
+        --seed 30000 --out runs/regret/train.npz                      # 192 runs of 100 s, about 16 min
     python scripts/lookahead_regret_probe.py collect --scenarios 8 --seed 20000 --out runs/regret/test.npz
     python scripts/lookahead_regret_probe.py fit runs/regret/train.npz runs/regret/test.npz \\
         --save runs/regret/chooser.pt
+    python scripts/lookahead_regret_probe.py collect --scenarios 16 --rates 0.1 0.2 0.3 0.4 0.5 0.6 \\
+        --seed 40000 --driver runs/regret/chooser.pt --out runs/regret/dagger1.npz
+    python scripts/lookahead_regret_probe.py fit runs/regret/train.npz runs/regret/test.npz \\
+        --more runs/regret/dagger1.npz --save runs/regret/chooser1.pt
 
 Regret is in the search's own unit: seconds lost against the lane limits by all vehicles over the 8 s horizon,
 plus 2 s per new stop.
@@ -78,7 +84,7 @@ def features(planner, scene) -> np.ndarray:
     return np.array(now + planned, float)
 
 
-def _run(job: tuple[int, float, float]) -> tuple[np.ndarray, np.ndarray]:
+def _run(job: tuple[int, float, float, str | None]) -> tuple[np.ndarray, np.ndarray]:
     import gymnasium as gym
 
     import envs  # noqa: F401  (registers the environments)
@@ -87,15 +93,19 @@ def _run(job: tuple[int, float, float]) -> tuple[np.ndarray, np.ndarray]:
     from envs.planners.shield import Shield
     from envs.simulation.traffic import generate_scenario
 
+    seed, rate, duration, driver = job
+    pick = None if driver is None else _picker(driver)
+
     class Recording(LookaheadPlanner):
         def _search(self, scene):
             self.searches += 1
             n_roads = int(_roads(scene.layout).max()) + 1
             costs = [self.rollout(scene, np.full(n_roads, w)) for w in WINDOWS]
-            self.rows.append((features(self, scene), costs))
-            return np.full(n_roads, WINDOWS[int(np.argmin(costs))])  # the first cheapest, as the search picks
+            x = features(self, scene)
+            self.rows.append((x, costs))
+            # the first cheapest, as the search picks; with a driver, its pick (DAgger: the states it visits)
+            return np.full(n_roads, WINDOWS[int(np.argmin(costs)) if pick is None else pick(x)])
 
-    seed, rate, duration = job
     env = gym.make("CoopIntersection4Way-v0", **evaluation_env_kwargs({}))
     scenario = generate_scenario("4way", duration, seed, rate_range=(rate, rate))
     env.reset(seed=seed, options={"scenario": scenario})
@@ -112,6 +122,24 @@ def _run(job: tuple[int, float, float]) -> tuple[np.ndarray, np.ndarray]:
     return x, np.array([r[1] for r in teacher.rows]).reshape(len(teacher.rows), len(WINDOWS))
 
 
+def _picker(path: str):
+    """The pick of a network saved by ``fit --save``: ``features -> window index``."""
+    import torch
+
+    torch.set_num_threads(1)
+    saved = torch.load(path, weights_only=True)
+    net = make_net(len(saved["mu"]), saved["hidden"])
+    net.load_state_dict(saved["state"])
+    net.eval()
+    mu, sd = saved["mu"].numpy(), saved["sd"].numpy()
+
+    def pick(x: np.ndarray) -> int:
+        with torch.inference_mode():
+            return int(net(torch.as_tensor((x - mu) / sd, dtype=torch.float32)[None]).argmax(1)[0])
+
+    return pick
+
+
 def collect(args: argparse.Namespace) -> int:
     from multiprocessing import get_context
 
@@ -119,7 +147,9 @@ def collect(args: argparse.Namespace) -> int:
         print(f"error: {args.out} exists (choose another --out)", file=sys.stderr)
         return 2
     jobs = [
-        (args.seed + 100 * i + int(round(r * 100)), r, args.duration) for i in range(args.scenarios) for r in args.rates
+        (args.seed + 100 * i + int(round(r * 100)), r, args.duration, None if args.driver is None else str(args.driver))
+        for i in range(args.scenarios)
+        for r in args.rates
     ]
     tic = time.perf_counter()
     with get_context("fork").Pool(args.jobs) as pool:
@@ -153,11 +183,15 @@ def fit(args: argparse.Namespace) -> int:
     torch.manual_seed(args.seed)
     train, test = np.load(args.train), np.load(args.test)
     x, regret = train["features"], train["costs"] - train["costs"].min(1, keepdims=True)
+    more = [np.load(f) for f in args.more]
     x_test, regret_test = test["features"], test["costs"] - test["costs"].min(1, keepdims=True)
     if args.fraction < 1.0:  # a share of the training runs, for a learning curve
         runs = np.random.default_rng(args.seed).permutation(np.unique(train["run"]))
         keep = np.isin(train["run"], runs[: max(1, int(round(args.fraction * len(runs))))])
         x, regret = x[keep], regret[keep]
+    if more:  # DAgger rounds: the states a network drove into, labelled with the search's costs
+        x = np.concatenate([x, *(m["features"] for m in more)])
+        regret = np.concatenate([regret, *(m["costs"] - m["costs"].min(1, keepdims=True) for m in more)])
     mu, sd = x.mean(0), x.std(0) + 1e-6
     net = make_net(x.shape[1], args.hidden)
     optimizer = torch.optim.Adam(net.parameters(), lr=1e-3, weight_decay=args.weight_decay)
@@ -208,6 +242,13 @@ def main(argv: list[str] | None = None) -> int:
     c.add_argument("--seed", type=int, default=20000)
     c.add_argument("--jobs", type=int, default=2)
     c.add_argument("--out", type=Path, required=True)
+    c.add_argument(
+        "--driver",
+        type=Path,
+        default=None,
+        help="a network of fit --save drives instead of the search "
+        "(the costs are still recorded): the states it visits, for a DAgger round",
+    )
     f = sub.add_parser("fit", help="train a picker on one collection, report its regret on another")
     f.add_argument("train", type=Path)
     f.add_argument("test", type=Path)
@@ -217,6 +258,7 @@ def main(argv: list[str] | None = None) -> int:
     f.add_argument("--fraction", type=float, default=1.0, help="share of the training runs used (default all)")
     f.add_argument("--seed", type=int, default=0)
     f.add_argument("--save", type=Path, default=None)
+    f.add_argument("--more", type=Path, action="append", default=[], help="another training collection (repeatable)")
     args = parser.parse_args(argv)
     return collect(args) if args.command == "collect" else fit(args)
 

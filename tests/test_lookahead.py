@@ -368,8 +368,9 @@ def test_the_picker_answers_one_of_the_search_windows_for_every_road(tmp_path, m
 
 def test_the_regret_probe_records_the_search_costs_and_its_chooser_answers_a_window(tmp_path, monkeypatch):
     """``scripts/lookahead_regret_probe.py``: ``collect`` records the three windows' costs and the features at every
-    search (each cost as a fresh rollout of the search gives it); ``fit --save`` keeps a network that
-    ``lookahead_variants.py:Chooser`` answers with, one window for all roads; an existing output is refused."""
+    search (each cost as a fresh rollout of the search gives it), driven by the search or by a saved network;
+    ``fit --save`` keeps a network that ``lookahead_variants.py:Chooser`` answers with, one window for all roads;
+    an existing output is refused."""
     from pathlib import Path
 
     scripts = Path(__file__).resolve().parents[1] / "scripts"
@@ -385,6 +386,11 @@ def test_the_regret_probe_records_the_search_costs_and_its_chooser_answers_a_win
     assert probe.main([*args, "--out", str(out)]) == 2
     saved = tmp_path / "chooser.pt"
     assert probe.main(["fit", str(out), str(out), "--steps", "20", "--save", str(saved)]) == 0
+    # a DAgger round: the network drives, the search's costs are recorded in the states it visits
+    driven = tmp_path / "driven.npz"
+    assert probe.main([*args, "--driver", str(saved), "--out", str(driven)]) == 0
+    assert np.load(driven)["costs"].shape[1] == 3
+    assert probe.main(["fit", str(out), str(out), "--more", str(driven), "--steps", "20"]) == 0
     monkeypatch.setenv("SB3_GRAPH_CHOOSER", str(saved))
     planner = make_planner(f"{scripts / 'lookahead_variants.py'}:Chooser")
     planner.reset(0)
