@@ -94,7 +94,7 @@ def _run(job: tuple[int, float, float, str | None]) -> tuple[np.ndarray, np.ndar
     from envs.simulation.traffic import generate_scenario
 
     seed, rate, duration, driver = job
-    pick = None if driver is None else _picker(driver)
+    chooser = None if driver is None else load_chooser(driver)
 
     class Recording(LookaheadPlanner):
         def _search(self, scene):
@@ -104,7 +104,7 @@ def _run(job: tuple[int, float, float, str | None]) -> tuple[np.ndarray, np.ndar
             x = features(self, scene)
             self.rows.append((x, costs))
             # the first cheapest, as the search picks; with a driver, its pick (DAgger: the states it visits)
-            return np.full(n_roads, WINDOWS[int(np.argmin(costs)) if pick is None else pick(x)])
+            return np.full(n_roads, WINDOWS[int(np.argmin(costs) if chooser is None else np.argmax(chooser(x)))])
 
     env = gym.make("CoopIntersection4Way-v0", **evaluation_env_kwargs({}))
     scenario = generate_scenario("4way", duration, seed, rate_range=(rate, rate))
@@ -122,22 +122,21 @@ def _run(job: tuple[int, float, float, str | None]) -> tuple[np.ndarray, np.ndar
     return x, np.array([r[1] for r in teacher.rows]).reshape(len(teacher.rows), len(WINDOWS))
 
 
-def _picker(path: str):
-    """The pick of a network saved by ``fit --save``: ``features -> window index``."""
+def load_chooser(path: str):
+    """A network saved by ``fit --save``, as ``features -> (3,) probabilities of the windows``."""
     import torch
 
-    torch.set_num_threads(1)
     saved = torch.load(path, weights_only=True)
     net = make_net(len(saved["mu"]), saved["hidden"])
     net.load_state_dict(saved["state"])
     net.eval()
     mu, sd = saved["mu"].numpy(), saved["sd"].numpy()
 
-    def pick(x: np.ndarray) -> int:
+    def probabilities(x: np.ndarray) -> np.ndarray:
         with torch.inference_mode():
-            return int(net(torch.as_tensor((x - mu) / sd, dtype=torch.float32)[None]).argmax(1)[0])
+            return torch.softmax(net(torch.as_tensor((x - mu) / sd, dtype=torch.float32)[None]), 1)[0].numpy()
 
-    return pick
+    return probabilities
 
 
 def collect(args: argparse.Namespace) -> int:

@@ -115,28 +115,23 @@ class Chooser(LookaheadPlanner):
         import sys
         from pathlib import Path
 
-        import torch
-
         sys.path.insert(0, str(Path(__file__).resolve().parent))
         import lookahead_regret_probe as probe
 
         super().__init__("LookaheadChooser", LookaheadParams(windows=probe.WINDOWS, per_approach=False))
-        saved = torch.load(os.environ.get("SB3_GRAPH_CHOOSER", "runs/regret/chooser.pt"), weights_only=True)
-        self.net = probe.make_net(len(saved["mu"]), saved["hidden"])
-        self.net.load_state_dict(saved["state"])
-        self.net.eval()
-        self.mu, self.sd, self.probe = saved["mu"].numpy(), saved["sd"].numpy(), probe
+        self.probabilities = probe.load_chooser(os.environ.get("SB3_GRAPH_CHOOSER", "runs/regret/chooser.pt"))
+        self.features = probe.features
 
-    def _search(self, scene):
-        import torch
-
+    def _pick(self, scene) -> tuple[np.ndarray, float]:
+        """The network's windows for all roads, and its probability of that pick."""
         from envs.planners.lookahead import _roads
 
+        p = self.probabilities(self.features(self, scene))
+        return np.full(int(_roads(scene.layout).max()) + 1, self.search.windows[int(p.argmax())]), float(p.max())
+
+    def _search(self, scene):
         self.searches += 1
-        x = torch.as_tensor((self.probe.features(self, scene) - self.mu) / self.sd, dtype=torch.float32)
-        with torch.inference_mode():
-            pick = int(self.net(x[None]).argmax(1)[0])
-        return np.full(int(_roads(scene.layout).max()) + 1, self.search.windows[pick])
+        return self._pick(scene)[0]
 
 
 class ChooserOrSearch(Chooser):
@@ -158,15 +153,9 @@ class ChooserOrSearch(Chooser):
         return {**super().stats(), "lookahead_searches_run": self.searches_run}
 
     def _search(self, scene):
-        import torch
-
-        from envs.planners.lookahead import _roads
-
-        x = torch.as_tensor((self.probe.features(self, scene) - self.mu) / self.sd, dtype=torch.float32)
-        with torch.inference_mode():
-            p = torch.softmax(self.net(x[None]), 1)[0]
-        if float(p.max()) >= self.confidence:
+        windows, confidence = self._pick(scene)
+        if confidence >= self.confidence:
             self.searches += 1
-            return np.full(int(_roads(scene.layout).max()) + 1, self.search.windows[int(p.argmax())])
+            return windows
         self.searches_run += 1
         return LookaheadPlanner._search(self, scene)
