@@ -138,29 +138,39 @@ def test_a_replayed_sequence_number_is_answered_from_the_cache(service):
         assert status == 200 and reply["step"] == 2
 
 
-def _fd_attack(url: str, count: int, seconds: float) -> subprocess.Popen:
-    """A process that opens ``count`` connections, sends half a request on each and holds them."""
+def _fd_attack(url: str, count: int, seconds: float, threads: int = 8) -> subprocess.Popen:
+    """A process that opens ``count`` connections, sends half a request on each and holds them, from ``threads``
+    threads (a connect that the full backlog holds back waits for the SYN's retry, a second or more: one thread
+    would wait out each of them in turn)."""
     host, port = url.split("//")[1].split(":")
     code = f"""
-import socket, time, resource
+import socket, threading, time, resource
 resource.setrlimit(resource.RLIMIT_NOFILE, resource.getrlimit(resource.RLIMIT_NOFILE)[1:] * 2)
-held, end = [], time.monotonic() + {seconds}
-while time.monotonic() < end:
-    while len(held) < {count}:
-        s = socket.create_connection(({host!r}, {port}))
-        s.sendall(b"POST /streams HTTP/1.1\\r\\nHost: 127.0.0.1\\r\\nContent-Le")
-        held.append(s)
-    time.sleep(0.05)
-    held = [s for s in held if s.fileno() >= 0]
-    alive = []
-    for s in held:  # a connection the server closed reads as EOF: open another
-        s.setblocking(False)
-        try:
-            gone = s.recv(1) == b""
-        except BlockingIOError:
-            gone = False
-        (s.close() if gone else alive.append(s))
-    held = alive
+end = time.monotonic() + {seconds}
+
+def attack(count):
+    held = []
+    while time.monotonic() < end:
+        while len(held) < count:
+            s = socket.create_connection(({host!r}, {port}))
+            s.sendall(b"POST /streams HTTP/1.1\\r\\nHost: 127.0.0.1\\r\\nContent-Le")
+            held.append(s)
+        time.sleep(0.05)
+        held = [s for s in held if s.fileno() >= 0]
+        alive = []
+        for s in held:  # a connection the server closed reads as EOF: open another
+            s.setblocking(False)
+            try:
+                gone = s.recv(1) == b""
+            except BlockingIOError:
+                gone = False
+            (s.close() if gone else alive.append(s))
+        held = alive
+
+shares = [{count} // {threads} + (k < {count} % {threads}) for k in range({threads})]
+for t in [threading.Thread(target=attack, args=(n,), daemon=True) for n in shares]:
+    t.start()
+time.sleep(max(0.0, end - time.monotonic()))
 """
     return subprocess.Popen([sys.executable, "-c", code], stderr=subprocess.PIPE)
 
