@@ -139,11 +139,26 @@ def load_chooser(path: str):
     return probabilities
 
 
+def _fresh(path: Path | None, flag: str) -> bool:
+    """``path`` may be written (it does not exist); else one line on stderr. Checked before the work, and again
+    when the file is written (:func:`~sb3_graph.files.output_folders.write_file_atomically`)."""
+    if path is not None and (path.exists() or path.is_symlink()):
+        print(f"error: {flag}: {str(path)!r} exists; choose a new file name", file=sys.stderr)
+        return False
+    return True
+
+
+def _regret(data) -> np.ndarray:
+    """``(N, 3)`` each window's cost above the cheapest of its search."""
+    return data["costs"] - data["costs"].min(1, keepdims=True)
+
+
 def collect(args: argparse.Namespace) -> int:
     from multiprocessing import get_context
 
-    if args.out.exists():
-        print(f"error: {args.out} exists (choose another --out)", file=sys.stderr)
+    from sb3_graph.files.output_folders import OutputError, write_file_atomically
+
+    if not _fresh(args.out, "--out"):
         return 2
     jobs = [
         (args.seed + 100 * i + int(round(r * 100)), r, args.duration, None if args.driver is None else str(args.driver))
@@ -153,14 +168,22 @@ def collect(args: argparse.Namespace) -> int:
     tic = time.perf_counter()
     with get_context("fork").Pool(args.jobs) as pool:
         runs = pool.map(_run, jobs, chunksize=1)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    np.savez(
-        args.out,
-        features=np.concatenate([x for x, _ in runs]),
-        costs=np.concatenate([c for _, c in runs]),
-        run=np.concatenate([np.full(len(c), k) for k, (_, c) in enumerate(runs)]),
-        rate=np.concatenate([np.full(len(c), job[1]) for job, (_, c) in zip(jobs, runs)]),
-    )
+    arrays = {
+        "features": np.concatenate([x for x, _ in runs]),
+        "costs": np.concatenate([c for _, c in runs]),
+        "run": np.concatenate([np.full(len(c), k) for k, (_, c) in enumerate(runs)]),
+        "rate": np.concatenate([np.full(len(c), job[1]) for job, (_, c) in zip(jobs, runs)]),
+    }
+
+    def write(path: Path) -> None:
+        with open(path, "wb") as file:  # a file object: np.savez would add ".npz" to a path's name
+            np.savez(file, **arrays)
+
+    try:
+        write_file_atomically(args.out, write, flag="--out")
+    except OutputError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 2
     print(
         f"{sum(len(c) for _, c in runs)} searches of {len(jobs)} runs in {time.perf_counter() - tic:.0f} s: {args.out}"
     )
@@ -178,19 +201,23 @@ def make_net(inputs: int, hidden: int):
 def fit(args: argparse.Namespace) -> int:
     import torch
 
+    from sb3_graph.files.output_folders import OutputError, write_file_atomically
+
+    if not _fresh(args.save, "--save"):
+        return 2
     torch.set_num_threads(1)
     torch.manual_seed(args.seed)
     train, test = np.load(args.train), np.load(args.test)
-    x, regret = train["features"], train["costs"] - train["costs"].min(1, keepdims=True)
+    x, regret = train["features"], _regret(train)
     more = [np.load(f) for f in args.more]
-    x_test, regret_test = test["features"], test["costs"] - test["costs"].min(1, keepdims=True)
+    x_test, regret_test = test["features"], _regret(test)
     if args.fraction < 1.0:  # a share of the training runs, for a learning curve
         runs = np.random.default_rng(args.seed).permutation(np.unique(train["run"]))
         keep = np.isin(train["run"], runs[: max(1, int(round(args.fraction * len(runs))))])
         x, regret = x[keep], regret[keep]
     if more:  # DAgger rounds: the states a network drove into, labelled with the search's costs
         x = np.concatenate([x, *(m["features"] for m in more)])
-        regret = np.concatenate([regret, *(m["costs"] - m["costs"].min(1, keepdims=True) for m in more)])
+        regret = np.concatenate([regret, *(_regret(m) for m in more)])
     mu, sd = x.mean(0), x.std(0) + 1e-6
     net = make_net(x.shape[1], args.hidden)
     optimizer = torch.optim.Adam(net.parameters(), lr=1e-3, weight_decay=args.weight_decay)
@@ -217,11 +244,12 @@ def fit(args: argparse.Namespace) -> int:
         )
     )
     if args.save is not None:
-        args.save.parent.mkdir(parents=True, exist_ok=True)
-        torch.save(
-            {"state": net.state_dict(), "mu": torch.as_tensor(mu), "sd": torch.as_tensor(sd), "hidden": args.hidden},
-            args.save,
-        )
+        saved = {"state": net.state_dict(), "mu": torch.as_tensor(mu), "sd": torch.as_tensor(sd), "hidden": args.hidden}
+        try:
+            write_file_atomically(args.save, lambda path: torch.save(saved, path), flag="--save")
+        except OutputError as error:
+            print(f"error: {error}", file=sys.stderr)
+            return 2
     return 0
 
 

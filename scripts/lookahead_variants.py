@@ -115,7 +115,9 @@ class Chooser(LookaheadPlanner):
         import sys
         from pathlib import Path
 
-        sys.path.insert(0, str(Path(__file__).resolve().parent))
+        here = str(Path(__file__).resolve().parent)
+        if here not in sys.path:  # the probe's features and network, beside this file
+            sys.path.insert(0, here)
         import lookahead_regret_probe as probe
 
         super().__init__("LookaheadChooser", LookaheadParams(windows=probe.WINDOWS, per_approach=False))

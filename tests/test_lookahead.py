@@ -370,7 +370,7 @@ def test_the_regret_probe_records_the_search_costs_and_its_chooser_answers_a_win
     """``scripts/lookahead_regret_probe.py``: ``collect`` records the three windows' costs and the features at every
     search (each cost as a fresh rollout of the search gives it), driven by the search or by a saved network;
     ``fit --save`` keeps a network that ``lookahead_variants.py:Chooser`` answers with, one window for all roads;
-    an existing output is refused."""
+    an existing output of either is refused and kept."""
     from pathlib import Path
 
     scripts = Path(__file__).resolve().parents[1] / "scripts"
@@ -386,6 +386,9 @@ def test_the_regret_probe_records_the_search_costs_and_its_chooser_answers_a_win
     assert probe.main([*args, "--out", str(out)]) == 2
     saved = tmp_path / "chooser.pt"
     assert probe.main(["fit", str(out), str(out), "--steps", "20", "--save", str(saved)]) == 0
+    kept = saved.read_bytes()
+    assert probe.main(["fit", str(out), str(out), "--steps", "20", "--save", str(saved)]) == 2  # never overwritten
+    assert saved.read_bytes() == kept
     # a DAgger round: the network drives, the search's costs are recorded in the states it visits
     driven = tmp_path / "driven.npz"
     assert probe.main([*args, "--driver", str(saved), "--out", str(driven)]) == 0
