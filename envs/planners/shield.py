@@ -131,6 +131,7 @@ class _Plan:
     human_col: np.ndarray = field(default_factory=lambda: np.zeros(0, _INT))
     human_from: np.ndarray = field(default_factory=lambda: np.zeros(0))
     human_until: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    committed_now: np.ndarray | None = None  # (n,) bool: Shield.committed in the state now, once computed
 
     def __post_init__(self) -> None:
         # The compiled kernels' view, contiguous and of one dtype per field (one compiled signature);
@@ -581,7 +582,7 @@ class Shield(Planner):
     # ------------------------------------------------------------------ the fallback
     def _committed_now(self, plan: _Plan, a_max: float) -> np.ndarray:
         """:meth:`committed` in the state now, computed once per plan (three rules of a check read it)."""
-        go = getattr(plan, "committed_now", None)
+        go = plan.committed_now
         if go is None:
             go = plan.committed_now = self.committed(plan, plan.arc, plan.speed, a_max)
         return go
