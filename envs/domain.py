@@ -1,6 +1,7 @@
 """What the intersection domain plugs into sb3-graph, declared as entry points in ``pyproject.toml``
-(groups ``sb3_graph.commands``, ``sb3_graph.tuning``, ``sb3_graph.experts`` and ``sb3_graph.gym_packages``; see
-:mod:`sb3_graph.plugins`). Plain strings only: reading this module imports no command.
+(groups ``sb3_graph.commands``, ``sb3_graph.tuning``, ``sb3_graph.experts``, ``sb3_graph.planner_configs`` and
+``sb3_graph.gym_packages``; see :mod:`sb3_graph.plugins`). Plain strings only: reading this module imports no
+command.
 """
 
 from __future__ import annotations
@@ -26,5 +27,13 @@ EXPERTS: dict[str, tuple[str, str]] = {
     "CoopIntersection": (
         "envs.planners.expert:make_expert",
         "a planner word of evaluate (aim, fifo, pr, fullthrottle, signal, file.py:Class, a policy file)",
+    ),
+}
+
+#: ``sb3-graph export`` of a run's model: env id prefix -> (planner config of the run's env config, what it records)
+PLANNER_CONFIGS: dict[str, tuple[str, str]] = {
+    "CoopIntersection": (
+        "envs.planners.gnn:planner_config_from_env",
+        "the action's type, scale and glide version, the observation's features, a residual base",
     ),
 }

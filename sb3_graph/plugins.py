@@ -14,6 +14,9 @@ A package that provides graph environments declares, in its ``pyproject.toml``::
     [project.entry-points."sb3_graph.experts"]
     mydomain = "mydomain.plugin:EXPERTS"         # {"EnvIdPrefix": ("module:make_expert", "what a spec may be")}
 
+    [project.entry-points."sb3_graph.planner_configs"]
+    mydomain = "mydomain.plugin:PLANNER_CONFIGS" # {"EnvIdPrefix": ("module:planner_config", "what it records")}
+
 - **commands**: each becomes ``sb3-graph <name>``; its module provides ``add_arguments(parser)`` and
   ``run(args) -> int`` and raises :class:`sb3_graph.commands.UserError` for a user's mistake. A
   command of the package itself keeps its name over a domain's.
@@ -24,6 +27,10 @@ A package that provides graph environments declares, in its ``pyproject.toml``::
   experiment) with an env id that starts with the prefix clones ``make_expert(SPEC, vec_env)``, a
   callable ``expert(obs) -> (n_envs, max_nodes)`` actions (see :func:`sb3_graph.behaviour_clone`).
   The toy task's expert (``GraphMaxNeighbour``: ``exact``) is the package's own.
+- **planner_configs**: ``sb3-graph export`` of a model in a run folder of ``sb3-graph train`` (its
+  ``run.json`` and ``config.yml``), without ``--planner-config``, stores ``planner_config(env_config)``
+  (the run's ``env_kwargs["config"]``) as the file's planner configuration: what the environment did
+  around the policy in training, which the domain's planner must do again.
 - **gym_packages**: imported by ``sb3-graph train`` (and ``tune`` for a domain's env id) when
   ``--gym-packages`` is not given.
 
@@ -43,6 +50,7 @@ COMMANDS_GROUP = "sb3_graph.commands"
 TUNING_GROUP = "sb3_graph.tuning"
 GYM_PACKAGES_GROUP = "sb3_graph.gym_packages"
 EXPERTS_GROUP = "sb3_graph.experts"
+PLANNER_CONFIGS_GROUP = "sb3_graph.planner_configs"
 #: The package's own experts (env id prefix -> (factory, what a spec may be)), before the domains'.
 BUILTIN_EXPERTS: dict[str, tuple[str, str]] = {
     "GraphMaxNeighbour": ("sb3_graph.toy_envs:make_expert", "exact (the task's exact answer)"),
@@ -114,5 +122,16 @@ def expert_factories() -> dict[str, tuple[str, str]]:
 
 def expert_factory(env_id: str) -> tuple[str, str] | None:
     """The expert factory whose prefix is the longest that starts ``env_id``, or ``None``."""
-    matches = [prefix for prefix in expert_factories() if env_id.startswith(prefix)]
-    return expert_factories()[max(matches, key=len)] if matches else None
+    return _longest_prefix(expert_factories(), env_id)
+
+
+def planner_config_factory(env_id: str) -> tuple[str, str] | None:
+    """``(module:function, what it records)`` of the domain whose prefix is the longest that starts ``env_id``:
+    the function turns a run's environment config into a policy file's planner configuration; ``None`` if no
+    domain has one."""
+    return _longest_prefix(_pairs(PLANNER_CONFIGS_GROUP), env_id)
+
+
+def _longest_prefix(mapping: dict[str, tuple[str, str]], env_id: str) -> tuple[str, str] | None:
+    matches = [prefix for prefix in mapping if env_id.startswith(prefix)]
+    return mapping[max(matches, key=len)] if matches else None

@@ -159,6 +159,7 @@ def test_the_repository_declares_the_intersection_domain(capsys):
         "sb3_graph.tuning": {"intersection": "envs.domain:TUNING"},
         "sb3_graph.gym_packages": {"intersection": "envs"},
         "sb3_graph.experts": {"intersection": "envs.domain:EXPERTS"},
+        "sb3_graph.planner_configs": {"intersection": "envs.domain:PLANNER_CONFIGS"},
     }
     from envs.domain import COMMANDS as DOMAIN
 

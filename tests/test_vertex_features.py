@@ -8,6 +8,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch
+import yaml
 
 import envs  # noqa: F401  (registers the environments)
 from envs.planners import make_planner
@@ -148,6 +149,40 @@ def test_a_planner_file_with_features_acts_as_the_model(tmp_path):
     assert main(["export", str(tmp_path / "model.zip"), str(plain)]) == 0
     with pytest.raises(ValueError, match="planner-config"):
         make_planner(str(plain))
+
+
+def test_export_takes_the_planner_config_from_the_run_folder(tmp_path, capsys):
+    action = {"type": "advice", "scale": 32.0}
+    config = {**SMALL, "vertex_features": ALL_VERTEX, "edge_features": ZONE_EDGES, "action": action}
+    env = gym.make("CoopIntersection4Way-v0", config=config)
+    model = TD3("GraphPolicy", env, learning_starts=10, policy_kwargs={"encoder_dim": 8, "conv_dims": (8,)}, seed=0)
+    model.learn(20)
+    run = tmp_path / "run"
+    (run / "checkpoints").mkdir(parents=True)
+    model.save(run / "checkpoints" / "step_20.zip")  # a checkpoint: the run files are one folder up
+    (run / "run.json").write_text(json.dumps({"algo": "td3", "env": "CoopIntersection4Way-v0", "seed": 0}))
+    (run / "config.yml").write_text(yaml.safe_dump({"n_timesteps": 20, "env_kwargs": {"config": config}}))
+    out = tmp_path / "advice.safetensors"
+    assert main(["export", str(run / "checkpoints" / "step_20.zip"), str(out)]) == 0
+    assert "planner config from" in capsys.readouterr().out
+    planner = make_planner(str(out))  # the scores drive glide's advice windows
+    assert planner.kind == "advice" and planner.scale == 32.0 and planner.scheduler.params.control == "first_phase"
+    scores = planner.scores
+    assert scores.vertex_features == tuple(ALL_VERTEX) and scores.edge_features == tuple(ZONE_EDGES)
+    # glide's version of the day of the export is pinned in the file
+    assert scores.planner_config["action"] == {"type": "advice", "scale": 32.0, "glide": "first_phase", "hold": True}
+    # --planner-config replaces the run's
+    given = tmp_path / "given.safetensors"
+    names = json.dumps({"vertex_features": ALL_VERTEX, "edge_features": ZONE_EDGES})
+    assert main(["export", str(run / "checkpoints" / "step_20.zip"), str(given), "--planner-config", names]) == 0
+    assert make_planner(str(given)).planner_config.get("action") is None
+    # a run config that the domain refuses: one line naming the file and the key, nothing written
+    (run / "config.yml").write_text(yaml.safe_dump({"env_kwargs": {"config": {"action": {"type": "bogus"}}}}))
+    bad = tmp_path / "bad.safetensors"
+    assert main(["export", str(run / "checkpoints" / "step_20.zip"), str(bad)]) == 2
+    message = capsys.readouterr().err.strip()
+    assert "config.yml" in message and "'action'" in message and len(message.splitlines()) == 1
+    assert not bad.exists()
 
 
 def test_a_tuning_trial_sees_the_training_features():

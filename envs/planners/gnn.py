@@ -90,6 +90,26 @@ def check_planner_config(config: Any, source: str) -> dict[str, Any]:
     return {**checked, "residual_base": values["residual_base"], "residual_scale": float(values["residual_scale"])}
 
 
+def planner_config_from_env(config: dict[str, Any]) -> dict[str, Any]:
+    """The planner configuration of a policy trained in an environment with ``config`` (what ``sb3-graph
+    export`` stores for a model of a run folder): its keys among :data:`PLANNER_CONFIG_KEYS`, the action's
+    defaults filled in, glide's version included, as the environment used them in training.
+
+    :param config: the run's environment config (``env_kwargs["config"]`` of its ``config.yml``)
+    :raises ValueError: a value that the environment's rule of the same key refuses, naming the key
+    """
+    found = {key: config[key] for key in PLANNER_CONFIG_KEYS if key in config}
+    if "action" in found:
+        if not RULES["action"].check(found["action"]):
+            raise ValueError(f"config key 'action' must be {RULES['action'].allowed}, got {found['action']!r}")
+        found["action"] = action_config(found["action"])
+    for key in ("vertex_features", "edge_features"):
+        if key in found and isinstance(found[key], tuple):
+            found[key] = list(found[key])
+    check_planner_config(found, "config key")
+    return found
+
+
 def planner_config_of(path: str | Path) -> dict:
     """The planner configuration in a policy file's header (``source["planner"]``, written by
     ``sb3-graph export --planner-config``); ``{}`` for a ``.zip`` or a file without one.

@@ -5,6 +5,13 @@ Example::
     sb3-graph export runs/4way/best_model.zip planners/4way.safetensors
     sb3-graph export runs/tuned/seed_0/final_model.zip planners/tuned.safetensors --max-nodes 64 --max-edges 1024
 
+A model inside a run folder of ``sb3-graph train`` (``run.json`` and ``config.yml`` beside it, or one
+folder up for a checkpoint) gets its planner configuration from the run: the domain of the run's
+environment turns the environment's config into what its planner must do again around the policy
+(for the intersection: the action's type, scale and glide version, the observation's features), and
+the command prints what it stored. ``--planner-config`` replaces that; a ``.safetensors`` input keeps
+its own.
+
 The output holds the policy's tensors (safetensors) and, in the file's metadata, the JSON that
 rebuilds it: algorithm, policy class (from an allow-list), policy keyword arguments, observation and
 action spaces (see :mod:`sb3_graph.files.policy_files`). ``sb3-graph evaluate --planner`` and ``sb3-graph ind
@@ -18,7 +25,9 @@ graph policy for larger (or smaller) graphs with the same weights (see
 from __future__ import annotations
 
 import argparse
+import json
 from pathlib import Path
+from typing import Any
 
 from sb3_graph.commands import UserError
 
@@ -44,7 +53,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="JSON",
         help="a JSON object stored as the file's planner configuration (header source.planner), read by the "
         "domain that runs the policy, e.g. '{\"residual_base\": \"fullthrottle\", \"residual_scale\": 2.0}' "
-        "for a policy trained as a correction of a base planner",
+        "for a policy trained as a correction of a base planner (default: taken from the run folder that holds "
+        "MODEL, by the domain of its environment)",
     )
 
 
@@ -77,8 +87,6 @@ def run(args: argparse.Namespace) -> int:
     description = loaded.description
     source = dict(description.source)
     if args.planner_config is not None:
-        import json
-
         try:
             config = json.loads(args.planner_config)
         except ValueError as error:
@@ -86,6 +94,11 @@ def run(args: argparse.Namespace) -> int:
         if not isinstance(config, dict):
             raise UserError(f"--planner-config: must be a JSON object, got {args.planner_config!r}")
         source["planner"] = config
+    elif "planner" not in source:
+        found = _run_planner_config(model)
+        if found is not None:
+            source["planner"] = found[1]
+            print(f"sb3-graph export: planner config from {found[0]}: {json.dumps(found[1])}")
     try:
         write_file_atomically(
             out,
@@ -100,3 +113,38 @@ def run(args: argparse.Namespace) -> int:
         f"from {model} to {out}"
     )
     return 0
+
+
+def _run_planner_config(model: Path) -> tuple[Path, dict[str, Any]] | None:
+    """``(config.yml, planner config)`` from the run folder that holds ``model`` (its folder or the one above,
+    for a checkpoint), by the domain of the run's environment (:func:`sb3_graph.plugins.planner_config_factory`);
+    ``None`` outside a run folder, or for an environment whose domain declares none. The files are read as
+    data (YAML and JSON, no code).
+
+    :raises UserError: a run file that cannot be read, or an environment config that the domain refuses
+    """
+    from sb3_graph.files.safe_values import UnsafeValueError, load_json, load_yaml, read_text_file
+    from sb3_graph.plugins import planner_config_factory
+    from sb3_graph.registry import import_object
+
+    for folder in (model.parent, model.parent.parent):
+        record_path, config_path = folder / "run.json", folder / "config.yml"
+        if record_path.is_file() and config_path.is_file():
+            break
+    else:
+        return None
+    try:
+        record = load_json(read_text_file(record_path, str(record_path)), str(record_path))
+        entry = load_yaml(read_text_file(config_path, str(config_path)), str(config_path))
+    except UnsafeValueError as error:
+        raise UserError(f"MODEL: {error}; or give --planner-config") from None
+    env_id = record.get("env") if isinstance(record, dict) else None
+    env_kwargs = entry.get("env_kwargs") if isinstance(entry, dict) else None
+    env_config = env_kwargs.get("config", {}) if isinstance(env_kwargs, dict) else {}
+    found = planner_config_factory(env_id) if isinstance(env_id, str) else None
+    if found is None or not isinstance(env_config, dict):
+        return None
+    try:
+        return config_path, import_object(found[0])(env_config)
+    except ValueError as error:
+        raise UserError(f"MODEL: {config_path}: {error}; or give --planner-config") from None
