@@ -27,6 +27,8 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from envs.evaluation.comparison import PAIRED_DISPLAY
+
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT / "docs" / "results" / "main.json"
 #: page -> the tables it holds
@@ -57,14 +59,7 @@ SHORT = {
 }
 #: summary.json -> main.json: per planner, the figures the tables show
 GROUPS = ("all", "major", "minor", "left", "straight", "right")
-PAIRED = {  # paired.csv metric -> (column heading, factor, decimals)
-    "flow_rate": ("Δ flow [veh/s]", 1.0, 3),
-    "delay_mean": ("Δ mean delay [s]", 1.0, 2),
-    "stop_ratio_all": ("Δ stops [pp]", 100.0, 1),
-    "slow_ratio": ("Δ slowed below 2 m/s [pp]", 100.0, 1),
-    "hard_brakes_per_vehicle": ("Δ hard brakes per vehicle", 1.0, 2),
-    "energy_kj_per_vehicle": ("Δ energy [kJ/veh]", 1.0, 0),
-}
+PAIRED = PAIRED_DISPLAY  # paired.csv metric -> (column heading, factor, decimals)
 
 
 def _number(value: Any) -> float | None:

@@ -24,6 +24,16 @@ PAIRED_METRICS = {
     "hard_brakes_per_vehicle": "hard brakes / vehicle",
     "energy_kj_per_vehicle": "energy [kJ/vehicle]",
 }
+#: metrics.csv column -> (heading of its paired difference in a table, factor, decimals): the report's and the
+#: results pages' tables (scripts/results_tables.py)
+PAIRED_DISPLAY = {
+    "flow_rate": ("Δ flow [veh/s]", 1.0, 3),
+    "delay_mean": ("Δ mean delay [s]", 1.0, 2),
+    "stop_ratio_all": ("Δ stops [pp]", 100.0, 1),
+    "slow_ratio": ("Δ slowed below 2 m/s [pp]", 100.0, 1),
+    "hard_brakes_per_vehicle": ("Δ hard brakes per vehicle", 1.0, 2),
+    "energy_kj_per_vehicle": ("Δ energy [kJ per crossed vehicle]", 1.0, 0),
+}
 PAIRED_COLUMNS = ("planner", "baseline", "metric", "pairs", "mean_difference", "ci_low", "ci_high")
 RESAMPLES = 10_000
 CONFIDENCE = 0.95

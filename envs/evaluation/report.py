@@ -31,7 +31,7 @@ import matplotlib.ticker  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
-from envs.evaluation.comparison import CONFIDENCE, PAIRED_METRICS, paired_differences  # noqa: E402
+from envs.evaluation.comparison import CONFIDENCE, PAIRED_DISPLAY, PAIRED_METRICS, paired_differences  # noqa: E402
 from envs.evaluation.metrics import PRIORITIES, SPEED_TOLERANCE, stop_counts, summarize  # noqa: E402
 from envs.evaluation.verdict import (  # noqa: E402
     VERDICT_METRICS,
@@ -195,14 +195,6 @@ def _motion_table(summary: Mapping[str, Mapping[str, Any]]) -> list[str]:
 
 
 #: ``paired.csv`` metric -> (column heading, factor to its unit, decimals): shares as percentage points.
-PAIRED_DISPLAY = {
-    "flow_rate": ("Δ flow [veh/s]", 1.0, 3),
-    "delay_mean": ("Δ mean delay [s]", 1.0, 2),
-    "stop_ratio_all": ("Δ stops [pp]", 100.0, 1),
-    "slow_ratio": ("Δ slowed below 2 m/s [pp]", 100.0, 1),
-    "hard_brakes_per_vehicle": ("Δ hard brakes per vehicle", 1.0, 2),
-    "energy_kj_per_vehicle": ("Δ energy [kJ per crossed vehicle]", 1.0, 0),
-}
 
 
 def signed_number(value: float, digits: int) -> str:
