@@ -13,6 +13,7 @@ import yaml
 import envs  # noqa: F401  (registers the environments)
 from envs.planners import make_planner
 from envs.planners.adversarial import FullThrottle
+from envs.planners.glide import glide_scheduler
 from envs.planners.gnn import GNNPlanner
 from envs.planners.shield import Shield
 from envs.simulation.graph import (
@@ -183,6 +184,51 @@ def test_export_takes_the_planner_config_from_the_run_folder(tmp_path, capsys):
     message = capsys.readouterr().err.strip()
     assert "config.yml" in message and "'action'" in message and len(message.splitlines()) == 1
     assert not bad.exists()
+
+
+def test_a_critic_gate_plans_with_the_scores_only_where_the_critics_value_them_above_glide(tmp_path, monkeypatch):
+    action = {"type": "advice", "scale": 64.0, "glide": "first_phase"}
+    config = {**SMALL, "vertex_features": ALL_VERTEX, "action": action}
+    env = gym.make("CoopIntersection4Way-v0", config=config)
+    model = TD3("GraphPolicy", env, learning_starts=10, policy_kwargs={"encoder_dim": 8, "conv_dims": (8,)}, seed=0)
+    model.learn(30)
+    model.save(tmp_path / "model.zip")
+
+    def export(name: str, **extra) -> str:
+        out = tmp_path / f"{name}.safetensors"
+        header = json.dumps({"action": action, "vertex_features": ALL_VERTEX, **extra})
+        assert main(["export", str(tmp_path / "model.zip"), str(out), "--planner-config", header]) == 0
+        return str(out)
+
+    plain, gated = make_planner(export("plain")), make_planner(export("gated", critic_gate=0.0))
+    assert gated.critic_gate == 0.0 and plain.critic_gate is None and plain.stats() == {}
+    scenes = [scene for scene in _busy_scenes() if scene.num_vehicles > 2][::10]
+    glide = glide_scheduler("first_phase")  # the file's glide (the word "glide" alone is glide without the shield)
+    # the gain is the twin critics' smallest value of the scores over that of the zero action
+    policy = gated.scores.model
+    scene = scenes[0]
+    score, gain = gated.scores.critic_gain(scene)
+    obs, _ = policy.obs_to_tensor(build_observation(scene, gated.scores.space, vertex_feature_names=ALL_VERTEX))
+    padded = torch.zeros((1, policy.action_space.shape[0]))
+    padded[0, : scene.num_vehicles] = torch.as_tensor(score, dtype=torch.float32)
+    with torch.no_grad():
+        want = min(q.item() for q in policy.critic(obs, padded)) - min(
+            q.item() for q in policy.critic(obs, torch.zeros_like(padded))
+        )
+    assert gain == pytest.approx(want, abs=1e-5)
+    np.testing.assert_allclose(score, plain.offsets(scene) / 64.0, atol=1e-5)
+    # gain above the margin: the scores, as without a gate; at or below it: glide alone, bit for bit
+    for forced, expected in ((1.0, plain), (0.0, glide)):
+        monkeypatch.setattr(type(gated.scores), "critic_gain", lambda self, s, g=forced: (plain.offsets(s) / 64.0, g))
+        for planner in (gated, plain, glide):
+            planner.reset(0)
+        for scene in scenes:
+            assert np.array_equal(gated.act(scene.copy()), expected.act(scene.copy()))
+        assert gated.stats() == {"gate_steps": len(scenes), "gate_open_steps": len(scenes) if forced else 0}
+    # bad values: one line naming the key
+    for bad in (-1.0, "0.2"):
+        with pytest.raises(ValueError, match="critic_gate must be null or a number >= 0"):
+            make_planner(export(f"bad{len(str(bad))}", critic_gate=bad))
 
 
 def test_a_tuning_trial_sees_the_training_features():

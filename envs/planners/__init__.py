@@ -171,7 +171,8 @@ def make_planner(spec: str, trust_files: bool = False) -> Planner:
     if "action" in config:  # a scheduling policy: its scores shift glide's order or its advice windows
         action = config["action"]
         scheduler = glide_scheduler(action["glide"], action["hold"])
-        return PriorityPlanner(scheduler, planner, action["scale"], name=planner.name, kind=action["type"])
+        return PriorityPlanner(scheduler, planner, action["scale"], name=planner.name, kind=action["type"],
+                               critic_gate=config.get("critic_gate"))  # fmt: skip
     if config.get("residual_base") is None:
         return planner
     base = make_residual_base(config["residual_base"])

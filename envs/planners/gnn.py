@@ -11,6 +11,7 @@ Planner files are what people share, so they load without running code: a weight
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -41,13 +42,16 @@ def load_model(path: str | Path, device: str = "cpu", trust_files: bool = False)
 
 #: Keys of a policy file's planner configuration (``source["planner"]`` of its header): what the
 #: environment did around the policy in training, which the planner must do again.
-PLANNER_CONFIG_KEYS = ("residual_base", "residual_scale", "vertex_features", "edge_features", "action")
+PLANNER_CONFIG_KEYS = ("residual_base", "residual_scale", "vertex_features", "edge_features", "action", "critic_gate")
+#: Keys of a planner configuration that are not settings of the environment (what the planner adds at run time).
+_PLANNER_ONLY_KEYS = ("critic_gate",)
 _PLANNER_CONFIG_DEFAULTS = {
     "residual_base": None,
     "residual_scale": 0.5,
     "vertex_features": [],
     "edge_features": [],
     "action": {"type": "acceleration"},
+    "critic_gate": None,
 }
 
 
@@ -60,7 +64,10 @@ def check_planner_config(config: Any, source: str) -> dict[str, Any]:
         names (the environment config's keys of the same names); ``action``, what the policy's action
         means (the environment config's key: ``{"type": "priority", "scale": 5.0}`` for a policy
         that shifts glide's order, ``{"type": "advice", "scale": 64.0}`` for one that moves glide's
-        advice windows, default accelerations)
+        advice windows, default accelerations); ``critic_gate``, ``null`` (default) or a number >= 0 for a
+        priority or advice policy: its scores are used in a scene only where its critics (the smallest of them)
+        value them above glide's own plan (the zero action) by more than this margin, else glide plans alone
+        (a Q-filter; :meth:`GNNPlanner.critic_gain`)
     :param source: what to name in errors (the file)
     :return: ``vertex_features`` and ``edge_features`` (tuples, default empty), plus ``residual_base``
         and ``residual_scale`` for a residual policy, plus ``action`` (type and scale) for a priority or advice policy
@@ -75,16 +82,28 @@ def check_planner_config(config: Any, source: str) -> dict[str, Any]:
     # Each key means what the environment config's key of the same name means: its rule checks it.
     values = {**_PLANNER_CONFIG_DEFAULTS, **config}
     for key in PLANNER_CONFIG_KEYS:
+        if key in _PLANNER_ONLY_KEYS:
+            continue
         if not RULES[key].check(values[key]):
             raise ValueError(f"{source}: planner config {key} must be {RULES[key].allowed}, got {values[key]!r}")
     checked: dict[str, Any] = {key: tuple(values[key]) for key in ("vertex_features", "edge_features")}
     action = action_config(values["action"])
     if "glide" not in values["action"]:  # written before glide had versions: trained over the first one
         action["glide"] = "guarded"
+    gate = values["critic_gate"]
+    if gate is not None:
+        if isinstance(gate, bool) or not isinstance(gate, (int, float)) or not math.isfinite(gate) or gate < 0:
+            raise ValueError(f"{source}: planner config critic_gate must be null or a number >= 0, got {gate!r}")
+        if action["type"] not in SCHEDULER_ACTION_TYPES:
+            kinds = " or ".join(SCHEDULER_ACTION_TYPES)
+            raise ValueError(f"{source}: planner config critic_gate needs an action of type {kinds} (its zero "
+                             f"action is glide), got {action['type']!r}")  # fmt: skip
     if action["type"] in SCHEDULER_ACTION_TYPES:
         if values["residual_base"] is not None:
             raise ValueError(f"{source}: planner config residual_base must be null for a {action['type']} policy")
         checked["action"] = action
+        if gate is not None:
+            checked["critic_gate"] = float(gate)
     if values["residual_base"] is None:
         return checked
     return {**checked, "residual_base": values["residual_base"], "residual_scale": float(values["residual_scale"])}
@@ -274,6 +293,30 @@ class GNNPlanner(Planner):
         actions = np.zeros(policy.action_space.shape, dtype=np.float32)
         actions[: scene.num_vehicles] = vertex.numpy()
         return _to_action_bounds(policy, actions)[: scene.num_vehicles]
+
+    def critic_gain(self, scene: Scene) -> tuple[np.ndarray, float]:
+        """The policy's deterministic scores for ``scene`` and how much more its critics value them than the zero
+        action: ``min_k Q_k(s, pi(s)) - min_k Q_k(s, 0)`` over the policy's critics (TD3's twin critics; what a
+        ``critic_gate`` compares with its margin).
+
+        :param scene: at least one vehicle
+        :return: ``(n,)`` scores in ``[-1, 1]`` and the gain (in the units of the training reward)
+        :raises ValueError: a policy without critics (naming the file)
+        """
+        import torch
+
+        policy = self.model
+        critic = getattr(policy, "critic", None)
+        if critic is None or not hasattr(policy, "obs_to_tensor"):
+            raise ValueError(f"{self.path}: critic_gate needs a policy file with its critics (TD3, DDPG, SAC)")
+        n = scene.num_vehicles
+        obs, _ = policy.obs_to_tensor(build_observation(scene, self.space, **self._observation_kwargs()))
+        with torch.no_grad():
+            action = policy._predict(obs, deterministic=True).reshape(1, -1)
+            action[:, n:] = 0.0  # the padded slots are no vertices of the graph
+            value = torch.cat(critic(obs, action), dim=1).min()
+            gain = value - torch.cat(critic(obs, torch.zeros_like(action)), dim=1).min()
+        return np.clip(action[0, :n].numpy().astype(float), -1.0, 1.0), float(gain)
 
     def predict(self, obs) -> np.ndarray:
         """The policy's deterministic action, as ``model.predict(obs, deterministic=True)[0]``.

@@ -36,10 +36,20 @@ class PriorityPlanner(Planner):
         score, in ``(0, 3600]`` (as ``action``'s ``scale`` in training)
     :param name: report name (default: ``<scores>@<scheduler>``)
     :param kind: ``"priority"`` or ``"advice"`` (``action``'s ``type`` in training)
+    :param critic_gate: ``None``, or a margin >= 0: the scores are used in a scene only where the scoring planner's
+        critics value them above the zero action (glide alone) by more than it (``scores`` must then offer
+        ``critic_gain``, as :class:`~envs.planners.gnn.GNNPlanner` does); the run's ``gate_open_steps`` and
+        ``gate_steps`` count how often
     """
 
     def __init__(
-        self, scheduler: GlidePlanner, scores: Planner, scale: float, name: str | None = None, kind: str = "priority"
+        self,
+        scheduler: GlidePlanner,
+        scores: Planner,
+        scale: float,
+        name: str | None = None,
+        kind: str = "priority",
+        critic_gate: float | None = None,
     ) -> None:
         if not (isinstance(scale, (int, float)) and math.isfinite(scale) and 0 < scale <= 3600):
             raise ValueError(f"priority scale must be a number in (0, 3600], got {scale!r}")
@@ -50,10 +60,21 @@ class PriorityPlanner(Planner):
         self.scores = scores
         self.scale = float(scale)
         self.kind = kind
+        if critic_gate is not None and not (math.isfinite(critic_gate) and critic_gate >= 0):
+            raise ValueError(f"critic_gate must be None or a number >= 0, got {critic_gate!r}")
+        self.critic_gate = critic_gate
+        self.gate_steps = self.gate_open_steps = 0
 
     def reset(self, seed: int | None = None) -> None:
         self.scheduler.reset(seed)
         self.scores.reset(seed)
+        self.gate_steps = self.gate_open_steps = 0
+
+    def stats(self) -> dict[str, float]:
+        """With a critic gate: the steps planned and those in which the scores were used."""
+        if self.critic_gate is None:
+            return {}
+        return {"gate_steps": self.gate_steps, "gate_open_steps": self.gate_open_steps}
 
     def offsets(self, scene: Scene) -> np.ndarray:
         """The scoring planner's scores for ``scene``, in ``[-1, 1]``, times ``scale``: what :meth:`act` hands the
@@ -62,6 +83,15 @@ class PriorityPlanner(Planner):
         :return: ``(n,)`` offsets
         """
         n = scene.num_vehicles
+        if self.critic_gate is not None:
+            if n == 0:
+                return np.zeros(0)
+            score, gain = self.scores.critic_gain(scene)
+            self.gate_steps += 1
+            if gain <= self.critic_gate:  # the critics see no gain over glide's own plan: glide plans alone
+                return np.zeros(n)
+            self.gate_open_steps += 1
+            return self.scale * score
         score = np.clip(np.asarray(self.scores.act(scene), dtype=float).reshape(n) / scene.a_max, -1.0, 1.0)
         return self.scale * score
 
