@@ -56,10 +56,13 @@ def test_the_first_advice_policy_runs_over_the_glide_it_was_trained_over():
 
 @pytest.mark.parametrize("env_id", ["CoopIntersection4Way-v0", "CoopIntersection3Way-v0", "CoopIntersectionInD-v0"])
 def test_default_model_moves_glides_windows_on_every_layout(env_id):
-    """The shipped scores run over glide: some vehicle's window differs from glide's own, so the
-    commands differ from glide's somewhere, and every command is a valid acceleration."""
+    """The shipped scores run over glide: some vehicle's window differs from glide's own, and without its
+    critic gate the commands differ from glide's somewhere; every command is a valid acceleration. Behind
+    its gate (the shipped setting) it plans as glide wherever the gate stays shut."""
     planner = make_planner(str(DEFAULT_MODEL))
     assert isinstance(planner, PriorityPlanner) and planner.kind == "advice" and planner.scale == 64.0
+    assert planner.critic_gate == 0.2
+    planner.critic_gate = 0.0  # the gate opens wherever the critics see any gain
     glide = GlidePlanner()
     env = gym.make(env_id, config={"spawn_probability": 0.07})
     env.reset(seed=0)
@@ -78,7 +81,24 @@ def test_default_model_moves_glides_windows_on_every_layout(env_id):
             env.reset()
             planner.reset()
             glide.reset()
-    assert moved > 0 and differs > 0
+    assert moved > 0 and differs > 0 and planner.stats()["gate_open_steps"] > 0
+
+
+def test_default_models_gate_opens_in_dense_traffic_and_is_glide_where_shut():
+    planner, glide = make_planner(str(DEFAULT_MODEL)), GlidePlanner()
+    env = gym.make("CoopIntersection4Way-v0", config={"spawn_probability": 0.14, "shield": True})
+    env.reset(seed=0)
+    shut_differs = 0
+    for _ in range(200):
+        scene = env.unwrapped.scene()
+        acc, own = planner.act(scene), glide.act(scene)
+        if planner.gate_open_steps == 0:  # shut so far: glide's own windows, glide's commands (held advice after)
+            shut_differs += int(np.sum(acc != own))
+        n = scene.num_vehicles
+        env.step(np.append(acc / scene.a_max, np.zeros(env.action_space.shape[0] - n)).astype(np.float32))
+    stats = planner.stats()
+    assert stats["gate_steps"] == 200 and 0 < stats["gate_open_steps"] < 200
+    assert shut_differs == 0
 
 
 def test_residual_model_is_the_residual_policy_of_its_training_config():
