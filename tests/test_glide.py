@@ -355,6 +355,15 @@ def test_every_algorithm_trains_on_scheduler_actions(algo, kind, tmp_path):
     else:  # the window moved by the scaled score, never below 0 m (set_scores written out)
         glide.set_windows(np.maximum(glide.params.window + 4.0 * scores, 0.0))
     np.testing.assert_array_equal(inner.act(scene), glide.act(scene))
+    # a critic gate reads critics of one value each; others are refused at load, in one line naming the file
+    gated = tmp_path / "gated.safetensors"
+    header = json.dumps({"action": {"type": kind, "scale": 4.0}, "critic_gate": 0.0})
+    assert main(["export", str(tmp_path / "model.zip"), str(gated), "--planner-config", header]) == 0
+    if algo in ("td3", "ddpg", "sac"):
+        assert np.isfinite(make_planner(str(gated)).scores.critic_gain(scene)[1])
+    else:
+        with pytest.raises(ValueError, match=f"{gated}: critic_gate needs a policy file of TD3, DDPG, SAC"):
+            make_planner(str(gated))
 
 
 def test_advice_once_given_holds_to_the_line():

@@ -109,6 +109,23 @@ def check_planner_config(config: Any, source: str) -> dict[str, Any]:
     return {**checked, "residual_base": values["residual_base"], "residual_scale": float(values["residual_scale"])}
 
 
+#: Algorithms whose policy files a ``critic_gate`` can read: critics of one value each (TQC's give quantiles,
+#: CrossQ's a batch-normalised pair, PPO and A2C a state value).
+GATED_ALGORITHMS = ("TD3", "DDPG", "SAC")
+
+
+def check_gated_policy(policy: Any, source: str) -> None:
+    """Refuse a ``critic_gate`` over a policy without critics that it can read (:data:`GATED_ALGORITHMS`).
+
+    :raises ValueError: naming the file and its algorithm
+    """
+    entry = entry_of_policy(policy)
+    if entry is None or entry.name not in GATED_ALGORITHMS:
+        name = type(policy).__name__ if entry is None else entry.name
+        raise ValueError(f"{source}: critic_gate needs a policy file of {', '.join(GATED_ALGORITHMS)} (critics of "
+                         f"one value each), got {name}")  # fmt: skip
+
+
 def planner_config_from_env(config: dict[str, Any]) -> dict[str, Any]:
     """The planner configuration of a policy trained in an environment with ``config`` (what ``sb3-graph
     export`` stores for a model of a run folder): its keys among :data:`PLANNER_CONFIG_KEYS`, the action's
@@ -301,14 +318,13 @@ class GNNPlanner(Planner):
 
         :param scene: at least one vehicle
         :return: ``(n,)`` scores in ``[-1, 1]`` and the gain (in the units of the training reward)
-        :raises ValueError: a policy without critics (naming the file)
+        :raises ValueError: a policy without critics that the gate can read (:func:`check_gated_policy`)
         """
         import torch
 
         policy = self.model
-        critic = getattr(policy, "critic", None)
-        if critic is None or not hasattr(policy, "obs_to_tensor"):
-            raise ValueError(f"{self.path}: critic_gate needs a policy file with its critics (TD3, DDPG, SAC)")
+        check_gated_policy(policy, str(self.path))
+        critic = policy.critic
         n = scene.num_vehicles
         obs, _ = policy.obs_to_tensor(build_observation(scene, self.space, **self._observation_kwargs()))
         with torch.no_grad():
