@@ -27,9 +27,10 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from envs.evaluation.comparison import PAIRED_DISPLAY
-
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))  # the checkout's envs, installed or not
+from envs.evaluation.comparison import PAIRED_COLUMNS, PAIRED_DISPLAY  # noqa: E402
+
 DATA = ROOT / "docs" / "results" / "main.json"
 #: page -> the tables it holds
 PAGES = {
@@ -59,7 +60,6 @@ SHORT = {
 }
 #: summary.json -> main.json: per planner, the figures the tables show
 GROUPS = ("all", "major", "minor", "left", "straight", "right")
-PAIRED = PAIRED_DISPLAY  # paired.csv metric -> (column heading, factor, decimals)
 
 
 def _number(value: Any) -> float | None:
@@ -104,7 +104,7 @@ def read_report(report: Path, command: str | None = None) -> dict[str, Any]:
 
         with (report / "paired.csv").open() as file:
             for row in csv.DictReader(file):
-                if row["metric"] in PAIRED:
+                if row["metric"] in PAIRED_DISPLAY:
                     paired.append({
                         "planner": row["planner"], "baseline": row["baseline"], "metric": row["metric"],
                         "pairs": int(row["pairs"]), "mean_difference": _number(row["mean_difference"]),
@@ -206,12 +206,12 @@ def paired_table(data: Mapping[str, Any]) -> list[str]:
     if not rows:
         return ["The report has no paired differences (no baseline planner ran)."]
     baseline = rows[0]["baseline"]
-    metrics = [m for m in PAIRED if any(r["metric"] == m for r in rows)]
+    metrics = [m for m in PAIRED_DISPLAY if any(r["metric"] == m for r in rows)]
     lines = [
         f"Per scenario, planner minus {LABELS.get(baseline, baseline)} (the strongest baseline): mean over the "
         f"{rows[0]['pairs']} scenarios and its 95 % bootstrap interval; pp: percentage points.",
         "",
-        "| planner | " + " | ".join(PAIRED[m][0] for m in metrics) + " |",
+        "| planner | " + " | ".join(PAIRED_DISPLAY[m][0] for m in metrics) + " |",
         "|---|" + "---:|" * len(metrics),
     ]
     for planner in dict.fromkeys(r["planner"] for r in rows):
@@ -221,7 +221,7 @@ def paired_table(data: Mapping[str, Any]) -> list[str]:
             if not found or None in (found[0]["mean_difference"], found[0]["ci_low"], found[0]["ci_high"]):
                 cells.append("n/a")
                 continue
-            _, scale, digits = PAIRED[metric]
+            _, scale, digits = PAIRED_DISPLAY[metric]
             r = found[0]
             mean, low, high = (scale * r[k] for k in ("mean_difference", "ci_low", "ci_high"))
             clear = low > 0 or high < 0
@@ -233,10 +233,8 @@ def paired_table(data: Mapping[str, Any]) -> list[str]:
 
 def summary_text(data: Mapping[str, Any]) -> list[str]:
     """What the main job is, and its verdict in one sentence (as the report's own ``In short``)."""
-    sys.path.insert(0, str(ROOT))
     import pandas as pd
 
-    from envs.evaluation.comparison import PAIRED_COLUMNS
     from envs.evaluation.verdict import summary_sentence
 
     vehicles = data["vehicles"]

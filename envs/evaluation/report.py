@@ -194,9 +194,6 @@ def _motion_table(summary: Mapping[str, Mapping[str, Any]]) -> list[str]:
     return lines
 
 
-#: ``paired.csv`` metric -> (column heading, factor to its unit, decimals): shares as percentage points.
-
-
 def signed_number(value: float, digits: int) -> str:
     return "n/a" if value is None or not np.isfinite(value) else f"{value:+.{digits}f}"
 
