@@ -164,7 +164,7 @@ def make_planner(spec: str, trust_files: bool = False) -> Planner:
         return make_remote_planner(key)
     if is_class_spec(key):
         return make_class_planner(key)
-    from envs.planners.gnn import GNNPlanner, check_gated_policy  # torch: loaded only for a policy file
+    from envs.planners.gnn import GNNPlanner  # torch: loaded only for a policy file
 
     planner = GNNPlanner(key, trust_files=trust_files)
     config = planner.planner_config  # checked at load
@@ -172,7 +172,7 @@ def make_planner(spec: str, trust_files: bool = False) -> Planner:
         action = config["action"]
         scheduler = glide_scheduler(action["glide"], action["hold"])
         if config.get("critic_gate") is not None:
-            check_gated_policy(planner.model, key)
+            planner.check_gate()
         return PriorityPlanner(scheduler, planner, action["scale"], name=planner.name, kind=action["type"],
                                critic_gate=config.get("critic_gate"))  # fmt: skip
     if config.get("residual_base") is None:

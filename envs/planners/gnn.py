@@ -185,6 +185,8 @@ class GNNPlanner(Planner):
     # Feed the graph network a batch built from the scene (see :meth:`vertex_actions`); set at load
     # for a registered graph policy (exactly its class).
     _graph_actor = False
+    # Whether the policy's critics were found readable by a critic gate (checked once: :meth:`check_gate`).
+    _gate_checked = False
     # The observation's optional features, as in training (the file's planner config).
     vertex_features: tuple[str, ...] = ()
     edge_features: tuple[str, ...] = ()
@@ -311,6 +313,16 @@ class GNNPlanner(Planner):
         actions[: scene.num_vehicles] = vertex.numpy()
         return _to_action_bounds(policy, actions)[: scene.num_vehicles]
 
+    def check_gate(self) -> None:
+        """Refuse a ``critic_gate`` over this policy unless its critics can be read (:func:`check_gated_policy`);
+        checked once per planner (``make_planner`` calls it at load, :meth:`critic_gain` before its first use).
+
+        :raises ValueError: naming the file and its algorithm
+        """
+        if not self._gate_checked:
+            check_gated_policy(self.model, str(self.path))
+            self._gate_checked = True
+
     def critic_gain(self, scene: Scene) -> tuple[np.ndarray, float]:
         """The policy's deterministic scores for ``scene`` and how much more its critics value them than the zero
         action: ``min_k Q_k(s, pi(s)) - min_k Q_k(s, 0)`` over the policy's critics (TD3's twin critics; what a
@@ -322,8 +334,8 @@ class GNNPlanner(Planner):
         """
         import torch
 
+        self.check_gate()
         policy = self.model
-        check_gated_policy(policy, str(self.path))
         critic = policy.critic
         n = scene.num_vehicles
         obs, _ = policy.obs_to_tensor(build_observation(scene, self.space, **self._observation_kwargs()))
