@@ -346,13 +346,12 @@ class _Replay(Planner):
         return np.array([self.table.get((step, int(i)), float(scene.a_min)) for i in scene.vehicle_id])
 
 
-@pytest.mark.xfail(strict=True, reason="a known hole of the shield: a leader that turns off frees the queue behind it "
-                                       "faster than the last step's plan predicted (docs/shield.md)")
 def test_recorded_proposals_of_a_gated_advice_policy_do_not_collide():
     # Proposals of an advice policy over glide that a critic switched on and off per step (validation scenario 4 of
     # demand 0.5, seed 9004). At 27.2 s vehicle 15 turns off ahead of 17 (west->north): 17's fallback now follows a
     # vehicle far ahead and speeds up, 20 behind it would reach its zone into crossing vehicle 14, no plan passes
-    # (6 unresolved steps), everyone brakes, and 22, 4 m behind 20 at 10 m/s, hits it at 28.2 s.
+    # (6 unresolved steps), everyone brakes, and 22, 4 m behind 20 at 10 m/s, hits it at 28.2 s. The prediction
+    # now ends such a pair where the simulation does (`_follow_until`): 17's freedom is foreseen.
     env = gym.make("CoopIntersection4Way-v0", **evaluation_env_kwargs(None))
     scenario = Scenario.load(DATA / "shield_hole_scenario.json")
     shield = Shield(_Replay(DATA / "shield_hole_proposals.npz"))

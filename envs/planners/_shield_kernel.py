@@ -57,6 +57,7 @@ class PlanArrays(NamedTuple):
     follower_arc: np.ndarray  # (k,) arcs now
     ahead_arc: np.ndarray
     follow_floor: np.ndarray
+    follow_until: np.ndarray  # (k,) the arc of the vehicle ahead at which the pair ends (it has turned off); inf
     cross: np.ndarray
     cross_lo: np.ndarray
     cross_hi: np.ndarray
@@ -327,7 +328,7 @@ def _fallback(
     slow = min(proceed, -a_max)
     for k in range(plan.follower.shape[0]):
         f, ahead = plan.follower[k], plan.ahead[k]
-        if not go[f]:  # a follower that is not committed brakes anyway: its gap is not read
+        if not go[f] or arc[ahead] >= plan.follow_until[k]:  # braking anyway, or the one ahead has turned off
             continue
         gap = plan.follow_gap[k] + (arc[ahead] - plan.ahead_arc[k]) - (arc[f] - plan.follower_arc[k])
         if _unsafe(gap, speed[f], speed[ahead], proceed, a_max, dt, gap_margin):
@@ -371,8 +372,11 @@ def leaders(plan: PlanArrays, arc: np.ndarray, go: np.ndarray) -> tuple[np.ndarr
     follow pair, and every active merging pair (:func:`_merge_leader`)."""
     k, g_all = plan.follower.shape[0], plan.merge.shape[0]
     follower, ahead = np.empty(k + g_all, np.int64), np.empty(k + g_all, np.int64)
-    follower[:k], ahead[:k] = plan.follower, plan.ahead
-    rows = k
+    rows = 0
+    for p in range(k):
+        if arc[plan.ahead[p]] < plan.follow_until[p]:
+            follower[rows], ahead[rows] = plan.follower[p], plan.ahead[p]
+            rows += 1
     for g in range(g_all):
         f, a, active, _ = _merge_leader(plan, g, arc, go)
         if active:
@@ -470,6 +474,8 @@ def conflicts(
     for t in range(1, arcs.shape[0]):
         x = arcs[t]
         for k in range(plan.follower.shape[0]):
+            if x[plan.ahead[k]] >= plan.follow_until[k]:  # it has turned off: no longer on the follower's path
+                continue
             gap = (
                 plan.follow_gap[k]
                 + (x[plan.ahead[k]] - plan.ahead_arc[k])

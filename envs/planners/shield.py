@@ -132,6 +132,9 @@ class _Plan:
     human_from: np.ndarray = field(default_factory=lambda: np.zeros(0))
     human_until: np.ndarray = field(default_factory=lambda: np.zeros(0))
     committed_now: np.ndarray | None = None  # (n,) bool: Shield.committed in the state now, once computed
+    # (k,) arc of the vehicle ahead at which a follow pair ends: on another route from the same spawn lane, when
+    # its rear passes where the centre lines part (as the simulation's leaders); inf for every other pair
+    follow_until: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         # The compiled kernels' view, contiguous and of one dtype per field (one compiled signature);
@@ -148,6 +151,7 @@ class _Plan:
             follower_arc=f(self.arc[follower]),
             ahead_arc=f(self.arc[ahead]),
             follow_floor=f(self.follow_floor),
+            follow_until=f(np.full(len(follower), np.inf) if self.follow_until is None else self.follow_until),
             cross=i(self.cross),
             cross_lo=f(self.cross_lo),
             cross_hi=f(self.cross_hi),
@@ -522,6 +526,7 @@ class Shield(Planner):
             cross_already=already,
             cross_back=back,
             cross_stop=stop,
+            follow_until=_follow_until(lay, route, length, follow),
         )
 
     def _human_windows(self, scene: Scene, plan: _Plan, going: np.ndarray) -> None:
@@ -691,6 +696,16 @@ class Shield(Planner):
             np.ascontiguousarray(plan.rank, dtype=_INT), np.ascontiguousarray(free, dtype=bool), bad_follow,
             bad_cross, bad_merge, np.ascontiguousarray(stuck, dtype=bool), float(scene.a_max), _STANDING, _STOP_SLACK,
         )  # fmt: skip
+
+
+def _follow_until(layout, route: np.ndarray, length: np.ndarray, follow: np.ndarray) -> np.ndarray:
+    """``(k,)`` the arc of each pair's vehicle ahead at which the pair ends: for one on another route from the
+    same spawn lane, where its rear passes the point from which the centre lines part (the simulation then drops
+    it as a leader, and the prediction must too: a follower freed within the horizon goes on faster); inf
+    for every other pair."""
+    follower, ahead = follow[:, 0], follow[:, 1]
+    part = parting_arcs(layout)[route[ahead], route[follower]]
+    return np.where(np.isfinite(part), part + 0.5 * np.asarray(length, float)[ahead], np.inf)
 
 
 _MERGING: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
