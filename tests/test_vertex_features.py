@@ -177,6 +177,22 @@ def test_export_takes_the_planner_config_from_the_run_folder(tmp_path, capsys):
     names = json.dumps({"vertex_features": ALL_VERTEX, "edge_features": ZONE_EDGES})
     assert main(["export", str(run / "checkpoints" / "step_20.zip"), str(given), "--planner-config", names]) == 0
     assert make_planner(str(given)).planner_config.get("action") is None
+    # --planner-extra adds a key the run's environment does not hold (the critic gate) to the run's config
+    gated = tmp_path / "gated.safetensors"
+    assert main(["export", str(run / "checkpoints" / "step_20.zip"), str(gated), "--planner-extra",
+                 '{"critic_gate": 0.2}']) == 0  # fmt: skip
+    assert "--planner-extra" in capsys.readouterr().out
+    loaded = make_planner(str(gated))
+    assert loaded.kind == "advice" and loaded.scale == 32.0 and loaded.critic_gate == 0.2
+    assert loaded.scores.vertex_features == tuple(ALL_VERTEX)
+    for text in ("[1]", "{bad"):
+        wrong = tmp_path / "wrong.safetensors"
+        with pytest.raises(SystemExit) as exit:
+            main(["export", str(run / "checkpoints" / "step_20.zip"), str(wrong), "--planner-extra", text])
+        assert exit.value.code == 2
+        message = capsys.readouterr().err.strip()
+        assert "--planner-extra" in message.splitlines()[-1] and "Traceback" not in message
+        assert not wrong.exists()
     # a run config that the domain refuses: one line naming the file and the key, nothing written
     (run / "config.yml").write_text(yaml.safe_dump({"env_kwargs": {"config": {"action": {"type": "bogus"}}}}))
     bad = tmp_path / "bad.safetensors"

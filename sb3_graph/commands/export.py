@@ -10,7 +10,10 @@ folder up for a checkpoint) gets its planner configuration from the run: the dom
 environment turns the environment's config into what its planner must do again around the policy
 (for the intersection: the action's type, scale and glide version, the observation's features), and
 the command prints what it stored. ``--planner-config`` replaces that; a ``.safetensors`` input keeps
-its own.
+its own. ``--planner-extra`` adds keys to whichever of these applies (or replaces the same keys), for a
+setting that the run's environment does not hold, such as a GNN planner's ``critic_gate``::
+
+    sb3-graph export runs/advice/best_model.zip planners/gated.safetensors --planner-extra '{"critic_gate": 0.2}'
 
 The output holds the policy's tensors (safetensors) and, in the file's metadata, the JSON that
 rebuilds it: algorithm, policy class (from an allow-list), policy keyword arguments, observation and
@@ -30,6 +33,7 @@ from pathlib import Path
 from typing import Any
 
 from sb3_graph.commands import UserError
+from sb3_graph.commands.arguments import json_object
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -51,10 +55,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--planner-config",
         metavar="JSON",
+        type=json_object,
         help="a JSON object stored as the file's planner configuration (header source.planner), read by the "
         "domain that runs the policy, e.g. '{\"residual_base\": \"fullthrottle\", \"residual_scale\": 2.0}' "
         "for a policy trained as a correction of a base planner (default: taken from the run folder that holds "
         "MODEL, by the domain of its environment)",
+    )
+    parser.add_argument(
+        "--planner-extra",
+        metavar="JSON",
+        type=json_object,
+        help="a JSON object whose keys are added to the planner configuration (from --planner-config, the "
+        "input file or the run folder), replacing the same keys there, e.g. '{\"critic_gate\": 0.2}'",
     )
 
 
@@ -87,18 +99,15 @@ def run(args: argparse.Namespace) -> int:
     description = loaded.description
     source = dict(description.source)
     if args.planner_config is not None:
-        try:
-            config = json.loads(args.planner_config)
-        except ValueError as error:
-            raise UserError(f"--planner-config: not JSON ({error})") from None
-        if not isinstance(config, dict):
-            raise UserError(f"--planner-config: must be a JSON object, got {args.planner_config!r}")
-        source["planner"] = config
+        source["planner"] = args.planner_config
     elif "planner" not in source:
         found = _run_planner_config(model)
         if found is not None:
             source["planner"] = found[1]
             print(f"sb3-graph export: planner config from {found[0]}: {json.dumps(found[1])}")
+    if args.planner_extra is not None:
+        source["planner"] = {**dict(source.get("planner") or {}), **args.planner_extra}
+        print(f"sb3-graph export: planner config with --planner-extra: {json.dumps(source['planner'])}")
     try:
         write_file_atomically(
             out,
