@@ -17,6 +17,11 @@ Usage::
 
     PYTHONPATH=$PWD python benchmarks/bench_lookahead.py                 # a few minutes
     PYTHONPATH=$PWD python benchmarks/bench_lookahead.py --sizes 20 --run-sizes 30 --repeat 3
+    PYTHONPATH=$PWD python benchmarks/bench_lookahead.py --profile     # where a 30-vehicle search's time goes
+
+``--profile`` runs the searches of the ``run`` scenes under cProfile and prints the share of a search in the
+shield's check (and in its predictions), in glide's plan (and in its reservations), and in the simulation's
+step, with the shield's predictions per rollout step.
 """
 
 from __future__ import annotations
@@ -94,6 +99,44 @@ def measure(scenes: list[Scene], params: LookaheadParams, repeat: int) -> tuple[
     return 1e3 * float(np.median(search)), 1e3 * float(np.median(step)), per_search
 
 
+def profile(scenes: list[Scene], params: LookaheadParams, repeat: int) -> None:
+    """Print the shares of a search's time in its parts (cumulative cProfile times over ``repeat`` rounds)."""
+    import cProfile
+    import pstats
+
+    planner = LookaheadPlanner(params=params)
+    planner.reset(0)
+    planner._search(scenes[0])  # compiles the kernels
+    profiler = cProfile.Profile()
+    profiler.enable()
+    for _ in range(repeat):
+        for scene in scenes:
+            planner._search(scene)
+    profiler.disable()
+    stats = pstats.Stats(profiler).stats  # (file, line, name) -> (calls, primitive calls, own, cumulative, callers)
+
+    def cumulative(path: str, name: str) -> tuple[int, float]:
+        rows = [v for (f, _, n), v in stats.items() if f.endswith(path) and n == name]
+        return sum(r[1] for r in rows), sum(r[3] for r in rows)
+
+    searches, total = cumulative("envs/planners/lookahead.py", "_search")
+    steps, check = cumulative("envs/planners/shield.py", "check")
+    predictions, predict = cumulative("envs/planners/shield.py", "predict")
+    print(f"{searches} searches of {np.mean([s.num_vehicles for s in scenes]):.0f} vehicles on average, "
+          f"{1e3 * total / max(searches, 1):.0f} ms each under the profiler")
+    print(f"{steps / max(searches, 1):.0f} rollout steps per search, {predictions / max(steps, 1):.1f} shield "
+          "predictions per rollout step\n")
+    print("| part | share of a search |\n|---|---:|")
+    for label, path, name in (
+        ("the shield's check", "envs/planners/shield.py", "check"),
+        ("  of which its predictions", "envs/planners/shield.py", "predict"),
+        ("glide's plan", "envs/planners/glide.py", "act"),
+        ("  of which its reservations (AIM's)", "envs/planners/aim.py", "reserve"),
+        ("the simulation's step", "envs/simulation/engine.py", "step"),
+    ):
+        print(f"| {label} | {100 * cumulative(path, name)[1] / total:.0f} % |")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", type=int, nargs="*", default=[20, 50, 100])
@@ -102,6 +145,7 @@ def main() -> None:
     parser.add_argument("--rollout-frequency", type=int, default=LookaheadParams().rollout_frequency)
     parser.add_argument("--per-approach", choices=("true", "false"), default=None,
                         help="the greedy pass per approach road (default: lookahead's default)")  # fmt: skip
+    parser.add_argument("--profile", action="store_true", help="where a search's time goes (cProfile), then exit")
     args = parser.parse_args()
     import torch
 
@@ -111,6 +155,9 @@ def main() -> None:
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}, one thread")
     print(f"command: python {' '.join(sys.argv)}")
     print(f"lookahead: {params}\n")
+    if args.profile:
+        profile(run_scenes(args.run_sizes[0] if args.run_sizes else 30), params, args.repeat)
+        return
     print("| scenes | vehicles | rollouts per search | search [ms] | shielded step [ms] | search / step |")
     print("|---|---:|---:|---:|---:|---:|")
     kinds = [(f"run {n}", run_scenes(n)) for n in args.run_sizes]
