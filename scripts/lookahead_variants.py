@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from envs.planners.glide import GlidePlanner
+from envs.planners.idm import idm_acceleration
 from envs.planners.lookahead import LookaheadParams, LookaheadPlanner
 
 
@@ -40,6 +42,33 @@ class Hold(LookaheadPlanner):
 
     def __init__(self) -> None:
         super().__init__("LookaheadHold", LookaheadParams(hold=True, per_approach=False))
+
+
+class _IDMCappedGlide(GlidePlanner):
+    """glide whose proposal is capped by IDM car following behind each vehicle's leader."""
+
+    def act(self, scene):
+        acc = super().act(scene)
+        if scene.num_vehicles == 0:
+            return acc
+        leader = np.asarray(scene.leader)
+        has = leader >= 0
+        lead_speed = np.where(has, scene.speed[np.maximum(leader, 0)], 0.0)
+        cap = idm_acceleration(scene.speed, scene.speed_limit, np.where(has, scene.gap, np.inf), lead_speed, scene.dt)
+        return np.minimum(acc, np.maximum(cap, scene.a_min))
+
+
+class IDMRollouts(LookaheadPlanner):
+    """The default search whose rollouts cap glide's proposals by IDM car following, so that the rollouts' shield
+    overrides fewer followers (fewer rounds of predictions per step); the real step plans as the default's."""
+
+    def __init__(self) -> None:
+        super().__init__("LookaheadIDMRollouts")
+
+    def fork(self) -> GlidePlanner:
+        twin = _IDMCappedGlide(self.name, self.params, self.idm, self.hold)
+        twin.adopt(self)
+        return twin
 
 
 class WithStudent(LookaheadPlanner):
