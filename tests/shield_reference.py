@@ -145,7 +145,7 @@ def leaders_now(
     whose vehicle ahead (along the common exit lane) proceeds (``go``) or has reached the merge."""
     f, ahead = plan.follow[:, 0], plan.follow[:, 1]
     gap = plan.follow_gap + (arc[ahead] - plan.arc[ahead]) - (arc[f] - plan.arc[f])
-    live = arc[ahead] < _until(plan)  # the others' vehicle ahead has turned off: no gap to keep
+    live = arc[ahead] < plan.follow_until  # the others' vehicle ahead has turned off: no gap to keep
     f, ahead, gap = f[live], ahead[live], gap[live]
     if plan.merge.size:
         m0, m1 = plan.merge[:, 0], plan.merge[:, 1]
@@ -189,7 +189,7 @@ def fallback_given(
     if f.size:
         ok = safe_gap_after(gap, speed[f], speed[ahead], proceed, a_max, dt, shield.gap_margin)
         # a human driver keeps no gap to a merging vehicle (its model sees it once it leads on the lane)
-        live = int((arc[plan.follow[:, 1]] < _until(plan)).sum())  # the follow pairs come first
+        live = int((arc[plan.follow[:, 1]] < plan.follow_until).sum())  # the follow pairs come first
         ok |= (np.arange(f.size) >= live) & np.asarray(plan.human, bool)[f]
         acc[f[~ok & go[f]]] = min(proceed, -a_max)
     return acc
@@ -237,7 +237,7 @@ def conflicts_numpy(
     # Same path and merged: the gap to the vehicle ahead must stay open.
     f, ahead = plan.follow[:, 0], plan.follow[:, 1]
     gap = plan.follow_gap + (later[:, ahead] - plan.arc[ahead]) - (later[:, f] - plan.arc[f])
-    gap = np.where(later[:, ahead] < _until(plan), gap, np.inf)
+    gap = np.where(later[:, ahead] < plan.follow_until, gap, np.inf)
     bad_follow = (gap < plan.follow_floor).any(axis=0)
     # Crossing: never both in the pair's zone.
     x = later[:, plan.cross]  # (T, c, 2)
@@ -354,8 +354,3 @@ def prediction_layout(layout, deceleration: float) -> PredictionLayout:
     if key not in views:
         views[key] = PredictionLayout(layout, key)
     return views[key]
-
-
-def _until(plan: _Plan) -> np.ndarray:
-    """``(k,)`` the arc of each follow pair's vehicle ahead at which the pair ends (inf: never)."""
-    return np.full(len(plan.follow), np.inf) if plan.follow_until is None else plan.follow_until

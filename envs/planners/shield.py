@@ -119,6 +119,9 @@ class _Plan:
     rank: np.ndarray  # (n,) who goes first when two would enter a zone at once: farthest in, then lowest id
     vehicle_id: np.ndarray  # (n,) ids: break ties between two vehicles equally far through one zone
     follow_floor: np.ndarray  # (k,) smallest gap a prediction may leave [m]: half the gap margin, or a short gap now
+    # (k,) arc of the vehicle ahead at which a follow pair ends: on another route from the same spawn lane, when
+    # its rear passes where the centre lines part (as the simulation's leaders); inf for every other pair
+    follow_until: np.ndarray
     # Crossing pairs whose bodies are both in their zone now (after unresolved steps), the one less far
     # through (`cross_back`: column 0 or 1) standing: it must not move (past `cross_stop`).
     cross_already: np.ndarray  # (c,) bool
@@ -132,9 +135,6 @@ class _Plan:
     human_from: np.ndarray = field(default_factory=lambda: np.zeros(0))
     human_until: np.ndarray = field(default_factory=lambda: np.zeros(0))
     committed_now: np.ndarray | None = None  # (n,) bool: Shield.committed in the state now, once computed
-    # (k,) arc of the vehicle ahead at which a follow pair ends: on another route from the same spawn lane, when
-    # its rear passes where the centre lines part (as the simulation's leaders); inf for every other pair
-    follow_until: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         # The compiled kernels' view, contiguous and of one dtype per field (one compiled signature);
@@ -151,7 +151,7 @@ class _Plan:
             follower_arc=f(self.arc[follower]),
             ahead_arc=f(self.arc[ahead]),
             follow_floor=f(self.follow_floor),
-            follow_until=f(np.full(len(follower), np.inf) if self.follow_until is None else self.follow_until),
+            follow_until=f(self.follow_until),
             cross=i(self.cross),
             cross_lo=f(self.cross_lo),
             cross_hi=f(self.cross_hi),
