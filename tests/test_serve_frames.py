@@ -9,7 +9,10 @@ the ``serve`` extra (FastAPI, uvicorn, msgspec, a WebSocket library) is not inst
 from __future__ import annotations
 
 import json
+import socket
 import ssl
+import struct
+import time
 from types import SimpleNamespace
 
 import numpy as np
@@ -44,14 +47,17 @@ def _socket(server, stream: str, token: str = TOKEN, host: str | None = None):
     return websocket.WebSocket.connect("127.0.0.1", server.port, f"/streams/{stream}/ws", headers, 10.0)
 
 
-def test_steps_over_the_socket_are_answered_as_over_http_and_exactly_once(service):
-    with ThreadServer(service) as server:
+@pytest.mark.parametrize("workers", [0, 1])
+def test_steps_over_the_socket_are_answered_as_over_http_and_exactly_once(service, workers):
+    """On the event loop (``workers=0``), and handed to the stream's worker (``envs.serve.handoff``)."""
+    with ThreadServer(service, workers=workers) as server:
         fast, slow = PlannerClient(server.url, token=TOKEN), PlannerClient(server.url, token=TOKEN, fast=False)
         a, b = fast.open("4way", seed=0), slow.open("4way", seed=0)
         for k in range(4):
             scene = _scene(service, 3 + k, 0.2 * k)
             np.testing.assert_array_equal(fast.step_scene(a, scene), slow.step_scene(b, scene))
         assert list(fast._sockets) == [a] and not slow._sockets
+        assert len(server.gateway.handed) == (1 if workers and server.gateway.pool.hands else 0)
         ws = fast._sockets[a]
         scene = _scene(service, 5, 1.0)
         first = _frame(scene, 5)
@@ -76,7 +82,8 @@ def _wire(scene) -> dict:
     return scene_to_wire(scene)
 
 
-def test_bad_frames_name_their_field_and_the_socket_goes_on(service):
+@pytest.mark.parametrize("workers", [0, 1])
+def test_bad_frames_name_their_field_and_the_socket_goes_on(service, workers):
     scene = _scene(service, 4, 0.0)
     cases = {
         "body": b"\x93\x01\x02",
@@ -91,7 +98,7 @@ def test_bad_frames_name_their_field_and_the_socket_goes_on(service):
         "vehicles[1].arc": _frame(scene, 1, arc=np.array([8.0, 8.0, 28.0, 38.0]),
                                   route=np.zeros(4, np.int64)),  # fmt: skip
     }
-    with ThreadServer(service) as server:
+    with ThreadServer(service, workers=workers) as server:
         client = PlannerClient(server.url, token=TOKEN)
         stream = client.open("4way")
         ws = _socket(server, stream)
@@ -105,8 +112,9 @@ def test_bad_frames_name_their_field_and_the_socket_goes_on(service):
         assert frames.decode_reply(ws.recv(10))["status"] == 200
 
 
-def test_the_upgrade_needs_the_token_the_host_and_the_streams_owner(service):
-    with ThreadServer(service, tokens=[TOKEN, OTHER_TOKEN]) as server:
+@pytest.mark.parametrize("workers", [0, 1])
+def test_the_upgrade_needs_the_token_the_host_and_the_streams_owner(service, workers):
+    with ThreadServer(service, tokens=[TOKEN, OTHER_TOKEN], workers=workers) as server:
         client = PlannerClient(server.url, token=TOKEN)
         stream = client.open("4way")
         for token, host in (("wrong-token-0123456789", None), (OTHER_TOKEN, None), (TOKEN, "attacker.example")):
@@ -146,7 +154,9 @@ def test_a_refused_upgrade_falls_back_to_http_for_that_step(service):
         assert client.step_scene(stream, _scene(service, 2, 0.0)).shape == (2,) and stream in client._sockets
 
 
-def test_the_fast_path_over_tls(tmp_path, service):
+@pytest.mark.parametrize("workers", [0, 1])
+def test_the_fast_path_over_tls(tmp_path, service, workers):
+    """TLS connections stay on the event loop (their keys live there), with workers too."""
     trustme = pytest.importorskip("trustme")
     ca = trustme.CA()
     cert = ca.issue_cert("127.0.0.1")
@@ -154,11 +164,12 @@ def test_the_fast_path_over_tls(tmp_path, service):
     cert.private_key_pem.write_to_path(tmp_path / "key.pem")
     ca.cert_pem.write_to_path(tmp_path / "ca.pem")
     tls = {"ssl_certfile": str(tmp_path / "cert.pem"), "ssl_keyfile": str(tmp_path / "key.pem")}
-    with ThreadServer(service, tls=tls) as server:
+    with ThreadServer(service, tls=tls, workers=workers) as server:
         client = PlannerClient(server.url, token=TOKEN, ssl_context=ssl.create_default_context(cafile=str(tmp_path /
                                                                                                           "ca.pem")))
         stream = client.open("4way")
         assert client.step_scene(stream, _scene(service, 3, 0.0)).shape == (3,) and stream in client._sockets
+        assert not server.gateway.handed
 
 
 def test_the_compiled_overlap_check_finds_the_numpy_checks_first_pair():
@@ -189,3 +200,140 @@ def test_the_compiled_overlap_check_finds_the_numpy_checks_first_pair():
         found += expected[0] == 0
         deep_found += expected[0] == 1
     assert 0 < found < 40 and deep_found > 0
+
+
+def _handed_server(service, **gateway):
+    server = ThreadServer(service, workers=1, **gateway)
+    if not server.gateway.pool.hands:
+        pytest.skip("descriptors cannot be passed between processes here")
+    return server
+
+
+def _raw(ws, n: int) -> bytes:
+    """``n`` bytes straight off the socket (what the server sent, frame headers and all)."""
+    data = bytes(ws._buffer)
+    ws.sock.settimeout(10)
+    while len(data) < n:
+        chunk = ws.sock.recv(n - len(data))
+        if not chunk:
+            break
+        data += chunk
+    return data
+
+
+def test_a_handed_socket_speaks_the_protocol(service):
+    """The worker's end (``envs.serve.handoff``): pings answered, fragments joined, the close echoed; an unmasked
+    frame (1002) and a message over the body limit (1009) close the connection."""
+    scene = _scene(service, 3, 0.0)
+    with _handed_server(service, max_body=4096) as server:
+        client = PlannerClient(server.url, token=TOKEN)
+        stream = client.open("4way")
+        ws = _socket(server, stream)
+        ws.send(b"are you there", opcode=0x9)
+        assert _raw(ws, 15) == b"\x8a\x0dare you there"
+        frame = _frame(scene, 1)
+        ws.sock.sendall(_masked_frame(frame[:10], opcode=0x2, fin=False) + _masked_frame(frame[10:], opcode=0x0))
+        assert frames.decode_reply(ws.recv(10))["step"] == 1
+        assert len(server.gateway.handed) == 1
+        ws.send(struct.pack("!H", 1000), opcode=0x8)
+        assert _raw(ws, 4) == b"\x88\x02\x03\xe8"
+        wait_for(lambda: not server.gateway.handed and not server.gateway.sockets)
+        for bad, code in ((b"\x82\x01x", 1002), (_masked_frame(b"x" * 5000, opcode=0x2), 1009)):
+            ws = _socket(server, stream)
+            ws.sock.sendall(bad)
+            assert _raw(ws, 4) == b"\x88\x02" + struct.pack("!H", code)
+        ws = _socket(server, stream)  # the stream goes on
+        ws.send(_frame(scene, 2))
+        assert frames.decode_reply(ws.recv(10))["step"] == 2
+
+
+def test_a_client_that_does_not_read_holds_only_its_own_answers(service):
+    """A client that sends steps and reads none of the answers does not stall the worker: another stream on the
+    same worker is answered, and the idle one's answers wait for it."""
+    scene = _scene(service, 12, 0.0)
+    with _handed_server(service) as server:
+        client = PlannerClient(server.url, token=TOKEN)
+        greedy, other = client.open("4way"), client.open("4way")
+        ws = _socket(server, greedy)
+        ws.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        replay = _frame(scene, 1)
+        ws.send(replay)
+        sent = 1
+        ws.sock.settimeout(0.5)
+        try:
+            for _ in range(20_000):  # the same step again and again: answered from the cache, never read
+                ws.send(replay, timeout=0.5)
+                sent += 1
+        except (TimeoutError, OSError):
+            pass
+        tic = time.monotonic()
+        assert client.step_scene(other, scene).shape == (12,)
+        assert time.monotonic() - tic < 5.0
+        assert sent > 100  # the worker read on until its answers filled the socket
+
+
+def test_handed_streams_expire_only_when_idle(service):
+    """Steps on a handed connection are seen by its worker only; the idle expiry asks it before closing."""
+    with _handed_server(service, stream_timeout=1.0) as server:
+        client = PlannerClient(server.url, token=TOKEN)
+        stream = client.open("4way")
+        ws = _socket(server, stream)
+        for k in range(8):  # 2.4 s of steps, over twice the timeout
+            ws.send(_frame(_scene(service, 2, 0.2 * k), k + 1))
+            assert frames.decode_reply(ws.recv(10))["status"] == 200
+            time.sleep(0.3)
+        assert stream in server.gateway.streams
+        wait_for(lambda: stream not in server.gateway.streams, 5.0)
+        with pytest.raises(ConnectionError):
+            ws.recv(10)
+        wait_for(lambda: not server.gateway.handed)
+
+
+def test_a_lost_worker_closes_its_handed_sockets(service):
+    import os
+    import signal
+
+    with _handed_server(service) as server:
+        client = PlannerClient(server.url, token=TOKEN)
+        stream = client.open("4way")
+        assert client.step_scene(stream, _scene(service, 2, 0.0)).shape == (2,)
+        ws = client._sockets[stream]
+        os.kill(server.gateway.pool.processes[0].pid, signal.SIGKILL)
+        with pytest.raises(ConnectionError):
+            ws.recv(10)
+        wait_for(lambda: server.gateway.pool.alive_count() == 1 and not server.gateway.handed)
+        fresh = client.open("4way")
+        assert client.step_scene(fresh, _scene(service, 2, 0.0)).shape == (2,)
+
+
+def test_a_stopped_worker_holding_a_socket_is_replaced(service):
+    """A worker that holds a handed connection and stops between steps (``SIGSTOP``) is caught by its heartbeat:
+    killed and replaced within the time limit, as one stuck in a step would be."""
+    import os
+    import signal
+
+    with _handed_server(service, time_limit=0.3) as server:
+        client, pool = PlannerClient(server.url, token=TOKEN), server.gateway.pool
+        stream = client.open("4way")
+        assert client.step_scene(stream, _scene(service, 2, 0.0)).shape == (2,)
+        old = pool.processes[0].pid
+        os.kill(old, signal.SIGSTOP)
+        wait_for(lambda: pool.restarts == 1 and pool.alive_count() == 1, 5.0)
+        assert pool.processes[0].pid != old and not server.gateway.handed
+        fresh = client.open("4way")
+        assert client.step_scene(fresh, _scene(service, 2, 0.0)).shape == (2,)
+
+
+def _masked_frame(payload: bytes, opcode: int, fin: bool = True) -> bytes:
+    n = len(payload)
+    head = bytes([(0x80 if fin else 0) | opcode])
+    head += bytes([0x80 | n]) if n < 126 else (bytes([0x80 | 126]) + struct.pack("!H", n) if n < 1 << 16 else
+                                               bytes([0x80 | 127]) + struct.pack("!Q", n))  # fmt: skip
+    return head + b"\0\0\0\0" + payload  # a zero mask: the payload as it is
+
+
+def wait_for(condition, seconds: float = 10.0) -> None:
+    deadline = time.monotonic() + seconds
+    while not condition():
+        assert time.monotonic() < deadline, "not within the bound"
+        time.sleep(0.02)

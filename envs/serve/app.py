@@ -33,8 +33,10 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import copy
+import itertools
 import json
 import math
+import os
 import secrets
 import ssl
 import time
@@ -55,8 +57,10 @@ from envs.planners import SHIELD_SUFFIX, check_planner_spec, make_planner, plann
 from envs.planners.base import Planner
 from envs.serve import frames
 from envs.serve.access import Access, FailureLimit
+from envs.serve.handoff import server_frame
 from envs.serve.limits import (
     ACCEPT_BURST,
+    CONNECTION,
     MAX_HEADER_BYTES,
     ConnectionGuard,
     guarded_protocol,
@@ -77,7 +81,7 @@ from envs.serve.schema import (
 )
 from envs.serve.wire import SCHEMA_VERSION, SceneBuilder, WireError
 from envs.serve.wire import digest as wire_digest
-from envs.serve.workers import InlinePool, ProcessPool, WorkerGone
+from envs.serve.workers import BEAT, InlinePool, ProcessPool, WorkerGone
 
 # Paths anyone may read without the token (liveness and the schema).
 OPEN_PATHS = frozenset({"/health", "/openapi.json", "/docs", "/docs/oauth2-redirect"})
@@ -386,6 +390,25 @@ def _unique_keys(body: bytes) -> None:
 
 
 @dataclass
+class _Handed:
+    """A stream's WebSocket handed to the worker that plans the stream (:mod:`envs.serve.handoff`): the event loop
+    keeps the connection open and counted but reads nothing more from it.
+
+    :param key: the server's number for the connection
+    :param worker: the worker that serves it
+    :param sid: its stream
+    :param connection: uvicorn's protocol object of the connection
+    :param done: set when the connection is over (the worker closed it, or the stream was dropped)
+    """
+
+    key: int
+    worker: int
+    sid: str
+    connection: Any
+    done: asyncio.Future
+
+
+@dataclass
 class _Entry:
     """An open stream as the gateway knows it: the worker that plans it, its client, its last use."""
 
@@ -440,6 +463,10 @@ class Gateway:
         self.lost = 0  # streams lost with their worker
         self.failures = FailureLimit()  # failed authentications per source address
         self.sockets: dict[str, Any] = {}  # each stream's WebSocket (the fast path), at most one
+        self.handed: dict[int, _Handed] = {}  # the WebSockets handed to workers, by key
+        self._keys = itertools.count(1)
+        self._overran: set[int] = set()  # workers stopped by the time limit while planning a handed connection's step
+        self.pool.on_closed = self._handed_closed
         self._info = service.info()
 
     def info(self) -> dict[str, Any]:
@@ -459,7 +486,20 @@ class Gateway:
             raise RequestError(404, "stream", "lost (its planning process ended); open a new one") from None
 
     def _lost(self, worker: int) -> None:
-        """The worker ``worker`` ended: its streams are gone with it (their next request gets 404)."""
+        """The worker ``worker`` ended: its streams are gone with it (their next request gets 404; a handed
+        connection whose step it was planning gets that step's refusal, then a close)."""
+        if self.pool.hands:
+            since, key = self.pool.planning(worker)
+            handed = self.handed.get(key) if since > 0 else None
+            if handed is not None and handed.worker == worker:
+                if worker in self._overran:
+                    refusal = frames.encode_error(503, "time_limit", f"no answer within {self.time_limit} s; "
+                                                  "its planning process was stopped and this stream is lost: open "
+                                                  "a new one")  # fmt: skip
+                else:
+                    refusal = frames.encode_error(404, "stream", "lost (its planning process ended); open a new one")
+                handed.connection.transport.write(server_frame(refusal))
+            self._overran.discard(worker)
         gone = [sid for sid, entry in self.streams.items() if entry.worker == worker]
         for sid in gone:
             self._drop(sid)
@@ -472,7 +512,41 @@ class Gateway:
             self.pool.load[entry.worker] -= 1
         socket = self.sockets.pop(sid, None)
         if socket is not None:  # a closed, expired or lost stream keeps no connection open
+            self._close(socket)
+
+    def _close(self, socket: Any) -> None:
+        """Close a stream's WebSocket: on the event loop, or (handed) by its worker, and the event loop's end."""
+        if isinstance(socket, _Handed):
+            self.pool.release(socket.worker, socket.key, socket.sid)
+            if not socket.done.done():
+                socket.done.set_result(None)  # the endpoint returns: uvicorn closes the event loop's end
+        else:
             asyncio.get_running_loop().create_task(_close_socket(socket))
+
+    def _handed_closed(self, key: int) -> None:
+        """The worker closed the handed connection ``key`` (the client closed it, went, or broke the protocol)."""
+        handed = self.handed.get(key)
+        if handed is not None and not handed.done.done():
+            handed.done.set_result(None)
+
+    def _hand(self, connection: Any, entry: _Entry, sid: str) -> _Handed | None:
+        """Hand the upgraded ``connection`` to the worker of stream ``sid``; ``None``: it stays on the event loop
+        (bytes came before the hand-over, or the worker could not take it)."""
+        fd = connection.detach()
+        if fd is None:
+            return None
+        key = next(self._keys)
+        try:
+            passed = self.pool.hand(entry.worker, key, sid, fd, self.max_body)
+        finally:
+            os.close(fd)
+        if not passed:
+            connection.transport.resume_reading()
+            return None
+        handed = _Handed(key, entry.worker, sid, connection, asyncio.get_running_loop().create_future())
+        self.handed[key] = handed
+        connection.on_lost = lambda: None if handed.done.done() else handed.done.set_result(None)  # server shutdown
+        return handed
 
     async def open(self, client: str, body: bytes) -> tuple[int, bytes]:
         if len(self.streams) >= self.max_streams:
@@ -520,11 +594,31 @@ class Gateway:
         if entry is None or entry.client != client:
             await websocket.close(code=4404, reason="stream")
             return
+        # A plain connection goes to the stream's worker (envs.serve.handoff): nothing is read from it here after
+        # the upgrade's answer
+        connection = websocket.scope.get("extensions", {}).get(CONNECTION) if self.pool.hands else None
+        if connection is not None and not connection.hold():
+            connection = None
         await websocket.accept()
         # One socket per stream (so a client's sockets are bounded by its stream quota): a new one replaces the old
         old, self.sockets[sid] = self.sockets.get(sid), websocket
         if old is not None:
-            await _close_socket(old)
+            self._close(old)
+        handed = None
+        if connection is not None:
+            if self.streams.get(sid) is not entry:  # closed or lost meanwhile
+                self.sockets.pop(sid, None)
+                return
+            handed = self._hand(connection, entry, sid)
+        if handed is not None:
+            self.sockets[sid] = handed
+            try:
+                await handed.done
+            finally:
+                del self.handed[handed.key]
+                if self.sockets.get(sid) is handed:
+                    del self.sockets[sid]
+            return
         try:
             while True:
                 message = await websocket.receive()
@@ -532,7 +626,7 @@ class Gateway:
                     return
                 data = message.get("bytes")
                 if data is None:
-                    payload = frames.encode_error(415, "body", "frames must be binary MessagePack (envs.serve.frames)")
+                    payload = frames.TEXT_REFUSAL
                 else:
                     try:
                         _, payload = await self.forward(client, "frame", sid, data)
@@ -550,6 +644,14 @@ class Gateway:
         """Close the streams unused for longer than ``stream_timeout``; how many."""
         now = time.monotonic()
         idle = [sid for sid, entry in self.streams.items() if now - entry.last_used > self.stream_timeout]
+        for sid in idle:  # a handed connection's steps are seen by its worker only: when was its last?
+            handed = self.sockets.get(sid)
+            if isinstance(handed, _Handed):
+                with contextlib.suppress(Exception):
+                    _, last = await self.pool.call(handed.worker, "last_used", sid, b"", None)
+                    self.streams[sid].last_used = max(self.streams[sid].last_used, float(last))
+        now = time.monotonic()
+        idle = [sid for sid in idle if sid in self.streams and now - self.streams[sid].last_used > self.stream_timeout]
         for sid in idle:
             worker = self.streams[sid].worker
             self._drop(sid)
@@ -557,6 +659,30 @@ class Gateway:
                 await self.pool.call(worker, "expire", sid, b"", None)
         self.expired += len(idle)
         return len(idle)
+
+    async def watch_forever(self) -> None:
+        """The time limit of the handed connections' steps, which their worker reads and plans unseen by the
+        event loop: every tenth of ``time_limit`` (at most 0.25 s), a worker planning one step for longer, or
+        holding handed connections with its loop stopped for longer (a ``SIGSTOP``, a hang between steps), is
+        stopped; the connection of the step it was planning gets 503 (:meth:`_lost`), its streams are lost."""
+        if not self.pool.hands:
+            return
+        period = min(max(self.time_limit / 10, 0.01), 0.25)
+        while True:
+            await asyncio.sleep(period)
+            now = time.monotonic()
+            holding = {handed.worker for handed in self.handed.values()}
+            for worker in range(self.pool.size):
+                if worker in self._overran or not self.pool.alive(worker):
+                    continue
+                since, _ = self.pool.planning(worker)
+                if since > 0:
+                    stuck = now - since > self.time_limit
+                else:
+                    stuck = worker in holding and now - self.pool.heartbeat(worker) > self.time_limit + BEAT
+                if stuck:
+                    self._overran.add(worker)
+                    self.pool.stop(worker)
 
     async def expire_forever(self) -> None:
         """The idle expiry's timer: every quarter of ``stream_timeout`` (at most 5 s)."""
@@ -672,10 +798,12 @@ def create_app(gateway: Gateway) -> FastAPI:
     async def lifespan(app: FastAPI):
         await gateway.pool.start()
         expiry = asyncio.get_running_loop().create_task(gateway.expire_forever())
+        watch = asyncio.get_running_loop().create_task(gateway.watch_forever())
         try:
             yield
         finally:
             expiry.cancel()
+            watch.cancel()
             await gateway.pool.close()
 
     app = FastAPI(

@@ -172,6 +172,10 @@ def encode_error(status: int, field: str, message: str, expected: int | None = N
     return _ENCODER.encode([int(status), field, message, expected])
 
 
+# the answer to a text message on the fast path
+TEXT_REFUSAL = encode_error(415, "body", "frames must be binary MessagePack (envs.serve.frames)")
+
+
 def decode_reply(data: bytes) -> dict[str, Any]:
     """An answer or refusal frame as a dictionary: ``status`` and, for 200, ``seq``, ``step``, ``time``, ``ids``,
     ``accelerations`` (arrays) and ``shield`` (``None``, or ``overridden`` and ``unresolved``); for a refusal,

@@ -27,6 +27,7 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+import os
 import ssl
 import time
 from asyncio import sslproto
@@ -42,6 +43,8 @@ HTTP_PARSERS = ("auto", "httptools", "h11")
 # the server (a step's head is about 200 bytes), small enough that a connection streaming headers costs nothing.
 MAX_HEADER_BYTES = 16 * 1024
 MAX_HEADERS = 64
+# The ASGI scope extension that holds a WebSocket's protocol object (:func:`guarded_websocket`), for the hand-over
+CONNECTION = "sb3_graph.connection"
 
 
 class ConnectionGuard:
@@ -241,7 +244,10 @@ def guarded_protocol(base: type, guard: ConnectionGuard) -> type:
 
 
 def guarded_websocket(base: type, guard: ConnectionGuard) -> type:
-    """uvicorn's WebSocket protocol class ``base``, its connection counted under ``guard``'s cap until it closes.
+    """uvicorn's WebSocket protocol class ``base``, its connection counted under ``guard``'s cap until it closes,
+    and, with uvicorn's sans-I/O protocol on a plain connection, able to hand its connection to another process
+    after the upgrade (:meth:`hold`, :meth:`detach`; the application finds the protocol object in its scope's
+    extension :data:`CONNECTION`).
 
     :param base: the WebSocket protocol class uvicorn would use
     :param guard: the shared limits
@@ -251,14 +257,42 @@ def guarded_websocket(base: type, guard: ConnectionGuard) -> type:
     class GuardedWebSocket(base):
         _guard_served = True  # it completed a request (its upgrade): not evicted as half-open
         _guard_since = None
+        on_lost: Any = None  # called once the connection is closed (a handed one: told nothing else by uvicorn)
 
         def connection_made(self, transport) -> None:  # type: ignore[override]
             guard.adopt(self)
             super().connection_made(transport)
+            self._guard_app, self.app = self.app, self._guard_scoped
+
+        async def _guard_scoped(self, scope, receive, send) -> None:
+            scope.setdefault("extensions", {})[CONNECTION] = self
+            await self._guard_app(scope, receive, send)
+
+        def hold(self) -> bool:
+            """Stop reading before the upgrade is answered (so that every byte after the answer stays in the
+            socket, for :meth:`detach`); ``False`` if this connection cannot be handed over (TLS, or another
+            protocol class than uvicorn's sans-I/O one)."""
+            if guard.tls is not None or not hasattr(self, "stop_keepalive") or not hasattr(self, "conn"):
+                return False
+            self.transport.pause_reading()
+            return True
+
+        def detach(self) -> int | None:
+            """After the upgrade's answer: a duplicate of the connection's descriptor, which the caller hands on
+            (the protocol reads nothing more, sends no more pings, and keeps its own descriptor until closed);
+            ``None``, reading resumed, if the client sent bytes before the answer."""
+            reader = getattr(self.conn, "reader", None)
+            if not self.queue.empty() or len(getattr(reader, "buffer", b"")) or self.transport.is_closing():
+                self.transport.resume_reading()
+                return None
+            self.stop_keepalive()
+            return os.dup(self.transport.get_extra_info("socket").fileno())
 
         def connection_lost(self, exc) -> None:  # type: ignore[override]
             guard.drop(self)
             super().connection_lost(exc)
+            if self.on_lost is not None:
+                self.on_lost()
 
         def _guard_close(self) -> None:
             self.transport.close()
