@@ -42,6 +42,7 @@ import json
 import os
 import platform
 import select
+import socket
 import subprocess
 import sys
 import threading
@@ -803,7 +804,9 @@ def main(argv: list[str] | None = None) -> int:
     big = max(max(args.sizes), args.load_vehicles, 64)
     kwargs = json.dumps({"config": {"max_vehicles": big}})
     print("## Latency per decision [ms]\n")
-    print(f"transport: {args.transport}; server: --workers {args.server_workers} --http {args.server_http}\n")
+    handed = args.transport == "fast" and args.server_workers > 0 and hasattr(socket, "send_fds")
+    print(f"transport: {args.transport}; server: --workers {args.server_workers} --http {args.server_http}"
+          f"{' (each WebSocket handed to its planning process)' if handed else ''}\n")  # fmt: skip
     print("p50/p99/max: wall clock of one remote decision (client.step_scene on the fast path, client.step over "
           "HTTP: encode, round trip, decode); in-proc: planner.act in this process on the same scene, timed "
           "alternately with it (the order swapped each decision); ratio: remote / in-proc; added p50: p50 - "
