@@ -120,8 +120,8 @@ def profile(scenes: list[Scene], params: LookaheadParams, repeat: int) -> None:
         return sum(r[1] for r in rows), sum(r[3] for r in rows)
 
     searches, total = cumulative("envs/planners/lookahead.py", "_search")
-    steps, check = cumulative("envs/planners/shield.py", "check")
-    predictions, predict = cumulative("envs/planners/shield.py", "predict")
+    steps = cumulative("envs/planners/shield.py", "check")[0]
+    predictions = cumulative("envs/planners/shield.py", "predict")[0]
     print(f"{searches} searches of {np.mean([s.num_vehicles for s in scenes]):.0f} vehicles on average, "
           f"{1e3 * total / max(searches, 1):.0f} ms each under the profiler")
     print(f"{steps / max(searches, 1):.0f} rollout steps per search, {predictions / max(steps, 1):.1f} shield "
