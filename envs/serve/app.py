@@ -477,7 +477,9 @@ class Gateway:
         try:
             return await self.pool.call(worker, op, sid, body, self.time_limit if op in PLANNING else None)
         except TimeoutError:
-            # a scene that overran must not hold its worker: it is killed and replaced, its streams lost
+            # a scene that overran must not hold its worker: it is killed and replaced, its streams lost (a handed
+            # connection's step it was planning meanwhile gets 503 too)
+            self._overran.add(worker)
             self.pool.stop(worker)
             raise RequestError(503, "time_limit", f"no answer within {self.time_limit} s; its planning process "
                                                   "was stopped and this stream is lost: open a new one") from None
@@ -499,7 +501,7 @@ class Gateway:
                 else:
                     refusal = frames.encode_error(404, "stream", "lost (its planning process ended); open a new one")
                 handed.connection.transport.write(server_frame(refusal))
-            self._overran.discard(worker)
+        self._overran.discard(worker)
         gone = [sid for sid, entry in self.streams.items() if entry.worker == worker]
         for sid in gone:
             self._drop(sid)
