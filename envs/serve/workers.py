@@ -237,6 +237,8 @@ class _Worker:
 
     def serve(self, handed: HandedSocket, events: int) -> None:
         """A handed connection is readable or writable: answer its whole messages, send what waits."""
+        if self.sockets.get(handed.sid) is not handed:  # released earlier in this turn of the loop
+            return
         if events & selectors.EVENT_WRITE:
             handed.flush()
         if events & selectors.EVENT_READ and not handed.read():  # the peer went: nothing more to send
