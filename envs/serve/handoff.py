@@ -20,7 +20,7 @@ import struct
 import time
 from collections.abc import Callable
 
-import numpy as np
+from envs.serve.websocket import apply_mask, frame_head
 
 # close codes (RFC 6455 7.4.1)
 NORMAL, PROTOCOL_ERROR, TOO_BIG = 1000, 1002, 1009
@@ -29,23 +29,11 @@ _READ = 1 << 16
 
 def server_frame(payload: bytes, opcode: int = 0x2) -> bytes:
     """One unmasked, final frame as a server sends it (binary by default)."""
-    n = len(payload)
-    if n < 126:
-        head = struct.pack("!BB", 0x80 | opcode, n)
-    elif n < 1 << 16:
-        head = struct.pack("!BBH", 0x80 | opcode, 126, n)
-    else:
-        head = struct.pack("!BBQ", 0x80 | opcode, 127, n)
-    return head + payload
+    return frame_head(opcode, len(payload)) + payload
 
 
 def close_frame(code: int) -> bytes:
     return server_frame(struct.pack("!H", code), opcode=0x8)
-
-
-def _unmask(data: bytes | bytearray | memoryview, mask: bytes) -> bytes:
-    n = len(data)
-    return (np.frombuffer(data, np.uint8, n) ^ np.frombuffer(mask * ((n + 3) // 4), np.uint8, n)).tobytes()
 
 
 class HandedSocket:
@@ -142,7 +130,7 @@ class HandedSocket:
         if len(inbox) < end:
             return None
         mask = bytes(inbox[at : at + 4])
-        payload = _unmask(memoryview(inbox)[at + 4 : end], mask) if n else b""
+        payload = apply_mask(memoryview(inbox)[at + 4 : end], mask) if n else b""
         del inbox[:end]
         return bool(b0 & 0x80), opcode, payload
 

@@ -1,6 +1,9 @@
 """A minimal blocking WebSocket client (RFC 6455): what the planner client needs for the fast path, in the
 standard library and numpy (binary messages, ping answered, no extensions).
 
+:func:`frame_head` and :func:`apply_mask` also serve the server's end of a handed connection
+(:mod:`envs.serve.handoff`).
+
 One request and one answer at a time on one connection: :meth:`WebSocket.send` writes a masked binary frame,
 :meth:`WebSocket.recv` reads the next data message. Any failure (a timeout mid-frame, a close, a reset) leaves
 the connection unusable: the caller drops it and opens another.
@@ -91,15 +94,10 @@ class WebSocket:
     def send(self, data: bytes, timeout: float | None = None, opcode: int = 0x2) -> None:
         """Send one message (binary by default), masked as a client must."""
         n = len(data)
-        if n < 126:
-            head = struct.pack("!BB", 0x80 | opcode, 0x80 | n)
-        elif n < 1 << 16:
-            head = struct.pack("!BBH", 0x80 | opcode, 0x80 | 126, n)
-        else:
-            head = struct.pack("!BBQ", 0x80 | opcode, 0x80 | 127, n)
+        head = frame_head(opcode, n, masked=True)
         mask = os.urandom(4)
         if n:
-            data = _masked(data, mask)
+            data = apply_mask(data, mask)
         self.sock.settimeout(timeout)
         self.sock.sendall(head + mask + data)
 
@@ -123,7 +121,7 @@ class WebSocket:
             mask = self._read(4) if b1 & 0x80 else None
             payload = self._read(n)
             if mask is not None and n:
-                payload = _masked(payload, mask)
+                payload = apply_mask(payload, mask)
             if opcode == 0x8:
                 raise ConnectionError("the server closed the WebSocket")
             if opcode == 0x9:
@@ -162,7 +160,18 @@ class WebSocket:
             pass
 
 
-def _masked(data: bytes, mask: bytes) -> bytes:
+def frame_head(opcode: int, n: int, masked: bool = False) -> bytes:
+    """The head of a final frame with a payload of ``n`` bytes (``masked``: as a client sends it, the mask to
+    follow)."""
+    bit = 0x80 if masked else 0
+    if n < 126:
+        return struct.pack("!BB", 0x80 | opcode, bit | n)
+    if n < 1 << 16:
+        return struct.pack("!BBH", 0x80 | opcode, bit | 126, n)
+    return struct.pack("!BBQ", 0x80 | opcode, bit | 127, n)
+
+
+def apply_mask(data: bytes | bytearray | memoryview, mask: bytes) -> bytes:
     """``data`` XOR the 4-byte ``mask`` repeated (RFC 6455's masking, both ways)."""
     n = len(data)
     return (np.frombuffer(data, np.uint8) ^ np.frombuffer(mask * ((n + 3) // 4), np.uint8, n)).tobytes()
