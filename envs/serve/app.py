@@ -407,6 +407,15 @@ class _Handed:
     connection: Any
     done: asyncio.Future
 
+    def end(self) -> None:
+        """The connection is over: its endpoint returns, and uvicorn closes the event loop's end."""
+        if not self.done.done():
+            self.done.set_result(None)
+
+
+def _lost_stream() -> RequestError:
+    return RequestError(404, "stream", "lost (its planning process ended); open a new one")
+
 
 @dataclass
 class _Entry:
@@ -481,11 +490,14 @@ class Gateway:
             # connection's step it was planning meanwhile gets 503 too)
             self._overran.add(worker)
             self.pool.stop(worker)
-            raise RequestError(503, "time_limit", f"no answer within {self.time_limit} s; its planning process "
-                                                  "was stopped and this stream is lost: open a new one") from None
+            raise self._overrun() from None
         except WorkerGone:
             self._drop(sid)
-            raise RequestError(404, "stream", "lost (its planning process ended); open a new one") from None
+            raise _lost_stream() from None
+
+    def _overrun(self) -> RequestError:
+        return RequestError(503, "time_limit", f"no answer within {self.time_limit} s; its planning process was "
+                                               "stopped and this stream is lost: open a new one")  # fmt: skip
 
     def _lost(self, worker: int) -> None:
         """The worker ``worker`` ended: its streams are gone with it (their next request gets 404; a handed
@@ -494,12 +506,8 @@ class Gateway:
             since, key = self.pool.planning(worker)
             handed = self.handed.get(key) if since > 0 else None
             if handed is not None and handed.worker == worker:
-                if worker in self._overran:
-                    refusal = frames.encode_error(503, "time_limit", f"no answer within {self.time_limit} s; "
-                                                  "its planning process was stopped and this stream is lost: open "
-                                                  "a new one")  # fmt: skip
-                else:
-                    refusal = frames.encode_error(404, "stream", "lost (its planning process ended); open a new one")
+                error = self._overrun() if worker in self._overran else _lost_stream()
+                refusal = frames.encode_error(error.status, error.field, error.message)
                 handed.connection.transport.write(server_frame(refusal))
         self._overran.discard(worker)
         gone = [sid for sid, entry in self.streams.items() if entry.worker == worker]
@@ -520,16 +528,15 @@ class Gateway:
         """Close a stream's WebSocket: on the event loop, or (handed) by its worker, and the event loop's end."""
         if isinstance(socket, _Handed):
             self.pool.release(socket.worker, socket.key, socket.sid)
-            if not socket.done.done():
-                socket.done.set_result(None)  # the endpoint returns: uvicorn closes the event loop's end
+            socket.end()
         else:
             asyncio.get_running_loop().create_task(_close_socket(socket))
 
     def _handed_closed(self, key: int) -> None:
         """The worker closed the handed connection ``key`` (the client closed it, went, or broke the protocol)."""
         handed = self.handed.get(key)
-        if handed is not None and not handed.done.done():
-            handed.done.set_result(None)
+        if handed is not None:
+            handed.end()
 
     def _hand(self, connection: Any, entry: _Entry, sid: str) -> _Handed | None:
         """Hand the upgraded ``connection`` to the worker of stream ``sid``; ``None``: it stays on the event loop
@@ -547,7 +554,7 @@ class Gateway:
             return None
         handed = _Handed(key, entry.worker, sid, connection, asyncio.get_running_loop().create_future())
         self.handed[key] = handed
-        connection.on_lost = lambda: None if handed.done.done() else handed.done.set_result(None)  # server shutdown
+        connection.on_lost = handed.end  # the server shuts down
         return handed
 
     async def open(self, client: str, body: bytes) -> tuple[int, bytes]:
