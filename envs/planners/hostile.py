@@ -9,6 +9,9 @@ handed and the array it returns. Run them by class name behind the shield, e.g.
 - :class:`LayoutEditor` tries to raise the speed limits of the shared layout (to change the physics for
   everyone) and drives at full throttle.
 - :class:`CollisionSeeker` times each vehicle to reach the intersection together with a crossing one.
+- :class:`ZoneMeeter` times each vehicle to reach its conflict zone together with the conflicting vehicle whose
+  arrival there is closest to its own, rams any leader within reach and brakes every other vehicle.
+- :class:`Fuzzer` answers random accelerations, held for a random number of steps per vehicle.
 - :class:`BrakeChecker` drives at full throttle and brakes hard every few seconds.
 - :class:`BoxParker` stops every vehicle that is inside the intersection (to stall it).
 - :class:`BangBang` alternates full throttle and full braking every step.
@@ -125,6 +128,81 @@ class CollisionSeeker(Planner):
         has = np.isfinite(spread[np.arange(n), target]) & (scene.dist_to_entry > 0)
         early = arrival < arrival[target]
         acc[has & early] = float(scene.a_min)
+        return acc
+
+
+class ZoneMeeter(Planner):
+    """Times each vehicle to arrive at its conflict zone together with the conflicting vehicle whose arrival at
+    their shared zone is closest to its own: full throttle when later, gentle braking when earlier; rams any
+    leader within ``ram_gap``; brakes every other vehicle (those with neither a partner nor a leader in reach).
+
+    Arrivals are read from the layout's conflict zones (:attr:`envs.simulation.layouts.Layout.zone_start`) at
+    the current speed; without a layout the planner brakes every vehicle.
+
+    :param name: the name shown in reports
+    :param ram_gap: bumper gap below which a vehicle accelerates into its leader [m]
+    :param gentle: the braking when early [m/s^2, positive]
+    """
+
+    def __init__(self, name: str = "ZoneMeeter", ram_gap: float = 12.0, gentle: float = 1.0) -> None:
+        super().__init__(name)
+        self.ram_gap = float(ram_gap)
+        self.gentle = float(gentle)
+
+    def act(self, scene: Scene) -> np.ndarray:
+        n = scene.num_vehicles
+        acc = np.full(n, float(scene.a_min))
+        if n == 0 or scene.layout is None or scene.arc is None:
+            return acc
+        route, arc = scene.route, scene.arc
+        start = scene.layout.zone_start[route[:, None], route[None, :]]  # (n, n): i's zone with j, on i's route
+        end = scene.layout.zone_end[route[:, None], route[None, :]]
+        conflict = scene.conflicts[route[:, None], route[None, :]] & (route[:, None] != route[None, :])
+        ahead = start - (arc + scene.length / 2)[:, None]  # front to the zone's start [m]
+        open_zone = conflict & ((end - (arc - scene.length / 2)[:, None]) > 0)  # its rear not yet past the zone
+        with np.errstate(invalid="ignore"):
+            arrival = np.where(open_zone, np.maximum(ahead, 0.0), np.inf) / np.maximum(scene.speed, 0.5)[:, None]
+            mine, theirs = arrival, arrival.T  # [i, j]: i's arrival at its zone with j, and j's at the same zone
+            spread = np.where(open_zone & open_zone.T & (ahead > 0), np.abs(mine - theirs), np.inf)
+        target = spread.argmin(axis=1)
+        rows = np.arange(n)
+        has = np.isfinite(spread[rows, target])
+        late = mine[rows, target] >= theirs[rows, target]
+        acc[has & late] = float(scene.a_max)
+        acc[has & ~late] = -self.gentle
+        acc[(scene.leader >= 0) & (scene.gap < self.ram_gap)] = float(scene.a_max)
+        return acc
+
+
+class Fuzzer(Planner):
+    """Random accelerations: each vehicle draws a command uniformly within the bounds and holds it for 1 to
+    ``hold`` steps (seeded by ``reset``), so that it both rams and brakes at random moments.
+
+    :param name: the name shown in reports
+    :param hold: most steps a drawn command is held
+    """
+
+    def __init__(self, name: str = "Fuzzer", hold: int = 10) -> None:
+        super().__init__(name)
+        self.hold = int(hold)
+        self.rng = np.random.default_rng(0)
+        self._command: dict[int, tuple[float, int]] = {}
+
+    def reset(self, seed: int | None = None) -> None:
+        self.rng = np.random.default_rng(seed)
+        self._command = {}
+
+    def act(self, scene: Scene) -> np.ndarray:
+        n = scene.num_vehicles
+        draw = self.rng.uniform(scene.a_min, scene.a_max, n)
+        steps = self.rng.integers(1, self.hold + 1, n)
+        acc = np.empty(n)
+        for row, vid in enumerate(scene.vehicle_id.tolist()):  # a planner's own bookkeeping, not a hot path
+            value, left = self._command.get(vid, (draw[row], steps[row]))
+            if left <= 0:
+                value, left = draw[row], steps[row]
+            acc[row] = value
+            self._command[vid] = (value, left - 1)
         return acc
 
 
