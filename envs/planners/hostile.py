@@ -175,8 +175,9 @@ class ZoneMeeter(Planner):
 
 
 class Fuzzer(Planner):
-    """Random accelerations: each vehicle draws a command uniformly within the bounds and holds it for 1 to
-    ``hold`` steps (seeded by ``reset``), so that it both rams and brakes at random moments.
+    """Random accelerations: each vehicle draws a command uniformly within the bounds and holds it for a number
+    of steps of its own (1 to ``hold``), so that it both rams and brakes at random moments. The draws are a
+    hash of the seed given to ``reset``, the vehicle's id and the step: reproducible, and vectorized.
 
     :param name: the name shown in reports
     :param hold: most steps a drawn command is held
@@ -185,25 +186,28 @@ class Fuzzer(Planner):
     def __init__(self, name: str = "Fuzzer", hold: int = 10) -> None:
         super().__init__(name)
         self.hold = int(hold)
-        self.rng = np.random.default_rng(0)
-        self._command: dict[int, tuple[float, int]] = {}
+        self.seed = 0
+        self.steps = 0
 
     def reset(self, seed: int | None = None) -> None:
-        self.rng = np.random.default_rng(seed)
-        self._command = {}
+        self.seed = int(seed or 0)
+        self.steps = 0
 
     def act(self, scene: Scene) -> np.ndarray:
-        n = scene.num_vehicles
-        draw = self.rng.uniform(scene.a_min, scene.a_max, n)
-        steps = self.rng.integers(1, self.hold + 1, n)
-        acc = np.empty(n)
-        for row, vid in enumerate(scene.vehicle_id.tolist()):  # a planner's own bookkeeping, not a hot path
-            value, left = self._command.get(vid, (draw[row], steps[row]))
-            if left <= 0:
-                value, left = draw[row], steps[row]
-            acc[row] = value
-            self._command[vid] = (value, left - 1)
-        return acc
+        key = _mix(scene.vehicle_id.astype(np.uint64) ^ _mix(np.full(1, self.seed, np.uint64)))
+        held = 1 + (key % np.uint64(self.hold)).astype(np.int64)
+        epoch = (self.steps // held).astype(np.uint64)
+        self.steps += 1
+        u = (_mix(key ^ (epoch * np.uint64(0x9E3779B97F4A7C15))) >> np.uint64(11)).astype(float) / float(1 << 53)
+        return float(scene.a_min) + u * float(scene.a_max - scene.a_min)
+
+
+def _mix(x: np.ndarray) -> np.ndarray:
+    """SplitMix64's finaliser over an array of ``uint64`` (wrapping arithmetic)."""
+    with np.errstate(over="ignore"):
+        x = (x ^ (x >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+        x = (x ^ (x >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+        return x ^ (x >> np.uint64(31))
 
 
 class BrakeChecker(Planner):
