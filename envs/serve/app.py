@@ -545,15 +545,18 @@ class Gateway:
         if fd is None:
             return None
         key = next(self._keys)
+        # Registered before the hand-over: from then on the worker may answer the client's steps before this
+        # thread runs again (an in-process server under load: the client saw answers, `handed` still empty)
+        done = asyncio.get_running_loop().create_future()
+        handed = self.handed[key] = _Handed(key, entry.worker, sid, connection, done)
         try:
             passed = self.pool.hand(entry.worker, key, sid, fd, self.max_body)
         finally:
             os.close(fd)
         if not passed:
+            del self.handed[key]
             connection.transport.resume_reading()
             return None
-        handed = _Handed(key, entry.worker, sid, connection, asyncio.get_running_loop().create_future())
-        self.handed[key] = handed
         connection.on_lost = handed.end  # the server shuts down
         return handed
 
