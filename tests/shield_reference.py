@@ -44,6 +44,10 @@ def plan_pairs_numpy(shield: Shield, scene: Scene, plan: _Plan) -> dict[str, np.
     lead = scene.leader
     rows = np.flatnonzero(lead >= 0)
     second = rows[lead[lead[rows]] >= 0]
+    far = route[lead[lead[second]]]  # the leader's leader's route: on the follower's path (`on_path`)?
+    mine = route[second]
+    on_path = (mine == far) | (parting_arcs(lay)[far, mine] > -np.inf) | _merging_routes(lay)[mine, far]
+    second = second[on_path]
     by_route = np.lexsort((arc, route))
     same = route[by_route[:-1]] == route[by_route[1:]]
     behind, ahead = by_route[:-1][same], by_route[1:][same]

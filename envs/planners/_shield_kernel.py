@@ -543,6 +543,16 @@ def conflicts(
 
 
 @numba.njit(cache=True)
+def _on_path(mine: int, other: int, merging: np.ndarray, parting: np.ndarray) -> bool:
+    """``on_path``: whether a vehicle on route ``other`` can be ahead on a vehicle on route ``mine``'s path: the same
+    route, one from the same spawn lane (until the lines part), or one that ends on the same exit lane. A leader
+    that has turned onto its own branch (inD's split lanes, the 4-way's left turn lane) leads vehicles that its
+    former follower never meets on a lane: that pair of the leader's leader is no follow pair (its gap, a
+    difference of arcs on two unrelated paths, closed where nobody was near)."""
+    return mine == other or parting[other, mine] > -np.inf or merging[mine, other]
+
+
+@numba.njit(cache=True)
 def pairs(
     route: np.ndarray,
     arc: np.ndarray,
@@ -608,7 +618,7 @@ def pairs(
             k += 1
     for i in range(n):
         lead = leader[i]
-        if lead >= 0 and leader[lead] >= 0:
+        if lead >= 0 and leader[lead] >= 0 and _on_path(route[i], route[leader[lead]], merging, parting):
             follower[k], ahead[k] = i, leader[lead]
             follow_gap[k] = gap[i] + length[lead] + gap[lead]
             k += 1
