@@ -16,6 +16,8 @@ handed and the array it returns. Run them by class name behind the shield, e.g.
 - :class:`BoxParker` stops every vehicle that is inside the intersection (to stall it).
 - :class:`BangBang` alternates full throttle and full braking every step.
 - :class:`NaNPlanner` answers NaN for one vehicle every step (an invalid output).
+- :class:`Crawler` keeps every vehicle before its line just above the standing speed: the junction starves
+  without a vehicle ever standing.
 - :class:`LineHolder` holds every vehicle before the stop line forever: the shield's rules inside the
   intersection do not cover it; its watchdog hands the stalled junction to a live planner
   (:mod:`envs.planners.watchdog`, docs/shield.md).
@@ -300,3 +302,23 @@ class LineHolder(Planner):
         a = float(scene.a_max)
         can_stop = scene.dist_to_entry - scene.speed**2 / (2 * a) > 0.5
         return np.where(can_stop | (scene.speed < 1e-6) & (scene.dist_to_entry > 0), -a, a)
+
+
+class Crawler(Planner):
+    """Brakes every vehicle before its stop line to ``speed`` (just above
+    :data:`envs.simulation.scene.STOP_SPEED`, so that none ever stands) and holds it there; full throttle past
+    the line. Its traffic reaches the line minutes late, never waiting in the standing sense.
+
+    :param name: the name shown in reports
+    :param speed: the crawl [m/s]
+    """
+
+    def __init__(self, name: str = "Crawler", speed: float = 0.4) -> None:
+        super().__init__(name)
+        self.speed = float(speed)
+
+    def act(self, scene: Scene) -> np.ndarray:
+        a = float(scene.a_max)
+        before = scene.dist_to_entry > 0
+        hold = np.clip((self.speed - scene.speed) / float(scene.dt), -a, a)
+        return np.where(before, hold, a)
