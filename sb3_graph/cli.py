@@ -1,4 +1,4 @@
-"""The ``sb3-graph`` command line.
+"""The sb3-graph command line: one sub-command per job.
 
 Each sub-command lives in its own module that provides ``add_arguments(parser)`` and
 ``run(args) -> int``; this file only dispatches, importing a module when its command runs.

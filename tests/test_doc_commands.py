@@ -16,6 +16,7 @@ import contextlib
 import io
 import re
 import shlex
+import sys
 from pathlib import Path
 
 import pytest
@@ -137,7 +138,11 @@ def doc_commands(path: Path) -> list[tuple[int, str, list[str]]]:
 
     :return: (line, the command as written, its words after ``sb3-graph``) in file order
     """
-    text = path.read_text(encoding="utf-8")
+    return markdown_commands(path.read_text(encoding="utf-8"))
+
+
+def markdown_commands(text: str) -> list[tuple[int, str, list[str]]]:
+    """Every ``sb3-graph`` command of some Markdown (see :func:`doc_commands`)."""
     found = []
 
     def line_of(offset: int) -> int:
@@ -179,7 +184,17 @@ def parse_error(words: list[str]) -> str | None:
     return None
 
 
+def example_commands() -> list[tuple[Path, int, str, list[str]]]:
+    """The commands of the Examples page (written from the docstrings of ``examples/*.py`` at every build)."""
+    sys.path.insert(0, str(ROOT / "docs" / "_ext"))
+    import site_pages
+
+    page = ROOT / "docs" / "examples.md"
+    return [(page, line, code, words) for line, code, words in markdown_commands(site_pages.examples_page())]
+
+
 COMMANDS = [(path, line, code, words) for path in markdown_files() for line, code, words in doc_commands(path)]
+COMMANDS += example_commands()
 
 
 def test_the_commands_are_found():
@@ -187,6 +202,7 @@ def test_the_commands_are_found():
     assert len(COMMANDS) > 100
     assert any(path.name == "README.md" for path, *_ in COMMANDS)
     assert any(words[0] == "serve" for *_, words in COMMANDS)
+    assert any("examples/aim_fast.py:AIMFast+shield" in words for *_, words in COMMANDS)  # the Examples page
 
 
 def test_shell_expansion(tmp_path):
