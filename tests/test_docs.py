@@ -176,3 +176,24 @@ def test_the_tested_versions_table_lists_what_the_script_prints():
     rows = [line.split("|")[1].strip() for line in tested_versions.table().splitlines()[2:]]
     page = [line.split("|")[1].strip() for line in install.split("## Tested versions")[1].splitlines() if "|" in line]
     assert page[2:] == rows
+
+
+def test_the_hand_written_scenario_of_the_guide_is_valid():
+    # "Your own scenarios" shows a scenario file that a user copies: it must load, and every route the page's
+    # table lists is one of its layout's.
+    import json
+
+    from envs.simulation.layouts import LAYOUT_NAMES, build_layout
+    from envs.simulation.traffic import Scenario
+
+    page = (ROOT / "docs" / "scenarios.md").read_text(encoding="utf-8")
+    block = re.search(r"^```json\n(.*?)^```", page, re.DOTALL | re.MULTILINE).group(1)
+    scenario = Scenario.from_dict(json.loads(block), "docs/scenarios.md")
+    scenario.validate("docs/scenarios.md")
+    assert scenario.num_vehicles == 3 and scenario.human.tolist() == [False, False, True]
+    sys.path.insert(0, str(ROOT / "docs" / "_ext"))
+    import site_pages
+
+    table = site_pages.routes_table()
+    for name in LAYOUT_NAMES:
+        assert all(f"| `{route}` |" in table for route in build_layout(name).route_names)

@@ -4,8 +4,9 @@
 - the environment reference's tables (:func:`write_environment_tables`): ``docs/_generated/*.md``, included by
   ``docs/env_reference.md``: the environments, the observation's arrays, the action types, the reward terms and
   every key of ``default_config()`` with its default, its allowed values and its meaning;
-- the command-line reference (:func:`cli_reference`: every command's ``--help``, from its parser) and the examples
-  page (:func:`examples_page`: every file of ``examples/``), included by ``docs/cli.md`` and ``docs/examples.md``.
+- the command-line reference (:func:`cli_reference`: every command's ``--help``, from its parser), the examples
+  page (:func:`examples_page`: every file of ``examples/``) and the routes of each layout (:func:`routes_table`),
+  included by ``docs/cli.md``, ``docs/examples.md`` and ``docs/scenarios.md``.
 
 ``docs/conf.py`` calls both when the builder starts.
 """
@@ -330,5 +331,34 @@ def examples_page() -> str:
     return "\n".join(parts)
 
 
-#: the reference pages written beside the environment tables: the command line and the examples
-REFERENCE_PAGES = {"cli.md": cli_reference, "examples.md": examples_page}
+def routes_table() -> str:
+    """Per layout, every route a scenario file or a scene on the wire may name: its arms, maneuver, road, length
+    and where it enters and leaves the intersection (from :func:`envs.simulation.layouts.build_layout`)."""
+    import importlib
+
+    import envs
+    from envs.simulation.layouts import LAYOUT_NAMES, build_layout
+    from envs.simulation.scene import MANEUVERS, PRIORITY_NAMES
+
+    ids = {}
+    for env_id, entry_point in envs.ENV_IDS.items():
+        module, name = entry_point.split(":")
+        ids.setdefault(getattr(importlib.import_module(module), name).LAYOUT, env_id)
+    parts = []
+    for name in LAYOUT_NAMES:
+        layout = build_layout(name)
+        parts += [f"### `{name}` (`{ids.get(name, '')}`)\n",
+                  "| route | from | to | maneuver | road | length [m] | enters / leaves the intersection at [m] |",
+                  "|---|---|---|---|---|---:|---:|"]  # fmt: skip
+        for r, route in enumerate(layout.route_names):
+            parts.append(
+                f"| `{route}` | {layout.entry_arm[r]} | {layout.exit_arm[r]} | {MANEUVERS[layout.maneuver[r]]} | "
+                f"{PRIORITY_NAMES[layout.priority[r]]} | {layout.length[r]:.2f} | "
+                f"{layout.entry_arc[r]:.2f} / {layout.exit_arc[r]:.2f} |"
+            )
+        parts.append("")
+    return "\n".join(parts)
+
+
+#: the reference pages written beside the environment tables: the command line, the examples, the routes
+REFERENCE_PAGES = {"cli.md": cli_reference, "examples.md": examples_page, "routes.md": routes_table}
