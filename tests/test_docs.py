@@ -197,3 +197,20 @@ def test_the_hand_written_scenario_of_the_guide_is_valid():
     table = site_pages.routes_table()
     for name in LAYOUT_NAMES:
         assert all(f"| `{route}` |" in table for route in build_layout(name).route_names)
+
+
+#: the pages that keep the record of what was measured, with dates and the machine's load; every other page is a guide
+RESEARCH_PAGES = ("experiments.md", "speed.md")
+
+
+def test_guides_say_no_today_and_no_load_average():
+    # A guide states what holds, with its command; a figure that depends on the day or on the machine's load
+    # belongs to the experiments or speed page, which say when and under what load they measured it.
+    found = []
+    for path in markdown_files():
+        if path.name in RESEARCH_PAGES:
+            continue
+        for number, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
+            if re.search(r"\btoday\b|load average", line, re.IGNORECASE):
+                found.append(f"{path.relative_to(ROOT)}:{number}: {line.strip()[:80]}")
+    assert found == [], "\n".join(found)
