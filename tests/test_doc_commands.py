@@ -7,7 +7,8 @@ command (``sb3-graph`` and at least one word after the command name). ``python -
 the block (or the span) and a ``for NAME in`` loop's first value are substituted for ``$NAME``, unquoted braces are
 expanded (``{a,b}``, ``{1..3}``), and quotes are removed. A command with an elision (``...``) is a sketch, not a
 command, and is left out. Nothing runs: the words go to :func:`sb3_graph.cli.build_parser`'s parser, which must
-accept them as ``sb3-graph`` itself would.
+accept them as ``sb3-graph`` itself would, and hold no placeholder for the reader to fill in (``ENV``, ``FILE``,
+``<layout>``).
 """
 
 from __future__ import annotations
@@ -164,6 +165,24 @@ def markdown_commands(text: str) -> list[tuple[int, str, list[str]]]:
     return sorted(found, key=lambda item: item[0])
 
 
+_LABEL = re.compile(r"^[A-Za-z0-9_.:@+-]+=")  # LABEL= in front of a planner spec
+
+
+def placeholder(word: str) -> str | None:
+    """A part of a word that stands for something the reader must fill in (``ENV``, ``FILE+shield``,
+    ``<layout>``, ``RUN/best_model.zip``): a command with one does not run as written.
+
+    :return: the part, or ``None``
+    """
+    if "<" in word or (">" in word and "->" not in word):
+        return word
+    for part in re.split(r"[/=:+,]", _LABEL.sub("", word, count=1)):
+        stem = part.split(".")[0]
+        if len(stem) >= 2 and re.fullmatch(r"[A-Z][A-Z0-9_]*", stem):
+            return part
+    return None
+
+
 def parse_error(words: list[str]) -> str | None:
     """What the ``sb3-graph`` parser says of some words: ``None`` when it accepts them (``--help`` included), else its
     error line.
@@ -244,9 +263,23 @@ def test_a_broken_command_fails(words):
     assert parse_error(words) is not None
 
 
+@pytest.mark.parametrize("word", ["ENV", "FILE+shield", "A1=FILE+shield", "zoo_configs/<file>.yml", "RUN/best.zip"])
+def test_a_placeholder_is_found(word):
+    assert placeholder(word) is not None
+
+
+@pytest.mark.parametrize(
+    "word", ["CoopIntersection4Way-v0", "GNN=envs/pretrained/x/best_model.safetensors+shield", "south->north", "aim"]
+)
+def test_a_real_word_is_no_placeholder(word):
+    assert placeholder(word) is None
+
+
 @pytest.mark.parametrize(
     "path,line,code,words", COMMANDS, ids=[f"{p.relative_to(ROOT)}:{line}" for p, line, _, _ in COMMANDS]
 )
 def test_every_command_parses(path, line, code, words):
     error = parse_error(words)
     assert error is None, f"{path.relative_to(ROOT)}:{line}: {code}\n{error}"
+    filled = [part for part in map(placeholder, words) if part is not None]
+    assert filled == [], f"{path.relative_to(ROOT)}:{line}: {code}\nplaceholders: {filled}"
