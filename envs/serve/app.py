@@ -215,12 +215,13 @@ class PlannerService:
         """What the planners are (the server adds its limits): :class:`~envs.serve.schema.ServerInfo`'s fields."""
         from sb3_graph import __version__  # torch: loaded only when asked
 
-        cfg = self.builder.config
+        cfg, lay = self.builder.config, self.builder.layout
         return dict(
             package=__version__, schema_version=SCHEMA_VERSION, planner=planner_name(self.spec), spec=self.spec,
             shield=self.shield, env=self.env_id, layout=self.builder.layout.name, dt=self.builder.dt,
             a_min=-float(cfg["max_acceleration"]), a_max=float(cfg["max_acceleration"]),
             max_vehicles=self.builder.limits.max_vehicles, max_speed=self.builder.limits.max_speed,
+            routes={name: round(float(length), 2) for name, length in zip(lay.route_names, lay.length)},
         )  # fmt: skip
 
     def open(self, request: OpenRequest, sid: str | None = None) -> Stream:
