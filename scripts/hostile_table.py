@@ -33,6 +33,7 @@ ATTACKS = (
     ("bang-bang", "BangBang"),
     ("NaN", "NaNPlanner"),
     ("holding before the line (watchdog takeovers)", "LineHolder"),
+    ("crawling before the line (watchdog takeovers)", "Crawler"),
 )
 
 
