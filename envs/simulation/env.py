@@ -49,9 +49,10 @@ from highway_env.vehicle.kinematics import Vehicle
 
 from envs.simulation import hooks
 from envs.simulation.config import SCHEDULER_ACTION_TYPES, validate_config
-from envs.simulation.engine import Simulation, StepEvents
+from envs.simulation.engine import StepEvents
 from envs.simulation.graph import DEFAULT_S_SCALE, NUM_RELATIONS, build_observation, min_mahalanobis, num_node_features
 from envs.simulation.layouts import Layout, build_layout
+from envs.simulation.plant import Plant, make_plant
 from envs.simulation.rewards import (
     DEFAULT_PROXIMITY_THRESHOLD,
     DEFAULT_REWARD,
@@ -84,7 +85,7 @@ class CoopIntersectionEnv(AbstractEnv):
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be None or one of {self.metadata['render_modes']}, got {render_mode!r}")
         self.metadata = dict(self.metadata)  # highway-env writes render_fps into it
-        self.sim: Simulation | None = None
+        self.sim: Plant | None = None
         self.layout: Layout | None = None
         self.traffic: TrainingTraffic | ScenarioTraffic | None = None
         self._scene: Scene | None = None
@@ -99,6 +100,9 @@ class CoopIntersectionEnv(AbstractEnv):
         """All settings with their defaults.
 
         - ``layout``: ``"4way"``, ``"3way"`` or ``"inD"`` (see :func:`envs.simulation.layouts.build_layout`)
+        - ``plant``: what moves the vehicles (:mod:`envs.simulation.plant`): ``"builtin"`` (our simulation, the
+          default) or ``"sumo"`` (Eclipse SUMO, the ``sumo`` extra; ``simulation_frequency`` must then divide
+          1000, e.g. 20; human-driven vehicles are SUMO's own drivers)
         - ``simulation_frequency`` [Hz] 15, ``policy_frequency`` [Hz] 5 (a 0.2 s step)
         - ``duration`` [s]: training episode length (a scenario brings its own)
         - ``max_vehicles``: vertices/action slots; spawning waits while the scene is full
@@ -167,6 +171,7 @@ class CoopIntersectionEnv(AbstractEnv):
         """
         return {
             "layout": cls.LAYOUT,
+            "plant": "builtin",
             "simulation_frequency": 15,
             "policy_frequency": 5,
             "duration": 60.0,
@@ -257,7 +262,10 @@ class CoopIntersectionEnv(AbstractEnv):
         self.define_spaces()
         cfg = self.config
         self.layout = build_layout(cfg["layout"], lateral_acceleration=float(cfg["lateral_acceleration"]))
-        self.sim = Simulation.from_config(self.layout, cfg)
+        if self.sim is not None:
+            self.sim.close()  # SUMO: one simulation per process
+            self.sim = None
+        self.sim = make_plant(self.layout, cfg)
         scenario = options.get("scenario")
         if scenario is not None:
             if isinstance(scenario, (str, Path)):
@@ -500,6 +508,12 @@ class CoopIntersectionEnv(AbstractEnv):
             shield = (acc - base) / (self.config["residual_scale"] * a_max)
         action[: acc.size] = np.clip(np.where(overridden, shield, correction), -1.0, 1.0)
         return action
+
+    def close(self) -> None:
+        """Release the plant (SUMO's simulation) and the viewer."""
+        if self.sim is not None:
+            self.sim.close()
+        super().close()
 
     # ------------------------------------------------------------------ public helpers
     @property

@@ -1,0 +1,170 @@
+"""Eclipse SUMO as the second plant: the generated network, parity with our plant, the seam, bad input."""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+import pytest
+
+pytest.importorskip("libsumo")
+pytest.importorskip("sumolib")
+
+from envs.simulation.config import validate_config  # noqa: E402
+from envs.simulation.engine import Simulation  # noqa: E402
+from envs.simulation.env import CoopIntersectionEnv  # noqa: E402
+from envs.simulation.layouts import LAYOUT_NAMES, build_layout  # noqa: E402
+from envs.simulation.plant import Plant, make_plant  # noqa: E402
+from envs.simulation.sumo_network import FILE_NAMES, write_network  # noqa: E402
+from envs.simulation.sumo_plant import SumoPlant, libsumo_module, network_of  # noqa: E402
+from envs.simulation.traffic import ScenarioTraffic, generate_scenario  # noqa: E402
+
+
+@pytest.fixture
+def plant_4way():
+    plant = SumoPlant(build_layout("4way"))
+    yield plant
+    plant.close()
+
+
+@pytest.mark.parametrize("name", LAYOUT_NAMES)
+def test_network_stop_lines_and_exits_agree(name):
+    """Along every route's SUMO lanes (internal lanes included), its stop line and its exit lie where the layout
+    has them, within 0.1 m."""
+    layout = build_layout(name)
+    net = network_of(layout)
+    assert len(net.route_edges) == layout.num_routes
+    assert np.abs(net.stop_arc - layout.entry_arc).max() < 0.1
+    assert np.abs(net.exit_arc - layout.exit_arc).max() < 0.1
+
+
+def test_network_never_overwrites_a_file(tmp_path):
+    (tmp_path / FILE_NAMES[0]).write_text("mine")
+    with pytest.raises(ValueError, match="exists already"):
+        write_network(build_layout("3way"), tmp_path)
+    assert (tmp_path / FILE_NAMES[0]).read_text() == "mine"
+    net = write_network(build_layout("3way"), tmp_path / "fresh")
+    assert net.net_file.is_file()
+
+
+def _parity(name: str, duration: float, seed: int) -> tuple[float, float, int]:
+    """Our plant at SUMO's step and the SUMO plant, one scenario, the same random accelerations, no humans:
+    the largest difference of arcs and speeds, of SUMO's own front bumpers from ours, and the vehicles seen."""
+    layout = build_layout(name)
+    scenario = generate_scenario(layout, duration, seed)
+    ours = Simulation(layout, simulation_frequency=20)
+    sumo = SumoPlant(layout, simulation_frequency=20)
+    try:
+        traffic = [ScenarioTraffic(layout, scenario), ScenarioTraffic(layout, scenario)]
+        for plant, t in zip((ours, sumo), traffic):
+            t.spawn(plant)
+        rng = np.random.default_rng(seed)
+        worst_state = worst_front = 0.0
+        seen: set[int] = set()
+        while ours.time < duration - 1e-9:
+            acc = rng.uniform(-3.0, 5.0, ours.num_vehicles)
+            for plant, t in zip((ours, sumo), traffic):
+                plant.step(acc)
+                t.spawn(plant)
+            assert np.array_equal(ours.vehicle_id, sumo.vehicle_id)
+            inserted = sumo.in_sumo
+            worst_state = max(
+                worst_state,
+                np.abs(ours.arc - sumo.arc).max(initial=0.0),
+                np.abs(ours.speed - sumo.speed).max(initial=0.0),
+            )
+            # SUMO's front bumper against ours, where the layout's samples hold the front: its pose interpolates
+            # with a spacing of ds, which the last, shorter interval of a route does not have.
+            front = ours.arc + ours.length / 2
+            inside = inserted & (front <= layout.length[ours.route] - layout.ds)
+            xy, _ = layout.pose(ours.route[inside], front[inside])
+            worst_front = max(worst_front, np.abs(sumo.front_position[inside] - xy).max(initial=0.0))
+            seen.update(ours.vehicle_id.tolist())
+        assert not sumo.lost
+        return worst_state, worst_front, len(seen)
+    finally:
+        sumo.close()
+
+
+@pytest.mark.parametrize("name", LAYOUT_NAMES)
+def test_parity_with_our_plant_100_s(name):
+    """The same accelerations move every vehicle the same way in both plants over 100 s (about 1.5 s a layout):
+    SUMO's own front bumpers within 0.05 m of ours."""
+    state, front, seen = _parity(name, 100.0, seed=11)
+    assert seen >= 30
+    assert state < 1e-6
+    assert front < 0.05
+
+
+def test_one_sumo_plant_per_process(plant_4way):
+    with pytest.raises(RuntimeError, match="one simulation per process"):
+        SumoPlant(build_layout("4way"))
+    plant_4way.close()
+    again = SumoPlant(build_layout("3way"))
+    again.close()
+
+
+def test_both_plants_implement_the_seam(plant_4way):
+    layout = build_layout("4way")
+    config = validate_config({"plant": "builtin"}, CoopIntersectionEnv.default_config())
+    assert isinstance(make_plant(layout, config), Simulation)
+    assert isinstance(plant_4way, Plant)
+    assert isinstance(make_plant(layout, config), Plant)
+
+
+def test_plant_config_is_checked():
+    defaults = CoopIntersectionEnv.default_config()
+    with pytest.raises(ValueError, match="config key 'plant' must be one of"):
+        validate_config({"plant": "carla"}, defaults)
+    with pytest.raises(ValueError, match="'simulation_frequency' must divide 1000 with plant 'sumo'"):
+        validate_config({"plant": "sumo"}, defaults)  # 15 Hz: 66.7 ms is no SUMO step
+    assert validate_config({"plant": "sumo", "simulation_frequency": 10}, defaults)["plant"] == "sumo"
+
+
+def test_missing_sumo_names_the_extra(monkeypatch):
+    monkeypatch.setitem(sys.modules, "libsumo", None)
+    with pytest.raises(ImportError, match=r"sb3-graph\[sumo\]"):
+        libsumo_module()
+
+
+def test_insertion_inside_the_junction_is_refused(plant_4way):
+    layout = build_layout("4way")
+    r = layout.route_id("west->north")
+    with pytest.raises(ValueError, match="inside a junction"):
+        plant_4way.add(np.array([r]), np.array([5.0]), np.array([7]), arc=np.array([layout.entry_arc[r] + 3.0]))
+
+
+def test_humans_are_sumo_drivers(plant_4way):
+    """A human row ignores the command (SUMO's driver keeps going where a connected vehicle brakes to a stop)."""
+    layout = build_layout("4way")
+    r = layout.route_id("west->east")
+    plant_4way.add(np.array([r, r]), np.array([8.0, 8.0]), np.array([1, 2]), arc=np.array([40.0, 10.0]),
+                   human=np.array([True, False]))  # fmt: skip
+    for _ in range(15):
+        plant_4way.step(np.full(plant_4way.num_vehicles, -5.0))
+    assert plant_4way.speed[1] == 0.0
+    assert plant_4way.speed[0] > 5.0
+
+
+def test_env_on_sumo_reports_collisions_from_sumo():
+    """Full throttle through a busy junction collides, and SUMO's junction check sees it; behind the shield the
+    same scenario runs without collisions."""
+    scenario = generate_scenario("4way", 30.0, 5, rate_range=(0.4, 0.4))
+    counts = {}
+    for shield in (False, True):
+        env = CoopIntersectionEnv(
+            {"plant": "sumo", "simulation_frequency": 20, "collision_handling": "remove", "shield": shield}
+        )
+        try:
+            env.reset(options={"scenario": scenario})
+            assert isinstance(env.unwrapped.sim, SumoPlant)
+            collisions, done = 0, False
+            while not done:
+                _, _, terminated, truncated, info = env.step(np.ones(env.action_space.shape, np.float32))
+                collisions += len(info["record"].collisions)
+                done = terminated or truncated
+            counts[shield] = collisions
+        finally:
+            env.close()
+    assert counts[False] > 0
+    assert counts[True] == 0
