@@ -69,6 +69,16 @@ class StepEvents:
     lost: np.ndarray = field(default_factory=lambda: np.zeros(0, _INT))
 
 
+class PlantError(RuntimeError):
+    """The plant failed during a run (SUMO: an error of libsumo). The harness counts the run as failed and
+    reports this one line; the other runs go on."""
+
+    def line(self, scenario: str | None = None) -> str:
+        """The one line that reports the error (naming ``scenario`` when given)."""
+        at = f", scenario {scenario}" if scenario else ""
+        return f"plant error{at}: {self}"
+
+
 class VehicleTable:
     """The vehicles at the intersection as columns, one row per vehicle, and every view of them that a plant
     gives from columns: poses, leaders, the path coordinate and the :class:`~envs.simulation.scene.Scene`

@@ -444,6 +444,7 @@ class CoopIntersectionEnv(AbstractEnv):
             moved=events.moved,
             speeds=events.speeds,
             substep=1.0 / sim.simulation_frequency,
+            lost=events.lost,
         )
         info = record.info()
         # For users only (the metrics read these facts from the scenes): the new vehicles are the last rows.

@@ -20,10 +20,12 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
-from envs.simulation.engine import Simulation, StepEvents
+from envs.simulation.engine import PlantError, Simulation, StepEvents
 from envs.simulation.layouts import Layout
 from envs.simulation.scene import Scene
 from envs.simulation.sumo_plant import SumoPlant
+
+__all__ = ["PLANTS", "Plant", "PlantError", "make_plant"]
 
 # The values of the environment's ``plant`` config key.
 PLANTS = ("builtin", "sumo")

@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from envs.simulation.engine import STOP_SPEED, StepEvents, VehicleTable, integrate
+from envs.simulation.engine import STOP_SPEED, PlantError, StepEvents, VehicleTable, integrate
 from envs.simulation.layouts import Layout
 from envs.simulation.sumo_network import SumoNetwork, write_network
 
@@ -302,7 +302,10 @@ class SumoPlant(VehicleTable):
             self.origin = self.origin.copy()
             self.origin[new] = plan_x[1, new]
         ids = [str(i) for i in self.vehicle_id.tolist()]
-        speed, distance, front, pairs, present = self._run(ids, plan_v, h, new)
+        try:
+            speed, distance, front, pairs, present = self._run(ids, plan_v, h, new)
+        except self._sumo.TraCIException as error:
+            raise PlantError(f"SUMO at t = {self.time:.2f} s: {error}") from None
         lost = ~present
         arc = self.origin + distance
         self.speed = np.where(present, speed[-1], self.speed)
