@@ -96,6 +96,9 @@ class VehicleTable:
         for a lower limit ahead [m/s^2]
     """
 
+    # Whether the plant drives the human rows itself (SUMO's drivers); otherwise the environment commands them
+    # with our human model (:class:`envs.planners.human.HumanDriver`).
+    drives_humans = False
     # The per-vehicle columns: rows are dropped from all of them at once (:meth:`_keep`).
     COLUMNS: tuple[str, ...] = ("route", "arc", "speed", "length", "width", "vehicle_id", "appearance_time", "human")
 

@@ -364,7 +364,7 @@ class CoopIntersectionEnv(AbstractEnv):
         shield_gap = float(np.abs(proposal - acc).sum()) / a_max
         if self._scheduler is not None:
             acc = self._as_commanded(acc)
-        if sim.human.any():  # human drivers ignore every command: they drive by the priority rules,
+        if sim.human.any() and not sim.drives_humans:  # human drivers ignore every command: they drive by the rules,
             # their command rounded as a planner's is in an evaluation (all human = PR bit for bit)
             acc = np.where(sim.human, self._as_commanded(self._human_accelerations()), acc)
         remove = cfg["collision_handling"] == "remove"

@@ -50,6 +50,7 @@ class Plant(Protocol):
     vehicle_id: np.ndarray
     appearance_time: np.ndarray
     human: np.ndarray
+    drives_humans: bool  # the plant drives the human rows itself (else the environment's human model does)
 
     @property
     def num_vehicles(self) -> int: ...

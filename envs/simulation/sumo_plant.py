@@ -100,6 +100,7 @@ class SumoPlant(VehicleTable):
     """
 
     COLUMNS = VehicleTable.COLUMNS + ("origin", "in_sumo", "front_position")
+    drives_humans = True  # SUMO's own drivers: the environment's human model is not asked
 
     @classmethod
     def from_config(cls, layout: Layout, config: dict[str, Any]) -> SumoPlant:
