@@ -168,3 +168,36 @@ def test_env_on_sumo_reports_collisions_from_sumo():
             env.close()
     assert counts[False] > 0
     assert counts[True] == 0
+
+
+def test_with_plant_sets_the_config_and_names_the_extra(monkeypatch):
+    from envs.commands.evaluate import with_plant
+    from sb3_graph.commands import UserError
+
+    assert with_plant(None, None) is None
+    assert with_plant(None, "sumo") == {"config": {"plant": "sumo", "simulation_frequency": 20}}
+    kept = with_plant({"config": {"simulation_frequency": 10}}, "sumo")
+    assert kept["config"] == {"plant": "sumo", "simulation_frequency": 10}
+    with pytest.raises(UserError, match="--plant must be one of"):
+        with_plant(None, "carla")
+    monkeypatch.setitem(sys.modules, "libsumo", None)
+    with pytest.raises(UserError, match=r"--plant sumo: .*sb3-graph\[sumo\]"):
+        with_plant(None, "sumo")
+
+
+def test_evaluate_on_sumo_end_to_end(tmp_path):
+    """``evaluate --plant sumo`` in this process: a report, SUMO's collisions counted for full throttle, none
+    behind the shield, no vehicle lost; and the process may open another SUMO plant afterwards."""
+    import pandas as pd
+
+    from sb3_graph.cli import main
+
+    out = tmp_path / "report"
+    args = ["evaluate", "--plant", "sumo", "--planner", "fullthrottle", "--planner", "glide+shield", "--out", str(out)]
+    assert main([*args, "--scenarios", "2", "--duration", "30", "--seed", "4", "--jobs", "1", "--no-progress"]) == 0
+    runs = pd.read_csv(out / "metrics.csv")
+    assert set(runs["planner"]) == {"FullThrottle", "Glide+shield"}
+    assert runs.loc[runs["planner"] == "FullThrottle", "collided"].sum() > 0
+    assert runs.loc[runs["planner"] == "Glide+shield", "collided"].sum() == 0
+    assert (runs["lost_vehicles"] == 0).all()
+    SumoPlant(build_layout("4way")).close()

@@ -279,6 +279,10 @@ def run_job(job: Job, scenario: Any = None) -> tuple[dict[str, Any], pd.DataFram
         error.planner = job.name
         row.update(failed=True, planner_error=error.line(Path(job.scenario).name), wall_s=time.perf_counter() - tic)
         return row, pd.DataFrame({"planner": pd.Series(dtype=object), "run": pd.Series(dtype=np.int64)})
+    finally:
+        plant = getattr(env.unwrapped, "sim", None)
+        if plant is not None:  # the cached environment keeps no SUMO open between runs (one per process)
+            plant.close()
     duration = facts["duration"] if facts["duration"] > 0 else job.duration
     row.update(run_metrics(vehicles, duration))
     stats = planner.stats()  # the planner's counters of this run (a shield: interventions, unresolved steps ...)
