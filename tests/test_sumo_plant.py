@@ -201,3 +201,16 @@ def test_evaluate_on_sumo_end_to_end(tmp_path):
     assert runs.loc[runs["planner"] == "Glide+shield", "collided"].sum() == 0
     assert (runs["lost_vehicles"] == 0).all()
     SumoPlant(build_layout("4way")).close()
+
+
+def test_building_an_environment_holds_no_sumo():
+    """highway-env's constructor resets once; the SUMO plant it made is let go, so that a second environment
+    (``record`` after ``evaluate``'s config check) can run in the same process."""
+    config = {"plant": "sumo", "simulation_frequency": 20}
+    first, second = CoopIntersectionEnv(config), CoopIntersectionEnv(config)
+    try:
+        second.reset(seed=0)
+        second.step(np.zeros(second.action_space.shape, np.float32))
+    finally:
+        second.close()
+        first.close()

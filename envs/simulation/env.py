@@ -94,6 +94,9 @@ class CoopIntersectionEnv(AbstractEnv):
         self._human_rng: np.random.Generator | None = None
         self._human_model = None
         super().__init__(config, render_mode)
+        # highway-env's constructor resets once: a plant that holds a simulator (SUMO: one per process) lets it
+        # go until the user's own reset, so that building an environment (to read its config) holds nothing.
+        self.sim.close()
 
     @classmethod
     def default_config(cls) -> dict:

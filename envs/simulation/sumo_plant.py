@@ -288,6 +288,8 @@ class SumoPlant(VehicleTable):
         :param remove_collided: take the vehicles of this step's collisions out of the scene (and SUMO)
         :return: the events of the step; finished and lost vehicles are already removed
         """
+        if self._closed:
+            raise RuntimeError("this SUMO plant is closed: reset() the environment first")
         n = self.num_vehicles
         a_max, h, substeps = self.max_acceleration, 1.0 / self.simulation_frequency, self.substeps
         acc = np.minimum(np.maximum(np.asarray(acceleration, float).reshape(n), -a_max), a_max)
