@@ -214,3 +214,20 @@ def test_building_an_environment_holds_no_sumo():
     finally:
         second.close()
         first.close()
+
+
+def test_a_refused_insertion_is_reported_not_hidden(plant_4way):
+    """A human vehicle placed where SUMO's insertion check refuses it (overlapping a standing one) leaves the rows
+    as lost, with its reason, and SUMO does not insert it later. (A connected vehicle, in speed mode 0, is
+    inserted wherever it is put.)"""
+    layout = build_layout("4way")
+    r = layout.route_id("west->east")
+    plant_4way.add(np.array([r]), np.array([0.0]), np.array([1]), arc=np.array([40.0]))
+    plant_4way.step(np.zeros(1))
+    plant_4way.add(np.array([r]), np.array([5.0]), np.array([2]), arc=np.array([38.0]), human=True)
+    events = plant_4way.step(np.zeros(2))
+    assert events.lost.tolist() == [2] and 2 in events.removed
+    assert plant_4way.lost == {2: "SUMO did not insert it"}
+    assert plant_4way.vehicle_id.tolist() == [1]
+    plant_4way.step(np.zeros(1))
+    assert plant_4way._sumo.vehicle.getIDList() == ("1",)

@@ -334,6 +334,11 @@ class SumoPlant(VehicleTable):
         for row in np.flatnonzero(done & present).tolist():  # the vehicles that leave: a few per step
             self._sumo.vehicle.unsubscribe(ids[row])  # else libsumo asks for it in the next step
             self._sumo.vehicle.remove(ids[row])
+        pending = set(self._sumo.simulation.getPendingVehicles())
+        for row in np.flatnonzero(lost).tolist():  # refused at insertion: SUMO would insert it later
+            if ids[row] in pending:
+                self._sumo.vehicle.unsubscribe(ids[row])
+                self._sumo.vehicle.remove(ids[row])
         events.kept = ~done
         events.removed = self.vehicle_id[done]
         if done.any():
@@ -365,7 +370,8 @@ class SumoPlant(VehicleTable):
                 sumo.vehicle.setAcceleration(ids[row], float(command[k, row]), h)
             sumo.simulation.step()
             results = sumo.vehicle.getAllSubscriptionResults()
-            values = [results.get(i) for i in ids]
+            # A vehicle that SUMO has not inserted (yet) answers its subscription with libsumo's invalid value.
+            values = [v if v is not None and v[_VAR_SPEED] >= 0.0 else None for v in map(results.get, ids)]
             present &= np.array([v is not None for v in values], bool)
             speed[k + 1] = [v[_VAR_SPEED] if v is not None else np.nan for v in values]
             distance = np.array([v[_VAR_DISTANCE] if v is not None else np.nan for v in values])
