@@ -231,3 +231,28 @@ def test_a_refused_insertion_is_reported_not_hidden(plant_4way):
     assert plant_4way.vehicle_id.tolist() == [1]
     plant_4way.step(np.zeros(1))
     assert plant_4way._sumo.vehicle.getIDList() == ("1",)
+
+
+def test_a_lost_vehicle_fails_the_run_with_one_line(tmp_path, monkeypatch):
+    """Fault injection: SUMO never receives vehicle 0, so the plant reports it lost; ``evaluate`` counts the run as
+    failed with one line naming the scenario and the vehicle, and goes on."""
+    import pandas as pd
+
+    from envs.simulation import sumo_plant
+    from sb3_graph.cli import main
+
+    insert = sumo_plant.SumoPlant._insert
+
+    def drop_vehicle_0(self, rows, front, speed):
+        keep = self.vehicle_id[rows] != 0
+        insert(self, rows[keep], front[keep], speed[keep])
+
+    monkeypatch.setattr(sumo_plant.SumoPlant, "_insert", drop_vehicle_0)
+    out = tmp_path / "report"
+    args = ["evaluate", "--plant", "sumo", "--planner", "glide+shield", "--out", str(out), "--no-progress"]
+    assert main([*args, "--scenarios", "2", "--duration", "10", "--seed", "4", "--jobs", "1"]) == 1  # failed runs
+    runs = pd.read_csv(out / "metrics.csv")
+    assert runs["failed"].all()
+    assert (runs["lost_vehicles"] == 1).all()
+    assert runs["planner_error"].str.fullmatch(r"plant error, scenario scenario_00\d\.json: 1 vehicles lost, the "
+                                               r"first: id 0, SUMO did not insert it").all()  # fmt: skip

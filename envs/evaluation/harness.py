@@ -291,8 +291,15 @@ def run_job(job: Job, scenario: Any = None) -> tuple[dict[str, Any], pd.DataFram
         lines = [error.line(Path(job.scenario).name) for error in planner.errors]
         row["planner_error"] = "\n".join(lines) if lines else None
     row.update({key: value for key, value in facts.items() if key.startswith("return")})
+    lost = dict(getattr(getattr(env.unwrapped, "sim", None), "lost", None) or {})
+    if lost:  # the plant lost vehicles on its own (SUMO): the run does not measure the scenario; say so, once
+        first = next(iter(lost.items()))
+        line = PlantError(f"{len(lost)} vehicles lost, the first: id {first[0]}, {first[1]}").line(
+            Path(job.scenario).name
+        )
+        row["planner_error"] = "\n".join(filter(None, [row.get("planner_error"), line]))
     row.update(
-        failed=False,
+        failed=bool(lost),
         baseline=is_baseline(job.planner),
         steps=facts["steps"],
         terminated=facts["terminated"],
