@@ -256,3 +256,24 @@ def test_a_lost_vehicle_fails_the_run_with_one_line(tmp_path, monkeypatch):
     assert (runs["lost_vehicles"] == 1).all()
     assert runs["planner_error"].str.fullmatch(r"plant error, scenario scenario_00\d\.json: 1 vehicles lost, the "
                                                r"first: id 0, SUMO did not insert it").all()  # fmt: skip
+
+
+def test_runs_repeat_and_the_seed_reaches_sumos_drivers():
+    """The same scenario and seed give the same trajectories; another seed draws other drivers (speed factors)."""
+    scenario = generate_scenario("4way", 20.0, 2, human_share=1.0)
+
+    def arcs(seed: int) -> list[np.ndarray]:
+        env = CoopIntersectionEnv({"plant": "sumo", "simulation_frequency": 20, "collision_handling": "remove"})
+        try:
+            env.reset(seed=seed, options={"scenario": scenario})
+            out = []
+            for _ in range(60):
+                env.step(np.zeros(env.action_space.shape, np.float32))
+                out.append(env.unwrapped.sim.arc.copy())
+            return out
+        finally:
+            env.close()
+
+    first, again, other = arcs(1), arcs(1), arcs(2)
+    assert all(np.array_equal(a, b) for a, b in zip(first, again))
+    assert any(a.shape != b.shape or not np.array_equal(a, b) for a, b in zip(first, other))

@@ -418,13 +418,15 @@ class Simulation(VehicleTable):
     """
 
     @classmethod
-    def from_config(cls, layout: Layout, config: dict[str, Any]) -> Simulation:
+    def from_config(cls, layout: Layout, config: dict[str, Any], seed: int | None = None) -> Simulation:
         """The simulation that an environment's resolved ``default_config()`` settings ask for (the
         environment's ``reset`` and the edge server's scene builder both build it so).
 
         :param layout: the intersection
         :param config: a validated environment configuration
+        :param seed: unused: our plant draws nothing (the SUMO plant seeds its drivers with it)
         """
+        del seed
         return cls(
             layout,
             simulation_frequency=config["simulation_frequency"],

@@ -268,7 +268,7 @@ class CoopIntersectionEnv(AbstractEnv):
         if self.sim is not None:
             self.sim.close()  # SUMO: one simulation per process
             self.sim = None
-        self.sim = make_plant(self.layout, cfg)
+        self.sim = make_plant(self.layout, cfg, seed)
         scenario = options.get("scenario")
         if scenario is not None:
             if isinstance(scenario, (str, Path)):

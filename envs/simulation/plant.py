@@ -83,18 +83,19 @@ class Plant(Protocol):
         """Release what the plant holds (a SUMO simulation); the plant is unusable afterwards."""
 
 
-def make_plant(layout: Layout, config: dict[str, Any]) -> Plant:
+def make_plant(layout: Layout, config: dict[str, Any], seed: int | None = None) -> Plant:
     """The plant that a validated environment configuration asks for (its ``plant`` key).
 
     :param layout: the intersection
     :param config: a validated environment configuration (:func:`envs.simulation.config.validate_config`)
+    :param seed: the episode's seed (SUMO's drivers draw their imperfection from it; our plant draws nothing)
     :raises ValueError: for an unknown plant
     :raises ImportError: for ``"sumo"`` without the ``sumo`` extra, in one line naming it
     """
     name = config.get("plant", "builtin")
     if name not in _PLANT_CLASSES:
         raise ValueError(f"config key 'plant' must be one of {PLANTS}, got {name!r}")
-    return _PLANT_CLASSES[name].from_config(layout, config)
+    return _PLANT_CLASSES[name].from_config(layout, config, seed)
 
 
 # The plant of each name (libsumo itself loads only when a SUMO plant is made).

@@ -103,8 +103,9 @@ class SumoPlant(VehicleTable):
     drives_humans = True  # SUMO's own drivers: the environment's human model is not asked
 
     @classmethod
-    def from_config(cls, layout: Layout, config: dict[str, Any]) -> SumoPlant:
-        """The plant that a validated environment configuration asks for (as :meth:`Simulation.from_config`)."""
+    def from_config(cls, layout: Layout, config: dict[str, Any], seed: int | None = None) -> SumoPlant:
+        """The plant that a validated environment configuration asks for (as :meth:`Simulation.from_config`);
+        ``seed`` seeds SUMO's drivers (default 0)."""
         return cls(
             layout,
             simulation_frequency=config["simulation_frequency"],
@@ -114,6 +115,7 @@ class SumoPlant(VehicleTable):
             s_ref=config["s_ref"],
             max_vehicles=config["max_vehicles"],
             governor_deceleration=config["governor_deceleration"],
+            seed=0 if seed is None else int(seed),
         )
 
     def __init__(
