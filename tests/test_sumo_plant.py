@@ -96,11 +96,30 @@ def test_parity_with_our_plant_100_s(name):
     assert front < 0.05
 
 
-def test_one_sumo_plant_per_process(plant_4way):
-    with pytest.raises(RuntimeError, match="one simulation per process"):
-        SumoPlant(build_layout("4way"))
+def test_a_second_plant_runs_over_traci(plant_4way):
+    """libsumo holds one simulation per process: a second plant starts SUMO as its own process over TraCI and moves
+    the vehicles exactly as the first; once both are closed, the next plant uses libsumo again."""
+    layout = build_layout("4way")
+    second = SumoPlant(layout)
+    try:
+        assert (plant_4way.backend, second.backend) == ("libsumo", "traci")
+        scenario = generate_scenario(layout, 20.0, 1)
+        traffic = [ScenarioTraffic(layout, scenario), ScenarioTraffic(layout, scenario)]
+        for plant, t in zip((plant_4way, second), traffic):
+            t.spawn(plant)
+        rng = np.random.default_rng(1)
+        while second.time < 20.0 - 1e-9:
+            acc = rng.uniform(-3.0, 5.0, second.num_vehicles)
+            for plant, t in zip((plant_4way, second), traffic):
+                plant.step(acc)
+                t.spawn(plant)
+            assert np.array_equal(plant_4way.vehicle_id, second.vehicle_id)
+            assert np.array_equal(plant_4way.arc, second.arc)
+    finally:
+        second.close()
     plant_4way.close()
-    again = SumoPlant(build_layout("3way"))
+    again = SumoPlant(layout)
+    assert again.backend == "libsumo"
     again.close()
 
 

@@ -25,7 +25,9 @@ inserts during a step): it enters at the state that our model gives it after the
 is where our plant would have it. A vehicle that SUMO refuses to insert, or removes on its own, leaves the
 rows and is reported in :attr:`~envs.simulation.engine.StepEvents.lost` and :attr:`SumoPlant.lost`.
 
-libsumo runs one simulation per process: one :class:`SumoPlant` may be open at a time (:meth:`SumoPlant.close`).
+libsumo runs one simulation per process: the first open :class:`SumoPlant` of a process uses it, any other one
+starts SUMO as a process of its own and talks to it over TraCI (the same calls, slower; an evaluation environment
+next to a training one, say). :meth:`SumoPlant.close` ends either.
 """
 
 from __future__ import annotations
@@ -61,6 +63,7 @@ def libsumo_module() -> Any:
     try:
         import libsumo
         import sumolib  # noqa: F401  (netconvert's path and the network reader)
+        import traci  # noqa: F401  (a second plant of the process)
     except ImportError:
         raise ImportError(SUMO_EXTRA_HINT) from None
     return libsumo
@@ -96,7 +99,6 @@ class SumoPlant(VehicleTable):
     :param network: the generated network (default: :func:`network_of` the layout)
     :param seed: SUMO's random seed (its drivers' imperfection and speed factors)
     :raises ImportError: without the ``sumo`` extra
-    :raises RuntimeError: while another :class:`SumoPlant` of this process is open
     """
 
     COLUMNS = VehicleTable.COLUMNS + ("origin", "in_sumo", "front_position")
@@ -131,25 +133,19 @@ class SumoPlant(VehicleTable):
         network: SumoNetwork | None = None,
         seed: int = 0,
     ) -> None:
-        self._sumo = libsumo_module()
+        libsumo_module()
         if not step_length_allowed(simulation_frequency):
             raise ValueError(
                 f"simulation_frequency must divide 1000 for the SUMO plant (a step of whole milliseconds, "
                 f"e.g. 20 or 10), got {simulation_frequency}"
             )
-        if _OPEN:
-            raise RuntimeError(
-                "libsumo runs one simulation per process: close the open SUMO plant (plant.close()) before "
-                "making another, or run the other in its own process"
-            )
-        if self._sumo.simulation.isLoaded():
-            raise RuntimeError("libsumo runs one simulation per process, and this process has one loaded already")
         self.network = network if network is not None else network_of(layout)
         self.seed = int(seed)
         self.lost: dict[int, str] = {}
         self.front_position = np.zeros((0, 2))
+        self._sumo: Any = None  # libsumo, or a TraCI connection (see _open)
+        self.backend = ""
         self._closed = False
-        _OPEN.append(self)
         try:
             super().__init__(
                 layout, simulation_frequency, policy_frequency, max_speed, max_acceleration, s_ref, max_vehicles,
@@ -177,11 +173,11 @@ class SumoPlant(VehicleTable):
         self.in_sumo = np.zeros(0, bool)  # inserted (a new row enters SUMO at the next step)
         self.front_position = np.zeros((0, 2))
         self.lost = {}
-        sumo = self._sumo
-        if sumo.simulation.isLoaded():
-            sumo.load(self._arguments()[1:])
+        if self._sumo is None:
+            self._open()
         else:
-            sumo.start(self._arguments())
+            self._sumo.load(self._arguments()[1:])
+        sumo = self._sumo
         for r, edges in enumerate(self.network.route_edges):
             sumo.route.add(f"r{r}", list(edges))
         self._define_types()
@@ -202,14 +198,32 @@ class SumoPlant(VehicleTable):
         # gap for braking at a_max; a headway of one step makes SUMO's insertion check agree with it.
         sumo.vehicletype.setTau(t, 1.0 / self.simulation_frequency)
 
+    def _open(self) -> None:
+        """Start SUMO: in this process through libsumo when no other plant of the process holds it (libsumo runs
+        one simulation per process), else as a process of its own over TraCI (the same calls, slower)."""
+        libsumo = libsumo_module()
+        if not _OPEN and not libsumo.simulation.isLoaded():
+            libsumo.start(self._arguments())
+            self._sumo, self.backend = libsumo, "libsumo"
+            self._errors: tuple[type[Exception], ...] = (libsumo.TraCIException,)
+            _OPEN.append(self)
+            return
+        import sumolib
+        import traci
+
+        label = f"sb3-graph-{id(self)}"
+        traci.start([sumolib.checkBinary("sumo"), *self._arguments()[1:]], label=label)
+        self._sumo, self.backend = traci.getConnection(label), "traci"
+        self._errors = (traci.exceptions.TraCIException, traci.exceptions.FatalTraCIError)
+
     def close(self) -> None:
-        """Close SUMO (the process may then open another plant)."""
+        """Close SUMO (a plant made afterwards may use libsumo again)."""
         if not self._closed:
             self._closed = True
+            if self._sumo is not None:
+                self._sumo.close()
             if self in _OPEN:
                 _OPEN.remove(self)
-                if self._sumo.simulation.isLoaded():
-                    self._sumo.close()
 
     def set_state(self, *args: Any, **kwargs: Any) -> None:
         """Not available: SUMO's clock runs forward only, and it cannot place a vehicle inside a junction."""
@@ -309,7 +323,7 @@ class SumoPlant(VehicleTable):
         ids = [str(i) for i in self.vehicle_id.tolist()]
         try:
             speed, distance, front, pairs, present = self._run(ids, plan_v, h, new)
-        except self._sumo.TraCIException as error:
+        except self._errors as error:  # a libsumo error, or a TraCI process that died
             raise PlantError(f"SUMO at t = {self.time:.2f} s: {error}") from None
         lost = ~present
         arc = self.origin + distance
