@@ -33,6 +33,7 @@ next to a training one, say). :meth:`SumoPlant.close` ends either.
 from __future__ import annotations
 
 import atexit
+import itertools
 import shutil
 from typing import Any
 
@@ -50,6 +51,7 @@ CONNECTED_TYPE = "connected"
 HUMAN_TYPE = "human"
 # libsumo's one simulation of this process: the plant that holds it, or None.
 _OPEN: list[SumoPlant] = []
+_LABELS = itertools.count()
 # Networks generated in this process, per layout: netconvert runs once per layout, into a temporary folder
 # that is removed when the process ends.
 _NETWORKS: dict[tuple[str, float], SumoNetwork] = {}
@@ -211,7 +213,7 @@ class SumoPlant(VehicleTable):
         import sumolib
         import traci
 
-        label = f"sb3-graph-{id(self)}"
+        label = f"sb3-graph-{next(_LABELS)}"  # TraCI's connections are named; each plant gets a new name
         traci.start([sumolib.checkBinary("sumo"), *self._arguments()[1:]], label=label)
         self._sumo, self.backend = traci.getConnection(label), "traci"
         self._errors = (traci.exceptions.TraCIException, traci.exceptions.FatalTraCIError)
