@@ -33,8 +33,11 @@ next to a training one, say). :meth:`SumoPlant.close` ends either.
 from __future__ import annotations
 
 import atexit
+import contextlib
+import io
 import itertools
 import shutil
+import subprocess
 from typing import Any
 
 import numpy as np
@@ -213,9 +216,13 @@ class SumoPlant(VehicleTable):
         import sumolib
         import traci
 
+        port = sumolib.miscutils.getFreeSocketPort()
+        command = [sumolib.checkBinary("sumo"), *self._arguments()[1:], "--remote-port", str(port)]
+        process = subprocess.Popen(command, stdout=subprocess.DEVNULL)
         label = f"sb3-graph-{next(_LABELS)}"  # TraCI's connections are named; each plant gets a new name
-        traci.start([sumolib.checkBinary("sumo"), *self._arguments()[1:]], label=label)
-        self._sumo, self.backend = traci.getConnection(label), "traci"
+        with contextlib.redirect_stdout(io.StringIO()):  # traci prints a line per try while SUMO opens its port
+            self._sumo = traci.connect(port, numRetries=500, proc=process, waitBetweenRetries=0.02, label=label)
+        self.backend = "traci"
         self._errors = (traci.exceptions.TraCIException, traci.exceptions.FatalTraCIError)
 
     def close(self) -> None:
