@@ -155,6 +155,13 @@ def add_run_arguments(parser: argparse.ArgumentParser, scenarios: int, out: str,
         help="JSON dict passed to gym.make; its 'config' defaults to collision_handling 'remove' (a crash "
         "removes the vehicles involved and the run goes on)",
     )
+    parser.add_argument(
+        "--plant",
+        default=None,
+        help="what moves the vehicles: 'builtin' (our simulation) or 'sumo' (Eclipse SUMO, pip install "
+        "'sb3-graph[sumo]'; its drivers are the human vehicles); sets the env config's 'plant', and with 'sumo' a "
+        "simulation_frequency of 20 Hz unless --env-kwargs gives one (default: the env config's, 'builtin')",
+    )
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
 
 
@@ -215,6 +222,7 @@ def _check(args: argparse.Namespace) -> list[tuple[str, str]]:
     if args.env_kwargs is not None and not isinstance(args.env_kwargs, dict):
         raise UserError("--env-kwargs must be a JSON object, e.g. '{\"duration\": 100}'")
     planners = checked_planners(args.planner, shield=args.shield)
+    args.env_kwargs = with_plant(args.env_kwargs, getattr(args, "plant", None))
     if args.out is not None:
         try:
             check_destination(Path(args.out))
@@ -224,6 +232,35 @@ def _check(args: argparse.Namespace) -> list[tuple[str, str]]:
     if getattr(args, "scenario_dir", None) is not None and not Path(args.scenario_dir).is_dir():
         raise UserError(f"--scenario-dir: {args.scenario_dir!r} is not a folder")
     return planners
+
+
+def with_plant(env_kwargs: dict[str, Any] | None, plant: str | None) -> dict[str, Any] | None:
+    """``env_kwargs`` with ``--plant`` in its config: SUMO's step must be whole milliseconds, so ``"sumo"``
+    sets a simulation frequency of 20 Hz unless the config names one.
+
+    :raises UserError: for an unknown plant, or ``"sumo"`` without the sumo extra (one line naming it)
+    """
+    from envs.simulation.plant import PLANTS
+    from envs.simulation.sumo_plant import SUMO_PLANT_FREQUENCY, libsumo_module
+
+    if plant is None:
+        return env_kwargs
+    if plant not in PLANTS:
+        raise UserError(f"--plant must be one of {list(PLANTS)}, got {plant!r}")
+    if plant == "sumo":
+        try:
+            libsumo_module()
+        except ImportError as error:
+            raise UserError(f"--plant sumo: {error}") from None
+    kwargs = dict(env_kwargs or {})
+    if not isinstance(kwargs.get("config") or {}, dict):
+        raise UserError(f"--env-kwargs: 'config' must be a dict, got {type(kwargs['config']).__name__}")
+    config = dict(kwargs.get("config") or {})
+    config["plant"] = plant
+    if plant == "sumo":
+        config.setdefault("simulation_frequency", SUMO_PLANT_FREQUENCY)
+    kwargs["config"] = config
+    return kwargs
 
 
 def check_env_id(env_id: str) -> None:

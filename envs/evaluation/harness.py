@@ -40,6 +40,7 @@ from envs.evaluation.metrics import VehicleLog, run_metrics
 from envs.evaluation.progress import RunClock, format_eta, interleaved
 from envs.planners import BASELINES, SHIELD_SUFFIX, make_planner
 from envs.planners.errors import PlannerError, checked_accelerations
+from envs.simulation.engine import PlantError
 from envs.simulation.rewards import REWARD_PRESETS
 from envs.simulation.step_record import StepRecord, step_record
 from envs.simulation.traffic import Scenario, demand_scenario, generate_scenario
@@ -180,7 +181,8 @@ def run_episode(
         ``return_<preset>`` (the same run's return under each reward preset of :mod:`envs.simulation.rewards`),
         ``duration`` (simulated seconds actually run),
         ``steps``, ``terminated`` (the environment ended the episode, e.g. on a collision with
-        ``collision_handling="terminate"``; the harness's own environments go on instead)
+        ``collision_handling="terminate"``; the harness's own environments go on instead), ``lost`` (vehicles the
+        plant lost on its own: SUMO refused to insert them or removed them)
     """
     base = env.unwrapped
     _, info = env.reset(seed=seed, options={"scenario": scenario})
@@ -195,6 +197,7 @@ def run_episode(
     total = 0.0
     terms: dict[str, float] = {}
     terminated = truncated = False
+    lost = 0
     while now - start < duration - 1e-9 and not (terminated or truncated):
         log.observe(scene)
         acc = planned_accelerations(planner, scene)
@@ -202,6 +205,7 @@ def run_episode(
         record = step_record(info)
         log.record(record)
         total += float(reward)
+        lost += record.lost.size
         for key, value in record.reward_terms.items():
             terms[key] = terms.get(key, 0.0) + float(value)
         steps += 1
@@ -211,7 +215,7 @@ def run_episode(
         scene = next_scene
         now = float(record.time)
     log.finish(scene)
-    facts = {"duration": now - start, "steps": steps, "terminated": bool(terminated), "return": total}
+    facts = {"duration": now - start, "steps": steps, "terminated": bool(terminated), "return": total, "lost": lost}
     facts.update(preset_returns(terms))
     facts["waiting_at_end"] = int(record.waiting) if steps else 0
     return log.frame(schedule=_schedule(scenario), end=now), facts
@@ -270,11 +274,15 @@ def run_job(job: Job, scenario: Any = None) -> tuple[dict[str, Any], pd.DataFram
     row: dict[str, Any] = {"planner": job.name, "run": job.index, "scenario": Path(job.scenario).name}
     try:
         vehicles, facts = run_episode(env, planner, scenario, job.duration, seed=run_seed(job.seed, job.index))
-    except PlannerError as error:
-        # The planner's run is void; the other runs of the evaluation go on and are reported.
+    except (PlannerError, PlantError) as error:
+        # The run is void; the other runs of the evaluation go on and are reported.
         error.planner = job.name
         row.update(failed=True, planner_error=error.line(Path(job.scenario).name), wall_s=time.perf_counter() - tic)
         return row, pd.DataFrame({"planner": pd.Series(dtype=object), "run": pd.Series(dtype=np.int64)})
+    finally:
+        plant = getattr(env.unwrapped, "sim", None)
+        if plant is not None:  # the cached environment keeps no SUMO open between runs (one per process)
+            plant.close()
     duration = facts["duration"] if facts["duration"] > 0 else job.duration
     row.update(run_metrics(vehicles, duration))
     stats = planner.stats()  # the planner's counters of this run (a shield: interventions, unresolved steps ...)
@@ -283,12 +291,20 @@ def run_job(job: Job, scenario: Any = None) -> tuple[dict[str, Any], pd.DataFram
         lines = [error.line(Path(job.scenario).name) for error in planner.errors]
         row["planner_error"] = "\n".join(lines) if lines else None
     row.update({key: value for key, value in facts.items() if key.startswith("return")})
+    lost = dict(getattr(getattr(env.unwrapped, "sim", None), "lost", None) or {})
+    if lost:  # the plant lost vehicles on its own (SUMO): the run does not measure the scenario; say so, once
+        first = next(iter(lost.items()))
+        line = PlantError(f"{len(lost)} vehicles lost, the first: id {first[0]}, {first[1]}").line(
+            Path(job.scenario).name
+        )
+        row["planner_error"] = "\n".join(filter(None, [row.get("planner_error"), line]))
     row.update(
-        failed=False,
+        failed=bool(lost),
         baseline=is_baseline(job.planner),
         steps=facts["steps"],
         terminated=facts["terminated"],
         waiting_at_end=facts["waiting_at_end"],
+        lost_vehicles=facts["lost"],
         wall_s=time.perf_counter() - tic,
     )
     vehicles.insert(0, "scenario", Path(job.scenario).name)

@@ -18,6 +18,7 @@ import numpy as np
 
 from envs.simulation.graph import EDGE_FEATURES, VERTEX_FEATURES
 from envs.simulation.layouts import LAYOUT_NAMES
+from envs.simulation.plant import PLANTS
 from envs.simulation.rewards import REWARD_PRESETS, REWARD_TERMS, preset_weights
 from envs.simulation.traffic import HUMAN_SHARE_ALLOWED, check_human_share
 
@@ -183,6 +184,7 @@ def _distinct_names(allowed) -> Rule:
 
 RULES: dict[str, Rule] = {
     "layout": Rule(lambda x: x in LAYOUT_NAMES, f"one of {LAYOUT_NAMES}"),
+    "plant": Rule(lambda x: isinstance(x, str) and x in PLANTS, f"one of {PLANTS}"),
     "simulation_frequency": _int(1, MAX_SIMULATION_FREQUENCY),
     "policy_frequency": _int(1, MAX_SIMULATION_FREQUENCY),
     "duration": _positive(MAX_DURATION),
@@ -282,6 +284,11 @@ def validate_config(config: dict[str, Any], defaults: dict[str, Any]) -> dict[st
         raise ValueError(
             f"config key 'simulation_frequency' must be a multiple of 'policy_frequency', got "
             f"{merged['simulation_frequency']} and {merged['policy_frequency']}"
+        )
+    if merged.get("plant") == "sumo" and 1000 % merged["simulation_frequency"]:
+        raise ValueError(
+            f"config key 'simulation_frequency' must divide 1000 with plant 'sumo' (SUMO's step is a whole number "
+            f"of milliseconds: 20 or 10 at the 5 Hz policy), got {merged['simulation_frequency']}"
         )
     # Only the given weights change; the other terms keep their default weight (the preset's, when
     # the call names a new preset).

@@ -54,6 +54,8 @@ class StepEvents:
     :param speeds: ``(S + 1, n)`` executed speeds at the sub-step boundaries (row 0: the step's start) [m/s],
         after the acceleration bounds and the governor: the motion the metrics measure
         (:mod:`envs.simulation.motion`)
+    :param lost: ids that the plant lost on its own: a vehicle it refused to insert or removed without
+        reaching its route's end (SUMO can; our simulation never does). They are in ``removed`` too
     """
 
     stopped: np.ndarray = field(default_factory=lambda: np.zeros(0, _INT))
@@ -64,10 +66,24 @@ class StepEvents:
     governed: np.ndarray = field(default_factory=lambda: np.zeros(0, _INT))
     moved: np.ndarray = field(default_factory=lambda: np.zeros(0, _INT))
     speeds: np.ndarray = field(default_factory=lambda: np.zeros((1, 0)))
+    lost: np.ndarray = field(default_factory=lambda: np.zeros(0, _INT))
 
 
-class Simulation:
-    """Longitudinal motion of all vehicles along their routes.
+class PlantError(RuntimeError):
+    """The plant failed during a run (SUMO: an error of libsumo). The harness counts the run as failed and
+    reports this one line; the other runs go on."""
+
+    def line(self, scenario: str | None = None) -> str:
+        """The one line that reports the error (naming ``scenario`` when given)."""
+        at = f", scenario {scenario}" if scenario else ""
+        return f"plant error{at}: {self}"
+
+
+class VehicleTable:
+    """The vehicles at the intersection as columns, one row per vehicle, and every view of them that a plant
+    gives from columns: poses, leaders, the path coordinate and the :class:`~envs.simulation.scene.Scene`
+    (the one door through which both plants build a scene). A plant (:mod:`envs.simulation.plant`) moves the
+    rows; this class only stores and reads them.
 
     :param layout: the intersection
     :param simulation_frequency: integration rate [Hz]
@@ -78,30 +94,13 @@ class Simulation:
     :param max_vehicles: capacity; :meth:`add` refuses vehicles beyond it
     :param governor_deceleration: deceleration with which the speed governor slows vehicles down
         for a lower limit ahead [m/s^2]
-    :param collision_resolution: largest distance a body moves between two collision checks [m]
-    :param check_collisions: look for collisions in each step (off: a rollout behind a shield, which
-        keeps every gap, skips the check; :attr:`StepEvents.collisions` is then always empty)
     """
 
-    @classmethod
-    def from_config(cls, layout: Layout, config: dict[str, Any]) -> Simulation:
-        """The simulation that an environment's resolved ``default_config()`` settings ask for (the
-        environment's ``reset`` and the edge server's scene builder both build it so).
-
-        :param layout: the intersection
-        :param config: a validated environment configuration
-        """
-        return cls(
-            layout,
-            simulation_frequency=config["simulation_frequency"],
-            policy_frequency=config["policy_frequency"],
-            max_speed=config["max_speed"],
-            max_acceleration=config["max_acceleration"],
-            s_ref=config["s_ref"],
-            max_vehicles=config["max_vehicles"],
-            governor_deceleration=config["governor_deceleration"],
-            collision_resolution=config["collision_resolution"],
-        )
+    # Whether the plant drives the human rows itself (SUMO's drivers); otherwise the environment commands them
+    # with our human model (:class:`envs.planners.human.HumanDriver`).
+    drives_humans = False
+    # The per-vehicle columns: rows are dropped from all of them at once (:meth:`_keep`).
+    COLUMNS: tuple[str, ...] = ("route", "arc", "speed", "length", "width", "vehicle_id", "appearance_time", "human")
 
     def __init__(
         self,
@@ -113,8 +112,6 @@ class Simulation:
         s_ref: float = 25.0,
         max_vehicles: int = 64,
         governor_deceleration: float = 3.0,
-        collision_resolution: float = 0.1,
-        check_collisions: bool = True,
     ) -> None:
         if simulation_frequency % policy_frequency:
             raise ValueError(
@@ -130,8 +127,6 @@ class Simulation:
         self.s_ref = float(s_ref)
         self.max_vehicles = int(max_vehicles)
         self.governor_deceleration = float(governor_deceleration)
-        self.collision_resolution = float(collision_resolution)
-        self.check_collisions = bool(check_collisions)
         self.reset()
 
     # ------------------------------------------------------------------ state
@@ -188,6 +183,9 @@ class Simulation:
     def num_vehicles(self) -> int:
         return int(self.route.shape[0])
 
+    def close(self) -> None:
+        """Nothing to release: the columns are plain arrays (a plant that holds more overrides this)."""
+
     @property
     def dt(self) -> float:
         """Policy period [s]."""
@@ -235,7 +233,7 @@ class Simulation:
         self.human = np.concatenate([self.human, human])
 
     def _keep(self, keep: np.ndarray) -> None:
-        for name in ("route", "arc", "speed", "length", "width", "vehicle_id", "appearance_time", "human"):
+        for name in self.COLUMNS:
             setattr(self, name, getattr(self, name)[keep])
 
     # ------------------------------------------------------------------ spawning
@@ -263,6 +261,203 @@ class Simulation:
         v_other = self.speed[last]
         brake = np.maximum(np.asarray(speed, float) ** 2 - v_other**2, 0.0) / (2 * self.max_acceleration)
         return gap >= min_gap + brake
+
+    # ------------------------------------------------------------------ geometry
+    def pose(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(n, 2)`` centre positions and ``(n,)`` headings."""
+        return self._cached("pose", lambda: self.layout.pose(self.route, self.arc))
+
+    def _cached(self, name: str, compute: Callable[[], Any]) -> Any:
+        # The state arrays are replaced, never written in place, by the simulation: their
+        # identities tell whether a derived quantity is still valid (the scene of the last step
+        # and the start of the next one share pose, lanes and leaders).
+        # The cache holds the arrays themselves, so their ids cannot be reused while it lives.
+        key = (self.arc, self.route, self.length)
+        hit = self._cache.get(name)
+        if hit is not None and all(a is b for a, b in zip(hit[0], key)):
+            return hit[1]
+        value = compute()
+        self._cache[name] = (key, value)
+        return value
+
+    def collisions(self, position: np.ndarray | None = None, heading: np.ndarray | None = None) -> np.ndarray:
+        """Rows of overlapping vehicle pairs (oriented rectangles, separating-axis test).
+
+        :return: ``(k, 2)`` row pairs ``i < j``
+        """
+        if position is None or heading is None:
+            position, heading = self.pose()
+        return overlapping_pairs(position, heading, self.length, self.width)
+
+    def leaders(self) -> tuple[np.ndarray, np.ndarray]:
+        """Nearest vehicle ahead on the same path and the bumper gap to it.
+
+        Vehicle ``j`` lies on ``i``'s path when ``j``'s current lane is one of the lanes of
+        ``i``'s route; its position on that route is the lane's start on ``i``'s route plus
+        ``j``'s distance along the lane.
+
+        :return: ``(n,)`` leader rows (-1 if none) and ``(n,)`` gaps [m] (``inf`` if none)
+        """
+        return self._cached("leaders", self._leaders)
+
+    def _leaders(self) -> tuple[np.ndarray, np.ndarray]:
+        n = self.num_vehicles
+        if n == 0:
+            return np.zeros(0, _INT), np.zeros(0)
+        lay = self.layout
+        # Where paths split (a turn pocket, a turn at the stop line) a vehicle that has just taken
+        # the other branch still overlaps the shared path: it stays the leader until the point
+        # SPLIT_CLEARANCE behind its rear has passed the split too; where the paths part more slowly
+        # (inD's turn pockets), while its rear is short of the arc where its path leaves the other's.
+        # The lanes of both points and the pairs in one compiled call (bitwise the NumPy search).
+        return _leaders_kernel.leaders_at(
+            np.ascontiguousarray(self.route, _INT), np.ascontiguousarray(self.arc, float),
+            np.ascontiguousarray(self.length, float), SPLIT_CLEARANCE, lay.route_lane_starts, lay.route_lane_ids,
+            lay.lane_start, parting_arcs(lay),
+        )  # fmt: skip
+
+    def path_coordinate(self) -> np.ndarray:
+        """The paper's ``s``: 0 at the intersection exit, ``-s_ref`` at its entry, metres outside."""
+        lay = self.layout
+        entry, exit_ = lay.entry_arc[self.route], lay.exit_arc[self.route]
+        inside = -self.s_ref + (self.arc - entry) * (self.s_ref / (exit_ - entry))
+        return np.where(
+            self.arc < entry,
+            -self.s_ref + (self.arc - entry),
+            np.where(self.arc < exit_, inside, self.arc - exit_),
+        )
+
+    def scene(self) -> Scene:
+        """The current snapshot (row ``i`` = vehicle ``i`` = action slot ``i``)."""
+        lay = self.layout
+        position, heading = self.pose()
+        leader, gap = self.leaders()
+        return Scene(
+            time=float(self.time),
+            dt=self.dt,
+            vehicle_id=self.vehicle_id.copy(),
+            route=self.route.copy(),
+            s=self.path_coordinate(),
+            position=position.copy(),  # pose and leaders are cached: the scene gets its own arrays
+            heading=heading.copy(),
+            speed=self.speed.copy(),
+            speed_limit=lay.limit_at(self.route, self.arc),
+            dist_to_entry=lay.entry_arc[self.route] - (self.arc + self.length / 2),
+            dist_to_exit=lay.exit_arc[self.route] - (self.arc - self.length / 2),
+            leader=leader.copy(),
+            gap=gap.copy(),
+            priority=lay.priority[self.route],
+            maneuver=lay.maneuver[self.route],
+            length=self.length.copy(),
+            route_names=lay.route_names,
+            conflicts=lay.conflicts,
+            a_min=-self.max_acceleration,
+            a_max=self.max_acceleration,
+            width=self.width.copy(),
+            s_ref=self.s_ref,
+            arc=self.arc.copy(),
+            layout=lay,
+            human=self.human.copy(),
+        )
+
+    def rollout_scene(self, speed_limit: np.ndarray | None = None) -> Scene:
+        """A lean :meth:`scene` for planning ahead in a copy of the world (``lookahead``'s rollouts): the same
+        values, but the arrays are the simulation's own (not copied: the planners and the shield given it must
+        not write in them) and what no planner behind the shield reads (``position``, ``heading``, ``s``) is NaN.
+        :meth:`scene` copied about twenty arrays and computed the poses, a tenth of a rollout step.
+
+        :param speed_limit: ``(n,)`` ``layout.limit_at(route, arc)`` where the caller has it already
+        """
+        lay = self.layout
+        n = self.num_vehicles
+        leader, gap = self.leaders()
+        return Scene(
+            time=float(self.time),
+            dt=self.dt,
+            vehicle_id=self.vehicle_id,
+            route=self.route,
+            s=np.full(n, np.nan),
+            position=np.full((n, 2), np.nan),
+            heading=np.full(n, np.nan),
+            speed=self.speed,
+            speed_limit=lay.limit_at(self.route, self.arc) if speed_limit is None else speed_limit,
+            dist_to_entry=lay.entry_arc[self.route] - (self.arc + self.length / 2),
+            dist_to_exit=lay.exit_arc[self.route] - (self.arc - self.length / 2),
+            leader=leader,
+            gap=gap,
+            priority=lay.priority[self.route],
+            maneuver=lay.maneuver[self.route],
+            length=self.length,
+            route_names=lay.route_names,
+            conflicts=lay.conflicts,
+            a_min=-self.max_acceleration,
+            a_max=self.max_acceleration,
+            width=self.width,
+            s_ref=self.s_ref,
+            arc=self.arc,
+            layout=lay,
+            human=self.human,
+        )
+
+
+class Simulation(VehicleTable):
+    """Longitudinal motion of all vehicles along their routes.
+
+    :param layout: the intersection
+    :param simulation_frequency: integration rate [Hz]
+    :param policy_frequency: rate of new commands [Hz]; must divide ``simulation_frequency``
+    :param max_speed: speed cap [m/s]
+    :param max_acceleration: commands are clipped to ``[-max_acceleration, max_acceleration]`` [m/s^2]
+    :param s_ref: common reference length of the paths inside the intersection [m]
+    :param max_vehicles: capacity; :meth:`add` refuses vehicles beyond it
+    :param governor_deceleration: deceleration with which the speed governor slows vehicles down
+        for a lower limit ahead [m/s^2]
+    :param collision_resolution: largest distance a body moves between two collision checks [m]
+    :param check_collisions: look for collisions in each step (off: a rollout behind a shield, which
+        keeps every gap, skips the check; :attr:`StepEvents.collisions` is then always empty)
+    """
+
+    @classmethod
+    def from_config(cls, layout: Layout, config: dict[str, Any], seed: int | None = None) -> Simulation:
+        """The simulation that an environment's resolved ``default_config()`` settings ask for (the
+        environment's ``reset`` and the edge server's scene builder both build it so).
+
+        :param layout: the intersection
+        :param config: a validated environment configuration
+        :param seed: unused: our plant draws nothing (the SUMO plant seeds its drivers with it)
+        """
+        del seed
+        return cls(
+            layout,
+            simulation_frequency=config["simulation_frequency"],
+            policy_frequency=config["policy_frequency"],
+            max_speed=config["max_speed"],
+            max_acceleration=config["max_acceleration"],
+            s_ref=config["s_ref"],
+            max_vehicles=config["max_vehicles"],
+            governor_deceleration=config["governor_deceleration"],
+            collision_resolution=config["collision_resolution"],
+        )
+
+    def __init__(
+        self,
+        layout: Layout,
+        simulation_frequency: int = 15,
+        policy_frequency: int = 5,
+        max_speed: float = 20.0,
+        max_acceleration: float = 5.0,
+        s_ref: float = 25.0,
+        max_vehicles: int = 64,
+        governor_deceleration: float = 3.0,
+        collision_resolution: float = 0.1,
+        check_collisions: bool = True,
+    ) -> None:
+        self.collision_resolution = float(collision_resolution)
+        self.check_collisions = bool(check_collisions)
+        super().__init__(
+            layout, simulation_frequency, policy_frequency, max_speed, max_acceleration, s_ref, max_vehicles,
+            governor_deceleration,
+        )  # fmt: skip
 
     # ------------------------------------------------------------------ dynamics
     def step(self, acceleration: np.ndarray, remove_collided: bool = False) -> StepEvents:
@@ -425,143 +620,6 @@ class Simulation:
         pairs = np.concatenate(hits)
         code = np.unique(pairs[:, 0] * self.num_vehicles + pairs[:, 1])  # sorted like rows i < j
         return np.stack([code // self.num_vehicles, code % self.num_vehicles], axis=1)
-
-    # ------------------------------------------------------------------ geometry
-    def pose(self) -> tuple[np.ndarray, np.ndarray]:
-        """``(n, 2)`` centre positions and ``(n,)`` headings."""
-        return self._cached("pose", lambda: self.layout.pose(self.route, self.arc))
-
-    def _cached(self, name: str, compute: Callable[[], Any]) -> Any:
-        # The state arrays are replaced, never written in place, by the simulation: their
-        # identities tell whether a derived quantity is still valid (the scene of the last step
-        # and the start of the next one share pose, lanes and leaders).
-        # The cache holds the arrays themselves, so their ids cannot be reused while it lives.
-        key = (self.arc, self.route, self.length)
-        hit = self._cache.get(name)
-        if hit is not None and all(a is b for a, b in zip(hit[0], key)):
-            return hit[1]
-        value = compute()
-        self._cache[name] = (key, value)
-        return value
-
-    def collisions(self, position: np.ndarray | None = None, heading: np.ndarray | None = None) -> np.ndarray:
-        """Rows of overlapping vehicle pairs (oriented rectangles, separating-axis test).
-
-        :return: ``(k, 2)`` row pairs ``i < j``
-        """
-        if position is None or heading is None:
-            position, heading = self.pose()
-        return overlapping_pairs(position, heading, self.length, self.width)
-
-    def leaders(self) -> tuple[np.ndarray, np.ndarray]:
-        """Nearest vehicle ahead on the same path and the bumper gap to it.
-
-        Vehicle ``j`` lies on ``i``'s path when ``j``'s current lane is one of the lanes of
-        ``i``'s route; its position on that route is the lane's start on ``i``'s route plus
-        ``j``'s distance along the lane.
-
-        :return: ``(n,)`` leader rows (-1 if none) and ``(n,)`` gaps [m] (``inf`` if none)
-        """
-        return self._cached("leaders", self._leaders)
-
-    def _leaders(self) -> tuple[np.ndarray, np.ndarray]:
-        n = self.num_vehicles
-        if n == 0:
-            return np.zeros(0, _INT), np.zeros(0)
-        lay = self.layout
-        # Where paths split (a turn pocket, a turn at the stop line) a vehicle that has just taken
-        # the other branch still overlaps the shared path: it stays the leader until the point
-        # SPLIT_CLEARANCE behind its rear has passed the split too; where the paths part more slowly
-        # (inD's turn pockets), while its rear is short of the arc where its path leaves the other's.
-        # The lanes of both points and the pairs in one compiled call (bitwise the NumPy search).
-        return _leaders_kernel.leaders_at(
-            np.ascontiguousarray(self.route, _INT), np.ascontiguousarray(self.arc, float),
-            np.ascontiguousarray(self.length, float), SPLIT_CLEARANCE, lay.route_lane_starts, lay.route_lane_ids,
-            lay.lane_start, parting_arcs(lay),
-        )  # fmt: skip
-
-    def path_coordinate(self) -> np.ndarray:
-        """The paper's ``s``: 0 at the intersection exit, ``-s_ref`` at its entry, metres outside."""
-        lay = self.layout
-        entry, exit_ = lay.entry_arc[self.route], lay.exit_arc[self.route]
-        inside = -self.s_ref + (self.arc - entry) * (self.s_ref / (exit_ - entry))
-        return np.where(
-            self.arc < entry,
-            -self.s_ref + (self.arc - entry),
-            np.where(self.arc < exit_, inside, self.arc - exit_),
-        )
-
-    def scene(self) -> Scene:
-        """The current snapshot (row ``i`` = vehicle ``i`` = action slot ``i``)."""
-        lay = self.layout
-        position, heading = self.pose()
-        leader, gap = self.leaders()
-        return Scene(
-            time=float(self.time),
-            dt=self.dt,
-            vehicle_id=self.vehicle_id.copy(),
-            route=self.route.copy(),
-            s=self.path_coordinate(),
-            position=position.copy(),  # pose and leaders are cached: the scene gets its own arrays
-            heading=heading.copy(),
-            speed=self.speed.copy(),
-            speed_limit=lay.limit_at(self.route, self.arc),
-            dist_to_entry=lay.entry_arc[self.route] - (self.arc + self.length / 2),
-            dist_to_exit=lay.exit_arc[self.route] - (self.arc - self.length / 2),
-            leader=leader.copy(),
-            gap=gap.copy(),
-            priority=lay.priority[self.route],
-            maneuver=lay.maneuver[self.route],
-            length=self.length.copy(),
-            route_names=lay.route_names,
-            conflicts=lay.conflicts,
-            a_min=-self.max_acceleration,
-            a_max=self.max_acceleration,
-            width=self.width.copy(),
-            s_ref=self.s_ref,
-            arc=self.arc.copy(),
-            layout=lay,
-            human=self.human.copy(),
-        )
-
-    def rollout_scene(self, speed_limit: np.ndarray | None = None) -> Scene:
-        """A lean :meth:`scene` for planning ahead in a copy of the world (``lookahead``'s rollouts): the same
-        values, but the arrays are the simulation's own (not copied: the planners and the shield given it must
-        not write in them) and what no planner behind the shield reads (``position``, ``heading``, ``s``) is NaN.
-        :meth:`scene` copied about twenty arrays and computed the poses, a tenth of a rollout step.
-
-        :param speed_limit: ``(n,)`` ``layout.limit_at(route, arc)`` where the caller has it already
-        """
-        lay = self.layout
-        n = self.num_vehicles
-        leader, gap = self.leaders()
-        return Scene(
-            time=float(self.time),
-            dt=self.dt,
-            vehicle_id=self.vehicle_id,
-            route=self.route,
-            s=np.full(n, np.nan),
-            position=np.full((n, 2), np.nan),
-            heading=np.full(n, np.nan),
-            speed=self.speed,
-            speed_limit=lay.limit_at(self.route, self.arc) if speed_limit is None else speed_limit,
-            dist_to_entry=lay.entry_arc[self.route] - (self.arc + self.length / 2),
-            dist_to_exit=lay.exit_arc[self.route] - (self.arc - self.length / 2),
-            leader=leader,
-            gap=gap,
-            priority=lay.priority[self.route],
-            maneuver=lay.maneuver[self.route],
-            length=self.length,
-            route_names=lay.route_names,
-            conflicts=lay.conflicts,
-            a_min=-self.max_acceleration,
-            a_max=self.max_acceleration,
-            width=self.width,
-            s_ref=self.s_ref,
-            arc=self.arc,
-            layout=lay,
-            human=self.human,
-        )
 
 
 def integrate(

@@ -49,9 +49,10 @@ from highway_env.vehicle.kinematics import Vehicle
 
 from envs.simulation import hooks
 from envs.simulation.config import SCHEDULER_ACTION_TYPES, validate_config
-from envs.simulation.engine import Simulation, StepEvents
+from envs.simulation.engine import StepEvents
 from envs.simulation.graph import DEFAULT_S_SCALE, NUM_RELATIONS, build_observation, min_mahalanobis, num_node_features
 from envs.simulation.layouts import Layout, build_layout
+from envs.simulation.plant import Plant, make_plant
 from envs.simulation.rewards import (
     DEFAULT_PROXIMITY_THRESHOLD,
     DEFAULT_REWARD,
@@ -84,7 +85,7 @@ class CoopIntersectionEnv(AbstractEnv):
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be None or one of {self.metadata['render_modes']}, got {render_mode!r}")
         self.metadata = dict(self.metadata)  # highway-env writes render_fps into it
-        self.sim: Simulation | None = None
+        self.sim: Plant | None = None
         self.layout: Layout | None = None
         self.traffic: TrainingTraffic | ScenarioTraffic | None = None
         self._scene: Scene | None = None
@@ -93,12 +94,18 @@ class CoopIntersectionEnv(AbstractEnv):
         self._human_rng: np.random.Generator | None = None
         self._human_model = None
         super().__init__(config, render_mode)
+        # highway-env's constructor resets once: a plant that holds a simulator (SUMO: one per process) lets it
+        # go until the user's own reset, so that building an environment (to read its config) holds nothing.
+        self.sim.close()
 
     @classmethod
     def default_config(cls) -> dict:
         """All settings with their defaults.
 
         - ``layout``: ``"4way"``, ``"3way"`` or ``"inD"`` (see :func:`envs.simulation.layouts.build_layout`)
+        - ``plant``: what moves the vehicles (:mod:`envs.simulation.plant`): ``"builtin"`` (our simulation, the
+          default) or ``"sumo"`` (Eclipse SUMO, the ``sumo`` extra; ``simulation_frequency`` must then divide
+          1000, e.g. 20; human-driven vehicles are SUMO's own drivers)
         - ``simulation_frequency`` [Hz] 15, ``policy_frequency`` [Hz] 5 (a 0.2 s step)
         - ``duration`` [s]: training episode length (a scenario brings its own)
         - ``max_vehicles``: vertices/action slots; spawning waits while the scene is full
@@ -167,6 +174,7 @@ class CoopIntersectionEnv(AbstractEnv):
         """
         return {
             "layout": cls.LAYOUT,
+            "plant": "builtin",
             "simulation_frequency": 15,
             "policy_frequency": 5,
             "duration": 60.0,
@@ -257,7 +265,10 @@ class CoopIntersectionEnv(AbstractEnv):
         self.define_spaces()
         cfg = self.config
         self.layout = build_layout(cfg["layout"], lateral_acceleration=float(cfg["lateral_acceleration"]))
-        self.sim = Simulation.from_config(self.layout, cfg)
+        if self.sim is not None:
+            self.sim.close()  # SUMO: one simulation per process
+            self.sim = None
+        self.sim = make_plant(self.layout, cfg, seed)
         scenario = options.get("scenario")
         if scenario is not None:
             if isinstance(scenario, (str, Path)):
@@ -356,7 +367,7 @@ class CoopIntersectionEnv(AbstractEnv):
         shield_gap = float(np.abs(proposal - acc).sum()) / a_max
         if self._scheduler is not None:
             acc = self._as_commanded(acc)
-        if sim.human.any():  # human drivers ignore every command: they drive by the priority rules,
+        if sim.human.any() and not sim.drives_humans:  # human drivers ignore every command: they drive by the rules,
             # their command rounded as a planner's is in an evaluation (all human = PR bit for bit)
             acc = np.where(sim.human, self._as_commanded(self._human_accelerations()), acc)
         remove = cfg["collision_handling"] == "remove"
@@ -436,6 +447,7 @@ class CoopIntersectionEnv(AbstractEnv):
             moved=events.moved,
             speeds=events.speeds,
             substep=1.0 / sim.simulation_frequency,
+            lost=events.lost,
         )
         info = record.info()
         # For users only (the metrics read these facts from the scenes): the new vehicles are the last rows.
@@ -500,6 +512,12 @@ class CoopIntersectionEnv(AbstractEnv):
             shield = (acc - base) / (self.config["residual_scale"] * a_max)
         action[: acc.size] = np.clip(np.where(overridden, shield, correction), -1.0, 1.0)
         return action
+
+    def close(self) -> None:
+        """Release the plant (SUMO's simulation) and the viewer."""
+        if self.sim is not None:
+            self.sim.close()
+        super().close()
 
     # ------------------------------------------------------------------ public helpers
     @property

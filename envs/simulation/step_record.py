@@ -20,6 +20,8 @@ For gymnasium users the record also travels in the step ``info``, which keeps it
 - ``"governed"``: ids whose speed the speed governor lowered below what the planner commanded
   (the lane limit, or braking for a lower limit ahead).
 - ``"collisions"``: ``(k, 2)`` int64 array of id pairs that collided during the step.
+- ``"lost"``: ids that the plant lost on its own (SUMO refused to insert them or removed them; also in
+  ``"removed"``; our simulation never loses one).
 - ``"collided"``: ``(k,)`` int64 ids involved in ``"collisions"`` (distinct, sorted).
 - ``"time"``: simulated time in seconds at the end of the step.
 - ``"num_vehicles"``: vehicles in the scene at the end of the step.
@@ -46,7 +48,7 @@ from typing import Any
 
 import numpy as np
 
-_ID_FIELDS = ("entered", "crossed", "removed", "stopped", "governed", "moved")
+_ID_FIELDS = ("entered", "crossed", "removed", "stopped", "governed", "moved", "lost")
 
 
 def _no_ids() -> np.ndarray:
@@ -74,6 +76,7 @@ class StepRecord:
         step's start [m/s] (after the acceleration bounds, the shield and the governor); no rows when the
         record carries no motion (``reset``, hand-built records)
     :param substep: seconds between two rows of ``speeds``
+    :param lost: ids that the plant lost on its own (:attr:`envs.simulation.engine.StepEvents.lost`)
     """
 
     time: float = 0.0
@@ -90,6 +93,7 @@ class StepRecord:
     moved: np.ndarray = field(default_factory=_no_ids)
     speeds: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
     substep: float = 0.0
+    lost: np.ndarray = field(default_factory=_no_ids)
 
     def __post_init__(self) -> None:
         # Hand-built records may pass lists; the simulation's arrays pass through without a copy.
@@ -139,6 +143,7 @@ class StepRecord:
             "num_vehicles": self.num_vehicles,
             "waiting": self.waiting,
             "collided": self.collided,
+            "lost": self.lost,
             "record": self,
         }
 
