@@ -473,3 +473,23 @@ def test_the_leaders_leader_on_another_branch_is_no_follow_pair():
     assert scene.leader.tolist() == [2, 0, -1]  # the relations of that step
     follow = Shield(Fixed())._plan(scene).follow.tolist()
     assert [0, 2] in follow and [1, 0] in follow and [1, 2] not in follow
+
+
+@pytest.mark.parametrize("frequency", [15, 20, 30])
+def test_the_prediction_integrates_at_the_plants_rate(frequency):
+    """The scene carries the plant's sub-steps (SUMO's plant runs at 20 Hz): the shield's first predicted period
+    is the plant's step, whatever the shield's own ``simulation_frequency``. At 15 Hz against a 20 Hz plant the
+    predictions drifted, and full throttle behind the shield collided on our own plant at 20 Hz."""
+    lay = build_layout("4way")
+    rng = np.random.default_rng(3)
+    sim = Simulation(lay, simulation_frequency=frequency)
+    route = rng.integers(0, lay.num_routes, 8)
+    sim.add(route, rng.uniform(2.0, 14.0, 8), np.arange(8), arc=rng.uniform(5.0, 60.0, 8))
+    scene = sim.scene()
+    assert scene.substeps == frequency // 5
+    shield = Shield(Fixed())
+    acc = rng.uniform(scene.a_min, scene.a_max, 8)
+    arcs, speeds = shield.predict(scene, shield._plan(scene), acc)
+    sim.step(acc)
+    np.testing.assert_allclose(arcs[frequency // 5], sim.arc, atol=1e-9)
+    np.testing.assert_allclose(speeds[frequency // 5], sim.speed, atol=1e-9)

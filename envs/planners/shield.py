@@ -189,7 +189,8 @@ class Shield(Planner):
         swings its rear corner up to ~0.5 m closer than the distance along the path shows)
     :param merge_margin: extra distance between two vehicles on merging paths, over their half lengths [m]
     :param proceed_acceleration: acceleration of the fallback for committed and cleared vehicles [m/s^2]
-    :param simulation_frequency: integration rate of the simulation [Hz]
+    :param simulation_frequency: integration rate of the simulation [Hz], for scenes that do not carry theirs
+        (``Scene.substeps``: those of a plant do)
     :param max_speed: the simulation's speed cap [m/s]
     :param governor_deceleration: the simulation's speed governor [m/s^2]
     :param name: report name (default: ``<planner name>+shield``)
@@ -555,7 +556,7 @@ class Shield(Planner):
     def _in_human_windows(self, scene: Scene, plan: _Plan, arc: np.ndarray) -> np.ndarray:
         """``(p,)`` bool: the automated vehicle of a human pair is predicted in the pair's zone within
         the human's window (``arc``: the prediction's arcs, row 0 now)."""
-        substeps = max(1, int(round(self.simulation_frequency * float(scene.dt))))
+        substeps = self.substeps(scene)
         t = np.arange(arc.shape[0]) * (float(scene.dt) / substeps)  # (T + 1,)
         pair, other = plan.human_pair, 1 - plan.human_col
         a = plan.cross[pair, other]
@@ -618,6 +619,14 @@ class Shield(Planner):
         )
 
     # ------------------------------------------------------------------ prediction and check
+    def substeps(self, scene: Scene) -> int:
+        """Sub-steps per period of the prediction: the plant's (``scene.substeps``, e.g. SUMO's 20 Hz plant), else
+        :attr:`simulation_frequency`'s. A prediction integrated at another rate than the plant's drifts from it,
+        and the plan it accepted no longer holds at the next step."""
+        if scene.substeps is not None:
+            return max(1, int(scene.substeps))
+        return max(1, int(round(self.simulation_frequency * float(scene.dt))))
+
     def predict(
         self, scene: Scene, plan: _Plan, command: np.ndarray, horizon: float | None = None
     ) -> tuple[np.ndarray, np.ndarray]:
@@ -630,7 +639,7 @@ class Shield(Planner):
         :return: ``(T + 1, n)`` arcs (row 0: now) and ``(T + 1, n)`` speeds
         """
         dt = float(scene.dt)
-        substeps = max(1, int(round(self.simulation_frequency * dt)))
+        substeps = self.substeps(scene)
         steps = max(1, int(np.ceil((self.horizon if horizon is None else horizon) / dt - 1e-9)))
         arcs = np.empty((steps * substeps + 1, len(plan.arc)))
         speeds = np.empty_like(arcs)

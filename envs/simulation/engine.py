@@ -358,6 +358,7 @@ class VehicleTable:
             arc=self.arc.copy(),
             layout=lay,
             human=self.human.copy(),
+            substeps=self.substeps,
         )
 
     def rollout_scene(self, speed_limit: np.ndarray | None = None) -> Scene:
@@ -397,6 +398,7 @@ class VehicleTable:
             arc=self.arc,
             layout=lay,
             human=self.human,
+            substeps=self.substeps,
         )
 
 

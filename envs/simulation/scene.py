@@ -60,6 +60,9 @@ class Scene:
         profiles, conflict zones); ``None`` when unknown (hand-built scenes)
     :param human: ``(n,)`` bool: human-driven vehicles, which follow the static priority rules and
         ignore a planner's command; ``None`` means none (hand-built scenes)
+    :param substeps: simulation sub-steps per policy period (``simulation_frequency / policy_frequency``), so
+        that whoever predicts the scene (the shield) integrates as the plant does; ``None`` when unknown
+        (hand-built and wire scenes: the predictor's own setting)
     """
 
     time: float
@@ -87,6 +90,7 @@ class Scene:
     arc: np.ndarray | None = None
     layout: Any = None
     human: np.ndarray | None = None
+    substeps: int | None = None
 
     @property
     def num_vehicles(self) -> int:
