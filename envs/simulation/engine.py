@@ -132,6 +132,8 @@ class Simulation:
         self.governor_deceleration = float(governor_deceleration)
         self.collision_resolution = float(collision_resolution)
         self.check_collisions = bool(check_collisions)
+        # Faults (envs.simulation.faults.Actuator): (ids, commands) -> (S, n) realised accelerations; None: exact.
+        self.actuator: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None
         self.reset()
 
     # ------------------------------------------------------------------ state
@@ -288,6 +290,8 @@ class Simulation:
         n = self.num_vehicles
         a_max = self.max_acceleration
         acc = np.minimum(np.maximum(np.asarray(acceleration, float).reshape(n), -a_max), a_max)
+        if self.actuator is not None:  # latency and lag: what each sub-step realises, (S, n)
+            acc = self.actuator(self.vehicle_id, acc)
         period = self.dt
         exit_arc = self.layout.exit_arc[self.route]
         before_exit = self.arc < exit_arc
@@ -585,7 +589,7 @@ def integrate(
     :param route: ``(n,)`` route indices
     :param arc: ``(n,)`` centre arcs now [m]
     :param speed: ``(n,)`` speeds now [m/s]
-    :param acc: ``(n,)`` accelerations, already clipped to the bounds [m/s^2]
+    :param acc: ``(n,)`` accelerations, already clipped to the bounds [m/s^2], or ``(S, n)``: one per sub-step
     :param substeps: sub-steps per policy period
     :param h: sub-step length [s]
     :param max_speed: speed cap [m/s]
@@ -600,7 +604,7 @@ def integrate(
     governed = np.zeros(route.shape[0], bool)
     cap_now = layout.envelope_at(route, arc, b)
     for k in range(substeps):  # a loop over time (3 sub-steps), vectorized over vehicles
-        v = np.minimum(np.maximum(v_all[k] + acc * h, 0.0), max_speed)
+        v = np.minimum(np.maximum(v_all[k] + (acc[k] if acc.ndim == 2 else acc) * h, 0.0), max_speed)
         x = x_all[k] + 0.5 * (v_all[k] + v) * h
         cap_x = layout.envelope_at(route, x, b)
         cap = np.minimum(cap_now, cap_x)

@@ -60,6 +60,11 @@ class Scene:
         profiles, conflict zones); ``None`` when unknown (hand-built scenes)
     :param human: ``(n,)`` bool: human-driven vehicles, which follow the static priority rules and
         ignore a planner's command; ``None`` means none (hand-built scenes)
+    :param arc_std: ``(n,)`` standard deviation of each perceived arc (and so of ``s``, the distances, the gaps)
+        [m] under the environment's fault model (:mod:`envs.simulation.perception`); ``None``: exact
+    :param speed_std: ``(n,)`` standard deviation of each perceived speed [m/s]; ``None``: exact
+    :param age: ``(n,)`` age of the last message of each vehicle that the perceived state rests on [s] (the latency,
+        plus the time its state has been held while messages were lost); ``None``: exact and current
     """
 
     time: float
@@ -87,6 +92,9 @@ class Scene:
     arc: np.ndarray | None = None
     layout: Any = None
     human: np.ndarray | None = None
+    arc_std: np.ndarray | None = None
+    speed_std: np.ndarray | None = None
+    age: np.ndarray | None = None
 
     @property
     def num_vehicles(self) -> int:
