@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from envs.simulation.engine import Simulation
+from envs.simulation.engine import Simulation, integrate
 from envs.simulation.faults import LOSS, POSITION, SPEED, Actuator, ById, FaultDraws, faults_active
 from envs.simulation.layouts import Layout
 from envs.simulation.scene import Scene
@@ -45,6 +45,7 @@ class Perception:
         self.dt = 1.0 / config["policy_frequency"]
         self.h = 1.0 / config["simulation_frequency"]
         self.max_speed = float(config["max_speed"])
+        self.governor_deceleration = float(config["governor_deceleration"])
         self.memory = ById()  # per vehicle: error states, held measurement and its capture time
         self.tracker = None
         if faults["tracker"]:
@@ -106,20 +107,37 @@ class Perception:
         z_arc = np.where(received, z_arc, self.memory.get("z_arc", rows, known, 0.0))
         z_speed = np.where(received, z_speed, self.memory.get("z_speed", rows, known, 0.0))
         captured = np.where(received, captured, self.memory.get("captured", rows, known, captured))
-        self.memory.store(ids, ex=ex, ev=ev, z_arc=z_arc, z_speed=z_speed, captured=captured)
+        sent = self.memory.get("sent", rows, known, 0.0)  # each vehicle's last command, in flight for `latency`
+        m = int(kept.sum()) if kept is not None else 0
+        if kept is not None and commanded is not None:
+            sent = np.zeros(n)
+            sent[:m] = np.asarray(commanded, float)[kept]
+        self.memory.store(ids, ex=ex, ev=ev, z_arc=z_arc, z_speed=z_speed, captured=captured, sent=sent)
         age = plant.time - captured
         if self.tracker is None:
             arc, speed = z_arc, z_speed
             arc_std, speed_std = np.full(n, f["position_sigma"]), np.full(n, f["speed_sigma"])
         else:
-            accel = np.zeros(n)
+            accel = sent.copy()  # the past period's commands as they applied (the previous one for `latency`)
             actuator = getattr(plant, "actuator", None)
-            if actuator is not None and commanded is not None:  # the commands as they applied (latency)
-                commanded = actuator.last_commanded.mean(axis=0)
-            if kept is not None and commanded is not None:
-                accel[: int(kept.sum())] = np.asarray(commanded, float)[kept]
-            arc, speed, arc_std, speed_std = self.tracker.step(ids, dt, accel, received, z_arc, z_speed)
+            if actuator is not None and kept is not None and actuator.last_commanded.shape[1] == kept.size:
+                accel[:m] = actuator.last_commanded.mean(axis=0)[kept]
+            cap = self.layout.envelope_at(plant.route, np.maximum(z_arc, 0.0), self.governor_deceleration)
+            arc, speed, arc_std, speed_std = self.tracker.step(ids, dt, accel, received, z_arc, z_speed, cap)
+            if f["latency"] > 0:  # the estimate of when the coming commands take effect: the last ones act till then
+                arc, speed = self._drive(plant.route, arc, speed, sent, f["latency"])
+                arc_std = np.hypot(arc_std, f["latency"] * speed_std)
         return self._scene(plant, arc, speed, arc_std, speed_std, age)
+
+    def _drive(self, route, arc, speed, acc, t) -> tuple[np.ndarray, np.ndarray]:
+        """Arcs and speeds after ``t`` seconds of ``acc`` under the simulation's own vehicle model (the governor)."""
+        substeps = max(1, math.ceil(t / self.h - 1e-9))
+        end = self.layout.length[route] - 1e-6
+        v, x, _ = integrate(
+            self.layout, route, np.clip(arc, 0.0, end), np.clip(speed, 0.0, self.max_speed), acc, substeps,
+            t / substeps, self.max_speed, self.governor_deceleration,
+        )  # fmt: skip
+        return x[-1], v[-1]
 
     def _error(self, rows, known, name, sigma, tau, ids, step, stream, dt) -> np.ndarray:
         """Each vehicle's error now: a stationary Gauss-Markov process (a fresh draw for a new vehicle)."""

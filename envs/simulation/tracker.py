@@ -49,6 +49,7 @@ class ArcTracker:
         received: np.ndarray,
         z_arc: np.ndarray,
         z_speed: np.ndarray,
+        cap: np.ndarray | float = np.inf,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Predict every known vehicle over ``dt`` and update those with a new message; start the new ones.
 
@@ -58,6 +59,7 @@ class ArcTracker:
         :param received: ``(n,)`` bool: a message arrived this step (always true for a vehicle not tracked yet)
         :param z_arc: ``(n,)`` measured arcs (of ``latency`` ago) [m]
         :param z_speed: ``(n,)`` measured speeds [m/s]
+        :param cap: ``(n,)`` each vehicle's speed cap where it is (the governor's envelope) [m/s]
         :return: ``(n,)`` estimated arcs, speeds, and their standard deviations
         """
         rows, known = self.tracks.find(vehicle_id)
@@ -66,14 +68,14 @@ class ArcTracker:
         pxx = self.tracks.get("pxx", rows, known, 0.0)
         pxv = self.tracks.get("pxv", rows, known, 0.0)
         pvv = self.tracks.get("pvv", rows, known, 0.0)
-        x, v = _advance(x, v, accel, dt)
+        x, v = advance(x, v, accel, dt, cap)
         q = self.q
         pxx, pxv, pvv = (
             pxx + 2 * dt * pxv + dt * dt * pvv + q * dt**3 / 3,
             pxv + dt * pvv + q * dt**2 / 2,
             pvv + q * dt,
         )
-        x, v, pxx, pxv, pvv = self._update(x, v, pxx, pxv, pvv, accel, received & known, z_arc, z_speed)
+        x, v, pxx, pxv, pvv = self._update(x, v, pxx, pxv, pvv, accel, cap, received & known, z_arc, z_speed)
         new = ~known
         if new.any():  # a first message starts a track: the measurement run forward by the latency
             lat = self.latency
@@ -85,10 +87,10 @@ class ArcTracker:
         self.tracks.store(vehicle_id, x=x, v=v, pxx=pxx, pxv=pxv, pvv=pvv)
         return x, v, np.sqrt(np.maximum(pxx, 0.0)), np.sqrt(np.maximum(pvv, 0.0))
 
-    def _update(self, x, v, pxx, pxv, pvv, accel, use, z_arc, z_speed):
+    def _update(self, x, v, pxx, pxv, pvv, accel, cap, use, z_arc, z_speed):
         """The Kalman update where ``use``, with the measurement of ``latency`` ago (``H = [[1, -L], [0, 1]]``)."""
         lat = self.latency
-        back_x, back_v = _advance(x, v, -accel, -lat) if lat > 0 else (x, v)
+        back_x, back_v = advance(x, v, accel, -lat, cap) if lat > 0 else (x, v)
         y0 = np.where(use, z_arc - back_x, 0.0)
         y1 = np.where(use, z_speed - back_v, 0.0)
         a00, a01 = pxx - lat * pxv, pxv - lat * pvv  # A = H P (its second row is [pxv, pvv])
@@ -111,14 +113,21 @@ class ArcTracker:
         return x, v, np.where(use, n00, pxx), np.where(use, n01, pxv), np.where(use, n11, pvv)
 
 
-def _advance(x: np.ndarray, v: np.ndarray, a: np.ndarray, t: float) -> tuple[np.ndarray, np.ndarray]:
+def advance(
+    x: np.ndarray, v: np.ndarray, a: np.ndarray, t: float, cap: np.ndarray | float = np.inf
+) -> tuple[np.ndarray, np.ndarray]:
     """Arc and speed after ``t`` seconds at acceleration ``a`` (``t`` < 0 runs back); a vehicle that would pass a
-    speed of 0 stops there (vehicles never drive backwards)."""
+    speed of 0 stops there (vehicles never drive backwards), and one at its speed cap (the governor's envelope, which
+    the planner side knows from the layout) does not speed up beyond it."""
+    a = np.where((a > 0) & (v >= cap - 1e-6), 0.0, a)
     v_end = v + a * t
     stops = v_end < 0
-    x_end = x + 0.5 * (v + np.maximum(v_end, 0.0)) * t
+    v_end = np.maximum(v_end, 0.0)
+    if t > 0:
+        v_end = np.minimum(v_end, np.maximum(cap, v))
+    x_end = x + 0.5 * (v + v_end) * t
     if stops.any():  # the distance to the stop, v^2 / 2|a|, in the direction of t
         with np.errstate(divide="ignore", invalid="ignore"):
             to_stop = np.where(np.abs(a) > 0, v * v / (2 * np.abs(a)), 0.0)
         x_end = np.where(stops, x + np.sign(t) * to_stop, x_end)
-    return x_end, np.maximum(v_end, 0.0)
+    return x_end, v_end
