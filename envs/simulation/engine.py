@@ -132,8 +132,8 @@ class Simulation:
         self.governor_deceleration = float(governor_deceleration)
         self.collision_resolution = float(collision_resolution)
         self.check_collisions = bool(check_collisions)
-        # Faults (envs.simulation.faults.Actuator): (ids, commands) -> (S, n) realised accelerations; None: exact.
-        self.actuator: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None
+        # Faults (envs.simulation.faults.Actuator): (ids, commands, speeds) -> (S, n) realised accelerations.
+        self.actuator: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray] | None = None
         self.reset()
 
     # ------------------------------------------------------------------ state
@@ -291,7 +291,7 @@ class Simulation:
         a_max = self.max_acceleration
         acc = np.minimum(np.maximum(np.asarray(acceleration, float).reshape(n), -a_max), a_max)
         if self.actuator is not None:  # latency and lag: what each sub-step realises, (S, n)
-            acc = self.actuator(self.vehicle_id, acc)
+            acc = self.actuator(self.vehicle_id, acc, self.speed)
         period = self.dt
         exit_arc = self.layout.exit_arc[self.route]
         before_exit = self.arc < exit_arc

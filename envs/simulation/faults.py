@@ -225,17 +225,21 @@ class Actuator:
         self.memory = ById()
         self.last_commanded = np.zeros((self.substeps, 0))
 
-    def __call__(self, vehicle_id: np.ndarray, command: np.ndarray) -> np.ndarray:
+    def __call__(self, vehicle_id: np.ndarray, command: np.ndarray, speed: np.ndarray | None = None) -> np.ndarray:
         """The realised accelerations of each sub-step of the coming period.
 
         :param vehicle_id: ``(n,)`` ids of the rows
         :param command: ``(n,)`` commanded accelerations, already within the bounds [m/s^2]
+        :param speed: ``(n,)`` speeds now [m/s]: a vehicle at rest is not decelerating (its brakes hold it), so its
+            realised acceleration starts from no less than 0
         :return: ``(S, n)`` mean accelerations over each sub-step (exact for its speed change); a vehicle seen for the
             first time had command 0 and realised 0 before
         """
         rows, found = self.memory.find(vehicle_id)
         previous = self.memory.get("command", rows, found, 0.0)
         realised = self.memory.get("realised", rows, found, 0.0)
+        if speed is not None:
+            realised = np.where(speed <= 0.0, np.maximum(realised, 0.0), realised)
         commanded = self.old_share * previous[None, :] + (1.0 - self.old_share) * command[None, :]  # (S, n)
         out = np.empty_like(commanded)
         for k in range(self.substeps):  # a loop over time (3 sub-steps), vectorized over vehicles
