@@ -15,6 +15,7 @@ Printed as Markdown and written to ``--csv``::
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import tempfile
 import time
@@ -43,8 +44,11 @@ BOUNDS = {
 _SCALED = ("position_sigma", "position_bound", "speed_sigma", "speed_bound", "loss", "max_age", "latency", "lag")
 
 
-def level_faults(level: str) -> dict:
-    """The ``faults`` setting of a fault level: ``none``, ``mild`` (half the bounds), ``bounds``, ``twice``."""
+def level_faults(level: str, custom: dict[str, dict] | None = None) -> dict:
+    """The ``faults`` setting of a fault level: ``none``, ``mild`` (half the bounds), ``bounds``, ``twice``, or one
+    of ``custom`` (name -> faults)."""
+    if custom and level in custom:
+        return dict(custom[level])
     factor = {"none": 0.0, "mild": 0.5, "bounds": 1.0, "twice": 2.0}[level]
     if factor == 0:
         return {}
@@ -56,7 +60,7 @@ LEVELS = ("none", "mild", "bounds", "twice")
 
 def fault_runs(
     planners: list[str], demands: list[float], levels: list[str], trackers: list[bool], env_id: str,
-    scenarios: int, duration: float, seed: int, jobs: int,
+    scenarios: int, duration: float, seed: int, jobs: int, custom: dict[str, dict] | None = None,
 ) -> pd.DataFrame:  # fmt: skip
     """Every planner and the baseline at every demand, fault level and perception: the harness's run rows, tagged."""
     words = list(dict.fromkeys([BASELINE, *planners]))
@@ -68,7 +72,7 @@ def fault_runs(
             )
             for level in levels:
                 for tracker in trackers if level != "none" else [True]:
-                    faults = level_faults(level)
+                    faults = level_faults(level, custom)
                     if faults:
                         faults["tracker"] = tracker
                     runs, _ = evaluate(
@@ -140,6 +144,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--planner", action="append", help="planners beside full throttle (default: glide+shield)")
     parser.add_argument("--demand", type=float, nargs="+", default=[0.3, 0.5], help="veh/s per major lane")
     parser.add_argument("--level", action="append", choices=LEVELS, help="fault levels (default: all)")
+    parser.add_argument(
+        "--custom", action="append", default=[], metavar="NAME=JSON",
+        help="a fault level of one's own, e.g. 'lag=' + '{\"lag\": 0.3}' (repeatable; an ablation of one fault)",
+    )  # fmt: skip
     parser.add_argument("--perception", choices=("tracker", "raw", "both"), default="both")
     parser.add_argument("--env", default="CoopIntersection4Way-v0", help="environment id")
     parser.add_argument("--scenarios", type=int, default=4, help="scenarios per demand (>= 1)")
@@ -153,11 +161,19 @@ def main(argv: list[str] | None = None) -> int:
     if args.csv is not None and args.csv.exists():
         parser.error(f"--csv: {args.csv} exists (never overwritten)")
     trackers = {"tracker": [True], "raw": [False], "both": [True, False]}[args.perception]
-    levels = list(dict.fromkeys(["none", *(args.level or LEVELS)]))  # the exact world: the lead to compare with
+    custom = {}
+    for item in args.custom:
+        name, _, text = item.partition("=")
+        try:
+            custom[name] = json.loads(text)
+        except json.JSONDecodeError as error:
+            parser.error(f"--custom {item!r}: not NAME=JSON ({error.msg})")
+    chosen = args.level or ([] if custom else list(LEVELS))
+    levels = list(dict.fromkeys(["none", *chosen, *custom]))  # the exact world: the lead to compare with
     tic = time.perf_counter()
     runs = fault_runs(
         args.planner or ["glide+shield"], args.demand, levels, trackers, args.env, args.scenarios, args.duration,
-        args.seed, args.jobs,
+        args.seed, args.jobs, custom,
     )  # fmt: skip
     print(markdown(fault_table(runs)))
     print(

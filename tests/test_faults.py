@@ -78,6 +78,11 @@ def test_actuator_lag_and_latency():
     late(ids, np.array([2.0]))
     assert np.allclose(late(ids, np.array([-4.0]))[:, 0], [2.0, 0.5 * 2.0 + 0.5 * -4.0, -4.0])  # 1.5 sub-steps old
     assert np.allclose(late(np.array([2]), np.array([1.0]))[:, 0], [0.0, 0.5, 1.0])  # a new vehicle had command 0
+    braked = Actuator(latency=0.0, lag=0.3, substeps=3, h=h)
+    braked(ids, np.array([-5.0]))
+    assert (braked(ids, np.array([5.0]), speed=np.array([0.0])) > 0).all()  # at rest its brakes held it, not -5
+    braked(ids, np.array([-5.0]))
+    assert braked(ids, np.array([5.0]), speed=np.array([3.0]))[0, 0] < 0  # moving: the braking unwinds first
 
 
 def _stepped(config: dict, steps: int, seed: int = 3) -> tuple[list, list]:

@@ -70,6 +70,11 @@ class Perception:
         if not faults_active(faults):
             return None
         if faults["latency"] > 0 or faults["lag"] > 0:
+            if not hasattr(plant, "actuator"):  # it would ignore them silently
+                raise ValueError(
+                    f"config key 'faults': latency and lag need a plant that applies an actuator (the builtin "
+                    f"simulation); {type(plant).__name__} has none"
+                )
             h = 1.0 / plant.simulation_frequency
             plant.actuator = Actuator(faults["latency"], faults["lag"], plant.substeps, h)
         if seed is None:
