@@ -177,3 +177,15 @@ def test_metrics_read_the_truth_and_a_run_is_reproducible():
     exact_env = gym.make("CoopIntersection4Way-v0", config={"collision_handling": "remove"})
     exact, _ = run_episode(exact_env, planner, scenario, 20.0, seed=5)
     assert not log.equals(exact)  # lag and latency changed how the vehicles drove
+
+
+def test_the_tracker_beats_a_correlated_position_error_and_does_not_claim_better():
+    faults = {"position_sigma": 1.0, "position_tau": 1.0, "speed_sigma": 0.3}
+    rms, claimed = {}, {}
+    for tracker in (False, True):
+        _, scenes = _stepped({"faults": {**faults, "tracker": tracker}}, 80)
+        err = np.concatenate([p.arc - t.arc for p, t in scenes[10:]])
+        rms[tracker] = float(np.sqrt(np.mean(err**2)))
+        claimed[tracker] = float(np.sqrt(np.mean(np.concatenate([p.arc_std for p, _ in scenes[10:]]) ** 2)))
+    assert rms[True] < 0.85 * rms[False]
+    assert claimed[True] >= rms[True]  # its standard deviation is no promise it cannot keep

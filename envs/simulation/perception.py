@@ -49,9 +49,11 @@ class Perception:
         self.memory = ById()  # per vehicle: error states, held measurement and its capture time
         self.tracker = None
         if faults["tracker"]:
+            tau = faults["position_tau"]
             self.tracker = ArcTracker(
-                faults["position_sigma"], faults["speed_sigma"], faults["process_noise"], faults["latency"]
-            )
+                faults["position_sigma"], faults["speed_sigma"], faults["process_noise"], faults["latency"],
+                correlation=math.exp(-self.dt / tau) if tau > 0 else 0.0,
+            )  # fmt: skip
         self.step_index = 0
 
     @classmethod

@@ -28,10 +28,16 @@ class ArcTracker:
     :param speed_sigma: standard deviation of a speed measurement [m/s]
     :param process_noise: standard deviation of the unmodelled acceleration [m/s^2]
     :param latency: age of every measurement when it arrives [s]
+    :param correlation: correlation of a vehicle's position error from one message to the next (``rho``)
     """
 
-    def __init__(self, position_sigma: float, speed_sigma: float, process_noise: float, latency: float) -> None:
-        self.rx = max(float(position_sigma) ** 2, _MIN_VAR)
+    def __init__(
+        self, position_sigma: float, speed_sigma: float, process_noise: float, latency: float, correlation: float = 0.0
+    ) -> None:
+        # A correlated error averages out slowly: n samples with step correlation rho hold as much as n (1 - rho) /
+        # (1 + rho) independent ones, so the filter takes each position as that much noisier.
+        inflation = (1.0 + correlation) / (1.0 - correlation) if correlation < 1.0 else 1e6
+        self.rx = max(float(position_sigma) ** 2 * inflation, _MIN_VAR)
         self.rv = max(float(speed_sigma) ** 2, _MIN_VAR)
         self.q = float(process_noise) ** 2
         self.latency = float(latency)
