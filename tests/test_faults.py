@@ -189,3 +189,17 @@ def test_the_tracker_beats_a_correlated_position_error_and_does_not_claim_better
         claimed[tracker] = float(np.sqrt(np.mean(np.concatenate([p.arc_std for p, _ in scenes[10:]]) ** 2)))
     assert rms[True] < 0.85 * rms[False]
     assert claimed[True] >= rms[True]  # its standard deviation is no promise it cannot keep
+
+
+def test_the_scene_carries_the_acceleration_the_lag_lets_each_vehicle_realise():
+    env = gym.make("CoopIntersection4Way-v0", config={"faults": {"lag": 0.3}}).unwrapped
+    env.reset(seed=2)
+    assert np.array_equal(env.scene().acceleration, np.zeros(env.scene().num_vehicles))
+    rng = np.random.default_rng(1)
+    for _ in range(15):
+        env.step(rng.uniform(-1, 1, env.action_space.shape).astype(np.float32))
+    scene, plant = env.scene(), env.sim.actuator.memory
+    rows, found = plant.find(scene.vehicle_id)
+    truth = plant.get("realised", rows, found, 0.0)
+    assert np.abs(truth).max() > 1.0 and np.allclose(scene.acceleration, truth)  # replayed from the commands
+    assert CoopIntersectionEnv(config={}).default_config()["faults"]["lag"] == 0.0

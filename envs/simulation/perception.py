@@ -55,6 +55,12 @@ class Perception:
                 correlation=math.exp(-self.dt / tau) if tau > 0 else 0.0,
             )  # fmt: skip
         self.step_index = 0
+        # The planner side's replay of the actuation (the same model as the plant's): the acceleration each vehicle
+        # realises, from the commands it was sent.
+        self.replica = None
+        if faults["latency"] > 0 or faults["lag"] > 0:
+            substeps = int(config["simulation_frequency"]) // int(config["policy_frequency"])
+            self.replica = Actuator(faults["latency"], faults["lag"], substeps, self.h)
 
     @classmethod
     def install(
@@ -116,35 +122,53 @@ class Perception:
         captured = np.where(received, captured, self.memory.get("captured", rows, known, captured))
         sent = self.memory.get("sent", rows, known, 0.0)  # each vehicle's last command, in flight for `latency`
         m = int(kept.sum()) if kept is not None else 0
+        accel = sent.copy()  # the past period's mean acceleration, as the planner side models it
         if kept is not None and commanded is not None:
             sent = np.zeros(n)
             sent[:m] = np.asarray(commanded, float)[kept]
-        self.memory.store(ids, ex=ex, ev=ev, z_arc=z_arc, z_speed=z_speed, captured=captured, sent=sent)
+            accel = sent.copy()
+            if self.replica is not None:  # latency and lag, replayed from the commands (at rest: the brakes hold)
+                seen = self.memory.get("v_seen", rows, known, 0.0)
+                accel[:m] = self.replica(ids[:m], sent[:m], seen[:m]).mean(axis=0)
         age = plant.time - captured
+        realised = None
+        if self.replica is not None:
+            r_rows, r_known = self.replica.memory.find(ids)
+            realised = self.replica.memory.get("realised", r_rows, r_known, 0.0)
         if self.tracker is None:
             arc, speed = z_arc, z_speed
             arc_std, speed_std = np.full(n, f["position_sigma"]), np.full(n, f["speed_sigma"])
         else:
-            accel = sent.copy()  # the past period's commands as they applied (the previous one for `latency`)
-            actuator = getattr(plant, "actuator", None)
-            if actuator is not None and kept is not None and actuator.last_commanded.shape[1] == kept.size:
-                accel[:m] = actuator.last_commanded.mean(axis=0)[kept]
             cap = self.layout.envelope_at(plant.route, np.maximum(z_arc, 0.0), self.governor_deceleration)
             arc, speed, arc_std, speed_std = self.tracker.step(ids, dt, accel, received, z_arc, z_speed, cap)
             if f["latency"] > 0:  # the estimate of when the coming commands take effect: the last ones act till then
-                arc, speed = self._drive(plant.route, arc, speed, sent, f["latency"])
+                arc, speed, realised = self._drive(plant.route, arc, speed, sent, realised, f["latency"])
                 arc_std = np.hypot(arc_std, f["latency"] * speed_std)
-        return self._scene(plant, arc, speed, arc_std, speed_std, age)
+        self.memory.store(
+            ids, ex=ex, ev=ev, z_arc=z_arc, z_speed=z_speed, captured=captured, sent=sent, v_seen=speed
+        )  # fmt: skip
+        scene = self._scene(plant, arc, speed, arc_std, speed_std, age)
+        return scene if realised is None else dataclasses.replace(scene, acceleration=realised)
 
-    def _drive(self, route, arc, speed, acc, t) -> tuple[np.ndarray, np.ndarray]:
-        """Arcs and speeds after ``t`` seconds of ``acc`` under the simulation's own vehicle model (the governor)."""
+    def _drive(self, route, arc, speed, command, realised, t) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Arcs, speeds and realised accelerations after ``t`` seconds of ``command`` through the actuation lag, under
+        the simulation's own vehicle model (the governor)."""
         substeps = max(1, math.ceil(t / self.h - 1e-9))
+        h = t / substeps
+        lag = self.faults["lag"]
+        decay = math.exp(-h / lag) if lag > 0 else 0.0
+        mean_share = lag / h * (1.0 - decay) if lag > 0 else 0.0
+        r = np.where(speed <= 0.0, np.maximum(realised, 0.0), realised)
+        acc = np.empty((substeps, arc.size))
+        for k in range(substeps):  # a loop over time (two sub-steps), vectorized over vehicles
+            acc[k] = command + (r - command) * mean_share
+            r = command + (r - command) * decay
         end = self.layout.length[route] - 1e-6
         v, x, _ = integrate(
-            self.layout, route, np.clip(arc, 0.0, end), np.clip(speed, 0.0, self.max_speed), acc, substeps,
-            t / substeps, self.max_speed, self.governor_deceleration,
+            self.layout, route, np.clip(arc, 0.0, end), np.clip(speed, 0.0, self.max_speed), acc, substeps, h,
+            self.max_speed, self.governor_deceleration,
         )  # fmt: skip
-        return x[-1], v[-1]
+        return x[-1], v[-1], r
 
     def _error(self, rows, known, name, sigma, tau, ids, step, stream, dt) -> np.ndarray:
         """Each vehicle's error now: a stationary Gauss-Markov process (a fresh draw for a new vehicle)."""

@@ -65,6 +65,9 @@ class Scene:
     :param speed_std: ``(n,)`` standard deviation of each perceived speed [m/s]; ``None``: exact
     :param age: ``(n,)`` age of the last message of each vehicle that the perceived state rests on [s] (the latency,
         plus the time its state has been held while messages were lost); ``None``: exact and current
+    :param acceleration: ``(n,)`` the acceleration each vehicle realises at the scene's estimate (its commands through
+        the actuation latency and lag of the fault model, as the planner side replays them) [m/s^2]; ``None``: each
+        command is realised at once
     """
 
     time: float
@@ -95,6 +98,7 @@ class Scene:
     arc_std: np.ndarray | None = None
     speed_std: np.ndarray | None = None
     age: np.ndarray | None = None
+    acceleration: np.ndarray | None = None
 
     @property
     def num_vehicles(self) -> int:
