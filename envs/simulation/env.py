@@ -175,9 +175,9 @@ class CoopIntersectionEnv(AbstractEnv):
           ``lag`` [s] (0): first-order lag of the realised acceleration behind the command; ``tracker`` (true):
           the planners see a Kalman tracker's estimate (false: the raw held measurements), ``process_noise``
           [m/s^2] (1): its acceleration noise. The planners, the shield and the observation read the perceived
-          scene (``env.unwrapped.scene()``, with ``arc_std``, ``speed_std``, ``age``, ``acceleration``); the rewards, the metrics
-          and the collision checks read the truth (``true_scene()``). Every draw comes from the reset's seed,
-          per vehicle id and step. With no fault the two scenes are the same arrays
+          scene (``env.unwrapped.scene()``, with ``arc_std``, ``speed_std``, ``age``, ``acceleration``); the rewards,
+          the metrics and the collision checks read the truth (``true_scene()``). Every draw comes from the reset's
+          seed, per vehicle id and step. With no fault the two scenes are the same arrays
         - rendering: ``screen_width``, ``screen_height``, ``scaling``, ``centering_position``,
           ``offscreen_rendering``, ``real_time_rendering``, ``render_agent``, ``show_trajectories``
         """
