@@ -123,13 +123,18 @@ class Perception:
         sent = self.memory.get("sent", rows, known, 0.0)  # each vehicle's last command, in flight for `latency`
         m = int(kept.sum()) if kept is not None else 0
         accel = sent.copy()  # the past period's mean acceleration, as the planner side models it
+        recent = None  # and over its last `latency` seconds (default: the same)
         if kept is not None and commanded is not None:
             sent = np.zeros(n)
             sent[:m] = np.asarray(commanded, float)[kept]
             accel = sent.copy()
             if self.replica is not None:  # latency and lag, replayed from the commands (at rest: the brakes hold)
                 seen = self.memory.get("v_seen", rows, known, 0.0)
-                accel[:m] = self.replica(ids[:m], sent[:m], seen[:m]).mean(axis=0)
+                replayed = self.replica(ids[:m], sent[:m], seen[:m])
+                accel[:m] = replayed.mean(axis=0)
+                last = max(1, math.ceil(f["latency"] / self.h - 1e-9))  # the sub-steps of the last `latency`
+                recent = accel.copy()
+                recent[:m] = replayed[-last:].mean(axis=0)
         age = plant.time - captured
         realised = None
         if self.replica is not None:
@@ -140,7 +145,7 @@ class Perception:
             arc_std, speed_std = np.full(n, f["position_sigma"]), np.full(n, f["speed_sigma"])
         else:
             cap = self.layout.envelope_at(plant.route, np.maximum(z_arc, 0.0), self.governor_deceleration)
-            arc, speed, arc_std, speed_std = self.tracker.step(ids, dt, accel, received, z_arc, z_speed, cap)
+            arc, speed, arc_std, speed_std = self.tracker.step(ids, dt, accel, received, z_arc, z_speed, cap, recent)
             if f["latency"] > 0:  # the estimate of when the coming commands take effect: the last ones act till then
                 arc, speed, realised = self._drive(plant.route, arc, speed, sent, realised, f["latency"])
                 arc_std = np.hypot(arc_std, f["latency"] * speed_std)

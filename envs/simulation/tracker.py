@@ -56,6 +56,7 @@ class ArcTracker:
         z_arc: np.ndarray,
         z_speed: np.ndarray,
         cap: np.ndarray | float = np.inf,
+        recent: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Predict every known vehicle over ``dt`` and update those with a new message; start the new ones.
 
@@ -66,6 +67,8 @@ class ArcTracker:
         :param z_arc: ``(n,)`` measured arcs (of ``latency`` ago) [m]
         :param z_speed: ``(n,)`` measured speeds [m/s]
         :param cap: ``(n,)`` each vehicle's speed cap where it is (the governor's envelope) [m/s]
+        :param recent: ``(n,)`` mean acceleration over the last ``latency`` seconds, which run a measurement back to
+            now (default ``accel``; with latency, the newest command has applied since the period's first ``latency``)
         :return: ``(n,)`` estimated arcs, speeds, and their standard deviations
         """
         rows, known = self.tracks.find(vehicle_id)
@@ -81,7 +84,8 @@ class ArcTracker:
             pxv + dt * pvv + q * dt**2 / 2,
             pvv + q * dt,
         )
-        x, v, pxx, pxv, pvv = self._update(x, v, pxx, pxv, pvv, accel, cap, received & known, z_arc, z_speed)
+        recent = accel if recent is None else recent
+        x, v, pxx, pxv, pvv = self._update(x, v, pxx, pxv, pvv, recent, cap, received & known, z_arc, z_speed)
         new = ~known
         if new.any():  # a first message starts a track: the measurement run forward by the latency
             lat = self.latency
