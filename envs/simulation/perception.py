@@ -120,21 +120,7 @@ class Perception:
         z_arc = np.where(received, z_arc, self.memory.get("z_arc", rows, known, 0.0))
         z_speed = np.where(received, z_speed, self.memory.get("z_speed", rows, known, 0.0))
         captured = np.where(received, captured, self.memory.get("captured", rows, known, captured))
-        sent = self.memory.get("sent", rows, known, 0.0)  # each vehicle's last command, in flight for `latency`
-        m = int(kept.sum()) if kept is not None else 0
-        accel = sent.copy()  # the past period's mean acceleration, as the planner side models it
-        recent = None  # and over its last `latency` seconds (default: the same)
-        if kept is not None and commanded is not None:
-            sent = np.zeros(n)
-            sent[:m] = np.asarray(commanded, float)[kept]
-            accel = sent.copy()
-            if self.replica is not None:  # latency and lag, replayed from the commands (at rest: the brakes hold)
-                seen = self.memory.get("v_seen", rows, known, 0.0)
-                replayed = self.replica(ids[:m], sent[:m], seen[:m])
-                accel[:m] = replayed.mean(axis=0)
-                last = max(1, math.ceil(f["latency"] / self.h - 1e-9))  # the sub-steps of the last `latency`
-                recent = accel.copy()
-                recent[:m] = replayed[-last:].mean(axis=0)
+        sent, accel, recent = self._commands(ids, rows, known, kept, commanded)
         age = plant.time - captured
         realised = None
         if self.replica is not None:
@@ -154,6 +140,27 @@ class Perception:
         )  # fmt: skip
         scene = self._scene(plant, arc, speed, arc_std, speed_std, age)
         return scene if realised is None else dataclasses.replace(scene, acceleration=realised)
+
+    def _commands(self, ids, rows, known, kept, commanded) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """Each vehicle's last command (in flight for ``latency``), the past period's mean acceleration and that of
+        its last ``latency`` seconds (``None``: the same), as the planner side models them from its commands."""
+        n = ids.size
+        sent = self.memory.get("sent", rows, known, 0.0)
+        accel, recent = sent.copy(), None
+        if kept is None or commanded is None:
+            return sent, accel, recent
+        m = int(kept.sum())
+        sent = np.zeros(n)
+        sent[:m] = np.asarray(commanded, float)[kept]
+        accel = sent.copy()
+        if self.replica is not None:  # latency and lag, replayed from the commands (at rest: the brakes hold)
+            seen = self.memory.get("v_seen", rows, known, 0.0)
+            replayed = self.replica(ids[:m], sent[:m], seen[:m])
+            accel[:m] = replayed.mean(axis=0)
+            last = max(1, math.ceil(self.faults["latency"] / self.h - 1e-9))  # the sub-steps of the last `latency`
+            recent = accel.copy()
+            recent[:m] = replayed[-last:].mean(axis=0)
+        return sent, accel, recent
 
     def _drive(self, route, arc, speed, command, realised, t) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Arcs, speeds and realised accelerations after ``t`` seconds of ``command`` through the actuation lag, under
