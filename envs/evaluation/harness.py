@@ -190,7 +190,7 @@ def run_episode(
     planner.reset(seed)
     log = VehicleLog(layout=getattr(base, "layout", None))
     log.record(record)
-    scene = base.scene()
+    scene, truth = base.scene(), _true_scene(base)
     start = float(scene.time)
     now = start
     steps = 0
@@ -199,7 +199,7 @@ def run_episode(
     terminated = truncated = False
     lost = 0
     while now - start < duration - 1e-9 and not (terminated or truncated):
-        log.observe(scene)
+        log.observe(truth)  # the metrics read the truth, the planner what is perceived (the same without faults)
         acc = planned_accelerations(planner, scene)
         _, reward, terminated, truncated, info = env.step(base.accelerations_to_action(acc))
         record = step_record(info)
@@ -209,16 +209,22 @@ def run_episode(
         for key, value in record.reward_terms.items():
             terms[key] = terms.get(key, 0.0) + float(value)
         steps += 1
-        next_scene = base.scene()
+        next_scene, next_truth = base.scene(), _true_scene(base)
         if on_step is not None:
-            on_step(scene, acc, record, next_scene)
-        scene = next_scene
+            on_step(truth, acc, record, next_truth)
+        scene, truth = next_scene, next_truth
         now = float(record.time)
-    log.finish(scene)
+    log.finish(truth)
     facts = {"duration": now - start, "steps": steps, "terminated": bool(terminated), "return": total, "lost": lost}
     facts.update(preset_returns(terms))
     facts["waiting_at_end"] = int(record.waiting) if steps else 0
     return log.frame(schedule=_schedule(scenario), end=now), facts
+
+
+def _true_scene(base) -> Any:
+    """The environment's true scene (``true_scene()``, which an environment with a fault model has), else its scene."""
+    true_scene = getattr(base, "true_scene", None)
+    return base.scene() if true_scene is None else true_scene()
 
 
 def preset_returns(terms: dict[str, float]) -> dict[str, float]:

@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from envs.simulation.faults import FAULTS_ALLOWED, fault_config
 from envs.simulation.graph import EDGE_FEATURES, VERTEX_FEATURES
 from envs.simulation.layouts import LAYOUT_NAMES
 from envs.simulation.plant import PLANTS
@@ -229,6 +230,7 @@ RULES: dict[str, Rule] = {
     ),
     "collision_handling": Rule(lambda x: x in COLLISION_HANDLING, f"one of {COLLISION_HANDLING}"),
     "human_share": Rule(_human_share, HUMAN_SHARE_ALLOWED),
+    "faults": Rule(lambda x: x is None or isinstance(x, dict), FAULTS_ALLOWED),  # entries: fault_config
     # Rendering (highway-env's viewer reads these).
     "screen_width": _int(1),
     "screen_height": _int(1),
@@ -290,6 +292,8 @@ def validate_config(config: dict[str, Any], defaults: dict[str, Any]) -> dict[st
             f"config key 'simulation_frequency' must divide 1000 with plant 'sumo' (SUMO's step is a whole number "
             f"of milliseconds: 20 or 10 at the 5 Hz policy), got {merged['simulation_frequency']}"
         )
+    if "faults" in merged:  # each entry checked, the defaults filled in
+        merged["faults"] = fault_config(merged["faults"], 1.0 / merged["policy_frequency"])
     # Only the given weights change; the other terms keep their default weight (the preset's, when
     # the call names a new preset).
     if "reward" in config and config["reward"] != defaults.get("reward"):

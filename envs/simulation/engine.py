@@ -456,6 +456,8 @@ class Simulation(VehicleTable):
     ) -> None:
         self.collision_resolution = float(collision_resolution)
         self.check_collisions = bool(check_collisions)
+        # Faults (envs.simulation.faults.Actuator): (ids, commands, speeds) -> (S, n) realised accelerations.
+        self.actuator: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray] | None = None
         super().__init__(
             layout, simulation_frequency, policy_frequency, max_speed, max_acceleration, s_ref, max_vehicles,
             governor_deceleration,
@@ -485,6 +487,8 @@ class Simulation(VehicleTable):
         n = self.num_vehicles
         a_max = self.max_acceleration
         acc = np.minimum(np.maximum(np.asarray(acceleration, float).reshape(n), -a_max), a_max)
+        if self.actuator is not None:  # latency and lag: what each sub-step realises, (S, n)
+            acc = self.actuator(self.vehicle_id, acc, self.speed)
         period = self.dt
         exit_arc = self.layout.exit_arc[self.route]
         before_exit = self.arc < exit_arc
@@ -645,7 +649,7 @@ def integrate(
     :param route: ``(n,)`` route indices
     :param arc: ``(n,)`` centre arcs now [m]
     :param speed: ``(n,)`` speeds now [m/s]
-    :param acc: ``(n,)`` accelerations, already clipped to the bounds [m/s^2]
+    :param acc: ``(n,)`` accelerations, already clipped to the bounds [m/s^2], or ``(S, n)``: one per sub-step
     :param substeps: sub-steps per policy period
     :param h: sub-step length [s]
     :param max_speed: speed cap [m/s]
@@ -660,7 +664,7 @@ def integrate(
     governed = np.zeros(route.shape[0], bool)
     cap_now = layout.envelope_at(route, arc, b)
     for k in range(substeps):  # a loop over time (3 sub-steps), vectorized over vehicles
-        v = np.minimum(np.maximum(v_all[k] + acc * h, 0.0), max_speed)
+        v = np.minimum(np.maximum(v_all[k] + (acc[k] if acc.ndim == 2 else acc) * h, 0.0), max_speed)
         x = x_all[k] + 0.5 * (v_all[k] + v) * h
         cap_x = layout.envelope_at(route, x, b)
         cap = np.minimum(cap_now, cap_x)

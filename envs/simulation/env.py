@@ -50,8 +50,10 @@ from highway_env.vehicle.kinematics import Vehicle
 from envs.simulation import hooks
 from envs.simulation.config import SCHEDULER_ACTION_TYPES, validate_config
 from envs.simulation.engine import StepEvents
+from envs.simulation.faults import FAULT_DEFAULTS
 from envs.simulation.graph import DEFAULT_S_SCALE, NUM_RELATIONS, build_observation, min_mahalanobis, num_node_features
 from envs.simulation.layouts import Layout, build_layout
+from envs.simulation.perception import Perception
 from envs.simulation.plant import Plant, make_plant
 from envs.simulation.rewards import (
     DEFAULT_PROXIMITY_THRESHOLD,
@@ -89,6 +91,8 @@ class CoopIntersectionEnv(AbstractEnv):
         self.layout: Layout | None = None
         self.traffic: TrainingTraffic | ScenarioTraffic | None = None
         self._scene: Scene | None = None
+        self._truth: Scene | None = None  # what the rewards and metrics read; _scene: what planners perceive
+        self._perception: Perception | None = None  # None: no faults, the perceived scene is the truth
         self._duration = 0.0
         self._collided: set[int] = set()
         self._human_rng: np.random.Generator | None = None
@@ -169,6 +173,18 @@ class CoopIntersectionEnv(AbstractEnv):
           (:class:`envs.planners.human.HumanDriver`) inside :meth:`step`: the action (and the
           shield's command) for their slots is ignored; ``Scene.human`` and the vertex feature
           ``"human"`` mark them
+        - ``faults``: the fault model of an imperfect world (:mod:`envs.simulation.faults`), a dict of which any
+          entries may be given: ``position_sigma`` [m] (0), ``position_bound`` [m] (null: none) and ``position_tau``
+          [s] (1): each vehicle's position along its path off by a Gauss-Markov error, clipped at the bound;
+          ``speed_sigma``, ``speed_bound``, ``speed_tau`` (0): the same for its speed; ``loss`` (0): probability
+          that a vehicle's message of a step is lost (its last state is held, never longer than ``max_age`` [s], 1);
+          ``latency`` [s] (0, at most one policy period): the scene is this old, and commands apply this much later;
+          ``lag`` [s] (0): first-order lag of the realised acceleration behind the command; ``tracker`` (true):
+          the planners see a Kalman tracker's estimate (false: the raw held measurements), ``process_noise``
+          [m/s^2] (1): its acceleration noise. The planners, the shield and the observation read the perceived
+          scene (``env.unwrapped.scene()``, with ``arc_std``, ``speed_std``, ``age``, ``acceleration``); the rewards,
+          the metrics and the collision checks read the truth (``true_scene()``). Every draw comes from the reset's
+          seed, per vehicle id and step. With no fault the two scenes are the same arrays
         - rendering: ``screen_width``, ``screen_height``, ``scaling``, ``centering_position``,
           ``offscreen_rendering``, ``real_time_rendering``, ``render_agent``, ``show_trajectories``
         """
@@ -207,6 +223,7 @@ class CoopIntersectionEnv(AbstractEnv):
             "action": {"type": "acceleration"},
             "collision_handling": "terminate",
             "human_share": 0.0,
+            "faults": dict(FAULT_DEFAULTS),
             "screen_width": 600,
             "screen_height": 600,
             "scaling": 3.0,
@@ -318,7 +335,8 @@ class CoopIntersectionEnv(AbstractEnv):
         if cfg["action"]["type"] in SCHEDULER_ACTION_TYPES:
             self._scheduler = hooks.maker("priority")(cfg["action"]["glide"], cfg["action"]["hold"])
             self._scheduler.reset(seed)
-        self._scene = self.sim.scene()
+        self._perception = Perception.install(cfg, self.layout, self.sim, seed, self.np_random)  # faults
+        self._scene = self._perceive()
         obs = build_observation(
             self._scene,
             self.observation_space,
@@ -377,14 +395,15 @@ class CoopIntersectionEnv(AbstractEnv):
         entered = self.traffic.spawn(sim, self.np_random)
         self.time = sim.time
         self.steps += 1
-        self._scene = scene = sim.scene()
+        self._scene = self._perceive(events.kept, acc)
+        scene = self._truth
         dmin = min_mahalanobis(scene)
         obs = build_observation(
-            scene,
+            self._scene,
             self.observation_space,
             s_scale=cfg["s_scale"],
             d_max=cfg["d_max"],
-            min_distance=dmin,
+            min_distance=dmin if self._scene is scene else min_mahalanobis(self._scene),
             edge_feature_names=cfg["edge_features"],
             vertex_feature_names=cfg["vertex_features"],
         )
@@ -532,6 +551,23 @@ class CoopIntersectionEnv(AbstractEnv):
             raise RuntimeError("call reset() first")
         return self._scene
 
+    def true_scene(self) -> Scene:
+        """The true snapshot, which the rewards and the metrics read: the :meth:`scene` itself without faults."""
+        if self._truth is None:
+            raise RuntimeError("call reset() first")
+        return self._truth
+
+    def _perceive(self, kept: np.ndarray | None = None, commanded: np.ndarray | None = None) -> Scene:
+        """Read the truth from the plant and return what the planners perceive of it (the truth without faults).
+
+        :param kept: after a step, its ``StepEvents.kept``; ``None``: no time passed (reset, placed vehicles)
+        :param commanded: the step's commands (rows before it), which a tracker takes as input
+        """
+        self._truth = self.sim.scene()
+        if self._perception is None:
+            return self._truth
+        return self._perception.observe(self.sim, kept, commanded)
+
     def accelerations_to_action(self, acc: np.ndarray) -> np.ndarray:
         """Turn accelerations for the current vehicles into this environment's padded action.
 
@@ -584,7 +620,7 @@ class CoopIntersectionEnv(AbstractEnv):
             arc=np.asarray(arc, float),
             human=human,
         )
-        self._scene = self.sim.scene()
+        self._scene = self._perceive()
         return self._scene
 
     def set_spawn_probability(self, probability: float) -> None:
@@ -604,7 +640,7 @@ class CoopIntersectionEnv(AbstractEnv):
             return None
         if self.road is None:
             self.road = Road(network=self.layout.network, np_random=self.np_random, record_history=False)
-        scene = self.scene()
+        scene = self.true_scene()  # the world as it is, not as it is perceived
         collided = self._collided
         vehicles = []
         for i in range(scene.num_vehicles):  # rendering only: highway-env vehicles one by one

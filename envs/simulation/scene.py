@@ -63,6 +63,14 @@ class Scene:
     :param substeps: simulation sub-steps per policy period (``simulation_frequency / policy_frequency``), so
         that whoever predicts the scene (the shield) integrates as the plant does; ``None`` when unknown
         (hand-built and wire scenes: the predictor's own setting)
+    :param arc_std: ``(n,)`` standard deviation of each perceived arc (and so of ``s``, the distances, the gaps)
+        [m] under the environment's fault model (:mod:`envs.simulation.perception`); ``None``: exact
+    :param speed_std: ``(n,)`` standard deviation of each perceived speed [m/s]; ``None``: exact
+    :param age: ``(n,)`` age of the last message of each vehicle that the perceived state rests on [s] (the latency,
+        plus the time its state has been held while messages were lost); ``None``: exact and current
+    :param acceleration: ``(n,)`` the acceleration each vehicle realises at the scene's estimate (its commands through
+        the actuation latency and lag of the fault model, as the planner side replays them) [m/s^2]; ``None``: each
+        command is realised at once
     """
 
     time: float
@@ -91,6 +99,10 @@ class Scene:
     layout: Any = None
     human: np.ndarray | None = None
     substeps: int | None = None
+    arc_std: np.ndarray | None = None
+    speed_std: np.ndarray | None = None
+    age: np.ndarray | None = None
+    acceleration: np.ndarray | None = None
 
     @property
     def num_vehicles(self) -> int:
