@@ -79,6 +79,14 @@ class PlantError(RuntimeError):
         return f"plant error{at}: {self}"
 
 
+def table_settings(config: dict[str, Any]) -> dict[str, Any]:
+    """The keyword arguments of :class:`VehicleTable` that a validated environment configuration gives (every
+    plant's ``from_config`` passes them on)."""
+    keys = ("simulation_frequency", "policy_frequency", "max_speed", "max_acceleration", "s_ref", "max_vehicles",
+            "governor_deceleration")  # fmt: skip
+    return {key: config[key] for key in keys}
+
+
 class VehicleTable:
     """The vehicles at the intersection as columns, one row per vehicle, and every view of them that a plant
     gives from columns: poses, leaders, the path coordinate and the :class:`~envs.simulation.scene.Scene`
@@ -429,17 +437,7 @@ class Simulation(VehicleTable):
         :param seed: unused: our plant draws nothing (the SUMO plant seeds its drivers with it)
         """
         del seed
-        return cls(
-            layout,
-            simulation_frequency=config["simulation_frequency"],
-            policy_frequency=config["policy_frequency"],
-            max_speed=config["max_speed"],
-            max_acceleration=config["max_acceleration"],
-            s_ref=config["s_ref"],
-            max_vehicles=config["max_vehicles"],
-            governor_deceleration=config["governor_deceleration"],
-            collision_resolution=config["collision_resolution"],
-        )
+        return cls(layout, **table_settings(config), collision_resolution=config["collision_resolution"])
 
     def __init__(
         self,

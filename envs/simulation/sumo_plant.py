@@ -42,7 +42,7 @@ from typing import Any
 
 import numpy as np
 
-from envs.simulation.engine import STOP_SPEED, PlantError, StepEvents, VehicleTable, integrate
+from envs.simulation.engine import STOP_SPEED, PlantError, StepEvents, VehicleTable, integrate, table_settings
 from envs.simulation.layouts import Layout
 from envs.simulation.sumo_network import SumoNetwork, write_network
 
@@ -113,17 +113,7 @@ class SumoPlant(VehicleTable):
     def from_config(cls, layout: Layout, config: dict[str, Any], seed: int | None = None) -> SumoPlant:
         """The plant that a validated environment configuration asks for (as :meth:`Simulation.from_config`);
         ``seed`` seeds SUMO's drivers (default 0)."""
-        return cls(
-            layout,
-            simulation_frequency=config["simulation_frequency"],
-            policy_frequency=config["policy_frequency"],
-            max_speed=config["max_speed"],
-            max_acceleration=config["max_acceleration"],
-            s_ref=config["s_ref"],
-            max_vehicles=config["max_vehicles"],
-            governor_deceleration=config["governor_deceleration"],
-            seed=0 if seed is None else int(seed),
-        )
+        return cls(layout, **table_settings(config), seed=0 if seed is None else int(seed))
 
     def __init__(
         self,
