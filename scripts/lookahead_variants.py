@@ -44,6 +44,15 @@ class Hold(LookaheadPlanner):
         super().__init__("LookaheadHold", LookaheadParams(hold=True, per_approach=False))
 
 
+class Delayed(LookaheadPlanner):
+    """The search beside the steps (the server's ``"async"`` mode), emulated deterministically in simulated time
+    (``"delayed"``): each search starts from the scene predicted one period ahead, and its windows land one period
+    after it starts (what the search process gives when no search is late)."""
+
+    def __init__(self) -> None:
+        super().__init__("LookaheadDelayed", LookaheadParams(mode="delayed"))
+
+
 class _IDMCappedGlide(GlidePlanner):
     """glide whose proposal is capped by IDM car following behind each vehicle's leader."""
 
