@@ -80,9 +80,10 @@ def step_of(scene: Scene) -> Simulation:
 
 def measure(
     scenes: list[Scene], params: LookaheadParams, repeat: int, workers: list[int]
-) -> tuple[dict[int, float], float, dict[int, int]]:
+) -> tuple[dict[int, float], float, dict[int, tuple[float, float, float]]]:
     """Median wall ms of a search with each count of ``workers`` and of a shielded step, interleaved (a step before
-    each search), and the searches' rollouts each."""
+    each search), and per search: rollouts, rollout steps, and rollout steps on the critical path (the longest
+    process's share, wave by wave: the search's wall time on idle cores, in rollout steps)."""
     search: dict[int, list[float]] = {w: [] for w in workers}
     step = []
     planners = {w: LookaheadPlanner(params=replace(params, workers=w)) for w in workers}
@@ -92,7 +93,7 @@ def measure(
         planner.reset(0)
         planner._search(scenes[0])  # warm-up: compiles the kernels, starts the helpers
     step_of(scenes[0]).step(shield.act(scenes[0]))
-    rollouts = {w: p.rollouts for w, p in planners.items()}
+    before = {w: (p.rollouts, p.rollout_steps, p.critical_steps) for w, p in planners.items()}
     for _ in range(repeat):
         for scene in scenes:
             for w, planner in planners.items():
@@ -103,7 +104,11 @@ def measure(
                 tic = time.perf_counter()
                 planner._search(scene)
                 search[w].append(time.perf_counter() - tic)
-    per_search = {w: (p.rollouts - rollouts[w]) // max(1, len(search[w])) for w, p in planners.items()}
+    per_search = {
+        w: tuple((now - then) / max(1, len(search[w])) for now, then in zip((p.rollouts, p.rollout_steps,
+                                                                             p.critical_steps), before[w]))
+        for w, p in planners.items()
+    }  # fmt: skip
     for planner in planners.values():
         planner.close()
     return {w: 1e3 * float(np.median(t)) for w, t in search.items()}, 1e3 * float(np.median(step)), per_search
@@ -173,25 +178,28 @@ def main() -> None:
     cores = available_cores()
     workers = [w for w in args.workers if 1 <= w <= cores]
     print(f"load average before: {' '.join(f'{x:.1f}' for x in os.getloadavg())}")
-    print("| scenes | vehicles | workers | rollouts per search | search [ms] | shielded step [ms] | search / step | "
-          "against 1 worker |")  # fmt: skip
-    print("|---|---:|---:|---:|---:|---:|---:|---:|")
+    print("| scenes | vehicles | workers | rollouts per search | rollout steps (critical path) | search [ms] | "
+          "shielded step [ms] | search / step | against 1 worker: wall (critical path) |")  # fmt: skip
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|")
     kinds = [(f"run {n}", run_scenes(n)) for n in args.run_sizes]
     kinds += [(f"dense {n}", [dense_scene(n)[0]]) for n in args.sizes]
     for label, scenes in kinds:
         if not scenes:
-            print(f"| {label} | no scene of that size | | | | | | |")
+            print(f"| {label} | no scene of that size | | | | | | | |")
             continue
         rounds = args.repeat if label.startswith("run") else 3 * args.repeat
         search, step, rollouts = measure(scenes, params, rounds, workers)
         vehicles = np.mean([s.num_vehicles for s in scenes])
         for w in args.workers:
             if w not in search:
-                print(f"| {label} | {vehicles:.0f} | {w} | more than the {cores} cores: not run | | | | |")
+                print(f"| {label} | {vehicles:.0f} | {w} | more than the {cores} cores: not run | | | | | |")
                 continue
-            against = f"{search[w] / search[workers[0]]:.2f}x" if workers[0] == 1 else ""
-            print(f"| {label} | {vehicles:.0f} | {w} | {rollouts[w]} | {search[w]:.1f} | {step:.2f} | "
-                  f"{search[w] / step:.0f} | {against} |")  # fmt: skip
+            count, steps, critical = rollouts[w]
+            against = ""
+            if workers[0] == 1:
+                against = f"{search[w] / search[1]:.2f}x ({critical / rollouts[1][2]:.2f}x)"
+            print(f"| {label} | {vehicles:.0f} | {w} | {count:.1f} | {steps:.0f} ({critical:.0f}) | {search[w]:.1f} | "
+                  f"{step:.2f} | {search[w] / step:.0f} | {against} |")  # fmt: skip
     print(f"load average after: {' '.join(f'{x:.1f}' for x in os.getloadavg())}")
 
 

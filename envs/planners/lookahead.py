@@ -79,7 +79,8 @@ class LookaheadParams:
         run when it starts and its windows landing exactly ``latency`` later (what ``"async"`` does when no search
         is late: the mode to evaluate it with)
     :param latency: seconds from a search's start until its windows apply in ``"async"`` and ``"delayed"``, > 0
-        (``None``: the period); rounded to whole policy steps, at least one
+        (``None``: the period, and in ``"async"`` at least the wall time that the last searches took, counted in
+        the wall time between steps, at most the horizon); rounded to whole policy steps, at least one
     :param workers: processes that run one search's rollouts, from 1 to the cores available (``None``: the cores
         in ``"async"`` mode, 1 otherwise, since an evaluation already runs its runs in parallel)
     """
@@ -178,6 +179,9 @@ class LookaheadPlanner(GlidePlanner):
         self._predictor: Simulation | None = None
         self.searches = self.fallbacks = self.rollouts = 0
         self.search_seconds = 0.0
+        # Rollout steps run, and those on the critical path (the longest process's share, wave by wave): the
+        # wall time of a search on idle cores, in rollout steps.
+        self.rollout_steps = self.critical_steps = 0
         # The search beside the steps: a search's answer is matched to the episode that asked for it.
         self._generation = getattr(self, "_generation", 0) + 1
         if self.search.mode == "delayed":
@@ -187,12 +191,17 @@ class LookaheadPlanner(GlidePlanner):
         self.started = self.applied = self.late = self.dropped = self.mismatched = 0
         self.worker_restarts = 0
         self._age_sum, self._age_max, self._age_steps = 0.0, 0.0, 0
+        self._ahead_sum = 0.0  # seconds ahead that the searches started were predicted, summed
+        self._search_walls: list[float] = getattr(self, "_search_walls", [])  # wall s of the last searches
+        self._step_wall: float | None = None  # wall s between two steps (a moving average)
+        self._last_step: float | None = None
 
     def stats(self) -> dict[str, float]:
         """Searches, the ones that ran out of budget, rollouts and wall seconds spent searching; beside the steps
         (``"async"``, ``"delayed"``), searches started, applied, late (applied or not), dropped (too late, or their
-        worker lost), mismatched (the scene changed: a reset, another layout), replaced workers, and the mean and
-        largest age of the windows in force [s of scene time since the scene they were searched for]."""
+        worker lost), mismatched (the scene changed: a reset, another layout), replaced workers, the mean and
+        largest age of the windows in force [s of scene time since the scene they were searched for], and how far
+        ahead the searches were predicted on average [s]."""
         stats = {
             "lookahead_searches": self.searches,
             "lookahead_fallbacks": self.fallbacks,
@@ -210,6 +219,7 @@ class LookaheadPlanner(GlidePlanner):
                 lookahead_mismatched=self.mismatched,
                 lookahead_age_s=self._age_sum / max(self._age_steps, 1),
                 lookahead_age_s_max=self._age_max,
+                lookahead_ahead_s=self._ahead_sum / max(self.started, 1),
             )
         if self.search.mode != "sync" or self.search.processes > 1:
             stats["lookahead_worker_restarts"] = self.worker_restarts
@@ -280,6 +290,11 @@ class LookaheadPlanner(GlidePlanner):
     # ------------------------------------------------------------------ beside the steps
     def _beside(self, scene: Scene) -> None:
         """A step of the ``"async"`` or ``"delayed"`` mode: apply the answer that is due, start the next search."""
+        now = time.perf_counter()
+        if self._last_step is not None:  # the wall time between steps (the server's clients step in real time)
+            gap = now - self._last_step
+            self._step_wall = gap if self._step_wall is None else 0.8 * self._step_wall + 0.2 * gap
+        self._last_step = now
         self._land(scene)
         if getattr(self, "_inflight", None) is None and self._steps >= self._next_launch and scene.num_vehicles:
             self._launch(scene)
@@ -287,8 +302,8 @@ class LookaheadPlanner(GlidePlanner):
 
     def _launch(self, scene: Scene) -> None:
         """Start a search from ``scene`` predicted ``latency`` ahead (``"delayed"``: run it now, held until then)."""
-        latency = self.search.period if self.search.latency is None else self.search.latency
-        ahead = max(1, int(round(latency / scene.dt)))
+        ahead = self._latency_steps(scene)
+        self._ahead_sum += ahead * scene.dt
         self.started += 1
         inflight = dict(generation=self._generation, layout=scene.layout.name, due=self._steps + ahead, done=False)
         request = (self.memory(), self._road_windows, self._proposed, ahead)
@@ -302,7 +317,19 @@ class LookaheadPlanner(GlidePlanner):
             if self.__dict__.get("_process") is None:
                 self._process = SearchProcess(self._twin(), scene.layout)
             self._process.submit((self._generation, scene, *request))
+            inflight["wall"] = time.perf_counter()
         self._inflight = inflight
+
+    def _latency_steps(self, scene: Scene) -> int:
+        """Steps from a search's start until its windows apply: ``latency``, or else the period; in ``"async"``
+        mode with ``latency=None``, at least the wall time the last searches took, in the wall time of a step
+        (a search that lands on time needs no excuse), at most the horizon."""
+        latency = self.search.period if self.search.latency is None else self.search.latency
+        steps = max(1, int(round(latency / scene.dt)))
+        if self.search.mode == "async" and self.search.latency is None and self._search_walls and self._step_wall:
+            expected = 1.25 * max(self._search_walls) / self._step_wall
+            steps = max(steps, min(int(math.ceil(expected)), int(round(self.search.horizon / scene.dt))))
+        return steps
 
     def _land(self, scene: Scene) -> None:
         """Take the answer of the search in flight if it has come: applied when due and still useful, else dropped."""
@@ -323,6 +350,7 @@ class LookaheadPlanner(GlidePlanner):
                 return
             generation, searched_at, result, counters = answer
             self._add_counters(counters, {})
+            self._search_walls = (self._search_walls + [time.perf_counter() - inflight["wall"]])[-3:]
             inflight.update(done=True, answer=(searched_at, result), generation=generation)
         if inflight["generation"] != self._generation or inflight["layout"] != getattr(scene.layout, "name", None):
             self.mismatched += 1
@@ -363,7 +391,8 @@ class LookaheadPlanner(GlidePlanner):
         """The counters a search adds to (the ones :meth:`stats` reports for searches run elsewhere)."""
         return dict(searches=self.searches, fallbacks=self.fallbacks, rollouts=self.rollouts,
                     search_seconds=self.search_seconds, proposals_kept=self.proposals_kept,
-                    worker_restarts=self.worker_restarts)  # fmt: skip
+                    worker_restarts=self.worker_restarts, rollout_steps=self.rollout_steps,
+                    critical_steps=self.critical_steps)  # fmt: skip
 
     def _add_counters(self, after: dict[str, float], before: dict[str, float]) -> None:
         for key, value in after.items():
@@ -460,10 +489,12 @@ class LookaheadPlanner(GlidePlanner):
                     raise TimeoutError
                 costs.update(pool.costs(self, scene, todo, min(costs.values(), default=math.inf)))
                 return
+            before = self.rollout_steps
             for k, windows in todo:
                 if time.perf_counter() > deadline:
                     raise TimeoutError
                 costs[k] = self.rollout(scene, np.array(windows), bound=min(costs.values(), default=math.inf))
+            self.critical_steps += self.rollout_steps - before
 
         def cost(windows: tuple[float, ...]) -> float:
             return costs[key(windows)]
@@ -550,6 +581,7 @@ class LookaheadPlanner(GlidePlanner):
         for _ in range(int(round(self.search.horizon / dt))):
             if sim.num_vehicles == 0:
                 break
+            self.rollout_steps += 1
             # The lean scene, not copied for glide: glide and the shield never write in a scene (a test checks).
             now = sim.rollout_scene(limit)
             if throttle:

@@ -125,8 +125,9 @@ def _helper_main(planner: Any, conn: Connection, parent: int, bound: Any, layout
                 planner.adopt_memory(memory, stopped)
             else:
                 _, index, windows = message
+                steps = planner.rollout_steps
                 cost = planner.rollout(scene, np.array(windows, dtype=float), bound=float(shared[0]), shared=shared)
-                conn.send((index, cost))
+                conn.send((index, cost, planner.rollout_steps - steps))
     except (EOFError, OSError, KeyboardInterrupt):
         return
 
@@ -192,6 +193,7 @@ class RolloutPool:
         results: dict[Any, float] = {}
         busy: dict[int, int] = {}  # helper -> task index
         told: set[int] = set()
+        work = [0] * self.size  # rollout steps per process (the owner last)
 
         def settle(index: int, cost: float) -> None:
             results[tasks[index][0]] = cost
@@ -211,7 +213,9 @@ class RolloutPool:
                 busy[k] = index
             if queue:  # the owner's share
                 index, (_, windows) = queue.pop(0)
+                steps = planner.rollout_steps
                 cost = planner.rollout(scene, np.array(windows), bound=float(self.shared[0]), shared=self.shared)
+                work[-1] += planner.rollout_steps - steps
                 settle(index, cost)
                 ready = [c for c in self._conns if c.poll()]
             else:
@@ -221,14 +225,17 @@ class RolloutPool:
                 conn = self._conns[k]
                 if conn in ready or conn.poll():
                     try:
-                        index, cost = conn.recv()
+                        index, cost, steps = conn.recv()
                     except (EOFError, OSError) as error:
                         raise WorkerLost(f"rollout helper {k} ended mid-search") from error
                     settle(index, cost)
                     planner.rollouts += 1  # the owner counts its own in its rollouts
+                    planner.rollout_steps += steps
+                    work[k] += steps
                     del busy[k]
                 elif not self._helpers[k].is_alive():
                     raise WorkerLost(f"rollout helper {k} ended mid-search")
+        planner.critical_steps += max(work)
         return results
 
     def _tell(self, planner: Any, scene: Any, k: int) -> None:
