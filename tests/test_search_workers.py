@@ -107,10 +107,11 @@ def test_a_delayed_search_lands_exactly_its_latency_later(monkeypatch):
 
 @pytest.mark.parametrize("workers", [1, pytest.param(2, marks=two_cores)])
 def test_the_search_beside_the_steps_drives_as_its_deterministic_emulation_when_on_time(workers):
-    """A search in its own process, with no search late, gives the commands of the ``"delayed"`` mode bit for bit."""
+    """A search in its own process, with no search late, gives the commands of the ``"delayed"`` mode bit for bit
+    (at the same latency: left free, the process's follows the wall time of its searches)."""
     delayed = LookaheadPlanner(params=LookaheadParams(mode="delayed"))
     want = drive(Shield(delayed))
-    beside = LookaheadPlanner(params=LookaheadParams(mode="async", workers=workers))
+    beside = LookaheadPlanner(params=LookaheadParams(mode="async", workers=workers, latency=1.0))
     got = drive(OnTime(beside))
     beside.close()
     assert len(got) == len(want) and all(np.array_equal(a, b) for a, b in zip(got, want))
@@ -128,6 +129,22 @@ def slow(seconds: float):
         return real(self, *args)
 
     return search_ahead
+
+
+def test_the_latency_of_the_search_process_follows_the_wall_time_of_its_searches(monkeypatch):
+    """Left free, an ``"async"`` search is predicted as far ahead as the last searches took (in steps of the wall
+    time between steps), so that it lands on time."""
+    monkeypatch.setattr(LookaheadPlanner, "search_ahead", slow(0.5))
+    planner = LookaheadPlanner(params=LookaheadParams(mode="async", workers=1))
+    planner.reset(0)
+    scene = busy_scene()
+    tic = time.perf_counter()
+    while planner.started < 3 and time.perf_counter() - tic < 30:
+        planner.windows_for(scene)
+        time.sleep(0.05)
+    planner.close()
+    # the first search: one period ahead (5 steps); the next ones: at least 0.5 s in steps of about 0.05 s
+    assert planner.stats()["lookahead_ahead_s"] > (1.0 + 2 * 8 * 0.2) / 3
 
 
 def test_a_slow_search_never_blocks_a_step_and_is_counted_late(monkeypatch):
