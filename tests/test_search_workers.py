@@ -229,3 +229,30 @@ def test_an_answer_for_another_episode_is_dropped_and_counted():
         time.sleep(0.02)
     planner.close()
     assert planner.mismatched == 1 and planner.applied == 0
+
+
+def test_the_server_serves_lookahead_beside_the_steps_and_reports_its_searches():
+    """``serve --planner lookahead --shield``: the stream's search runs beside its steps, and each JSON answer
+    reports the searches (started, applied, late, dropped ...)."""
+    pytest.importorskip("fastapi")
+    import json
+
+    from envs.serve.app import PlannerService
+    from envs.serve.schema import OpenRequest, StepReply
+    from envs.serve.wire import scene_to_wire
+
+    service = PlannerService("lookahead", "CoopIntersection4Way-v0", shield=True)
+    assert service.prototype.planner.search.mode == "async"
+    stream = service.open(OpenRequest(layout="4way", seed=0))
+    env = gym.make("CoopIntersection4Way-v0", **evaluation_env_kwargs({}))
+    env.reset(seed=3, options={"scenario": generate_scenario("4way", 30.0, 3, rate_range=(0.4, 0.4))})
+    for seq in range(1, 61):
+        body = json.dumps({**scene_to_wire(env.unwrapped.scene()), "seq": seq}).encode()
+        status, answer = service.handle("step", stream.id, body)
+        assert status == 200
+        reply = StepReply.model_validate_json(answer)
+        env.step(env.unwrapped.accelerations_to_action(np.array(reply.accelerations)))
+        time.sleep(0.02)
+    stream.planner.planner.close()
+    assert reply.search is not None and reply.search.started >= 2
+    assert reply.search.applied + reply.search.late >= 1 and reply.search.worker_restarts == 0

@@ -225,6 +225,14 @@ class LookaheadPlanner(GlidePlanner):
             stats["lookahead_worker_restarts"] = self.worker_restarts
         return stats
 
+    def beside_the_steps(self) -> None:
+        """Search beside the steps from now on (the ``"async"`` mode, its workers the cores unless set): the
+        server's mode. Resets the planner."""
+        self.close()
+        self.__dict__.pop("_searcher", None)
+        self.search = replace(self.search, mode="async")
+        self.reset()
+
     def close(self) -> None:
         """End the processes searching beside this planner (they also end with it)."""
         for part in ("_pool", "_process"):
