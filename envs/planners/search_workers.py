@@ -27,6 +27,9 @@ from typing import Any
 
 import numpy as np
 
+#: how much lower the search process (and its rollout helpers, forked from it) runs than the steps: a step never
+#: waits for a search's CPU (``os.nice``)
+NICENESS = 10
 #: seconds between two checks that a child's parent is still there while the child waits for work
 _PARENT_CHECK = 0.5
 
@@ -253,6 +256,8 @@ def _search_main(searcher: Any, conn: Connection, parent: int, layout: Any) -> N
     """The search process: each request ``(generation, scene, memory, road_windows, proposed, steps)`` is answered
     ``(generation, predicted time, result, counters added)`` (:meth:`LookaheadPlanner.search_ahead`)."""
     layouts: dict[int, Any] = {id(layout): layout}
+    with contextlib.suppress(OSError, AttributeError):  # no os.nice on Windows
+        os.nice(NICENESS)
     try:
         while True:
             generation, key, sent, scene, memory, road_windows, proposed, steps = receive(conn, parent)

@@ -153,9 +153,10 @@ def _validation_field(error: ValidationError | RequestValidationError) -> tuple[
     return name, str(first.get("msg", "invalid"))
 
 
-def _search_beside_the_steps(planner: Any, depth: int = 0) -> bool:
-    """A ``lookahead`` served searches beside the steps (its ``"async"`` mode): a step answers at glide's cost
-    from the windows of the latest finished search, and a search never blocks it (nor meets the time limit).
+def as_served(planner: Any, depth: int = 0) -> bool:
+    """Set a planner as the server runs it: a ``lookahead`` searches beside the steps (its ``"async"`` mode), so
+    that a step answers at glide's cost from the windows of the latest finished search and a search never blocks
+    it (nor meets the time limit).
 
     :return: whether the planner holds a ``lookahead``
     """
@@ -164,7 +165,7 @@ def _search_beside_the_steps(planner: Any, depth: int = 0) -> bool:
             planner.beside_the_steps()
         return True
     inner = getattr(planner, "planner", None)
-    return isinstance(inner, Planner) and depth < 8 and _search_beside_the_steps(inner, depth + 1)
+    return isinstance(inner, Planner) and depth < 8 and as_served(inner, depth + 1)
 
 
 def search_report(planner: Any) -> dict[str, float] | None:
@@ -212,7 +213,7 @@ class PlannerService:
         config = env_config(env_id, env_kwargs)
         self.builder = SceneBuilder(config)
         self.prototype = make_planner(key)
-        self.searches = _search_beside_the_steps(self.prototype)
+        self.searches = as_served(self.prototype)
         check = getattr(self.prototype, "check_capacity", None)
         if check is not None:
             check(int(config["max_vehicles"]), key)
