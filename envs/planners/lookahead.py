@@ -23,6 +23,11 @@ less delay). A search that runs
 out of its wall-time ``budget`` keeps glide's own window for that period and is counted
 (``lookahead_fallbacks`` in the run's stats). The shield checks the real step as for any planner:
 ``lookahead`` is meant to run behind it (``lookahead+shield``).
+
+A search runs in the step that starts it (``mode="sync"``, the default), or beside the steps in a process of its
+own (``"async"``, the server's), from the scene predicted to when its windows will apply; ``"delayed"`` emulates
+``"async"`` deterministically in simulated time. One search's rollouts run over ``workers`` processes
+(:mod:`envs.planners.search_workers`).
 """
 
 from __future__ import annotations
