@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import sys
 import time
 
 import gymnasium as gym
@@ -256,3 +257,41 @@ def test_the_server_serves_lookahead_beside_the_steps_and_reports_its_searches()
     stream.planner.planner.close()
     assert reply.search is not None and reply.search.started >= 2
     assert reply.search.applied + reply.search.late >= 1 and reply.search.worker_restarts == 0
+
+
+def _plan_and_report(conn) -> None:
+    """In a child: start a search beside the steps, send the search process's pid, then wait to be killed."""
+    planner = LookaheadPlanner(params=LookaheadParams(mode="async", workers=1))
+    planner.reset(0)
+    planner.windows_for(busy_scene())
+    conn.send(planner._process.process.pid)
+    time.sleep(60)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="fork and /proc")
+def test_the_search_process_ends_when_its_planning_process_is_killed():
+    """A planning process killed by the server's watchdog leaves no search process behind."""
+    import multiprocessing
+    import signal
+
+    context = multiprocessing.get_context("fork")
+    here, there = context.Pipe()
+    parent = context.Process(target=_plan_and_report, args=(there,), daemon=True)
+    parent.start()
+    assert here.poll(60)
+    child = here.recv()
+    os.kill(parent.pid, signal.SIGKILL)
+    parent.join(5)
+    tic = time.perf_counter()
+    while time.perf_counter() - tic < 30:
+        try:
+            os.kill(child, 0)
+        except ProcessLookupError:
+            break
+        with open(f"/proc/{child}/stat") as stat:  # a zombie is gone too (its parent, the init, reaps it)
+            if stat.read().split(") ")[-1].startswith("Z"):
+                break
+        time.sleep(0.1)
+    else:
+        os.kill(child, signal.SIGKILL)
+        raise AssertionError("the search process outlived its planning process by 30 s")
