@@ -44,13 +44,13 @@ class Hold(LookaheadPlanner):
         super().__init__("LookaheadHold", LookaheadParams(hold=True, per_approach=False))
 
 
-class Delayed(LookaheadPlanner):
-    """The search beside the steps (the server's ``"async"`` mode), emulated deterministically in simulated time
-    (``"delayed"``): each search starts from the scene predicted one period ahead, and its windows land one period
-    after it starts (what the search process gives when no search is late)."""
+class Async(LookaheadPlanner):
+    """The search beside the steps (``mode="async"``), emulated deterministically in simulated time: each search
+    starts from the scene predicted one period ahead, and its windows land one period after it starts (what the
+    server's search process gives when no search is late)."""
 
     def __init__(self) -> None:
-        super().__init__("LookaheadDelayed", LookaheadParams(mode="delayed"))
+        super().__init__("LookaheadAsync", LookaheadParams(mode="async"))
 
 
 class _IDMCappedGlide(GlidePlanner):

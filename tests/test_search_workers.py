@@ -63,17 +63,19 @@ def test_a_worker_count_out_of_range_names_the_parameter_and_the_range(value):
         LookaheadParams(workers=value)
 
 
-@pytest.mark.parametrize("field, value", [("mode", "parallel"), ("latency", 0.0), ("latency", float("inf"))])
+@pytest.mark.parametrize(
+    "field, value", [("mode", "delayed"), ("clock", "cpu"), ("latency", 0.0), ("latency", float("inf"))]
+)
 def test_a_bad_mode_or_latency_names_it_in_one_line(field, value):
     with pytest.raises(ValueError, match=f"^lookahead's {field} must be") as error:
         LookaheadParams(**{field: value})
     assert "\n" not in str(error.value)
 
 
-def test_the_default_workers_are_the_cores_beside_the_steps_and_one_in_the_step():
+def test_the_default_workers_are_the_cores_on_the_wall_clock_and_one_in_simulated_time():
     assert LookaheadParams().processes == 1
-    assert LookaheadParams(mode="delayed").processes == 1
-    assert LookaheadParams(mode="async").processes == available_cores()
+    assert LookaheadParams(mode="async").processes == 1
+    assert LookaheadParams(mode="async", clock="wall").processes == available_cores()
 
 
 @two_cores
@@ -88,7 +90,7 @@ def test_rollouts_over_two_workers_choose_bit_for_bit_as_one():
     assert two.searches == one.searches > 10 and two.fallbacks == 0 and two.worker_restarts == 0
 
 
-def test_a_delayed_search_lands_exactly_its_latency_later(monkeypatch):
+def test_an_async_search_in_simulated_time_lands_exactly_its_latency_later(monkeypatch):
     """Its windows apply from the step ``latency`` after the search starts, glide's own until then; the next
     search starts one period after the last."""
     planted = np.full(4, 7.0)
@@ -97,7 +99,7 @@ def test_a_delayed_search_lands_exactly_its_latency_later(monkeypatch):
         return scene.time + steps * scene.dt, planted
 
     monkeypatch.setattr(LookaheadPlanner, "search_ahead", search_ahead)
-    planner = LookaheadPlanner(params=LookaheadParams(mode="delayed", latency=0.6))
+    planner = LookaheadPlanner(params=LookaheadParams(mode="async", latency=0.6))
     planner.reset(0)
     scene = busy_scene()
     windows = [planner.windows_for(scene)[0] for _ in range(8)]
@@ -107,12 +109,13 @@ def test_a_delayed_search_lands_exactly_its_latency_later(monkeypatch):
 
 
 @pytest.mark.parametrize("workers", [1, pytest.param(2, marks=two_cores)])
-def test_the_search_beside_the_steps_drives_as_its_deterministic_emulation_when_on_time(workers):
-    """A search in its own process, with no search late, gives the commands of the ``"delayed"`` mode bit for bit
-    (at the same latency: left free, the process's follows the wall time of its searches)."""
-    delayed = LookaheadPlanner(params=LookaheadParams(mode="delayed"))
+def test_the_search_process_drives_as_its_deterministic_emulation_when_on_time(workers):
+    """A search in its own process (the ``"wall"`` clock), with no search late, gives the commands of its emulation
+    in simulated time bit for bit (at the same latency: left free, the process's follows the wall time of its
+    searches)."""
+    delayed = LookaheadPlanner(params=LookaheadParams(mode="async"))
     want = drive(Shield(delayed))
-    beside = LookaheadPlanner(params=LookaheadParams(mode="async", workers=workers, latency=1.0))
+    beside = LookaheadPlanner(params=LookaheadParams(mode="async", clock="wall", workers=workers, latency=1.0))
     got = drive(OnTime(beside))
     beside.close()
     assert len(got) == len(want) and all(np.array_equal(a, b) for a, b in zip(got, want))
@@ -136,7 +139,7 @@ def test_the_latency_of_the_search_process_follows_the_wall_time_of_its_searches
     """Left free, an ``"async"`` search is predicted as far ahead as the last searches took (in steps of the wall
     time between steps), so that it lands on time."""
     monkeypatch.setattr(LookaheadPlanner, "search_ahead", slow(0.5))
-    planner = LookaheadPlanner(params=LookaheadParams(mode="async", workers=1))
+    planner = LookaheadPlanner(params=LookaheadParams(mode="async", clock="wall", workers=1))
     planner.reset(0)
     scene = busy_scene()
     tic = time.perf_counter()
@@ -150,7 +153,7 @@ def test_the_latency_of_the_search_process_follows_the_wall_time_of_its_searches
 
 def test_a_slow_search_never_blocks_a_step_and_is_counted_late(monkeypatch):
     monkeypatch.setattr(LookaheadPlanner, "search_ahead", slow(0.6))
-    planner = LookaheadPlanner(params=LookaheadParams(mode="async", workers=1, latency=0.2))
+    planner = LookaheadPlanner(params=LookaheadParams(mode="async", clock="wall", workers=1, latency=0.2))
     planner.reset(0)
     scene = busy_scene()
     planner.windows_for(scene)  # starts the process and the first search
@@ -181,7 +184,7 @@ def die_once(flag):
 
 def test_a_search_process_that_dies_is_replaced_and_the_step_answers_from_glides_windows(monkeypatch, tmp_path):
     monkeypatch.setattr(LookaheadPlanner, "search_ahead", die_once(tmp_path / "died"))
-    planner = LookaheadPlanner(params=LookaheadParams(mode="async", workers=1))
+    planner = LookaheadPlanner(params=LookaheadParams(mode="async", clock="wall", workers=1))
     planner.reset(0)
     scene = busy_scene()
     planner._road_windows = np.full(4, 30.0)  # a search's windows in force
@@ -219,7 +222,7 @@ def test_a_rollout_helper_that_dies_voids_its_search_and_is_replaced(monkeypatch
 
 
 def test_an_answer_for_another_episode_is_dropped_and_counted():
-    planner = LookaheadPlanner(params=LookaheadParams(mode="async", workers=1))
+    planner = LookaheadPlanner(params=LookaheadParams(mode="async", clock="wall", workers=1))
     planner.reset(0)
     scene = busy_scene()
     planner.windows_for(scene)  # a search starts
@@ -243,7 +246,7 @@ def test_the_server_serves_lookahead_beside_the_steps_and_reports_its_searches()
     from envs.serve.wire import scene_to_wire
 
     service = PlannerService("lookahead", "CoopIntersection4Way-v0", shield=True)
-    assert service.prototype.planner.search.mode == "async"
+    assert service.prototype.planner.search.mode == "async" and service.prototype.planner.search.clock == "wall"
     stream = service.open(OpenRequest(layout="4way", seed=0))
     env = gym.make("CoopIntersection4Way-v0", **evaluation_env_kwargs({}))
     env.reset(seed=3, options={"scenario": generate_scenario("4way", 30.0, 3, rate_range=(0.4, 0.4))})
@@ -261,7 +264,7 @@ def test_the_server_serves_lookahead_beside_the_steps_and_reports_its_searches()
 
 def _plan_and_report(conn) -> None:
     """In a child: start a search beside the steps, send the search process's pid, then wait to be killed."""
-    planner = LookaheadPlanner(params=LookaheadParams(mode="async", workers=1))
+    planner = LookaheadPlanner(params=LookaheadParams(mode="async", clock="wall", workers=1))
     planner.reset(0)
     planner.windows_for(busy_scene())
     conn.send(planner._process.process.pid)

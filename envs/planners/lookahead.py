@@ -24,10 +24,10 @@ out of its wall-time ``budget`` keeps glide's own window for that period and is 
 (``lookahead_fallbacks`` in the run's stats). The shield checks the real step as for any planner:
 ``lookahead`` is meant to run behind it (``lookahead+shield``).
 
-A search runs in the step that starts it (``mode="sync"``, the default), or beside the steps in a process of its
-own (``"async"``, the server's), from the scene predicted to when its windows will apply; ``"delayed"`` emulates
-``"async"`` deterministically in simulated time. One search's rollouts run over ``workers`` processes
-(:mod:`envs.planners.search_workers`).
+A search runs in the step that starts it (``mode="sync"``, the default), or beside the steps from the scene predicted
+to when its windows will apply (``"async"``): emulated deterministically in simulated time (``clock="steps"``, for
+evaluation), or truly concurrent in a process of its own (``clock="wall"``, the server's). One search's rollouts run
+over ``workers`` processes (:mod:`envs.planners.search_workers`).
 """
 
 from __future__ import annotations
@@ -55,7 +55,9 @@ from envs.simulation.motion import traction_energy
 from envs.simulation.scene import STOP_SPEED, Scene
 
 #: How a search runs against the steps (:class:`LookaheadParams`' ``mode``).
-MODES = ("sync", "async", "delayed")
+MODES = ("sync", "async")
+#: Whose time an ``"async"`` search's latency runs on (:class:`LookaheadParams`' ``clock``).
+CLOCKS = ("steps", "wall")
 
 
 @dataclass(frozen=True)
@@ -77,17 +79,18 @@ class LookaheadParams:
     :param hold: advice once given holds to the line (glide's rule for a policy's windows), so a search changes
         only the vehicles not yet advised; ``False`` (default): every vehicle follows its road's window of the
         last search (on the main job's first 30 scenarios: +0.018 veh/s and -0.8 s against holding)
-    :param mode: ``"sync"`` (default): a search runs in the step that starts it, which waits for it (reproducible:
-        evaluation's default); ``"async"``: a search runs in a process beside the steps, from the scene predicted
-        ``latency`` ahead, and every step answers at glide's cost from the windows of the latest finished search
-        (the server's mode); ``"delayed"``: ``"async"`` emulated deterministically in simulated time, the search
-        run when it starts and its windows landing exactly ``latency`` later (what ``"async"`` does when no search
-        is late: the mode to evaluate it with)
-    :param latency: seconds from a search's start until its windows apply in ``"async"`` and ``"delayed"``, > 0
-        (``None``: the period, and in ``"async"`` at least the wall time that the last searches took, counted in
-        the wall time between steps, at most the horizon); rounded to whole policy steps, at least one
+    :param mode: ``"sync"`` (default): a search runs in the step that starts it, which waits for it; ``"async"``: a
+        search runs beside the steps, from the scene predicted ``latency`` ahead, and every step answers at glide's
+        cost from the windows of the latest finished search
+    :param clock: whose time an ``"async"`` search takes: ``"steps"`` (default), emulated deterministically in
+        simulated time (the search runs in the step that starts it, and its windows land exactly ``latency``
+        later: what the search process gives when no search is late; reproducible, for evaluation); ``"wall"``:
+        truly concurrent, in a process beside the steps (the server's), its windows applied when they come
+    :param latency: seconds from an ``"async"`` search's start until its windows apply, > 0 (``None``: the period,
+        and on the ``"wall"`` clock at least the wall time that the last searches took, counted in the wall time
+        between steps, at most the horizon); rounded to whole policy steps, at least one
     :param workers: processes that run one search's rollouts, from 1 to the cores available (``None``: the cores
-        in ``"async"`` mode, 1 otherwise, since an evaluation already runs its runs in parallel)
+        on the ``"wall"`` clock, 1 otherwise, since an evaluation already runs its runs in parallel)
     """
 
     windows: tuple[float, ...] = (0.0, 30.0, math.inf)
@@ -101,6 +104,7 @@ class LookaheadParams:
     shield_horizon: float = 8.0
     hold: bool = False
     mode: str = "sync"
+    clock: str = "steps"
     latency: float | None = None
     workers: int | None = None
 
@@ -122,6 +126,7 @@ class LookaheadParams:
             "rollout_frequency": ("one of [1, 3, 5, 15]", lambda x: x in (1, 3, 5, 15) and not isinstance(x, bool)),
             "shield_horizon": ("a finite number > 0", lambda x: _number(x) and 0 < x < math.inf),
             "mode": (f"one of {list(MODES)}", lambda x: x in MODES),
+            "clock": (f"one of {list(CLOCKS)}", lambda x: x in CLOCKS),
             "latency": ("a finite number > 0 or None (the period)",
                         lambda x: x is None or (_number(x) and 0 < x < math.inf)),
         }  # fmt: skip
@@ -138,7 +143,7 @@ class LookaheadParams:
         """The processes that run one search's rollouts (``workers``, or its default for the mode)."""
         if self.workers is not None:
             return self.workers
-        return available_cores() if self.mode == "async" else 1
+        return available_cores() if self.mode == "async" and self.clock == "wall" else 1
 
 
 def _number(x: object) -> bool:
@@ -189,7 +194,7 @@ class LookaheadPlanner(GlidePlanner):
         self.rollout_steps = self.critical_steps = 0
         # The search beside the steps: a search's answer is matched to the episode that asked for it.
         self._generation = getattr(self, "_generation", 0) + 1
-        if self.search.mode == "delayed":
+        if self.search.clock == "steps":
             self._inflight: dict | None = None
         self._next_launch = 0
         self._windows_time: float | None = None  # the (predicted) scene time the windows in force were searched at
@@ -203,7 +208,7 @@ class LookaheadPlanner(GlidePlanner):
 
     def stats(self) -> dict[str, float]:
         """Searches, the ones that ran out of budget, rollouts and wall seconds spent searching; beside the steps
-        (``"async"``, ``"delayed"``), searches started, applied, late (applied or not), dropped (too late, or their
+        (``"async"``), searches started, applied, late (applied or not), dropped (too late, or their
         worker lost), mismatched (the scene changed: a reset, another layout), replaced workers, the mean and
         largest age of the windows in force [s of scene time since the scene they were searched for], and how far
         ahead the searches were predicted on average [s]."""
@@ -231,11 +236,11 @@ class LookaheadPlanner(GlidePlanner):
         return stats
 
     def beside_the_steps(self) -> None:
-        """Search beside the steps from now on (the ``"async"`` mode, its workers the cores unless set): the
-        server's mode. Resets the planner."""
+        """Search beside the steps from now on, truly concurrently (``mode="async"``, ``clock="wall"``, its workers
+        the cores unless set): the server's mode. Resets the planner."""
         self.close()
         self.__dict__.pop("_searcher", None)
-        self.search = replace(self.search, mode="async")
+        self.search = replace(self.search, mode="async", clock="wall")
         self.reset()
 
     def close(self) -> None:
@@ -302,7 +307,7 @@ class LookaheadPlanner(GlidePlanner):
 
     # ------------------------------------------------------------------ beside the steps
     def _beside(self, scene: Scene) -> None:
-        """A step of the ``"async"`` or ``"delayed"`` mode: apply the answer that is due, start the next search."""
+        """A step of the ``"async"`` mode: apply the answer that is due, start the next search."""
         now = time.perf_counter()
         if self._last_step is not None:  # the wall time between steps (the server's clients step in real time)
             gap = now - self._last_step
@@ -314,13 +319,14 @@ class LookaheadPlanner(GlidePlanner):
             self._next_launch = self._steps + self._period_steps(scene)
 
     def _launch(self, scene: Scene) -> None:
-        """Start a search from ``scene`` predicted ``latency`` ahead (``"delayed"``: run it now, held until then)."""
+        """Start a search from ``scene`` predicted ``latency`` ahead (on the ``"steps"`` clock: run it now, its
+        windows held until then)."""
         ahead = self._latency_steps(scene)
         self._ahead_sum += ahead * scene.dt
         self.started += 1
         inflight = dict(generation=self._generation, layout=scene.layout.name, due=self._steps + ahead, done=False)
         request = (self.memory(), self._road_windows, self._proposed, ahead)
-        if self.search.mode == "delayed":
+        if self.search.clock == "steps":
             searcher = self._twin()
             searcher.adopt_memory(*request[0])
             before = searcher.counters()
@@ -334,12 +340,12 @@ class LookaheadPlanner(GlidePlanner):
         self._inflight = inflight
 
     def _latency_steps(self, scene: Scene) -> int:
-        """Steps from a search's start until its windows apply: ``latency``, or else the period; in ``"async"``
-        mode with ``latency=None``, at least the wall time the last searches took, in the wall time of a step
+        """Steps from a search's start until its windows apply: ``latency``, or else the period; on the ``"wall"``
+        clock with ``latency=None``, at least the wall time the last searches took, in the wall time of a step
         (a search that lands on time needs no excuse), at most the horizon."""
         latency = self.search.period if self.search.latency is None else self.search.latency
         steps = max(1, int(round(latency / scene.dt)))
-        if self.search.mode == "async" and self.search.latency is None and self._search_walls and self._step_wall:
+        if self.search.clock == "wall" and self.search.latency is None and self._search_walls and self._step_wall:
             expected = 1.25 * max(self._search_walls) / self._step_wall
             steps = max(steps, min(int(math.ceil(expected)), int(round(self.search.horizon / scene.dt))))
         return steps
@@ -385,7 +391,7 @@ class LookaheadPlanner(GlidePlanner):
         """The synchronous planner that runs this one's searches beside the steps (built once)."""
         twin = self.__dict__.get("_searcher")
         if twin is None:
-            params = replace(self.search, mode="sync", workers=self.search.processes)
+            params = replace(self.search, mode="sync", clock="steps", workers=self.search.processes)
             twin = self._searcher = LookaheadPlanner(self.name, params, self.params, self.proposer)
             twin.reset()
         return twin
