@@ -22,7 +22,7 @@ from envs.simulation.traffic import generate_scenario
 two_cores = pytest.mark.skipif(available_cores() < 2, reason="needs 2 cores")
 
 
-def drive(planner, seconds: float = 20.0, seed: int = 3) -> list[np.ndarray]:
+def drive(planner, seconds: float = 15.0, seed: int = 3) -> list[np.ndarray]:
     """The commands of ``planner`` over a run of ``seconds`` on a generated 4-way scenario."""
     env = gym.make("CoopIntersection4Way-v0", **evaluation_env_kwargs({}))
     env.reset(seed=seed, options={"scenario": generate_scenario("4way", seconds, seed, rate_range=(0.4, 0.4))})
@@ -151,8 +151,10 @@ def test_the_latency_of_the_search_process_follows_the_wall_time_of_its_searches
     assert planner.stats()["lookahead_ahead_s"] > (1.0 + 2 * 8 * 0.2) / 3
 
 
-def test_a_slow_search_never_blocks_a_step_and_is_counted_late(monkeypatch):
-    monkeypatch.setattr(LookaheadPlanner, "search_ahead", slow(0.6))
+@pytest.mark.parametrize("sleep, pause, applied", [(0.6, 0.05, True), (1.5, 0.005, False)])
+def test_a_slow_search_never_blocks_a_step_and_is_counted_late(monkeypatch, sleep, pause, applied):
+    """A late answer is applied (it is still the newest) unless it is a horizon late (40 steps): then dropped."""
+    monkeypatch.setattr(LookaheadPlanner, "search_ahead", slow(sleep))
     planner = LookaheadPlanner(params=LookaheadParams(mode="async", clock="wall", workers=1, latency=0.2))
     planner.reset(0)
     scene = busy_scene()
@@ -162,11 +164,11 @@ def test_a_slow_search_never_blocks_a_step_and_is_counted_late(monkeypatch):
         step = time.perf_counter()
         planner.act(scene)
         worst = max(worst, time.perf_counter() - step)
-        time.sleep(0.05)
+        time.sleep(pause)
     planner.close()
     assert planner.late == 1 and planner.started == 2  # the next search started as soon as the late one came
     assert worst < 0.3  # the steps went on while the search slept
-    assert planner.applied + planner.dropped == 1  # its result applied if less than a period late, else dropped
+    assert (planner.applied, planner.dropped) == ((1, 0) if applied else (0, 1))
 
 
 def die_once(flag):
@@ -194,11 +196,11 @@ def test_a_search_process_that_dies_is_replaced_and_the_step_answers_from_glides
         time.sleep(0.02)
     assert planner.worker_restarts == 1 and planner.dropped == 1
     assert np.all(planner.windows_for(scene) == RECIPE.window)  # glide's own until a fresh process answers
-    while planner.applied + planner.late == 0 and time.perf_counter() - tic < 60:
+    while planner.applied == 0 and time.perf_counter() - tic < 60:
         planner.act(scene)
         time.sleep(0.02)
     planner.close()
-    assert planner.applied + planner.late == 1 and planner.worker_restarts == 1  # the fresh process answered
+    assert planner.applied >= 1 and planner.worker_restarts == 1  # the fresh process answered
 
 
 @two_cores

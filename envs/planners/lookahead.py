@@ -85,7 +85,8 @@ class LookaheadParams:
     :param clock: whose time an ``"async"`` search takes: ``"steps"`` (default), emulated deterministically in
         simulated time (the search runs in the step that starts it, and its windows land exactly ``latency``
         later: what the search process gives when no search is late; reproducible, for evaluation); ``"wall"``:
-        truly concurrent, in a process beside the steps (the server's), its windows applied when they come
+        truly concurrent, in a process beside the steps (the server's), its windows applied when they come (a
+        search late by the horizon or more is dropped)
     :param latency: seconds from an ``"async"`` search's start until its windows apply, > 0 (``None``: the period,
         and on the ``"wall"`` clock at least the wall time that the last searches took, counted in the wall time
         between steps, at most the horizon); rounded to whole policy steps, at least one
@@ -208,7 +209,7 @@ class LookaheadPlanner(GlidePlanner):
 
     def stats(self) -> dict[str, float]:
         """Searches, the ones that ran out of budget, rollouts and wall seconds spent searching; beside the steps
-        (``"async"``), searches started, applied, late (applied or not), dropped (too late, or their
+        (``"async"``), searches started, applied, late (applied or not), dropped (a horizon late, or their
         worker lost), mismatched (the scene changed: a reset, another layout), replaced workers, the mean and
         largest age of the windows in force [s of scene time since the scene they were searched for], and how far
         ahead the searches were predicted on average [s]."""
@@ -381,7 +382,8 @@ class LookaheadPlanner(GlidePlanner):
         self._inflight = None
         if late > 0:
             self.late += 1
-            if late >= self._period_steps(scene):  # a newer search is due already
+            # Still the newest answer (one search runs at a time): applied while its rollouts still cover the step.
+            if late >= int(round(self.search.horizon / scene.dt)):
                 self.dropped += 1
                 return
         self.applied += 1

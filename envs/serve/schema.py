@@ -54,7 +54,7 @@ class SearchReport(BaseModel):
     started: float = Field(description="searches started")
     applied: float = Field(description="searches whose windows were applied")
     late: float = Field(description="searches that answered after the step they were searched for")
-    dropped: float = Field(description="searches not applied: too late (a period or more), or their process lost")
+    dropped: float = Field(description="searches not applied: a horizon late or more, or their process lost")
     mismatched: float = Field(description="answers for a scene no longer the stream's (a reset, another layout)")
     worker_restarts: float = Field(description="search processes replaced after they ended")
     age_s: float = Field(description="mean age of the windows in force [s of scene time]")
