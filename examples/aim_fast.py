@@ -1,6 +1,6 @@
 """AIM with full-throttle acceleration, a shorter headway and no zone buffer, to run behind the shield.
 
-A candidate for a planner with full throttle's flow and AIM's stops (issue #22), tried and dropped:
+A candidate for a planner with full throttle's flow and AIM's stops, tried and dropped:
 behind the shield it moves no more than AIM (docs/training.md, "What training has tried"). The command::
 
     sb3-graph evaluate --planner examples/aim_fast.py:AIMFast+shield \\

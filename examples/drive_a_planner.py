@@ -5,7 +5,7 @@ one acceleration per vehicle, and the environment turns them into its action::
 
     python examples/drive_a_planner.py --planner aim --seed 3 --duration 30
 
-Any planner of ``sb3-graph evaluate --planner`` works ("pr", "fifo", "aim", "signal", a policy file,
+Any planner that ``--planner`` of ``sb3-graph evaluate`` takes works ("pr", "fifo", "aim", "signal", a policy file,
 "+shield" after any of them), and so does your own class with ``reset(seed)`` and ``act(scene)``.
 To watch the same run: ``sb3-graph record --planner aim --seed 3 --duration 30 --out aim.gif``.
 """

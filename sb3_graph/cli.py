@@ -1,4 +1,4 @@
-"""The ``sb3-graph`` command line.
+"""The sb3-graph command line: one sub-command per job.
 
 Each sub-command lives in its own module that provides ``add_arguments(parser)`` and
 ``run(args) -> int``; this file only dispatches, importing a module when its command runs.
@@ -20,8 +20,8 @@ from sb3_graph.commands import UserError
 # mapping that its `sb3_graph.commands` entry point names (see sb3_graph.plugins).
 COMMANDS: dict[str, tuple[str, str]] = {
     "train": ("sb3_graph.commands.train", "train a planner from an rl-zoo3 style YAML experiment"),
-    "tune": ("sb3_graph.tuning.commands", "tune reward weights and algorithm settings with Optuna"),
-    "tune-report": ("sb3_graph.tuning.report_command", "write the report of an Optuna study"),
+    "tune": ("sb3_graph.commands.tune", "tune reward weights and algorithm settings with Optuna"),
+    "tune-report": ("sb3_graph.commands.tune_report", "write the report of an Optuna study"),
     "export": ("sb3_graph.commands.export", "write a model's policy as a weights-only file that cannot run code"),
 }
 

@@ -43,7 +43,7 @@ class GlideGuarded(GlidePlanner):
         super().__init__("GlideGuarded", GUARDED)
 
 
-# Probes of what a learned planner over glide could move (docs/training.md, "How much a policy over glide
+# Probes of what a learned planner over glide could move (docs/experiments.md, "How much a policy over glide
 # can move"): shifts of glide's order (what the "priority" action type does) and a window per vehicle.
 
 

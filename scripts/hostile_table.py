@@ -26,6 +26,8 @@ ATTACKS = (
     ("scene editing", "SceneEditor"),
     ("layout editing", "LayoutEditor"),
     ("collision seeking", "CollisionSeeker"),
+    ("zone meeting and ramming", "ZoneMeeter"),
+    ("random commands", "Fuzzer"),
     ("brake checks", "BrakeChecker"),
     ("parking inside the box", "BoxParker"),
     ("bang-bang", "BangBang"),

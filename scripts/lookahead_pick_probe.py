@@ -10,7 +10,7 @@ most frequent pick::
     python scripts/lookahead_pick_probe.py runs/lookahead3.labels --steps 3000
 
 A held-out accuracy near the majority share means that the scene now hardly tells the picks apart: a student
-that answers from it regresses to their mean (docs/training.md).
+that answers from it regresses to their mean (docs/experiments.md, "Learning from search").
 """
 
 from __future__ import annotations

@@ -164,7 +164,7 @@ def main_table(data: Mapping[str, Any]) -> list[str]:
         "energy": _best({n: p["energy_kj_per_vehicle"] for n, p in planners.items()}, safe, True, 0),
     }
     lines = [
-        "| planner | flow, median (q1-q3) [veh/s] | mean delay [s] | stopped: all / minor road "
+        "| planner | flow, median (q1-q3) [veh/s] | mean delay [s] | stopped, of all vehicles: all / minor road "
         "| slowed below 2 m/s | energy [kJ/veh] | collided vehicles |",
         "|---|---:|---:|---:|---:|---:|---:|",
     ]
@@ -182,14 +182,15 @@ def main_table(data: Mapping[str, Any]) -> list[str]:
             _cell(_collided(p["collided"], p["vehicles"]), name in safe),
         ]
         lines.append("| " + " | ".join(cells) + " |")
-    lines += ["", "Bold: the best value of the planners none of whose vehicles collided."]
+    lines += ["", "Stopped and slowed: shares of all the vehicles scheduled in the runs, pooled over the scenarios. "
+              "Bold: the best value of the planners none of whose vehicles collided."]
     return lines
 
 
 def groups_table(data: Mapping[str, Any]) -> list[str]:
     """The results page's table of stopped vehicles per road and maneuver, jams and shield interventions."""
     lines = [
-        "| planner | stopped: all | major | minor | left | straight | right | not spawned (jam) "
+        "| planner | stopped, of all vehicles: all | major | minor | left | straight | right | not spawned (jam) "
         "| shield interventions |",
         "|---|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
@@ -209,7 +210,8 @@ def paired_table(data: Mapping[str, Any]) -> list[str]:
     metrics = [m for m in PAIRED_DISPLAY if any(r["metric"] == m for r in rows)]
     lines = [
         f"Per scenario, planner minus {LABELS.get(baseline, baseline)} (the strongest baseline): mean over the "
-        f"{rows[0]['pairs']} scenarios and its 95 % bootstrap interval; pp: percentage points.",
+        f"{rows[0]['pairs']} scenarios and its 95 % bootstrap interval; pp: percentage points. Δ stops and Δ slowed "
+        "are differences of each run's share of its vehicles, a mean per run (not a share of all vehicles).",
         "",
         "| planner | " + " | ".join(PAIRED_DISPLAY[m][0] for m in metrics) + " |",
         "|---|" + "---:|" * len(metrics),

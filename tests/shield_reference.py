@@ -44,6 +44,10 @@ def plan_pairs_numpy(shield: Shield, scene: Scene, plan: _Plan) -> dict[str, np.
     lead = scene.leader
     rows = np.flatnonzero(lead >= 0)
     second = rows[lead[lead[rows]] >= 0]
+    far = route[lead[lead[second]]]  # the leader's leader's route: on the follower's path (`on_path`)?
+    mine = route[second]
+    on_path = (mine == far) | (parting_arcs(lay)[far, mine] > -np.inf) | _merging_routes(lay)[mine, far]
+    second = second[on_path]
     by_route = np.lexsort((arc, route))
     same = route[by_route[:-1]] == route[by_route[1:]]
     behind, ahead = by_route[:-1][same], by_route[1:][same]
@@ -161,6 +165,20 @@ def leaders_now(
     return f, ahead, gap
 
 
+def gaps_hold(shield: Shield, plan: _Plan, arc: np.ndarray, speed: np.ndarray, go: np.ndarray, a_max: float) -> bool:
+    """Every leader relation of :func:`leaders_now` (a merging one only where the follower yields) keeps the
+    check's floor: now, and once both have stopped at ``a_max`` when the follower is the faster (with the
+    stopping slack); the check's floor of a merging pair is a distance of 0, half a gap margin below its gap."""
+    f, ahead, gap = leaders_now(shield, plan, arc, go)
+    live = plan.follow_floor[arc[plan.follow[:, 1]] < plan.follow_until]
+    floor = np.concatenate([live, np.full(len(f) - len(live), 0.5 * shield.gap_margin)])
+    yields = np.concatenate([np.ones(len(live), bool), ~np.asarray(plan.human, bool)[f[len(live):]]])
+    vf, va = speed[f], speed[ahead]
+    stop = gap - (vf**2 - va**2) / (2 * a_max)
+    room = (gap >= floor) & ((vf <= va) | (stop >= floor + _STOP_SLACK))
+    return bool((room | ~yields).all())
+
+
 def travel(speed: np.ndarray, acc: float, dt: float) -> tuple[np.ndarray, np.ndarray]:
     """Distance and end speed after ``dt`` at constant ``acc``, stopping at 0."""
     end = speed + acc * dt
@@ -221,8 +239,9 @@ def predict_numpy(shield: Shield, scene: Scene, plan: _Plan, command: np.ndarray
         speeds.append(v[1:])
         arc, speed = x[-1], v[-1]
         go = committed(plan, arc, speed, a_max)
-        if (((speed <= _STANDING) & ~go) | (arc > plan.hull_end)).all():  # `settled`, sharing `go`
-            break  # everyone stands before its zones or has left them: the fallback keeps it so
+        settled_now = (((speed <= _STANDING) & ~go) | (arc > plan.hull_end)).all()  # `settled`, sharing `go`
+        if settled_now and gaps_hold(shield, plan, arc, speed, go, a_max):
+            break  # everyone stands before its zones or has left them, with room behind: the fallback keeps it so
         acc = fallback_given(shield, plan, arc, speed, go, a_max, dt)
     return np.concatenate(arcs), np.concatenate(speeds)
 

@@ -131,3 +131,86 @@ def test_the_api_reference_is_grouped_by_package():
     assert site_pages.api_group("envs.serve.app") == "envs.serve" and site_pages.api_group("envs.domain") == "envs"
     documented = [line.split()[-1] for text in pages.values() for line in text.splitlines() if "automodule" in line]
     assert sorted(documented) == site_pages.api_modules()  # every module once
+
+
+def test_the_command_line_reference_has_every_command():
+    # Written from the parsers: every command of the package and of the domain, with its flags as --help shows them.
+    sys.path.insert(0, str(ROOT / "docs" / "_ext"))
+    import site_pages
+
+    page = site_pages.cli_reference()
+    for name in site_pages.command_table():
+        assert f"## `sb3-graph {name}`" in page and f"usage: sb3-graph {name} " in page
+    assert "--scenario-dir" in page and "--token-file" in page
+    assert "{include} _generated/cli.md" in (ROOT / "docs" / "cli.md").read_text()
+
+
+def test_the_examples_page_has_every_example():
+    sys.path.insert(0, str(ROOT / "docs" / "_ext"))
+    import site_pages
+
+    page = site_pages.examples_page()
+    for path in (ROOT / "examples").glob("*.py"):
+        assert f"## `examples/{path.name}`" in page and path.read_text().rstrip() in page
+
+
+def test_citation_and_changelog():
+    yaml = pytest.importorskip("yaml")
+    citation = yaml.safe_load((ROOT / "CITATION.cff").read_text(encoding="utf-8"))
+    assert citation["cff-version"] == "1.2.0" and citation["title"] and citation["authors"]
+    import sb3_graph
+
+    assert str(citation["version"]) == sb3_graph.__version__
+    paper = citation["references"][0]
+    assert [a["family-names"] for a in paper["authors"]] == ["Klimke", "Völz", "Buchholz"] and paper["year"] == 2022
+    assert f"## {sb3_graph.__version__}" in (ROOT / "CHANGELOG.md").read_text(encoding="utf-8")
+
+
+def test_the_tested_versions_table_lists_what_the_script_prints():
+    # The versions are those of the machine that ran the figures; the rows are the script's, so that rerunning it
+    # rewrites the table rather than a hand-kept copy.
+    sys.path.insert(0, str(ROOT / "scripts"))
+    import tested_versions
+
+    install = (ROOT / "docs" / "install.md").read_text(encoding="utf-8")
+    rows = [line.split("|")[1].strip() for line in tested_versions.table().splitlines()[2:]]
+    page = [line.split("|")[1].strip() for line in install.split("## Tested versions")[1].splitlines() if "|" in line]
+    assert page[2:] == rows
+
+
+def test_the_hand_written_scenario_of_the_guide_is_valid():
+    # "Your own scenarios" shows a scenario file that a user copies: it must load, and every route the page's
+    # table lists is one of its layout's.
+    import json
+
+    from envs.simulation.layouts import LAYOUT_NAMES, build_layout
+    from envs.simulation.traffic import Scenario
+
+    page = (ROOT / "docs" / "scenarios.md").read_text(encoding="utf-8")
+    block = re.search(r"^```json\n(.*?)^```", page, re.DOTALL | re.MULTILINE).group(1)
+    scenario = Scenario.from_dict(json.loads(block), "docs/scenarios.md")
+    scenario.validate("docs/scenarios.md")
+    assert scenario.num_vehicles == 3 and scenario.human.tolist() == [False, False, True]
+    sys.path.insert(0, str(ROOT / "docs" / "_ext"))
+    import site_pages
+
+    table = site_pages.routes_table()
+    for name in LAYOUT_NAMES:
+        assert all(f"| `{route}` |" in table for route in build_layout(name).route_names)
+
+
+#: the pages that keep the record of what was measured, with dates and the machine's load; every other page is a guide
+RESEARCH_PAGES = ("experiments.md", "speed.md")
+
+
+def test_guides_say_no_today_and_no_load_average():
+    # A guide states what holds, with its command; a figure that depends on the day or on the machine's load
+    # belongs to the experiments or speed page, which say when and under what load they measured it.
+    found = []
+    for path in markdown_files():
+        if path.name in RESEARCH_PAGES:
+            continue
+        for number, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
+            if re.search(r"\btoday\b|load average", line, re.IGNORECASE):
+                found.append(f"{path.relative_to(ROOT)}:{number}: {line.strip()[:80]}")
+    assert found == [], "\n".join(found)

@@ -99,7 +99,7 @@ def test_a_stub_domain_adds_its_command_tuning_and_gym_package(stub, capsys):
     assert "unknown command 'evaluate'" in err and "pip install -e ." in err and err.count("\n") == 1
 
     from sb3_graph.commands.train import _import_packages
-    from sb3_graph.tuning.commands import _domain_default
+    from sb3_graph.commands.tune import _domain_default
 
     assert _domain_default("StubEnv-v0", 0) == "stubdomain.plugin:evaluate"
     assert _domain_default("StubEnv-v0", 1) == "none"
@@ -134,7 +134,7 @@ def test_sb3_graph_imports_and_lists_its_commands_without_the_domain(tmp_path):
         sys.path.insert(0, {str(folder)!r})
         import sb3_graph.plugins as plugins
         plugins.SEARCH_PATH = [{str(folder)!r}]
-        import sb3_graph, sb3_graph.registry, sb3_graph.files.policy_files, sb3_graph.tuning.commands
+        import sb3_graph, sb3_graph.registry, sb3_graph.files.policy_files, sb3_graph.commands.tune
         import sb3_graph.commands.train, sb3_graph.commands.export
         from sb3_graph.cli import main
         try:

@@ -389,6 +389,17 @@ def test_openapi_schema_documents_the_scene_in_physical_units(client):
 
 
 @needs_server
+def test_version_names_the_routes_a_scene_may_use(client):
+    # A client sends each vehicle's route and its arc along it: /version gives the names and lengths.
+    from envs.simulation.layouts import build_layout
+
+    layout = build_layout("4way")
+    routes = client.version()["routes"]
+    assert list(routes) == list(layout.route_names) and "south->north" in routes
+    np.testing.assert_allclose(list(routes.values()), layout.length, atol=0.005)
+
+
+@needs_server
 def test_evaluate_behind_a_shielding_server_reports_its_counters(tmp_path, monkeypatch):
     """A server started with ``--shield``: the client reports the server's shield counters
     (:meth:`~envs.serve.client.RemotePlanner.stats`) in the metrics, as an in-process shield does."""

@@ -457,3 +457,19 @@ def test_a_vehicle_that_may_not_commit_never_commits_in_a_prediction(layout):
                 assert not shield.committed(plan, arcs[t], speeds[t], scene.a_max)[out].any()
         left_out += int(out.sum())
     assert left_out > 50
+
+
+def test_the_leaders_leader_on_another_branch_is_no_follow_pair():
+    """West->east follows west->north from their spawn lane until they part; west->north has merged behind a
+    south->north vehicle on the north exit. That one is west->east's leader's leader, on a path it never takes:
+    no follow pair (its gap, arcs on two unrelated paths, closed at 6 m/s and the fallback failed: 4 unresolved
+    steps of a hostile run, 4-way, seed 6200)."""
+    lay = build_layout("4way")
+    names = list(lay.route_names)
+    route = np.array([names.index(n) for n in ("west->north", "west->east", "south->north")])
+    sim = Simulation(lay)
+    sim.add(route, np.array([2.8, 10.0, 4.0]), np.array([28, 29, 39]), arc=np.array([92.75, 91.69, 102.06]))
+    scene = sim.scene()
+    assert scene.leader.tolist() == [2, 0, -1]  # the relations of that step
+    follow = Shield(Fixed())._plan(scene).follow.tolist()
+    assert [0, 2] in follow and [1, 0] in follow and [1, 2] not in follow

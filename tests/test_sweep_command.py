@@ -27,8 +27,9 @@ def test_tiny_sweep_writes_both_files_with_the_schema(tmp_path, capsys):
     table = pd.read_csv(out / "sweep.csv")
     assert list(table.columns) == [
         "planner", "demand", "flow_rate", "delay_mean_s", "stop_ratio", "collision_rate", "speed_limit_violations",
-        "slow_ratio", "hard_brakes_per_vehicle", "energy_kj_per_vehicle",
+        "slow_ratio", "hard_brakes_per_vehicle", "energy_kj_per_vehicle", "failed_runs",
     ]  # fmt: skip
+    assert (table["failed_runs"] == 0).all()
     # the label is the report name
     assert list(zip(table["planner"], table["demand"])) == [
         ("rules", 0.1), ("FIFO", 0.1), ("rules", 0.3), ("FIFO", 0.3)
@@ -53,6 +54,45 @@ def test_tiny_sweep_writes_both_files_with_the_schema(tmp_path, capsys):
     low = json.loads((out / "demand_0.1" / "summary.json").read_text())["rules"]
     high = json.loads((out / "demand_0.3" / "summary.json").read_text())["rules"]
     assert high["vehicles_scheduled"] > low["vehicles_scheduled"]
+
+
+RAISER = """
+import numpy as np
+from envs.planners.base import Planner
+
+class Raiser(Planner):
+    def __init__(self, name="Raiser"):
+        super().__init__(name)
+        self.steps = 0
+
+    def reset(self, seed=None):
+        self.steps = 0
+
+    def act(self, scene):
+        self.steps += 1
+        if self.steps > 5:  # 1 s into every run
+            raise RuntimeError("boom")
+        return np.full(scene.num_vehicles, scene.a_max)
+"""
+
+
+@pytest.mark.parametrize("axis", [["--demand", "0.1", "0.2"], ["--human-share", "0", "1"]])
+def test_a_planner_failing_every_run_is_reported_and_the_others_kept(tmp_path, capsys, axis):
+    (tmp_path / "raiser.py").write_text(RAISER)
+    out = tmp_path / "sweep"
+    args = ["sweep", "--planner", f"{tmp_path / 'raiser.py'}:Raiser", "--planner", "fullthrottle+shield"]
+    assert main([*args, *axis, "--out", str(out), *TINY]) == 1
+    printed = capsys.readouterr().out
+    assert "planner error: Raiser, scenario scenario_000.json, step 5 (t = 1.0 s): raised RuntimeError: boom" in printed
+    assert "2 runs failed on a planner error" in printed
+    table = pd.read_csv(out / "sweep.csv").set_index("planner")
+    assert (table.loc["Raiser", "failed_runs"] == 1).all() and table.loc["Raiser", "flow_rate"].isna().all()
+    kept = table.loc["FullThrottle+shield"]
+    assert (kept["failed_runs"] == 0).all() and kept["flow_rate"].notna().all()
+    text = (out / "sweep.md").read_text()
+    assert "## Failed runs" in text and "- Raiser, " in text and "(every run)" in text
+    if axis[0] == "--demand":
+        assert "| Raiser | unknown (every run failed at a level) | n/a |" in text
 
 
 @pytest.mark.parametrize(

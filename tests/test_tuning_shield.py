@@ -13,8 +13,8 @@ from optuna.trial import TrialState
 from envs.simulation.rewards import PAPER_REWARD_WEIGHTS, TASK_REWARD_WEIGHTS
 from sb3_graph.cli import main
 from sb3_graph.commands import UserError
+from sb3_graph.commands import tune as commands
 from sb3_graph.registry import ALGORITHMS
-from sb3_graph.tuning import commands
 from sb3_graph.tuning.objectives import DELAY, FLOW, make_objective
 from sb3_graph.tuning.runner import TrialSettings, run_trial
 from sb3_graph.tuning.search_space import entry_with_params, parse_config_space, split_params

@@ -3,7 +3,10 @@
 - the API reference, one page per package group (:func:`write_api_pages`): ``docs/_api/<group>.rst``;
 - the environment reference's tables (:func:`write_environment_tables`): ``docs/_generated/*.md``, included by
   ``docs/env_reference.md``: the environments, the observation's arrays, the action types, the reward terms and
-  every key of ``default_config()`` with its default, its allowed values and its meaning.
+  every key of ``default_config()`` with its default, its allowed values and its meaning;
+- the command-line reference (:func:`cli_reference`: every command's ``--help``, from its parser), the examples
+  page (:func:`examples_page`: every file of ``examples/``) and the routes of each layout (:func:`routes_table`),
+  included by ``docs/cli.md``, ``docs/examples.md`` and ``docs/scenarios.md``.
 
 ``docs/conf.py`` calls both when the builder starts.
 """
@@ -259,8 +262,103 @@ ENVIRONMENT_TABLES = {
 
 
 def write_environment_tables(srcdir: Path) -> None:
-    """Write ``<srcdir>/_generated/<table>.md`` for every table of :data:`ENVIRONMENT_TABLES`.
+    """Write ``<srcdir>/_generated/<name>.md`` for every table of :data:`ENVIRONMENT_TABLES` and every page of
+    :data:`REFERENCE_PAGES` (included by ``docs/env_reference.md``, ``docs/cli.md`` and ``docs/examples.md``).
 
     :param srcdir: the documentation's source folder
     """
-    _write_folder(Path(srcdir) / "_generated", {name: make() for name, make in ENVIRONMENT_TABLES.items()}, "*.md")
+    pages = {**ENVIRONMENT_TABLES, **REFERENCE_PAGES}
+    _write_folder(Path(srcdir) / "_generated", {name: make() for name, make in pages.items()}, "*.md")
+
+
+# ---- the command-line reference and the examples ---------------------------------------------------------------
+
+
+def command_table() -> dict[str, tuple[str, str]]:
+    """Every ``sb3-graph`` command of this repository: the package's own, then the intersection domain's (the table
+    its entry point names), without reading the installed entry points, so that the page shows this checkout."""
+    from envs.domain import COMMANDS as DOMAIN_COMMANDS
+    from sb3_graph.cli import COMMANDS
+
+    return {**COMMANDS, **{name: spec for name, spec in DOMAIN_COMMANDS.items() if name not in COMMANDS}}
+
+
+def cli_reference(width: int = 100) -> str:
+    """The command-line reference: the top-level help, then per command its one-line help and its parser's own
+    ``--help`` text (the parsers themselves build it, as ``sb3-graph COMMAND --help`` prints it).
+
+    :param width: the column width argparse wraps the help to
+    """
+    import argparse
+    import os
+    from unittest import mock
+
+    from sb3_graph.cli import build_parser, command_parser
+
+    table = command_table()
+    with mock.patch.dict(os.environ, {"COLUMNS": str(width)}):
+        parser = build_parser(table=table)
+        parts = ["## `sb3-graph`\n", "```text", parser.format_help().rstrip(), "```\n"]
+        for name, (_, help_text) in table.items():
+            sub: argparse.ArgumentParser = command_parser(parser, name)
+            parts += [f"## `sb3-graph {name}`\n", f"{markdown_text(help_text)}.\n", "```text"]
+            parts += [sub.format_help().rstrip(), "```\n"]
+    return "\n".join(parts)
+
+
+def _first_paragraph(doc: str) -> str:
+    return markdown_text(doc.strip().split("\n\n")[0])
+
+
+def examples_page() -> str:
+    """The examples page: per file of ``examples/``, its docstring (what it does and how to run it) and its code."""
+    import ast
+
+    parts = []
+    for path in sorted((ROOT / "examples").glob("*.py")):
+        source = path.read_text(encoding="utf-8")
+        doc = ast.get_docstring(ast.parse(source)) or ""
+        paragraphs = [p for p in doc.split("\n\n") if p.strip()]
+        parts += [f"## `examples/{path.name}`\n", f"{_first_paragraph(doc)}\n"]
+        for paragraph in paragraphs[1:]:
+            lines = paragraph.splitlines()
+            if paragraph.startswith("    "):  # an indented block after "::": the command that runs it
+                parts += ["```bash", "\n".join(line[4:] for line in lines), "```\n"]
+            else:
+                text = markdown_text(paragraph)
+                parts.append(f"{text[:-2].rstrip()}:\n" if text.endswith("::") else f"{text}\n")
+        parts += ["```{code-block} python", ":linenos:", "", source.rstrip(), "```\n"]
+    return "\n".join(parts)
+
+
+def routes_table() -> str:
+    """Per layout, every route a scenario file or a scene on the wire may name: its arms, maneuver, road, length
+    and where it enters and leaves the intersection (from :func:`envs.simulation.layouts.build_layout`)."""
+    import importlib
+
+    import envs
+    from envs.simulation.layouts import LAYOUT_NAMES, build_layout
+    from envs.simulation.scene import MANEUVERS, PRIORITY_NAMES
+
+    ids = {}
+    for env_id, entry_point in envs.ENV_IDS.items():
+        module, name = entry_point.split(":")
+        ids.setdefault(getattr(importlib.import_module(module), name).LAYOUT, env_id)
+    parts = []
+    for name in LAYOUT_NAMES:
+        layout = build_layout(name)
+        parts += [f"### `{name}` (`{ids.get(name, '')}`)\n",
+                  "| route | from | to | maneuver | road | length [m] | enters / leaves the intersection at [m] |",
+                  "|---|---|---|---|---|---:|---:|"]  # fmt: skip
+        for r, route in enumerate(layout.route_names):
+            parts.append(
+                f"| `{route}` | {layout.entry_arm[r]} | {layout.exit_arm[r]} | {MANEUVERS[layout.maneuver[r]]} | "
+                f"{PRIORITY_NAMES[layout.priority[r]]} | {layout.length[r]:.2f} | "
+                f"{layout.entry_arc[r]:.2f} / {layout.exit_arc[r]:.2f} |"
+            )
+        parts.append("")
+    return "\n".join(parts)
+
+
+#: the reference pages written beside the environment tables: the command line, the examples, the routes
+REFERENCE_PAGES = {"cli.md": cli_reference, "examples.md": examples_page, "routes.md": routes_table}

@@ -121,6 +121,8 @@ def level_name(axis: str, level: float) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    import pandas as pd
+
     from envs.evaluation.sweep import capacities, capacity_text
     from sb3_graph.files.output_folders import OutputError, staged_folder
 
@@ -139,11 +141,34 @@ def run(args: argparse.Namespace) -> int:
     if axis == "demand":
         for planner, cap in capacities(table).items():
             flow = table.loc[table["planner"] == planner, "flow_rate"].max()
-            text = capacity_text(cap, demand[-1]) + ("" if cap is None else " veh/s per major-road lane")
-            print(f"{planner:>10}: capacity {text}, highest flow {flow:.3f} veh/s")
+            text = capacity_text(cap, demand[-1], " veh/s per major-road lane")
+            highest = "n/a (every run failed)" if pd.isna(flow) else f"{flow:.3f} veh/s"
+            print(f"{planner:>10}: capacity {text}, highest flow {highest}")
     print(run_line(stats))
     print_level_verdicts(out, demand, axis)
     print(f"sweep written to {out} ({wall:.1f} s)")
+    failed = int(table["failed_runs"].fillna(0).sum())
+    if failed:
+        print_first_errors(out, demand, axis)
+        print(f"{failed} runs failed on a planner error (sweep.md, and each level's report.md): exit status 1")
+        return 1
+    return 0
+
+
+def print_first_errors(out, levels: Sequence[float], axis: str = "demand") -> None:
+    """The first planner-error line of each planner that had one, from the levels' ``summary.json``."""
+    import json
+
+    from envs.evaluation.sweep import level_folder
+
+    shown: set[str] = set()
+    for level in levels:
+        path = out / level_folder(level, axis) / "summary.json"
+        summary = json.loads(path.read_text()) if path.is_file() else {}
+        for name, s in summary.items():
+            if s.get("planner_error_lines") and name not in shown:
+                shown.add(name)
+                print(f"{name}, {level_name(axis, level)}: {s['planner_error_lines'][0]}")
 
 
 def print_level_verdicts(out, demand: Sequence[float], axis: str = "demand") -> None:
@@ -176,7 +201,7 @@ def _sweep(args, planners, demand, layout, out, tic, axis="demand", fixed=None):
     harness's stats."""
     from envs.evaluation.comparison import paired_differences
     from envs.evaluation.harness import generate_scenarios
-    from envs.evaluation.report import write_report
+    from envs.evaluation.report import failed_runs, write_report
     from envs.evaluation.sweep import level_folder, write_sweep
 
     def draw(level: float) -> list:
@@ -223,7 +248,7 @@ def _sweep(args, planners, demand, layout, out, tic, axis="demand", fixed=None):
         else:
             level_meta = {**meta, "human share": f"{level:g}"}
         summary = write_report(out / level_folder(level, axis), level_runs, level_vehicles, level_meta)
-        levels.append((level, summary, paired_differences(level_runs)))
+        levels.append((level, summary, paired_differences(level_runs[~failed_runs(level_runs)])))
         level_runs_all.append(level_runs)
     table = write_sweep(out, levels, meta, axis, level_runs_all)
     write_run_info(out, stats, time.perf_counter() - tic)

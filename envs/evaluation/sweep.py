@@ -9,7 +9,9 @@ to one row per planner and level (:data:`SWEEP_COLUMNS`):
 - ``delay_mean_s``, ``stop_ratio``, ``collision_rate``: pooled over every scheduled vehicle;
 - ``speed_limit_violations``: vehicle-steps above the lane limit, summed over the runs;
 - ``slow_ratio`` (speed below 2 m/s, every scheduled vehicle), ``hard_brakes_per_vehicle`` and
-  ``energy_kj_per_vehicle`` (vehicles that crossed): pooled, :func:`envs.evaluation.metrics.motion_metrics`.
+  ``energy_kj_per_vehicle`` (vehicles that crossed): pooled, :func:`envs.evaluation.metrics.motion_metrics`;
+- ``failed_runs``: runs that a planner error voided (left out of the figures; a planner every run of which
+  failed at a level has no figures there, and the other planners are kept).
 
 **Capacity** of a planner: the highest demand level up to which (at that level and every lower
 one) its flow still serves at least :data:`SERVED_FRACTION` of the offered flow, i.e. of the
@@ -52,13 +54,15 @@ SWEEP_COLUMNS = (
     "slow_ratio",
     "hard_brakes_per_vehicle",
     "energy_kj_per_vehicle",
+    "failed_runs",
 )
 SHARE_COLUMNS = (
     "planner",
     "human_share",
-    *SWEEP_COLUMNS[2:],
+    *SWEEP_COLUMNS[2:-1],
     "collisions_automated",
     "collisions_human",
+    "failed_runs",
 )
 AXIS_LABELS = {"demand": "demand [veh/s per major-road lane]", "human_share": "share of human drivers"}
 SERVED_FRACTION = 0.9
@@ -89,12 +93,18 @@ SWEEP_DISPLAY = {
     "collisions_automated": ("vehicles in collisions of automated vehicles only", _count),
     "collisions_human": ("vehicles in collisions with a human driver", _count),
     "offered_flow": ("offered flow [veh/s]", format_number),
+    "failed_runs": ("failed runs (planner errors)", _count),
 }
 
 
 def level_folder(demand: float, axis: str = "demand") -> str:
     """Name of a level's subfolder, e.g. ``demand_0.05`` or ``human_share_0.25``."""
     return f"{axis}_{demand:g}"
+
+
+def _at(summary: Mapping[str, Any], key: str, statistic: str) -> Any:
+    """``summary[key][statistic]``, or ``None`` where the planner has no such figure (every run of it failed)."""
+    return (summary.get(key) or {}).get(statistic)
 
 
 def sweep_rows(
@@ -110,21 +120,23 @@ def sweep_rows(
     :param axis: what the level is: ``"demand"`` or ``"human_share"``
     :param runs: that level's runs (``metrics.csv`` rows); with the ``human_share`` axis, the
         collisions per kind of driver are summed from it
-    :return: one row per planner
+    :return: one row per planner (one every run of which failed at this level: its figures ``None``, its
+        ``failed_runs`` counted)
     """
     rows = [
         {
             "planner": name,
             axis: float(demand),
-            "flow_rate": s["flow_rate"]["mean"],
-            "delay_mean_s": s["delay_s"]["mean"],
-            "stop_ratio": s["stop_ratio"]["all"],
-            "collision_rate": s["collision_rate"],
-            "speed_limit_violations": s["speed_limit_violations"],
+            "flow_rate": _at(s, "flow_rate", "mean"),
+            "delay_mean_s": _at(s, "delay_s", "mean"),
+            "stop_ratio": _at(s, "stop_ratio", "all"),
+            "collision_rate": s.get("collision_rate"),
+            "speed_limit_violations": s.get("speed_limit_violations"),
             "slow_ratio": s.get("slow_ratio"),
             "hard_brakes_per_vehicle": s.get("hard_brakes_per_vehicle"),
             "energy_kj_per_vehicle": s.get("energy_kj_per_vehicle"),
-            "offered_flow": s["offered_flow"],
+            "failed_runs": s.get("failed_runs", 0),
+            "offered_flow": s.get("offered_flow"),
         }
         for name, s in summary.items()
     ]
@@ -141,26 +153,35 @@ def capacities(table: pd.DataFrame, fraction: float = SERVED_FRACTION) -> dict[s
 
     :param table: sweep rows with ``planner``, ``demand``, ``flow_rate`` and ``offered_flow``
     :param fraction: share of the offered flow that must be served
-    :return: ``planner -> demand level`` (``None``: not even the lowest level is served)
+    :return: ``planner -> demand level`` (``None``: not even the lowest level is served; NaN: unknown, as every
+        run of the planner failed at a level up to its first unserved one)
     """
     out: dict[str, float | None] = {}
     for planner, rows in table.groupby("planner", sort=False):
         rows = rows.sort_values("demand")
-        served = (rows["flow_rate"] >= fraction * rows["offered_flow"]).to_numpy()
+        flow = rows["flow_rate"].astype(float).to_numpy()
+        served = flow >= fraction * rows["offered_flow"].astype(float).to_numpy()
         first_short = int(np.argmin(served)) if not served.all() else len(served)
-        out[str(planner)] = float(rows["demand"].iloc[first_short - 1]) if first_short else None
+        if np.isnan(flow[: first_short + 1]).any():
+            out[str(planner)] = float("nan")
+        else:
+            out[str(planner)] = float(rows["demand"].iloc[first_short - 1]) if first_short else None
     return out
 
 
-def capacity_text(capacity: float | None, top: float) -> str:
-    """A capacity for people: ``"0.2"``, ``">= 0.4"`` (every level served), ``"below the lowest level"``.
+def capacity_text(capacity: float | None, top: float, unit: str = "") -> str:
+    """A capacity for people: ``"0.2"``, ``">= 0.4"`` (every level served), ``"below the lowest level"``,
+    ``"unknown (every run failed at a level)"``.
 
     :param capacity: a :func:`capacities` value
     :param top: the highest demand level of the sweep
+    :param unit: appended to a level, e.g. ``" veh/s per major-road lane"``
     """
     if capacity is None:
         return "below the lowest level"
-    return f">= {capacity:g}" if capacity >= top else f"{capacity:g}"
+    if not np.isfinite(capacity):
+        return "unknown (every run failed at a level)"
+    return (f">= {capacity:g}" if capacity >= top else f"{capacity:g}") + unit
 
 
 def sweep_figure(
@@ -195,9 +216,9 @@ def sweep_figure(
         for ax, (column, _) in zip(axes, panels):
             values = rows[column].astype(float) if column in rows else np.full(len(rows), np.nan)
             ax.plot(rows[axis], values, "o-", color=color, label=label)
-            if cap is not None:
+            if cap is not None and np.isfinite(cap):
                 ax.axvline(cap, color=color, ls=":", lw=1)
-        if cap is not None:
+        if cap is not None and np.isfinite(cap):
             at = rows[rows[axis] == cap]
             axes[0].plot(at[axis], at["flow_rate"].astype(float), "*", ms=14, color=color, mec="k")
     for ax, (_, label) in zip(axes, panels):
@@ -239,6 +260,14 @@ def sweep_markdown(
         for planner, rows in table.groupby("planner", sort=False):
             text = capacity_text(capacity.get(str(planner)), top)
             lines.append(f"| {planner} | {text} | {format_number(rows['flow_rate'].astype(float).max())} |")
+        lines.append("")
+    failed = table[table["failed_runs"].fillna(0) > 0] if "failed_runs" in table else table.iloc[:0]
+    if not failed.empty:
+        lines += ["## Failed runs", "", "Runs voided by a planner error (each level's report.md: the error lines):", ""]
+        for row in failed.itertuples():
+            every = " (every run)" if pd.isna(row.flow_rate) else ""
+            level = f"{axis.replace('_', ' ')} {getattr(row, axis):g}"
+            lines.append(f"- {row.planner}, {level}: {row.failed_runs:.0f}{every}")
         lines.append("")
     lines += ["## Every level", "", "![sweep](sweep.png)", ""]
     columns = [*(SWEEP_COLUMNS if axis == "demand" else SHARE_COLUMNS), "offered_flow"]

@@ -270,6 +270,42 @@ def _all_committed(
 
 
 @numba.njit(cache=True)
+def _gaps_hold(
+    plan: PlanArrays, arc: np.ndarray, speed: np.ndarray, go: np.ndarray, a_max: float, gap_margin: float, slack: float
+) -> bool:
+    """``gaps_hold``: whether every leader relation that the fallback keeps (:func:`leaders`) can keep its gap
+    from here on, whatever the vehicle ahead does within ``a_max`` braking: the gap is at the check's floor or
+    above, and so is what is left of it once both have stopped at ``a_max`` (with ``slack`` for the sub-steps)
+    when the follower is the faster. Only then may a prediction end once everyone has settled: the fallback,
+    which brakes a follower that has less room, then keeps the gap; a planner that closed it for one period
+    (a leader rammed past the intersection) must be predicted on. A merging pair's floor is half a gap margin
+    over its separation (as the fallback keeps it, the check's distance of 0)."""
+    for k in range(plan.follower.shape[0]):
+        f, ahead = plan.follower[k], plan.ahead[k]
+        if arc[ahead] >= plan.follow_until[k]:
+            continue
+        gap = plan.follow_gap[k] + (arc[ahead] - plan.ahead_arc[k]) - (arc[f] - plan.follower_arc[k])
+        if not _room(gap, speed[f], speed[ahead], plan.follow_floor[k], a_max, slack):
+            return False
+    for g in range(plan.merge.shape[0]):
+        f, ahead, active, distance = _merge_leader(plan, g, arc, go)
+        gap, floor = distance + 0.5 * gap_margin, 0.5 * gap_margin
+        if active and plan.merge_yields[f] and not _room(gap, speed[f], speed[ahead], floor, a_max, slack):
+            return False
+    return True
+
+
+@numba.njit(cache=True)
+def _room(gap: float, v_follower: float, v_ahead: float, floor: float, a_max: float, slack: float) -> bool:
+    """``room``: the gap stays at ``floor`` or above if both brake at ``a_max`` from now."""
+    if gap < floor:
+        return False
+    if v_follower <= v_ahead:
+        return True
+    return gap - (v_follower * v_follower - v_ahead * v_ahead) / (2 * a_max) >= floor + slack
+
+
+@numba.njit(cache=True)
 def _travel(speed: float, acc: float, dt: float) -> tuple[float, float]:
     """``travel`` of one vehicle: distance and end speed after ``dt`` at ``acc``, stopping at 0."""
     end = speed + acc * dt
@@ -423,7 +459,8 @@ def predict(
     standing: float,
     slack: float,
 ) -> int:
-    """``predict_numpy``: ``command`` for one period, then the fallback until all settle or ``steps`` periods.
+    """``predict_numpy``: ``command`` for one period, then the fallback until all settle (:func:`_gaps_hold` too) or
+    ``steps`` periods.
 
     :param plan: the scene's arrays
     :param table: the governor's envelope
@@ -449,8 +486,10 @@ def predict(
     for _ in range(steps):
         _integrate(table, plan.route, acc, arcs, speeds, row, substeps, h, max_speed, caps, governed)
         row += substeps
-        if _all_committed(plan, arcs[row], speeds[row], go, a_max, standing, slack):
-            break  # everyone stands before its zones or has left them: the fallback keeps it so
+        if _all_committed(plan, arcs[row], speeds[row], go, a_max, standing, slack) and _gaps_hold(
+            plan, arcs[row], speeds[row], go, a_max, gap_margin, slack
+        ):
+            break  # everyone stands before its zones or has left them, with room behind: the fallback keeps it so
         _fallback(plan, arcs[row], speeds[row], go, hold, acc, a_max, dt, proceed, gap_margin, standing, slack)
     return row + 1
 
@@ -501,6 +540,16 @@ def conflicts(
     for i in range(arc.shape[0]):
         stuck[i] = not ((speed[i] <= standing and not go[i]) or arc[i] > plan.hull_end[i])
     return bad_follow, bad_cross, bad_merge, stuck
+
+
+@numba.njit(cache=True)
+def _on_path(mine: int, other: int, merging: np.ndarray, parting: np.ndarray) -> bool:
+    """``on_path``: whether a vehicle on route ``other`` can be ahead on a vehicle on route ``mine``'s path: the same
+    route, one from the same spawn lane (until the lines part), or one that ends on the same exit lane. A leader
+    that has turned onto its own branch (inD's split lanes, the 4-way's left turn lane) leads vehicles that its
+    former follower never meets on a lane: that pair of the leader's leader is no follow pair (its gap, a
+    difference of arcs on two unrelated paths, closed where nobody was near)."""
+    return mine == other or parting[other, mine] > -np.inf or merging[mine, other]
 
 
 @numba.njit(cache=True)
@@ -569,7 +618,7 @@ def pairs(
             k += 1
     for i in range(n):
         lead = leader[i]
-        if lead >= 0 and leader[lead] >= 0:
+        if lead >= 0 and leader[lead] >= 0 and _on_path(route[i], route[leader[lead]], merging, parting):
             follower[k], ahead[k] = i, leader[lead]
             follow_gap[k] = gap[i] + length[lead] + gap[lead]
             k += 1

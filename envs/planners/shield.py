@@ -28,17 +28,19 @@ waiting before a later zone of its route that a crossing vehicle can no longer s
 (so that its safety does not rest on predicted timing, which changes when a leader turns off or
 merges in). A vehicle that another waits for gets the fallback when the planner would brake it below
 it, so that the planner's order of way and the fallback's cannot stand each other off.
-Because the plan accepted at one step contains the fallback from the next state, the all-fallback
-plan passed the check one step earlier: the shield always has a safe answer (recursive
-feasibility), and once the prediction reaches a state where everyone stands or has left, the
-fallback keeps it that way. This holds as long as the relations between vehicles stay as predicted:
-new vehicles appear far upstream with a braking gap (the simulation's spawn check), and the
+Because the plan accepted at one step contains the fallback from the next state, the all-fallback plan
+passed the check one step earlier: the shield always has a safe answer (recursive feasibility), and once
+the prediction reaches a state where everyone stands or has left, and every follower has room to stop
+behind its leader (its gap stays at the check's floor if both brake now), the fallback keeps it that way:
+the prediction ends there. (Without the room, a planner that rams a leader past the intersection for one
+period leaves a gap that no fallback can keep.) This holds as long as the relations between vehicles stay
+as predicted: new vehicles appear far upstream with a braking gap (the simulation's spawn check), and the
 leaders the fallback follows are those of the scene, the next vehicle on the same route, the vehicle
-ahead on another route from the same spawn lane until the two centre lines part (lanes that split
-run side by side for a while: inD), and merges along the common exit lane. Should
-the fallback still fail, it is predicted once more over ``drain_horizon`` and taken if it passes
-then (vehicles tangled in the box, after such steps, can take longer than ``horizon`` to drain);
-failing that, every vehicle brakes at ``a_max`` and the step is counted in :attr:`Shield.unresolved`.
+ahead on another route from the same spawn lane until the two centre lines part (lanes that split run
+side by side for a while: inD), and merges along the common exit lane. Should the fallback still fail, it
+is predicted once more over ``drain_horizon`` and taken if it passes then (vehicles tangled in the box,
+after such steps, can take longer than ``horizon`` to drain); failing that, every vehicle brakes at
+``a_max`` and the step is counted in :attr:`Shield.unresolved`.
 
 Liveness: inside the intersection a planner may not brake a vehicle below :data:`LIVE_SPEED`. A committed
 vehicle gets the fallback's command instead, and one past its stop line that has not committed is

@@ -15,7 +15,11 @@ Definitions, from the scene alone:
   previous scene: it entered or left the intersection.
 - A vehicle *waits* from the first scene in which it stands (speed below
   :data:`envs.simulation.scene.STOP_SPEED`) before its line, until it enters (moving on again before
-  the line does not end its wait: a planner cannot reset the clock by creeping).
+  the line does not end its wait: a planner cannot reset the clock by creeping). A vehicle still
+  before its line when it is *due* there (when it would have reached the line in free flow,
+  :mod:`envs.simulation.free_flow`, from where and how fast it was first seen) has waited since it was
+  first seen, as the harness's standstill counts: a planner that holds its vehicles at a crawl, never
+  standing, starves the junction as surely as one that stops them.
 - The junction has *stalled for* ``now - max(last crossing, earliest start of a wait among the vehicles
   now before their lines)``; 0 when no vehicle before its line waits.
 
@@ -31,6 +35,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from envs.simulation.free_flow import free_flow_table, time_at
 from envs.simulation.scene import STOP_SPEED, Scene
 
 # Default seconds without a crossing, while vehicles wait before their lines, before the live planner
@@ -78,6 +83,8 @@ class LivenessWatchdog:
         self._ids = np.zeros(0, np.int64)  # the previous scene's ids, sorted
         self._phase = np.zeros(0, np.int8)  # and their phases
         self._waits = np.zeros(0)  # and when each started to wait (inf: never stood before its line)
+        self._due = np.zeros(0)  # and when each would have reached its line in free flow (inf: unknown)
+        self._seen = np.zeros(0)  # and when each was first seen
 
     def stalled_for(self, scene: Scene) -> float:
         """Update the clock with a scene; how long the junction has stalled [s] (see the module docstring)."""
@@ -89,6 +96,9 @@ class LivenessWatchdog:
         ids = np.asarray(scene.vehicle_id, np.int64)
         phase = phases(scene)
         waits = np.full(ids.shape, np.inf)
+        known = np.zeros(ids.shape, bool)
+        due = np.full(ids.shape, np.inf)
+        seen = np.full(ids.shape, now)
         if self._ids.size and ids.size:
             k = np.minimum(np.searchsorted(self._ids, ids), self._ids.size - 1)
             known = self._ids[k] == ids
@@ -98,11 +108,16 @@ class LivenessWatchdog:
                 if (rose & (self._phase[k] == 0)).any():
                     self._entered_at = now
             waits = np.where(known, self._waits[k], np.inf)
+            due = np.where(known, self._due[k], np.inf)
+            seen = np.where(known, self._seen[k], now)
         before = phase == 0
+        due = np.where(known, due, now + _free_flow_to_line(scene, ~known & before))
         waits = np.where(before & (np.asarray(scene.speed) < STOP_SPEED), np.minimum(waits, now), waits)
         order = np.argsort(ids, kind="stable")
         self._ids, self._phase, self._waits = ids[order], phase[order], waits[order]
-        since = waits[before].min(initial=np.inf)
+        self._due, self._seen = due[order], seen[order]
+        started = np.minimum(waits, np.where(due <= now, seen, np.inf))
+        since = started[before].min(initial=np.inf)
         return now - max(self._crossed_at, since) if np.isfinite(since) else 0.0
 
     def observe(self, scene: Scene) -> bool:
@@ -126,3 +141,15 @@ class LivenessWatchdog:
         if self.active:
             self.vehicle_steps += scene.num_vehicles
         return self.active
+
+
+def _free_flow_to_line(scene: Scene, rows: np.ndarray) -> np.ndarray:
+    """``(n,)`` seconds that each of ``rows`` needs to reach its stop line in free flow from where it is (at the
+    scene's acceleration bounds); ``inf`` for the other rows and without a layout (hand-built scenes)."""
+    out = np.full(scene.num_vehicles, np.inf)
+    if not rows.any() or getattr(scene, "layout", None) is None or getattr(scene, "arc", None) is None:
+        return out
+    a_max, a_min = float(scene.a_max), float(scene.a_min)
+    table = free_flow_table(scene.layout, scene.route[rows], scene.arc[rows], scene.speed[rows], a_max, -a_min)
+    out[rows] = time_at(table, np.maximum(scene.dist_to_entry[rows], 0.0), scene.layout.ds)
+    return out

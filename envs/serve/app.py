@@ -248,12 +248,13 @@ class PlannerService:
         """What the planners are (the server adds its limits): :class:`~envs.serve.schema.ServerInfo`'s fields."""
         from sb3_graph import __version__  # torch: loaded only when asked
 
-        cfg = self.builder.config
+        cfg, lay = self.builder.config, self.builder.layout
         return dict(
             package=__version__, schema_version=SCHEMA_VERSION, planner=planner_name(self.spec), spec=self.spec,
             shield=self.shield, env=self.env_id, layout=self.builder.layout.name, dt=self.builder.dt,
             a_min=-float(cfg["max_acceleration"]), a_max=float(cfg["max_acceleration"]),
             max_vehicles=self.builder.limits.max_vehicles, max_speed=self.builder.limits.max_speed,
+            routes={name: round(float(length), 2) for name, length in zip(lay.route_names, lay.length)},
         )  # fmt: skip
 
     def open(self, request: OpenRequest, sid: str | None = None) -> Stream:
@@ -581,15 +582,18 @@ class Gateway:
         if fd is None:
             return None
         key = next(self._keys)
+        # Registered before the hand-over: from then on the worker may answer the client's steps before this
+        # thread runs again (an in-process server under load: the client saw answers, `handed` still empty)
+        done = asyncio.get_running_loop().create_future()
+        handed = self.handed[key] = _Handed(key, entry.worker, sid, connection, done)
         try:
             passed = self.pool.hand(entry.worker, key, sid, fd, self.max_body)
         finally:
             os.close(fd)
         if not passed:
+            del self.handed[key]
             connection.transport.resume_reading()
             return None
-        handed = _Handed(key, entry.worker, sid, connection, asyncio.get_running_loop().create_future())
-        self.handed[key] = handed
         connection.on_lost = handed.end  # the server shuts down
         return handed
 

@@ -123,6 +123,8 @@ class ServerInfo(BaseModel):
     max_streams_per_client: int = Field(description="most streams one client (token, or address without a "
                                         "token) may hold open")
     workers: int = Field(description="planning processes (0: planned on the server's event loop)")
+    routes: dict[str, float] = Field(description="the layout's routes: name (what a scene's vehicle sends as "
+                                     "'route') -> length [m] (its 'arc' runs from 0 to it)")
 
 
 class Health(BaseModel):

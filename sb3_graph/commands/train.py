@@ -46,12 +46,10 @@ import yaml
 
 from sb3_graph.commands import UserError
 from sb3_graph.commands.arguments import json_object, seed_value
+from sb3_graph.common.experts import PRETRAIN_STEPS, PRETRAIN_TRANSITIONS, ExpertError, make_expert
 from sb3_graph.registry import ALGORITHMS
 
 CHECKPOINT_PATTERN = re.compile(r"model_(\d+)_steps\.zip$")
-#: Defaults of --pretrain-transitions and --pretrain-steps (a budget of minutes on 2 cores).
-PRETRAIN_TRANSITIONS = 10_000
-PRETRAIN_STEPS = 2_000
 # Said when TensorBoard is missing (it is not in the base install): the run goes on without tb/.
 TENSORBOARD_MISSING = (
     "TensorBoard is not installed, so this run writes no tb/ logs (pip install tensorboard, or pip install "
@@ -547,21 +545,11 @@ def _check_labelling(args: argparse.Namespace) -> None:
 
 
 def _make_expert(spec: str, env_id: str, train_env) -> Any:
-    """The expert ``spec`` for ``env_id``'s environments, from the factory that the package or a domain
-    declares for it (:func:`sb3_graph.plugins.expert_factory`)."""
-    from sb3_graph.plugins import expert_factories, expert_factory
-    from sb3_graph.registry import import_object
-
-    found = expert_factory(env_id)
-    if found is None:
-        raise UserError(
-            f"pretrain_from: no expert is known for env {env_id!r} (experts exist for env ids starting with "
-            f"{sorted(expert_factories())})"
-        )
+    """:func:`sb3_graph.common.experts.make_expert`, a refused spec a :class:`UserError`."""
     try:
-        return import_object(found[0])(spec, train_env)
-    except ValueError as error:
-        raise UserError(f"pretrain_from: {error} (for {env_id!r}: {found[1]})") from None
+        return make_expert(spec, env_id, train_env)
+    except ExpertError as error:
+        raise UserError(str(error)) from None
 
 
 def _pretrain(
@@ -585,15 +573,18 @@ def _pretrain(
             raise UserError("--label-jobs/--label-executor/--label-address label a cloning: the entry has no "
                             "pretrain_from (set it, or --pretrain-from)")  # fmt: skip
         return None
-    if labelling is not None:
-        where = f"{labelling['executor']}, {labelling['workers']} worker{'s' * (labelling['workers'] != 1)}"
-        print(f"sb3-graph train: cloning {spec!r}, labelled on {where}"
-              + (f", through the cache {cache}" if cache is not None else ""), flush=True)  # fmt: skip
-        return pretrain_trial(model, entry, env_id, train_env, algo, None if cache is None else Path(cache),
-                              labelling=labelling)  # fmt: skip
-    if cache is not None:
-        print(f"sb3-graph train: cloning {spec!r} through the cache {cache}", flush=True)
-        return pretrain_trial(model, entry, env_id, train_env, algo, Path(cache))
+    try:
+        if labelling is not None:
+            where = f"{labelling['executor']}, {labelling['workers']} worker{'s' * (labelling['workers'] != 1)}"
+            print(f"sb3-graph train: cloning {spec!r}, labelled on {where}"
+                  + (f", through the cache {cache}" if cache is not None else ""), flush=True)  # fmt: skip
+            return pretrain_trial(model, entry, env_id, train_env, algo, None if cache is None else Path(cache),
+                                  labelling=labelling)  # fmt: skip
+        if cache is not None:
+            print(f"sb3-graph train: cloning {spec!r} through the cache {cache}", flush=True)
+            return pretrain_trial(model, entry, env_id, train_env, algo, Path(cache))
+    except ExpertError as error:
+        raise UserError(str(error)) from None
     expert = _make_expert(str(spec), env_id, train_env)
     transitions = int(entry.get("pretrain_transitions", PRETRAIN_TRANSITIONS))
     steps = int(entry.get("pretrain_steps", PRETRAIN_STEPS))

@@ -34,7 +34,11 @@ from typing import Any
 
 import torch as th
 
+from sb3_graph.common.cloning import Demonstrations, behaviour_clone
+from sb3_graph.common.experts import PRETRAIN_STEPS, PRETRAIN_TRANSITIONS, make_expert
+from sb3_graph.common.labelling import LabellingJob, ShardedCollector
 from sb3_graph.files.output_folders import write_atomically
+from sb3_graph.plugins import expert_factory, gym_packages
 
 #: Entry keys that do not change the cloned model (RL's budget, callbacks, the RL-time regularizer).
 NOT_CLONING_KEYS = ("n_timesteps", "callback", "bc_coef", "env_kwargs")
@@ -61,8 +65,6 @@ def demonstrations_key(
 ) -> dict[str, Any]:
     """What the collected demonstrations depend on; with DAgger (``pretrain_rounds`` > 1) also the learner
     that acts in the later rounds (the algorithm, its settings and its start), since it chooses the states."""
-    from sb3_graph.commands.train import PRETRAIN_TRANSITIONS
-
     key = {
         "expert": str(entry["pretrain_from"]),
         "env": env_id,
@@ -162,9 +164,6 @@ def pretrain_trial(
     :return: ``None`` without ``pretrain_from``; else ``cache`` (``"none"``, ``"demonstrations"`` or
         ``"clone"``: what was reused), ``transitions``, ``seconds`` and the two files' names
     """
-    from sb3_graph.commands.train import PRETRAIN_STEPS, _make_expert
-    from sb3_graph.common.cloning import Demonstrations, behaviour_clone
-
     if entry.get("pretrain_from") is None:
         return None
     if folder is None:  # a cache of one trial
@@ -175,7 +174,7 @@ def pretrain_trial(
     folder = Path(folder)
     tic = time.perf_counter()
     init_hash = hashlib.sha256(init_weights.read_bytes()).hexdigest() if init_weights is not None else ""
-    expert = _make_expert(str(entry["pretrain_from"]), env_id, train_env)  # on-policy bc_coef labels with it
+    expert = make_expert(str(entry["pretrain_from"]), env_id, train_env)  # on-policy bc_coef labels with it
     settings = _expert_settings(expert)
     key = {**demonstrations_key(entry, env_id, algo, init_hash), **settings}
     demo_path = folder / f"demonstrations-{_digest(key)[:32]}.npz"
@@ -228,14 +227,9 @@ def _pretrain_sharded(
     labelling: dict[str, Any],
 ) -> dict[str, Any]:
     """:func:`pretrain_trial` with its rounds labelled on an executor and kept one by one (``labelling``)."""
-    from sb3_graph.commands.train import PRETRAIN_STEPS, _make_expert
-    from sb3_graph.common.cloning import behaviour_clone
-    from sb3_graph.common.labelling import LabellingJob, ShardedCollector
-    from sb3_graph.plugins import expert_factory, gym_packages
-
     tic = time.perf_counter()
     init_hash = hashlib.sha256(init_weights.read_bytes()).hexdigest() if init_weights is not None else ""
-    expert = _make_expert(str(entry["pretrain_from"]), env_id, train_env)  # on-policy bc_coef labels with it
+    expert = make_expert(str(entry["pretrain_from"]), env_id, train_env)  # on-policy bc_coef labels with it
     settings = {**_expert_settings(expert), "labelling": "shards"}
     key = {**demonstrations_key(entry, env_id, algo, init_hash), **settings}
     rounds_folder = folder / f"demonstrations-{_digest(key)[:32]}"

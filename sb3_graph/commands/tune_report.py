@@ -24,8 +24,8 @@ def run(args: argparse.Namespace) -> int:
     old folder as a whole)."""
     import optuna
 
+    from sb3_graph.commands.tune import DEFAULT_STORAGE
     from sb3_graph.files.output_folders import OutputError, staged_folder
-    from sb3_graph.tuning.commands import DEFAULT_STORAGE
     from sb3_graph.tuning.report import check_study, write_report
     from sb3_graph.tuning.storage import make_storage, redact, storage_kind
 
