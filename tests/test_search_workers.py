@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import sys
 import time
+from dataclasses import replace
 
 import gymnasium as gym
 import numpy as np
@@ -106,6 +107,26 @@ def test_an_async_search_in_simulated_time_lands_exactly_its_latency_later(monke
     assert windows == [RECIPE.window] * 3 + [7.0] * 5
     stats = planner.stats()
     assert stats["lookahead_started"] == 2 and stats["lookahead_applied"] == 1 and stats["lookahead_late"] == 0
+
+
+def test_windows_older_than_the_horizon_give_way_to_glides_own(monkeypatch):
+    """Searches that land 3 s after they start, with a 1 s horizon: between two answers, the windows expire once
+    they are more than a horizon old, and glide's own window holds until the next answer."""
+    planted = np.full(4, 7.0)
+
+    def search_ahead(self, scene, road_windows, proposed, steps):
+        return scene.time + steps * scene.dt, planted
+
+    monkeypatch.setattr(LookaheadPlanner, "search_ahead", search_ahead)
+    planner = LookaheadPlanner(params=LookaheadParams(mode="async", latency=3.0, horizon=1.0))
+    planner.reset(0)
+    scene = busy_scene()
+    windows = []
+    for k in range(31):
+        windows.append(planner.windows_for(replace(scene, time=scene.time + k * scene.dt))[0])
+    # lands at step 15 (age 0), expires at step 21 (age 1.2 s > 1 s), the next lands at step 30
+    assert windows == [RECIPE.window] * 15 + [7.0] * 6 + [RECIPE.window] * 9 + [7.0]
+    assert planner.stats()["lookahead_expired"] == 1 and planner.applied == 2
 
 
 @pytest.mark.parametrize("workers", [1, pytest.param(2, marks=two_cores)])

@@ -86,7 +86,7 @@ class LookaheadParams:
         simulated time (the search runs in the step that starts it, and its windows land exactly ``latency``
         later: what the search process gives when no search is late; reproducible, for evaluation); ``"wall"``:
         truly concurrent, in a process beside the steps (the server's), its windows applied when they come (a
-        search late by the horizon or more is dropped)
+        search late by the horizon or more is dropped, and windows older than the horizon give way to glide's own)
     :param latency: seconds from an ``"async"`` search's start until its windows apply, > 0 (``None``: the period,
         and on the ``"wall"`` clock at least the wall time that the last searches took, counted in the wall time
         between steps, at most the horizon); rounded to whole policy steps, at least one
@@ -199,7 +199,7 @@ class LookaheadPlanner(GlidePlanner):
             self._inflight: dict | None = None
         self._next_launch = 0
         self._windows_time: float | None = None  # the (predicted) scene time the windows in force were searched at
-        self.started = self.applied = self.late = self.dropped = self.mismatched = 0
+        self.started = self.applied = self.late = self.dropped = self.mismatched = self.expired = 0
         self.worker_restarts = 0
         self._age_sum, self._age_max, self._age_steps = 0.0, 0.0, 0
         self._ahead_sum = 0.0  # seconds ahead that the searches started were predicted, summed
@@ -210,7 +210,8 @@ class LookaheadPlanner(GlidePlanner):
     def stats(self) -> dict[str, float]:
         """Searches, the ones that ran out of budget, rollouts and wall seconds spent searching; beside the steps
         (``"async"``), searches started, applied, late (applied or not), dropped (a horizon late, or their
-        worker lost), mismatched (the scene changed: a reset, another layout), replaced workers, the mean and
+        worker lost), mismatched (the scene changed: a reset, another layout), windows expired (older than the
+        horizon: glide's own window until the next answer), replaced workers, the mean and
         largest age of the windows in force [s of scene time since the scene they were searched for], and how far
         ahead the searches were predicted on average [s]."""
         stats = {
@@ -228,6 +229,7 @@ class LookaheadPlanner(GlidePlanner):
                 lookahead_late=self.late,
                 lookahead_dropped=self.dropped,
                 lookahead_mismatched=self.mismatched,
+                lookahead_expired=self.expired,
                 lookahead_age_s=self._age_sum / max(self._age_steps, 1),
                 lookahead_age_s_max=self._age_max,
                 lookahead_ahead_s=self._ahead_sum / max(self.started, 1),
@@ -282,6 +284,10 @@ class LookaheadPlanner(GlidePlanner):
                 self._beside(scene)
             elif scene.num_vehicles and self._steps % self._period_steps(scene) == 0:
                 self._apply(self._search(scene), scene.time)
+        if self._windows_time is not None and scene.time - self._windows_time > self.search.horizon + 1e-9:
+            # Windows older than the horizon: the rollouts that chose them saw nothing of now; glide's own window.
+            self._apply(None, None)
+            self.expired += 1
         if self._windows_time is not None and scene.num_vehicles:
             age = max(0.0, scene.time - self._windows_time)
             self._age_sum, self._age_max, self._age_steps = (

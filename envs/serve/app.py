@@ -179,8 +179,8 @@ def search_report(planner: Any) -> dict[str, float] | None:
 
 #: the counters of a ``lookahead`` served beside the steps that a step's JSON answer reports
 SEARCH_REPORT = ("lookahead_started", "lookahead_applied", "lookahead_late", "lookahead_dropped",
-                 "lookahead_mismatched", "lookahead_worker_restarts", "lookahead_age_s", "lookahead_age_s_max",
-                 "lookahead_ahead_s")  # fmt: skip
+                 "lookahead_mismatched", "lookahead_expired", "lookahead_worker_restarts", "lookahead_age_s",
+                 "lookahead_age_s_max", "lookahead_ahead_s")  # fmt: skip
 
 
 def _shared_parts(planner: Any, depth: int = 0) -> list[Any]:

@@ -56,6 +56,8 @@ class SearchReport(BaseModel):
     late: float = Field(description="searches that answered after the step they were searched for")
     dropped: float = Field(description="searches not applied: a horizon late or more, or their process lost")
     mismatched: float = Field(description="answers for a scene no longer the stream's (a reset, another layout)")
+    expired: float = Field(default=0.0, description="times the windows in force grew older than the search's "
+                           "horizon and gave way to glide's own")  # fmt: skip
     worker_restarts: float = Field(description="search processes replaced after they ended")
     age_s: float = Field(description="mean age of the windows in force [s of scene time]")
     age_s_max: float = Field(description="largest age of the windows in force [s]")
