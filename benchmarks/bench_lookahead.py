@@ -31,6 +31,7 @@ import os
 import platform
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
@@ -46,6 +47,7 @@ import envs  # noqa: E402, F401  (registers the environments)
 from envs.evaluation.harness import evaluation_env_kwargs  # noqa: E402
 from envs.planners import make_planner  # noqa: E402
 from envs.planners.lookahead import LookaheadParams, LookaheadPlanner  # noqa: E402
+from envs.planners.search_workers import available_cores  # noqa: E402
 from envs.simulation.engine import Simulation  # noqa: E402
 from envs.simulation.scene import Scene  # noqa: E402
 from envs.simulation.traffic import generate_scenario  # noqa: E402
@@ -76,27 +78,40 @@ def step_of(scene: Scene) -> Simulation:
     return sim
 
 
-def measure(scenes: list[Scene], params: LookaheadParams, repeat: int) -> tuple[float, float, int]:
-    """Median wall ms of a search and of a shielded step, interleaved, and the searches' rollouts each."""
-    search, step = [], []
-    planner = LookaheadPlanner(params=params)
+def measure(
+    scenes: list[Scene], params: LookaheadParams, repeat: int, workers: list[int]
+) -> tuple[dict[int, float], float, dict[int, tuple[float, float, float]]]:
+    """Median wall ms of a search with each count of ``workers`` and of a shielded step, interleaved (a step before
+    each search), and per search: rollouts, rollout steps, and rollout steps on the critical path (the longest
+    process's share, wave by wave: the search's wall time on idle cores, in rollout steps)."""
+    search: dict[int, list[float]] = {w: [] for w in workers}
+    step = []
+    planners = {w: LookaheadPlanner(params=replace(params, workers=w)) for w in workers}
     shield = make_planner("fullthrottle+shield")
-    for p in (planner, shield):
-        p.reset(0)
-    planner._search(scenes[0])  # warm-up: compiles the kernels
+    shield.reset(0)
+    for planner in planners.values():
+        planner.reset(0)
+        planner._search(scenes[0])  # warm-up: compiles the kernels, starts the helpers
     step_of(scenes[0]).step(shield.act(scenes[0]))
-    rollouts = planner.rollouts
+    before = {w: (p.rollouts, p.rollout_steps, p.critical_steps) for w, p in planners.items()}
     for _ in range(repeat):
         for scene in scenes:
-            sim = step_of(scene)
-            tic = time.perf_counter()
-            sim.step(shield.act(scene))
-            step.append(time.perf_counter() - tic)
-            tic = time.perf_counter()
-            planner._search(scene)
-            search.append(time.perf_counter() - tic)
-    per_search = (planner.rollouts - rollouts) // max(1, len(search))
-    return 1e3 * float(np.median(search)), 1e3 * float(np.median(step)), per_search
+            for w, planner in planners.items():
+                sim = step_of(scene)
+                tic = time.perf_counter()
+                sim.step(shield.act(scene))
+                step.append(time.perf_counter() - tic)
+                tic = time.perf_counter()
+                planner._search(scene)
+                search[w].append(time.perf_counter() - tic)
+    per_search = {
+        w: tuple((now - then) / max(1, len(search[w])) for now, then in zip((p.rollouts, p.rollout_steps,
+                                                                             p.critical_steps), before[w]))
+        for w, p in planners.items()
+    }  # fmt: skip
+    for planner in planners.values():
+        planner.close()
+    return {w: 1e3 * float(np.median(t)) for w, t in search.items()}, 1e3 * float(np.median(step)), per_search
 
 
 def profile(scenes: list[Scene], params: LookaheadParams, repeat: int) -> None:
@@ -139,12 +154,14 @@ def profile(scenes: list[Scene], params: LookaheadParams, repeat: int) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--sizes", type=int, nargs="*", default=[20, 50, 100])
+    parser.add_argument("--sizes", type=int, nargs="*", default=[20, 50, 100, 200])
     parser.add_argument("--run-sizes", type=int, nargs="*", default=[30])
     parser.add_argument("--repeat", type=int, default=2)
     parser.add_argument("--rollout-frequency", type=int, default=LookaheadParams().rollout_frequency)
     parser.add_argument("--per-approach", choices=("true", "false"), default=None,
                         help="the greedy pass per approach road (default: lookahead's default)")  # fmt: skip
+    parser.add_argument("--workers", type=int, nargs="*", default=[1, 2, 4],
+                        help="processes per search (a count above the cores is reported, not run)")  # fmt: skip
     parser.add_argument("--profile", action="store_true", help="where a search's time goes (cProfile), then exit")
     args = parser.parse_args()
     import torch
@@ -158,17 +175,36 @@ def main() -> None:
     if args.profile:
         profile(run_scenes(args.run_sizes[0] if args.run_sizes else 30), params, args.repeat)
         return
-    print("| scenes | vehicles | rollouts per search | search [ms] | shielded step [ms] | search / step |")
-    print("|---|---:|---:|---:|---:|---:|")
+    cores = available_cores()
+    workers = [w for w in args.workers if 1 <= w <= cores]
+    print(f"load average before: {' '.join(f'{x:.1f}' for x in os.getloadavg())}")
+    print("| scenes | vehicles | workers | rollouts per search | rollout steps (critical path) | search [ms] | "
+          "shielded step [ms] | search / step | against 1 worker: wall (critical path) |")  # fmt: skip
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|")
     kinds = [(f"run {n}", run_scenes(n)) for n in args.run_sizes]
-    kinds += [(f"dense {n}", [dense_scene(n)[0]]) for n in args.sizes]
+    for n in args.sizes:
+        try:
+            kinds.append((f"dense {n}", [dense_scene(n)[0]]))
+        except ValueError as error:  # the layout's approaches hold fewer
+            kinds.append((f"dense {n}: {error}", []))
     for label, scenes in kinds:
         if not scenes:
-            print(f"| {label} | no scene of that size | | | | |")
+            print(f"| {label} | no scene of that size | | | | | | | |")
             continue
-        search, step, rollouts = measure(scenes, params, args.repeat if label.startswith("run") else 3 * args.repeat)
+        rounds = args.repeat if label.startswith("run") else 3 * args.repeat
+        search, step, rollouts = measure(scenes, params, rounds, workers)
         vehicles = np.mean([s.num_vehicles for s in scenes])
-        print(f"| {label} | {vehicles:.0f} | {rollouts} | {search:.1f} | {step:.2f} | {search / step:.0f} |")
+        for w in args.workers:
+            if w not in search:
+                print(f"| {label} | {vehicles:.0f} | {w} | more than the {cores} cores: not run | | | | | |")
+                continue
+            count, steps, critical = rollouts[w]
+            against = ""
+            if workers[0] == 1:
+                against = f"{search[w] / search[1]:.2f}x ({critical / rollouts[1][2]:.2f}x)"
+            print(f"| {label} | {vehicles:.0f} | {w} | {count:.1f} | {steps:.0f} ({critical:.0f}) | {search[w]:.1f} | "
+                  f"{step:.2f} | {search[w] / step:.0f} | {against} |")  # fmt: skip
+    print(f"load average after: {' '.join(f'{x:.1f}' for x in os.getloadavg())}")
 
 
 if __name__ == "__main__":

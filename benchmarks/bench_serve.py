@@ -351,12 +351,14 @@ def latency(
     WebSocket with binary frames, or ``http``, JSON over HTTP). The two are timed alternately on the same scene,
     the order swapped every decision, so that both see the same load."""
     from envs.planners import make_planner
+    from envs.serve.app import as_served
     from envs.serve.client import PlannerClient
     from envs.serve.wire import scene_to_wire
 
     rows = []
     client = PlannerClient(url, fast=transport == "fast")
     local = make_planner(planner_spec)
+    as_served(local)  # as the server runs it (a lookahead searches beside the steps)
     for n in sizes:
         scene, builder = (queue_scene if scene_kind == "queue" else dense_scene)(n)
         stream = client.open("4way", dt=scene.dt, seed=0)

@@ -44,6 +44,23 @@ class Hold(LookaheadPlanner):
         super().__init__("LookaheadHold", LookaheadParams(hold=True, per_approach=False))
 
 
+class Async(LookaheadPlanner):
+    """The search beside the steps (``mode="async"``), emulated deterministically in simulated time: each search
+    starts from the scene predicted one period ahead, and its windows land one period after it starts (what the
+    server's search process gives when no search is late)."""
+
+    def __init__(self) -> None:
+        super().__init__("LookaheadAsync", LookaheadParams(mode="async"))
+
+
+class Async3s(LookaheadPlanner):
+    """``Async`` with searches that take 3 s (15 steps) to land: a slow search's cost, e.g. 100 vehicles on a busy
+    machine (the server predicts a search as far ahead as the last ones took)."""
+
+    def __init__(self) -> None:
+        super().__init__("LookaheadAsync3s", LookaheadParams(mode="async", latency=3.0))
+
+
 class _IDMCappedGlide(GlidePlanner):
     """glide whose proposal is capped by IDM car following behind each vehicle's leader."""
 

@@ -23,6 +23,11 @@ less delay). A search that runs
 out of its wall-time ``budget`` keeps glide's own window for that period and is counted
 (``lookahead_fallbacks`` in the run's stats). The shield checks the real step as for any planner:
 ``lookahead`` is meant to run behind it (``lookahead+shield``).
+
+A search runs in the step that starts it (``mode="sync"``, the default), or beside the steps from the scene predicted
+to when its windows will apply (``"async"``): emulated deterministically in simulated time (``clock="steps"``, for
+evaluation), or truly concurrent in a process of its own (``clock="wall"``, the server's). One search's rollouts run
+over ``workers`` processes (:mod:`envs.planners.search_workers`).
 """
 
 from __future__ import annotations
@@ -30,17 +35,29 @@ from __future__ import annotations
 import functools
 import math
 import time
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
 from envs.planners import _shield_kernel
 from envs.planners.glide import RECIPE, GlideParams, GlidePlanner
 from envs.planners.priority import PriorityPlanner
+from envs.planners.search_workers import (
+    RolloutPool,
+    SearchProcess,
+    WorkerLost,
+    available_cores,
+    check_workers,
+)
 from envs.planners.shield import Shield, envelope_table
 from envs.simulation.engine import Simulation
 from envs.simulation.motion import traction_energy
 from envs.simulation.scene import STOP_SPEED, Scene
+
+#: How a search runs against the steps (:class:`LookaheadParams`' ``mode``).
+MODES = ("sync", "async")
+#: Whose time an ``"async"`` search's latency runs on (:class:`LookaheadParams`' ``clock``).
+CLOCKS = ("steps", "wall")
 
 
 @dataclass(frozen=True)
@@ -62,6 +79,19 @@ class LookaheadParams:
     :param hold: advice once given holds to the line (glide's rule for a policy's windows), so a search changes
         only the vehicles not yet advised; ``False`` (default): every vehicle follows its road's window of the
         last search (on the main job's first 30 scenarios: +0.018 veh/s and -0.8 s against holding)
+    :param mode: ``"sync"`` (default): a search runs in the step that starts it, which waits for it; ``"async"``: a
+        search runs beside the steps, from the scene predicted ``latency`` ahead, and every step answers at glide's
+        cost from the windows of the latest finished search
+    :param clock: whose time an ``"async"`` search takes: ``"steps"`` (default), emulated deterministically in
+        simulated time (the search runs in the step that starts it, and its windows land exactly ``latency``
+        later: what the search process gives when no search is late; reproducible, for evaluation); ``"wall"``:
+        truly concurrent, in a process beside the steps (the server's), its windows applied when they come (a
+        search late by the horizon or more is dropped, and windows older than the horizon give way to glide's own)
+    :param latency: seconds from an ``"async"`` search's start until its windows apply, > 0 (``None``: the period,
+        and on the ``"wall"`` clock at least the wall time that the last searches took, counted in the wall time
+        between steps, at most the horizon); rounded to whole policy steps, at least one
+    :param workers: processes that run one search's rollouts, from 1 to the cores available (``None``: the cores
+        on the ``"wall"`` clock, 1 otherwise, since an evaluation already runs its runs in parallel)
     """
 
     windows: tuple[float, ...] = (0.0, 30.0, math.inf)
@@ -74,6 +104,10 @@ class LookaheadParams:
     rollout_frequency: int = 5
     shield_horizon: float = 8.0
     hold: bool = False
+    mode: str = "sync"
+    clock: str = "steps"
+    latency: float | None = None
+    workers: int | None = None
 
     def __post_init__(self) -> None:
         windows = self.windows
@@ -92,12 +126,25 @@ class LookaheadParams:
             "budget": ("a number > 0 (inf: no limit)", lambda x: _number(x) and x > 0),
             "rollout_frequency": ("one of [1, 3, 5, 15]", lambda x: x in (1, 3, 5, 15) and not isinstance(x, bool)),
             "shield_horizon": ("a finite number > 0", lambda x: _number(x) and 0 < x < math.inf),
-        }
+            "mode": (f"one of {list(MODES)}", lambda x: x in MODES),
+            "clock": (f"one of {list(CLOCKS)}", lambda x: x in CLOCKS),
+            "latency": ("a finite number > 0 or None (the period)",
+                        lambda x: x is None or (_number(x) and 0 < x < math.inf)),
+        }  # fmt: skip
         for field in fields(self):
             if field.name in rules and not rules[field.name][1](getattr(self, field.name)):
                 raise ValueError(
                     f"lookahead's {field.name} must be {rules[field.name][0]}, got {getattr(self, field.name)!r}"
                 )
+        if self.workers is not None:
+            object.__setattr__(self, "workers", check_workers(self.workers))
+
+    @property
+    def processes(self) -> int:
+        """The processes that run one search's rollouts (``workers``, or its default for the mode)."""
+        if self.workers is not None:
+            return self.workers
+        return available_cores() if self.mode == "async" and self.clock == "wall" else 1
 
 
 def _number(x: object) -> bool:
@@ -140,11 +187,33 @@ class LookaheadPlanner(GlidePlanner):
         self._stopped = np.zeros(0, np.int64)  # ids that have stopped (sorted)
         self._steps = 0
         self._sim: Simulation | None = None
+        self._predictor: Simulation | None = None
         self.searches = self.fallbacks = self.rollouts = 0
         self.search_seconds = 0.0
+        # Rollout steps run, and those on the critical path (the longest process's share, wave by wave): the
+        # wall time of a search on idle cores, in rollout steps.
+        self.rollout_steps = self.critical_steps = 0
+        # The search beside the steps: a search's answer is matched to the episode that asked for it.
+        self._generation = getattr(self, "_generation", 0) + 1
+        if self.search.clock == "steps":
+            self._inflight: dict | None = None
+        self._next_launch = 0
+        self._windows_time: float | None = None  # the (predicted) scene time the windows in force were searched at
+        self.started = self.applied = self.late = self.dropped = self.mismatched = self.expired = 0
+        self.worker_restarts = 0
+        self._age_sum, self._age_max, self._age_steps = 0.0, 0.0, 0
+        self._ahead_sum = 0.0  # seconds ahead that the searches started were predicted, summed
+        self._search_walls: list[float] = getattr(self, "_search_walls", [])  # wall s of the last searches
+        self._step_wall: float | None = None  # wall s between two steps (a moving average)
+        self._last_step: float | None = None
 
     def stats(self) -> dict[str, float]:
-        """Searches, the ones that ran out of budget, rollouts and wall seconds spent searching."""
+        """Searches, the ones that ran out of budget, rollouts and wall seconds spent searching; beside the steps
+        (``"async"``), searches started, applied, late (applied or not), dropped (a horizon late, or their
+        worker lost), mismatched (the scene changed: a reset, another layout), windows expired (older than the
+        horizon: glide's own window until the next answer), replaced workers, the mean and
+        largest age of the windows in force [s of scene time since the scene they were searched for], and how far
+        ahead the searches were predicted on average [s]."""
         stats = {
             "lookahead_searches": self.searches,
             "lookahead_fallbacks": self.fallbacks,
@@ -153,7 +222,46 @@ class LookaheadPlanner(GlidePlanner):
         }
         if self.proposer is not None:
             stats["lookahead_proposals_kept"] = self.proposals_kept
+        if self.search.mode != "sync":
+            stats.update(
+                lookahead_started=self.started,
+                lookahead_applied=self.applied,
+                lookahead_late=self.late,
+                lookahead_dropped=self.dropped,
+                lookahead_mismatched=self.mismatched,
+                lookahead_expired=self.expired,
+                lookahead_age_s=self._age_sum / max(self._age_steps, 1),
+                lookahead_age_s_max=self._age_max,
+                lookahead_ahead_s=self._ahead_sum / max(self.started, 1),
+            )
+        if self.search.mode != "sync" or self.search.processes > 1:
+            stats["lookahead_worker_restarts"] = self.worker_restarts
         return stats
+
+    def beside_the_steps(self) -> None:
+        """Search beside the steps from now on, truly concurrently (``mode="async"``, ``clock="wall"``, its workers
+        the cores unless set): the server's mode. Resets the planner."""
+        self.close()
+        self.__dict__.pop("_searcher", None)
+        self.search = replace(self.search, mode="async", clock="wall")
+        self.reset()
+
+    def close(self) -> None:
+        """End the processes searching beside this planner (they also end with it)."""
+        for part in ("_pool", "_process"):
+            worker = self.__dict__.pop(part, None)
+            if worker is not None:
+                worker.close()
+        searcher = self.__dict__.get("_searcher")
+        if searcher is not None:
+            searcher.close()
+
+    def __getstate__(self) -> dict:
+        """A copy holds no process (it starts its own when it first searches)."""
+        state = dict(self.__dict__)
+        for part in ("_pool", "_process", "_inflight"):
+            state.pop(part, None)
+        return state
 
     # ------------------------------------------------------------------ acting
     def act(self, scene: Scene) -> np.ndarray:
@@ -169,18 +277,213 @@ class LookaheadPlanner(GlidePlanner):
         :param scene: the scene now
         :return: ``(n,)`` windows [m] (glide's own window after a search past its budget)
         """
-        if scene.num_vehicles and scene.layout is not None and scene.arc is not None:
-            self._stopped = np.union1d(self._stopped, scene.vehicle_id[scene.speed < STOP_SPEED])
-            if self._steps % max(1, int(round(self.search.period / scene.dt))) == 0:
-                self._road_windows, self._proposed = self._search(scene), None
-                if isinstance(self._road_windows, tuple):  # the proposal won
-                    self._road_windows, self._proposed = None, self._road_windows
+        if scene.layout is not None and (scene.arc is not None or not scene.num_vehicles):
+            if scene.num_vehicles:
+                self._stopped = np.union1d(self._stopped, scene.vehicle_id[scene.speed < STOP_SPEED])
+            if self.search.mode != "sync":
+                self._beside(scene)
+            elif scene.num_vehicles and self._steps % self._period_steps(scene) == 0:
+                self._apply(self._search(scene), scene.time)
+        if self._windows_time is not None and scene.time - self._windows_time > self.search.horizon + 1e-9:
+            # Windows older than the horizon: the rollouts that chose them saw nothing of now; glide's own window.
+            self._apply(None, None)
+            self.expired += 1
+        if self._windows_time is not None and scene.num_vehicles:
+            age = max(0.0, scene.time - self._windows_time)
+            self._age_sum, self._age_max, self._age_steps = (
+                self._age_sum + age,
+                max(self._age_max, age),
+                1 + self._age_steps,
+            )
         self._steps += 1
         if self._proposed is not None and scene.num_vehicles:  # vehicles that came since: glide's own window
             return _lookup(*self._proposed, scene.vehicle_id, self.params.window)
         if self._road_windows is None or scene.num_vehicles == 0:
             return np.full(scene.num_vehicles, self.params.window)
         return self._road_windows[_roads(scene.layout)[scene.route]]
+
+    def _period_steps(self, scene: Scene) -> int:
+        return max(1, int(round(self.search.period / scene.dt)))
+
+    def _apply(self, result: np.ndarray | tuple[np.ndarray, np.ndarray] | None, searched_at: float | None) -> None:
+        """Advise from a search's result from now on (``None``: glide's own window)."""
+        self._road_windows, self._proposed = result, None
+        if isinstance(result, tuple):  # the proposal won
+            self._road_windows, self._proposed = None, result
+        self._windows_time = searched_at
+
+    # ------------------------------------------------------------------ beside the steps
+    def _beside(self, scene: Scene) -> None:
+        """A step of the ``"async"`` mode: apply the answer that is due, start the next search."""
+        now = time.perf_counter()
+        if self._last_step is not None:  # the wall time between steps (the server's clients step in real time)
+            gap = now - self._last_step
+            self._step_wall = gap if self._step_wall is None else 0.8 * self._step_wall + 0.2 * gap
+        self._last_step = now
+        self._land(scene)
+        if getattr(self, "_inflight", None) is None and self._steps >= self._next_launch and scene.num_vehicles:
+            self._launch(scene)
+            self._next_launch = self._steps + self._period_steps(scene)
+
+    def _launch(self, scene: Scene) -> None:
+        """Start a search from ``scene`` predicted ``latency`` ahead (on the ``"steps"`` clock: run it now, its
+        windows held until then)."""
+        ahead = self._latency_steps(scene)
+        self._ahead_sum += ahead * scene.dt
+        self.started += 1
+        inflight = dict(generation=self._generation, layout=scene.layout.name, due=self._steps + ahead, done=False)
+        request = (self.memory(), self._road_windows, self._proposed, ahead)
+        if self.search.clock == "steps":
+            searcher = self._twin()
+            searcher.adopt_memory(*request[0])
+            before = searcher.counters()
+            inflight.update(done=True, answer=searcher.search_ahead(scene, *request[1:]))
+            self._add_counters(searcher.counters(), before)
+        else:
+            if self.__dict__.get("_process") is None:
+                self._process = SearchProcess(self._twin(), scene.layout)
+            self._process.submit((self._generation, scene, *request))
+            inflight["wall"] = time.perf_counter()
+        self._inflight = inflight
+
+    def _latency_steps(self, scene: Scene) -> int:
+        """Steps from a search's start until its windows apply: ``latency``, or else the period; on the ``"wall"``
+        clock with ``latency=None``, at least the wall time the last searches took, in the wall time of a step
+        (a search that lands on time needs no excuse), at most the horizon."""
+        latency = self.search.period if self.search.latency is None else self.search.latency
+        steps = max(1, int(round(latency / scene.dt)))
+        if self.search.clock == "wall" and self.search.latency is None and self._search_walls and self._step_wall:
+            expected = 1.25 * max(self._search_walls) / self._step_wall
+            steps = max(steps, min(int(math.ceil(expected)), int(round(self.search.horizon / scene.dt))))
+        return steps
+
+    def _land(self, scene: Scene) -> None:
+        """Take the answer of the search in flight if it has come: applied when due and still useful, else dropped."""
+        inflight = getattr(self, "_inflight", None)
+        if inflight is None:
+            return
+        if not inflight["done"]:
+            try:
+                answer = self._process.poll()
+            except WorkerLost:  # the step goes on with glide's windows; a fresh process takes the next search
+                self._process.close()
+                self._process = self._inflight = None
+                self.worker_restarts += 1
+                self.dropped += 1
+                self._apply(None, None)
+                return
+            if answer is None:
+                return
+            generation, searched_at, result, counters = answer
+            self._add_counters(counters, {})
+            self._search_walls = (self._search_walls + [time.perf_counter() - inflight["wall"]])[-3:]
+            inflight.update(done=True, answer=(searched_at, result), generation=generation)
+        if inflight["generation"] != self._generation or inflight["layout"] != getattr(scene.layout, "name", None):
+            self.mismatched += 1
+            self._inflight = None
+            return
+        late = self._steps - inflight["due"]
+        if late < 0:
+            return  # held until the time it was searched for
+        self._inflight = None
+        if late > 0:
+            self.late += 1
+            # Still the newest answer (one search runs at a time): applied while its rollouts still cover the step.
+            if late >= int(round(self.search.horizon / scene.dt)):
+                self.dropped += 1
+                return
+        self.applied += 1
+        self._apply(inflight["answer"][1], inflight["answer"][0])
+
+    def _twin(self) -> LookaheadPlanner:
+        """The synchronous planner that runs this one's searches beside the steps (built once)."""
+        twin = self.__dict__.get("_searcher")
+        if twin is None:
+            params = replace(self.search, mode="sync", clock="steps", workers=self.search.processes)
+            twin = self._searcher = LookaheadPlanner(self.name, params, self.params, self.proposer)
+            twin.reset()
+        return twin
+
+    def memory(self) -> tuple[tuple[np.ndarray, ...], np.ndarray]:
+        """What a search starts from besides the scene: glide's memory (order, commitments, held advice) and the
+        ids that have stopped."""
+        return (self._ids, self._keys, self._committed_at, self._held), self._stopped
+
+    def adopt_memory(self, memory: tuple[np.ndarray, ...], stopped: np.ndarray) -> None:
+        """Plan on from :meth:`memory` of another planner (a search's start)."""
+        self._ids, self._keys, self._committed_at, self._held = memory
+        self._stopped = stopped
+
+    def counters(self) -> dict[str, float]:
+        """The counters a search adds to (the ones :meth:`stats` reports for searches run elsewhere)."""
+        return dict(searches=self.searches, fallbacks=self.fallbacks, rollouts=self.rollouts,
+                    search_seconds=self.search_seconds, proposals_kept=self.proposals_kept,
+                    worker_restarts=self.worker_restarts, rollout_steps=self.rollout_steps,
+                    critical_steps=self.critical_steps)  # fmt: skip
+
+    def _add_counters(self, after: dict[str, float], before: dict[str, float]) -> None:
+        for key, value in after.items():
+            setattr(self, key, getattr(self, key) + value - before.get(key, 0))
+
+    def search_ahead(
+        self,
+        scene: Scene,
+        road_windows: np.ndarray | None,
+        proposed: tuple[np.ndarray, np.ndarray] | None,
+        steps: int,
+    ) -> tuple[float, np.ndarray | tuple[np.ndarray, np.ndarray] | None]:
+        """A search from ``scene`` predicted ``steps`` policy steps ahead with the windows in force (this planner's
+        memory, set by :meth:`adopt_memory`, moves along the prediction).
+
+        :param scene: the scene now
+        :param road_windows: the windows per road in force (``None``: glide's own, or ``proposed``)
+        :param proposed: the proposal's ``(ids, windows)`` in force
+        :param steps: policy steps ahead
+        :return: the predicted scene's time and the search's result (as :meth:`_search`)
+        """
+        ahead = self.predict(scene, steps, road_windows, proposed)
+        self._road_windows = road_windows
+        if ahead.num_vehicles == 0:
+            return ahead.time, road_windows
+        return ahead.time, self._search(ahead)
+
+    def predict(
+        self,
+        scene: Scene,
+        steps: int,
+        road_windows: np.ndarray | None,
+        proposed: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> Scene:
+        """The scene ``steps`` policy steps ahead, driven as the real step drives it: glide on the windows in force
+        behind a shield, no new vehicle. This planner's memory (glide's, who has stopped) moves along.
+
+        :param scene: the scene now (not modified)
+        :param steps: policy steps ahead (the scene's ``dt`` each)
+        :param road_windows: ``(roads,)`` windows in force (``None``: glide's own window, or ``proposed``)
+        :param proposed: the proposal's ``(ids, windows)`` in force, ids sorted
+        """
+        if steps <= 0 or scene.num_vehicles == 0:
+            return scene
+        frequency = int(round(1.0 / scene.dt))
+        sim = self._predictor
+        if sim is None or sim.layout is not scene.layout or sim.policy_frequency != frequency:
+            sim = self._predictor = _simulation(scene, frequency)
+        _set(sim, scene)
+        me = self.fork()
+        shield = Shield(me, watchdog_after=None)
+        roads = _roads(scene.layout)
+        for _ in range(steps):
+            if sim.num_vehicles == 0:
+                break
+            now = sim.rollout_scene()
+            if proposed is not None:
+                me.set_windows(_lookup(*proposed, now.vehicle_id, self.params.window))
+            elif road_windows is not None:
+                me.set_windows(road_windows[roads[now.route]])
+            sim.step(shield.check_output(now, me.act(now), me.name))
+            self._stopped = np.union1d(self._stopped, sim.vehicle_id[sim.speed < STOP_SPEED])
+        self.adopt(me)
+        return sim.scene()
 
     def propose(self, scene: Scene) -> np.ndarray:
         """The proposer's advice windows for the vehicles of ``scene`` (as its environment's action sets them).
@@ -192,7 +495,7 @@ class LookaheadPlanner(GlidePlanner):
     # ------------------------------------------------------------------ search
     def _search(self, scene: Scene) -> np.ndarray | tuple[np.ndarray, np.ndarray] | None:
         """The cheapest windows per approach road, the proposal's ``(ids, windows)`` where it costs less than
-        every one, or ``None`` (glide's own window) past the budget."""
+        every one, or ``None`` (glide's own window) past the budget or when a rollout worker was lost."""
         tic = time.perf_counter()
         self.searches += 1
         n_roads = int(_roads(scene.layout).max()) + 1
@@ -200,26 +503,39 @@ class LookaheadPlanner(GlidePlanner):
         costs: dict[tuple[float, ...], float] = {}
         same = _equivalent_windows(scene, n_roads, self.search.windows)
 
-        def cost(windows: tuple[float, ...]) -> float:
-            key = tuple(same[r][w] for r, w in enumerate(windows))
-            if key not in costs:
+        def key(windows: tuple[float, ...]) -> tuple[float, ...]:
+            return tuple(same[r][w] for r, w in enumerate(windows))
+
+        def evaluate(candidates: list[tuple[float, ...]]) -> None:
+            """Roll out the candidates not yet costed, in order (over the workers, if any). A cost only grows
+            along a rollout: one past the cheapest so far cannot win, so it stops there."""
+            todo = list({key(w): w for w in candidates if key(w) not in costs}.items())
+            pool = self._rollout_pool(scene) if len(todo) > 1 else None
+            if pool is not None:
                 if time.perf_counter() > deadline:
                     raise TimeoutError
-                # A cost only grows along a rollout: one past the cheapest so far cannot win, so it stops there.
-                costs[key] = self.rollout(scene, np.array(windows), bound=min(costs.values(), default=math.inf))
-            return costs[key]
+                costs.update(pool.costs(self, scene, todo, min(costs.values(), default=math.inf)))
+                return
+            before = self.rollout_steps
+            for k, windows in todo:
+                if time.perf_counter() > deadline:
+                    raise TimeoutError
+                costs[k] = self.rollout(scene, np.array(windows), bound=min(costs.values(), default=math.inf))
+            self.critical_steps += self.rollout_steps - before
+
+        def cost(windows: tuple[float, ...]) -> float:
+            return costs[key(windows)]
 
         try:
             # The windows of the last search first: usually still the cheapest, so the others stop early.
             first = () if self._road_windows is None else (tuple(self._road_windows.tolist()),)
             flat = [(w,) * n_roads for w in self.search.windows]
-            ordered = [w for w in first if w in flat] + [w for w in flat if w not in first]
-            for windows in ordered:
-                cost(windows)
+            evaluate([w for w in first if w in flat] + [w for w in flat if w not in first])
             best = min(flat, key=lambda w: (cost(w), flat.index(w)))
             if self.search.per_approach:
                 for road in range(n_roads):
-                    tried = (best[:road] + (w,) + best[road + 1 :] for w in self.search.windows)
+                    tried = [best[:road] + (w,) + best[road + 1 :] for w in self.search.windows]
+                    evaluate(tried)
                     best = min(tried, key=lambda w: (cost(w), w != best))
             if self.proposer is not None:
                 if time.perf_counter() > deadline:
@@ -233,8 +549,22 @@ class LookaheadPlanner(GlidePlanner):
         except TimeoutError:
             self.fallbacks += 1
             best = None
+        except WorkerLost:  # the search is void: glide's own window until the next one, with fresh workers
+            self.fallbacks += 1
+            self.worker_restarts += 1
+            self._pool.replace_dead(self, scene.layout)
+            best = None
         self.search_seconds += time.perf_counter() - tic
         return None if best is None else np.array(best)
+
+    def _rollout_pool(self, scene: Scene) -> RolloutPool | None:
+        """The helpers that share a search's rollouts (started at the first search; ``None``: one process)."""
+        if self.search.processes < 2:
+            return None
+        pool = self.__dict__.get("_pool")
+        if pool is None:
+            pool = self._pool = RolloutPool(self, self.search.processes, scene.layout)
+        return pool
 
     def rollout(
         self,
@@ -242,6 +572,7 @@ class LookaheadPlanner(GlidePlanner):
         road_windows: np.ndarray | None,
         bound: float = math.inf,
         proposed: tuple[np.ndarray, np.ndarray] | None = None,
+        shared: np.ndarray | None = None,
     ) -> float:
         """The cost of driving ``horizon`` seconds from ``scene`` with these windows per approach road.
 
@@ -252,6 +583,8 @@ class LookaheadPlanner(GlidePlanner):
             rollout, so each keeps its own)
         :param bound: stop as soon as the cost so far exceeds this (it only grows): the cost returned is
             then above ``bound`` but not the whole horizon's
+        :param shared: ``(1,)`` the cheapest cost that other processes have finished so far (a bound too, read
+            every step)
         :return: seconds lost against the lane limits, plus the prices of new stops and of energy
         """
         self.rollouts += 1
@@ -275,6 +608,7 @@ class LookaheadPlanner(GlidePlanner):
         for _ in range(int(round(self.search.horizon / dt))):
             if sim.num_vehicles == 0:
                 break
+            self.rollout_steps += 1
             # The lean scene, not copied for glide: glide and the shield never write in a scene (a test checks).
             now = sim.rollout_scene(limit)
             if throttle:
@@ -295,7 +629,7 @@ class LookaheadPlanner(GlidePlanner):
             if new.any():
                 stopped |= new
                 lost += self.search.stop_price * int(new.sum())
-            if lost > bound:
+            if lost > bound or (shared is not None and lost > shared[0]):
                 break
         return lost + self.search.energy_price * energy / 1e3
 
@@ -303,21 +637,29 @@ class LookaheadPlanner(GlidePlanner):
         """The simulation of the rollouts, set to ``scene`` (built once per layout and reused)."""
         sim = self._sim
         if sim is None or sim.layout is not scene.layout:
-            sim = self._sim = _RolloutSimulation(
-                scene.layout,
-                simulation_frequency=15,
-                policy_frequency=self.search.rollout_frequency,
-                max_speed=20.0,
-                max_acceleration=float(scene.a_max),
-                s_ref=scene.s_ref,
-                max_vehicles=max(256, scene.num_vehicles),
-                check_collisions=False,  # behind the shield: the check would find nothing
-            )
-        width = np.full(scene.num_vehicles, 2.0) if scene.width is None else scene.width
-        sim.set_state(
-            scene.time, scene.route, scene.vehicle_id, scene.arc, scene.speed, scene.length, width, scene.humans
-        )
+            sim = self._sim = _simulation(scene, self.search.rollout_frequency)
+        _set(sim, scene)
         return sim
+
+
+def _simulation(scene: Scene, policy_frequency: int) -> Simulation:
+    """A simulation of the scene's layout to plan ahead in (no collision check: behind the shield it finds nothing)."""
+    return _RolloutSimulation(
+        scene.layout,
+        simulation_frequency=15,
+        policy_frequency=policy_frequency,
+        max_speed=20.0,
+        max_acceleration=float(scene.a_max),
+        s_ref=scene.s_ref,
+        max_vehicles=max(256, scene.num_vehicles),
+        check_collisions=False,
+    )
+
+
+def _set(sim: Simulation, scene: Scene) -> None:
+    """Set ``sim`` to the vehicles of ``scene``."""
+    width = np.full(scene.num_vehicles, 2.0) if scene.width is None else scene.width
+    sim.set_state(scene.time, scene.route, scene.vehicle_id, scene.arc, scene.speed, scene.length, width, scene.humans)
 
 
 class _RolloutSimulation(Simulation):

@@ -55,6 +55,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from envs.evaluation.harness import env_config
 from envs.planners import SHIELD_SUFFIX, check_planner_spec, make_planner, planner_name
 from envs.planners.base import Planner
+from envs.planners.lookahead import LookaheadPlanner
 from envs.serve import frames
 from envs.serve.access import Access, FailureLimit
 from envs.serve.handoff import server_frame
@@ -125,6 +126,7 @@ class Answer:
     ids: np.ndarray
     acc: np.ndarray
     shield: tuple[np.ndarray, bool] | None
+    search: dict[str, float] | None = None  # a lookahead's searches beside the steps (search_report)
 
 
 def _error_body(field_name: str, message: str, **extra: Any) -> bytes:
@@ -149,6 +151,36 @@ def _validation_field(error: ValidationError | RequestValidationError) -> tuple[
     first = error.errors()[0]
     name = "body" if first.get("type") == "json_invalid" else _field_of(tuple(first.get("loc", ())))
     return name, str(first.get("msg", "invalid"))
+
+
+def as_served(planner: Any, depth: int = 0) -> bool:
+    """Set a planner as the server runs it: a ``lookahead`` searches beside the steps (its ``"async"`` mode), so
+    that a step answers at glide's cost from the windows of the latest finished search and a search never blocks
+    it (nor meets the time limit).
+
+    :return: whether the planner holds a ``lookahead``
+    """
+    if isinstance(planner, LookaheadPlanner):
+        if planner.search.mode == "sync":
+            planner.beside_the_steps()
+        return True
+    inner = getattr(planner, "planner", None)
+    return isinstance(inner, Planner) and depth < 8 and as_served(inner, depth + 1)
+
+
+def search_report(planner: Any) -> dict[str, float] | None:
+    """The searches of a stream's ``lookahead`` (started, applied, late, dropped, mismatched, replaced workers,
+    the age of the windows in force [s]), or ``None`` for another planner."""
+    stats = planner.stats()
+    if "lookahead_started" not in stats:
+        return None
+    return {key.removeprefix("lookahead_"): float(stats[key]) for key in SEARCH_REPORT if key in stats}
+
+
+#: the counters of a ``lookahead`` served beside the steps that a step's JSON answer reports
+SEARCH_REPORT = ("lookahead_started", "lookahead_applied", "lookahead_late", "lookahead_dropped",
+                 "lookahead_mismatched", "lookahead_expired", "lookahead_worker_restarts", "lookahead_age_s",
+                 "lookahead_age_s_max", "lookahead_ahead_s")  # fmt: skip
 
 
 def _shared_parts(planner: Any, depth: int = 0) -> list[Any]:
@@ -181,6 +213,7 @@ class PlannerService:
         config = env_config(env_id, env_kwargs)
         self.builder = SceneBuilder(config)
         self.prototype = make_planner(key)
+        self.searches = as_served(self.prototype)
         check = getattr(self.prototype, "check_capacity", None)
         if check is not None:
             check(int(config["max_vehicles"]), key)
@@ -285,7 +318,8 @@ class PlannerService:
         if self.shield:  # what the server's shield did, for the client's counters (the harness reports them)
             shield = (np.asarray(planner.last_overridden, bool).copy(), bool(planner.unresolved > unresolved))
         stream.seq, stream.digest = seq, digest
-        stream.answer = Answer(seq, stream.steps, time, scene.vehicle_id, acc, shield)
+        stream.answer = Answer(seq, stream.steps, time, scene.vehicle_id, acc, shield,
+                               search_report(planner) if self.searches else None)  # fmt: skip
         return stream
 
     def json_reply(self, sid: str, answer: Answer) -> bytes:
@@ -294,6 +328,8 @@ class PlannerService:
                  "ids": answer.ids.tolist(), "accelerations": answer.acc.tolist(), "shield": None}  # fmt: skip
         if answer.shield is not None:
             reply["shield"] = {"overridden": answer.shield[0].tolist(), "unresolved": answer.shield[1]}
+        if answer.search is not None:
+            reply["search"] = answer.search
         return json.dumps(reply).encode()
 
     def reset(self, sid: str, request: ResetRequest) -> Stream:

@@ -153,6 +153,7 @@ class PlannerClient:
         self.server_ms = float("nan")
         # the server shield's report of the last step (``None`` for a server without --shield)
         self.last_shield: dict[str, Any] | None = None
+        self.last_search: dict[str, Any] | None = None
 
     def request(self, method: str, path: str, body: dict[str, Any] | bytes | None = None,
                 timeout: float | None = None) -> Any:  # fmt: skip
@@ -268,6 +269,7 @@ class PlannerClient:
         if reply.get("ids") != ids or len(reply.get("accelerations", ())) != len(ids):
             raise RemotePlannerError(0, "ids", f"planner server {self.url}: the answer is for other vehicles")
         self.last_shield = reply.get("shield")
+        self.last_search = reply.get("search")  # a lookahead's searches beside the steps (None for other planners)
         return np.asarray(reply["accelerations"], dtype=float)
 
     def step_scene(self, stream: str, scene: Scene, timeout: float | None = None) -> np.ndarray:

@@ -48,6 +48,22 @@ class ShieldReport(BaseModel):
     unresolved: bool = Field(description="no safe plan was found: every vehicle brakes")
 
 
+class SearchReport(BaseModel):
+    """The searches of the stream's ``lookahead`` beside the steps, since the stream opened or was reset."""
+
+    started: float = Field(description="searches started")
+    applied: float = Field(description="searches whose windows were applied")
+    late: float = Field(description="searches that answered after the step they were searched for")
+    dropped: float = Field(description="searches not applied: a horizon late or more, or their process lost")
+    mismatched: float = Field(description="answers for a scene no longer the stream's (a reset, another layout)")
+    expired: float = Field(default=0.0, description="times the windows in force grew older than the search's "
+                           "horizon and gave way to glide's own")  # fmt: skip
+    worker_restarts: float = Field(description="search processes replaced after they ended")
+    age_s: float = Field(description="mean age of the windows in force [s of scene time]")
+    age_s_max: float = Field(description="largest age of the windows in force [s]")
+    ahead_s: float = Field(description="how far ahead the searches were predicted, on average [s]")
+
+
 class StepReply(BaseModel):
     """The planner's answer to one scene."""
 
@@ -58,6 +74,8 @@ class StepReply(BaseModel):
     ids: list[int] = Field(description="the vehicles' ids, in the order of the scene")
     accelerations: list[float] = Field(description="commanded longitudinal acceleration of each vehicle [m/s^2]")
     shield: ShieldReport | None = Field(default=None, description="the server's shield; null without --shield")
+    search: SearchReport | None = Field(default=None, description="the searches of a lookahead planner beside the "
+                                        "steps (absent for other planners)")  # fmt: skip
 
 
 class OpenRequest(BaseModel):
