@@ -12,7 +12,7 @@ import envs  # noqa: F401  (registers the environments)
 from envs.evaluation.harness import evaluation_env_kwargs
 from envs.planners import make_planner, planner_name
 from envs.planners.glide import RECIPE, GlideParams, GlidePlanner
-from envs.planners.lookahead import LookaheadParams, LookaheadPlanner
+from envs.planners.lookahead import LookaheadParams, LookaheadPlanner, _rate, _simulation
 from envs.planners.shield import Shield
 from envs.simulation.traffic import generate_scenario
 
@@ -110,6 +110,7 @@ def _reference_rollout(planner: LookaheadPlanner, scene, road_windows: np.ndarra
     one."""
     from envs.planners.lookahead import _roads
     from envs.simulation.engine import Simulation
+from envs.simulation.layouts import build_layout
     from envs.simulation.scene import STOP_SPEED
 
     sim = Simulation(
@@ -413,3 +414,15 @@ def test_the_regret_probe_records_the_search_costs_and_its_chooser_answers_a_win
         assert mixed.searches_run == searched and mixed.searches == 1
         assert np.array_equal(got, teacher._search(scene) if searched else windows)
         teacher.reset(0)
+
+
+def test_the_rollouts_integrate_at_the_plants_rate():
+    """Rollouts drive as the real step does: at the plant's rate (SUMO's 20 Hz) where the rollouts' decisions divide
+    it, else at our plant's 15 Hz."""
+    lay = build_layout("4way")
+    for frequency, rollout, expected in ((20, 5, 20), (20, 3, 15), (15, 5, 15), (30, 5, 30)):
+        sim = Simulation(lay, simulation_frequency=frequency)
+        sim.add(np.array([0]), np.array([8.0]), np.array([1]))
+        scene = sim.scene()
+        assert _rate(scene, rollout) == expected
+        assert _simulation(scene, rollout).simulation_frequency == expected

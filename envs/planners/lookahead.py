@@ -466,7 +466,8 @@ class LookaheadPlanner(GlidePlanner):
             return scene
         frequency = int(round(1.0 / scene.dt))
         sim = self._predictor
-        if sim is None or sim.layout is not scene.layout or sim.policy_frequency != frequency:
+        stale = sim is None or sim.layout is not scene.layout or sim.policy_frequency != frequency
+        if stale or sim.simulation_frequency != _rate(scene, frequency):
             sim = self._predictor = _simulation(scene, frequency)
         _set(sim, scene)
         me = self.fork()
@@ -636,17 +637,28 @@ class LookaheadPlanner(GlidePlanner):
     def _load(self, scene: Scene) -> Simulation:
         """The simulation of the rollouts, set to ``scene`` (built once per layout and reused)."""
         sim = self._sim
-        if sim is None or sim.layout is not scene.layout:
+        rate = _rate(scene, self.search.rollout_frequency)
+        if sim is None or sim.layout is not scene.layout or sim.simulation_frequency != rate:
             sim = self._sim = _simulation(scene, self.search.rollout_frequency)
         _set(sim, scene)
         return sim
+
+
+def _rate(scene: Scene, policy_frequency: int) -> int:
+    """The integration rate of the rollouts [Hz]: the plant's (``Scene.substeps``, e.g. SUMO's 20 Hz), so that they
+    drive as the real step does, where ``policy_frequency`` divides it; else our plant's default 15 Hz."""
+    if scene.substeps is not None:
+        rate = int(round(scene.substeps / scene.dt))
+        if rate % policy_frequency == 0:
+            return rate
+    return 15
 
 
 def _simulation(scene: Scene, policy_frequency: int) -> Simulation:
     """A simulation of the scene's layout to plan ahead in (no collision check: behind the shield it finds nothing)."""
     return _RolloutSimulation(
         scene.layout,
-        simulation_frequency=15,
+        simulation_frequency=_rate(scene, policy_frequency),
         policy_frequency=policy_frequency,
         max_speed=20.0,
         max_acceleration=float(scene.a_max),
