@@ -14,6 +14,8 @@ from envs.planners import make_planner, planner_name
 from envs.planners.glide import RECIPE, GlideParams, GlidePlanner
 from envs.planners.lookahead import LookaheadParams, LookaheadPlanner, _rate, _simulation
 from envs.planners.shield import Shield
+from envs.simulation.engine import Simulation
+from envs.simulation.layouts import build_layout
 from envs.simulation.traffic import generate_scenario
 
 
@@ -110,7 +112,6 @@ def _reference_rollout(planner: LookaheadPlanner, scene, road_windows: np.ndarra
     one."""
     from envs.planners.lookahead import _roads
     from envs.simulation.engine import Simulation
-from envs.simulation.layouts import build_layout
     from envs.simulation.scene import STOP_SPEED
 
     sim = Simulation(
