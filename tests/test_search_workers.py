@@ -10,10 +10,10 @@ from dataclasses import replace
 import gymnasium as gym
 import numpy as np
 import pytest
+from lookahead_support import busy_scene, drive
 
 import envs  # noqa: F401  (registers the environments)
 from envs.evaluation.harness import evaluation_env_kwargs
-from envs.planners import make_planner
 from envs.planners.glide import RECIPE
 from envs.planners.lookahead import LookaheadParams, LookaheadPlanner
 from envs.planners.search_workers import available_cores
@@ -21,30 +21,6 @@ from envs.planners.shield import Shield
 from envs.simulation.traffic import generate_scenario
 
 two_cores = pytest.mark.skipif(available_cores() < 2, reason="needs 2 cores")
-
-
-def drive(planner, seconds: float = 15.0, seed: int = 3) -> list[np.ndarray]:
-    """The commands of ``planner`` over a run of ``seconds`` on a generated 4-way scenario."""
-    env = gym.make("CoopIntersection4Way-v0", **evaluation_env_kwargs({}))
-    env.reset(seed=seed, options={"scenario": generate_scenario("4way", seconds, seed, rate_range=(0.4, 0.4))})
-    planner.reset(seed)
-    commands, done = [], False
-    while not done:
-        acc = planner.act(env.unwrapped.scene())
-        commands.append(acc)
-        _, _, terminated, truncated, _ = env.step(env.unwrapped.accelerations_to_action(acc))
-        done = terminated or truncated
-    return commands
-
-
-def busy_scene():
-    """The scene after 12 s of full throttle + shield at 0.5 veh/s per major lane."""
-    env = gym.make("CoopIntersection4Way-v0", **evaluation_env_kwargs({}))
-    env.reset(seed=5, options={"scenario": generate_scenario("4way", 40.0, 5, rate_range=(0.5, 0.5))})
-    planner = make_planner("fullthrottle+shield")
-    for _ in range(60):
-        env.step(env.unwrapped.accelerations_to_action(planner.act(env.unwrapped.scene())))
-    return env.unwrapped.scene()
 
 
 class OnTime(Shield):
@@ -83,9 +59,9 @@ def test_the_default_workers_are_the_cores_on_the_wall_clock_and_one_in_simulate
 def test_rollouts_over_two_workers_choose_bit_for_bit_as_one():
     """The exact bound shared between the workers only stops rollouts that cannot win: the same commands."""
     one = LookaheadPlanner()
-    want = drive(Shield(one))
+    want = drive(Shield(one), seconds=15.0, seed=3)
     two = LookaheadPlanner(params=LookaheadParams(workers=2))
-    got = drive(Shield(two))
+    got = drive(Shield(two), seconds=15.0, seed=3)
     two.close()
     assert len(got) == len(want) and all(np.array_equal(a, b) for a, b in zip(got, want))
     assert two.searches == one.searches > 10 and two.fallbacks == 0 and two.worker_restarts == 0
@@ -135,9 +111,9 @@ def test_the_search_process_drives_as_its_deterministic_emulation_when_on_time(w
     in simulated time bit for bit (at the same latency: left free, the process's follows the wall time of its
     searches)."""
     delayed = LookaheadPlanner(params=LookaheadParams(mode="async"))
-    want = drive(Shield(delayed))
+    want = drive(Shield(delayed), seconds=15.0, seed=3)
     beside = LookaheadPlanner(params=LookaheadParams(mode="async", clock="wall", workers=workers, latency=1.0))
-    got = drive(OnTime(beside))
+    got = drive(OnTime(beside), seconds=15.0, seed=3)
     beside.close()
     assert len(got) == len(want) and all(np.array_equal(a, b) for a, b in zip(got, want))
     stats = beside.stats()
