@@ -82,6 +82,7 @@ from envs.planners.base import Planner
 from envs.planners.errors import PlannerError, checked_accelerations
 from envs.planners.fifo import FIFOPlanner
 from envs.planners.human import CRAWL_SPEED, approach_limit, human_commands, human_window
+from envs.planners.shield_bounds import ShieldBounds
 from envs.planners.watchdog import WATCHDOG_AFTER, WATCHDOG_HOLD, LivenessWatchdog
 from envs.simulation.commitment import STANDING, STOP_SLACK
 from envs.simulation.layouts import ZONE_MARGIN, body_hull, parting_arcs
@@ -206,6 +207,8 @@ class Shield(Planner):
     :param human_deceleration: the braking a human driver is assumed to use at most [m/s^2]
     :param human_margin: seconds added on both sides of the time window in which a going human driver
         may occupy a conflict zone (``_human_windows``); an automated vehicle must keep out of it
+    :param bounds: the faults it is declared to tolerate (:class:`envs.planners.shield_bounds.ShieldBounds`;
+        ``None``: the exact world)
     """
 
     def __init__(
@@ -227,8 +230,10 @@ class Shield(Planner):
         human_lookahead: float = 3.0,
         human_deceleration: float = 2.0,
         human_margin: float = 1.0,
+        bounds: ShieldBounds | None = None,
     ) -> None:
         super().__init__(name or f"{planner.name}+shield")
+        self.bounds = bounds if bounds is not None else ShieldBounds()
         self.human_lookahead = float(human_lookahead)
         self.human_deceleration = float(human_deceleration)
         self.human_margin = float(human_margin)
