@@ -99,13 +99,14 @@ def _labelled(word: str) -> tuple[str, str]:
     return word, word
 
 
-def fault_table(runs: pd.DataFrame) -> pd.DataFrame:
-    """One row per demand, level, perception and planner (see the module docstring)."""
+def fault_table(runs: pd.DataFrame, baseline: str = BASELINE) -> pd.DataFrame:
+    """One row per demand, level, perception and planner (see the module docstring), paired against ``baseline``
+    (a planner name of the runs)."""
     rows = []
     lead: dict[tuple[float, str], float] = {}
     for (demand, level, perception), group in runs.groupby(["demand", "level", "perception"], sort=False):
         ok = group[~group["failed"].astype(bool)] if "failed" in group else group
-        diffs = paired_differences(ok, baseline=BASELINE).set_index(["planner", "metric"])
+        diffs = paired_differences(ok, baseline=baseline).set_index(["planner", "metric"])
         for planner, r in ok.groupby("planner", sort=False):
             row = {
                 "demand": demand, "level": level, "perception": perception, "planner": planner, "runs": len(r),
@@ -169,6 +170,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=9191, help="base seed of the scenarios, runs and fault draws")
     parser.add_argument("--jobs", type=int, default=1, help="worker processes (>= 1)")
     parser.add_argument("--csv", type=Path, default=None, help="also write the runs here (never overwritten)")
+    parser.add_argument("--runs", type=Path, default=None, help="read the runs of an earlier --csv instead of running")
+    parser.add_argument("--baseline", default=BASELINE, help=f"the planner paired against (default: {BASELINE})")
     parser.add_argument(
         "--shield-bounds", default="none", help="the faults the shields are declared to tolerate: none, declared, or "
         "KEY=VALUE,... (as sb3-graph evaluate); excursions beyond them are counted",
@@ -193,11 +196,15 @@ def main(argv: list[str] | None = None) -> int:
     chosen = args.level or ([] if custom else list(LEVELS))
     levels = list(dict.fromkeys(["none", *chosen, *custom]))  # the exact world: the lead to compare with
     tic = time.perf_counter()
+    if args.runs is not None:
+        runs = pd.read_csv(args.runs)
+        print(markdown(fault_table(runs, args.baseline)).replace("vs full throttle", f"vs {args.baseline}"))
+        return 0
     runs = fault_runs(
         args.planner or ["glide+shield"], args.demand, levels, trackers, args.env, args.scenarios, args.duration,
         args.seed, args.jobs, custom, bounds,
     )  # fmt: skip
-    print(markdown(fault_table(runs)))
+    print(markdown(fault_table(runs, args.baseline)).replace("vs full throttle", f"vs {args.baseline}"))
     print(
         f"\n{args.env}, {args.scenarios} scenarios x {args.duration:g} s per demand, seed {args.seed}; faults at "
         f"'bounds': {BOUNDS} ('mild' half, 'twice' double); shield bounds {bounds.text()}; "
