@@ -5,7 +5,8 @@ Per demand, fault level and perception (``tracker``: the planners and the shield
 ``raw``: the held, aged measurements): runs, flow [veh/s], mean delay [s], stop ratio, collided vehicles, stuck
 runs, the shield's unresolved steps, and the paired mean differences against ``fullthrottle+shield`` (flow, delay,
 with 95 % bootstrap intervals over scenarios); ``kept`` is the share of the planner's exact-state lead in delay over
-full throttle that survives at that level (its difference at the level over its difference with no faults);
+full throttle that survives at that level (its difference at the level over its difference with no faults; only
+where that exact-state lead's interval excludes zero: a lead within the noise has no share to keep);
 ``beyond`` the vehicle-steps planned on a measurement beyond the shields' declared bounds (``--shield-bounds``,
 :mod:`envs.planners.shield_bounds`). A planner may be labelled (``advice=path/to/model.safetensors+shield``).
 Printed as Markdown and written to ``--csv``::
@@ -120,7 +121,7 @@ def fault_table(runs: pd.DataFrame, baseline: str = BASELINE) -> pd.DataFrame:
                     d = diffs.loc[(planner, metric)]
                     row.update({name: d["mean_difference"], f"{name}_low": d["ci_low"], f"{name}_high": d["ci_high"]})
             if level == "none" and "d_delay" in row:
-                lead[demand, planner] = row["d_delay"]
+                lead[demand, planner] = row["d_delay"] if row.get("d_delay_high", 0.0) < 0 else np.nan
             rows.append(row)
     table = pd.DataFrame(rows)
     if "d_delay" in table:

@@ -440,6 +440,7 @@ def run(args: argparse.Namespace) -> int:
             replay = {
                 "env": args.env, "env_kwargs": args.env_kwargs, "seed": args.seed, "duration": args.duration,
                 "planners": [list(pair) for pair in planners], "trust_planner_files": args.trust_planner_files,
+                "shield_bounds": args.shield_bounds.text(),
             }  # fmt: skip
             write_run_info(stage, stats, time.perf_counter() - tic, replay)
     except OutputError as error:
