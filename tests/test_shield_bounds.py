@@ -115,3 +115,21 @@ def test_a_run_counts_the_vehicle_steps_beyond_the_bounds():
     assert exact["fault_excursions"] > beyond["fault_excursions"]
     assert "fault_excursions" not in _run({}, DECLARED_BOUNDS)  # no fault model: nothing to count
     assert math.isclose(within["return"], _run(AT_BOUNDS, ShieldBounds(position=1.0))["return"])  # counting only
+
+
+def test_the_report_sums_the_excursions_per_planner():
+    import pandas as pd
+
+    from envs.evaluation.report import _excursion_table, add_fault_excursions
+
+    runs = pd.DataFrame({
+        "planner": ["A", "A", "B"], "fault_excursions": [3, 4, 0], "excursions_position": [3, 1, 0],
+        "excursions_speed": [0, 3, 0], "excursions_age": [0, 1, 0],
+    })  # fmt: skip
+    summary = {"A": {"vehicles": 10, "collided": 2}, "B": {"vehicles": 8, "collided": 0}, "C": {"vehicles": 5}}
+    add_fault_excursions(summary, runs)
+    assert summary["A"]["fault_excursions"] == 7 and summary["A"]["excursions_age"] == 1
+    assert summary["B"]["fault_excursions"] == 0 and "fault_excursions" not in summary["C"]
+    table = _excursion_table(summary)
+    assert "| A | 7 | 4 | 3 | 1 | 2 / 10 (20 %) |" in table and len(table) == 7  # title, header, rule, A, B
+    assert _excursion_table({"A": {"vehicles": 1}}) == []  # no fault model, no table

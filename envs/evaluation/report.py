@@ -180,11 +180,11 @@ def markdown_report(
 
 
 def _excursion_table(summary: Mapping[str, Mapping[str, Any]]) -> list[str]:
-    """Markdown table of the vehicle-steps planned on a perceived state beyond the declared bounds (fault model)."""
+    """Markdown table of the vehicle-steps planned on a measurement beyond the declared bounds (fault model)."""
     counted = [(name, s) for name, s in summary.items() if "fault_excursions" in s]
     if not counted:
         return []
-    lines = ["", "## Beyond the declared bounds: vehicle-steps planned on a perceived state beyond them", ""]
+    lines = ["", "## Beyond the declared bounds: vehicle-steps planned on a measurement beyond them", ""]
     lines += [
         "| planner | beyond any bound | position | speed | age | collided vehicles |",
         "|---|---:|---:|---:|---:|---:|",
