@@ -72,7 +72,7 @@ bit for bit, the blame (who is overridden for a conflict) included.
 from __future__ import annotations
 
 import weakref
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import partial
 
 import numpy as np
@@ -256,6 +256,8 @@ class Shield(Planner):
         self.human_tolerance = float(human_tolerance)
         self.human_memory = float(human_memory)
         self._last_humans = _NO_HUMANS  # the last scene's vehicles: ids, speeds, model commands, time, defiant ones
+        self._view: tuple | None = None  # (scene, `_human_view` of it)
+        self._yields = np.zeros(0, _INT)  # waiting humans and the vehicles they wait for (`_keeps_windows`), as keys
         self.planner = planner
         self.watchdog = None if watchdog_after is None else LivenessWatchdog(watchdog_after, watchdog_hold)
         self.live_planner = (
@@ -293,6 +295,8 @@ class Shield(Planner):
         self.errors = []
         self._stood = (np.zeros(0, _INT), np.zeros(0))
         self._last_humans = _NO_HUMANS
+        self._view = None
+        self._yields = np.zeros(0, _INT)
 
     @property
     def error_lines(self) -> list[str]:
@@ -331,7 +335,10 @@ class Shield(Planner):
         fallback for this step (counted as interventions); the other values are checked as usual.
         """
         planner = self.live_planner if self.watchdog is not None and self.watchdog.observe(scene) else self.planner
-        return self.check_output(scene, planner.act(scene.copy()), planner.name)
+        mine = scene.copy()
+        if scene.humans.any():  # what the shield has seen the human drivers do, for the planner too
+            mine = replace(mine, human_intent=self._human_view(scene)[3])
+        return self.check_output(scene, planner.act(mine), planner.name)
 
     def check_output(self, scene: Scene, output: object, planner: str) -> np.ndarray:
         """:meth:`act` for a proposal already made: a planner's raw output checked as a command (a planner error
@@ -378,11 +385,7 @@ class Shield(Planner):
         going = np.zeros(n, bool)
         waiting = np.zeros(n, bool)
         if human.any():  # what they will do, whatever is proposed: never overridden, never blamed
-            human_acc, going = human_commands(scene)
-            going |= human & self._defiant(scene, human_acc)
-            waiting = self._hesitating(scene, going, human_acc)
-            going &= ~waiting
-            human_acc = np.where(waiting, 0.0, human_acc)
+            human_acc, going, waiting, _ = self._human_view(scene)
             acc = np.where(human, np.clip(human_acc, scene.a_min, scene.a_max), acc)
             forced = forced & ~human
         plan = self._plan(scene, going, waiting)
@@ -434,6 +437,25 @@ class Shield(Planner):
         self.interventions += int(overridden.sum())
         self.vehicle_steps += n - int(human.sum())
         return command
+
+    def _human_view(self, scene: Scene) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The human drivers as the shield predicts them: the model's commands (:func:`human_commands`) corrected by
+        what they did (:meth:`_defiant`, :meth:`_hesitating`); once per scene (:meth:`act` and :meth:`check` share it).
+
+        :return: ``(n,)`` first-period commands, ``(n,)`` bool going, ``(n,)`` bool waiting (standing) and ``(n,)``
+            int8 :attr:`Scene.human_intent`
+        """
+        if self._view is not None and self._view[0] is scene:
+            return self._view[1]
+        human_acc, going = human_commands(scene)
+        defiant = scene.humans & self._defiant(scene, human_acc) & ~going
+        going = going | defiant
+        waiting = self._hesitating(scene, going, human_acc)
+        going &= ~waiting
+        intent = np.where(waiting, -1, np.where(defiant, 1, 0)).astype(np.int8)
+        view = (np.where(waiting, np.minimum(human_acc, 0.0), human_acc), going, waiting, intent)
+        self._view = (scene, view)
+        return view
 
     def _least_bad(self, scene: Scene, plan: _Plan, fallback: np.ndarray, brake: np.ndarray) -> np.ndarray:
         """Where no command passes: the fallback, unless everyone braking leaves fewer conflicting pairs in the
@@ -637,14 +659,11 @@ class Shield(Planner):
         (into ``plan``): from the earliest entry (accelerating at IDM's ``acc_max`` up to the highest lane
         limit before the zone, :func:`~envs.planners.human.approach_limit`; now if already in) to the
         latest exit at its speed now (at least ``CRAWL_SPEED``), widened by ``human_margin`` on both
-        sides; the whole horizon for a human at a crawl. A waiting human (:meth:`_hesitating`) waits for the
-        vehicles of higher precedence (:func:`~envs.planners.priority_rules.maneuver_priority`), not for the
-        others: with those it keeps a window, as if it went."""
+        sides; the whole horizon for a human at a crawl; a waiting human's windows: :meth:`_keeps_windows`."""
         cross, human = plan.cross, plan.human
         may_go = going[cross]
         if waiting.any():
-            rank = maneuver_priority(scene.priority, scene.maneuver)[cross]
-            may_go |= waiting[cross] & (rank <= rank[:, ::-1])
+            may_go |= self._keeps_windows(scene, plan, waiting)
         mixed = may_go.any(axis=1) & ~human[cross].all(axis=1)
         pair = np.flatnonzero(mixed)
         if pair.size == 0:
@@ -658,6 +677,25 @@ class Shield(Planner):
         plan.human_from, plan.human_until = human_window(
             lo - x0, hi - x0, v, limit, self.human_margin, self.horizon
         )
+
+    def _keeps_windows(self, scene: Scene, plan: _Plan, waiting: np.ndarray) -> np.ndarray:
+        """``(c, 2)`` bool: crossing pairs in whose zone a waiting human (:meth:`_hesitating`, the column) keeps a
+        window, as if it went. A waiting human waits for the vehicles of higher precedence
+        (:func:`~envs.planners.priority_rules.maneuver_priority`), not for the others, except an automated vehicle
+        that stands past its stop line while the human waits (it waits for that one: both stood, and would for
+        good); such a pair is remembered (by ids) while the human waits, so that the vehicle, once it moves, is
+        not held again in the middle of the box."""
+        cross = plan.cross
+        rank = maneuver_priority(scene.priority, scene.maneuver)[cross]
+        keeps = waiting[cross] & (rank <= rank[:, ::-1])
+        other = cross[:, ::-1]
+        ids = np.asarray(scene.vehicle_id, dtype=_INT)
+        key = ids[cross] * (1 << 32) + ids[other]  # (human, the other) where the column is the human
+        inside = (np.asarray(scene.dist_to_entry)[other] < 0) & ~plan.human[other]
+        stands = plan.speed[other] < self.human_standing
+        yields = keeps & inside & (stands | np.isin(key, self._yields))
+        self._yields = np.unique(key[yields])
+        return keeps & ~yields
 
     def _in_human_windows(self, scene: Scene, plan: _Plan, arc: np.ndarray) -> np.ndarray:
         """``(p,)`` bool: the automated vehicle of a human pair is predicted in the pair's zone within
