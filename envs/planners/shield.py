@@ -57,6 +57,10 @@ is within ``human_lookahead`` seconds plus its comfortable stopping distance (``
 its first zone is predicted as committed: it proceeds and does not stop for automated vehicles, which
 must keep out of its zones. Every other human is predicted with the fallback (it stops before its zones,
 as the priority rules make it yield). Whether a human ends the prediction stuck is not checked.
+Drivers of another world (SUMO's) do not drive as the model: a driver seen standing where the model goes waits
+(:meth:`Shield._hesitating`), one seen going faster than the model commanded goes (:meth:`Shield._defiant`); the
+shield predicts them so, and hands its planner the same view (``Scene.human_intent``). Where no command passes,
+it takes the fallback or everyone braking, whichever its prediction shows in fewer conflicts (docs/shield.md).
 
 Only the pairs that can conflict are checked (:meth:`Shield._may_commit`). Vectorized over vehicles
 and pairs; the only loops run over the horizon's time steps and over the
