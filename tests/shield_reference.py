@@ -174,7 +174,7 @@ def gaps_hold(shield: Shield, plan: _Plan, arc: np.ndarray, speed: np.ndarray, g
     f, ahead, gap = leaders_now(shield, plan, arc, go)
     live = plan.follow_floor[arc[plan.follow[:, 1]] < plan.follow_until]
     floor = np.concatenate([live, np.full(len(f) - len(live), 0.5 * shield.gap_margin)])
-    yields = np.concatenate([np.ones(len(live), bool), ~np.asarray(plan.human, bool)[f[len(live):]]])
+    yields = np.concatenate([np.ones(len(live), bool), ~np.asarray(plan.human, bool)[f[len(live) :]]])
     vf, va = speed[f], speed[ahead]
     stop = gap - (vf**2 - va**2) / (2 * a_max)
     room = (gap >= floor) & ((vf <= va) | (stop >= floor + _STOP_SLACK))

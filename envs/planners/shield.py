@@ -424,15 +424,19 @@ class Shield(Planner):
                 # look can show it finish; braking everyone would keep that vehicle inside for good.
                 # (A longer prediction repeats the shorter one's first rows, so only a failure that
                 # was no conflict but a vehicle left inside can pass it: only then is it tried.)
-                if self._stuck_only and self.drain_horizon > self.horizon and self._blame(
-                    scene, plan, command, np.zeros(n, bool), self.drain_horizon
-                ) is None:
+                if (
+                    self._stuck_only
+                    and self.drain_horizon > self.horizon
+                    and self._blame(scene, plan, command, np.zeros(n, bool), self.drain_horizon) is None
+                ):
                     break
                 # Else (the leader relations it follows changed since the last step, a human did what the
                 # model did not predict, or the scene started unsafe): the fallback or everyone braking,
                 # whichever the prediction shows in fewer conflicts. Counted in `unresolved`.
                 self.unresolved += 1
-                command = self._least_bad(scene, plan, np.where(human, acc, fallback), np.where(human, acc, scene.a_min))
+                command = self._least_bad(
+                    scene, plan, np.where(human, acc, fallback), np.where(human, acc, scene.a_min)
+                )
                 overridden = forced | (np.abs(acc - command) > 1e-9)
                 break
             overridden |= blamed & ~human
@@ -495,7 +499,14 @@ class Shield(Planner):
         defiant = scene.humans & (now - defiant_at <= self.human_memory)
         order = np.argsort(ids, kind="stable")
         keep = order[defiant[order]]
-        self._last_humans = (ids[order], speed[order], np.asarray(human_acc, float)[order], now, ids[keep], defiant_at[keep])
+        self._last_humans = (
+            ids[order],
+            speed[order],
+            np.asarray(human_acc, float)[order],
+            now,
+            ids[keep],
+            defiant_at[keep],
+        )
         return defiant
 
     def _hesitating(self, scene: Scene, going: np.ndarray, human_acc: np.ndarray) -> np.ndarray:
@@ -678,9 +689,7 @@ class Shield(Planner):
         lo, hi = plan.cross_lo[pair, col], plan.cross_hi[pair, col]
         limit = approach_limit(scene, h, lo - x0)
         plan.human_pair, plan.human_col = pair, col
-        plan.human_from, plan.human_until = human_window(
-            lo - x0, hi - x0, v, limit, self.human_margin, self.horizon
-        )
+        plan.human_from, plan.human_until = human_window(lo - x0, hi - x0, v, limit, self.human_margin, self.horizon)
 
     def _keeps_windows(self, scene: Scene, plan: _Plan, waiting: np.ndarray) -> np.ndarray:
         """``(c, 2)`` bool: crossing pairs in whose zone a waiting human (:meth:`_hesitating`, the column) keeps a
