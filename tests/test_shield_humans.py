@@ -99,17 +99,20 @@ sumo = pytest.importorskip("libsumo", reason="the sumo extra is not installed")
 
 
 @pytest.mark.parametrize(
-    ("layout", "env_id", "index", "planner"),
+    ("layout", "env_id", "seed", "index", "duration", "planner"),
     [
         # A SUMO left-turner waited inside the box for an automated vehicle that the shield held for it: stuck.
-        ("3way", "CoopIntersection3Way-v0", 7, "glide+shield"),
+        ("3way", "CoopIntersection3Way-v0", 100, 7, 60.0, "glide+shield"),
         # A SUMO driver waiting inside the box went ahead of a minor-road automated vehicle: collided.
-        ("3way", "CoopIntersection3Way-v0", 2, "fullthrottle+shield"),
+        ("3way", "CoopIntersection3Way-v0", 100, 2, 60.0, "fullthrottle+shield"),
         # A SUMO driver that the model had yield went: a left-turner in its path, braked by everyone braking.
-        ("4way", "CoopIntersection4Way-v0", 0, "fullthrottle+shield"),
+        ("4way", "CoopIntersection4Way-v0", 100, 0, 60.0, "fullthrottle+shield"),
+        # A waiting left-turner past the start of its first zone was predicted driving on (committed) into the
+        # path of a vehicle it waited for: no command passed, everyone braked, for good (the hostile table).
+        ("4way", "CoopIntersection4Way-v0", 8383, 1, 80.0, "envs.planners.hostile:SceneEditor+shield"),
     ],
 )
-def test_the_shield_holds_against_sumos_drivers(layout, env_id, index, planner):
+def test_the_shield_holds_against_sumos_drivers(layout, env_id, seed, index, duration, planner):
     import gymnasium as gym
 
     from envs.evaluation.harness import evaluation_env_kwargs, generate_scenarios, run_episode, run_seed
@@ -118,13 +121,13 @@ def test_the_shield_holds_against_sumos_drivers(layout, env_id, index, planner):
     from envs.simulation.traffic import Scenario
 
     with tempfile.TemporaryDirectory() as folder:
-        files = generate_scenarios(Path(folder), index + 1, 60.0, 100, layout, human_share=0.5)
+        files = generate_scenarios(Path(folder), index + 1, duration, seed, layout, human_share=0.5)
         scenario = Scenario.load(files[index])
     env = gym.make(env_id, **evaluation_env_kwargs({"config": {"plant": "sumo", "simulation_frequency": 20}}))
     shield = make_planner(planner)
-    vehicles, facts = run_episode(env, shield, scenario, 60.0, seed=run_seed(100, index))
+    vehicles, facts = run_episode(env, shield, scenario, duration, seed=run_seed(seed, index))
     env.close()
-    metrics = run_metrics(vehicles, 60.0)
+    metrics = run_metrics(vehicles, duration)
     assert metrics["collided"] == 0
     assert not metrics["stuck"]
     assert facts["lost"] == 0

@@ -615,8 +615,11 @@ class Shield(Planner):
         if waiting.any():
             # A waiting human stands: the padding, which covers a sub-step's travel, would put one that
             # waits at the edge of a zone in it (SUMO's left-turners wait there) and block the zone for good.
+            # It stays where it stands: before its first zone for the rules (that a zone it is past begins behind
+            # it would have it committed, and the fallback would drive it on).
             pad[waiting] = 0.0
-            hull_start = np.where(waiting, hull_start + m, hull_start)
+            stop = arc + speed**2 / (2 * float(scene.a_max)) + 2 * _STOP_SLACK
+            hull_start = np.where(waiting, np.maximum(hull_start + m, stop), hull_start)
         if going is not None and going.any():
             # A human that goes and is near its zones: predicted as committed (the kernels' rule), by
             # moving its first zone behind it; it then proceeds and the others keep out of its zones.
