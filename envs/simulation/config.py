@@ -21,6 +21,7 @@ from envs.simulation.graph import EDGE_FEATURES, VERTEX_FEATURES
 from envs.simulation.layouts import LAYOUT_NAMES
 from envs.simulation.plant import PLANTS
 from envs.simulation.rewards import REWARD_PRESETS, REWARD_TERMS, preset_weights
+from envs.simulation.sumo_plant import libsumo_module
 from envs.simulation.traffic import HUMAN_SHARE_ALLOWED, check_human_share
 
 # What a collision does: "terminate" ends the episode (training, as in the paper); "remove" takes
@@ -287,6 +288,11 @@ def validate_config(config: dict[str, Any], defaults: dict[str, Any]) -> dict[st
             f"config key 'simulation_frequency' must be a multiple of 'policy_frequency', got "
             f"{merged['simulation_frequency']} and {merged['policy_frequency']}"
         )
+    if merged.get("plant") == "sumo":
+        try:
+            libsumo_module()
+        except ImportError as error:
+            raise ValueError(f"config key 'plant' is 'sumo', but {error}") from None
     if merged.get("plant") == "sumo" and 1000 % merged["simulation_frequency"]:
         raise ValueError(
             f"config key 'simulation_frequency' must divide 1000 with plant 'sumo' (SUMO's step is a whole number "
