@@ -75,7 +75,7 @@ def test_a_netconvert_junction(tmp_path):
     """A four-arm junction that netconvert built: every turn a route, named by compass arm, the major road from
     the higher SUMO priority, maneuvers from SUMO's directions, and crossing paths in conflict."""
     layout = read_junction(_netconvert(tmp_path))
-    assert layout.name == "x" and layout.num_routes == 12 and set(layout.arms) == {"north", "east", "south", "west"}
+    assert layout.name.endswith("x.net.xml") and layout.num_routes == 12 and set(layout.arms) == {"north", "east", "south", "west"}
     turns = {"east->north": RIGHT, "east->west": STRAIGHT, "east->south": LEFT, "south->east": RIGHT}
     for name, maneuver in turns.items():
         assert layout.maneuver[layout.route_id(name)] == maneuver, name
@@ -112,3 +112,34 @@ def test_a_bad_net_file_is_one_line_naming_it(tmp_path, text, message):
     with pytest.raises(NetFileError, match=message) as e:
         read_junction(path)
     assert str(e.value).startswith(str(path)) and "\n" not in str(e.value)
+
+
+def test_evaluate_on_a_netconvert_junction_in_both_plants(tmp_path, capsys):
+    """``evaluate --net FILE`` runs the planners on the file's junction, in our plant and in SUMO (whose network
+    is written from the layout read); without humans both plants give the same figures."""
+    import pandas as pd
+
+    from sb3_graph.cli import main
+
+    pytest.importorskip("libsumo")
+    net = _netconvert(tmp_path)
+    out = tmp_path / "report"
+    argv = ["evaluate", "--net", net, "--plant", "builtin", "--plant", "sumo", "--planner", "glide+shield"]
+    argv += ["--scenarios", "1", "--duration", "15", "--jobs", "1", "--no-progress"]
+    assert main([*argv, "--out", str(out)]) == 0
+    ours, sumo = (pd.read_csv(out / plant / "metrics.csv") for plant in ("builtin", "sumo"))
+    assert (ours["vehicles"] > 0).all() and (ours["crossed"] > 0).all()
+    for column in ("crossed", "delay_mean", "collided"):
+        assert np.allclose(ours[column], sumo[column], atol=1e-6), column
+    assert f'"layout": "net:{net}"' in (out / "sumo" / "scenarios" / "scenario_000.json").read_text()
+
+
+def test_evaluate_refuses_a_bad_net_in_one_line(tmp_path, capsys):
+    from sb3_graph.cli import main
+
+    bad = tmp_path / "mine.net.xml"
+    bad.write_text("<net")
+    assert main(["evaluate", "--net", str(bad), "--planner", "pr", "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"sb3-graph evaluate: error: --net: {bad}: not a SUMO network") and err.count("\n") == 1
+    assert bad.read_text() == "<net" and not (tmp_path / "out").exists()

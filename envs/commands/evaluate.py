@@ -166,6 +166,14 @@ def add_run_arguments(parser: argparse.ArgumentParser, scenarios: int, out: str,
         "'builtin' at its own rate); evaluate takes it twice (--plant builtin --plant sumo) to run every planner on "
         "the same scenarios in both plants: a report per plant and the cross-plant table plants.md",
     )
+    parser.add_argument(
+        "--net",
+        default=None,
+        metavar="FILE",
+        help="run on the one junction of this SUMO network (.net.xml, e.g. one that netconvert made from "
+        "OpenStreetMap) instead of the environment's layout, in either plant: sets the env config's layout to "
+        "'net:FILE' (needs the sumo extra)",
+    )
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
 
 
@@ -232,6 +240,8 @@ def _check(args: argparse.Namespace, several_plants: bool = False) -> list[tuple
     if args.env_kwargs is not None and not isinstance(args.env_kwargs, dict):
         raise UserError("--env-kwargs must be a JSON object, e.g. '{\"duration\": 100}'")
     planners = checked_planners(args.planner, shield=args.shield)
+    if getattr(args, "net", None) is not None:
+        args.env_kwargs = with_net(args.env_kwargs, args.net)
     plants = list(dict.fromkeys(getattr(args, "plant", None) or []))
     if len(plants) > 1 and not several_plants:
         raise UserError(f"--plant: this command runs one plant, got {plants}")
@@ -275,6 +285,25 @@ def with_plant(env_kwargs: dict[str, Any] | None, plant: str | None) -> dict[str
     if plant == "sumo":
         config.setdefault("simulation_frequency", SUMO_PLANT_FREQUENCY)
     kwargs["config"] = config
+    return kwargs
+
+
+def with_net(env_kwargs: dict[str, Any] | None, net: str) -> dict[str, Any]:
+    """``env_kwargs`` whose config's layout is the junction of the SUMO network ``net`` (read once here).
+
+    :raises UserError: a file that does not read as one junction, or no sumo extra (one line naming ``--net``)
+    """
+    from envs.simulation.sumo_junction import NET_PREFIX, named_layout
+
+    name = NET_PREFIX + str(Path(net).resolve())
+    try:
+        named_layout(name)
+    except (ImportError, ValueError) as error:
+        raise UserError(f"--net: {error}") from None
+    kwargs = dict(env_kwargs or {})
+    if not isinstance(kwargs.get("config") or {}, dict):
+        raise UserError(f"--env-kwargs: 'config' must be a dict, got {type(kwargs['config']).__name__}")
+    kwargs["config"] = {**(kwargs.get("config") or {}), "layout": name}
     return kwargs
 
 

@@ -20,6 +20,7 @@ line naming the file and what is wrong.
 
 from __future__ import annotations
 
+from functools import cache
 from pathlib import Path
 
 import numpy as np
@@ -29,12 +30,18 @@ from highway_env.road.road import RoadNetwork
 from envs.simulation.layouts import (
     ARM_ANGLES,
     DEFAULT_LATERAL_ACCELERATION,
+    LAYOUT_NAMES,
     Layout,
     _maneuver,
+    build_layout,
     layout_from_routes,
 )
 from envs.simulation.scene import LEFT, MAJOR, MINOR, RIGHT, STRAIGHT
 
+# A layout name that reads a SUMO network: "net:<path of the .net.xml>" (the environment's ``layout`` config key,
+# a scenario file's ``layout`` field).
+NET_PREFIX = "net:"
+LAYOUT_HELP = f"one of {LAYOUT_NAMES}, or '{NET_PREFIX}FILE' (the one junction of a SUMO .net.xml)"
 # SUMO's connection directions -> our maneuvers (partial ones as the full ones; "t" is a U-turn: left out)
 _DIRECTIONS = {"s": STRAIGHT, "l": LEFT, "L": LEFT, "r": RIGHT, "R": RIGHT}
 # A junction's internal lane is resampled at this spacing [m] and averaged over this window [m] (_smoothed).
@@ -61,6 +68,11 @@ class _Polyline(PolyLaneFixedWidth):
         self._starts = np.concatenate([[0.0], np.cumsum(np.hypot(step[:, 0], step[:, 1]))])
         self._headings = np.arctan2(step[:, 1], step[:, 0])
         self.length = float(self._starts[-1])
+
+    @property
+    def points(self) -> np.ndarray:
+        """``(k, 2)`` the polyline (the SUMO network written from a layout gives edges this shape)."""
+        return self._points
 
     def _segment(self, longitudinal: float) -> int:
         return int(np.clip(np.searchsorted(self._starts, longitudinal, side="right") - 1, 0, len(self._headings) - 1))
@@ -180,7 +192,7 @@ def read_junction(
     :param path: the ``.net.xml`` file
     :param ds: sample spacing of the route polylines [m]
     :param lateral_acceleration: largest lateral acceleration on curves [m/s^2] (their speed limits)
-    :return: the layout, named after the file
+    :return: the layout, named ``"net:<the file's absolute path>"``
     :raises NetFileError: in one line naming the file and what is wrong
     :raises ImportError: without the sumo extra (sumolib)
     """
@@ -225,7 +237,7 @@ def read_junction(
             r[0] = f"{r[4]}@{r[7]}->{r[5]}"
     used = sorted({a for r in routes for a in (r[4], r[5])}, key=list(ARM_ANGLES).index)
     return layout_from_routes(
-        path.name.removesuffix(".net.xml"), road, [tuple(r[:7]) for r in routes],
+        NET_PREFIX + str(path.resolve()), road, [tuple(r[:7]) for r in routes],
         {a: float(ARM_ANGLES[a]) for a in used}, float(ds), float(lateral_acceleration),
     )  # fmt: skip
 
@@ -241,8 +253,32 @@ def _add_lane(
         points = to_layout(lane.getShape())
         if edge.getFunction() == "internal":
             points = _smoothed(to_layout(before.getShape()), points, to_layout(after.getShape()))
-        start, end = f"{edge.getID()}:start", f"{edge.getID()}:end"
+        start, end = f"{edge.getID()}-from", f"{edge.getID()}-to"
         priority = int(edge.getPriority()) if edge.getFunction() != "internal" else 0
         road.add_lane(start, end, _Polyline(points, float(lane.getWidth()), float(lane.getSpeed()), priority))
         keys[lane_id] = (start, end, len(road.graph[start][end]) - 1)
     return keys[lane_id]
+
+
+def is_layout_name(name: object) -> bool:
+    """``name`` names a layout: one of ours, or ``"net:FILE"`` (whether the file reads is checked when it is read)."""
+    return isinstance(name, str) and (name in LAYOUT_NAMES or (name.startswith(NET_PREFIX) and len(name) > 4))
+
+
+def named_layout(name: str, ds: float = 0.5, lateral_acceleration: float = DEFAULT_LATERAL_ACCELERATION) -> Layout:
+    """The layout of a name: one of ours (:func:`envs.simulation.layouts.build_layout`), or ``"net:FILE"``, the
+    junction of a SUMO network (:func:`read_junction`, once per file version and process).
+
+    :raises ValueError: an unknown name (:class:`NetFileError`: a file that does not read, in one line)
+    """
+    if isinstance(name, str) and name.startswith(NET_PREFIX):
+        path = Path(name[len(NET_PREFIX) :]).resolve()
+        version = path.stat().st_mtime_ns if path.is_file() else 0
+        return _junction_of(str(path), version, float(ds), float(lateral_acceleration))
+    return build_layout(name, ds, lateral_acceleration)
+
+
+@cache
+def _junction_of(path: str, version: int, ds: float, lateral_acceleration: float) -> Layout:
+    del version  # part of the key only: an edited file is read again
+    return read_junction(path, ds, lateral_acceleration)
