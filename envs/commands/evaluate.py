@@ -399,25 +399,11 @@ def duration_text(runs, requested: float) -> str:
 
 def run(args: argparse.Namespace) -> int:
     from envs.evaluation.cross_plant import write_cross_plant
-    from envs.evaluation.harness import check_scenarios, find_scenarios, generate_scenarios
+    from envs.evaluation.harness import generate_scenarios
     from sb3_graph.files.output_folders import OutputError, staged_folder
 
-    planners = _check(args, several_plants=True)
-    config = checked_env(args.env, args.env_kwargs)
-    for kwargs in list(args.plant_kwargs.values())[1:]:
-        checked_env(args.env, kwargs)
-    layout = str(config["layout"])
-    share = getattr(args, "human_share", 0.0)
-    if not 0 <= share <= 1:
-        raise UserError(f"--human-share must be in [0, 1], got {share:g}")
-    if share and args.scenario_dir is not None:
-        raise UserError("--human-share: not with --scenario-dir (the scenario files carry their own human flags)")
-    if args.scenario_dir is not None:
-        try:
-            scenarios = find_scenarios(args.scenario_dir)
-            check_scenarios(scenarios, layout)
-        except ValueError as error:
-            raise UserError(f"--scenario-dir: {error}") from None
+    planners, config, scenarios = _checked_inputs(args)
+    layout, share = str(config["layout"]), getattr(args, "human_share", 0.0)
     say = progress_printer(args)
     load_model_planners(planners, config, args.trust_planner_files)
     out = _destination(args)
@@ -461,6 +447,33 @@ def run(args: argparse.Namespace) -> int:
         print(f"{failed} runs failed on a planner or plant error (see above and metrics.csv): exit status 1")
         return 1
     return 0
+
+
+def _checked_inputs(args: argparse.Namespace) -> tuple[list[tuple[str, str]], dict[str, Any], list[Path]]:
+    """``evaluate``'s arguments checked: the ``(planner word, report name)`` pairs, the first plant's environment
+    configuration, and the scenario files of ``--scenario-dir`` (none when they are to be generated).
+
+    :raises UserError: naming the flag
+    """
+    from envs.evaluation.harness import check_scenarios, find_scenarios
+
+    planners = _check(args, several_plants=True)
+    config = checked_env(args.env, args.env_kwargs)
+    for kwargs in list(args.plant_kwargs.values())[1:]:
+        checked_env(args.env, kwargs)
+    share = getattr(args, "human_share", 0.0)
+    if not 0 <= share <= 1:
+        raise UserError(f"--human-share must be in [0, 1], got {share:g}")
+    if share and args.scenario_dir is not None:
+        raise UserError("--human-share: not with --scenario-dir (the scenario files carry their own human flags)")
+    scenarios: list[Path] = []
+    if args.scenario_dir is not None:
+        try:
+            scenarios = list(find_scenarios(args.scenario_dir))
+            check_scenarios(scenarios, str(config["layout"]))
+        except ValueError as error:
+            raise UserError(f"--scenario-dir: {error}") from None
+    return planners, config, scenarios
 
 
 def report_run(
