@@ -125,7 +125,7 @@ def test_evaluate_on_a_netconvert_junction_in_both_plants(tmp_path, capsys):
     net = _netconvert(tmp_path)
     out = tmp_path / "report"
     argv = ["evaluate", "--net", net, "--plant", "builtin", "--plant", "sumo", "--planner", "glide+shield"]
-    argv += ["--scenarios", "1", "--duration", "10", "--jobs", "1", "--no-progress"]
+    argv += ["--scenarios", "1", "--duration", "15", "--jobs", "1", "--no-progress"]
     assert main([*argv, "--out", str(out)]) == 0
     ours, sumo = (pd.read_csv(out / plant / "metrics.csv") for plant in ("builtin", "sumo"))
     assert (ours["vehicles"] > 0).all() and (ours["crossed"] > 0).all()

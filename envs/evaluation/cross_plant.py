@@ -116,7 +116,9 @@ def rankings(
                     row[f"{plant}_pairs"] = int(cell["pairs"]) if found else 0
                 row["verdict"] = verdict([row[f"{p}_low"] for p in plants], [row[f"{p}_high"] for p in plants], plants)
                 rows.append(row)
-    return pd.DataFrame(rows)
+    columns = ["planner", "baseline", "metric"]
+    columns += [f"{p}_{what}" for p in plants for what in ("mean", "low", "high", "pairs")] + ["verdict"]
+    return pd.DataFrame(rows, columns=columns)
 
 
 def _interval(mean: float, low: float, high: float, metric: str) -> str:
@@ -151,6 +153,8 @@ def rankings_markdown(table: pd.DataFrame, plants: Sequence[str]) -> list[str]:
     for metric in metrics:
         head += [f"{PAIRED_DISPLAY[metric][0]} {name}" for name in names] + ["holds?"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    if table.empty:
+        return ["One planner: no pair to rank."]
     for (planner, base), rows in table.groupby(["planner", "baseline"], sort=False):
         cells = [f"{planner} − {base}"]
         for metric in metrics:
