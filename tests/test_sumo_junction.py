@@ -75,7 +75,11 @@ def test_a_netconvert_junction(tmp_path):
     """A four-arm junction that netconvert built: every turn a route, named by compass arm, the major road from
     the higher SUMO priority, maneuvers from SUMO's directions, and crossing paths in conflict."""
     layout = read_junction(_netconvert(tmp_path))
-    assert layout.name.endswith("x.net.xml") and layout.num_routes == 12 and set(layout.arms) == {"north", "east", "south", "west"}
+    assert (
+        layout.name.endswith("x.net.xml")
+        and layout.num_routes == 12
+        and set(layout.arms) == {"north", "east", "south", "west"}
+    )
     turns = {"east->north": RIGHT, "east->west": STRAIGHT, "east->south": LEFT, "south->east": RIGHT}
     for name, maneuver in turns.items():
         assert layout.maneuver[layout.route_id(name)] == maneuver, name
@@ -123,6 +127,7 @@ def test_evaluate_on_a_netconvert_junction_in_both_plants(tmp_path, capsys):
 
     pytest.importorskip("libsumo")
     net = _netconvert(tmp_path)
+    before = {path.name: path.read_bytes() for path in tmp_path.iterdir()}
     out = tmp_path / "report"
     argv = ["evaluate", "--net", net, "--plant", "builtin", "--plant", "sumo", "--planner", "glide+shield"]
     argv += ["--scenarios", "1", "--duration", "15", "--jobs", "1", "--no-progress"]
@@ -132,6 +137,8 @@ def test_evaluate_on_a_netconvert_junction_in_both_plants(tmp_path, capsys):
     for column in ("crossed", "delay_mean", "collided"):
         assert np.allclose(ours[column], sumo[column], atol=1e-6), column
     assert f'"layout": "net:{net}"' in (out / "sumo" / "scenarios" / "scenario_000.json").read_text()
+    # the user's files untouched, nothing written beside them (SUMO's network went into a fresh temporary folder)
+    assert {path.name: path.read_bytes() for path in tmp_path.iterdir() if path != out} == before
 
 
 def test_evaluate_refuses_a_bad_net_in_one_line(tmp_path, capsys):
