@@ -114,7 +114,9 @@ def bad_input_cases(good: dict, max_body: int, max_vehicles: int = 64) -> list[B
     return [
         BadCase("not JSON (cut short)", dump(good)[:-5], 422, "body"),
         BadCase("empty body", b"", 422, "body"),
-        BadCase("vehicles missing", dump({"layout": good["layout"], "time": good["time"]}), 422, "vehicles"),
+        BadCase("vehicles missing", dump({k: good[k] for k in ("layout", "time", "captured")}), 422, "vehicles"),
+        BadCase("captured missing", dump({k: v for k, v in good.items() if k != "captured"}), 422, "captured"),
+        BadCase("captured in the future", dump({**good, "captured": good["captured"] + 3600.0}), 422, "captured"),
         BadCase("vehicles not a list", dump({**good, "vehicles": {"id": 1}}), 422, "vehicles"),
         BadCase("unknown field", _vehicle_case(good, 0, "colour", "red"), 422, "vehicles[0].colour"),
         BadCase("time is a string", dump({**good, "time": "12.0"}), 422, "time"),

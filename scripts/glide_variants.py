@@ -136,3 +136,18 @@ class WideRandom(_Widened):
 
     def wide(self, scene) -> np.ndarray:
         return scene.vehicle_id * 2654435761 % 1000 < 500
+
+
+class GlideSteady(GlidePlanner):
+    """glide with hysteresis against perception error: a perceived position within 1 m of the one it planned from,
+    driven on, does not move its plans (``GlideParams.hysteresis``; an exact scene is planned as it is)."""
+
+    def __init__(self) -> None:
+        super().__init__("GlideSteady", dataclasses.replace(GlidePlanner().params, hysteresis=1.0))
+
+
+class GlideSteady2(GlidePlanner):
+    """:class:`GlideSteady` with a band of 2 m."""
+
+    def __init__(self) -> None:
+        super().__init__("GlideSteady2", dataclasses.replace(GlidePlanner().params, hysteresis=2.0))

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import pandas as pd
 
+from envs.commands.evaluate import with_plant
 from envs.evaluation.harness import evaluate, generate_scenarios
 from envs.evaluation.metrics import STANDSTILL_LIMIT
 
@@ -37,14 +38,28 @@ ATTACKS = (
 )
 
 
-def hostile_table(scenarios: int, duration: float, seed: int, jobs: int, layouts=tuple(LAYOUTS)) -> pd.DataFrame:
-    """One row per layout and attack (see the module docstring)."""
+def hostile_table(
+    scenarios: int,
+    duration: float,
+    seed: int,
+    jobs: int,
+    layouts=tuple(LAYOUTS),
+    plant: str | None = None,
+    human_share: float = 0.0,
+) -> pd.DataFrame:
+    """One row per layout and attack (see the module docstring); ``plant``: the env config's (``"sumo"``: SUMO,
+    its drivers the humans), ``human_share``: the share of human drivers in the scenarios."""
     rows = []
     planners = [(f"envs.planners.hostile:{cls}+shield", attack) for attack, cls in ATTACKS]
+    env_kwargs = with_plant(None, plant)
     with tempfile.TemporaryDirectory() as folder:
         for layout in layouts:
-            files = generate_scenarios(Path(folder) / layout, scenarios, duration, seed, layout)
-            runs, _ = evaluate(planners, files, LAYOUTS[layout], duration, seed=seed, jobs=jobs, progress=False)
+            files = generate_scenarios(
+                Path(folder) / layout, scenarios, duration, seed, layout, human_share=human_share
+            )
+            runs, _ = evaluate(
+                planners, files, LAYOUTS[layout], duration, seed=seed, jobs=jobs, env_kwargs=env_kwargs, progress=False
+            )
             for (_, attack), cls in zip(planners, (c for _, c in ATTACKS)):
                 r = runs[runs["planner"] == attack]
                 rows.append(
@@ -86,16 +101,22 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--jobs", type=int, default=1, help="worker processes (>= 1)")
     parser.add_argument("--layout", action="append", choices=sorted(LAYOUTS), help="layouts (default: all)")
     parser.add_argument("--csv", type=Path, default=None, help="also write the table here (never overwritten)")
+    parser.add_argument("--plant", choices=["builtin", "sumo"], default=None, help="the plant (default: ours)")
+    parser.add_argument("--human-share", type=float, default=0.0, help="share of human drivers, in [0, 1]")
     args = parser.parse_args(argv)
     if args.scenarios < 1 or args.jobs < 1 or not args.duration > 0:
         parser.error("--scenarios and --jobs must be >= 1 and --duration > 0")
+    if not 0.0 <= args.human_share <= 1.0:
+        parser.error("--human-share must be in [0, 1]")
     if args.csv is not None and args.csv.exists():
         parser.error(f"--csv: {args.csv} exists (never overwritten)")
     tic = time.perf_counter()
-    table = hostile_table(args.scenarios, args.duration, args.seed, args.jobs, tuple(args.layout or LAYOUTS))
+    layouts = tuple(args.layout or LAYOUTS)
+    table = hostile_table(args.scenarios, args.duration, args.seed, args.jobs, layouts, args.plant, args.human_share)
     print(markdown(table))
     print(
-        f"\n{args.scenarios} scenarios x {args.duration:g} s per layout, seed {args.seed}; stuck: no crossing for "
+        f"\n{args.scenarios} scenarios x {args.duration:g} s per layout, seed {args.seed}, "
+        f"plant {args.plant or 'builtin'}, human share {args.human_share:g}; stuck: no crossing for "
         f"{STANDSTILL_LIMIT:g} s while vehicles wait; {time.perf_counter() - tic:.0f} s wall"
     )
     if args.csv is not None:

@@ -52,7 +52,7 @@ def wire_scene(n: int, time_s: float, layout: Any) -> dict[str, Any]:
     """A valid wire scene of ``n`` vehicles on successive routes, 10 m apart along them (``n`` <= 12)."""
     vehicles = [{"id": i, "route": layout.route_names[i % layout.num_routes], "arc": 8.0 + 10.0 * i,
                  "speed": 5.0, "length": 4.5, "width": 1.8} for i in range(n)]  # fmt: skip
-    return {"layout": layout.name, "time": float(time_s), "vehicles": vehicles}
+    return {"layout": layout.name, "time": float(time_s), "captured": time.time(), "vehicles": vehicles}
 
 
 def free_port() -> int:

@@ -38,7 +38,7 @@ def plan_pairs_numpy(shield: Shield, scene: Scene, plan: _Plan) -> dict[str, np.
     :return: field name -> array
     """
     lay, route, length = scene.layout, scene.route, scene.length
-    arc, speed, hull_start, m = plan.arc, plan.speed, plan.hull_start, shield.zone_margin
+    arc, speed, hull_start = plan.arc, plan.speed, plan.hull_start
     # Same path: the leader and the leader's leader; the next vehicle ahead on the same route; a
     # vehicle ahead on another route from the same spawn lane until the centre lines part.
     lead = scene.leader
@@ -67,7 +67,8 @@ def plan_pairs_numpy(shield: Shield, scene: Scene, plan: _Plan) -> dict[str, np.
         ]
     )
     # Conflicting routes, among the vehicles that may commit.
-    rows = np.flatnonzero(shield._may_commit(scene, arc, speed, hull_start)) if shield._prune else np.arange(len(arc))
+    may = shield._may_commit(scene, arc, speed, hull_start) | plan.waiting  # a waiting human keeps its windows
+    rows = np.flatnonzero(may) if shield._prune else np.arange(len(arc))
     i, j = np.nonzero(lay.conflicts[route[rows, None], route[None, rows]])
     i, j = rows[i[i < j]], rows[j[i < j]]
     is_merge = _merging_routes(lay)[route[i], route[j]]
@@ -75,8 +76,9 @@ def plan_pairs_numpy(shield: Shield, scene: Scene, plan: _Plan) -> dict[str, np.
     cross, merge = pairs[~is_merge], pairs[is_merge]
     r = route[cross]
     half = length[cross] / 2
-    cross_lo = lay.zone_start[r, r[:, ::-1]] - m - half
-    cross_hi = lay.zone_end[r, r[:, ::-1]] + m + half
+    pad = plan.pad[cross]  # each vehicle's zone padding (0 for a waiting human)
+    cross_lo = lay.zone_start[r, r[:, ::-1]] - pad - half
+    cross_hi = lay.zone_end[r, r[:, ::-1]] + pad + half
     if shield._prune:
         ahead = (arc[cross] < cross_hi).all(axis=1)
         cross, cross_lo, cross_hi = cross[ahead], cross_lo[ahead], cross_hi[ahead]
@@ -98,7 +100,7 @@ def plan_pairs_numpy(shield: Shield, scene: Scene, plan: _Plan) -> dict[str, np.
         "cross_back": back,
         "cross_stop": x0[pair, back] + _STOP_SLACK,
         "merge": merge,
-        "merge_lo": lay.zone_start[r, r[:, ::-1]] - m - length[merge] / 2,
+        "merge_lo": lay.zone_start[r, r[:, ::-1]] - plan.pad[merge] - length[merge] / 2,
         "merge_exit": lay.exit_arc[r],
         "merge_sep": length[merge].sum(axis=1) / 2 + shield.merge_margin,
         "rank": rank,
@@ -172,7 +174,7 @@ def gaps_hold(shield: Shield, plan: _Plan, arc: np.ndarray, speed: np.ndarray, g
     f, ahead, gap = leaders_now(shield, plan, arc, go)
     live = plan.follow_floor[arc[plan.follow[:, 1]] < plan.follow_until]
     floor = np.concatenate([live, np.full(len(f) - len(live), 0.5 * shield.gap_margin)])
-    yields = np.concatenate([np.ones(len(live), bool), ~np.asarray(plan.human, bool)[f[len(live):]]])
+    yields = np.concatenate([np.ones(len(live), bool), ~np.asarray(plan.human, bool)[f[len(live) :]]])
     vf, va = speed[f], speed[ahead]
     stop = gap - (vf**2 - va**2) / (2 * a_max)
     room = (gap >= floor) & ((vf <= va) | (stop >= floor + _STOP_SLACK))

@@ -34,3 +34,7 @@ def test_the_table_pairs_each_level_and_perception_against_full_throttle(tmp_pat
     mine = runs[runs["planner"] == "glide+shield"].groupby("level")["flow_rate"].mean()
     assert np.isclose(glide.loc["lag", "d_flow"], mine["lag"] - baseline["lag"])
     assert "| 0.4 | lag | raw | glide |" in text
+    # the same runs, paired against glide instead (no run again)
+    assert fault_table.main(["--runs", str(out), "--baseline", "glide+shield"]) == 0
+    again = capsys.readouterr().out
+    assert "Δ delay vs glide+shield" in again and "| 0.4 | lag | raw | glide | " in again

@@ -382,3 +382,38 @@ def test_advice_once_given_holds_to_the_line():
     fresh.set_windows(np.zeros(3))
     assert np.array_equal(held.act(scene.copy()), first)
     assert np.array_equal(fresh.act(scene.copy()), np.full(3, scene.a_max))  # never advised: full throttle
+
+
+def _shifted(scene, delta):
+    """The scene with every perceived arc moved by ``delta`` [m] (the distances and gaps with it)."""
+    delta = np.broadcast_to(delta, scene.arc.shape)
+    lead = scene.leader >= 0
+    ahead = np.where(lead, delta[np.maximum(scene.leader, 0)], 0.0)
+    return dataclasses.replace(
+        scene, arc=scene.arc + delta, s=scene.s + delta, dist_to_entry=scene.dist_to_entry - delta,
+        dist_to_exit=scene.dist_to_exit - delta, gap=np.where(lead, scene.gap + ahead - delta, scene.gap),
+    )  # fmt: skip
+
+
+def test_hysteresis_keeps_a_metre_of_perception_error_out_of_the_plans():
+    env = gym.make("CoopIntersection4Way-v0", config={"spawn_probability": 0.6})
+    env.reset(seed=3)
+    for _ in range(15):
+        env.step(np.zeros(env.action_space.shape, np.float32))
+    exact = env.unwrapped.scene()
+    assert exact.num_vehicles >= 3
+    glide = GlidePlanner(params=dataclasses.replace(GlideParams(), hysteresis=1.0))
+    assert glide.steadied(exact) is exact  # an exact scene is planned as it is
+    perceived = dataclasses.replace(exact, arc_std=np.full(exact.num_vehicles, 1.0))
+    glide.act(perceived)
+    jitter = np.where(np.arange(exact.num_vehicles) % 2, 0.8, -0.6)  # within the band: the plans do not move
+    steady = glide.steadied(_shifted(perceived, jitter))
+    np.testing.assert_allclose(steady.arc, perceived.arc)
+    np.testing.assert_allclose(steady.dist_to_entry, perceived.dist_to_entry)
+    np.testing.assert_allclose(steady.gap, perceived.gap)
+    np.testing.assert_array_equal(glide.act(_shifted(perceived, jitter)), glide.act(perceived))
+    far = glide.steadied(_shifted(perceived, 3.0))  # beyond the band: followed as far as it lies outside
+    np.testing.assert_allclose(far.arc, perceived.arc + 2.0)
+    plain = GlidePlanner()
+    plain.act(perceived)
+    assert plain.steadied(_shifted(perceived, jitter)).arc is not perceived.arc  # no band: the perceived arcs

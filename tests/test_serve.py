@@ -439,3 +439,50 @@ def test_the_service_compiles_the_fast_paths_kernels_before_its_first_stream():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.strip() == "True"
+
+
+@pytest.mark.skipif(not SERVE_EXTRA, reason="the 'serve' extra (fastapi, uvicorn) is not installed")
+def test_a_scene_carries_its_capture_time_and_a_stale_one_is_refused(recorded, monkeypatch):
+    """No ``captured`` or one from the future: 422 naming it; older than the shield's declared latency: refused with
+    its age, and the same ``seq`` with a fresh scene is planned; without declared latency the age is not limited."""
+    import msgspec
+
+    from envs.planners.shield_bounds import ShieldBounds
+    from envs.serve import app, frames
+    from envs.serve.app import PlannerService
+    from envs.serve.schema import OpenRequest
+
+    monkeypatch.setattr(app, "_wall_clock", lambda: 5000.0)
+    service = PlannerService("fifo", ENV, shield=True, shield_bounds=ShieldBounds(latency=0.1))
+    assert service.info()["max_scene_age"] == 0.1 and service.prototype.bounds.latency == 0.1
+    stream = service.open(OpenRequest(layout="4way", seed=0)).id
+    scene = _scenes(recorded, "aim")[5]
+
+    def send(captured, seq=1):
+        wire = {**_through_json(scene), "seq": seq, "captured": captured}
+        if captured is None:
+            del wire["captured"]
+        status, body = service.handle("step", stream, json.dumps(wire).encode())
+        return status, json.loads(body)
+
+    for captured, words in [(None, ["required"]), (5001.0, ["ahead", "future"]), (4999.8, ["0.200 s old", "0.1 s"])]:
+        status, reply = send(captured)
+        assert (status, reply["field"]) == (422, "captured"), reply
+        assert all(word in reply["error"] for word in words), reply["error"]
+    assert send(4999.95)[0] == 200  # the same seq, fresh (and a clock 0.03 s ahead is no future)
+    assert send(5000.03, seq=2)[0] == 200
+    # The fast path: the same checks, the same field.
+    columns = (scene.layout.name, scene.time + 1, scene.route_names, scene.vehicle_id, scene.route, scene.arc,
+               scene.speed, scene.length, scene.width)  # fmt: skip
+    stale = frames.decode_reply(service.handle("frame", stream, frames.encode_step(3, *columns, 4999.0))[1])
+    assert (stale["status"], stale["field"]) == (422, "captured") and "1.000 s old" in stale["error"]
+    missing = msgspec.msgpack.decode(frames.encode_step(3, *columns, 5000.0))[:-1]  # an old client's frame
+    refused = frames.decode_reply(service.handle("frame", stream, msgspec.msgpack.encode(missing))[1])
+    assert (refused["status"], refused["field"]) == (422, "captured")
+    assert service.handle("frame", stream, frames.encode_step(3, *columns, 5000.0))[0] == 200
+    # No declared latency: any age is planned.
+    plain = PlannerService("fifo", ENV, shield=True)
+    assert plain.info()["max_scene_age"] is None
+    other = plain.open(OpenRequest(layout="4way", seed=0)).id
+    wire = {**_through_json(scene), "seq": 1, "captured": 10.0}
+    assert plain.handle("step", other, json.dumps(wire).encode())[0] == 200

@@ -172,7 +172,6 @@ def test_prediction_layout_is_bitwise_the_layout(layout):
     assert view.route_names == lay.route_names  # everything else is the layout's
 
 
-
 @pytest.mark.parametrize("layout", ["4way", "inD"])
 def test_the_compiled_step_is_bitwise_integrate(layout):
     """``_shield_kernel.integrate`` (the step of ``lookahead``'s rollouts) gives integrate's speeds, arcs and
@@ -194,6 +193,7 @@ def test_the_compiled_step_is_bitwise_integrate(layout):
         for a, b in zip(got, want):
             assert a.dtype == b.dtype
             np.testing.assert_array_equal(a, b)
+
 
 BLAMED: list[int] = []  # scenes whose blame was compared (a test that compared none would prove nothing)
 
@@ -297,11 +297,13 @@ def test_a_tangle_in_the_box_that_drains_slower_than_the_horizon_drains(drain_ho
     collided, _ = _run(sim, shield, steps=60)
     assert not collided and sim.num_vehicles == len(TANGLE)
     moved = sim.arc - start
+    assert (moved[inside] > 8.0).all()  # every vehicle in the box moves on
     if drain_horizon > shield.horizon:
         assert shield.unresolved == 0
-        assert (moved[inside] > 8.0).all()  # every vehicle in the box moves on
-    else:  # the look that ends at the horizon: no command passes, and nobody moves
-        assert shield.unresolved == 60 and np.abs(moved).max() < 1e-9
+    else:  # the look that ends at the horizon: no command passes, and of braking everyone (nobody would move
+        # for good) and the fallback, which shows no more conflicts, the fallback is taken: the box drains
+        assert shield.unresolved > 0
+
 
 def test_a_committed_vehicle_waits_before_a_later_zone_that_a_crossing_vehicle_occupies():
     # Vehicle 0 can no longer stop before its first zone (from 80.5 m), but can before the zone it

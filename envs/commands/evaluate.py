@@ -127,6 +127,7 @@ def add_run_arguments(parser: argparse.ArgumentParser, scenarios: int, out: str,
         help=f"repeatable: {PLANNER_WORDS_HELP}; {LABEL_HELP}; default: {DEFAULT_PLANNERS_HELP}",
     )
     add_shield_argument(parser)
+    add_shield_bounds_argument(parser)
     parser.add_argument("--trust-planner-files", action="store_true", help=TRUST_HELP)
     parser.add_argument(
         "--scenarios",
@@ -240,6 +241,7 @@ def _check(args: argparse.Namespace, several_plants: bool = False) -> list[tuple
     if args.env_kwargs is not None and not isinstance(args.env_kwargs, dict):
         raise UserError("--env-kwargs must be a JSON object, e.g. '{\"duration\": 100}'")
     planners = checked_planners(args.planner, shield=args.shield)
+    args.shield_bounds = checked_shield_bounds(args.shield_bounds)
     if getattr(args, "net", None) is not None:
         args.env_kwargs = with_net(args.env_kwargs, args.net)
     plants = list(dict.fromkeys(getattr(args, "plant", None) or []))
@@ -257,6 +259,53 @@ def _check(args: argparse.Namespace, several_plants: bool = False) -> list[tuple
     if getattr(args, "scenario_dir", None) is not None and not Path(args.scenario_dir).is_dir():
         raise UserError(f"--scenario-dir: {args.scenario_dir!r} is not a folder")
     return planners
+
+
+def add_shield_bounds_argument(parser: argparse.ArgumentParser) -> None:
+    """The ``--shield-bounds`` option (shared by the commands that run shielded planners)."""
+    parser.add_argument(
+        "--shield-bounds",
+        default="none",
+        metavar="BOUNDS",
+        help="the faults every '+shield' planner's shield is declared to tolerate: 'none' (the exact world), "
+        "'declared' (position=3,speed=1,age=1,latency=0.1,lag=0.3) or KEY=VALUE,... with keys position [m], speed "
+        "[m/s], age [s], latency [s], lag [s] ('declared,lag=0.5' starts from the declared ones); a run whose "
+        "faults exceed them starts with a warning, and the vehicle-steps beyond them are counted (default: none)",
+    )
+
+
+def checked_shield_bounds(text: str | None):
+    """``--shield-bounds`` parsed (:func:`envs.planners.shield_bounds.parse_shield_bounds`).
+
+    :raises UserError: one line naming the key and its allowed range
+    """
+    from envs.planners.shield_bounds import parse_shield_bounds
+
+    try:
+        return parse_shield_bounds(text)
+    except ValueError as error:
+        raise UserError(str(error)) from None
+
+
+def warn_beyond_bounds(planners: Sequence[tuple[str, str]], bounds, config: dict[str, Any]) -> str | None:
+    """The one-line warning (on stderr) at the start of a run whose faults exceed the shields' declared bounds.
+
+    :param planners: ``(planner spec, report name)`` pairs (only ``+shield`` ones declare bounds)
+    :param bounds: the parsed ``--shield-bounds``
+    :param config: the environment's resolved configuration (its ``faults``)
+    :return: the line, or ``None`` (no shielded planner, or the faults are within the bounds)
+    """
+    import sys
+
+    from envs.planners import SHIELD_SUFFIX
+    from envs.planners.shield_bounds import bounds_warning
+
+    if not any(spec.endswith(SHIELD_SUFFIX) for spec, _ in planners):
+        return None
+    line = bounds_warning(bounds, config.get("faults"))
+    if line is not None:
+        print(line, file=sys.stderr, flush=True)
+    return line
 
 
 def with_plant(env_kwargs: dict[str, Any] | None, plant: str | None) -> dict[str, Any] | None:
@@ -406,6 +455,7 @@ def run(args: argparse.Namespace) -> int:
     layout, share = str(config["layout"]), getattr(args, "human_share", 0.0)
     say = progress_printer(args)
     load_model_planners(planners, config, args.trust_planner_files)
+    warn_beyond_bounds(planners, args.shield_bounds, config)
     out = _destination(args)
     # One report, or with several plants one report per plant in a subfolder named after it.
     plants: list[str | None] = list(args.plant_kwargs) if len(args.plant_kwargs) > 1 else [None]
@@ -428,7 +478,9 @@ def run(args: argparse.Namespace) -> int:
                 plant_args.env_kwargs = args.env_kwargs if plant is None else args.plant_kwargs[plant]
                 if plant is not None:
                     say(f"plant {plant}")
-                results[plant] = report_run(plant_args, planners, scenarios, folder, out / folder.relative_to(stage))
+                results[plant] = report_run(
+                    plant_args, planners, scenarios, folder, out / folder.relative_to(stage), config
+                )
             if plants[0] is not None:
                 cross = write_cross_plant(stage, {p: results[p][1] for p in plants}, [name for _, name in planners])
     except OutputError as error:
@@ -477,7 +529,12 @@ def _checked_inputs(args: argparse.Namespace) -> tuple[list[tuple[str, str]], di
 
 
 def report_run(
-    args: argparse.Namespace, planners: Sequence[tuple[str, str]], scenarios: Sequence[Path], folder: Path, out: Path
+    args: argparse.Namespace,
+    planners: Sequence[tuple[str, str]],
+    scenarios: Sequence[Path],
+    folder: Path,
+    out: Path,
+    config: dict[str, Any],
 ) -> tuple[dict, Any, dict]:
     """Run every planner on every scenario and write the report into ``folder``.
 
@@ -486,6 +543,7 @@ def report_run(
     :param scenarios: scenario files
     :param folder: the (staged) report folder
     :param out: where ``folder`` ends up (named in the report)
+    :param config: the environment's configuration (its faults, against the shields' declared bounds)
     :return: ``(summary, runs, stats)``
     """
     from envs.evaluation.report import write_report
@@ -503,6 +561,7 @@ def report_run(
         "scenarios": f"{len(scenarios)}, {source}",
         "duration per run": duration_text(runs, args.duration),
         "seed": args.seed,
+        **bounds_meta(args, config),
         "jobs": args.jobs,
         **harness_meta(stats),
         "wall time": f"{time.perf_counter() - tic:.1f} s",
@@ -513,6 +572,7 @@ def report_run(
     replay = {
         "env": args.env, "env_kwargs": args.env_kwargs, "seed": args.seed, "duration": args.duration,
         "planners": [list(pair) for pair in planners], "trust_planner_files": args.trust_planner_files,
+        "shield_bounds": args.shield_bounds.text(),
     }  # fmt: skip
     write_run_info(folder, stats, time.perf_counter() - tic, replay)
     return summary, runs, stats
@@ -550,6 +610,12 @@ def print_summary(summary: dict[str, dict[str, Any]]) -> None:
                 f"{'':>{width}}  shield: interventions {percent(s['shield_interventions'])} of vehicle-steps,"
                 f" unresolved steps {s.get('shield_unresolved', 0)}, planner errors {s.get('planner_errors', 0)},"
                 f" watchdog takeovers {s.get('watchdog_takeovers', 0)}"
+            )
+        if "fault_excursions" in s:
+            print(
+                f"{'':>{width}}  beyond the declared bounds: {s['fault_excursions']} vehicle-steps (position"
+                f" {s.get('excursions_position', 0)}, speed {s.get('excursions_speed', 0)}, age"
+                f" {s.get('excursions_age', 0)})"
             )
         if s.get("failed_runs"):
             print(f"{name:>{width}}: {s['failed_runs']} runs failed (left out of the report's tables)")
@@ -633,6 +699,7 @@ def harness(args: argparse.Namespace, planners: Sequence[tuple[str, str]], scena
             progress=not args.no_progress,
             progress_label=getattr(args, "command", None) or "evaluate",
             trust_planner_files=args.trust_planner_files,
+            shield_bounds=getattr(args, "shield_bounds", None),
             executor=args.executor,
             scheduler_address=args.scheduler_address,
             stats=stats,
@@ -653,6 +720,19 @@ def harness_meta(stats: dict[str, Any]) -> dict[str, str]:
         "executor": stats["executor"],
         "harness": f"{stats['runs']} runs in {stats['wall_s']:.1f} s ({rate_text})",
     }
+
+
+def bounds_meta(args: argparse.Namespace, config: dict[str, Any]) -> dict[str, str]:
+    """The report's line on the shields' declared bounds and the faults beyond them (none without faults)."""
+    from envs.planners.shield_bounds import exceeded
+    from envs.simulation.faults import faults_active
+
+    bounds = getattr(args, "shield_bounds", None)
+    if not faults_active(config.get("faults")) and (bounds is None or bounds.exact):
+        return {}
+    beyond = exceeded(bounds, config.get("faults"))
+    text = "none" if bounds is None else bounds.text()
+    return {"shield bounds": text + (f" (faults beyond them: {'; '.join(beyond)})" if beyond else "")}
 
 
 def run_line(stats: dict[str, Any]) -> str:

@@ -242,7 +242,7 @@ def run(args: argparse.Namespace) -> int:
     from envs.commands.evaluate import check_env_id, checked_env, checked_planners, load_model_planners
     from envs.evaluation.harness import evaluation_env_kwargs
     from envs.evaluation.recording import record_episode
-    from envs.planners import make_planner
+    from envs.planners import make_planner, parse_shield_bounds
     from envs.simulation.rendering import write_animation
     from sb3_graph.files.output_folders import OutputError, write_file_atomically
 
@@ -251,6 +251,10 @@ def run(args: argparse.Namespace) -> int:
     check_env_id(settings["env"])
     trust = args.trust_planner_files or bool(settings.get("trust_planner_files") and args.report)
     planners = checked_planners(settings["words"], shield=args.shield)
+    try:  # a replayed report's shields keep their declared bounds
+        bounds = parse_shield_bounds(settings.get("shield_bounds"))
+    except ValueError as error:
+        raise UserError(f"--report: run.json's replay settings: {error}") from None
     config = checked_env(settings["env"], settings.get("env_kwargs"))
     load_model_planners(planners, config, trust)
     scenario = _scenario(settings, str(config["layout"]))
@@ -261,7 +265,7 @@ def run(args: argparse.Namespace) -> int:
     episodes = []
     with tqdm(total=steps * len(planners), desc="record: simulate", unit="step", disable=hidden) as bar:
         for spec, name in planners:
-            planner = make_planner(spec, trust_files=trust)
+            planner = make_planner(spec, trust_files=trust, shield_bounds=bounds)
             episodes.append(
                 record_episode(env, planner, name, scenario, settings["duration"], settings["seed"], bar.update)
             )

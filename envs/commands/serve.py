@@ -42,6 +42,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "any other address needs --token-file)")  # fmt: skip
     parser.add_argument("--port", type=int, default=DEFAULT_PORT, help=f"port (default: {DEFAULT_PORT}; 0: any free)")
     parser.add_argument("--shield", action="store_true", help="wrap the planner in the safety shield (per stream)")
+    parser.add_argument("--shield-bounds", default="none", metavar="BOUNDS",
+                        help="the faults the shield is declared to tolerate, as evaluate's --shield-bounds ('none', "
+                        "'declared' or KEY=VALUE,...); its latency bound is the oldest scene the server plans (an "
+                        "older one is refused with 422 naming 'captured'; none: not limited)")  # fmt: skip
     access = parser.add_argument_group("access")
     access.add_argument("--token-file", default=None, help="file of tokens, one per line, one per client; every "
                         "request must send one as 'Authorization: Bearer <token>' (clients: $SB3_GRAPH_TOKEN_FILE). "
@@ -160,10 +164,12 @@ def _check(args: argparse.Namespace):
     except ValueError as error:
         raise UserError(f"--token-file: {error}") from None
     cap = connection_cap(args.max_connections, args.workers)
+    from envs.commands.evaluate import checked_shield_bounds
     from envs.serve.app import PlannerService
 
+    bounds = checked_shield_bounds(args.shield_bounds)
     try:
-        service = PlannerService(args.planner, args.env, args.env_kwargs, shield=args.shield)
+        service = PlannerService(args.planner, args.env, args.env_kwargs, shield=args.shield, shield_bounds=bounds)
     except ValueError as error:
         raise UserError(f"--planner: {error}") from None
     return service, tokens, cap

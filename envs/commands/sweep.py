@@ -37,11 +37,13 @@ from envs.commands.evaluate import (
     _check,
     _destination,
     add_run_arguments,
+    bounds_meta,
     checked_env,
     harness_meta,
     load_model_planners,
     run_harness,
     run_line,
+    warn_beyond_bounds,
     write_run_info,
 )
 from sb3_graph.commands import UserError
@@ -131,11 +133,13 @@ def run(args: argparse.Namespace) -> int:
     config = checked_env(args.env, args.env_kwargs)
     layout = str(config["layout"])
     load_model_planners(planners, config, args.trust_planner_files)
+    warn_beyond_bounds(planners, args.shield_bounds, config)
     out = _destination(args, prefix="sweep")
     tic = time.perf_counter()
     try:
         with staged_folder(out) as stage:
-            table, wall, stats = _sweep(args, planners, demand, layout, stage, tic, axis, fixed)
+            bounds = bounds_meta(args, config)
+            table, wall, stats = _sweep(args, planners, demand, layout, stage, tic, axis, fixed, bounds)
     except OutputError as error:
         raise UserError(str(error)) from None
     if axis == "demand":
@@ -196,9 +200,9 @@ def print_level_verdicts(out, demand: Sequence[float], axis: str = "demand") -> 
     return 0
 
 
-def _sweep(args, planners, demand, layout, out, tic, axis="demand", fixed=None):
+def _sweep(args, planners, demand, layout, out, tic, axis="demand", fixed=None, bounds=None):
     """Run every level into ``out`` (the staging folder); return the sweep table, the wall time and the
-    harness's stats."""
+    harness's stats. ``bounds``: the report's line on the shields' declared bounds (:func:`bounds_meta`)."""
     from envs.evaluation.comparison import paired_differences
     from envs.evaluation.harness import generate_scenarios
     from envs.evaluation.report import failed_runs, write_report
@@ -230,6 +234,7 @@ def _sweep(args, planners, demand, layout, out, tic, axis="demand", fixed=None):
         ),
         "scenarios per level": f"{args.scenarios} (scenario i: seed {args.seed} + i)",
         "duration per run": f"{args.duration:g} s",
+        **(bounds or {}),
         "jobs": args.jobs,
         **harness_meta(stats),
         "wall time": f"{wall:.1f} s",

@@ -40,6 +40,7 @@ from envs.evaluation.metrics import VehicleLog, run_metrics
 from envs.evaluation.progress import RunClock, format_eta, interleaved
 from envs.planners import BASELINES, SHIELD_SUFFIX, make_planner
 from envs.planners.errors import PlannerError, checked_accelerations
+from envs.planners.shield_bounds import EXCURSION_COLUMNS, ShieldBounds, excursions
 from envs.simulation.engine import PlantError
 from envs.simulation.rewards import REWARD_PRESETS
 from envs.simulation.step_record import StepRecord, step_record
@@ -62,6 +63,8 @@ class Job:
     :param seed: base seed
     :param env_kwargs: keyword arguments of ``gym.make``
     :param trust_files: load a model ``.zip`` with SB3's full ``load`` (``--trust-planner-files``)
+    :param shield_bounds: the faults a ``+shield`` planner's shield is declared to tolerate (``None``: the exact world);
+        a run's ``fault_excursions`` are counted against them
     """
 
     planner: str
@@ -73,6 +76,7 @@ class Job:
     seed: int
     env_kwargs: dict[str, Any] = field(default_factory=dict)
     trust_files: bool = False
+    shield_bounds: ShieldBounds | None = None
 
 
 # What the harness's environments do on a collision (see the module docstring).
@@ -150,11 +154,12 @@ def _check_render_mode(env_id: str, mode: Any) -> None:
         raise ValueError(f"render_mode must be None or one of {modes}, got {mode!r}")
 
 
-def _planner(spec: str, trust_files: bool = False):
+def _planner(spec: str, trust_files: bool = False, shield_bounds: ShieldBounds | None = None):
     planners = _cache("planners")
-    if (spec, trust_files) not in planners:
-        planners[spec, trust_files] = make_planner(spec, trust_files=trust_files)
-    return planners[spec, trust_files]
+    key = (spec, trust_files, shield_bounds)
+    if key not in planners:
+        planners[key] = make_planner(spec, trust_files=trust_files, shield_bounds=shield_bounds)
+    return planners[key]
 
 
 def run_episode(
@@ -164,6 +169,7 @@ def run_episode(
     duration: float,
     seed: int | None = None,
     on_step: Callable[[Any, np.ndarray, StepRecord, Any], None] | None = None,
+    bounds: ShieldBounds | None = None,
 ) -> tuple[pd.DataFrame, dict]:
     """Run one planner through one scenario.
 
@@ -176,13 +182,16 @@ def run_episode(
     :param seed: seed of the environment's reset and of the planner
     :param on_step: called after every policy step as ``on_step(scene, accelerations, record, next_scene)``
         (e.g. to draw the episode, :mod:`envs.simulation.rendering`); it must not change what it is handed
+    :param bounds: the declared bounds that the perceived scenes' excursions are counted against (default: the
+        planner's own ``bounds``, a shield's, else the exact world)
     :return: ``(vehicle log, facts)``: the log holds every vehicle scheduled within the run (see
         :mod:`envs.evaluation.metrics`); facts ``return`` (the sum of the environment's rewards),
         ``return_<preset>`` (the same run's return under each reward preset of :mod:`envs.simulation.rewards`),
         ``duration`` (simulated seconds actually run),
         ``steps``, ``terminated`` (the environment ended the episode, e.g. on a collision with
         ``collision_handling="terminate"``; the harness's own environments go on instead), ``lost`` (vehicles the
-        plant lost on its own: SUMO refused to insert them or removed them)
+        plant lost on its own: SUMO refused to insert them or removed them), and with a fault model the vehicle-steps
+        whose perceived state was beyond ``bounds`` (:data:`envs.planners.shield_bounds.EXCURSION_COLUMNS`)
     """
     base = env.unwrapped
     _, info = env.reset(seed=seed, options={"scenario": scenario})
@@ -198,8 +207,14 @@ def run_episode(
     terms: dict[str, float] = {}
     terminated = truncated = False
     lost = 0
+    errors = getattr(base, "perception_errors", None)  # None: an environment without a fault model
+    if bounds is None:
+        bounds = getattr(planner, "bounds", None)
+    beyond = np.zeros(len(EXCURSION_COLUMNS), np.int64)
     while now - start < duration - 1e-9 and not (terminated or truncated):
         log.observe(truth)  # the metrics read the truth, the planner what is perceived (the same without faults)
+        if errors is not None:  # the vehicle-steps planned on a state beyond the declared bounds
+            beyond += excursions(errors(), bounds)
         acc = planned_accelerations(planner, scene)
         _, reward, terminated, truncated, info = env.step(base.accelerations_to_action(acc))
         record = step_record(info)
@@ -218,6 +233,8 @@ def run_episode(
     facts = {"duration": now - start, "steps": steps, "terminated": bool(terminated), "return": total, "lost": lost}
     facts.update(preset_returns(terms))
     facts["waiting_at_end"] = int(record.waiting) if steps else 0
+    if errors is not None and errors() is not None:
+        facts.update(zip(EXCURSION_COLUMNS, beyond.tolist()))
     return log.frame(schedule=_schedule(scenario), end=now), facts
 
 
@@ -274,12 +291,14 @@ def run_job(job: Job, scenario: Any = None) -> tuple[dict[str, Any], pd.DataFram
     """
     tic = time.perf_counter()
     env = _env(job.env_id, job.env_kwargs)
-    planner = _planner(job.planner, job.trust_files)
+    planner = _planner(job.planner, job.trust_files, job.shield_bounds)
     if scenario is None:
         scenario = Scenario.load(job.scenario)
     row: dict[str, Any] = {"planner": job.name, "run": job.index, "scenario": Path(job.scenario).name}
     try:
-        vehicles, facts = run_episode(env, planner, scenario, job.duration, seed=run_seed(job.seed, job.index))
+        vehicles, facts = run_episode(
+            env, planner, scenario, job.duration, seed=run_seed(job.seed, job.index), bounds=job.shield_bounds
+        )
     except (PlannerError, PlantError) as error:
         # The run is void; the other runs of the evaluation go on and are reported.
         error.planner = job.name
@@ -296,7 +315,7 @@ def run_job(job: Job, scenario: Any = None) -> tuple[dict[str, Any], pd.DataFram
     if "planner_errors" in stats:  # it answers planner errors itself (a shield): the first ones, one line each
         lines = [error.line(Path(job.scenario).name) for error in planner.errors]
         row["planner_error"] = "\n".join(lines) if lines else None
-    row.update({key: value for key, value in facts.items() if key.startswith("return")})
+    row.update({key: value for key, value in facts.items() if key.startswith("return") or key in EXCURSION_COLUMNS})
     lost = dict(getattr(getattr(env.unwrapped, "sim", None), "lost", None) or {})
     if lost:  # the plant lost vehicles on its own (SUMO): the run does not measure the scenario; say so, once
         first = next(iter(lost.items()))
@@ -337,7 +356,7 @@ def run_shared_job(job: Job, scenarios: Sequence[Any]) -> tuple[dict[str, Any], 
         its wall time is a sample of the planner's speed, see :class:`envs.evaluation.progress.RunClock`)
     """
     _worker_init()
-    warm = (job.planner, job.trust_files) in _cache("planners")
+    warm = (job.planner, job.trust_files, job.shield_bounds) in _cache("planners")
     return (*run_job(job, scenarios[job.index]), warm)
 
 
@@ -457,6 +476,7 @@ def evaluate(
     scheduler_address: str | None = None,
     stats: dict[str, Any] | None = None,
     progress_label: str = "evaluate",
+    shield_bounds: ShieldBounds | None = None,
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
     """Run every planner on every scenario.
 
@@ -478,6 +498,8 @@ def evaluate(
         the executor, a cluster started for the evaluation included, to the last result),
         ``runs_per_s`` and ``executor`` (its description)
     :param progress_label: the progress bar's label (the command that runs the harness)
+    :param shield_bounds: the faults every ``+shield`` planner's shield is declared to tolerate (``--shield-bounds``;
+        ``None``: the exact world); each run's ``fault_excursions`` are counted against them
     :return: ``(runs, vehicles)``: one row per planner and run, one row per vehicle and run;
         sorted by planner (given order) and scenario, whatever order the workers finished in
     """
@@ -485,7 +507,7 @@ def evaluate(
         raise ValueError(f"jobs must be at least 1, got {jobs}")
     work = [
         Job(word, name, str(path), i, env_id, float(duration), int(seed), dict(env_kwargs or {}),
-            trust_planner_files)  # fmt: skip
+            trust_planner_files, shield_bounds)  # fmt: skip
         for word, name in planners
         for i, path in enumerate(scenarios)
     ]

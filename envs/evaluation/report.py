@@ -40,6 +40,7 @@ from envs.evaluation.verdict import (  # noqa: E402
     reference_means,
     verdict_lines,
 )
+from envs.planners.shield_bounds import EXCURSION_COLUMNS  # noqa: E402
 from envs.simulation.motion import HARD_BRAKE_ACCELERATION, SLOW_SPEED  # noqa: E402
 from envs.simulation.scene import MANEUVERS, STOP_SPEED  # noqa: E402
 
@@ -167,6 +168,7 @@ def markdown_report(
             f"| {s.get('stuck_runs', 'n/a')} |"
             for name, s in shielded
         ]
+    lines += _excursion_table(summary)
     if errors:
         lines += ["", "## Planner errors", ""]
         lines += ["Runs without the shield that a planner error voided are left out of every table above.", ""]
@@ -175,6 +177,25 @@ def markdown_report(
     lines += ["", "Figures: " + ", ".join(f"![{f}]({f})" for f in FIGURES), ""]
     lines += ["## How to read these numbers", "", *NOTES, ""]
     return "\n".join(lines)
+
+
+def _excursion_table(summary: Mapping[str, Mapping[str, Any]]) -> list[str]:
+    """Markdown table of the vehicle-steps planned on a measurement beyond the declared bounds (fault model)."""
+    counted = [(name, s) for name, s in summary.items() if "fault_excursions" in s]
+    if not counted:
+        return []
+    lines = ["", "## Beyond the declared bounds: vehicle-steps planned on a measurement beyond them", ""]
+    lines += [
+        "| planner | beyond any bound | position | speed | age | collided vehicles |",
+        "|---|---:|---:|---:|---:|---:|",
+    ]
+    lines += [
+        f"| {name} | {s['fault_excursions']} | {s.get('excursions_position', 'n/a')} "
+        f"| {s.get('excursions_speed', 'n/a')} | {s.get('excursions_age', 'n/a')} "
+        f"| {collided_text(s.get('collided'), s['vehicles'])} |"
+        for name, s in counted
+    ]
+    return lines
 
 
 def _motion_table(summary: Mapping[str, Mapping[str, Any]]) -> list[str]:
@@ -421,6 +442,23 @@ def add_shield_interventions(summary: dict, runs: pd.DataFrame) -> None:
                     s[column] = int(rows[column].fillna(0).sum())
 
 
+def add_fault_excursions(summary: dict, runs: pd.DataFrame) -> None:
+    """Add the run sums of :data:`envs.planners.shield_bounds.EXCURSION_COLUMNS` (vehicle-steps whose perceived state
+    was beyond the declared bounds; runs with a fault model carry them) to every planner's summary (in place).
+
+    :param summary: :func:`envs.evaluation.metrics.summarize` output
+    :param runs: ``metrics.csv`` rows
+    """
+    if "fault_excursions" not in runs:
+        return
+    for name, s in summary.items():
+        rows = runs[(runs["planner"] == name) & runs["fault_excursions"].notna()]
+        if len(rows):
+            for column in EXCURSION_COLUMNS:
+                if column in rows:
+                    s[column] = int(rows[column].sum())
+
+
 def add_failures(summary: dict, runs: pd.DataFrame) -> None:
     """Add ``failed_runs`` and the planner-error lines to the summary of every planner with a planner
     error (in place); a planner all of whose runs failed gets an entry of its own.
@@ -492,6 +530,7 @@ def write_report(
     verdict = report_verdict(runs, paired)
     add_collided_counts(summary, vehicles)
     add_shield_interventions(summary, runs)
+    add_fault_excursions(summary, runs)
     add_failures(summary, every)
     every.to_csv(out / "metrics.csv", index=False)
     vehicles.to_csv(out / "vehicles.csv", index=False)

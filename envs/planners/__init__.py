@@ -41,6 +41,7 @@ from envs.planners.priority import PriorityPlanner
 from envs.planners.priority_rules import PriorityRulesPlanner
 from envs.planners.residual import ResidualPlanner
 from envs.planners.shield import Shield, training_shield
+from envs.planners.shield_bounds import DECLARED_BOUNDS, ShieldBounds, parse_shield_bounds
 from envs.planners.signal import SignalPlanner
 from envs.simulation import hooks
 
@@ -141,12 +142,14 @@ def _suggestion(word: str) -> str:
     return f" (did you mean {guess!r}?)" if guess != word else ""
 
 
-def make_planner(spec: str, trust_files: bool = False) -> Planner:
+def make_planner(spec: str, trust_files: bool = False, shield_bounds: ShieldBounds | None = None) -> Planner:
     """Build a planner from its command-line word.
 
     :param spec: see :func:`check_planner_spec`
     :param trust_files: load a ``.zip`` with SB3's ``TD3.load``, which runs the pickles in it
         (``--trust-planner-files``; only for one's own files)
+    :param shield_bounds: the faults the shield of a ``+shield`` word is declared to tolerate (``--shield-bounds``;
+        ``None``: the exact world); a shield in a planner server's client keeps the exact world
     :return: the planner
     :raises ValueError: unknown word, or a model file that cannot be loaded safely
     """
@@ -156,8 +159,8 @@ def make_planner(spec: str, trust_files: bool = False) -> Planner:
         if is_remote_spec(inner):  # its misses get the shield's fallback
             return make_remote_planner(inner, shielded=True)
         if inner in BASELINES:
-            return Shield(BASELINES[inner]())
-        return Shield(make_planner(inner, trust_files=trust_files))
+            return Shield(BASELINES[inner](), bounds=shield_bounds)
+        return Shield(make_planner(inner, trust_files=trust_files), bounds=shield_bounds)
     if key in BASELINES:
         return UNSHIELDED.get(key, BASELINES[key])()
     if is_remote_spec(key):
@@ -220,6 +223,7 @@ __all__ = [
     "AIMPlanner",
     "BASELINES",
     "BASELINE_NAMES",
+    "DECLARED_BOUNDS",
     "FullThrottle",
     "MODEL_SUFFIXES",
     "FIFOPlanner",
@@ -227,9 +231,11 @@ __all__ = [
     "Planner",
     "PriorityRulesPlanner",
     "SHIELD_SUFFIX",
+    "ShieldBounds",
     "SignalPlanner",
     "check_planner_spec",
     "make_planner",
     "make_residual_base",
+    "parse_shield_bounds",
     "planner_name",
 ]

@@ -570,7 +570,7 @@ def pairs(
     zone_start: np.ndarray,
     zone_end: np.ndarray,
     exit_arc: np.ndarray,
-    zone_margin: float,
+    zone_margin: np.ndarray,
     merge_margin: float,
     standing: float,
     slack: float,
@@ -595,7 +595,7 @@ def pairs(
     :param zone_start: ``(R, R)`` the layout's zone starts
     :param zone_end: ``(R, R)`` and ends
     :param exit_arc: ``(R,)`` the routes' exit arcs
-    :param zone_margin: the shield's ``zone_margin``
+    :param zone_margin: ``(n,)`` each vehicle's zone padding: the shield's ``zone_margin``, 0 for a waiting human
     :param merge_margin: the shield's ``merge_margin``
     :param standing: speed below which a vehicle stands [m/s]
     :param slack: the stopping slack [m]
@@ -651,16 +651,16 @@ def pairs(
             ri, rj = route[i], route[j]
             if merging[ri, rj]:
                 merge[g, 0], merge[g, 1] = i, j
-                merge_lo[g, 0] = zone_start[ri, rj] - zone_margin - length[i] / 2
-                merge_lo[g, 1] = zone_start[rj, ri] - zone_margin - length[j] / 2
+                merge_lo[g, 0] = zone_start[ri, rj] - zone_margin[i] - length[i] / 2
+                merge_lo[g, 1] = zone_start[rj, ri] - zone_margin[j] - length[j] / 2
                 merge_exit[g, 0], merge_exit[g, 1] = exit_arc[ri], exit_arc[rj]
                 merge_sep[g] = (length[i] + length[j]) / 2 + merge_margin
                 g += 1
                 continue
-            lo_i = zone_start[ri, rj] - zone_margin - length[i] / 2
-            lo_j = zone_start[rj, ri] - zone_margin - length[j] / 2
-            hi_i = zone_end[ri, rj] + zone_margin + length[i] / 2
-            hi_j = zone_end[rj, ri] + zone_margin + length[j] / 2
+            lo_i = zone_start[ri, rj] - zone_margin[i] - length[i] / 2
+            lo_j = zone_start[rj, ri] - zone_margin[j] - length[j] / 2
+            hi_i = zone_end[ri, rj] + zone_margin[i] + length[i] / 2
+            hi_j = zone_end[rj, ri] + zone_margin[j] + length[j] / 2
             if prune and not (arc[i] < hi_i and arc[j] < hi_j):  # one has passed the zone
                 continue
             cross[c, 0], cross[c, 1] = i, j

@@ -26,6 +26,12 @@ and AIM's zone guard (:meth:`~envs.planners.aim.AIMPlanner.control`), every advi
 (:data:`GUARDED`), since there nothing else keeps a gap; ``glide+shield`` runs the first-phase control.
 Glide is a planner for behind the shield either way: outside its window it drives at full throttle.
 
+**Hysteresis in an imperfect world** (``hysteresis`` [m], 0: off): on a perceived scene (one that carries
+``arc_std``, :mod:`envs.simulation.perception`), glide plans each vehicle from a steadied position: the position
+it planned from last step, driven on by the perceived speeds, moved towards the perceived one only as far as the
+two lie more than ``hysteresis`` apart. A metre of perception error then moves no reservation, and a drifting
+bias is followed once it exceeds the band. An exact scene is planned as it is.
+
 The order can be shifted per vehicle (:meth:`GlidePlanner.set_priority`), and the advice window
 widened or narrowed per vehicle (:meth:`GlidePlanner.set_windows`): the ``"priority"`` and
 ``"advice"`` action types of the intersection environments let a policy do so (a zero score drives
@@ -34,6 +40,7 @@ exactly as glide).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, fields
 
@@ -65,6 +72,8 @@ class GlideParams(AIMParams):
         goes right behind its leader in the order [s] (0: AIM's plain first come, first served)
     :param control: ``"first_phase"`` (the plan's first phase alone, for behind the shield) or
         ``"guarded"`` (capped by IDM car following and AIM's zone guard, see the module docstring)
+    :param hysteresis: half-width of the band within which a perceived position does not move the position
+        glide plans from [m] (see the module docstring; 0: plan from the perceived position itself)
     """
 
     accel: float = 5.0
@@ -77,6 +86,7 @@ class GlideParams(AIMParams):
     floor: float = 2.795
     platoon_gap: float = 3.941
     control: str = "first_phase"
+    hysteresis: float = 0.0
 
     def __post_init__(self) -> None:
         for field in fields(self):
@@ -144,11 +154,13 @@ class GlidePlanner(AIMPlanner):
         self._windows: np.ndarray | None = None
         self._held = np.zeros(0, dtype=np.int64)
         self.hold = bool(hold)
+        self._steady: tuple[np.ndarray, np.ndarray, np.ndarray, float] | None = None  # ids (sorted), arcs, speeds, time
 
     def reset(self, seed: int | None = None) -> None:
         super().reset(seed)
         self._shift = self._windows = None
         self._held = np.zeros(0, dtype=np.int64)
+        self._steady = None
 
     def adopt(self, other: GlidePlanner) -> None:
         """Take ``other``'s memory (order, commitments, held advice): plan on from where it stands."""
@@ -262,10 +274,43 @@ class GlidePlanner(AIMPlanner):
             )
         return self._windows
 
+    def steadied(self, scene: Scene) -> Scene:
+        """The scene glide plans from: with ``hysteresis`` on a perceived scene, each vehicle moved to its steadied
+        position (see the module docstring; the distances and gaps shifted with it); else ``scene`` itself.
+
+        :param scene: the scene now (not modified)
+        """
+        band = self.params.hysteresis
+        if band <= 0 or scene.arc_std is None or scene.arc is None:
+            self._steady = None
+            return scene
+        ids, arc, v = scene.vehicle_id, scene.arc, scene.speed
+        planned = arc
+        if self._steady is not None and self._steady[0].size:
+            before, arc0, v0, t0 = self._steady
+            pos = np.minimum(np.searchsorted(before, ids), before.size - 1)
+            known = before[pos] == ids
+            driven = arc0[pos] + 0.5 * (v0[pos] + v) * (scene.time - t0)
+            # where the perceived lies within the band around the driven position, the driven; else the nearer
+            # end of the band around the perceived (moved only by the excess)
+            planned = np.where(known, arc - np.clip(arc - driven, -band, band), arc)
+        order = np.argsort(ids)
+        self._steady = (ids[order], planned[order], v[order], float(scene.time))
+        shift = planned - arc
+        if not shift.any():
+            return scene
+        leader = scene.leader
+        ahead = np.where(leader >= 0, shift[np.maximum(leader, 0)], 0.0)
+        return dataclasses.replace(
+            scene, arc=planned, s=scene.s + shift, dist_to_entry=scene.dist_to_entry - shift,
+            dist_to_exit=scene.dist_to_exit - shift, gap=np.where(leader >= 0, scene.gap + ahead - shift, scene.gap),
+        )  # fmt: skip
+
     def act(self, scene: Scene) -> np.ndarray:
         if scene.num_vehicles == 0:
             self._shift = self._windows = None
             return np.zeros(0)
+        scene = self.steadied(scene)
         plan = self.reserve(scene)
         guarded = self.params.control == "guarded"
         planned = self.control(scene, plan) if guarded else self.first_phase(scene, plan)

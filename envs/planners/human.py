@@ -32,7 +32,8 @@ def human_commands(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
     :param scene: the vehicles now
     :return: ``(n,)`` the human model's accelerations (every row) and ``(n,)`` bool: human drivers
         that the priority rules do not hold at their stop point now (they go, whatever automated
-        vehicles do: a planner and the shield must treat them as uncontrollable)
+        vehicles do: a planner and the shield must treat them as uncontrollable); where the scene
+        carries ``human_intent``, those it says go and not those it says wait (which stand)
     """
     human = scene.humans
     if not human.any():
@@ -40,7 +41,12 @@ def human_commands(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
     driver = HumanDriver()
     blocked = driver.blocked(scene)
     acc = accelerations_with_stops(scene, blocked, driver.crossing, driver.idm)
-    return acc, human & ~blocked
+    going = human & ~blocked
+    if scene.human_intent is not None:  # what a shield has seen them do against the model (`Scene.human_intent`)
+        intent = np.asarray(scene.human_intent)
+        going = human & ((going & (intent >= 0)) | (intent > 0))
+        acc = np.where(human & (intent < 0), np.minimum(acc, 0.0), acc)
+    return acc, going
 
 
 def approach_limit(scene: Scene, rows: np.ndarray, gap_in: np.ndarray) -> np.ndarray:

@@ -57,6 +57,10 @@ is within ``human_lookahead`` seconds plus its comfortable stopping distance (``
 its first zone is predicted as committed: it proceeds and does not stop for automated vehicles, which
 must keep out of its zones. Every other human is predicted with the fallback (it stops before its zones,
 as the priority rules make it yield). Whether a human ends the prediction stuck is not checked.
+Drivers of another world (SUMO's) do not drive as the model: a driver seen standing where the model goes waits
+(:meth:`Shield._hesitating`), one seen going faster than the model commanded goes (:meth:`Shield._defiant`); the
+shield predicts them so, and hands its planner the same view (``Scene.human_intent``). Where no command passes,
+it takes the fallback or everyone braking, whichever its prediction shows in fewer conflicts (docs/shield.md).
 
 Only the pairs that can conflict are checked (:meth:`Shield._may_commit`). Vectorized over vehicles
 and pairs; the only loops run over the horizon's time steps and over the
@@ -72,7 +76,7 @@ bit for bit, the blame (who is overridden for a conflict) included.
 from __future__ import annotations
 
 import weakref
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import partial
 
 import numpy as np
@@ -82,6 +86,8 @@ from envs.planners.base import Planner
 from envs.planners.errors import PlannerError, checked_accelerations
 from envs.planners.fifo import FIFOPlanner
 from envs.planners.human import CRAWL_SPEED, approach_limit, human_commands, human_window
+from envs.planners.priority_rules import maneuver_priority
+from envs.planners.shield_bounds import ShieldBounds
 from envs.planners.watchdog import WATCHDOG_AFTER, WATCHDOG_HOLD, LivenessWatchdog
 from envs.simulation.commitment import STANDING, STOP_SLACK
 from envs.simulation.layouts import ZONE_MARGIN, body_hull, parting_arcs
@@ -98,6 +104,8 @@ LIVE_SPEED = CRAWL_SPEED  # also the human window's crawl speed
 MAX_ERROR_LINES = 5
 # Rounding allowance on the bound of a vehicle's stopping point over a prediction (`Shield._may_commit`) [m].
 _REACH_TOLERANCE = 1e-3
+# No scene seen yet (`Shield._defiant`'s memory).
+_NO_HUMANS = (np.zeros(0, _INT), np.zeros(0), np.zeros(0), -np.inf, np.zeros(0, _INT), np.zeros(0))
 
 
 @dataclass
@@ -137,6 +145,9 @@ class _Plan:
     human_from: np.ndarray = field(default_factory=lambda: np.zeros(0))
     human_until: np.ndarray = field(default_factory=lambda: np.zeros(0))
     committed_now: np.ndarray | None = None  # (n,) bool: Shield.committed in the state now, once computed
+    # (n,) each vehicle's zone padding [m]: the shield's zone_margin, 0 for a waiting human (it stands)
+    pad: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    waiting: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))  # (n,) waiting humans (`_hesitating`)
 
     def __post_init__(self) -> None:
         # The compiled kernels' view, contiguous and of one dtype per field (one compiled signature);
@@ -206,6 +217,16 @@ class Shield(Planner):
     :param human_deceleration: the braking a human driver is assumed to use at most [m/s^2]
     :param human_margin: seconds added on both sides of the time window in which a going human driver
         may occupy a conflict zone (``_human_windows``); an automated vehicle must keep out of it
+    :param bounds: the faults it is declared to tolerate (:class:`envs.planners.shield_bounds.ShieldBounds`;
+        ``None``: the exact world)
+    :param human_hesitation: a human driver that stands (below ``human_standing`` [m/s]) this long [s] while the
+        human model lets it go waits for another vehicle (a driver of another world, e.g. SUMO's): it is predicted
+        standing until it moves (:meth:`_hesitating`)
+    :param human_standing: see ``human_hesitation`` [m/s]
+    :param human_tolerance: a human driver whose speed after a period exceeds the one the human model commanded by
+        more than this [m/s] does not yield as the model does: for ``human_memory`` seconds after, it is predicted
+        going (:meth:`_defiant`)
+    :param human_memory: see ``human_tolerance`` [s]
     """
 
     def __init__(
@@ -227,11 +248,25 @@ class Shield(Planner):
         human_lookahead: float = 3.0,
         human_deceleration: float = 2.0,
         human_margin: float = 1.0,
+        bounds: ShieldBounds | None = None,
+        human_hesitation: float = 1.0,
+        human_standing: float = 0.1,
+        human_tolerance: float = 0.3,
+        human_memory: float = 3.0,
     ) -> None:
         super().__init__(name or f"{planner.name}+shield")
+        self.bounds = bounds if bounds is not None else ShieldBounds()
         self.human_lookahead = float(human_lookahead)
         self.human_deceleration = float(human_deceleration)
         self.human_margin = float(human_margin)
+        self.human_hesitation = float(human_hesitation)
+        self.human_standing = float(human_standing)
+        self._stood = (np.zeros(0, _INT), np.zeros(0))  # ids of humans standing against the model, since when [s]
+        self.human_tolerance = float(human_tolerance)
+        self.human_memory = float(human_memory)
+        self._last_humans = _NO_HUMANS  # the last scene's vehicles: ids, speeds, model commands, time, defiant ones
+        self._view: tuple | None = None  # (scene, `_human_view` of it)
+        self._yields = np.zeros(0, _INT)  # waiting humans and the vehicles they wait for (`_keeps_windows`), as keys
         self.planner = planner
         self.watchdog = None if watchdog_after is None else LivenessWatchdog(watchdog_after, watchdog_hold)
         self.live_planner = (
@@ -267,6 +302,10 @@ class Shield(Planner):
         self.unresolved = 0
         self.planner_errors = 0
         self.errors = []
+        self._stood = (np.zeros(0, _INT), np.zeros(0))
+        self._last_humans = _NO_HUMANS
+        self._view = None
+        self._yields = np.zeros(0, _INT)
 
     @property
     def error_lines(self) -> list[str]:
@@ -305,7 +344,10 @@ class Shield(Planner):
         fallback for this step (counted as interventions); the other values are checked as usual.
         """
         planner = self.live_planner if self.watchdog is not None and self.watchdog.observe(scene) else self.planner
-        return self.check_output(scene, planner.act(scene.copy()), planner.name)
+        mine = scene.copy()
+        if scene.humans.any():  # what the shield has seen the human drivers do, for the planner too
+            mine = replace(mine, human_intent=self._human_view(scene)[3])
+        return self.check_output(scene, planner.act(mine), planner.name)
 
     def check_output(self, scene: Scene, output: object, planner: str) -> np.ndarray:
         """:meth:`act` for a proposal already made: a planner's raw output checked as a command (a planner error
@@ -350,13 +392,14 @@ class Shield(Planner):
             raise ValueError("the shield needs the scene's layout and arcs (scenes built by the simulation have them)")
         human = scene.humans
         going = np.zeros(n, bool)
+        waiting = np.zeros(n, bool)
         if human.any():  # what they will do, whatever is proposed: never overridden, never blamed
-            human_acc, going = human_commands(scene)
+            human_acc, going, waiting, _ = self._human_view(scene)
             acc = np.where(human, np.clip(human_acc, scene.a_min, scene.a_max), acc)
             forced = forced & ~human
-        plan = self._plan(scene, going)
-        if going.any():
-            self._human_windows(scene, plan, going)
+        plan = self._plan(scene, going, waiting)
+        if going.any() or waiting.any():
+            self._human_windows(scene, plan, going, waiting)
         fallback = self._fallback(scene, plan, plan.arc, plan.speed)
         acc = np.where(forced, fallback, acc)
         # Liveness: a vehicle past its stop line that the proposal brakes is proposed onwards instead
@@ -386,14 +429,19 @@ class Shield(Planner):
                 # look can show it finish; braking everyone would keep that vehicle inside for good.
                 # (A longer prediction repeats the shorter one's first rows, so only a failure that
                 # was no conflict but a vehicle left inside can pass it: only then is it tried.)
-                if self._stuck_only and self.drain_horizon > self.horizon and self._blame(
-                    scene, plan, command, np.zeros(n, bool), self.drain_horizon
-                ) is None:
+                if (
+                    self._stuck_only
+                    and self.drain_horizon > self.horizon
+                    and self._blame(scene, plan, command, np.zeros(n, bool), self.drain_horizon) is None
+                ):
                     break
-                # Else (the leader relations it follows changed since the last step, or the scene
-                # started unsafe): everyone brakes. Counted in `unresolved`.
+                # Else (the leader relations it follows changed since the last step, a human did what the
+                # model did not predict, or the scene started unsafe): the fallback or everyone braking,
+                # whichever the prediction shows in fewer conflicts. Counted in `unresolved`.
                 self.unresolved += 1
-                command = np.where(human, acc, float(scene.a_min))
+                command = self._least_bad(
+                    scene, plan, np.where(human, acc, fallback), np.where(human, acc, scene.a_min)
+                )
                 overridden = forced | (np.abs(acc - command) > 1e-9)
                 break
             overridden |= blamed & ~human
@@ -402,6 +450,90 @@ class Shield(Planner):
         self.interventions += int(overridden.sum())
         self.vehicle_steps += n - int(human.sum())
         return command
+
+    def _human_view(self, scene: Scene) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The human drivers as the shield predicts them: the model's commands (:func:`human_commands`) corrected by
+        what they did (:meth:`_defiant`, :meth:`_hesitating`); once per scene (:meth:`act` and :meth:`check` share it).
+
+        :return: ``(n,)`` first-period commands, ``(n,)`` bool going, ``(n,)`` bool waiting (standing) and ``(n,)``
+            int8 :attr:`Scene.human_intent`
+        """
+        if self._view is not None and self._view[0] is scene:
+            return self._view[1]
+        human_acc, going = human_commands(scene)
+        defiant = scene.humans & self._defiant(scene, human_acc) & ~going
+        going = going | defiant
+        waiting = self._hesitating(scene, going, human_acc)
+        going &= ~waiting
+        intent = np.where(waiting, -1, np.where(defiant, 1, 0)).astype(np.int8)
+        view = (np.where(waiting, np.minimum(human_acc, 0.0), human_acc), going, waiting, intent)
+        self._view = (scene, view)
+        return view
+
+    def _least_bad(self, scene: Scene, plan: _Plan, fallback: np.ndarray, brake: np.ndarray) -> np.ndarray:
+        """Where no command passes: the fallback, unless everyone braking leaves fewer conflicting pairs in the
+        prediction. Braking everyone stops a committed vehicle inside a zone in the path of a human who goes,
+        and a follower close behind a leader that its gap counted on to drive on; the fallback clears the box."""
+        counts = []
+        for command in (fallback, brake):
+            arc, speed = self.predict(scene, plan, command)
+            follow, cross, merge, _ = self._conflicts(scene, plan, arc, speed)
+            human = self._in_human_windows(scene, plan, arc) if plan.human_pair.size else np.zeros(0, bool)
+            counts.append(int(follow.sum() + cross.sum() + merge.sum() + human.sum()))
+        return brake if counts[1] < counts[0] else fallback
+
+    def _defiant(self, scene: Scene, human_acc: np.ndarray) -> np.ndarray:
+        """``(n,)`` bool: human drivers that went faster in the last period than the human model commanded them
+        (by more than ``human_tolerance`` m/s), or did within ``human_memory`` seconds. The model's yielding is not
+        theirs: they are predicted going (with their windows), whatever the model says now. A driver of the model's
+        own world never is (its command is the model's)."""
+        now, dt = float(scene.time), float(scene.dt)
+        ids = np.asarray(scene.vehicle_id, dtype=_INT)
+        speed = np.asarray(scene.speed, float)
+        last_ids, last_speed, last_acc, last_time, flagged, flagged_at = self._last_humans
+        defiant_at = np.full(len(ids), -np.inf)
+        if last_ids.size and 0.0 < now - last_time <= 1.5 * dt:
+            at = np.minimum(np.searchsorted(last_ids, ids), last_ids.size - 1)
+            hit = (last_ids[at] == ids) & scene.humans
+            expected = np.maximum(last_speed[at] + last_acc[at] * (now - last_time), 0.0)
+            defiant_at[hit & (speed > expected + self.human_tolerance)] = now
+        if flagged.size:
+            at = np.minimum(np.searchsorted(flagged, ids), flagged.size - 1)
+            hit = flagged[at] == ids
+            defiant_at[hit] = np.maximum(defiant_at[hit], flagged_at[at[hit]])
+        defiant = scene.humans & (now - defiant_at <= self.human_memory)
+        order = np.argsort(ids, kind="stable")
+        keep = order[defiant[order]]
+        self._last_humans = (
+            ids[order],
+            speed[order],
+            np.asarray(human_acc, float)[order],
+            now,
+            ids[keep],
+            defiant_at[keep],
+        )
+        return defiant
+
+    def _hesitating(self, scene: Scene, going: np.ndarray, human_acc: np.ndarray) -> np.ndarray:
+        """``(n,)`` bool: human drivers that wait although the human model lets them go: they have stood (below
+        ``human_standing``) for ``human_hesitation`` seconds while the model accelerated them. Drivers of another
+        world do (SUMO's left-turner waits inside the junction for oncoming traffic, its minor-road driver for a
+        major-road vehicle that stands); the model's own drivers never do. A waiting driver is predicted to stay
+        where it stands (it goes again only when its foes let it, as it waited for them), with its zones unpadded:
+        predicting it going would hold the vehicles it waits for, and both would stand for good.
+        (The time each has waited is kept by vehicle id from scene to scene.)"""
+        now = float(scene.time)
+        ids = np.asarray(scene.vehicle_id, dtype=_INT)
+        stands = going & (np.asarray(scene.speed, float) < self.human_standing) & (human_acc > 0.0)
+        known, since = self._stood
+        start = np.full(len(ids), now)
+        if known.size:
+            at = np.minimum(np.searchsorted(known, ids), known.size - 1)
+            hit = known[at] == ids
+            start[hit] = np.minimum(since[at[hit]], now)  # a scene from before (a rollout's): the wait starts again
+        order = np.argsort(ids[stands], kind="stable")
+        self._stood = (ids[stands][order], start[stands][order])
+        return stands & (now - start >= self.human_hesitation - 1e-9)
 
     def _behind_human_cap(self, scene: Scene, human: np.ndarray, human_acc: np.ndarray) -> np.ndarray:
         """``(n,)`` the highest acceleration of an automated vehicle in a queue behind a human driver
@@ -478,11 +610,21 @@ class Shield(Planner):
         return awaited & (acc < np.minimum(fallback, 0.0) - 1e-9)
 
     # ------------------------------------------------------------------ scene -> plan
-    def _plan(self, scene: Scene, going: np.ndarray | None = None) -> _Plan:
+    def _plan(self, scene: Scene, going: np.ndarray | None = None, waiting: np.ndarray | None = None) -> _Plan:
         lay, route, length = scene.layout, scene.route, scene.length
         arc, speed = np.asarray(scene.arc, float), np.asarray(scene.speed, float)
         m = self.zone_margin
         hull_start, hull_end = body_hull(lay, route, length, m)
+        pad = np.full(len(arc), m)
+        waiting = np.zeros(len(arc), bool) if waiting is None else waiting
+        if waiting.any():
+            # A waiting human stands: the padding, which covers a sub-step's travel, would put one that
+            # waits at the edge of a zone in it (SUMO's left-turners wait there) and block the zone for good.
+            # It stays where it stands: before its first zone for the rules (that a zone it is past begins behind
+            # it would have it committed, and the fallback would drive it on).
+            pad[waiting] = 0.0
+            stop = arc + speed**2 / (2 * float(scene.a_max)) + 2 * _STOP_SLACK
+            hull_start = np.where(waiting, np.maximum(hull_start + m, stop), hull_start)
         if going is not None and going.any():
             # A human that goes and is near its zones: predicted as committed (the kernels' rule), by
             # moving its first zone behind it; it then proceeds and the others keep out of its zones.
@@ -498,6 +640,7 @@ class Shield(Planner):
         # of which neither has passed the zone). Compiled (`_shield_kernel.pairs`): in NumPy, building
         # and scanning the (n, n) arrays took some 40 calls, a tenth of a shielded step at 100 vehicles.
         candidate = self._may_commit(scene, arc, speed, hull_start) if self._prune else np.ones(len(arc), bool)
+        candidate = candidate | waiting  # it stands in the prediction, but keeps windows (`_human_windows`)
         (follow, follow_gap, cross, cross_lo, cross_hi, already, back, stop, merge, merge_lo, merge_exit, merge_sep,
          rank) = _shield_kernel.pairs(
             np.ascontiguousarray(route, dtype=_INT), np.ascontiguousarray(arc), np.ascontiguousarray(speed),
@@ -505,10 +648,12 @@ class Shield(Planner):
             np.ascontiguousarray(scene.gap, dtype=float), np.ascontiguousarray(scene.leader, dtype=_INT),
             np.ascontiguousarray(scene.vehicle_id, dtype=_INT), np.ascontiguousarray(hull_start, dtype=float),
             candidate, self._prune, lay.conflicts, _merging_routes(lay), parting_arcs(lay), lay.zone_start,
-            lay.zone_end, lay.exit_arc, m, self.merge_margin, _STANDING, _STOP_SLACK,
+            lay.zone_end, lay.exit_arc, pad, self.merge_margin, _STANDING, _STOP_SLACK,
         )  # fmt: skip
         return _Plan(
             human=scene.humans,
+            pad=pad,
+            waiting=waiting,
             route=route,
             arc=arc,
             speed=speed,
@@ -532,26 +677,46 @@ class Shield(Planner):
             follow_until=_follow_until(lay, route, length, follow),
         )
 
-    def _human_windows(self, scene: Scene, plan: _Plan, going: np.ndarray) -> None:
+    def _human_windows(self, scene: Scene, plan: _Plan, going: np.ndarray, waiting: np.ndarray) -> None:
         """The time windows of the going human drivers in the zones they share with automated vehicles
         (into ``plan``): from the earliest entry (accelerating at IDM's ``acc_max`` up to the highest lane
         limit before the zone, :func:`~envs.planners.human.approach_limit`; now if already in) to the
         latest exit at its speed now (at least ``CRAWL_SPEED``), widened by ``human_margin`` on both
-        sides; the whole horizon for a human at a crawl."""
+        sides; the whole horizon for a human at a crawl; a waiting human's windows: :meth:`_keeps_windows`."""
         cross, human = plan.cross, plan.human
-        mixed = going[cross].any(axis=1) & ~human[cross].all(axis=1)
+        may_go = going[cross]
+        if waiting.any():
+            may_go |= self._keeps_windows(scene, plan, waiting)
+        mixed = may_go.any(axis=1) & ~human[cross].all(axis=1)
         pair = np.flatnonzero(mixed)
         if pair.size == 0:
             return
-        col = np.where(going[cross[pair, 0]], 0, 1)
+        col = np.where(may_go[pair, 0], 0, 1)
         h = cross[pair, col]
         x0, v = plan.arc[h], plan.speed[h]
         lo, hi = plan.cross_lo[pair, col], plan.cross_hi[pair, col]
         limit = approach_limit(scene, h, lo - x0)
         plan.human_pair, plan.human_col = pair, col
-        plan.human_from, plan.human_until = human_window(
-            lo - x0, hi - x0, v, limit, self.human_margin, self.horizon
-        )
+        plan.human_from, plan.human_until = human_window(lo - x0, hi - x0, v, limit, self.human_margin, self.horizon)
+
+    def _keeps_windows(self, scene: Scene, plan: _Plan, waiting: np.ndarray) -> np.ndarray:
+        """``(c, 2)`` bool: crossing pairs in whose zone a waiting human (:meth:`_hesitating`, the column) keeps a
+        window, as if it went. A waiting human waits for the vehicles of higher precedence
+        (:func:`~envs.planners.priority_rules.maneuver_priority`), not for the others, except an automated vehicle
+        that stands past its stop line while the human waits (it waits for that one: both stood, and would for
+        good); such a pair is remembered (by ids) while the human waits, so that the vehicle, once it moves, is
+        not held again in the middle of the box."""
+        cross = plan.cross
+        rank = maneuver_priority(scene.priority, scene.maneuver)[cross]
+        keeps = waiting[cross] & (rank <= rank[:, ::-1])
+        other = cross[:, ::-1]
+        ids = np.asarray(scene.vehicle_id, dtype=_INT)
+        key = ids[cross] * (1 << 32) + ids[other]  # (human, the other) where the column is the human
+        inside = (np.asarray(scene.dist_to_entry)[other] < 0) & ~plan.human[other]
+        stands = plan.speed[other] < self.human_standing
+        yields = keeps & inside & (stands | np.isin(key, self._yields))
+        self._yields = np.unique(key[yields])
+        return keeps & ~yields
 
     def _in_human_windows(self, scene: Scene, plan: _Plan, arc: np.ndarray) -> np.ndarray:
         """``(p,)`` bool: the automated vehicle of a human pair is predicted in the pair's zone within

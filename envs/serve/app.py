@@ -23,9 +23,21 @@ stream and the server go on: 400 an unknown ``Host``, 401 a missing or wrong tok
 stream or path, 405 a wrong method, 409 a ``seq`` out of order, 413 a body over the limit, 415 a body
 that is not JSON, 422 a malformed scene (wrong type, unknown field, a key given twice, NaN or infinity, out of
 range, impossible size, two vehicles in one place, unknown route, duplicate id, time going back, another
-layout, too many vehicles), 429 too many streams or failed tokens, 431 a request head over the limits, 503 no
-answer within the time limit. Every HTTP answer carries ``Server-Timing: app;dur=<ms>``, the server's own time
-for it.
+layout, too many vehicles, no ``captured`` time, a ``captured`` time from the future or older than the shield's
+latency bound), 429 too many streams or failed tokens, 431 a request head over the limits, 503 no
+answer within the time limit.
+
+A scene's age: every step carries ``captured``, the wall-clock time at which the client captured the scene. The
+server reads its own clock when it starts planning the step: a ``captured`` more than :data:`CLOCK_SKEW` ahead of
+it is refused (422 naming ``captured``: a client clock that runs ahead would make every age look young). With a
+shield declared for a latency (``sb3-graph serve --shield --shield-bounds``, :mod:`envs.planners.shield_bounds`),
+a scene older than that latency is refused with 422 naming ``captured`` and its age, rather than planned
+conservatively: the shield's guarantee holds only within its bounds, and a stale scene gets no command at all
+(the vehicles keep their last command, as on a lost answer, and the client sends a fresh scene under the same
+``seq``). Without declared latency (``--shield-bounds none``) the age is not limited. A retried step (the same
+``seq`` and scene) gets its answer again without a new check.
+
+Every HTTP answer carries ``Server-Timing: app;dur=<ms>``, the server's own time for it.
 """
 
 from __future__ import annotations
@@ -56,6 +68,7 @@ from envs.evaluation.harness import env_config
 from envs.planners import SHIELD_SUFFIX, check_planner_spec, make_planner, planner_name
 from envs.planners.base import Planner
 from envs.planners.lookahead import LookaheadPlanner
+from envs.planners.shield_bounds import ShieldBounds
 from envs.serve import frames
 from envs.serve.access import Access, FailureLimit
 from envs.serve.handoff import server_frame
@@ -91,6 +104,10 @@ ERRORS = {code: {"model": ErrorReply} for code in (400, 401, 404, 409, 413, 415,
 BODY_METHODS = frozenset({"POST", "PUT", "PATCH"})
 # Operations that plan (a step over HTTP, a step frame over the WebSocket): under the time limit.
 PLANNING = frozenset({"step", "frame"})
+# How far a scene's `captured` time may lie ahead of the server's clock before it is refused as from the future [s]:
+# the synchronisation error of two clocks (NTP on a LAN: a few ms).
+CLOCK_SKEW = 0.05
+_wall_clock = time.time  # the clock a scene's age is measured on (tests replace it)
 
 
 class RequestError(Exception):
@@ -203,16 +220,22 @@ class PlannerService:
     :param env_id: gymnasium id whose configuration (layout, policy period, limits) the server uses
     :param env_kwargs: ``gym.make`` keyword arguments of that environment
     :param shield: wrap the planner in the safety shield (per stream)
+    :param shield_bounds: the faults the shield is declared to tolerate (``--shield-bounds``; ``None``: the exact
+        world); its ``latency`` limits the age of a scene (a scene captured longer ago is refused; 0: not limited)
     """
 
-    def __init__(self, spec: str, env_id: str, env_kwargs: dict[str, Any] | None = None, shield: bool = False) -> None:
+    def __init__(self, spec: str, env_id: str, env_kwargs: dict[str, Any] | None = None, shield: bool = False,
+                 shield_bounds: ShieldBounds | None = None) -> None:  # fmt: skip
         key = check_planner_spec(spec)
         if shield and not key.endswith(SHIELD_SUFFIX):
             key += SHIELD_SUFFIX
         self.spec, self.env_id, self.shield = key, env_id, key.endswith(SHIELD_SUFFIX)
+        bounds = shield_bounds or ShieldBounds()
+        # The oldest scene planned [s]: the shield's declared latency (None: not limited).
+        self.max_scene_age = bounds.latency if self.shield and bounds.latency > 0 else None
         config = env_config(env_id, env_kwargs)
         self.builder = SceneBuilder(config)
-        self.prototype = make_planner(key)
+        self.prototype = make_planner(key, shield_bounds=shield_bounds)
         self.searches = as_served(self.prototype)
         check = getattr(self.prototype, "check_capacity", None)
         if check is not None:
@@ -254,6 +277,7 @@ class PlannerService:
             shield=self.shield, env=self.env_id, layout=self.builder.layout.name, dt=self.builder.dt,
             a_min=-float(cfg["max_acceleration"]), a_max=float(cfg["max_acceleration"]),
             max_vehicles=self.builder.limits.max_vehicles, max_speed=self.builder.limits.max_speed,
+            max_scene_age=self.max_scene_age,
             routes={name: round(float(length), 2) for name, length in zip(lay.route_names, lay.length)},
         )  # fmt: skip
 
@@ -276,7 +300,8 @@ class PlannerService:
             raise RequestError(404, "stream", f"no open stream {sid[:40]!r} (closed, expired, or never opened)")
         return stream
 
-    def step(self, sid: str, seq: int, layout: str, time: float, columns: tuple[np.ndarray, ...]) -> Stream:
+    def step(self, sid: str, seq: int, layout: str, time: float, columns: tuple[np.ndarray, ...],
+             captured: float) -> Stream:  # fmt: skip
         """One decision, exactly once: ``seq`` one more than the last step's plans; the last step's ``seq``
         again answers what it answered (without planning) if the scene is the same (whichever path carried it).
 
@@ -285,8 +310,10 @@ class PlannerService:
         :param layout: the scene's layout name
         :param time: its time [s]
         :param columns: ids, route indices (this layout's), arcs, speeds, lengths, widths
+        :param captured: when the scene was captured [s since the Unix epoch] (:meth:`check_age`)
         :return: the stream, its last answer (``answer``) that of this step
-        :raises RequestError: 409 ``seq`` out of order, 422 a scene the intersection cannot hold
+        :raises RequestError: 409 ``seq`` out of order, 422 a scene the intersection cannot hold, or from the
+            future, or older than the shield's latency bound
         """
         stream = self.stream(sid)
         digest = wire_digest(layout, time, columns)
@@ -299,6 +326,7 @@ class PlannerService:
             retry = f" or {stream.seq} (a retry)" if stream.seq else ""
             raise RequestError(409, "seq", f"expected step {stream.seq + 1}{retry}, got {seq}",
                                expected=stream.seq + 1)  # fmt: skip
+        self.check_age(captured)
         if time < stream.last_time:
             raise RequestError(422, "time", f"{time} s is before the stream's last scene "
                                             f"({stream.last_time} s); reset the stream for a new episode")  # fmt: skip
@@ -321,6 +349,24 @@ class PlannerService:
         stream.answer = Answer(seq, stream.steps, time, scene.vehicle_id, acc, shield,
                                search_report(planner) if self.searches else None)  # fmt: skip
         return stream
+
+    def check_age(self, captured: float) -> None:
+        """Refuse a scene captured in the future (beyond :data:`CLOCK_SKEW`) or longer ago than
+        :attr:`max_scene_age` (see the module docstring).
+
+        :param captured: when the scene was captured [s since the Unix epoch]
+        :raises RequestError: 422 naming ``captured``
+        """
+        now = _wall_clock()
+        age = now - captured
+        if age < -CLOCK_SKEW:
+            raise RequestError(422, "captured", f"{captured:.3f} is {-age:.3f} s ahead of the server's clock "
+                                                f"({now:.3f} s since the epoch): a time from the future (is the "
+                                                "client's clock synchronised?)")  # fmt: skip
+        if self.max_scene_age is not None and age > self.max_scene_age:
+            raise RequestError(422, "captured", f"the scene is {age:.3f} s old, older than the shield's declared "
+                                                f"latency bound of {self.max_scene_age:g} s (--shield-bounds): "
+                                                "refused, not planned; send a fresh scene")  # fmt: skip
 
     def json_reply(self, sid: str, answer: Answer) -> bytes:
         """The JSON answer of a step (``json.dumps`` writes each float so that it reads back exactly)."""
@@ -362,7 +408,7 @@ class PlannerService:
                     columns = self.builder.columns(scene.layout, scene.vehicles)
                 except WireError as error:
                     raise RequestError(422, error.field, error.message) from None
-                stream = self.step(sid, scene.seq, scene.layout, scene.time, columns)
+                stream = self.step(sid, scene.seq, scene.layout, scene.time, columns, scene.captured)
                 return 200, self.json_reply(sid, stream.answer)
             if op == "open":
                 request = OpenRequest.model_validate_json(body)
@@ -394,7 +440,7 @@ class PlannerService:
         except WireError as error:
             return 422, frames.encode_error(422, error.field, error.message)
         try:
-            answer = self.step(sid, step.seq, step.layout, step.time, columns).answer
+            answer = self.step(sid, step.seq, step.layout, step.time, columns, step.captured).answer
         except RequestError as error:
             return error.status, frames.encode_error(error.status, error.field, error.message,
                                                      error.extra.get("expected"))  # fmt: skip

@@ -288,8 +288,9 @@ class PlannerClient:
             raise ValueError("a remote planner needs scenes with layout and arc (scenes made by the simulation)")
         n = scene.num_vehicles
         width = scene.width if scene.width is not None else np.full(n, 2.0)
+        # captured now, once: a retry carries the same time
         columns = (scene.layout.name, float(scene.time), scene.route_names, scene.vehicle_id, scene.route,
-                   scene.arc, scene.speed, scene.length, width)  # fmt: skip
+                   scene.arc, scene.speed, scene.length, width, time.time())  # fmt: skip
 
         def send(seq: int) -> dict[str, Any] | None:
             return self._frame_step(stream, frames.encode_step(seq, *columns), timeout)

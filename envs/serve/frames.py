@@ -3,9 +3,10 @@
 A stream's steps can travel over one WebSocket (``GET /streams/{id}/ws``) instead of one HTTP request each.
 Each message is a MessagePack array (no keys, so no duplicate key can hide a second value):
 
-- a step: ``[seq, layout, time, routes, ids, route, arc, speed, length, width]``: ``routes`` a list of route
-  names, ``route`` each vehicle's index into it, ``ids`` ``int64`` and the others ``float64`` columns, all
-  little-endian bytes (row ``i`` is vehicle ``i``; the same units and ranges as the JSON scene);
+- a step: ``[seq, layout, time, routes, ids, route, arc, speed, length, width, captured]``: ``routes`` a list of
+  route names, ``route`` each vehicle's index into it, ``ids`` ``int64`` and the others ``float64`` columns, all
+  little-endian bytes (row ``i`` is vehicle ``i``; the same units and ranges as the JSON scene), ``captured`` the
+  wall-clock time of its capture [s since the Unix epoch] (required: a frame without it is refused);
 - its answer: ``[200, seq, step, time, ids, accelerations, overridden, unresolved]``, the last two ``None``
   without the server's shield (``overridden``: one byte per vehicle);
 - a refusal: ``[status, field, message, expected]`` (``expected``: the next ``seq`` on a 409, else ``None``).
@@ -18,6 +19,7 @@ falls back to JSON over HTTP without msgspec.
 
 from __future__ import annotations
 
+import time as _clock
 from typing import Any
 
 import msgspec
@@ -44,6 +46,7 @@ class StepFrame(msgspec.Struct, array_like=True, forbid_unknown_fields=True):
     speed: bytes
     length: bytes
     width: bytes
+    captured: float | None = None  # required; a default only so that its absence is refused by name
 
 
 _DECODER = msgspec.msgpack.Decoder(StepFrame)
@@ -52,15 +55,17 @@ _ENCODER = msgspec.msgpack.Encoder()
 
 def encode_step(seq: int, layout: str, time: float, routes: list[str] | tuple[str, ...], ids: np.ndarray,
                 route: np.ndarray, arc: np.ndarray, speed: np.ndarray, length: np.ndarray,
-                width: np.ndarray) -> bytes:  # fmt: skip
+                width: np.ndarray, captured: float | None = None) -> bytes:  # fmt: skip
     """A step frame (what the client sends).
 
     :param routes: the route names that ``route`` indexes
+    :param captured: when the scene was captured [s since the Unix epoch] (default: now)
     :return: the MessagePack bytes
     """
     i8 = (np.ascontiguousarray(a, _I8).tobytes() for a in (ids, route))
     f8 = (np.ascontiguousarray(a, _F8).tobytes() for a in (arc, speed, length, width))
-    return _ENCODER.encode([int(seq), layout, float(time), list(routes), *i8, *f8])
+    captured = _clock.time() if captured is None else float(captured)
+    return _ENCODER.encode([int(seq), layout, float(time), list(routes), *i8, *f8, captured])
 
 
 class Columns(msgspec.Struct):
@@ -76,6 +81,7 @@ class Columns(msgspec.Struct):
     speed: np.ndarray
     length: np.ndarray
     width: np.ndarray
+    captured: float = 0.0
 
 
 def decode_step(data: bytes) -> Columns:
@@ -93,6 +99,10 @@ def decode_step(data: bytes) -> Columns:
         raise WireError("seq", f"must be from 1 to {_MAX_SEQ}, got {frame.seq}")
     if not (np.isfinite(frame.time) and 0.0 <= frame.time <= 1e9):
         raise WireError("time", f"must be a finite number of seconds from 0 to 1e9, got {frame.time}")
+    if frame.captured is None:
+        raise WireError("captured", "missing: a step carries the wall-clock time of its capture [s since the epoch]")
+    if not (np.isfinite(frame.captured) and 0.0 <= frame.captured <= 1e11):
+        raise WireError("captured", f"must be a finite number of seconds from 0 to 1e11, got {frame.captured}")
     if not 1 <= len(frame.layout) <= 32:
         raise WireError("layout", "must be 1 to 32 characters")
     sizes = [len(getattr(frame, name)) for name in _COLUMNS]
@@ -108,7 +118,8 @@ def decode_step(data: bytes) -> Columns:
     rule, i = _first_bad(ids, route, len(frame.routes), arc, speed, length, width, *LENGTH_RANGE, *WIDTH_RANGE)
     if rule >= 0:
         _refuse(rule, i, frame.routes, ids, route, arc, speed, length, width)
-    return Columns(frame.seq, frame.layout, frame.time, frame.routes, ids, route, arc, speed, length, width)
+    return Columns(frame.seq, frame.layout, frame.time, frame.routes, ids, route, arc, speed, length, width,
+                   frame.captured)  # fmt: skip
 
 
 # The checks of a step's columns, in the order they are made (the first that fails is reported, at its first row):

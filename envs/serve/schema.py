@@ -34,6 +34,9 @@ class SceneIn(BaseModel):
 
     layout: str = Field(min_length=1, max_length=32, description="intersection layout name: '4way', '3way' or 'inD'")
     time: float = Field(ge=0.0, le=1e9, description="simulated time [s]; never decreases within a stream")
+    captured: float = Field(ge=0.0, le=1e11, description="when the scene was captured, on the wall clock [s since the "
+                            "Unix epoch, UTC]: a scene from the future (beyond the server's clock plus a small skew) "
+                            "is refused, and so is one older than the server's max_scene_age")  # fmt: skip
     vehicles: list[Vehicle] = Field(max_length=MAX_VEHICLES, description="row i of the answer is vehicles[i]")
     seq: int = Field(ge=1, le=2**63 - 1, description="the step's sequence number in the stream: 1 after an open or "
                      "a reset, then one more per step; the same number again returns the cached answer (a retry), "
@@ -121,6 +124,8 @@ class ServerInfo(BaseModel):
     a_max: float = Field(description="largest acceleration [m/s^2]")
     max_vehicles: int = Field(description="most vehicles in one scene")
     max_speed: float = Field(description="speed cap [m/s]")
+    max_scene_age: float | None = Field(default=None, description="a scene captured longer ago than this is refused "
+                                        "(its shield's declared latency bound) [s]; null: not checked")  # fmt: skip
     max_streams: int = Field(description="most streams open at once")
     max_streams_per_client: int = Field(description="most streams one client (token, or address without a "
                                         "token) may hold open")

@@ -4,6 +4,9 @@ A scene crosses the wire in physical units, as the vehicles themselves know it:
 
 - ``layout``: the intersection by name (``"4way"``, ``"3way"``, ``"inD"``);
 - ``time``: simulated time [s];
+- ``captured``: when the scene was captured, on the wall clock [s since the Unix epoch, UTC]: the server measures
+  the scene's age against it (a scene from the future is refused; one older than the shield's declared latency
+  bound too, :mod:`envs.serve.app`);
 - ``vehicles``: one object per vehicle, ``id`` (integer, unique in the scene, stable while the vehicle
   is in it), ``route`` (its route by name, ``"<entry arm>-><exit arm>"``), ``arc`` (centre position
   along the route from the route's start [m]), ``speed`` [m/s], ``length`` and ``width`` [m].
@@ -22,6 +25,7 @@ client (:mod:`envs.serve.client`) and the server (:mod:`envs.serve.app`, with th
 from __future__ import annotations
 
 import hashlib
+import time as _clock
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -33,8 +37,9 @@ from envs.simulation.engine import Simulation
 from envs.simulation.layouts import build_layout
 from envs.simulation.scene import Scene
 
-# Version of the wire schema; a change that old clients cannot read increments it (2: steps carry `seq`).
-SCHEMA_VERSION = 2
+# Version of the wire schema; a change that old clients cannot read increments it (2: steps carry `seq`; 3: scenes
+# carry `captured`).
+SCHEMA_VERSION = 3
 VEHICLE_FIELDS = ("id", "route", "arc", "speed", "length", "width")
 # Largest number of vehicles the schema takes in one scene (the server's own limit is its
 # environment's max_vehicles, usually far lower: its OpenAPI schema states that one).
@@ -57,10 +62,11 @@ class WireError(ValueError):
         self.message = message
 
 
-def scene_to_wire(scene: Scene) -> dict[str, Any]:
+def scene_to_wire(scene: Scene, captured: float | None = None) -> dict[str, Any]:
     """The wire form of an in-process scene (what the client sends).
 
     :param scene: a scene made by the simulation (it needs ``layout`` and ``arc``)
+    :param captured: when it was captured [s since the Unix epoch] (default: now)
     :return: a JSON-ready dictionary (plain Python floats: ``json`` writes them so that they read back exactly)
     :raises ValueError: a hand-built scene without ``layout`` or ``arc``
     """
@@ -78,7 +84,8 @@ def scene_to_wire(scene: Scene) -> dict[str, Any]:
         np.asarray(width, float).tolist(),
     )
     vehicles = [dict(zip(VEHICLE_FIELDS, row)) for row in columns]
-    return {"layout": scene.layout.name, "time": float(scene.time), "vehicles": vehicles}
+    captured = _clock.time() if captured is None else float(captured)
+    return {"layout": scene.layout.name, "time": float(scene.time), "captured": captured, "vehicles": vehicles}
 
 
 @dataclass(frozen=True)

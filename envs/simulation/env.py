@@ -559,6 +559,12 @@ class CoopIntersectionEnv(AbstractEnv):
             raise RuntimeError("call reset() first")
         return self._truth
 
+    def perception_errors(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """The true errors of the measurements :meth:`scene` rests on, per row
+        (:attr:`envs.simulation.perception.Perception.errors`: arcs [m] and speeds [m/s] against the truth at their
+        capture, ages [s]), which only the environment knows; ``None`` without faults (the scene is the truth)."""
+        return None if self._perception is None else self._perception.errors
+
     def _perceive(self, kept: np.ndarray | None = None, commanded: np.ndarray | None = None) -> Scene:
         """Read the truth from the plant and return what the planners perceive of it (the truth without faults).
 

@@ -55,6 +55,10 @@ class Perception:
                 correlation=math.exp(-self.dt / tau) if tau > 0 else 0.0,
             )  # fmt: skip
         self.step_index = 0
+        # The true errors of the measurements that the last perceived scene rests on, per row: arc [m] and speed
+        # [m/s] against the truth at their capture, and their ages [s] (what declared bounds promise; a tracker's
+        # estimate is built from these).
+        self.errors: tuple[np.ndarray, np.ndarray, np.ndarray] = (np.zeros(0), np.zeros(0), np.zeros(0))
         # The planner side's replay of the actuation (the same model as the plant's): the acceleration each vehicle
         # realises, from the commands it was sent.
         self.replica = None
@@ -117,6 +121,8 @@ class Perception:
             lost = self.draws.uniform(ids, step, LOSS) < f["loss"]
             received |= ~(lost & (held_age <= f["max_age"] + 1e-9))
         captured = plant.time - f["latency"]
+        e_arc = np.where(received, z_arc - arc_then, self.memory.get("e_arc", rows, known, 0.0))
+        e_speed = np.where(received, z_speed - speed_then, self.memory.get("e_speed", rows, known, 0.0))
         z_arc = np.where(received, z_arc, self.memory.get("z_arc", rows, known, 0.0))
         z_speed = np.where(received, z_speed, self.memory.get("z_speed", rows, known, 0.0))
         captured = np.where(received, captured, self.memory.get("captured", rows, known, captured))
@@ -126,6 +132,7 @@ class Perception:
         if self.replica is not None:
             r_rows, r_known = self.replica.memory.find(ids)
             realised = self.replica.memory.get("realised", r_rows, r_known, 0.0)
+        self.errors = (e_arc, e_speed, age)
         if self.tracker is None:
             arc, speed = z_arc, z_speed
             arc_std, speed_std = np.full(n, f["position_sigma"]), np.full(n, f["speed_sigma"])
@@ -136,7 +143,8 @@ class Perception:
                 arc, speed, realised = self._drive(plant.route, arc, speed, sent, realised, f["latency"])
                 arc_std = np.hypot(arc_std, f["latency"] * speed_std)
         self.memory.store(
-            ids, ex=ex, ev=ev, z_arc=z_arc, z_speed=z_speed, captured=captured, sent=sent, v_seen=speed
+            ids, ex=ex, ev=ev, z_arc=z_arc, z_speed=z_speed, e_arc=e_arc, e_speed=e_speed, captured=captured,
+            sent=sent, v_seen=speed,
         )  # fmt: skip
         scene = self._scene(plant, arc, speed, arc_std, speed_std, age)
         return scene if realised is None else dataclasses.replace(scene, acceleration=realised)

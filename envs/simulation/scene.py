@@ -71,6 +71,10 @@ class Scene:
     :param acceleration: ``(n,)`` the acceleration each vehicle realises at the scene's estimate (its commands through
         the actuation latency and lag of the fault model, as the planner side replays them) [m/s^2]; ``None``: each
         command is realised at once
+    :param human_intent: ``(n,)`` int8: what a shield has seen each human driver do against the human model
+        (:meth:`envs.planners.shield.Shield.act` sets it in the scene it hands its planner): ``1`` it went where the
+        model yields (it goes, whatever the model says), ``-1`` it has stood where the model goes (it waits), ``0``
+        the model's call; ``None``: the model's call for every driver (:func:`envs.planners.human.human_commands`)
     """
 
     time: float
@@ -103,6 +107,7 @@ class Scene:
     speed_std: np.ndarray | None = None
     age: np.ndarray | None = None
     acceleration: np.ndarray | None = None
+    human_intent: np.ndarray | None = None
 
     @property
     def num_vehicles(self) -> int:
