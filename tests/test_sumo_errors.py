@@ -15,7 +15,8 @@ from envs.simulation.engine import PlantError
 from envs.simulation.layouts import build_layout
 from sb3_graph.cli import main
 
-SUMO_CONFIG = '{"config": {"plant": "sumo", "simulation_frequency": 20}}'
+# 10 Hz: a configuration that no other test's harness has cached (a cached environment skips the check)
+SUMO_CONFIG = '{"config": {"plant": "sumo", "simulation_frequency": 10}}'
 
 
 @pytest.mark.parametrize(
