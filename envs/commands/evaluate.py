@@ -46,6 +46,7 @@ from __future__ import annotations
 import argparse
 import platform
 import re
+import shutil
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -158,10 +159,21 @@ def add_run_arguments(parser: argparse.ArgumentParser, scenarios: int, out: str,
     )
     parser.add_argument(
         "--plant",
+        action="append",
         default=None,
         help="what moves the vehicles: 'builtin' (our simulation) or 'sumo' (Eclipse SUMO, pip install "
-        "'sb3-graph[sumo]'; its drivers are the human vehicles); sets the env config's 'plant', and with 'sumo' a "
-        "simulation_frequency of 20 Hz unless --env-kwargs gives one (default: the env config's, 'builtin')",
+        "'sb3-graph[sumo]'; its drivers are the human vehicles); sets the env config's 'plant', and a "
+        "simulation_frequency of 20 Hz (SUMO's step) unless --env-kwargs gives one (default: the env config's, "
+        "'builtin' at its own rate); evaluate takes it twice (--plant builtin --plant sumo) to run every planner on "
+        "the same scenarios in both plants: a report per plant and the cross-plant table plants.md",
+    )
+    parser.add_argument(
+        "--net",
+        default=None,
+        metavar="FILE",
+        help="run on the one junction of this SUMO network (.net.xml, e.g. one that netconvert made from "
+        "OpenStreetMap) instead of the environment's layout, in either plant: sets the env config's layout to "
+        "'net:FILE' (needs the sumo extra)",
     )
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
 
@@ -208,8 +220,14 @@ def check_executor_arguments(args: argparse.Namespace) -> None:
         raise UserError(str(error)) from None
 
 
-def _check(args: argparse.Namespace) -> list[tuple[str, str]]:
-    """Validate the arguments; return the ``(planner word, report name)`` pairs."""
+def _check(args: argparse.Namespace, several_plants: bool = False) -> list[tuple[str, str]]:
+    """Validate the arguments; return the ``(planner word, report name)`` pairs.
+
+    Sets ``args.plant_kwargs`` (``{plant: env_kwargs}``, empty without ``--plant``) and ``args.env_kwargs`` to the
+    first plant's.
+
+    :param several_plants: the command runs more than one ``--plant`` (evaluate)
+    """
     from envs.simulation.traffic import MAX_DURATION  # highway-env: imported when the command runs, not for --help
     from sb3_graph.files.output_folders import OutputError, check_destination
 
@@ -224,7 +242,14 @@ def _check(args: argparse.Namespace) -> list[tuple[str, str]]:
         raise UserError("--env-kwargs must be a JSON object, e.g. '{\"duration\": 100}'")
     planners = checked_planners(args.planner, shield=args.shield)
     args.shield_bounds = checked_shield_bounds(args.shield_bounds)
-    args.env_kwargs = with_plant(args.env_kwargs, getattr(args, "plant", None))
+    if getattr(args, "net", None) is not None:
+        args.env_kwargs = with_net(args.env_kwargs, args.net)
+    plants = list(dict.fromkeys(getattr(args, "plant", None) or []))
+    if len(plants) > 1 and not several_plants:
+        raise UserError(f"--plant: this command runs one plant, got {plants}")
+    args.plant_kwargs = plant_kwargs(args.env_kwargs, plants)
+    if plants:
+        args.env_kwargs = args.plant_kwargs[plants[0]]
     if args.out is not None:
         try:
             check_destination(Path(args.out))
@@ -312,6 +337,40 @@ def with_plant(env_kwargs: dict[str, Any] | None, plant: str | None) -> dict[str
     return kwargs
 
 
+def with_net(env_kwargs: dict[str, Any] | None, net: str) -> dict[str, Any]:
+    """``env_kwargs`` whose config's layout is the junction of the SUMO network ``net`` (read once here).
+
+    :raises UserError: a file that does not read as one junction, or no sumo extra (one line naming ``--net``)
+    """
+    from envs.simulation.sumo_junction import NET_PREFIX, named_layout
+
+    name = NET_PREFIX + str(Path(net).resolve())
+    try:
+        named_layout(name)
+    except (ImportError, ValueError) as error:
+        raise UserError(f"--net: {error}") from None
+    kwargs = dict(env_kwargs or {})
+    if not isinstance(kwargs.get("config") or {}, dict):
+        raise UserError(f"--env-kwargs: 'config' must be a dict, got {type(kwargs['config']).__name__}")
+    kwargs["config"] = {**(kwargs.get("config") or {}), "layout": name}
+    return kwargs
+
+
+def plant_kwargs(env_kwargs: dict[str, Any] | None, plants: Sequence[str]) -> dict[str, dict[str, Any] | None]:
+    """``env_kwargs`` for each plant (:func:`with_plant`). With several plants, one of them SUMO, every plant
+    steps at SUMO's rate unless the config names one, so that the plants differ in their drivers only.
+
+    :raises UserError: as :func:`with_plant`
+    """
+    from envs.simulation.sumo_plant import SUMO_PLANT_FREQUENCY
+
+    kwargs = {plant: with_plant(env_kwargs, plant) for plant in plants}
+    if len(plants) > 1 and "sumo" in plants:
+        for each in kwargs.values():
+            each["config"].setdefault("simulation_frequency", SUMO_PLANT_FREQUENCY)
+    return kwargs
+
+
 def check_env_id(env_id: str) -> None:
     """Refuse an environment id that is not one of this package's intersection environments.
 
@@ -388,72 +447,135 @@ def duration_text(runs, requested: float) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from envs.evaluation.harness import check_scenarios, find_scenarios, generate_scenarios
-    from envs.evaluation.report import write_report
+    from envs.evaluation.cross_plant import write_cross_plant
+    from envs.evaluation.harness import generate_scenarios
     from sb3_graph.files.output_folders import OutputError, staged_folder
 
-    planners = _check(args)
+    planners, config, scenarios = _checked_inputs(args)
+    layout, share = str(config["layout"]), getattr(args, "human_share", 0.0)
+    say = progress_printer(args)
+    load_model_planners(planners, config, args.trust_planner_files)
+    warn_beyond_bounds(planners, args.shield_bounds, config)
+    out = _destination(args)
+    # One report, or with several plants one report per plant in a subfolder named after it.
+    plants: list[str | None] = list(args.plant_kwargs) if len(args.plant_kwargs) > 1 else [None]
+    tic = time.perf_counter()
+    results: dict[str | None, tuple[dict, Any, dict]] = {}
+    try:
+        with staged_folder(out) as stage:
+            if args.scenario_dir is None:
+                folder = stage if plants[0] is None else stage / plants[0]
+                say(f"generating {args.scenarios} scenario files of {args.duration:g} s ({layout}, seed {args.seed})")
+                scenarios = generate_scenarios(
+                    folder / "scenarios", args.scenarios, args.duration, args.seed, layout, human_share=share
+                )
+                say(f"scenarios ready ({time.perf_counter() - tic:.1f} s)")
+            for plant in plants:
+                folder = stage if plant is None else stage / plant
+                if args.scenario_dir is None and not (folder / "scenarios").exists():  # each report holds its own
+                    shutil.copytree(scenarios[0].parent, folder / "scenarios")
+                plant_args = args if plant is None else argparse.Namespace(**{**vars(args), "plant": [plant]})
+                plant_args.env_kwargs = args.env_kwargs if plant is None else args.plant_kwargs[plant]
+                if plant is not None:
+                    say(f"plant {plant}")
+                results[plant] = report_run(
+                    plant_args, planners, scenarios, folder, out / folder.relative_to(stage), config
+                )
+            if plants[0] is not None:
+                cross = write_cross_plant(stage, {p: results[p][1] for p in plants}, [name for _, name in planners])
+    except OutputError as error:
+        raise UserError(str(error)) from None
+    for plant, (summary, _, stats) in results.items():
+        if plant is not None:
+            print(f"plant {plant}:")
+        print_summary(summary)
+        print(run_line(stats))
+        print_verdict(out if plant is None else out / plant)
+    if plants[0] is not None:
+        print(f"{cross} (plants.md)")
+    print(f"report written to {out} ({time.perf_counter() - tic:.1f} s)")
+    failed = sum(s.get("failed_runs", 0) for summary, _, _ in results.values() for s in summary.values())
+    if failed:
+        print(f"{failed} runs failed on a planner or plant error (see above and metrics.csv): exit status 1")
+        return 1
+    return 0
+
+
+def _checked_inputs(args: argparse.Namespace) -> tuple[list[tuple[str, str]], dict[str, Any], list[Path]]:
+    """``evaluate``'s arguments checked: the ``(planner word, report name)`` pairs, the first plant's environment
+    configuration, and the scenario files of ``--scenario-dir`` (none when they are to be generated).
+
+    :raises UserError: naming the flag
+    """
+    from envs.evaluation.harness import check_scenarios, find_scenarios
+
+    planners = _check(args, several_plants=True)
     config = checked_env(args.env, args.env_kwargs)
-    layout = str(config["layout"])
+    for kwargs in list(args.plant_kwargs.values())[1:]:
+        checked_env(args.env, kwargs)
     share = getattr(args, "human_share", 0.0)
     if not 0 <= share <= 1:
         raise UserError(f"--human-share must be in [0, 1], got {share:g}")
     if share and args.scenario_dir is not None:
         raise UserError("--human-share: not with --scenario-dir (the scenario files carry their own human flags)")
+    scenarios: list[Path] = []
     if args.scenario_dir is not None:
         try:
-            scenarios = find_scenarios(args.scenario_dir)
-            check_scenarios(scenarios, layout)
+            scenarios = list(find_scenarios(args.scenario_dir))
+            check_scenarios(scenarios, str(config["layout"]))
         except ValueError as error:
             raise UserError(f"--scenario-dir: {error}") from None
-    say = progress_printer(args)
-    load_model_planners(planners, config, args.trust_planner_files)
-    warn_beyond_bounds(planners, args.shield_bounds, config)
-    out = _destination(args)
+    return planners, config, scenarios
+
+
+def report_run(
+    args: argparse.Namespace,
+    planners: Sequence[tuple[str, str]],
+    scenarios: Sequence[Path],
+    folder: Path,
+    out: Path,
+    config: dict[str, Any],
+) -> tuple[dict, Any, dict]:
+    """Run every planner on every scenario and write the report into ``folder``.
+
+    :param args: the command's arguments (``env_kwargs`` those of the plant to run)
+    :param planners: ``(planner spec, report name)`` pairs
+    :param scenarios: scenario files
+    :param folder: the (staged) report folder
+    :param out: where ``folder`` ends up (named in the report)
+    :param config: the environment's configuration (its faults, against the shields' declared bounds)
+    :return: ``(summary, runs, stats)``
+    """
+    from envs.evaluation.report import write_report
+
     tic = time.perf_counter()
-    try:
-        with staged_folder(out) as stage:
-            if args.scenario_dir is None:
-                say(f"generating {args.scenarios} scenario files of {args.duration:g} s ({layout}, seed {args.seed})")
-                scenarios = generate_scenarios(
-                    stage / "scenarios", args.scenarios, args.duration, args.seed, layout, human_share=share
-                )
-                say(f"scenarios ready ({time.perf_counter() - tic:.1f} s)")
-                source = f"generated into {out / 'scenarios'} (seed {args.seed} + index)"
-            else:
-                source = f"read from {args.scenario_dir}"
-            runs, vehicles, stats = run_harness(args, planners, scenarios)
-            wall = time.perf_counter() - tic
-            meta = {
-                "environment": args.env,
-                "planners": ", ".join(f"{name} ({word})" for word, name in planners),
-                "scenarios": f"{len(scenarios)}, {source}",
-                "duration per run": duration_text(runs, args.duration),
-                "seed": args.seed,
-                **bounds_meta(args, config),
-                "jobs": args.jobs,
-                **harness_meta(stats),
-                "wall time": f"{wall:.1f} s",
-                "python": platform.python_version(),
-            }
-            summary = write_report(stage, runs, vehicles, meta)
-            replay = {
-                "env": args.env, "env_kwargs": args.env_kwargs, "seed": args.seed, "duration": args.duration,
-                "planners": [list(pair) for pair in planners], "trust_planner_files": args.trust_planner_files,
-                "shield_bounds": args.shield_bounds.text(),
-            }  # fmt: skip
-            write_run_info(stage, stats, time.perf_counter() - tic, replay)
-    except OutputError as error:
-        raise UserError(str(error)) from None
-    print_summary(summary)
-    print(run_line(stats))
-    print_verdict(out)
-    print(f"report written to {out} ({wall:.1f} s)")
-    failed = sum(s.get("failed_runs", 0) for s in summary.values())
-    if failed:
-        print(f"{failed} runs failed on a planner error (see above and metrics.csv): exit status 1")
-        return 1
-    return 0
+    runs, vehicles, stats = run_harness(args, planners, scenarios)
+    if args.scenario_dir is None:
+        source = f"generated into {out / 'scenarios'} (seed {args.seed} + index)"
+    else:
+        source = f"read from {args.scenario_dir}"
+    plant = ((args.env_kwargs or {}).get("config") or {}).get("plant")
+    meta = {
+        "environment": args.env + (f", plant {plant}" if plant else ""),
+        "planners": ", ".join(f"{name} ({word})" for word, name in planners),
+        "scenarios": f"{len(scenarios)}, {source}",
+        "duration per run": duration_text(runs, args.duration),
+        "seed": args.seed,
+        **bounds_meta(args, config),
+        "jobs": args.jobs,
+        **harness_meta(stats),
+        "wall time": f"{time.perf_counter() - tic:.1f} s",
+        "python": platform.python_version(),
+    }
+    folder.mkdir(parents=True, exist_ok=True)
+    summary = write_report(folder, runs, vehicles, meta)
+    replay = {
+        "env": args.env, "env_kwargs": args.env_kwargs, "seed": args.seed, "duration": args.duration,
+        "planners": [list(pair) for pair in planners], "trust_planner_files": args.trust_planner_files,
+        "shield_bounds": args.shield_bounds.text(),
+    }  # fmt: skip
+    write_run_info(folder, stats, time.perf_counter() - tic, replay)
+    return summary, runs, stats
 
 
 def print_verdict(report: Path) -> None:

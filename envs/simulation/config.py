@@ -18,9 +18,10 @@ import numpy as np
 
 from envs.simulation.faults import FAULTS_ALLOWED, fault_config
 from envs.simulation.graph import EDGE_FEATURES, VERTEX_FEATURES
-from envs.simulation.layouts import LAYOUT_NAMES
 from envs.simulation.plant import PLANTS
 from envs.simulation.rewards import REWARD_PRESETS, REWARD_TERMS, preset_weights
+from envs.simulation.sumo_junction import LAYOUT_HELP, NET_PREFIX, is_layout_name, named_layout
+from envs.simulation.sumo_plant import libsumo_module
 from envs.simulation.traffic import HUMAN_SHARE_ALLOWED, check_human_share
 
 # What a collision does: "terminate" ends the episode (training, as in the paper); "remove" takes
@@ -184,7 +185,7 @@ def _distinct_names(allowed) -> Rule:
 
 
 RULES: dict[str, Rule] = {
-    "layout": Rule(lambda x: x in LAYOUT_NAMES, f"one of {LAYOUT_NAMES}"),
+    "layout": Rule(is_layout_name, LAYOUT_HELP),
     "plant": Rule(lambda x: isinstance(x, str) and x in PLANTS, f"one of {PLANTS}"),
     "simulation_frequency": _int(1, MAX_SIMULATION_FREQUENCY),
     "policy_frequency": _int(1, MAX_SIMULATION_FREQUENCY),
@@ -287,6 +288,18 @@ def validate_config(config: dict[str, Any], defaults: dict[str, Any]) -> dict[st
             f"config key 'simulation_frequency' must be a multiple of 'policy_frequency', got "
             f"{merged['simulation_frequency']} and {merged['policy_frequency']}"
         )
+    if str(merged.get("layout")).startswith(NET_PREFIX):  # the file reads as one junction (once per process)
+        try:
+            named_layout(merged["layout"], lateral_acceleration=float(merged["lateral_acceleration"]))
+        except ImportError as error:
+            raise ValueError(f"config key 'layout' reads a SUMO network, but {error}") from None
+        except ValueError as error:
+            raise ValueError(f"config key 'layout': {error}") from None
+    if merged.get("plant") == "sumo":
+        try:
+            libsumo_module()
+        except ImportError as error:
+            raise ValueError(f"config key 'plant' is 'sumo', but {error}") from None
     if merged.get("plant") == "sumo" and 1000 % merged["simulation_frequency"]:
         raise ValueError(
             f"config key 'simulation_frequency' must divide 1000 with plant 'sumo' (SUMO's step is a whole number "

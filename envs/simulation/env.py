@@ -52,7 +52,7 @@ from envs.simulation.config import SCHEDULER_ACTION_TYPES, validate_config
 from envs.simulation.engine import StepEvents
 from envs.simulation.faults import FAULT_DEFAULTS
 from envs.simulation.graph import DEFAULT_S_SCALE, NUM_RELATIONS, build_observation, min_mahalanobis, num_node_features
-from envs.simulation.layouts import Layout, build_layout
+from envs.simulation.layouts import Layout
 from envs.simulation.perception import Perception
 from envs.simulation.plant import Plant, make_plant
 from envs.simulation.rewards import (
@@ -66,6 +66,7 @@ from envs.simulation.rewards import (
 )
 from envs.simulation.scene import MAJOR, MANEUVERS, Scene
 from envs.simulation.step_record import StepRecord
+from envs.simulation.sumo_junction import named_layout
 from envs.simulation.traffic import Scenario, ScenarioTraffic, TrainingTraffic, human_flags, human_rng
 from sb3_graph.callbacks import VERTEX_ORIGIN
 from sb3_graph.common.spaces import GraphSpace
@@ -106,7 +107,8 @@ class CoopIntersectionEnv(AbstractEnv):
     def default_config(cls) -> dict:
         """All settings with their defaults.
 
-        - ``layout``: ``"4way"``, ``"3way"`` or ``"inD"`` (see :func:`envs.simulation.layouts.build_layout`)
+        - ``layout``: ``"4way"``, ``"3way"`` or ``"inD"`` (see :func:`envs.simulation.layouts.build_layout`), or
+          ``"net:FILE"``: the one junction of a SUMO network (:func:`envs.simulation.sumo_junction.read_junction`)
         - ``plant``: what moves the vehicles (:mod:`envs.simulation.plant`): ``"builtin"`` (our simulation, the
           default) or ``"sumo"`` (Eclipse SUMO, the ``sumo`` extra; ``simulation_frequency`` must then divide
           1000, e.g. 20; human-driven vehicles are SUMO's own drivers)
@@ -281,7 +283,7 @@ class CoopIntersectionEnv(AbstractEnv):
         self.update_metadata()
         self.define_spaces()
         cfg = self.config
-        self.layout = build_layout(cfg["layout"], lateral_acceleration=float(cfg["lateral_acceleration"]))
+        self.layout = named_layout(cfg["layout"], lateral_acceleration=float(cfg["lateral_acceleration"]))
         if self.sim is not None:
             self.sim.close()  # SUMO: one simulation per process
             self.sim = None

@@ -405,6 +405,29 @@ def _build(name: str, arms: list[ArmSpec], ds: float, lateral_acceleration: floa
     net = RoadNetwork()
     stops, exits = _add_arms(net, arms)
     routes = _add_routes(net, arms, stops, exits)
+    arm_angle = {arm.name: float(ARM_ANGLES[arm.name]) for arm in arms}
+    return layout_from_routes(name, net, routes, arm_angle, ds, lateral_acceleration)
+
+
+def layout_from_routes(
+    name: str,
+    net: RoadNetwork,
+    routes: list[_Route],
+    arm_angle: dict[str, float],
+    ds: float,
+    lateral_acceleration: float,
+) -> Layout:
+    """The layout of a road network whose routes are known: their sampled geometry and speed limits, the spawn
+    lanes and the conflict zones (our layouts, and a junction read from a SUMO network).
+
+    :param name: the layout's name
+    :param net: the road network that holds every lane of the routes
+    :param routes: ``(name, lanes, maneuver, priority, entry arm, exit arm, upstream lanes)`` per route: its lane
+        keys in driving order, and how many of them lie before the stop line
+    :param arm_angle: arm name -> outward direction [rad] in the layout frame
+    :param ds: sample spacing [m]
+    :param lateral_acceleration: largest lateral acceleration that sets the limits of curves [m/s^2]
+    """
     tables = _route_tables(net, routes, ds, lateral_acceleration)
     spawn_lanes, route_spawn, priority, spawn_priority = _spawn_lanes(routes)
     conflicts, zone_start, zone_end = _conflicts(routes, tables["xy"], tables["entry_arc"], tables["exit_arc"], ds)
@@ -419,7 +442,7 @@ def _build(name: str, arms: list[ArmSpec], ds: float, lateral_acceleration: floa
         exit_arc=tables["exit_arc"],
         length=tables["length"],
         conflicts=conflicts,
-        arm_angle={arm.name: float(ARM_ANGLES[arm.name]) for arm in arms},
+        arm_angle=dict(arm_angle),
         entry_arm=tuple(r[4] for r in routes),
         exit_arm=tuple(r[5] for r in routes),
         spawn_lanes=tuple(spawn_lanes),

@@ -82,16 +82,17 @@ def _network_xml(layout: Layout) -> tuple[str, str, str, tuple[tuple[str, ...], 
         upstream, exit_lane = lanes[:n_up], lanes[-1]
         for k, key in enumerate(upstream):
             lane = net.get_lane(key)
-            start, end = lane.position(0.0, 0.0), lane.position(lane.length, 0.0)
+            shape = _lane_shape(lane)
             to_node = JUNCTION if k == n_up - 1 else key[1]
-            nodes.setdefault(key[0], start)
-            nodes.setdefault(to_node, end)
-            edges[_edge_id(key)] = _edge_xml(_edge_id(key), key[0], to_node, [start, end], lane)
+            nodes.setdefault(key[0], shape[0])
+            nodes.setdefault(to_node, shape[-1])
+            edges[_edge_id(key)] = _edge_xml(_edge_id(key), key[0], to_node, list(shape), lane)
         lane = net.get_lane(exit_lane)
-        direction = (lane.end - lane.start) / lane.length
-        far = lane.end + EXIT_EXTENSION * direction
+        shape = _lane_shape(lane)
+        direction = (shape[-1] - shape[-2]) / np.linalg.norm(shape[-1] - shape[-2])
+        far = shape[-1] + EXIT_EXTENSION * direction  # on the line of the last piece: that piece's end drops out
         nodes.setdefault(exit_lane[1], far)
-        edges[_edge_id(exit_lane)] = _edge_xml(_edge_id(exit_lane), JUNCTION, exit_lane[1], [lane.start, far], lane)
+        edges[_edge_id(exit_lane)] = _edge_xml(_edge_id(exit_lane), JUNCTION, exit_lane[1], [*shape[:-1], far], lane)
         a0, a1 = layout.entry_arc[r], layout.exit_arc[r]
         arcs = np.append(np.arange(a0, a1, CONNECTOR_SPACING), a1)
         shape, _ = layout.pose(np.full(arcs.size, r), arcs)
@@ -111,6 +112,14 @@ def _network_xml(layout: Layout) -> tuple[str, str, str, tuple[tuple[str, ...], 
         "<connections>\n" + "\n".join(connections) + "\n</connections>\n",
         tuple(route_edges),
     )
+
+
+def _lane_shape(lane) -> np.ndarray:
+    """A lane's centre line as points: its own (a lane read from a SUMO network), or a straight lane's two ends."""
+    points = getattr(lane, "points", None)
+    if points is not None:
+        return np.asarray(points, float)
+    return np.array([lane.position(0.0, 0.0), lane.position(lane.length, 0.0)])
 
 
 def _edge_xml(edge_id: str, from_node: str, to_node: str, shape: list, lane) -> str:

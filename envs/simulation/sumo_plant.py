@@ -74,6 +74,17 @@ def libsumo_module() -> Any:
     return libsumo
 
 
+def sumo_errors() -> tuple[type[BaseException], ...]:
+    """What libsumo and TraCI raise when SUMO fails: an error of a call, or a SUMO (process) that died."""
+    libsumo = libsumo_module()
+    import traci
+
+    return (
+        libsumo.TraCIException, libsumo.FatalTraCIError, traci.exceptions.TraCIException,
+        traci.exceptions.FatalTraCIError, ConnectionError,
+    )  # fmt: skip
+
+
 def step_length_allowed(simulation_frequency: int) -> bool:
     """SUMO counts time in milliseconds: its step must be a whole number of them."""
     return 1000 % int(simulation_frequency) == 0
@@ -104,6 +115,7 @@ class SumoPlant(VehicleTable):
     :param network: the generated network (default: :func:`network_of` the layout)
     :param seed: SUMO's random seed (its drivers' imperfection and speed factors)
     :raises ImportError: without the ``sumo`` extra
+    :raises PlantError: netconvert failed on the layout, or SUMO failed to start (one line)
     """
 
     COLUMNS = VehicleTable.COLUMNS + ("origin", "in_sumo", "front_position")
@@ -134,11 +146,15 @@ class SumoPlant(VehicleTable):
                 f"simulation_frequency must divide 1000 for the SUMO plant (a step of whole milliseconds, "
                 f"e.g. 20 or 10), got {simulation_frequency}"
             )
-        self.network = network if network is not None else network_of(layout)
+        try:
+            self.network = network if network is not None else network_of(layout)
+        except ValueError as error:  # netconvert failed: every run of this layout fails, each in one line
+            raise PlantError(str(error)) from None
         self.seed = int(seed)
         self.lost: dict[int, str] = {}
         self.front_position = np.zeros((0, 2))
         self._sumo: Any = None  # libsumo, or a TraCI connection (see _open)
+        self._errors = sumo_errors()
         self.backend = ""
         self._closed = False
         try:
@@ -160,7 +176,10 @@ class SumoPlant(VehicleTable):
         ]  # fmt: skip
 
     def reset(self) -> None:
-        """Empty the scene, set the clock to 0 and (re)start SUMO on the network."""
+        """Empty the scene, set the clock to 0 and (re)start SUMO on the network.
+
+        :raises PlantError: SUMO failed to start or load, in one line
+        """
         if getattr(self, "_closed", True):
             raise RuntimeError("this SUMO plant is closed")
         super().reset()
@@ -168,14 +187,17 @@ class SumoPlant(VehicleTable):
         self.in_sumo = np.zeros(0, bool)  # inserted (a new row enters SUMO at the next step)
         self.front_position = np.zeros((0, 2))
         self.lost = {}
-        if self._sumo is None:
-            self._open()
-        else:
-            self._sumo.load(self._arguments()[1:])
-        sumo = self._sumo
-        for r, edges in enumerate(self.network.route_edges):
-            sumo.route.add(f"r{r}", list(edges))
-        self._define_types()
+        try:
+            if self._sumo is None:
+                self._open()
+            else:
+                self._sumo.load(self._arguments()[1:])
+            sumo = self._sumo
+            for r, edges in enumerate(self.network.route_edges):
+                sumo.route.add(f"r{r}", list(edges))
+            self._define_types()
+        except self._errors as error:  # SUMO refused the network or its options, or its process died
+            raise PlantError(f"SUMO at reset: {_one_line(error)}") from None
 
     def _define_types(self) -> None:
         sumo, a_max = self._sumo, self.max_acceleration
@@ -200,7 +222,6 @@ class SumoPlant(VehicleTable):
         if not _OPEN and not libsumo.simulation.isLoaded():
             libsumo.start(self._arguments())
             self._sumo, self.backend = libsumo, "libsumo"
-            self._errors: tuple[type[Exception], ...] = (libsumo.TraCIException,)
             _OPEN.append(self)
             return
         import sumolib
@@ -213,16 +234,16 @@ class SumoPlant(VehicleTable):
         with contextlib.redirect_stdout(io.StringIO()):  # traci prints a line per try while SUMO opens its port
             self._sumo = traci.connect(port, numRetries=500, proc=process, waitBetweenRetries=0.02, label=label)
         self.backend = "traci"
-        self._errors = (traci.exceptions.TraCIException, traci.exceptions.FatalTraCIError)
 
     def close(self) -> None:
         """Close SUMO (a plant made afterwards may use libsumo again)."""
         if not self._closed:
             self._closed = True
-            if self._sumo is not None:
-                self._sumo.close()
             if self in _OPEN:
                 _OPEN.remove(self)
+            if self._sumo is not None:
+                with contextlib.suppress(*self._errors, OSError):  # a SUMO that died has nothing left to close
+                    self._sumo.close()
 
     def set_state(self, *args: Any, **kwargs: Any) -> None:
         """Not available: SUMO's clock runs forward only, and it cannot place a vehicle inside a junction."""
@@ -302,9 +323,17 @@ class SumoPlant(VehicleTable):
         :param acceleration: ``(n,)`` commanded accelerations [m/s^2]; ignored for human-driven rows
         :param remove_collided: take the vehicles of this step's collisions out of the scene (and SUMO)
         :return: the events of the step; finished and lost vehicles are already removed
+        :raises PlantError: a libsumo or TraCI error (a refused call, a SUMO process that died), in one line
         """
         if self._closed:
             raise RuntimeError("this SUMO plant is closed: reset() the environment first")
+        try:
+            return self._step(acceleration, remove_collided)
+        except self._errors as error:
+            raise PlantError(f"SUMO at t = {self.time:.2f} s: {_one_line(error)}") from None
+
+    def _step(self, acceleration: np.ndarray, remove_collided: bool) -> StepEvents:
+        """:meth:`step` without its error handling."""
         n = self.num_vehicles
         a_max, h, substeps = self.max_acceleration, 1.0 / self.simulation_frequency, self.substeps
         acc = np.minimum(np.maximum(np.asarray(acceleration, float).reshape(n), -a_max), a_max)
@@ -320,10 +349,7 @@ class SumoPlant(VehicleTable):
             self.origin = self.origin.copy()
             self.origin[new] = plan_x[1, new]
         ids = [str(i) for i in self.vehicle_id.tolist()]
-        try:
-            speed, distance, front, pairs, present = self._run(ids, plan_v, h, new)
-        except self._errors as error:  # a libsumo error, or a TraCI process that died
-            raise PlantError(f"SUMO at t = {self.time:.2f} s: {error}") from None
+        speed, distance, front, pairs, present = self._run(ids, plan_v, h, new)
         lost = ~present
         arc = self.origin + distance
         self.speed = np.where(present, speed[-1], self.speed)
@@ -396,6 +422,12 @@ class SumoPlant(VehicleTable):
         front = front.reshape(n, 2) * (1.0, -1.0)  # SUMO's y points north, the layout's south
         speed[:, ~present] = np.nan
         return speed, np.where(present, distance, 0.0), front, pairs, present
+
+
+def _one_line(error: BaseException) -> str:
+    """An error's message on one line (SUMO's may span several), with its kind when it says nothing."""
+    text = " ".join(str(error).split())
+    return text or type(error).__name__
 
 
 def _collision_rows(pairs: set[tuple[str, str]], ids: list[str], n: int) -> np.ndarray:

@@ -31,7 +31,8 @@ from typing import Any
 import numpy as np
 
 from envs.simulation.engine import Simulation
-from envs.simulation.layouts import LAYOUT_NAMES, Layout, build_layout
+from envs.simulation.layouts import Layout
+from envs.simulation.sumo_junction import LAYOUT_HELP, is_layout_name, named_layout
 
 SCENARIO_FORMAT = "sb3-graph-scenario"
 SCENARIO_VERSION = 2
@@ -97,8 +98,8 @@ class Scenario:
 
     def validate(self, source: str = "scenario") -> None:
         """Check every field; raise ``ValueError`` naming ``source`` and the field."""
-        if self.layout not in LAYOUT_NAMES:
-            raise ValueError(f"{source}: field 'layout' must be one of {LAYOUT_NAMES}, got {self.layout!r}")
+        if not is_layout_name(self.layout):
+            raise ValueError(f"{source}: field 'layout' must be {LAYOUT_HELP}, got {self.layout!r}")
         if not (math.isfinite(self.duration) and 0 < self.duration <= MAX_DURATION):
             raise ValueError(
                 f"{source}: field 'duration' must be a number of seconds in (0, {MAX_DURATION:g}], got {self.duration}"
@@ -130,7 +131,7 @@ class Scenario:
                 raise ValueError(
                     f"{source}: vehicles[{i}].{name} must be a number in {low}{lower:g}, {upper:g}], got {values[i]}"
                 )
-        routes = set(build_layout(self.layout).route_names)
+        routes = set(named_layout(self.layout).route_names)
         for i, r in enumerate(self.route):
             if r not in routes:
                 raise ValueError(
@@ -371,7 +372,7 @@ def generate_scenario(
         it from; drawn with :func:`human_rng` of the seed (default 0: no draw, all automated)
     :return: the scenario; ``meta["human_share"]`` records the share when it is not 0
     """
-    lay = build_layout(layout) if isinstance(layout, str) else layout
+    lay = named_layout(layout) if isinstance(layout, str) else layout
     seed = None
     humans = human_rng(rng) if check_human_share(human_share)[1] > 0 else None
     if not isinstance(rng, np.random.Generator):
