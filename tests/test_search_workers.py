@@ -49,10 +49,30 @@ def test_a_bad_mode_or_latency_names_it_in_one_line(field, value):
     assert "\n" not in str(error.value)
 
 
-def test_the_default_workers_are_the_cores_on_the_wall_clock_and_one_in_simulated_time():
+def test_the_default_workers_are_the_cores_but_one_on_the_wall_clock_and_one_in_simulated_time():
     assert LookaheadParams().processes == 1
     assert LookaheadParams(mode="async").processes == 1
-    assert LookaheadParams(mode="async", clock="wall").processes == available_cores()
+    assert LookaheadParams(mode="async", clock="wall").processes == max(1, available_cores() - 1)
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_getscheduler") or not hasattr(os, "fork"), reason="Linux scheduling")
+def test_the_search_process_runs_on_the_cpu_that_the_steps_leave():
+    """The search process takes the idle scheduling class (Linux), else a lower priority: checked in a child."""
+    from envs.planners.search_workers import lower_priority
+
+    read, write = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # the child: lower itself, report its class and niceness
+        os.close(read)
+        os.write(write, f"{lower_priority()} {os.sched_getscheduler(0)} {os.nice(0)}".encode())
+        os._exit(0)
+    os.close(write)
+    kind, policy, nice = os.read(read, 100).decode().split()
+    os.close(read)
+    os.waitpid(pid, 0)
+    assert kind in ("idle", "nice")
+    assert int(policy) == os.SCHED_IDLE if kind == "idle" else int(nice) >= 10
+    assert os.sched_getscheduler(0) != os.SCHED_IDLE  # the test's own process is left as it was
 
 
 @two_cores

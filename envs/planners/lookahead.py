@@ -97,8 +97,9 @@ class LookaheadParams:
     :param latency: seconds from an ``"async"`` search's start until its windows apply, > 0 (``None``: the period,
         and on the ``"wall"`` clock at least the wall time that the last searches took, counted in the wall time
         between steps, at most the horizon); rounded to whole policy steps, at least one
-    :param workers: processes that run one search's rollouts, from 1 to the cores available (``None``: the cores
-        on the ``"wall"`` clock, 1 otherwise, since an evaluation already runs its runs in parallel)
+    :param workers: processes that run one search's rollouts, from 1 to the cores available (``None``: on the
+        ``"wall"`` clock the cores but one, which the steps keep, at least 1; otherwise 1, since an evaluation
+        already runs its runs in parallel)
     """
 
     windows: tuple[float, ...] = (0.0, 30.0, math.inf)
@@ -153,7 +154,7 @@ class LookaheadParams:
         """The processes that run one search's rollouts (``workers``, or its default for the mode)."""
         if self.workers is not None:
             return self.workers
-        return available_cores() if self.mode == "async" and self.clock == "wall" else 1
+        return max(1, available_cores() - 1) if self.mode == "async" and self.clock == "wall" else 1
 
 
 def _number(x: object) -> bool:

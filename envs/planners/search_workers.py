@@ -27,8 +27,8 @@ from typing import Any
 
 import numpy as np
 
-#: how much lower the search process (and its rollout helpers, forked from it) runs than the steps: a step never
-#: waits for a search's CPU (``os.nice``)
+#: how much lower the search process (and its rollout helpers, forked from it) runs than the steps where the
+#: idle scheduling class is not offered (``os.nice``)
 NICENESS = 10
 #: seconds between two checks that a child's parent is still there while the child waits for work
 _PARENT_CHECK = 0.5
@@ -251,13 +251,25 @@ class RolloutPool:
         self._sent[k].add(key)
 
 
+def lower_priority() -> str:
+    """Run this process (and the children it forks) only on CPU that the steps leave: Linux's idle scheduling class
+    (``SCHED_IDLE``: a waking step takes the core at once, where a niced search still holds it for a slice), else
+    :data:`NICENESS` lower. Returns which (``"idle"``, ``"nice"`` or ``"none"``)."""
+    with contextlib.suppress(OSError, AttributeError):  # no scheduling classes off Linux
+        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+        return "idle"
+    with contextlib.suppress(OSError, AttributeError):  # no os.nice on Windows
+        os.nice(NICENESS)
+        return "nice"
+    return "none"
+
+
 # ---------------------------------------------------------------------------------------------------- searches
 def _search_main(searcher: Any, conn: Connection, parent: int, layout: Any) -> None:
     """The search process: each request ``(generation, scene, memory, road_windows, proposed, steps)`` is answered
     ``(generation, predicted time, result, counters added)`` (:meth:`LookaheadPlanner.search_ahead`)."""
     layouts: dict[int, Any] = {id(layout): layout}
-    with contextlib.suppress(OSError, AttributeError):  # no os.nice on Windows
-        os.nice(NICENESS)
+    lower_priority()
     try:
         while True:
             generation, key, sent, scene, memory, road_windows, proposed, steps = receive(conn, parent)
