@@ -700,7 +700,8 @@ class _StepBudget:
 
     def rounds(self, candidates: int) -> int:
         """The rounds that ``candidates`` rollouts take over the processes, at most the rounds left."""
-        return min(math.ceil(candidates / self.processes), int(self.left // self.round))
+        need = math.ceil(candidates / self.processes)
+        return need if self.left == math.inf else min(need, int(self.left // self.round))
 
     def fits(self, waves: list[int]) -> bool:
         """Whether waves of these many rollouts all fit."""
