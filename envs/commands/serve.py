@@ -42,6 +42,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "any other address needs --token-file)")  # fmt: skip
     parser.add_argument("--port", type=int, default=DEFAULT_PORT, help=f"port (default: {DEFAULT_PORT}; 0: any free)")
     parser.add_argument("--shield", action="store_true", help="wrap the planner in the safety shield (per stream)")
+    parser.add_argument("--search-mode", default="async", help="how a lookahead planner searches: async (default: "
+                        "beside the steps, in a process of its own; a step answers from the latest finished search) "
+                        "or sync (in the step, which waits for it)")  # fmt: skip
+    parser.add_argument("--search-workers", type=int, default=None, help="a lookahead planner's processes per "
+                        "search, from 1 to the cores (default: the cores but one with --search-mode async, else 1)")
     access = parser.add_argument_group("access")
     access.add_argument("--token-file", default=None, help="file of tokens, one per line, one per client; every "
                         "request must send one as 'Authorization: Bearer <token>' (clients: $SB3_GRAPH_TOKEN_FILE). "
@@ -120,6 +125,20 @@ def connection_cap(requested: int | None, workers: int) -> int:
     return requested
 
 
+def check_search_arguments(args: argparse.Namespace) -> None:
+    """``--search-mode`` and ``--search-workers`` (where given), each refused in one line naming it."""
+    from envs.planners.lookahead import MODES
+    from envs.planners.search_workers import check_workers
+
+    if args.search_mode not in MODES:
+        raise UserError(f"--search-mode must be one of {', '.join(MODES)}, got {args.search_mode!r}")
+    if getattr(args, "search_workers", None) is not None:
+        try:
+            check_workers(args.search_workers, "--search-workers")
+        except ValueError as error:
+            raise UserError(str(error)) from None
+
+
 def _check(args: argparse.Namespace):
     """The server's front and planners, built from the arguments (a mistake is a one-line error)."""
     from envs.commands.evaluate import check_env_id
@@ -152,6 +171,7 @@ def _check(args: argparse.Namespace):
         path = getattr(args, name)
         if path is not None and not Path(path).is_file():
             raise UserError(f"--{name.replace('_', '-')}: no file {path!r}")
+    check_search_arguments(args)
     if is_remote_spec(args.planner):
         raise UserError("--planner: a server cannot serve another server's planner; give a local planner spec")
     check_env_id(args.env)
@@ -163,7 +183,8 @@ def _check(args: argparse.Namespace):
     from envs.serve.app import PlannerService
 
     try:
-        service = PlannerService(args.planner, args.env, args.env_kwargs, shield=args.shield)
+        service = PlannerService(args.planner, args.env, args.env_kwargs, shield=args.shield,
+                                 search_mode=args.search_mode, search_workers=args.search_workers)  # fmt: skip
     except ValueError as error:
         raise UserError(f"--planner: {error}") from None
     return service, tokens, cap

@@ -249,12 +249,20 @@ class LookaheadPlanner(GlidePlanner):
             stats["lookahead_worker_restarts"] = self.worker_restarts
         return stats
 
-    def beside_the_steps(self) -> None:
-        """Search beside the steps from now on, truly concurrently (``mode="async"``, ``clock="wall"``, its workers
-        the cores unless set): the server's mode. Resets the planner."""
+    def beside_the_steps(self, mode: str = "async", workers: int | None = None) -> None:
+        """Search as the server runs it from now on: beside the steps, truly concurrently (``mode="async"``,
+        ``clock="wall"``; the default), or in the step that asks (``"sync"``). Resets the planner.
+
+        :param mode: one of :data:`MODES`
+        :param workers: processes per search, from 1 to the cores (``None``: as set, else the mode's default)
+        :raises ValueError: a bad mode or worker count, in one line naming it
+        """
+        if mode not in MODES:
+            raise ValueError(f"lookahead's mode must be one of {list(MODES)}, got {mode!r}")
         self.close()
         self.__dict__.pop("_searcher", None)
-        self.search = replace(self.search, mode="async", clock="wall")
+        clock = "wall" if mode == "async" else "steps"
+        self.search = replace(self.search, mode=mode, clock=clock, workers=workers or self.search.workers)
         self.reset()
 
     def close(self) -> None:

@@ -27,8 +27,7 @@ from typing import Any
 
 import numpy as np
 
-#: how much lower the search process (and its rollout helpers, forked from it) runs than the steps where the
-#: idle scheduling class is not offered (``os.nice``)
+#: how much lower the search process (and its rollout helpers, forked from it) runs than the steps (``os.nice``)
 NICENESS = 10
 #: seconds between two checks that a child's parent is still there while the child waits for work
 _PARENT_CHECK = 0.5
@@ -251,17 +250,16 @@ class RolloutPool:
         self._sent[k].add(key)
 
 
-def lower_priority() -> str:
-    """Run this process (and the children it forks) only on CPU that the steps leave: Linux's idle scheduling class
-    (``SCHED_IDLE``: a waking step takes the core at once, where a niced search still holds it for a slice), else
-    :data:`NICENESS` lower. Returns which (``"idle"``, ``"nice"`` or ``"none"``)."""
-    with contextlib.suppress(OSError, AttributeError):  # no scheduling classes off Linux
-        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
-        return "idle"
-    with contextlib.suppress(OSError, AttributeError):  # no os.nice on Windows
+def lower_priority() -> bool:
+    """Run this process (and the children it forks) :data:`NICENESS` lower than the steps (``os.nice``): a waking
+    step takes the core from it. Not the idle scheduling class (``SCHED_IDLE``): on a loaded machine it starved the
+    search (no answer in 60 steps of a test at load 9 on 2 cores), where nice 10 still gets about a tenth of a core.
+    Returns whether it could (no ``os.nice`` on Windows)."""
+    try:
         os.nice(NICENESS)
-        return "nice"
-    return "none"
+    except (OSError, AttributeError):
+        return False
+    return True
 
 
 # ---------------------------------------------------------------------------------------------------- searches
