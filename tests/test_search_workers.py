@@ -328,7 +328,7 @@ def test_health_reports_the_searches_of_every_stream_since_the_start():
 
     from serve_support import TOKEN, ThreadServer
 
-    from envs.commands.serve import check_search_arguments
+    from envs.commands.evaluate import check_search_arguments
     from envs.serve.app import PlannerService
     from envs.serve.client import PlannerClient
     from envs.serve.wire import scene_to_wire
@@ -362,3 +362,13 @@ def test_health_reports_the_searches_of_every_stream_since_the_start():
         assert client.health()["searches"]["started"] == episode["started"]  # the past episode is kept
         for stream_planner in service.streams.values():
             stream_planner.planner.planner.close()
+
+
+def test_search_mode_async_puts_the_search_beside_the_steps_in_place_of_the_word_lookahead():
+    from envs.commands.evaluate import checked_planners
+    from envs.planners import make_planner
+
+    planners = checked_planners(["lookahead", "glide"], shield=True, search_mode="async")
+    assert [name for _, name in planners] == ["LookaheadAsync+shield", "Glide+shield"]
+    assert make_planner(planners[0][0]).planner.search.mode == "async"
+    assert checked_planners(["lookahead+shield"])[0] == ("lookahead+shield", "Lookahead+shield")

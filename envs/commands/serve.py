@@ -125,23 +125,9 @@ def connection_cap(requested: int | None, workers: int) -> int:
     return requested
 
 
-def check_search_arguments(args: argparse.Namespace) -> None:
-    """``--search-mode`` and ``--search-workers`` (where given), each refused in one line naming it."""
-    from envs.planners.lookahead import MODES
-    from envs.planners.search_workers import check_workers
-
-    if args.search_mode not in MODES:
-        raise UserError(f"--search-mode must be one of {', '.join(MODES)}, got {args.search_mode!r}")
-    if getattr(args, "search_workers", None) is not None:
-        try:
-            check_workers(args.search_workers, "--search-workers")
-        except ValueError as error:
-            raise UserError(str(error)) from None
-
-
 def _check(args: argparse.Namespace):
     """The server's front and planners, built from the arguments (a mistake is a one-line error)."""
-    from envs.commands.evaluate import check_env_id
+    from envs.commands.evaluate import check_env_id, check_search_arguments
     from envs.planners.loading import is_remote_spec
     from envs.serve.access import is_loopback, read_tokens
     from envs.serve.limits import HTTP_PARSERS

@@ -696,6 +696,18 @@ class LookaheadPlanner(GlidePlanner):
         return sim
 
 
+class AsyncLookahead(LookaheadPlanner):
+    """``lookahead`` whose search runs beside the steps (``mode="async"``), emulated deterministically in simulated
+    time: the planner of ``evaluate`` and ``sweep`` with ``--search-mode async``."""
+
+    def __init__(self) -> None:
+        super().__init__("LookaheadAsync", LookaheadParams(mode="async"))
+
+
+#: The planner spec that ``--search-mode async`` puts in place of the word ``lookahead``.
+ASYNC_SPEC = f"{__name__}:AsyncLookahead"
+
+
 class _StepBudget:
     """The vehicle-steps left to a search's critical path (:class:`LookaheadParams`' ``step_budget``), spent wave by
     wave at each wave's most: its rounds over the processes x the horizon's rollout steps x the vehicles now."""
