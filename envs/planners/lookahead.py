@@ -516,7 +516,7 @@ class LookaheadPlanner(GlidePlanner):
     def _search(self, scene: Scene) -> np.ndarray | tuple[np.ndarray, np.ndarray] | None:
         """The cheapest windows per approach road, the proposal's ``(ids, windows)`` where it costs less than
         every one, or ``None`` (glide's own window) past the budget or when a rollout worker was lost. Waves of
-        rollouts that would pass the ``step_budget`` are cut (:meth:`_plan_waves`)."""
+        rollouts that would pass the ``step_budget`` are cut (:class:`_StepBudget`)."""
         tic = time.perf_counter()
         self.searches += 1
         n_roads = int(_roads(scene.layout).max()) + 1
