@@ -2,8 +2,11 @@
 path (the fast path, ``--workers 1``, ``--time-limit 1``), and the searches that ran beside the steps.
 
 Two servers run at once, one per planner, each with one stream. Each stream drives its own simulation in closed
-loop (``--scene run``, the default): a generated 4-way scenario at ``--rate`` veh/s per major lane, at most
-``--vehicles`` vehicles at once (default 100), each step the server's accelerations applied. ``--scene dense``
+loop (``--scene run``, the default): a generated 4-way scenario at ``--rate`` veh/s per lane (default 1.5 on every
+lane, arrivals at least ``--min-headway`` 0.5 s apart: more than the junction serves, so its approaches stay full),
+at most ``--vehicles`` vehicles at once (default 100), each step the server's accelerations applied. The 4-way's
+80 m approaches hold about 55 vehicles in closed loop whatever the demand; 100 fit only the synthetic scene, which
+puts vehicles on the exits and inside the junction too. ``--scene dense``
 sends instead the synthetic dense scene of ``benchmarks/bench_serve.py`` (the same vehicles at every step, the time
 advancing): nothing moves, so after 10 s the shield's liveness watchdog hands both planners' steps to FIFO. At every
 tick the client steps both (the order swapped each tick, so that the load hits both alike), at the policy period in
@@ -44,7 +47,9 @@ def closed_loop(args: argparse.Namespace, seed: int):
 
     env = gym.make("CoopIntersection4Way-v0", **evaluation_env_kwargs({"config": {"max_vehicles": args.vehicles}}))
     duration = args.steps * 0.2 + 60.0
-    env.reset(seed=seed, options={"scenario": generate_scenario("4way", duration, seed, rate_range=(args.rate,) * 2)})
+    scenario = generate_scenario("4way", duration, seed, rate_range=(args.rate,) * 2, minor_factor=args.minor_factor,
+                                 min_headway=args.min_headway)  # fmt: skip
+    env.reset(seed=seed, options={"scenario": scenario})
     return env
 
 
@@ -55,7 +60,9 @@ def main() -> None:
     parser.add_argument("--pace", type=float, default=1.0, help="wall seconds per policy period (1: real time)")
     parser.add_argument("--planners", nargs=2, default=["glide+shield", "lookahead+shield"])
     parser.add_argument("--scene", choices=["run", "dense"], default="run")
-    parser.add_argument("--rate", type=float, default=0.9, help="demand of --scene run [veh/s per major lane]")
+    parser.add_argument("--rate", type=float, default=1.5, help="demand of --scene run [veh/s per major lane]")
+    parser.add_argument("--minor-factor", type=float, default=1.0, help="the minor lanes' demand, a share of --rate")
+    parser.add_argument("--min-headway", type=float, default=0.5, help="least seconds between two arrivals on a lane")
     args = parser.parse_args()
     from envs.serve.client import PlannerClient, RemotePlannerError
     from envs.serve.wire import scene_to_wire
@@ -111,6 +118,9 @@ def main() -> None:
         report = clients[1].last_search
         if report is not None:
             print("searches beside the steps: " + ", ".join(f"{key} {value:g}" for key, value in report.items()))
+        totals = clients[1].health().get("searches")
+        if totals is not None:
+            print("/health, searches since the start: " + ", ".join(f"{k} {v:g}" for k, v in totals.items()))
     finally:
         for process, _ in servers:
             stop_server(process)

@@ -61,6 +61,20 @@ class Async3s(LookaheadPlanner):
         super().__init__("LookaheadAsync3s", LookaheadParams(mode="async", latency=3.0))
 
 
+class Unbudgeted(LookaheadPlanner):
+    """The search without its step budget (``step_budget=inf``): every wave whole, whatever the vehicles."""
+
+    def __init__(self) -> None:
+        super().__init__("LookaheadUnbudgeted", LookaheadParams(step_budget=float("inf")))
+
+
+class AsyncUnbudgeted(LookaheadPlanner):
+    """``Async`` without the step budget."""
+
+    def __init__(self) -> None:
+        super().__init__("LookaheadAsyncUnbudgeted", LookaheadParams(mode="async", step_budget=float("inf")))
+
+
 class _IDMCappedGlide(GlidePlanner):
     """glide whose proposal is capped by IDM car following behind each vehicle's leader."""
 

@@ -29,6 +29,7 @@ from envs.simulation.layouts import build_layout
         ("stop_price", -1.0),
         ("energy_price", float("nan")),
         ("budget", 0.0),
+        ("step_budget", 0.0),
         ("per_approach", "yes"),
         ("rollout_frequency", 4),
         ("shield_horizon", 0.0),
@@ -401,3 +402,33 @@ def test_the_rollouts_integrate_at_the_plants_rate():
         scene = sim.scene()
         assert _rate(scene, rollout) == expected
         assert _simulation(scene, rollout).simulation_frequency == expected
+
+
+def test_a_search_past_its_step_budget_runs_the_flat_windows_then_the_most_promising_road():
+    """A step budget that holds the flat windows and one road's wave: that road is the one with the most vehicles
+    before their line, the other roads keep the flat choice, and the cut is counted; without a budget the whole
+    greedy pass runs."""
+    from envs.planners.lookahead import _equivalent_windows, _roads
+
+    scene = busy_scene()
+    n, horizon = scene.num_vehicles, 4.0
+    per_round = int(horizon * 5) * n  # rollout steps of a round x vehicles
+    whole = LookaheadPlanner(params=LookaheadParams(horizon=horizon, step_budget=math.inf))
+    whole.reset(0)
+    whole._search(scene)
+    assert whole.shrunk == 0
+    cut = LookaheadPlanner(params=LookaheadParams(horizon=horizon, step_budget=per_round * 5.5))  # 3 + 2 rounds
+    cut.reset(0)
+    chosen = cut._search(scene)
+    assert cut.shrunk == 1 and cut.rollouts <= 5 < whole.rollouts
+    same = _equivalent_windows(scene, 4, cut.search.windows)
+    flat = {w: cut.rollout(scene, np.full(4, w)) for w in cut.search.windows}
+    best = min(cut.search.windows, key=lambda w: (flat[w], cut.search.windows.index(w)))
+    before = np.bincount(_roads(scene.layout)[scene.route][scene.dist_to_entry > 0], minlength=4)
+    open_roads = [r for r in range(4) if len(set(same[r].values())) > 1]
+    first = max(open_roads, key=lambda r: (before[r], -r))
+    assert all(chosen[r] == best for r in range(4) if r != first)
+    assert cut.rollout(scene, chosen) <= flat[best]
+    single = LookaheadPlanner(params=LookaheadParams(horizon=horizon, step_budget=per_round * 1.5))
+    single.reset(0)
+    assert np.all(single._search(scene) == 0.0) and single.rollouts == 0 and single.shrunk == 1  # the first flat

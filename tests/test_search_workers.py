@@ -49,10 +49,29 @@ def test_a_bad_mode_or_latency_names_it_in_one_line(field, value):
     assert "\n" not in str(error.value)
 
 
-def test_the_default_workers_are_the_cores_on_the_wall_clock_and_one_in_simulated_time():
+def test_the_default_workers_are_the_cores_but_one_on_the_wall_clock_and_one_in_simulated_time():
     assert LookaheadParams().processes == 1
     assert LookaheadParams(mode="async").processes == 1
-    assert LookaheadParams(mode="async", clock="wall").processes == available_cores()
+    assert LookaheadParams(mode="async", clock="wall").processes == max(1, available_cores() - 1)
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="fork")
+def test_the_search_process_runs_lower_than_the_steps():
+    """The search process lowers its own priority (checked in a child); the process that steps keeps its own."""
+    from envs.planners.search_workers import NICENESS, lower_priority
+
+    read, write = os.pipe()
+    before = os.nice(0)
+    pid = os.fork()
+    if pid == 0:  # the child: lower itself, report its niceness
+        os.close(read)
+        os.write(write, f"{lower_priority()} {os.nice(0)}".encode())
+        os._exit(0)
+    os.close(write)
+    lowered, nice = os.read(read, 100).decode().split()
+    os.close(read)
+    os.waitpid(pid, 0)
+    assert lowered == "True" and int(nice) == min(19, before + NICENESS) and os.nice(0) == before
 
 
 @two_cores
@@ -248,14 +267,16 @@ def test_the_server_serves_lookahead_beside_the_steps_and_reports_its_searches()
     assert service.prototype.planner.search.mode == "async" and service.prototype.planner.search.clock == "wall"
     stream = service.open(OpenRequest(layout="4way", seed=0))
     env = gym.make("CoopIntersection4Way-v0", **evaluation_env_kwargs({}))
-    env.reset(seed=3, options={"scenario": generate_scenario("4way", 30.0, 3, rate_range=(0.4, 0.4))})
-    for seq in range(1, 61):
+    env.reset(seed=3, options={"scenario": generate_scenario("4way", 60.0, 3, rate_range=(0.4, 0.4))})
+    for seq in range(1, 281):  # 60 steps, more while the first search has not answered (a loaded machine)
         body = json.dumps({**scene_to_wire(env.unwrapped.scene()), "seq": seq}).encode()
         status, answer = service.handle("step", stream.id, body)
         assert status == 200
         reply = StepReply.model_validate_json(answer)
         env.step(env.unwrapped.accelerations_to_action(np.array(reply.accelerations)))
         time.sleep(0.02)
+        if seq >= 60 and reply.search.started >= 2:
+            break
     stream.planner.planner.close()
     assert reply.search is not None and reply.search.started >= 2
     assert reply.search.applied + reply.search.late >= 1 and reply.search.worker_restarts == 0
@@ -297,3 +318,57 @@ def test_the_search_process_ends_when_its_planning_process_is_killed():
     else:
         os.kill(child, signal.SIGKILL)
         raise AssertionError("the search process outlived its planning process by 30 s")
+
+
+def test_health_reports_the_searches_of_every_stream_since_the_start():
+    """``/health`` sums the searches of the streams (an episode that a reset ended included); the flags that set
+    the search name their range in one line."""
+    pytest.importorskip("fastapi")
+    import argparse
+
+    from serve_support import TOKEN, ThreadServer
+
+    from envs.commands.evaluate import check_search_arguments
+    from envs.serve.app import PlannerService
+    from envs.serve.client import PlannerClient
+    from envs.serve.wire import scene_to_wire
+    from sb3_graph.commands import UserError
+
+    for mode, workers, message in (
+        ("later", None, "^--search-mode must be one of sync, async, got 'later'$"),
+        ("async", 0, "^--search-workers must be an integer from 1 to "),
+        ("async", available_cores() + 1, "^--search-workers must be an integer from 1 to "),
+    ):
+        with pytest.raises(UserError, match=message):
+            check_search_arguments(argparse.Namespace(search_mode=mode, search_workers=workers))
+    service = PlannerService("lookahead", "CoopIntersection4Way-v0", shield=True, search_workers=1)
+    assert service.prototype.planner.search.processes == 1
+    env = gym.make("CoopIntersection4Way-v0", **evaluation_env_kwargs({}))
+    env.reset(seed=3, options={"scenario": generate_scenario("4way", 60.0, 3, rate_range=(0.4, 0.4))})
+    with ThreadServer(service, workers=0) as server:
+        client = PlannerClient(server.url, token=TOKEN)
+        stream = client.open("4way", seed=0)
+        for k in range(280):  # 40 steps, more while the first search has not answered (a loaded machine)
+            acc = client.step(stream, scene_to_wire(env.unwrapped.scene()))
+            env.step(env.unwrapped.accelerations_to_action(np.array(acc)))
+            time.sleep(0.02)
+            if k >= 40 and client.last_search["started"] >= 2:
+                break
+        episode = client.last_search
+        totals = client.health()["searches"]
+        assert episode["started"] >= 2 and totals["started"] == episode["started"]
+        assert totals["applied"] == episode["applied"] and totals["age_s_max"] == episode["age_s_max"]
+        client.reset(stream, seed=1)
+        assert client.health()["searches"]["started"] == episode["started"]  # the past episode is kept
+        for stream_planner in service.streams.values():
+            stream_planner.planner.planner.close()
+
+
+def test_search_mode_async_puts_the_search_beside_the_steps_in_place_of_the_word_lookahead():
+    from envs.commands.evaluate import checked_planners
+    from envs.planners import make_planner
+
+    planners = checked_planners(["lookahead", "glide"], shield=True, search_mode="async")
+    assert [name for _, name in planners] == ["LookaheadAsync+shield", "Glide+shield"]
+    assert make_planner(planners[0][0]).planner.search.mode == "async"
+    assert checked_planners(["lookahead+shield"])[0] == ("lookahead+shield", "Lookahead+shield")

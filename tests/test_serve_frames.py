@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 from serve_support import OTHER_TOKEN, TOKEN, ThreadServer, serve_extra, wire_scene
 
+from envs.evaluation.harness import env_config
 from envs.serve.client import PlannerClient, RemotePlannerError
 
 pytestmark = pytest.mark.skipif(not serve_extra(), reason="the 'serve' extra (fastapi, uvicorn) is not installed")
@@ -175,13 +176,13 @@ def test_the_fast_path_over_tls(tmp_path, service, workers):
 def test_the_compiled_overlap_check_finds_the_numpy_checks_first_pair():
     """``wire._first_overlap`` (compiled) against the (n, n) NumPy forms it replaced, on random crowds: the first
     pair closer than half the narrower width, else the first vehicle overlapping its leader by over half the
-    shorter length."""
+    shorter length with their centres within half the two lengths."""
     from envs.serve.wire import _first_overlap
 
     rng = np.random.default_rng(3)
     found = deep_found = 0
     for n in (2, 5, 20, 100) * 10:
-        x, y, half = rng.uniform(0, 40, n), rng.uniform(0, 40, n), rng.uniform(0.4, 2.5, n)
+        x, y, half = rng.uniform(0, 30, n), rng.uniform(0, 30, n), rng.uniform(0.4, 2.5, n)
         leader = np.where(rng.random(n) < 0.5, rng.integers(0, n, n), -1)
         gap, length = rng.uniform(-4.0, 10.0, n), rng.uniform(1.5, 12.0, n)
         squared = np.square(x[:, None] - x[None, :]) + np.square(y[:, None] - y[None, :])
@@ -189,7 +190,9 @@ def test_the_compiled_overlap_check_finds_the_numpy_checks_first_pair():
         np.fill_diagonal(close, False)
         pairs = np.argwhere(np.triu(close, k=1))
         has = leader >= 0
-        deep = np.flatnonzero(has & (gap < -0.5 * np.minimum(length, length[np.where(has, leader, 0)])))
+        ahead = np.where(has, leader, 0)
+        near = squared[np.arange(n), ahead] < np.square(0.5 * (length + length[ahead]))
+        deep = np.flatnonzero(has & near & (gap < -0.5 * np.minimum(length, length[ahead])))
         if len(pairs):
             expected = (0, int(pairs[0][0]), int(pairs[0][1]))
         elif deep.size:
@@ -200,6 +203,25 @@ def test_the_compiled_overlap_check_finds_the_numpy_checks_first_pair():
         found += expected[0] == 0
         deep_found += expected[0] == 1
     assert 0 < found < 40 and deep_found > 0
+
+
+def test_a_follower_past_its_leaders_fork_is_not_two_vehicles_in_one_place():
+    """A left-turner stays the leader of the vehicle behind it that goes straight up to its own exit: past the fork
+    the follower's arc passes the leader's (a negative gap) while the two are metres apart. The server takes such
+    a scene of the simulation (the closed-loop benchmark's 422s); the same arcs on one route it refuses."""
+    from envs.serve.wire import SceneBuilder, WireError
+
+    builder = SceneBuilder(env_config("CoopIntersection4Way-v0", None))
+
+    def scene(turner: str):
+        cars = [SimpleNamespace(id=0, route="north->south", arc=93.12, speed=10.0, length=5.0, width=2.0),
+                SimpleNamespace(id=1, route=turner, arc=95.26, speed=5.86, length=5.0, width=2.0)]  # fmt: skip
+        return builder.scene("4way", 0.0, cars)
+
+    forked = scene("north->west")
+    assert forked.leader[0] == 1 and forked.gap[0] < -2.5  # the simulation's own relation
+    with pytest.raises(WireError, match="overlaps vehicle 1"):
+        scene("north->south")
 
 
 def _handed_server(service, **gateway):

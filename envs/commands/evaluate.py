@@ -175,6 +175,10 @@ def add_run_arguments(parser: argparse.ArgumentParser, scenarios: int, out: str,
         "OpenStreetMap) instead of the environment's layout, in either plant: sets the env config's layout to "
         "'net:FILE' (needs the sumo extra)",
     )
+    parser.add_argument("--search-mode", default="sync", help="how the lookahead planner searches: sync (default: "
+                        "in the step that starts it) or async (beside the steps, emulated in simulated time: a search "
+                        "starts from the scene predicted a period ahead and its windows land then; report name "
+                        "LookaheadAsync)")  # fmt: skip
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
 
 
@@ -240,7 +244,8 @@ def _check(args: argparse.Namespace, several_plants: bool = False) -> list[tuple
     check_executor_arguments(args)
     if args.env_kwargs is not None and not isinstance(args.env_kwargs, dict):
         raise UserError("--env-kwargs must be a JSON object, e.g. '{\"duration\": 100}'")
-    planners = checked_planners(args.planner, shield=args.shield)
+    check_search_arguments(args)
+    planners = checked_planners(args.planner, shield=args.shield, search_mode=args.search_mode)
     args.shield_bounds = checked_shield_bounds(args.shield_bounds)
     if getattr(args, "net", None) is not None:
         args.env_kwargs = with_net(args.env_kwargs, args.net)
@@ -793,8 +798,22 @@ def split_label(word: str) -> tuple[str | None, str]:
     return label, spec
 
 
+def check_search_arguments(args: argparse.Namespace) -> None:
+    """``--search-mode`` and ``--search-workers`` (where the command has them), each refused in one line naming it."""
+    from envs.planners.lookahead import MODES
+    from envs.planners.search_workers import check_workers
+
+    if args.search_mode not in MODES:
+        raise UserError(f"--search-mode must be one of {', '.join(MODES)}, got {args.search_mode!r}")
+    if getattr(args, "search_workers", None) is not None:
+        try:
+            check_workers(args.search_workers, "--search-workers")
+        except ValueError as error:
+            raise UserError(str(error)) from None
+
+
 def checked_planners(
-    words: Sequence[str] | None, reserved: Sequence[str] = (), shield: bool = False
+    words: Sequence[str] | None, reserved: Sequence[str] = (), shield: bool = False, search_mode: str = "sync"
 ) -> list[tuple[str, str]]:
     """The ``--planner`` words as ``(planner spec, report name)`` pairs, validated.
 
@@ -803,9 +822,12 @@ def checked_planners(
         GNN planner without and with the shield
     :param reserved: report names that a planner must not take (e.g. ``"inD"`` for the recorded drivers)
     :param shield: wrap every planner in the safety shield (``--shield``)
+    :param search_mode: ``"async"``: the word ``lookahead`` searches beside the steps
+        (:class:`~envs.planners.lookahead.AsyncLookahead`, ``--search-mode``)
     :raises UserError: an unknown planner, a missing model file, a bad label, or two planners with one report name
     """
     from envs.planners import SHIELD_SUFFIX, check_planner_spec, planner_name
+    from envs.planners.lookahead import ASYNC_SPEC
 
     if not words:
         model = [str(DEFAULT_MODEL), str(DEFAULT_MODEL) + SHIELD_SUFFIX] if DEFAULT_MODEL.is_file() else []
@@ -819,6 +841,8 @@ def checked_planners(
             added = shield and not key.endswith(SHIELD_SUFFIX)
             if added:
                 key += SHIELD_SUFFIX
+            if search_mode == "async" and key.removesuffix(SHIELD_SUFFIX) == "lookahead":
+                key = ASYNC_SPEC + key.removeprefix("lookahead")
             name = planner_name(key) if label is None else label + (SHIELD_SUFFIX if added else "")
         except ValueError as error:
             raise UserError(f"--planner: {error}") from None

@@ -46,6 +46,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the faults the shield is declared to tolerate, as evaluate's --shield-bounds ('none', "
                         "'declared' or KEY=VALUE,...); its latency bound is the oldest scene the server plans (an "
                         "older one is refused with 422 naming 'captured'; none: not limited)")  # fmt: skip
+    parser.add_argument("--search-mode", default="async", help="how a lookahead planner searches: async (default: "
+                        "beside the steps, in a process of its own; a step answers from the latest finished search) "
+                        "or sync (in the step, which waits for it)")  # fmt: skip
+    parser.add_argument("--search-workers", type=int, default=None, help="a lookahead planner's processes per "
+                        "search, from 1 to the cores (default: the cores but one with --search-mode async, else 1)")
     access = parser.add_argument_group("access")
     access.add_argument("--token-file", default=None, help="file of tokens, one per line, one per client; every "
                         "request must send one as 'Authorization: Bearer <token>' (clients: $SB3_GRAPH_TOKEN_FILE). "
@@ -126,7 +131,7 @@ def connection_cap(requested: int | None, workers: int) -> int:
 
 def _check(args: argparse.Namespace):
     """The server's front and planners, built from the arguments (a mistake is a one-line error)."""
-    from envs.commands.evaluate import check_env_id
+    from envs.commands.evaluate import check_env_id, check_search_arguments
     from envs.planners.loading import is_remote_spec
     from envs.serve.access import is_loopback, read_tokens
     from envs.serve.limits import HTTP_PARSERS
@@ -156,6 +161,7 @@ def _check(args: argparse.Namespace):
         path = getattr(args, name)
         if path is not None and not Path(path).is_file():
             raise UserError(f"--{name.replace('_', '-')}: no file {path!r}")
+    check_search_arguments(args)
     if is_remote_spec(args.planner):
         raise UserError("--planner: a server cannot serve another server's planner; give a local planner spec")
     check_env_id(args.env)
@@ -169,7 +175,8 @@ def _check(args: argparse.Namespace):
 
     bounds = checked_shield_bounds(args.shield_bounds)
     try:
-        service = PlannerService(args.planner, args.env, args.env_kwargs, shield=args.shield, shield_bounds=bounds)
+        service = PlannerService(args.planner, args.env, args.env_kwargs, shield=args.shield, shield_bounds=bounds,
+                                 search_mode=args.search_mode, search_workers=args.search_workers)  # fmt: skip
     except ValueError as error:
         raise UserError(f"--planner: {error}") from None
     return service, tokens, cap

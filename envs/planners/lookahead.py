@@ -73,6 +73,13 @@ class LookaheadParams:
         4x the search of one window for all roads, and leaves less delay, fewer stops and more flow at every
         demand from 0.05 to 0.8 veh/s per major lane: docs/baselines.md)
     :param budget: wall seconds a search may take, > 0 (``inf``: no limit); past it glide's own window
+    :param step_budget: vehicle-steps that a search's critical path may plan per second of its period, > 0 (``inf``:
+        no limit). A rollout step of n vehicles counts n; each wave of rollouts is planned at its most (its rounds
+        over the workers x the horizon's steps x the vehicles now), so the cut is deterministic. A wave that would
+        pass the budget is cut: the flat windows keep their first candidates (the last search's windows first),
+        the greedy pass takes the roads with the most vehicles before their line first, and roads not reached keep
+        their best so far. Default 14,000: a 30-vehicle search of one process fits whole; at 100 vehicles two
+        workers run the flat windows and one road (docs/speed.md)
     :param rollout_frequency: decisions per second inside a rollout [Hz], a divisor of the simulation's 15 Hz
         (5: as the real planner; 3 plans 40 % fewer steps, and the real step's shield still guards)
     :param shield_horizon: the rollouts' shield predicts this many seconds ahead, > 0 (the real shield: 8)
@@ -90,8 +97,9 @@ class LookaheadParams:
     :param latency: seconds from an ``"async"`` search's start until its windows apply, > 0 (``None``: the period,
         and on the ``"wall"`` clock at least the wall time that the last searches took, counted in the wall time
         between steps, at most the horizon); rounded to whole policy steps, at least one
-    :param workers: processes that run one search's rollouts, from 1 to the cores available (``None``: the cores
-        on the ``"wall"`` clock, 1 otherwise, since an evaluation already runs its runs in parallel)
+    :param workers: processes that run one search's rollouts, from 1 to the cores available (``None``: on the
+        ``"wall"`` clock the cores but one, which the steps keep, at least 1; otherwise 1, since an evaluation
+        already runs its runs in parallel)
     """
 
     windows: tuple[float, ...] = (0.0, 30.0, math.inf)
@@ -101,6 +109,7 @@ class LookaheadParams:
     energy_price: float = 0.0
     per_approach: bool = True
     budget: float = math.inf
+    step_budget: float = 14000.0
     rollout_frequency: int = 5
     shield_horizon: float = 8.0
     hold: bool = False
@@ -124,6 +133,7 @@ class LookaheadParams:
             "per_approach": ("true or false", lambda x: isinstance(x, bool)),
             "hold": ("true or false", lambda x: isinstance(x, bool)),
             "budget": ("a number > 0 (inf: no limit)", lambda x: _number(x) and x > 0),
+            "step_budget": ("a number > 0 (inf: no limit)", lambda x: _number(x) and x > 0),
             "rollout_frequency": ("one of [1, 3, 5, 15]", lambda x: x in (1, 3, 5, 15) and not isinstance(x, bool)),
             "shield_horizon": ("a finite number > 0", lambda x: _number(x) and 0 < x < math.inf),
             "mode": (f"one of {list(MODES)}", lambda x: x in MODES),
@@ -144,7 +154,7 @@ class LookaheadParams:
         """The processes that run one search's rollouts (``workers``, or its default for the mode)."""
         if self.workers is not None:
             return self.workers
-        return available_cores() if self.mode == "async" and self.clock == "wall" else 1
+        return max(1, available_cores() - 1) if self.mode == "async" and self.clock == "wall" else 1
 
 
 def _number(x: object) -> bool:
@@ -188,7 +198,7 @@ class LookaheadPlanner(GlidePlanner):
         self._steps = 0
         self._sim: Simulation | None = None
         self._predictor: Simulation | None = None
-        self.searches = self.fallbacks = self.rollouts = 0
+        self.searches = self.fallbacks = self.rollouts = self.shrunk = 0
         self.search_seconds = 0.0
         # Rollout steps run, and those on the critical path (the longest process's share, wave by wave): the
         # wall time of a search on idle cores, in rollout steps.
@@ -217,6 +227,7 @@ class LookaheadPlanner(GlidePlanner):
         stats = {
             "lookahead_searches": self.searches,
             "lookahead_fallbacks": self.fallbacks,
+            "lookahead_shrunk": self.shrunk,
             "lookahead_rollouts": self.rollouts,
             "lookahead_search_s": self.search_seconds,
         }
@@ -238,12 +249,20 @@ class LookaheadPlanner(GlidePlanner):
             stats["lookahead_worker_restarts"] = self.worker_restarts
         return stats
 
-    def beside_the_steps(self) -> None:
-        """Search beside the steps from now on, truly concurrently (``mode="async"``, ``clock="wall"``, its workers
-        the cores unless set): the server's mode. Resets the planner."""
+    def beside_the_steps(self, mode: str = "async", workers: int | None = None) -> None:
+        """Search as the server runs it from now on: beside the steps, truly concurrently (``mode="async"``,
+        ``clock="wall"``; the default), or in the step that asks (``"sync"``). Resets the planner.
+
+        :param mode: one of :data:`MODES`
+        :param workers: processes per search, from 1 to the cores (``None``: as set, else the mode's default)
+        :raises ValueError: a bad mode or worker count, in one line naming it
+        """
+        if mode not in MODES:
+            raise ValueError(f"lookahead's mode must be one of {list(MODES)}, got {mode!r}")
         self.close()
         self.__dict__.pop("_searcher", None)
-        self.search = replace(self.search, mode="async", clock="wall")
+        clock = "wall" if mode == "async" else "steps"
+        self.search = replace(self.search, mode=mode, clock=clock, workers=workers or self.search.workers)
         self.reset()
 
     def close(self) -> None:
@@ -416,7 +435,7 @@ class LookaheadPlanner(GlidePlanner):
 
     def counters(self) -> dict[str, float]:
         """The counters a search adds to (the ones :meth:`stats` reports for searches run elsewhere)."""
-        return dict(searches=self.searches, fallbacks=self.fallbacks, rollouts=self.rollouts,
+        return dict(searches=self.searches, fallbacks=self.fallbacks, shrunk=self.shrunk, rollouts=self.rollouts,
                     search_seconds=self.search_seconds, proposals_kept=self.proposals_kept,
                     worker_restarts=self.worker_restarts, rollout_steps=self.rollout_steps,
                     critical_steps=self.critical_steps)  # fmt: skip
@@ -496,33 +515,37 @@ class LookaheadPlanner(GlidePlanner):
     # ------------------------------------------------------------------ search
     def _search(self, scene: Scene) -> np.ndarray | tuple[np.ndarray, np.ndarray] | None:
         """The cheapest windows per approach road, the proposal's ``(ids, windows)`` where it costs less than
-        every one, or ``None`` (glide's own window) past the budget or when a rollout worker was lost."""
+        every one, or ``None`` (glide's own window) past the budget or when a rollout worker was lost. Waves of
+        rollouts that would pass the ``step_budget`` are cut (:class:`_StepBudget`)."""
         tic = time.perf_counter()
         self.searches += 1
         n_roads = int(_roads(scene.layout).max()) + 1
         deadline = tic + self.search.budget
         costs: dict[tuple[float, ...], float] = {}
         same = _equivalent_windows(scene, n_roads, self.search.windows)
+        budget = _StepBudget(self.search, scene.num_vehicles)
 
         def key(windows: tuple[float, ...]) -> tuple[float, ...]:
             return tuple(same[r][w] for r, w in enumerate(windows))
 
-        def evaluate(candidates: list[tuple[float, ...]]) -> None:
-            """Roll out the candidates not yet costed, in order (over the workers, if any). A cost only grows
-            along a rollout: one past the cheapest so far cannot win, so it stops there."""
-            todo = list({key(w): w for w in candidates if key(w) not in costs}.items())
+        def evaluate(candidates: list[tuple[float, ...]]) -> list[tuple[float, ...]]:
+            """Roll out the candidates not yet costed, in order, the first ones that fit the step budget (over the
+            workers, if any); return the candidates costed. A cost only grows along a rollout: one past the
+            cheapest so far cannot win, so it stops there."""
+            todo = budget.take(list({key(w): w for w in candidates if key(w) not in costs}.items()))
             pool = self._rollout_pool(scene) if len(todo) > 1 else None
             if pool is not None:
                 if time.perf_counter() > deadline:
                     raise TimeoutError
                 costs.update(pool.costs(self, scene, todo, min(costs.values(), default=math.inf)))
-                return
-            before = self.rollout_steps
-            for k, windows in todo:
-                if time.perf_counter() > deadline:
-                    raise TimeoutError
-                costs[k] = self.rollout(scene, np.array(windows), bound=min(costs.values(), default=math.inf))
-            self.critical_steps += self.rollout_steps - before
+            else:
+                before = self.rollout_steps
+                for k, windows in todo:
+                    if time.perf_counter() > deadline:
+                        raise TimeoutError
+                    costs[k] = self.rollout(scene, np.array(windows), bound=min(costs.values(), default=math.inf))
+                self.critical_steps += self.rollout_steps - before
+            return [w for w in candidates if key(w) in costs]
 
         def cost(windows: tuple[float, ...]) -> float:
             return costs[key(windows)]
@@ -531,14 +554,23 @@ class LookaheadPlanner(GlidePlanner):
             # The windows of the last search first: usually still the cheapest, so the others stop early.
             first = () if self._road_windows is None else (tuple(self._road_windows.tolist()),)
             flat = [(w,) * n_roads for w in self.search.windows]
-            evaluate([w for w in first if w in flat] + [w for w in flat if w not in first])
-            best = min(flat, key=lambda w: (cost(w), flat.index(w)))
-            if self.search.per_approach:
-                for road in range(n_roads):
-                    tried = [best[:road] + (w,) + best[road + 1 :] for w in self.search.windows]
-                    evaluate(tried)
-                    best = min(tried, key=lambda w: (cost(w), w != best))
-            if self.proposer is not None:
+            order = [w for w in first if w in flat] + [w for w in flat if w not in first]
+            distinct = len({key(w) for w in order})
+            if distinct > 1 and budget.rounds(distinct) * budget.processes < 2:
+                budget.shrunk = True  # not even two candidates fit: the first, without a rollout
+                best = order[0]
+            else:
+                costed = evaluate(order)
+                best = min(costed, key=lambda w: (cost(w), flat.index(w)))
+            if self.search.per_approach and not budget.shrunk:
+                for road in self._road_order(scene, same, budget):
+                    tried = [best[:road] + (w,) + best[road + 1 :] for w in self._window_order(road)]
+                    costed = evaluate(tried)
+                    rank = self.search.windows.index
+                    best = min(costed, key=lambda w: (cost(w), w != best, rank(w[road])))
+                    if budget.shrunk:
+                        break
+            if self.proposer is not None and budget.take([((), ())]):
                 if time.perf_counter() > deadline:
                     raise TimeoutError
                 order = np.argsort(scene.vehicle_id)
@@ -546,6 +578,7 @@ class LookaheadPlanner(GlidePlanner):
                 if self.rollout(scene, None, bound=cost(best), proposed=proposed) < cost(best):
                     self.proposals_kept += 1
                     self.search_seconds += time.perf_counter() - tic
+                    self.shrunk += budget.shrunk
                     return proposed
         except TimeoutError:
             self.fallbacks += 1
@@ -555,8 +588,27 @@ class LookaheadPlanner(GlidePlanner):
             self.worker_restarts += 1
             self._pool.replace_dead(self, scene.layout)
             best = None
+        self.shrunk += budget.shrunk
         self.search_seconds += time.perf_counter() - tic
         return None if best is None else np.array(best)
+
+    def _road_order(self, scene: Scene, same: list[dict[float, float]], budget: _StepBudget) -> list[int]:
+        """The roads of the greedy pass: all in their order where the whole pass fits the step budget, else the
+        roads where the windows differ, the most vehicles before their line first (where a window matters most)."""
+        distinct = [len(set(road.values())) - 1 for road in same]
+        if budget.fits(distinct):
+            return list(range(len(same)))
+        roads = _roads(scene.layout)[scene.route]
+        before = np.bincount(roads[scene.dist_to_entry > 0], minlength=len(same))
+        return sorted((r for r in range(len(same)) if distinct[r]), key=lambda r: -int(before[r]))
+
+    def _window_order(self, road: int) -> tuple[float, ...]:
+        """The candidates of one road, the last search's window first (the likeliest best: a tighter bound)."""
+        windows = self.search.windows
+        if self._road_windows is None or road >= len(self._road_windows):
+            return windows
+        last = float(self._road_windows[road])
+        return tuple(w for w in windows if w == last) + tuple(w for w in windows if w != last)
 
     def _rollout_pool(self, scene: Scene) -> RolloutPool | None:
         """The helpers that share a search's rollouts (started at the first search; ``None``: one process)."""
@@ -642,6 +694,45 @@ class LookaheadPlanner(GlidePlanner):
             sim = self._sim = _simulation(scene, self.search.rollout_frequency)
         _set(sim, scene)
         return sim
+
+
+class AsyncLookahead(LookaheadPlanner):
+    """``lookahead`` whose search runs beside the steps (``mode="async"``), emulated deterministically in simulated
+    time: the planner of ``evaluate`` and ``sweep`` with ``--search-mode async``."""
+
+    def __init__(self) -> None:
+        super().__init__("LookaheadAsync", LookaheadParams(mode="async"))
+
+
+#: The planner spec that ``--search-mode async`` puts in place of the word ``lookahead``.
+ASYNC_SPEC = f"{__name__}:AsyncLookahead"
+
+
+class _StepBudget:
+    """The vehicle-steps left to a search's critical path (:class:`LookaheadParams`' ``step_budget``), spent wave by
+    wave at each wave's most: its rounds over the processes x the horizon's rollout steps x the vehicles now."""
+
+    def __init__(self, params: LookaheadParams, vehicles: int) -> None:
+        self.left = params.step_budget * params.period
+        self.processes = params.processes
+        self.round = int(round(params.horizon * params.rollout_frequency)) * max(vehicles, 1)
+        self.shrunk = False  # a wave was cut
+
+    def rounds(self, candidates: int) -> int:
+        """The rounds that ``candidates`` rollouts take over the processes, at most the rounds left."""
+        need = math.ceil(candidates / self.processes)
+        return need if self.left == math.inf else min(need, int(self.left // self.round))
+
+    def fits(self, waves: list[int]) -> bool:
+        """Whether waves of these many rollouts all fit."""
+        return sum(math.ceil(n / self.processes) for n in waves) * self.round <= self.left
+
+    def take(self, todo: list) -> list:
+        """The first of ``todo`` that fit (its rounds spent); a cut marks the search shrunk."""
+        keep = min(len(todo), self.rounds(len(todo)) * self.processes)
+        self.shrunk |= keep < len(todo)
+        self.left -= math.ceil(keep / self.processes) * self.round
+        return todo[:keep]
 
 
 def _rate(scene: Scene, policy_frequency: int) -> int:

@@ -27,8 +27,7 @@ from typing import Any
 
 import numpy as np
 
-#: how much lower the search process (and its rollout helpers, forked from it) runs than the steps: a step never
-#: waits for a search's CPU (``os.nice``)
+#: how much lower the search process (and its rollout helpers, forked from it) runs than the steps (``os.nice``)
 NICENESS = 10
 #: seconds between two checks that a child's parent is still there while the child waits for work
 _PARENT_CHECK = 0.5
@@ -251,13 +250,24 @@ class RolloutPool:
         self._sent[k].add(key)
 
 
+def lower_priority() -> bool:
+    """Run this process (and the children it forks) :data:`NICENESS` lower than the steps (``os.nice``): a waking
+    step takes the core from it. Not the idle scheduling class (``SCHED_IDLE``): on a loaded machine it starved the
+    search (no answer in 60 steps of a test at load 9 on 2 cores), where nice 10 still gets about a tenth of a core.
+    Returns whether it could (no ``os.nice`` on Windows)."""
+    try:
+        os.nice(NICENESS)
+    except (OSError, AttributeError):
+        return False
+    return True
+
+
 # ---------------------------------------------------------------------------------------------------- searches
 def _search_main(searcher: Any, conn: Connection, parent: int, layout: Any) -> None:
     """The search process: each request ``(generation, scene, memory, road_windows, proposed, steps)`` is answered
     ``(generation, predicted time, result, counters added)`` (:meth:`LookaheadPlanner.search_ahead`)."""
     layouts: dict[int, Any] = {id(layout): layout}
-    with contextlib.suppress(OSError, AttributeError):  # no os.nice on Windows
-        os.nice(NICENESS)
+    lower_priority()
     try:
         while True:
             generation, key, sent, scene, memory, road_windows, proposed, steps = receive(conn, parent)

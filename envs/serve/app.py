@@ -170,19 +170,20 @@ def _validation_field(error: ValidationError | RequestValidationError) -> tuple[
     return name, str(first.get("msg", "invalid"))
 
 
-def as_served(planner: Any, depth: int = 0) -> bool:
+def as_served(planner: Any, mode: str = "async", workers: int | None = None, depth: int = 0) -> bool:
     """Set a planner as the server runs it: a ``lookahead`` searches beside the steps (its ``"async"`` mode), so
     that a step answers at glide's cost from the windows of the latest finished search and a search never blocks
-    it (nor meets the time limit).
+    it (nor meets the time limit); ``mode="sync"``: in the step.
 
+    :param mode: how a ``lookahead`` searches (``serve --search-mode``)
+    :param workers: its processes per search (``serve --search-workers``; ``None``: the mode's default)
     :return: whether the planner holds a ``lookahead``
     """
     if isinstance(planner, LookaheadPlanner):
-        if planner.search.mode == "sync":
-            planner.beside_the_steps()
+        planner.beside_the_steps(mode, workers)
         return True
     inner = getattr(planner, "planner", None)
-    return isinstance(inner, Planner) and depth < 8 and as_served(inner, depth + 1)
+    return isinstance(inner, Planner) and depth < 8 and as_served(inner, mode, workers, depth + 1)
 
 
 def search_report(planner: Any) -> dict[str, float] | None:
@@ -193,6 +194,27 @@ def search_report(planner: Any) -> dict[str, float] | None:
         return None
     return {key.removeprefix("lookahead_"): float(stats[key]) for key in SEARCH_REPORT if key in stats}
 
+
+def add_searches(total: dict[str, float], report: dict[str, float] | None) -> dict[str, float]:
+    """``total`` with one stream's :func:`search_report` (or another total) added: the counts summed, ``age_s_max``
+    the largest, ``age_s`` the mean weighted by the searches started (``ahead_s`` likewise)."""
+    if not report:
+        return total
+    started = total.get("started", 0.0) + report.get("started", 0.0)
+    for key in ("age_s", "ahead_s"):
+        weight = total.get("started", 0.0) * total.get(key, 0.0) + report.get("started", 0.0) * report.get(key, 0.0)
+        total[key] = weight / started if started else 0.0
+    for key, value in report.items():
+        if key == "age_s_max":
+            total[key] = max(total.get(key, 0.0), value)
+        elif key not in ("age_s", "ahead_s"):
+            total[key] = total.get(key, 0.0) + value
+    return total
+
+
+#: the totals of the searches that ``/health`` reports (:class:`~envs.serve.schema.SearchTotals`)
+SEARCH_TOTALS = ("started", "applied", "late", "dropped", "mismatched", "expired", "worker_restarts", "age_s",
+                 "age_s_max")  # fmt: skip
 
 #: the counters of a ``lookahead`` served beside the steps that a step's JSON answer reports
 SEARCH_REPORT = ("lookahead_started", "lookahead_applied", "lookahead_late", "lookahead_dropped",
@@ -222,10 +244,13 @@ class PlannerService:
     :param shield: wrap the planner in the safety shield (per stream)
     :param shield_bounds: the faults the shield is declared to tolerate (``--shield-bounds``; ``None``: the exact
         world); its ``latency`` limits the age of a scene (a scene captured longer ago is refused; 0: not limited)
+    :param search_mode: how a ``lookahead`` searches: ``"async"`` beside the steps (default), ``"sync"`` in them
+    :param search_workers: a ``lookahead``'s processes per search (``None``: the cores but one beside the steps)
     """
 
     def __init__(self, spec: str, env_id: str, env_kwargs: dict[str, Any] | None = None, shield: bool = False,
-                 shield_bounds: ShieldBounds | None = None) -> None:  # fmt: skip
+                 shield_bounds: ShieldBounds | None = None, search_mode: str = "async",
+                 search_workers: int | None = None) -> None:  # fmt: skip
         key = check_planner_spec(spec)
         if shield and not key.endswith(SHIELD_SUFFIX):
             key += SHIELD_SUFFIX
@@ -236,13 +261,14 @@ class PlannerService:
         config = env_config(env_id, env_kwargs)
         self.builder = SceneBuilder(config)
         self.prototype = make_planner(key, shield_bounds=shield_bounds)
-        self.searches = as_served(self.prototype)
+        self.searches = as_served(self.prototype, search_mode, search_workers)
         check = getattr(self.prototype, "check_capacity", None)
         if check is not None:
             check(int(config["max_vehicles"]), key)
         self._memo_seed = {id(part): part for part in _shared_parts(self.prototype)}
         self._memo_seed[id(self.builder.layout)] = self.builder.layout
         self.streams: dict[str, Stream] = {}
+        self.past_searches: dict[str, float] = {}  # the searches of episodes ended (closed, expired, reset streams)
         self.warm_up()
 
     def new_planner(self) -> Planner:
@@ -378,15 +404,30 @@ class PlannerService:
             reply["search"] = answer.search
         return json.dumps(reply).encode()
 
+    def searches_total(self) -> dict[str, float]:
+        """The searches of every stream's ``lookahead`` since the start, the ended episodes' included (empty for
+        another planner): :func:`add_searches` of their :func:`search_report`."""
+        total = dict(self.past_searches)
+        if self.searches:
+            for stream in self.streams.values():
+                add_searches(total, search_report(stream.planner))
+        return total
+
+    def _end_episode(self, stream: Stream | None) -> None:
+        """Keep the searches of a stream's episode that ends (a close, an expiry, a reset) in the totals."""
+        if stream is not None and self.searches:
+            add_searches(self.past_searches, search_report(stream.planner))
+
     def reset(self, sid: str, request: ResetRequest) -> Stream:
         stream = self.stream(sid)
+        self._end_episode(stream)
         stream.planner.reset(request.seed)
         stream.steps, stream.last_time = 0, -math.inf
         stream.seq, stream.digest, stream.answer = 0, None, None
         return stream
 
     def close(self, sid: str) -> None:
-        self.stream(sid)
+        self._end_episode(self.stream(sid))
         del self.streams[sid]
 
     def stream_reply(self, stream: Stream) -> dict[str, Any]:
@@ -422,8 +463,10 @@ class PlannerService:
                 self.close(sid)
                 return 204, b""
             if op == "expire":
-                self.streams.pop(sid, None)
+                self._end_episode(self.streams.pop(sid, None))
                 return 204, b""
+            if op == "searches":
+                return 200, json.dumps(self.searches_total()).encode()
         except ValidationError as error:
             return 422, _error_body(*_validation_field(error))
         except RequestError as error:
@@ -560,6 +603,22 @@ class Gateway:
         self._overran: set[int] = set()  # workers stopped by the time limit while planning a handed connection's step
         self.pool.on_closed = self._handed_closed
         self._info = service.info()
+
+    async def searches(self) -> dict[str, float] | None:
+        """The searches of the planning processes' ``lookahead`` streams since the start (``None``: the planner
+        searches nothing). A process that does not answer within the time limit (it plans a long step) is left out
+        of this answer; its streams' searches are counted again in the next."""
+        if not self.service.searches:
+            return None
+        total: dict[str, float] = {}
+        for worker in range(self.pool.size):
+            if not self.pool.alive(worker):
+                continue
+            with contextlib.suppress(TimeoutError, WorkerGone, ValueError):
+                status, body = await self.pool.call(worker, "searches", "", b"", self.time_limit)
+                if status == 200:
+                    add_searches(total, json.loads(body))
+        return {key: total.get(key, 0.0) for key in SEARCH_TOTALS}
 
     def info(self) -> dict[str, Any]:
         limits = {"max_streams": self.max_streams, "max_streams_per_client": self.max_streams_per_client}
@@ -933,7 +992,8 @@ def create_app(gateway: Gateway) -> FastAPI:
     @app.get("/health", response_model=Health)
     async def health() -> dict[str, Any]:
         return {"status": "ok", "streams": len(gateway.streams), "workers": gateway.pool.alive_count(),
-                "restarts": gateway.pool.restarts, "lost_streams": gateway.lost}
+                "restarts": gateway.pool.restarts, "lost_streams": gateway.lost,
+                "searches": await gateway.searches()}  # fmt: skip
 
     @app.get("/version", response_model=ServerInfo, responses=ERRORS)
     async def version() -> dict[str, Any]:

@@ -134,6 +134,20 @@ class ServerInfo(BaseModel):
                                      "'route') -> length [m] (its 'arc' runs from 0 to it)")
 
 
+class SearchTotals(BaseModel):
+    """The searches of a ``lookahead`` beside the steps, summed over every stream since the server started."""
+
+    started: float = Field(description="searches started")
+    applied: float = Field(description="searches whose windows were applied")
+    late: float = Field(description="searches that answered after the step they were searched for")
+    dropped: float = Field(description="searches not applied: a horizon late or more, or their process lost")
+    mismatched: float = Field(description="answers for a scene that was no longer the stream's (a reset)")
+    expired: float = Field(description="times windows in force grew older than the horizon")
+    worker_restarts: float = Field(description="search processes replaced after they ended")
+    age_s: float = Field(description="mean age of the windows in force [s of scene time], weighted by searches")
+    age_s_max: float = Field(description="largest age of the windows in force [s of scene time]")
+
+
 class Health(BaseModel):
     """Liveness."""
 
@@ -143,6 +157,8 @@ class Health(BaseModel):
     restarts: int = Field(description="planning processes replaced since the start (ended, or killed over the "
                                       "time limit)")
     lost_streams: int = Field(description="streams lost with their planning process since the start")
+    searches: SearchTotals | None = Field(default=None, description="the searches of a lookahead planner beside the "
+                                          "steps, over every stream since the start (null for another planner)")
 
 
 class ErrorReply(BaseModel):

@@ -229,7 +229,10 @@ def _first_bad_row(ids, route, arc, speed, route_length, max_speed):
 def _check_overlaps(scene: Scene) -> None:
     """Refuse two vehicles in one place: centres closer than half the narrower one's width, or a vehicle that
     overlaps its leader on the same path by more than half the shorter one's length (a scene of the simulation
-    overlaps by at most what one sub-step of a collision moves, about 1.3 m at the speed cap)."""
+    overlaps by at most what one sub-step of a collision moves, about 1.3 m at the speed cap). A leader on a route
+    that shares only the follower's approach (a left-turner ahead of a vehicle going straight) stays its leader up
+    to its own exit, so a negative gap counts only where the centres are also within half the two lengths: past the
+    fork the two are metres apart, and the simulation's scenes hold such pairs."""
     n = scene.num_vehicles
     if n < 2:
         return
@@ -251,8 +254,8 @@ def _check_overlaps(scene: Scene) -> None:
 def _first_overlap(position, width, leader, gap, length):
     """``(kind, j, i)``: kind 0 the first pair ``j < i`` (in row order) whose centres are closer than half the
     narrower width; else kind 1, the first vehicle ``i`` that overlaps its leader ``j`` by more than half the
-    shorter one's length; ``(-1, -1, -1)`` if neither (one pass over the pairs: the server checks every scene it
-    rebuilds)."""
+    shorter one's length with their centres within half the two lengths; ``(-1, -1, -1)`` if neither (one pass
+    over the pairs: the server checks every scene it rebuilds)."""
     n = position.shape[0]
     for j in range(n):
         for i in range(j + 1, n):
@@ -262,7 +265,9 @@ def _first_overlap(position, width, leader, gap, length):
     for i in range(n):
         j = leader[i]
         if j >= 0 and gap[i] < -0.5 * min(length[i], length[j]):
-            return 1, j, i
+            reach = 0.5 * (length[i] + length[j])
+            if (position[j, 0] - position[i, 0]) ** 2 + (position[j, 1] - position[i, 1]) ** 2 < reach * reach:
+                return 1, j, i
     return -1, -1, -1
 
 
