@@ -856,6 +856,8 @@ class Shield(Planner):
         arc, speed = self.predict(scene, plan, command, horizon)
         bad_follow, bad_cross, bad_merge, stuck = self._conflicts(scene, plan, arc, speed)
         stuck = stuck & ~plan.human
+        if plan.waiting.any():  # predicted standing for good, a waiting human holds who stands behind it, until it goes
+            stuck &= speed[-1] > _STANDING
         if plan.human_pair.size:  # an automated vehicle in a going human's zone within the human's window
             bad_human = self._in_human_windows(scene, plan, arc)
             if bad_human.any():  # the automated one is to blame (when its command can still change)
