@@ -90,6 +90,7 @@ from envs.planners.priority_rules import maneuver_priority
 from envs.planners.shield_bounds import ShieldBounds
 from envs.planners.watchdog import WATCHDOG_AFTER, WATCHDOG_HOLD, LivenessWatchdog
 from envs.simulation.commitment import STANDING, STOP_SLACK
+from envs.simulation.faults import ById
 from envs.simulation.layouts import ZONE_MARGIN, body_hull, parting_arcs
 from envs.simulation.scene import Scene
 
@@ -104,8 +105,6 @@ LIVE_SPEED = CRAWL_SPEED  # also the human window's crawl speed
 MAX_ERROR_LINES = 5
 # Rounding allowance on the bound of a vehicle's stopping point over a prediction (`Shield._may_commit`) [m].
 _REACH_TOLERANCE = 1e-3
-# No scene seen yet (`Shield._defiant`'s memory).
-_NO_HUMANS = (np.zeros(0, _INT), np.zeros(0), np.zeros(0), -np.inf, np.zeros(0, _INT), np.zeros(0))
 
 
 @dataclass
@@ -261,12 +260,9 @@ class Shield(Planner):
         self.human_margin = float(human_margin)
         self.human_hesitation = float(human_hesitation)
         self.human_standing = float(human_standing)
-        self._stood = (np.zeros(0, _INT), np.zeros(0))  # ids of humans standing against the model, since when [s]
         self.human_tolerance = float(human_tolerance)
         self.human_memory = float(human_memory)
-        self._last_humans = _NO_HUMANS  # the last scene's vehicles: ids, speeds, model commands, time, defiant ones
-        self._view: tuple | None = None  # (scene, `_human_view` of it)
-        self._yields = np.zeros(0, _INT)  # waiting humans and the vehicles they wait for (`_keeps_windows`), as keys
+        self._forget_humans()
         self.planner = planner
         self.watchdog = None if watchdog_after is None else LivenessWatchdog(watchdog_after, watchdog_hold)
         self.live_planner = (
@@ -302,10 +298,15 @@ class Shield(Planner):
         self.unresolved = 0
         self.planner_errors = 0
         self.errors = []
-        self._stood = (np.zeros(0, _INT), np.zeros(0))
-        self._last_humans = _NO_HUMANS
-        self._view = None
-        self._yields = np.zeros(0, _INT)
+        self._forget_humans()
+
+    def _forget_humans(self) -> None:
+        """What the shield has seen the human drivers do (a run's memory, kept by vehicle id)."""
+        self._stood = ById()  # humans standing against the model: since when [s] (`_hesitating`)
+        self._seen = ById()  # the last scene's vehicles: speeds, model commands, last defiance [s] (`_defiant`)
+        self._seen_time = -np.inf
+        self._view: tuple | None = None  # (scene, `_human_view` of it)
+        self._yields = np.zeros(0, _INT)  # waiting humans and the vehicles they wait for (`_keeps_windows`), as keys
 
     @property
     def error_lines(self) -> list[str]:
@@ -488,31 +489,16 @@ class Shield(Planner):
         theirs: they are predicted going (with their windows), whatever the model says now. A driver of the model's
         own world never is (its command is the model's)."""
         now, dt = float(scene.time), float(scene.dt)
-        ids = np.asarray(scene.vehicle_id, dtype=_INT)
-        speed = np.asarray(scene.speed, float)
-        last_ids, last_speed, last_acc, last_time, flagged, flagged_at = self._last_humans
-        defiant_at = np.full(len(ids), -np.inf)
-        if last_ids.size and 0.0 < now - last_time <= 1.5 * dt:
-            at = np.minimum(np.searchsorted(last_ids, ids), last_ids.size - 1)
-            hit = (last_ids[at] == ids) & scene.humans
-            expected = np.maximum(last_speed[at] + last_acc[at] * (now - last_time), 0.0)
-            defiant_at[hit & (speed > expected + self.human_tolerance)] = now
-        if flagged.size:
-            at = np.minimum(np.searchsorted(flagged, ids), flagged.size - 1)
-            hit = flagged[at] == ids
-            defiant_at[hit] = np.maximum(defiant_at[hit], flagged_at[at[hit]])
-        defiant = scene.humans & (now - defiant_at <= self.human_memory)
-        order = np.argsort(ids, kind="stable")
-        keep = order[defiant[order]]
-        self._last_humans = (
-            ids[order],
-            speed[order],
-            np.asarray(human_acc, float)[order],
-            now,
-            ids[keep],
-            defiant_at[keep],
-        )
-        return defiant
+        ids, speed, seen = np.asarray(scene.vehicle_id, dtype=_INT), np.asarray(scene.speed, float), self._seen
+        rows, found = seen.find(ids)
+        defiant_at = seen.get("defiant_at", rows, found, -np.inf)
+        if 0.0 < now - self._seen_time <= 1.5 * dt:
+            last_speed, last_acc = seen.get("speed", rows, found, 0.0), seen.get("command", rows, found, 0.0)
+            expected = np.maximum(last_speed + last_acc * (now - self._seen_time), 0.0)
+            defiant_at[found & scene.humans & (speed > expected + self.human_tolerance)] = now
+        seen.store(ids, speed=speed, command=human_acc, defiant_at=defiant_at)
+        self._seen_time = now
+        return scene.humans & (now - defiant_at <= self.human_memory)
 
     def _hesitating(self, scene: Scene, going: np.ndarray, human_acc: np.ndarray) -> np.ndarray:
         """``(n,)`` bool: human drivers that wait although the human model lets them go: they have stood (below
@@ -525,14 +511,10 @@ class Shield(Planner):
         now = float(scene.time)
         ids = np.asarray(scene.vehicle_id, dtype=_INT)
         stands = going & (np.asarray(scene.speed, float) < self.human_standing) & (human_acc > 0.0)
-        known, since = self._stood
-        start = np.full(len(ids), now)
-        if known.size:
-            at = np.minimum(np.searchsorted(known, ids), known.size - 1)
-            hit = known[at] == ids
-            start[hit] = np.minimum(since[at[hit]], now)  # a scene from before (a rollout's): the wait starts again
-        order = np.argsort(ids[stands], kind="stable")
-        self._stood = (ids[stands][order], start[stands][order])
+        rows, found = self._stood.find(ids)
+        # A scene from before (a rollout's): the wait starts again.
+        start = np.minimum(self._stood.get("since", rows, found, now), now)
+        self._stood.store(ids[stands], since=start[stands])
         return stands & (now - start >= self.human_hesitation - 1e-9)
 
     def _behind_human_cap(self, scene: Scene, human: np.ndarray, human_acc: np.ndarray) -> np.ndarray:
