@@ -12,14 +12,19 @@ import dataclasses
 import tempfile
 from pathlib import Path
 
+import gymnasium as gym
 import numpy as np
 import pytest
 
+from envs.evaluation.harness import evaluation_env_kwargs, generate_scenarios, run_episode, run_seed
+from envs.evaluation.metrics import run_metrics
+from envs.planners import make_planner
 from envs.planners.base import Planner
 from envs.planners.human import human_commands
 from envs.planners.shield import Shield
 from envs.simulation.engine import Simulation
 from envs.simulation.layouts import build_layout
+from envs.simulation.traffic import Scenario
 
 
 class _Recorder(Planner):
@@ -95,9 +100,6 @@ def test_scenes_without_humans_are_left_as_they_were():
     assert planner.scenes[-1].human_intent is None
 
 
-sumo = pytest.importorskip("libsumo", reason="the sumo extra is not installed")
-
-
 @pytest.mark.parametrize(
     ("layout", "env_id", "seed", "index", "duration", "planner"),
     [
@@ -113,13 +115,7 @@ sumo = pytest.importorskip("libsumo", reason="the sumo extra is not installed")
     ],
 )
 def test_the_shield_holds_against_sumos_drivers(layout, env_id, seed, index, duration, planner):
-    import gymnasium as gym
-
-    from envs.evaluation.harness import evaluation_env_kwargs, generate_scenarios, run_episode, run_seed
-    from envs.evaluation.metrics import run_metrics
-    from envs.planners import make_planner
-    from envs.simulation.traffic import Scenario
-
+    pytest.importorskip("libsumo", reason="the sumo extra is not installed")
     with tempfile.TemporaryDirectory() as folder:
         files = generate_scenarios(Path(folder), index + 1, duration, seed, layout, human_share=0.5)
         scenario = Scenario.load(files[index])
