@@ -359,3 +359,33 @@ def wait_for(condition, seconds: float = 10.0) -> None:
     while not condition():
         assert time.monotonic() < deadline, "not within the bound"
         time.sleep(0.02)
+
+
+def test_a_server_of_a_sumo_networks_junction_answers_both_paths_as_in_process(tmp_path):
+    """A server whose environment runs on ``net:FILE`` (here the 4-way with 200 m approaches, written as a SUMO
+    network: it holds 100 vehicles in closed loop) takes that layout's long name over HTTP and over the socket, and
+    answers as its planner does in process; a name longer than the wire allows is refused, naming the field."""
+    pytest.importorskip("sumolib")
+    from envs.planners import make_planner
+    from envs.serve.app import PlannerService
+    from envs.serve.wire import MAX_LAYOUT_NAME
+    from envs.simulation.layouts import build_layout
+    from envs.simulation.sumo_network import write_network
+
+    long = build_layout("4way", access_length=200.0)
+    assert np.allclose(long.entry_arc - build_layout("4way").entry_arc, 120.0)
+    name = "net:" + str(write_network(long, tmp_path / "net").net_file)
+    service = PlannerService("glide", "CoopIntersection4Way-v0", {"config": {"layout": name}})
+    assert service.builder.layout.name == name and len(name) > 32
+    planner = make_planner("glide")
+    planner.reset(0)
+    with ThreadServer(service, workers=0) as server:
+        fast, slow = PlannerClient(server.url, token=TOKEN), PlannerClient(server.url, token=TOKEN, fast=False)
+        a, b = fast.open(name, seed=0), slow.open(name, seed=0)
+        for k in range(3):
+            scene = _scene(service, 4 + k, 0.2 * k)
+            expected = planner.act(scene.copy())
+            np.testing.assert_array_equal(fast.step_scene(a, scene), expected)
+            np.testing.assert_array_equal(slow.step_scene(b, scene), expected)
+        with pytest.raises(RemotePlannerError, match="layout"):
+            slow.open("net:" + "x" * MAX_LAYOUT_NAME)

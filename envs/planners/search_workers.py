@@ -253,7 +253,11 @@ class RolloutPool:
 def lower_priority() -> bool:
     """Run this process (and the children it forks) :data:`NICENESS` lower than the steps (``os.nice``): a waking
     step takes the core from it. Not the idle scheduling class (``SCHED_IDLE``): on a loaded machine it starved the
-    search (no answer in 60 steps of a test at load 9 on 2 cores), where nice 10 still gets about a tenth of a core.
+    search (no answer in 60 steps of a test at load 9 on 2 cores), where nice 10 still gets about a tenth of a core;
+    served at 100 vehicles at load 5-6 on 2 cores it made the steps no faster (p50 1.09x and 1.15x of glide+shield's
+    against 1.11x at nice 10, ``benchmarks/bench_serve_lookahead.py --steps 300``) and its searches fewer and older
+    (20 and 21 against 27 in 60 s, windows 1.6 and 1.9 s old on average against 1.4 s): a step of lookahead costs
+    what its CPU costs, not a wait for a core.
     Returns whether it could (no ``os.nice`` on Windows)."""
     try:
         os.nice(NICENESS)

@@ -26,7 +26,7 @@ import msgspec
 import numba
 import numpy as np
 
-from envs.serve.wire import LENGTH_RANGE, MAX_VEHICLES, WIDTH_RANGE, WireError
+from envs.serve.wire import LENGTH_RANGE, MAX_LAYOUT_NAME, MAX_VEHICLES, WIDTH_RANGE, WireError
 
 _I8, _F8 = np.dtype("<i8"), np.dtype("<f8")
 _COLUMNS = ("ids", "route", "arc", "speed", "length", "width")
@@ -103,8 +103,8 @@ def decode_step(data: bytes) -> Columns:
         raise WireError("captured", "missing: a step carries the wall-clock time of its capture [s since the epoch]")
     if not (np.isfinite(frame.captured) and 0.0 <= frame.captured <= 1e11):
         raise WireError("captured", f"must be a finite number of seconds from 0 to 1e11, got {frame.captured}")
-    if not 1 <= len(frame.layout) <= 32:
-        raise WireError("layout", "must be 1 to 32 characters")
+    if not 1 <= len(frame.layout) <= MAX_LAYOUT_NAME:
+        raise WireError("layout", f"must be 1 to {MAX_LAYOUT_NAME} characters")
     sizes = [len(getattr(frame, name)) for name in _COLUMNS]
     n = sizes[0] // 8
     bad = next((name for name, size in zip(_COLUMNS, sizes) if size != 8 * n), None)

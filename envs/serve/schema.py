@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from envs.serve.wire import LENGTH_RANGE, MAX_VEHICLES, WIDTH_RANGE
+from envs.serve.wire import LENGTH_RANGE, MAX_LAYOUT_NAME, MAX_VEHICLES, WIDTH_RANGE
 
 _STRICT = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False)
 
@@ -32,7 +32,8 @@ class SceneIn(BaseModel):
 
     model_config = _STRICT
 
-    layout: str = Field(min_length=1, max_length=32, description="intersection layout name: '4way', '3way' or 'inD'")
+    layout: str = Field(min_length=1, max_length=MAX_LAYOUT_NAME, description="intersection layout name: '4way', "
+                        "'3way', 'inD' or 'net:FILE' (the server's own layout)")  # fmt: skip
     time: float = Field(ge=0.0, le=1e9, description="simulated time [s]; never decreases within a stream")
     captured: float = Field(ge=0.0, le=1e11, description="when the scene was captured, on the wall clock [s since the "
                             "Unix epoch, UTC]: a scene from the future (beyond the server's clock plus a small skew) "
@@ -86,7 +87,8 @@ class OpenRequest(BaseModel):
 
     model_config = _STRICT
 
-    layout: str = Field(min_length=1, max_length=32, description="the intersection the stream's scenes are of")
+    layout: str = Field(min_length=1, max_length=MAX_LAYOUT_NAME, description="the intersection the stream's scenes "
+                        "are of")  # fmt: skip
     dt: float | None = Field(default=None, gt=0.0, le=10.0, description="policy period the client steps at [s]; "
                              "must be the server's (checked when given)")
     seed: int | None = Field(default=None, ge=0, le=2**32 - 1, description="seed of the planner's randomness")

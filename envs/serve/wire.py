@@ -34,8 +34,8 @@ import numba
 import numpy as np
 
 from envs.simulation.engine import Simulation
-from envs.simulation.layouts import build_layout
 from envs.simulation.scene import Scene
+from envs.simulation.sumo_junction import named_layout
 
 # Version of the wire schema; a change that old clients cannot read increments it (2: steps carry `seq`; 3: scenes
 # carry `captured`).
@@ -44,6 +44,8 @@ VEHICLE_FIELDS = ("id", "route", "arc", "speed", "length", "width")
 # Largest number of vehicles the schema takes in one scene (the server's own limit is its
 # environment's max_vehicles, usually far lower: its OpenAPI schema states that one).
 MAX_VEHICLES = 1024
+# Longest layout name a scene may carry: one of ours, or "net:FILE", the path of a SUMO network the server loaded.
+MAX_LAYOUT_NAME = 256
 # Physical bounds of a vehicle's size [m]: from a small car to a road train, from a narrow car to a wide load.
 LENGTH_RANGE = (1.5, 30.0)
 WIDTH_RANGE = (0.8, 5.0)
@@ -108,7 +110,7 @@ class SceneBuilder:
 
     def __init__(self, config: dict[str, Any]) -> None:
         self.config = dict(config)
-        self.layout = build_layout(config["layout"], lateral_acceleration=float(config["lateral_acceleration"]))
+        self.layout = named_layout(config["layout"], lateral_acceleration=float(config["lateral_acceleration"]))
         # The environment's own construction (its reset calls the same): the derived quantities use these settings.
         self._sim = Simulation.from_config(self.layout, config)
         self.limits = WireLimits(int(config["max_vehicles"]), float(config["max_speed"]))

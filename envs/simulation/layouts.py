@@ -719,7 +719,9 @@ def _conflicts(
 
 
 @cache
-def build_layout(name: str, ds: float = 0.5, lateral_acceleration: float = DEFAULT_LATERAL_ACCELERATION) -> Layout:
+def build_layout(
+    name: str, ds: float = 0.5, lateral_acceleration: float = DEFAULT_LATERAL_ACCELERATION, access_length: float = 80.0
+) -> Layout:
     """Build (once per process, then cached) one of the intersection layouts.
 
     - ``"4way"``: the paper's synthetic four-way intersection; the west-east road is the major
@@ -734,6 +736,8 @@ def build_layout(name: str, ds: float = 0.5, lateral_acceleration: float = DEFAU
     :param ds: sample spacing of the route polylines [m]
     :param lateral_acceleration: largest lateral acceleration on curved lanes [m/s^2]; sets their
         speed limits (``sqrt(a_lat * radius)``, at most the road's limit)
+    :param access_length: length of every incoming and exit road outside the intersection [m] (80: the layouts
+        the environments use; a longer one, written as a SUMO network, holds more vehicles: ``net:FILE``)
     :return: the layout
     """
     if name not in LAYOUT_NAMES:
@@ -742,8 +746,10 @@ def build_layout(name: str, ds: float = 0.5, lateral_acceleration: float = DEFAU
         raise ValueError(f"ds must be > 0, got {ds}")
     if not lateral_acceleration > 0:
         raise ValueError(f"lateral_acceleration must be > 0, got {lateral_acceleration}")
+    if not access_length > 0:
+        raise ValueError(f"access_length must be > 0, got {access_length}")
     stop = LANE_WIDTH + 5 + LANE_WIDTH / 2  # as highway-env's intersection: right-turn radius 9 m
-    access = 80.0
+    access = float(access_length)
     if name == "4way":
         arms = [
             ArmSpec(a, MAJOR if a in ("east", "west") else MINOR, stop, access)
