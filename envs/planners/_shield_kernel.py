@@ -271,7 +271,14 @@ def _all_committed(
 
 @numba.njit(cache=True)
 def _gaps_hold(
-    plan: PlanArrays, arc: np.ndarray, speed: np.ndarray, go: np.ndarray, a_max: float, gap_margin: float, slack: float
+    plan: PlanArrays,
+    arc: np.ndarray,
+    speed: np.ndarray,
+    reach: np.ndarray,
+    go: np.ndarray,
+    a_max: float,
+    gap_margin: float,
+    slack: float,
 ) -> bool:
     """``gaps_hold``: whether every leader relation that the fallback keeps (:func:`leaders`) can keep its gap
     from here on, whatever the vehicle ahead does within ``a_max`` braking: the gap is at the check's floor or
@@ -279,18 +286,19 @@ def _gaps_hold(
     when the follower is the faster. Only then may a prediction end once everyone has settled: the fallback,
     which brakes a follower that has less room, then keeps the gap; a planner that closed it for one period
     (a leader rammed past the intersection) must be predicted on. A merging pair's floor is half a gap margin
-    over its separation (as the fallback keeps it, the check's distance of 0)."""
+    over its separation (as the fallback keeps it, the check's distance of 0). ``reach``: the followers' speeds as
+    their stopping distance reads them (:func:`reach_speeds`; ``speed`` itself without an actuation lag)."""
     for k in range(plan.follower.shape[0]):
         f, ahead = plan.follower[k], plan.ahead[k]
         if arc[ahead] >= plan.follow_until[k]:
             continue
         gap = plan.follow_gap[k] + (arc[ahead] - plan.ahead_arc[k]) - (arc[f] - plan.follower_arc[k])
-        if not _room(gap, speed[f], speed[ahead], plan.follow_floor[k], a_max, slack):
+        if not _room(gap, reach[f], speed[ahead], plan.follow_floor[k], a_max, slack):
             return False
     for g in range(plan.merge.shape[0]):
         f, ahead, active, distance = _merge_leader(plan, g, arc, go)
         gap, floor = distance + 0.5 * gap_margin, 0.5 * gap_margin
-        if active and plan.merge_yields[f] and not _room(gap, speed[f], speed[ahead], floor, a_max, slack):
+        if active and plan.merge_yields[f] and not _room(gap, reach[f], speed[ahead], floor, a_max, slack):
             return False
     return True
 
@@ -330,6 +338,7 @@ def _fallback(
     plan: PlanArrays,
     arc: np.ndarray,
     speed: np.ndarray,
+    reach: np.ndarray,
     go: np.ndarray,
     hold: np.ndarray,
     acc: np.ndarray,
@@ -345,6 +354,7 @@ def _fallback(
     :param plan: the scene's arrays
     :param arc: ``(n,)`` arcs [m]
     :param speed: ``(n,)`` speeds [m/s]
+    :param reach: ``(n,)`` the speeds that the stopping distances read (:func:`reach_speeds`; ``speed`` without lag)
     :param go: ``(n,)`` committed vehicles
     :param hold: ``(n,)`` scratch for the yielding vehicles
     :param acc: ``(n,)`` output [m/s^2]
@@ -353,7 +363,7 @@ def _fallback(
     # yielding: a committed vehicle waits before a pair's zone that it can still stop before while
     # its partner cannot (or is in it) and has not cleared it; two inside one zone: the one less far through.
     for p in range(plan.cross.shape[0]):
-        wait_i, wait_j = _pair_waits(plan, p, arc, speed, go, a_max, standing, slack)
+        wait_i, wait_j = _pair_waits(plan, p, arc, reach, go, a_max, standing, slack)
         if wait_i:
             hold[plan.cross[p, 0]] = True
         if wait_j:
@@ -367,14 +377,14 @@ def _fallback(
         if not go[f] or arc[ahead] >= plan.follow_until[k]:  # braking anyway, or the one ahead has turned off
             continue
         gap = plan.follow_gap[k] + (arc[ahead] - plan.ahead_arc[k]) - (arc[f] - plan.follower_arc[k])
-        if _unsafe(gap, speed[f], speed[ahead], proceed, a_max, dt, gap_margin):
+        if _unsafe(gap, reach[f], speed[ahead], proceed, a_max, dt, gap_margin):
             acc[f] = slow
     for g in range(plan.merge.shape[0]):
         f, ahead, active, distance = _merge_leader(plan, g, arc, go)
         if not active:
             continue
         gap = distance + 0.5 * gap_margin  # kept at gap_margin: half a margin more than the check's distance
-        if go[f] and plan.merge_yields[f] and _unsafe(gap, speed[f], speed[ahead], proceed, a_max, dt, gap_margin):
+        if go[f] and plan.merge_yields[f] and _unsafe(gap, reach[f], speed[ahead], proceed, a_max, dt, gap_margin):
             acc[f] = slow
 
 
@@ -426,6 +436,7 @@ def fallback(
     plan: PlanArrays,
     arc: np.ndarray,
     speed: np.ndarray,
+    reach: np.ndarray,
     a_max: float,
     dt: float,
     proceed: float,
@@ -433,11 +444,12 @@ def fallback(
     standing: float,
     slack: float,
 ) -> np.ndarray:
-    """``fallback_numpy``: the fallback's ``(n,)`` accelerations in a state (see :func:`predict`)."""
+    """``fallback_numpy``: the fallback's ``(n,)`` accelerations in a state (see :func:`predict`); ``reach``: the
+    speeds that the stopping distances read (:func:`reach_speeds`; ``speed`` itself without an actuation lag)."""
     n = arc.shape[0]
     go, hold, acc = np.zeros(n, np.bool_), np.zeros(n, np.bool_), np.empty(n)
-    _all_committed(plan, arc, speed, go, a_max, standing, slack)
-    _fallback(plan, arc, speed, go, hold, acc, a_max, dt, proceed, gap_margin, standing, slack)
+    _all_committed(plan, arc, reach, go, a_max, standing, slack)
+    _fallback(plan, arc, speed, reach, go, hold, acc, a_max, dt, proceed, gap_margin, standing, slack)
     return acc
 
 
@@ -487,10 +499,144 @@ def predict(
         _integrate(table, plan.route, acc, arcs, speeds, row, substeps, h, max_speed, caps, governed)
         row += substeps
         if _all_committed(plan, arcs[row], speeds[row], go, a_max, standing, slack) and _gaps_hold(
-            plan, arcs[row], speeds[row], go, a_max, gap_margin, slack
+            plan, arcs[row], speeds[row], speeds[row], go, a_max, gap_margin, slack
         ):
             break  # everyone stands before its zones or has left them, with room behind: the fallback keeps it so
-        _fallback(plan, arcs[row], speeds[row], go, hold, acc, a_max, dt, proceed, gap_margin, standing, slack)
+        v = speeds[row]
+        _fallback(plan, arcs[row], v, v, go, hold, acc, a_max, dt, proceed, gap_margin, standing, slack)
+    return row + 1
+
+
+class Actuation(NamedTuple):
+    """The actuation model of a prediction under declared latency and lag (``Shield`` with bounds): each sub-step
+    the command in flight, then the new one, through a first-order lag, as :class:`envs.simulation.faults.Actuator`.
+
+    The realised acceleration ``r`` follows the command ``c`` as ``r(t) = c + (r0 - c) exp(-t / lag)``: over a sub-step
+    of length ``h`` it decays by ``decay`` and its mean (what the speed change needs) is ``c + (r0 - c) mean_share``.
+    """
+
+    realised: np.ndarray  # (n,) realised accelerations now [m/s^2]
+    previous: np.ndarray  # (n,) the commands in flight now (they hold for the latency) [m/s^2]
+    old_share: np.ndarray  # (S,) share of each sub-step of a period under the previous command
+    decay: float
+    mean_share: float
+    reach: float  # lag + latency [s]: how much longer than at once a command can take to brake a vehicle
+
+
+@numba.njit(cache=True)
+def reach_speeds(
+    speed: np.ndarray, realised: np.ndarray, previous: np.ndarray, a_max: float, reach: float, standing: float
+) -> np.ndarray:
+    """``(n,)`` the speeds from which braking at ``a_max`` at once would stop each vehicle no earlier than it stops
+    under latency and lag: ``v + (max(r, c) + a_max) * (latency + lag)``, where ``r`` is the realised acceleration and
+    ``c`` the command in flight. Under ``r(t) = -a + (r0 + a) exp(-t / lag)`` the speed exceeds that of braking at once
+    by at most ``(r0 + a) lag``, and the latency adds at most ``(c + a) latency``, so ``x(t) <= v' t - a t^2 / 2``
+    and the stop lies within ``v'^2 / (2 a)``. A standing vehicle only creeps while ``max(r, c) > 0``.
+    Every rule that reads a stopping distance (committed, waits, the gaps kept) reads these; without lag or latency
+    they are the speeds (the shield then passes the speeds themselves).
+    """
+    out = np.empty(speed.shape[0])
+    for i in range(speed.shape[0]):
+        push = max(realised[i], previous[i])
+        if speed[i] > standing:
+            push = push + a_max
+        out[i] = speed[i] + max(push, 0.0) * reach
+    return out
+
+
+@numba.njit(cache=True)
+def _actuate(actuation: Actuation, command: np.ndarray, speed: np.ndarray, r: np.ndarray, previous: np.ndarray,
+             acc: np.ndarray) -> None:  # fmt: skip
+    """One period of :class:`envs.simulation.faults.Actuator`: the ``(S, n)`` mean accelerations ``acc`` of each
+    sub-step under ``command`` (after ``previous`` for the latency), from the realised ``r``; ``r`` and
+    ``previous`` move on to the period's end. A vehicle at rest starts from no less than 0 (its brakes hold it)."""
+    old, decay, mean = actuation.old_share, actuation.decay, actuation.mean_share
+    for i in range(command.shape[0]):
+        ri = r[i]
+        if speed[i] <= 0.0:
+            ri = max(ri, 0.0)
+        for k in range(old.shape[0]):
+            c = old[k] * previous[i] + (1.0 - old[k]) * command[i]
+            acc[k, i] = c + (ri - c) * mean
+            ri = c + (ri - c) * decay
+        r[i] = ri
+        previous[i] = command[i]
+
+
+@numba.njit(cache=True)
+def _integrate_substeps(
+    table: EnvelopeTable,
+    route: np.ndarray,
+    acc: np.ndarray,
+    arcs: np.ndarray,
+    speeds: np.ndarray,
+    row: int,
+    substeps: int,
+    h: float,
+    max_speed: float,
+    caps: np.ndarray,
+) -> None:
+    """:func:`_integrate` with one acceleration per sub-step (``acc``: ``(S, n)``), as
+    :func:`envs.simulation.engine.integrate` with a two-dimensional ``acc``."""
+    n = route.shape[0]
+    for i in range(n):
+        caps[i] = _envelope(table, route[i], arcs[row, i])
+    for k in range(substeps):
+        src, dst = row + k, row + k + 1
+        for i in range(n):
+            v0, x0 = speeds[src, i], arcs[src, i]
+            v = min(max(v0 + acc[k, i] * h, 0.0), max_speed)
+            x = x0 + 0.5 * (v0 + v) * h
+            cap_x = _envelope(table, route[i], x)
+            cap = min(caps[i], cap_x)
+            if v > cap:
+                v = cap
+                x = x0 + 0.5 * (v0 + v) * h
+                cap_x = _envelope(table, route[i], x)
+            speeds[dst, i], arcs[dst, i] = v, x
+            caps[i] = cap_x
+
+
+@numba.njit(cache=True)
+def predict_lagged(
+    plan: PlanArrays,
+    table: EnvelopeTable,
+    actuation: Actuation,
+    command: np.ndarray,
+    arcs: np.ndarray,
+    speeds: np.ndarray,
+    steps: int,
+    substeps: int,
+    h: float,
+    max_speed: float,
+    a_max: float,
+    dt: float,
+    proceed: float,
+    gap_margin: float,
+    standing: float,
+    slack: float,
+) -> int:
+    """:func:`predict` under latency and lag (``predict_lagged_numpy``): every period's command, the first one's and
+    the fallback's, is realised through :class:`Actuation` (the fallback's braking too), and the rules of the fallback
+    and of the end read the reach speeds (:func:`reach_speeds`). Arguments as :func:`predict`.
+    """
+    n = plan.route.shape[0]
+    acc = command.copy()
+    r, previous = actuation.realised.copy(), actuation.previous.copy()
+    sub = np.empty((substeps, n))
+    go, hold, caps = np.zeros(n, np.bool_), np.zeros(n, np.bool_), np.empty(n)
+    row = 0
+    for _ in range(steps):
+        _actuate(actuation, acc, speeds[row], r, previous, sub)
+        _integrate_substeps(table, plan.route, sub, arcs, speeds, row, substeps, h, max_speed, caps)
+        row += substeps
+        v = speeds[row]
+        reach = reach_speeds(v, r, previous, a_max, actuation.reach, standing)
+        if _all_committed(plan, arcs[row], reach, go, a_max, standing, slack) and _gaps_hold(
+            plan, arcs[row], v, reach, go, a_max, gap_margin, slack
+        ):
+            break
+        _fallback(plan, arcs[row], v, reach, go, hold, acc, a_max, dt, proceed, gap_margin, standing, slack)
     return row + 1
 
 

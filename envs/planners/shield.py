@@ -75,6 +75,7 @@ bit for bit, the blame (who is overridden for a conflict) included.
 
 from __future__ import annotations
 
+import math
 import weakref
 from dataclasses import dataclass, field, replace
 from functools import partial
@@ -147,6 +148,10 @@ class _Plan:
     # (n,) each vehicle's zone padding [m]: the shield's zone_margin, 0 for a waiting human (it stands)
     pad: np.ndarray = field(default_factory=lambda: np.zeros(0))
     waiting: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))  # (n,) waiting humans (`_hesitating`)
+    # Declared bounds (`Shield._widening`, `Shield._actuation`): (n,) how far each vehicle's true position may lie
+    # from the scene's (0: exact), and the actuation model of the prediction (None: commands realised at once).
+    widen: np.ndarray | None = None
+    actuation: _shield_kernel.Actuation | None = None
 
     def __post_init__(self) -> None:
         # The compiled kernels' view, contiguous and of one dtype per field (one compiled signature);
@@ -586,7 +591,7 @@ class Shield(Planner):
         if plan.cross.size:
             a_max = float(scene.a_max)
             go = self._committed_now(plan, a_max)
-            arc, speed = np.ascontiguousarray(plan.arc), np.ascontiguousarray(plan.speed)
+            arc, speed = np.ascontiguousarray(plan.arc), self._reach_now(plan, a_max)
             waits = _shield_kernel.waits(plan.kernel_arrays, arc, speed, go, a_max, _STANDING, _STOP_SLACK)
             awaited[plan.cross[:, ::-1][waits]] = True
         return awaited & (acc < np.minimum(fallback, 0.0) - 1e-9)
@@ -621,6 +626,9 @@ class Shield(Planner):
         # only the pairs that can conflict within the prediction (`_may_commit`, and crossing pairs
         # of which neither has passed the zone). Compiled (`_shield_kernel.pairs`): in NumPy, building
         # and scanning the (n, n) arrays took some 40 calls, a tenth of a shielded step at 100 vehicles.
+        widen = self._widening(scene)
+        if widen is not None:  # what the scene can be wrong about: every zone and hull grows by it
+            hull_start, hull_end, pad = hull_start - widen, hull_end + widen, pad + widen
         candidate = self._may_commit(scene, arc, speed, hull_start) if self._prune else np.ones(len(arc), bool)
         candidate = candidate | waiting  # it stands in the prediction, but keeps windows (`_human_windows`)
         (follow, follow_gap, cross, cross_lo, cross_hi, already, back, stop, merge, merge_lo, merge_exit, merge_sep,
@@ -632,7 +640,12 @@ class Shield(Planner):
             candidate, self._prune, lay.conflicts, _merging_routes(lay), parting_arcs(lay), lay.zone_start,
             lay.zone_end, lay.exit_arc, pad, self.merge_margin, _STANDING, _STOP_SLACK,
         )  # fmt: skip
+        if widen is not None:  # a gap may be shorter, and a merge closer, by both vehicles' widening
+            follow_gap = follow_gap - widen[follow[:, 0]] - widen[follow[:, 1]]
+            merge_sep = merge_sep + widen[merge[:, 0]] + widen[merge[:, 1]]
         return _Plan(
+            widen=widen,
+            actuation=self._actuation(scene),
             human=scene.humans,
             pad=pad,
             waiting=waiting,
@@ -731,15 +744,69 @@ class Shield(Planner):
         """
         a_max, dt = float(scene.a_max), float(scene.dt)
         v1 = speed + a_max * dt
+        lag = self._lag_reach(scene)
+        if lag > 0:  # under latency and lag, braking from a realised acceleration of up to a_max (`reach_speeds`)
+            v1 = v1 + 2 * a_max * lag
         reach = arc + speed * dt + 0.5 * a_max * dt * dt + v1 * v1 / (2 * a_max)
         return reach + _STOP_SLACK + _REACH_TOLERANCE > hull_start
+
+    # ------------------------------------------------------------------ the declared bounds
+    def _widening(self, scene: Scene) -> np.ndarray | None:
+        """``(n,)`` how far each vehicle's true position may lie from a perceived scene's [m], ``None`` for an exact
+        scene (one without ``arc_std``: it costs nothing) or bounds without a position or speed error: the position
+        bound, plus what the speed bound reaches over the age of the state the estimate rests on (``Scene.age``; a
+        tracker's estimate of a held state is driven on by the vehicle's commands, off by at most its speed error)."""
+        bounds = self.bounds
+        if scene.arc_std is None or not (bounds.position > 0 or bounds.speed > 0):
+            return None
+        age = np.zeros(scene.num_vehicles) if scene.age is None else np.asarray(scene.age, float)
+        return bounds.position + bounds.speed * np.minimum(age, bounds.age)
+
+    def _lag_reach(self, scene: Scene) -> float:
+        """Latency plus lag [s] that the prediction models for a scene: the declared ones where the scene carries the
+        realised accelerations (``Scene.acceleration``: the planner side replays its commands through latency and
+        lag), else 0 (every command realised at once, as an exact scene says)."""
+        if scene.acceleration is None:
+            return 0.0
+        return self.bounds.lag + self.bounds.latency
+
+    def _actuation(self, scene: Scene) -> _shield_kernel.Actuation | None:
+        """The prediction's actuation model (:class:`envs.planners._shield_kernel.Actuation`), ``None`` where commands
+        are realised at once (:meth:`_lag_reach` is 0): the realised accelerations and the commands in flight of the
+        scene, the declared latency and lag, at the prediction's sub-steps (as the plant's
+        :class:`envs.simulation.faults.Actuator`)."""
+        if self._lag_reach(scene) <= 0:
+            return None
+        lag, latency = self.bounds.lag, self.bounds.latency
+        substeps = self.substeps(scene)
+        h = float(scene.dt) / substeps
+        decay = math.exp(-h / lag) if lag > 0 else 0.0
+        realised = np.ascontiguousarray(scene.acceleration, dtype=float)
+        previous = realised if scene.command is None else np.ascontiguousarray(scene.command, dtype=float)
+        return _shield_kernel.Actuation(
+            realised=realised,
+            previous=previous,
+            old_share=np.clip((latency - np.arange(substeps) * h) / h, 0.0, 1.0),
+            decay=decay,
+            mean_share=lag / h * (1.0 - decay) if lag > 0 else 0.0,
+            reach=lag + latency,
+        )
+
+    def _reach_now(self, plan: _Plan, a_max: float, speed: np.ndarray | None = None) -> np.ndarray:
+        """The speeds now as the rules' stopping distances read them (:func:`envs.planners._shield_kernel.reach_speeds`:
+        raised by what latency and lag add; the speeds themselves without them)."""
+        speed = np.ascontiguousarray(plan.speed if speed is None else speed, dtype=float)
+        act = plan.actuation
+        if act is None:
+            return speed
+        return _shield_kernel.reach_speeds(speed, act.realised, act.previous, float(a_max), act.reach, _STANDING)
 
     # ------------------------------------------------------------------ the fallback
     def _committed_now(self, plan: _Plan, a_max: float) -> np.ndarray:
         """:meth:`committed` in the state now, computed once per plan (three rules of a check read it)."""
         go = plan.committed_now
         if go is None:
-            go = plan.committed_now = self.committed(plan, plan.arc, plan.speed, a_max)
+            go = plan.committed_now = self.committed(plan, plan.arc, self._reach_now(plan, a_max), a_max)
         return go
 
     def committed(self, plan: _Plan, arc: np.ndarray, speed: np.ndarray, a_max: float) -> np.ndarray:
@@ -753,10 +820,12 @@ class Shield(Planner):
         Compiled, as the prediction.
         """
         a_max = float(scene.a_max)
+        speed = np.ascontiguousarray(speed, dtype=float)
         return _shield_kernel.fallback(
             plan.kernel_arrays,
             np.ascontiguousarray(arc, dtype=float),
-            np.ascontiguousarray(speed, dtype=float),
+            speed,
+            speed if plan.actuation is None else self._reach_now(plan, a_max, speed),
             a_max,
             float(scene.dt),
             min(self.proceed_acceleration, a_max),
@@ -791,9 +860,13 @@ class Shield(Planner):
         arcs = np.empty((steps * substeps + 1, len(plan.arc)))
         speeds = np.empty_like(arcs)
         arcs[0], speeds[0] = plan.arc, plan.speed
-        rows = _shield_kernel.predict(
+        kernel, head = _shield_kernel.predict, ()
+        if plan.actuation is not None:  # latency and lag (`_actuation`)
+            kernel, head = _shield_kernel.predict_lagged, (plan.actuation,)
+        rows = kernel(
             plan.kernel_arrays,
             envelope_table(scene.layout, self.governor_deceleration),
+            *head,
             np.ascontiguousarray(command, dtype=float),
             arcs,
             speeds,
