@@ -17,6 +17,7 @@ import weakref
 
 import numpy as np
 
+from envs.planners import _shield_kernel
 from envs.planners.shield import _STANDING, _STOP_SLACK, Shield, _merging_routes, _Plan, envelope_table
 from envs.simulation.engine import integrate
 from envs.simulation.layouts import parting_arcs
@@ -104,9 +105,9 @@ def plan_pairs_numpy(shield: Shield, scene: Scene, plan: _Plan) -> dict[str, np.
         "merge": merge,
         "merge_lo": lay.zone_start[r, r[:, ::-1]] - plan.pad[merge] - length[merge] / 2,
         "merge_exit": lay.exit_arc[r],
-        "merge_sep": length[merge].sum(axis=1) / 2
-        + shield.merge_margin
-        + (0.0 if plan.widen is None else plan.widen[merge[:, 0]] + plan.widen[merge[:, 1]]),
+        "merge_sep": length[merge].sum(axis=1) / 2 + shield.merge_margin
+        if plan.widen is None
+        else length[merge].sum(axis=1) / 2 + shield.merge_margin + plan.widen[merge[:, 0]] + plan.widen[merge[:, 1]],
         "rank": rank,
     }
 
@@ -205,6 +206,18 @@ def safe_gap_after(
     return after - np.maximum(v_f**2 - v_a**2, 0.0) / (2 * a_max) >= margin
 
 
+def shield_keep(plan: _Plan, arc: np.ndarray, go: np.ndarray) -> np.ndarray:
+    """The room the fallback keeps over the gap margin in the active merging pairs (:func:`leaders_now`'s order)."""
+    if not plan.merge.size:
+        return np.zeros(0)
+    m0, m1 = plan.merge[:, 0], plan.merge[:, 1]
+    e0, e1 = arc[m0] - plan.merge_exit[:, 0], arc[m1] - plan.merge_exit[:, 1]
+    second = e0 >= e1
+    first = np.where(second, m0, m1)
+    active = np.where(second, arc[m0] > plan.merge_lo[:, 0], arc[m1] > plan.merge_lo[:, 1]) | go[first]
+    return plan.kernel_arrays.merge_keep[active]
+
+
 def fallback_given(
     shield: Shield,
     plan: _Plan,
@@ -221,6 +234,9 @@ def fallback_given(
     proceed = min(shield.proceed_acceleration, a_max)
     acc = np.where(go & ~yielding(plan, arc, reach, go, a_max), proceed, -a_max)
     f, ahead, gap = leaders_now(shield, plan, arc, go)
+    if plan.follow_keep is not None:  # the room kept over the gap margin on a perceived scene (follow pairs first)
+        live = plan.follow_keep[arc[plan.follow[:, 1]] < plan.follow_until]
+        gap = np.concatenate([gap[: len(live)] - live, gap[len(live) :] - shield_keep(plan, arc, go)])
     if f.size:
         ok = safe_gap_after(gap, reach[f], speed[ahead], proceed, a_max, dt, shield.gap_margin)
         # a human driver keeps no gap to a merging vehicle (its model sees it once it leads on the lane)
@@ -234,19 +250,20 @@ def fallback_numpy(shield: Shield, scene: Scene, plan: _Plan, arc: np.ndarray, s
     """``Shield._fallback``: brake, or proceed while keeping a safe gap (the state now: its reach speeds)."""
     a_max = float(scene.a_max)
     act = plan.actuation
-    reach = speed if act is None else reach_speeds(speed, act.realised, act.previous, a_max, act.reach)
+    reach = speed if act is None else reach_speeds(speed, act, a_max)
     go = committed(plan, arc, reach, a_max)
     return fallback_given(shield, plan, arc, speed, go, a_max, float(scene.dt), reach)
 
 
-def reach_speeds(
-    speed: np.ndarray, realised: np.ndarray, previous: np.ndarray, a_max: float, reach: float
-) -> np.ndarray:
-    """The speeds from which braking at once stops no earlier than under latency and lag: ``v + (max(r, c) + a) *
-    (latency + lag)`` for a moving vehicle, ``v + max(r, c, 0) * (latency + lag)`` for a standing one."""
-    push = np.maximum(realised, previous)
-    push = np.where(speed > _STANDING, push + a_max, push)
-    return speed + np.maximum(push, 0.0) * reach
+def reach_speeds(speed: np.ndarray, act, a_max: float, r: np.ndarray | None = None, previous=None) -> np.ndarray:
+    """The kernels' reach speeds (``_shield_kernel.reach_speeds``, a primitive that the oracle shares, as it shares
+    ``can_stop``; ``tests/test_shield_declared.py`` checks it against the plant's actuator)."""
+    r = act.realised if r is None else r
+    previous = act.previous if previous is None else previous
+    return _shield_kernel.reach_speeds(
+        np.ascontiguousarray(speed, dtype=float), np.ascontiguousarray(r, dtype=float),
+        np.ascontiguousarray(previous, dtype=float), a_max, act.lag, act.latency, _STANDING,
+    )  # fmt: skip
 
 
 def actuate(act, command: np.ndarray, speed: np.ndarray, r: np.ndarray, previous: np.ndarray) -> tuple:
@@ -286,7 +303,7 @@ def predict_numpy(shield: Shield, scene: Scene, plan: _Plan, command: np.ndarray
             arcs.append(x[1:])
             speeds.append(v[1:])
             arc, speed = x[-1], v[-1]
-            reach = reach_speeds(speed, r, previous, a_max, act.reach)
+            reach = reach_speeds(speed, act, a_max, r, previous)
             go = committed(plan, arc, reach, a_max)
             settled_now = (((reach <= _STANDING) & ~go) | (arc > plan.hull_end)).all()
             if settled_now and gaps_hold(shield, plan, arc, speed, go, a_max, reach):

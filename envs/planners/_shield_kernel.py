@@ -58,6 +58,8 @@ class PlanArrays(NamedTuple):
     ahead_arc: np.ndarray
     follow_floor: np.ndarray
     follow_until: np.ndarray  # (k,) the arc of the vehicle ahead at which the pair ends (it has turned off); inf
+    follow_keep: np.ndarray  # (k,) room the fallback keeps over the gap margin [m] (0; under declared bounds, > 0)
+    merge_keep: np.ndarray  # (g,) the same for the merging pairs
     cross: np.ndarray
     cross_lo: np.ndarray
     cross_hi: np.ndarray
@@ -377,13 +379,13 @@ def _fallback(
         if not go[f] or arc[ahead] >= plan.follow_until[k]:  # braking anyway, or the one ahead has turned off
             continue
         gap = plan.follow_gap[k] + (arc[ahead] - plan.ahead_arc[k]) - (arc[f] - plan.follower_arc[k])
-        if _unsafe(gap, reach[f], speed[ahead], proceed, a_max, dt, gap_margin):
+        if _unsafe(gap - plan.follow_keep[k], reach[f], speed[ahead], proceed, a_max, dt, gap_margin):
             acc[f] = slow
     for g in range(plan.merge.shape[0]):
         f, ahead, active, distance = _merge_leader(plan, g, arc, go)
         if not active:
             continue
-        gap = distance + 0.5 * gap_margin  # kept at gap_margin: half a margin more than the check's distance
+        gap = distance + 0.5 * gap_margin - plan.merge_keep[g]  # kept at gap_margin: half a margin over the check's
         if go[f] and plan.merge_yields[f] and _unsafe(gap, reach[f], speed[ahead], proceed, a_max, dt, gap_margin):
             acc[f] = slow
 
@@ -520,27 +522,68 @@ class Actuation(NamedTuple):
     old_share: np.ndarray  # (S,) share of each sub-step of a period under the previous command
     decay: float
     mean_share: float
-    reach: float  # lag + latency [s]: how much longer than at once a command can take to brake a vehicle
+    lag: float  # time constant of the lag [s]
+    latency: float  # how much later than planned a command applies [s]
+
+
+@numba.njit(cache=True)
+def _lagged_stop(v: float, r: float, c: float, a: float, lag: float, latency: float) -> float:
+    """How far a moving vehicle travels until it stands when it is commanded to brake at ``a`` now: the command in
+    flight ``c`` holds for ``latency``, then ``-a``, each realised through the first-order lag from ``r`` now.
+
+    Closed form per phase (``r(t) = c + (r0 - c) exp(-t / lag)`` integrates twice exactly); the braking phase ends
+    where the speed ``v1 - a t + k lag (1 - exp(-t / lag))`` (``k = r1 + a``) reaches 0, found by Newton's method from
+    ``(v1 + k lag) / a``, to the right of the root: the speed is concave in ``t``, so the iterates decrease to it.
+    """
+    if lag > 0.0:
+        e1 = math.exp(-latency / lag)
+        v1 = v + c * latency + (r - c) * lag * (1.0 - e1)
+        x1 = v * latency + 0.5 * c * latency * latency + (r - c) * lag * (latency - lag * (1.0 - e1))
+        r1 = c + (r - c) * e1
+    else:
+        v1 = v + c * latency
+        x1 = v * latency + 0.5 * c * latency * latency
+        r1 = c
+    if v1 <= 0.0:  # it stands within the latency: no farther than at its speed, plus what a push now adds
+        return v * latency + 0.5 * max(r, c, 0.0) * latency * latency
+    k = r1 + a
+    if lag <= 0.0 or k <= 0.0:
+        return x1 + v1 * v1 / (2.0 * a)
+    t = (v1 + k * lag) / a
+    for _ in range(12):
+        e = math.exp(-t / lag)
+        f = v1 - a * t + k * lag * (1.0 - e)
+        step = f / (-a + k * e)
+        t -= step
+        if -1e-12 < step < 1e-12:
+            break
+    e = math.exp(-t / lag)
+    return x1 + v1 * t - 0.5 * a * t * t + k * lag * (t - lag * (1.0 - e))
 
 
 @numba.njit(cache=True)
 def reach_speeds(
-    speed: np.ndarray, realised: np.ndarray, previous: np.ndarray, a_max: float, reach: float, standing: float
+    speed: np.ndarray,
+    realised: np.ndarray,
+    previous: np.ndarray,
+    a_max: float,
+    lag: float,
+    latency: float,
+    standing: float,
 ) -> np.ndarray:
-    """``(n,)`` the speeds from which braking at ``a_max`` at once would stop each vehicle no earlier than it stops
-    under latency and lag: ``v + (max(r, c) + a_max) * (latency + lag)``, where ``r`` is the realised acceleration and
-    ``c`` the command in flight. Under ``r(t) = -a + (r0 + a) exp(-t / lag)`` the speed exceeds that of braking at once
-    by at most ``(r0 + a) lag``, and the latency adds at most ``(c + a) latency``, so ``x(t) <= v' t - a t^2 / 2``
-    and the stop lies within ``v'^2 / (2 a)``. A standing vehicle only creeps while ``max(r, c) > 0``.
-    Every rule that reads a stopping distance (committed, waits, the gaps kept) reads these; without lag or latency
-    they are the speeds (the shield then passes the speeds themselves).
+    """``(n,)`` the speeds whose stopping distance at ``a_max`` at once, ``v^2 / (2 a_max)``, is the distance each
+    vehicle travels until it stands when braked now under latency and lag (:func:`_lagged_stop`, from its realised
+    acceleration ``r`` and the command in flight ``c``; never below its speed). A standing vehicle only creeps while
+    ``max(r, c) > 0``: ``max(r, c, 0) (lag + latency)``. Every rule that reads a stopping distance (committed, waits,
+    the gaps kept) reads these; without lag or latency the shield passes the speeds themselves.
     """
     out = np.empty(speed.shape[0])
     for i in range(speed.shape[0]):
-        push = max(realised[i], previous[i])
         if speed[i] > standing:
-            push = push + a_max
-        out[i] = speed[i] + max(push, 0.0) * reach
+            d = _lagged_stop(speed[i], realised[i], previous[i], a_max, lag, latency)
+            out[i] = max(math.sqrt(2.0 * a_max * max(d, 0.0)), speed[i])
+        else:
+            out[i] = speed[i] + max(realised[i], previous[i], 0.0) * (lag + latency)
     return out
 
 
@@ -631,7 +674,7 @@ def predict_lagged(
         _integrate_substeps(table, plan.route, sub, arcs, speeds, row, substeps, h, max_speed, caps)
         row += substeps
         v = speeds[row]
-        reach = reach_speeds(v, r, previous, a_max, actuation.reach, standing)
+        reach = reach_speeds(v, r, previous, a_max, actuation.lag, actuation.latency, standing)
         if _all_committed(plan, arcs[row], reach, go, a_max, standing, slack) and _gaps_hold(
             plan, arcs[row], v, reach, go, a_max, gap_margin, slack
         ):

@@ -104,6 +104,10 @@ _STOP_SLACK = STOP_SLACK
 LIVE_SPEED = CRAWL_SPEED  # also the human window's crawl speed
 # Planner-error lines a shield keeps per run (the count is complete).
 MAX_ERROR_LINES = 5
+# On a perceived scene (declared bounds): how much a follow gap below its floor may shrink in a prediction, and the
+# room the fallback keeps over its gap margin, for the changes of view from one step to the next [m] (`_view_floors`).
+VIEW_SHRINK = 0.5
+VIEW_KEEP = 1.0
 # Rounding allowance on the bound of a vehicle's stopping point over a prediction (`Shield._may_commit`) [m].
 _REACH_TOLERANCE = 1e-3
 
@@ -151,6 +155,7 @@ class _Plan:
     # Declared bounds (`Shield._widening`, `Shield._actuation`): (n,) how far each vehicle's true position may lie
     # from the scene's (0: exact), and the actuation model of the prediction (None: commands realised at once).
     widen: np.ndarray | None = None
+    follow_keep: np.ndarray | None = None  # (k,) room the fallback keeps to the vehicle ahead over gap_margin [m]
     actuation: _shield_kernel.Actuation | None = None
 
     def __post_init__(self) -> None:
@@ -169,6 +174,10 @@ class _Plan:
             ahead_arc=f(self.arc[ahead]),
             follow_floor=f(self.follow_floor),
             follow_until=f(self.follow_until),
+            follow_keep=f(np.zeros(len(follower)) if self.follow_keep is None else self.follow_keep),
+            merge_keep=f(
+                np.zeros(len(self.merge)) if self.follow_keep is None else np.full(len(self.merge), VIEW_KEEP)
+            ),
             cross=i(self.cross),
             cross_lo=f(self.cross_lo),
             cross_hi=f(self.cross_hi),
@@ -407,6 +416,8 @@ class Shield(Planner):
         if going.any() or waiting.any():
             self._human_windows(scene, plan, going, waiting)
         fallback = self._fallback(scene, plan, plan.arc, plan.speed)
+        if plan.widen is not None:  # a perceived scene: what its changes of view leave the fallback unable to keep
+            self._tolerate(scene, plan, np.where(human, acc, fallback))
         acc = np.where(forced, fallback, acc)
         # Liveness: a vehicle past its stop line that the proposal brakes is proposed onwards instead
         # (checked like any proposal: where going on conflicts, the fallback brakes it).
@@ -640,11 +651,15 @@ class Shield(Planner):
             candidate, self._prune, lay.conflicts, _merging_routes(lay), parting_arcs(lay), lay.zone_start,
             lay.zone_end, lay.exit_arc, pad, self.merge_margin, _STANDING, _STOP_SLACK,
         )  # fmt: skip
+        floor = np.minimum(0.5 * self.gap_margin, follow_gap - 1e-6)  # a short gap may not shrink
+        keep = None
         if widen is not None:  # a gap may be shorter, and a merge closer, by both vehicles' widening
             follow_gap = follow_gap - widen[follow[:, 0]] - widen[follow[:, 1]]
             merge_sep = merge_sep + widen[merge[:, 0]] + widen[merge[:, 1]]
+            floor, keep = self._view_floors(follow_gap, widen[follow[:, 0]] + widen[follow[:, 1]])
         return _Plan(
             widen=widen,
+            follow_keep=keep,
             actuation=self._actuation(scene),
             human=scene.humans,
             pad=pad,
@@ -665,7 +680,7 @@ class Shield(Planner):
             merge_sep=merge_sep,
             rank=rank,
             vehicle_id=np.asarray(scene.vehicle_id),
-            follow_floor=np.minimum(0.5 * self.gap_margin, follow_gap - 1e-6),  # a short gap may not shrink
+            follow_floor=floor,
             cross_already=already,
             cross_back=back,
             cross_stop=stop,
@@ -789,8 +804,44 @@ class Shield(Planner):
             old_share=np.clip((latency - np.arange(substeps) * h) / h, 0.0, 1.0),
             decay=decay,
             mean_share=lag / h * (1.0 - decay) if lag > 0 else 0.0,
-            reach=lag + latency,
+            lag=lag,
+            latency=latency,
         )
+
+    def _view_floors(self, follow_gap: np.ndarray, widen: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The follow pairs' floors and the room their fallback keeps over ``gap_margin`` on a perceived scene (the
+        gaps already shortened by both vehicles' widening, ``widen``). A perceived gap changes from one step to the
+        next by more than the vehicles move (the errors drift): a gap below the floor may shrink by
+        :data:`VIEW_SHRINK` rather than not at all, though never below the floor of the exact world on the
+        perceived gap; and the fallback keeps :data:`VIEW_KEEP` more room, which the next view may take."""
+        floor = np.maximum(np.minimum(0.5 * self.gap_margin, follow_gap - VIEW_SHRINK), 0.5 * self.gap_margin - widen)
+        return np.minimum(floor, follow_gap - 1e-6), np.full(len(follow_gap), VIEW_KEEP)
+
+    def _tolerate(self, scene: Scene, plan: _Plan, fallback: np.ndarray) -> None:
+        """Where the fallback itself leaves a follow gap below its floor in the prediction (a perceived scene's view of
+        two braking vehicles changes from step to step by what the bounds allow, and the plan accepted at the last
+        step no longer shows the gap kept), a proposal may not close it further than the fallback does: the floor
+        of such a pair becomes the smallest gap of the fallback's prediction. Without it one such pair, which no
+        command can help, would override every vehicle's proposal with the fallback."""
+        if not (len(plan.follow) or len(plan.merge)):
+            return
+        arc, _ = self.predict(scene, plan, fallback)
+        f, ahead = plan.follow[:, 0], plan.follow[:, 1]
+        gap = plan.follow_gap + (arc[1:, ahead] - plan.arc[ahead]) - (arc[1:, f] - plan.arc[f])
+        gap = np.where(arc[1:, ahead] < plan.follow_until, gap, np.inf).min(axis=0)
+        low = gap < plan.follow_floor
+        if low.any():
+            plan.follow_floor = np.where(low, gap - 1e-6, plan.follow_floor)
+            plan.kernel_arrays = plan.kernel_arrays._replace(follow_floor=np.ascontiguousarray(plan.follow_floor))
+        if len(plan.merge):  # a merging pair: its separation, once both have reached the merge
+            x = arc[1:][:, plan.merge]
+            reached = (x > plan.merge_lo).all(axis=2)
+            e = x - plan.merge_exit
+            distance = np.where(reached, np.abs(e[..., 0] - e[..., 1]), np.inf).min(axis=0)
+            close = distance < plan.merge_sep
+            if close.any():
+                plan.merge_sep = np.where(close, distance - 1e-6, plan.merge_sep)
+                plan.kernel_arrays = plan.kernel_arrays._replace(merge_sep=np.ascontiguousarray(plan.merge_sep))
 
     def _reach_now(self, plan: _Plan, a_max: float, speed: np.ndarray | None = None) -> np.ndarray:
         """The speeds now as the rules' stopping distances read them (:func:`envs.planners._shield_kernel.reach_speeds`:
@@ -799,7 +850,9 @@ class Shield(Planner):
         act = plan.actuation
         if act is None:
             return speed
-        return _shield_kernel.reach_speeds(speed, act.realised, act.previous, float(a_max), act.reach, _STANDING)
+        return _shield_kernel.reach_speeds(
+            speed, act.realised, act.previous, float(a_max), act.lag, act.latency, _STANDING
+        )
 
     # ------------------------------------------------------------------ the fallback
     def _committed_now(self, plan: _Plan, a_max: float) -> np.ndarray:
