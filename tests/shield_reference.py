@@ -255,14 +255,16 @@ def fallback_numpy(shield: Shield, scene: Scene, plan: _Plan, arc: np.ndarray, s
     return fallback_given(shield, plan, arc, speed, go, a_max, float(scene.dt), reach)
 
 
-def reach_speeds(speed: np.ndarray, act, a_max: float, r: np.ndarray | None = None, previous=None) -> np.ndarray:
+def reach_speeds(
+    speed: np.ndarray, act, a_max: float, r: np.ndarray | None = None, previous=None, margin: float = 0.0
+) -> np.ndarray:
     """The kernels' reach speeds (``_shield_kernel.reach_speeds``, a primitive that the oracle shares, as it shares
     ``can_stop``; ``tests/test_shield_declared.py`` checks it against the plant's actuator)."""
     r = act.realised if r is None else r
     previous = act.previous if previous is None else previous
     return _shield_kernel.reach_speeds(
         np.ascontiguousarray(speed, dtype=float), np.ascontiguousarray(r, dtype=float),
-        np.ascontiguousarray(previous, dtype=float), a_max, act.lag, act.latency, _STANDING,
+        np.ascontiguousarray(previous, dtype=float), a_max, act.lag, act.latency, _STANDING, margin,
     )  # fmt: skip
 
 
@@ -303,7 +305,7 @@ def predict_numpy(shield: Shield, scene: Scene, plan: _Plan, command: np.ndarray
             arcs.append(x[1:])
             speeds.append(v[1:])
             arc, speed = x[-1], v[-1]
-            reach = reach_speeds(speed, act, a_max, r, previous)
+            reach = reach_speeds(speed, act, a_max, r, previous, act.margin)
             go = committed(plan, arc, reach, a_max)
             settled_now = (((reach <= _STANDING) & ~go) | (arc > plan.hull_end)).all()
             if settled_now and gaps_hold(shield, plan, arc, speed, go, a_max, reach):

@@ -115,3 +115,4 @@ def test_an_exact_scene_costs_nothing_and_a_perceived_one_is_widened():
     # bounds without faults of a kind leave that part out
     assert Shield(FullThrottle(), bounds=ShieldBounds(lag=0.3))._plan(scene).widen is None
     assert Shield(FullThrottle(), bounds=ShieldBounds(position=3.0))._plan(scene).actuation is None
+

@@ -524,6 +524,7 @@ class Actuation(NamedTuple):
     mean_share: float
     lag: float  # time constant of the lag [s]
     latency: float  # how much later than planned a command applies [s]
+    margin: float  # [m] added to a moving vehicle's stop at the prediction's later states (`reach_speeds`)
 
 
 @numba.njit(cache=True)
@@ -570,18 +571,21 @@ def reach_speeds(
     lag: float,
     latency: float,
     standing: float,
+    margin: float = 0.0,
 ) -> np.ndarray:
     """``(n,)`` the speeds whose stopping distance at ``a_max`` at once, ``v^2 / (2 a_max)``, is the distance each
     vehicle travels until it stands when braked now under latency and lag (:func:`_lagged_stop`, from its realised
     acceleration ``r`` and the command in flight ``c``; never below its speed). A standing vehicle only creeps while
     ``max(r, c) > 0``: ``max(r, c, 0) (lag + latency)``. Every rule that reads a stopping distance (committed, waits,
-    the gaps kept) reads these; without lag or latency the shield passes the speeds themselves.
+    the gaps kept) reads these; without lag or latency the shield passes the speeds themselves. ``margin`` [m]
+    lengthens a moving vehicle's stop: the prediction's later states are judged so (``Actuation.margin``), that the
+    next step's view, which may differ by that much, still finds the vehicles that the plan let go able to stop.
     """
     out = np.empty(speed.shape[0])
     for i in range(speed.shape[0]):
         if speed[i] > standing:
             d = _lagged_stop(speed[i], realised[i], previous[i], a_max, lag, latency)
-            out[i] = max(math.sqrt(2.0 * a_max * max(d, 0.0)), speed[i])
+            out[i] = max(math.sqrt(2.0 * a_max * max(d + margin, 0.0)), speed[i])
         else:
             out[i] = speed[i] + max(realised[i], previous[i], 0.0) * (lag + latency)
     return out
@@ -674,7 +678,7 @@ def predict_lagged(
         _integrate_substeps(table, plan.route, sub, arcs, speeds, row, substeps, h, max_speed, caps)
         row += substeps
         v = speeds[row]
-        reach = reach_speeds(v, r, previous, a_max, actuation.lag, actuation.latency, standing)
+        reach = reach_speeds(v, r, previous, a_max, actuation.lag, actuation.latency, standing, actuation.margin)
         if _all_committed(plan, arcs[row], reach, go, a_max, standing, slack) and _gaps_hold(
             plan, arcs[row], v, reach, go, a_max, gap_margin, slack
         ):

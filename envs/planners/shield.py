@@ -108,6 +108,8 @@ MAX_ERROR_LINES = 5
 # room the fallback keeps over its gap margin, for the changes of view from one step to the next [m] (`_view_floors`).
 VIEW_SHRINK = 0.5
 VIEW_KEEP = 1.0
+# ... and how much farther a moving vehicle may be found to stop at the next step than the prediction shows [m].
+VIEW_STOP = 4.0
 # Rounding allowance on the bound of a vehicle's stopping point over a prediction (`Shield._may_commit`) [m].
 _REACH_TOLERANCE = 1e-3
 
@@ -417,7 +419,7 @@ class Shield(Planner):
             self._human_windows(scene, plan, going, waiting)
         fallback = self._fallback(scene, plan, plan.arc, plan.speed)
         if plan.widen is not None:  # a perceived scene: what its changes of view leave the fallback unable to keep
-            self._tolerate(scene, plan, np.where(human, acc, fallback))
+            forced = forced | (self._tolerate(scene, plan, np.where(human, acc, fallback)) & ~human)
         acc = np.where(forced, fallback, acc)
         # Liveness: a vehicle past its stop line that the proposal brakes is proposed onwards instead
         # (checked like any proposal: where going on conflicts, the fallback brakes it).
@@ -806,6 +808,7 @@ class Shield(Planner):
             mean_share=lag / h * (1.0 - decay) if lag > 0 else 0.0,
             lag=lag,
             latency=latency,
+            margin=VIEW_STOP,
         )
 
     def _view_floors(self, follow_gap: np.ndarray, widen: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -817,20 +820,25 @@ class Shield(Planner):
         floor = np.maximum(np.minimum(0.5 * self.gap_margin, follow_gap - VIEW_SHRINK), 0.5 * self.gap_margin - widen)
         return np.minimum(floor, follow_gap - 1e-6), np.full(len(follow_gap), VIEW_KEEP)
 
-    def _tolerate(self, scene: Scene, plan: _Plan, fallback: np.ndarray) -> None:
+    def _tolerate(self, scene: Scene, plan: _Plan, fallback: np.ndarray) -> np.ndarray:
         """Where the fallback itself leaves a follow gap below its floor in the prediction (a perceived scene's view of
         two braking vehicles changes from step to step by what the bounds allow, and the plan accepted at the last
         step no longer shows the gap kept), a proposal may not close it further than the fallback does: the floor
         of such a pair becomes the smallest gap of the fallback's prediction. Without it one such pair, which no
-        command can help, would override every vehicle's proposal with the fallback."""
+        command can help, would override every vehicle's proposal with the fallback. The followers of such pairs
+        get the fallback (returned, ``(n,)`` bool): a floor lowered so must not let a proposal close the gap further,
+        step after step.
+        """
+        follower = np.zeros(len(plan.arc), bool)
         if not (len(plan.follow) or len(plan.merge)):
-            return
+            return follower
         arc, _ = self.predict(scene, plan, fallback)
         f, ahead = plan.follow[:, 0], plan.follow[:, 1]
         gap = plan.follow_gap + (arc[1:, ahead] - plan.arc[ahead]) - (arc[1:, f] - plan.arc[f])
         gap = np.where(arc[1:, ahead] < plan.follow_until, gap, np.inf).min(axis=0)
         low = gap < plan.follow_floor
         if low.any():
+            follower[f[low]] = True
             plan.follow_floor = np.where(low, gap - 1e-6, plan.follow_floor)
             plan.kernel_arrays = plan.kernel_arrays._replace(follow_floor=np.ascontiguousarray(plan.follow_floor))
         if len(plan.merge):  # a merging pair: its separation, once both have reached the merge
@@ -840,8 +848,11 @@ class Shield(Planner):
             distance = np.where(reached, np.abs(e[..., 0] - e[..., 1]), np.inf).min(axis=0)
             close = distance < plan.merge_sep
             if close.any():
+                behind = np.where(e[0, :, 0] >= e[0, :, 1], plan.merge[:, 1], plan.merge[:, 0])
+                follower[behind[close]] = True
                 plan.merge_sep = np.where(close, distance - 1e-6, plan.merge_sep)
                 plan.kernel_arrays = plan.kernel_arrays._replace(merge_sep=np.ascontiguousarray(plan.merge_sep))
+        return follower
 
     def _reach_now(self, plan: _Plan, a_max: float, speed: np.ndarray | None = None) -> np.ndarray:
         """The speeds now as the rules' stopping distances read them (:func:`envs.planners._shield_kernel.reach_speeds`:
