@@ -6,6 +6,9 @@ Per layout and planner: runs, collided vehicles, stuck runs (the watchdog: no cr
 (steps), unresolved steps and the mean flow; printed as Markdown and written to ``--csv``::
 
     python scripts/hostile_table.py --scenarios 4 --duration 60 --seed 8383 --csv hostile.csv
+
+``--faults bounds --shield-bounds declared`` runs them in the imperfect world at the declared bounds
+(``scripts/fault_table.py``'s levels), the shields declared at them.
 """
 
 from __future__ import annotations
@@ -21,6 +24,10 @@ import pandas as pd
 from envs.commands.evaluate import with_plant
 from envs.evaluation.harness import evaluate, generate_scenarios
 from envs.evaluation.metrics import STANDSTILL_LIMIT
+from envs.planners.shield_bounds import ShieldBounds, parse_shield_bounds
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from fault_table import LEVELS, level_faults  # noqa: E402
 
 LAYOUTS = {"4way": "CoopIntersection4Way-v0", "3way": "CoopIntersection3Way-v0", "inD": "CoopIntersectionInD-v0"}
 ATTACKS = (
@@ -46,19 +53,30 @@ def hostile_table(
     layouts=tuple(LAYOUTS),
     plant: str | None = None,
     human_share: float = 0.0,
+    faults: str = "none",
+    bounds: ShieldBounds | None = None,
 ) -> pd.DataFrame:
     """One row per layout and attack (see the module docstring); ``plant``: the env config's (``"sumo"``: SUMO,
-    its drivers the humans), ``human_share``: the share of human drivers in the scenarios."""
+    its drivers the humans), ``human_share``: the share of human drivers in the scenarios; ``faults``: a fault level
+    of ``scripts/fault_table.py``; ``bounds``: the shields' declared bounds."""
     rows = []
     planners = [(f"envs.planners.hostile:{cls}+shield", attack) for attack, cls in ATTACKS]
-    env_kwargs = with_plant(None, plant)
+    env_kwargs = with_plant({"config": {"faults": level_faults(faults)}} if faults != "none" else None, plant)
     with tempfile.TemporaryDirectory() as folder:
         for layout in layouts:
             files = generate_scenarios(
                 Path(folder) / layout, scenarios, duration, seed, layout, human_share=human_share
             )
             runs, _ = evaluate(
-                planners, files, LAYOUTS[layout], duration, seed=seed, jobs=jobs, env_kwargs=env_kwargs, progress=False
+                planners,
+                files,
+                LAYOUTS[layout],
+                duration,
+                seed=seed,
+                jobs=jobs,
+                env_kwargs=env_kwargs,
+                progress=False,
+                shield_bounds=bounds,
             )
             for (_, attack), cls in zip(planners, (c for _, c in ATTACKS)):
                 r = runs[runs["planner"] == attack]
@@ -103,7 +121,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--csv", type=Path, default=None, help="also write the table here (never overwritten)")
     parser.add_argument("--plant", choices=["builtin", "sumo"], default=None, help="the plant (default: ours)")
     parser.add_argument("--human-share", type=float, default=0.0, help="share of human drivers, in [0, 1]")
+    parser.add_argument("--faults", choices=LEVELS, default="none", help="fault level (scripts/fault_table.py)")
+    parser.add_argument("--shield-bounds", default="none", help="the shields' declared bounds (none, declared, ...)")
     args = parser.parse_args(argv)
+    try:
+        bounds = parse_shield_bounds(args.shield_bounds)
+    except ValueError as error:
+        parser.error(str(error))
     if args.scenarios < 1 or args.jobs < 1 or not args.duration > 0:
         parser.error("--scenarios and --jobs must be >= 1 and --duration > 0")
     if not 0.0 <= args.human_share <= 1.0:
@@ -112,11 +136,14 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--csv: {args.csv} exists (never overwritten)")
     tic = time.perf_counter()
     layouts = tuple(args.layout or LAYOUTS)
-    table = hostile_table(args.scenarios, args.duration, args.seed, args.jobs, layouts, args.plant, args.human_share)
+    table = hostile_table(
+        args.scenarios, args.duration, args.seed, args.jobs, layouts, args.plant, args.human_share, args.faults, bounds
+    )
     print(markdown(table))
     print(
         f"\n{args.scenarios} scenarios x {args.duration:g} s per layout, seed {args.seed}, "
-        f"plant {args.plant or 'builtin'}, human share {args.human_share:g}; stuck: no crossing for "
+        f"plant {args.plant or 'builtin'}, human share {args.human_share:g}, faults {args.faults}, shield bounds "
+        f"{bounds.text()}; stuck: no crossing for "
         f"{STANDSTILL_LIMIT:g} s while vehicles wait; {time.perf_counter() - tic:.0f} s wall"
     )
     if args.csv is not None:

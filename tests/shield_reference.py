@@ -17,6 +17,7 @@ import weakref
 
 import numpy as np
 
+from envs.planners import _shield_kernel
 from envs.planners.shield import _STANDING, _STOP_SLACK, Shield, _merging_routes, _Plan, envelope_table
 from envs.simulation.engine import integrate
 from envs.simulation.layouts import parting_arcs
@@ -66,6 +67,8 @@ def plan_pairs_numpy(shield: Shield, scene: Scene, plan: _Plan) -> dict[str, np.
             arc[ahead] - arc[behind] - (length[ahead] + length[behind]) / 2,
         ]
     )
+    if plan.widen is not None:  # declared bounds: a gap may be shorter by both vehicles' widening
+        follow_gap = follow_gap - plan.widen[follow[:, 0]] - plan.widen[follow[:, 1]]
     # Conflicting routes, among the vehicles that may commit.
     may = shield._may_commit(scene, arc, speed, hull_start) | plan.waiting  # a waiting human keeps its windows
     rows = np.flatnonzero(may) if shield._prune else np.arange(len(arc))
@@ -102,7 +105,9 @@ def plan_pairs_numpy(shield: Shield, scene: Scene, plan: _Plan) -> dict[str, np.
         "merge": merge,
         "merge_lo": lay.zone_start[r, r[:, ::-1]] - plan.pad[merge] - length[merge] / 2,
         "merge_exit": lay.exit_arc[r],
-        "merge_sep": length[merge].sum(axis=1) / 2 + shield.merge_margin,
+        "merge_sep": length[merge].sum(axis=1) / 2 + shield.merge_margin
+        if plan.widen is None
+        else length[merge].sum(axis=1) / 2 + shield.merge_margin + plan.widen[merge[:, 0]] + plan.widen[merge[:, 1]],
         "rank": rank,
     }
 
@@ -167,7 +172,9 @@ def leaders_now(
     return f, ahead, gap
 
 
-def gaps_hold(shield: Shield, plan: _Plan, arc: np.ndarray, speed: np.ndarray, go: np.ndarray, a_max: float) -> bool:
+def gaps_hold(
+    shield: Shield, plan: _Plan, arc: np.ndarray, speed: np.ndarray, go: np.ndarray, a_max: float, reach=None
+) -> bool:
     """Every leader relation of :func:`leaders_now` (a merging one only where the follower yields) keeps the
     check's floor: now, and once both have stopped at ``a_max`` when the follower is the faster (with the
     stopping slack); the check's floor of a merging pair is a distance of 0, half a gap margin below its gap."""
@@ -175,7 +182,7 @@ def gaps_hold(shield: Shield, plan: _Plan, arc: np.ndarray, speed: np.ndarray, g
     live = plan.follow_floor[arc[plan.follow[:, 1]] < plan.follow_until]
     floor = np.concatenate([live, np.full(len(f) - len(live), 0.5 * shield.gap_margin)])
     yields = np.concatenate([np.ones(len(live), bool), ~np.asarray(plan.human, bool)[f[len(live) :]]])
-    vf, va = speed[f], speed[ahead]
+    vf, va = (speed if reach is None else reach)[f], speed[ahead]
     stop = gap - (vf**2 - va**2) / (2 * a_max)
     room = (gap >= floor) & ((vf <= va) | (stop >= floor + _STOP_SLACK))
     return bool((room | ~yields).all())
@@ -199,15 +206,39 @@ def safe_gap_after(
     return after - np.maximum(v_f**2 - v_a**2, 0.0) / (2 * a_max) >= margin
 
 
+def shield_keep(plan: _Plan, arc: np.ndarray, go: np.ndarray) -> np.ndarray:
+    """The room the fallback keeps over the gap margin in the active merging pairs (:func:`leaders_now`'s order)."""
+    if not plan.merge.size:
+        return np.zeros(0)
+    m0, m1 = plan.merge[:, 0], plan.merge[:, 1]
+    e0, e1 = arc[m0] - plan.merge_exit[:, 0], arc[m1] - plan.merge_exit[:, 1]
+    second = e0 >= e1
+    first = np.where(second, m0, m1)
+    active = np.where(second, arc[m0] > plan.merge_lo[:, 0], arc[m1] > plan.merge_lo[:, 1]) | go[first]
+    return plan.kernel_arrays.merge_keep[active]
+
+
 def fallback_given(
-    shield: Shield, plan: _Plan, arc: np.ndarray, speed: np.ndarray, go: np.ndarray, a_max: float, dt: float
+    shield: Shield,
+    plan: _Plan,
+    arc: np.ndarray,
+    speed: np.ndarray,
+    go: np.ndarray,
+    a_max: float,
+    dt: float,
+    reach: np.ndarray | None = None,
 ) -> np.ndarray:
-    """The fallback's accelerations in a state, with the committed vehicles (``go``) known."""
+    """The fallback's accelerations in a state, with the committed vehicles (``go``) known; ``reach``: the speeds
+    that stopping distances read under latency and lag (:func:`reach_speeds`; default the speeds)."""
+    reach = speed if reach is None else reach
     proceed = min(shield.proceed_acceleration, a_max)
-    acc = np.where(go & ~yielding(plan, arc, speed, go, a_max), proceed, -a_max)
+    acc = np.where(go & ~yielding(plan, arc, reach, go, a_max), proceed, -a_max)
     f, ahead, gap = leaders_now(shield, plan, arc, go)
+    if plan.follow_keep is not None:  # the room kept over the gap margin on a perceived scene (follow pairs first)
+        live = plan.follow_keep[arc[plan.follow[:, 1]] < plan.follow_until]
+        gap = np.concatenate([gap[: len(live)] - live, gap[len(live) :] - shield_keep(plan, arc, go)])
     if f.size:
-        ok = safe_gap_after(gap, speed[f], speed[ahead], proceed, a_max, dt, shield.gap_margin)
+        ok = safe_gap_after(gap, reach[f], speed[ahead], proceed, a_max, dt, shield.gap_margin)
         # a human driver keeps no gap to a merging vehicle (its model sees it once it leads on the lane)
         live = int((arc[plan.follow[:, 1]] < plan.follow_until).sum())  # the follow pairs come first
         ok |= (np.arange(f.size) >= live) & np.asarray(plan.human, bool)[f]
@@ -216,9 +247,37 @@ def fallback_given(
 
 
 def fallback_numpy(shield: Shield, scene: Scene, plan: _Plan, arc: np.ndarray, speed: np.ndarray) -> np.ndarray:
-    """``Shield._fallback``: brake, or proceed while keeping a safe gap."""
-    go = committed(plan, arc, speed, float(scene.a_max))
-    return fallback_given(shield, plan, arc, speed, go, float(scene.a_max), float(scene.dt))
+    """``Shield._fallback``: brake, or proceed while keeping a safe gap (the state now: its reach speeds)."""
+    a_max = float(scene.a_max)
+    act = plan.actuation
+    reach = speed if act is None else reach_speeds(speed, act, a_max)
+    go = committed(plan, arc, reach, a_max)
+    return fallback_given(shield, plan, arc, speed, go, a_max, float(scene.dt), reach)
+
+
+def reach_speeds(
+    speed: np.ndarray, act, a_max: float, r: np.ndarray | None = None, previous=None, margin: float = 0.0
+) -> np.ndarray:
+    """The kernels' reach speeds (``_shield_kernel.reach_speeds``, a primitive that the oracle shares, as it shares
+    ``can_stop``; ``tests/test_shield_declared.py`` checks it against the plant's actuator)."""
+    r = act.realised if r is None else r
+    previous = act.previous if previous is None else previous
+    return _shield_kernel.reach_speeds(
+        np.ascontiguousarray(speed, dtype=float), np.ascontiguousarray(r, dtype=float),
+        np.ascontiguousarray(previous, dtype=float), a_max, act.lag, act.latency, _STANDING, margin,
+    )  # fmt: skip
+
+
+def actuate(act, command: np.ndarray, speed: np.ndarray, r: np.ndarray, previous: np.ndarray) -> tuple:
+    """One period of :class:`envs.simulation.faults.Actuator` (its arithmetic): ``(S, n)`` mean accelerations per
+    sub-step and the realised accelerations at the period's end."""
+    commanded = act.old_share[:, None] * previous[None, :] + (1.0 - act.old_share)[:, None] * command[None, :]
+    r = np.where(speed <= 0.0, np.maximum(r, 0.0), r)
+    out = np.empty_like(commanded)
+    for k in range(commanded.shape[0]):
+        out[k] = commanded[k] + (r - commanded[k]) * act.mean_share
+        r = commanded[k] + (r - commanded[k]) * act.decay
+    return out, r
 
 
 def predict_numpy(shield: Shield, scene: Scene, plan: _Plan, command: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -235,7 +294,24 @@ def predict_numpy(shield: Shield, scene: Scene, plan: _Plan, command: np.ndarray
     a_max = float(scene.a_max)
     b = shield.governor_deceleration
     view = prediction_layout(scene.layout, b)
+    act = plan.actuation
+    if act is not None:
+        r, previous = act.realised.copy(), act.previous.copy()
     for _ in range(steps):
+        if act is not None:  # latency and lag: each period through the actuator, the rules on the reach speeds
+            sub, r = actuate(act, acc, speed, r, previous)
+            previous = np.asarray(acc, float).copy()
+            v, x, _ = integrate(view, plan.route, arc, speed, sub, substeps, h, shield.max_speed, b)
+            arcs.append(x[1:])
+            speeds.append(v[1:])
+            arc, speed = x[-1], v[-1]
+            reach = reach_speeds(speed, act, a_max, r, previous, act.margin)
+            go = committed(plan, arc, reach, a_max)
+            settled_now = (((reach <= _STANDING) & ~go) | (arc > plan.hull_end)).all()
+            if settled_now and gaps_hold(shield, plan, arc, speed, go, a_max, reach):
+                break
+            acc = fallback_given(shield, plan, arc, speed, go, a_max, dt, reach)
+            continue
         v, x, _ = integrate(view, plan.route, arc, speed, acc, substeps, h, shield.max_speed, b)
         arcs.append(x[1:])
         speeds.append(v[1:])

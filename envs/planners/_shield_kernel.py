@@ -58,6 +58,8 @@ class PlanArrays(NamedTuple):
     ahead_arc: np.ndarray
     follow_floor: np.ndarray
     follow_until: np.ndarray  # (k,) the arc of the vehicle ahead at which the pair ends (it has turned off); inf
+    follow_keep: np.ndarray  # (k,) room the fallback keeps over the gap margin [m] (0; under declared bounds, > 0)
+    merge_keep: np.ndarray  # (g,) the same for the merging pairs
     cross: np.ndarray
     cross_lo: np.ndarray
     cross_hi: np.ndarray
@@ -271,7 +273,14 @@ def _all_committed(
 
 @numba.njit(cache=True)
 def _gaps_hold(
-    plan: PlanArrays, arc: np.ndarray, speed: np.ndarray, go: np.ndarray, a_max: float, gap_margin: float, slack: float
+    plan: PlanArrays,
+    arc: np.ndarray,
+    speed: np.ndarray,
+    reach: np.ndarray,
+    go: np.ndarray,
+    a_max: float,
+    gap_margin: float,
+    slack: float,
 ) -> bool:
     """``gaps_hold``: whether every leader relation that the fallback keeps (:func:`leaders`) can keep its gap
     from here on, whatever the vehicle ahead does within ``a_max`` braking: the gap is at the check's floor or
@@ -279,18 +288,19 @@ def _gaps_hold(
     when the follower is the faster. Only then may a prediction end once everyone has settled: the fallback,
     which brakes a follower that has less room, then keeps the gap; a planner that closed it for one period
     (a leader rammed past the intersection) must be predicted on. A merging pair's floor is half a gap margin
-    over its separation (as the fallback keeps it, the check's distance of 0)."""
+    over its separation (as the fallback keeps it, the check's distance of 0). ``reach``: the followers' speeds as
+    their stopping distance reads them (:func:`reach_speeds`; ``speed`` itself without an actuation lag)."""
     for k in range(plan.follower.shape[0]):
         f, ahead = plan.follower[k], plan.ahead[k]
         if arc[ahead] >= plan.follow_until[k]:
             continue
         gap = plan.follow_gap[k] + (arc[ahead] - plan.ahead_arc[k]) - (arc[f] - plan.follower_arc[k])
-        if not _room(gap, speed[f], speed[ahead], plan.follow_floor[k], a_max, slack):
+        if not _room(gap, reach[f], speed[ahead], plan.follow_floor[k], a_max, slack):
             return False
     for g in range(plan.merge.shape[0]):
         f, ahead, active, distance = _merge_leader(plan, g, arc, go)
         gap, floor = distance + 0.5 * gap_margin, 0.5 * gap_margin
-        if active and plan.merge_yields[f] and not _room(gap, speed[f], speed[ahead], floor, a_max, slack):
+        if active and plan.merge_yields[f] and not _room(gap, reach[f], speed[ahead], floor, a_max, slack):
             return False
     return True
 
@@ -330,6 +340,7 @@ def _fallback(
     plan: PlanArrays,
     arc: np.ndarray,
     speed: np.ndarray,
+    reach: np.ndarray,
     go: np.ndarray,
     hold: np.ndarray,
     acc: np.ndarray,
@@ -345,6 +356,7 @@ def _fallback(
     :param plan: the scene's arrays
     :param arc: ``(n,)`` arcs [m]
     :param speed: ``(n,)`` speeds [m/s]
+    :param reach: ``(n,)`` the speeds that the stopping distances read (:func:`reach_speeds`; ``speed`` without lag)
     :param go: ``(n,)`` committed vehicles
     :param hold: ``(n,)`` scratch for the yielding vehicles
     :param acc: ``(n,)`` output [m/s^2]
@@ -353,7 +365,7 @@ def _fallback(
     # yielding: a committed vehicle waits before a pair's zone that it can still stop before while
     # its partner cannot (or is in it) and has not cleared it; two inside one zone: the one less far through.
     for p in range(plan.cross.shape[0]):
-        wait_i, wait_j = _pair_waits(plan, p, arc, speed, go, a_max, standing, slack)
+        wait_i, wait_j = _pair_waits(plan, p, arc, reach, go, a_max, standing, slack)
         if wait_i:
             hold[plan.cross[p, 0]] = True
         if wait_j:
@@ -367,14 +379,14 @@ def _fallback(
         if not go[f] or arc[ahead] >= plan.follow_until[k]:  # braking anyway, or the one ahead has turned off
             continue
         gap = plan.follow_gap[k] + (arc[ahead] - plan.ahead_arc[k]) - (arc[f] - plan.follower_arc[k])
-        if _unsafe(gap, speed[f], speed[ahead], proceed, a_max, dt, gap_margin):
+        if _unsafe(gap - plan.follow_keep[k], reach[f], speed[ahead], proceed, a_max, dt, gap_margin):
             acc[f] = slow
     for g in range(plan.merge.shape[0]):
         f, ahead, active, distance = _merge_leader(plan, g, arc, go)
         if not active:
             continue
-        gap = distance + 0.5 * gap_margin  # kept at gap_margin: half a margin more than the check's distance
-        if go[f] and plan.merge_yields[f] and _unsafe(gap, speed[f], speed[ahead], proceed, a_max, dt, gap_margin):
+        gap = distance + 0.5 * gap_margin - plan.merge_keep[g]  # kept at gap_margin: half a margin over the check's
+        if go[f] and plan.merge_yields[f] and _unsafe(gap, reach[f], speed[ahead], proceed, a_max, dt, gap_margin):
             acc[f] = slow
 
 
@@ -426,6 +438,7 @@ def fallback(
     plan: PlanArrays,
     arc: np.ndarray,
     speed: np.ndarray,
+    reach: np.ndarray,
     a_max: float,
     dt: float,
     proceed: float,
@@ -433,11 +446,12 @@ def fallback(
     standing: float,
     slack: float,
 ) -> np.ndarray:
-    """``fallback_numpy``: the fallback's ``(n,)`` accelerations in a state (see :func:`predict`)."""
+    """``fallback_numpy``: the fallback's ``(n,)`` accelerations in a state (see :func:`predict`); ``reach``: the
+    speeds that the stopping distances read (:func:`reach_speeds`; ``speed`` itself without an actuation lag)."""
     n = arc.shape[0]
     go, hold, acc = np.zeros(n, np.bool_), np.zeros(n, np.bool_), np.empty(n)
-    _all_committed(plan, arc, speed, go, a_max, standing, slack)
-    _fallback(plan, arc, speed, go, hold, acc, a_max, dt, proceed, gap_margin, standing, slack)
+    _all_committed(plan, arc, reach, go, a_max, standing, slack)
+    _fallback(plan, arc, speed, reach, go, hold, acc, a_max, dt, proceed, gap_margin, standing, slack)
     return acc
 
 
@@ -487,10 +501,189 @@ def predict(
         _integrate(table, plan.route, acc, arcs, speeds, row, substeps, h, max_speed, caps, governed)
         row += substeps
         if _all_committed(plan, arcs[row], speeds[row], go, a_max, standing, slack) and _gaps_hold(
-            plan, arcs[row], speeds[row], go, a_max, gap_margin, slack
+            plan, arcs[row], speeds[row], speeds[row], go, a_max, gap_margin, slack
         ):
             break  # everyone stands before its zones or has left them, with room behind: the fallback keeps it so
-        _fallback(plan, arcs[row], speeds[row], go, hold, acc, a_max, dt, proceed, gap_margin, standing, slack)
+        v = speeds[row]
+        _fallback(plan, arcs[row], v, v, go, hold, acc, a_max, dt, proceed, gap_margin, standing, slack)
+    return row + 1
+
+
+class Actuation(NamedTuple):
+    """The actuation model of a prediction under declared latency and lag (``Shield`` with bounds): each sub-step
+    the command in flight, then the new one, through a first-order lag, as :class:`envs.simulation.faults.Actuator`.
+
+    The realised acceleration ``r`` follows the command ``c`` as ``r(t) = c + (r0 - c) exp(-t / lag)``: over a sub-step
+    of length ``h`` it decays by ``decay`` and its mean (what the speed change needs) is ``c + (r0 - c) mean_share``.
+    """
+
+    realised: np.ndarray  # (n,) realised accelerations now [m/s^2]
+    previous: np.ndarray  # (n,) the commands in flight now (they hold for the latency) [m/s^2]
+    old_share: np.ndarray  # (S,) share of each sub-step of a period under the previous command
+    decay: float
+    mean_share: float
+    lag: float  # time constant of the lag [s]
+    latency: float  # how much later than planned a command applies [s]
+    margin: float  # [m] added to a moving vehicle's stop at the prediction's later states (`reach_speeds`)
+
+
+@numba.njit(cache=True)
+def _lagged_stop(v: float, r: float, c: float, a: float, lag: float, latency: float) -> float:
+    """How far a moving vehicle travels until it stands when it is commanded to brake at ``a`` now: the command in
+    flight ``c`` holds for ``latency``, then ``-a``, each realised through the first-order lag from ``r`` now.
+
+    Closed form per phase (``r(t) = c + (r0 - c) exp(-t / lag)`` integrates twice exactly); the braking phase ends
+    where the speed ``v1 - a t + k lag (1 - exp(-t / lag))`` (``k = r1 + a``) reaches 0, found by Newton's method from
+    ``(v1 + k lag) / a``, to the right of the root: the speed is concave in ``t``, so the iterates decrease to it.
+    """
+    if lag > 0.0:
+        e1 = math.exp(-latency / lag)
+        v1 = v + c * latency + (r - c) * lag * (1.0 - e1)
+        x1 = v * latency + 0.5 * c * latency * latency + (r - c) * lag * (latency - lag * (1.0 - e1))
+        r1 = c + (r - c) * e1
+    else:
+        v1 = v + c * latency
+        x1 = v * latency + 0.5 * c * latency * latency
+        r1 = c
+    if v1 <= 0.0:  # it stands within the latency: no farther than at its speed, plus what a push now adds
+        return v * latency + 0.5 * max(r, c, 0.0) * latency * latency
+    k = r1 + a
+    if lag <= 0.0 or k <= 0.0:
+        return x1 + v1 * v1 / (2.0 * a)
+    t = (v1 + k * lag) / a
+    for _ in range(12):
+        e = math.exp(-t / lag)
+        f = v1 - a * t + k * lag * (1.0 - e)
+        step = f / (-a + k * e)
+        t -= step
+        if -1e-12 < step < 1e-12:
+            break
+    e = math.exp(-t / lag)
+    return x1 + v1 * t - 0.5 * a * t * t + k * lag * (t - lag * (1.0 - e))
+
+
+@numba.njit(cache=True)
+def reach_speeds(
+    speed: np.ndarray,
+    realised: np.ndarray,
+    previous: np.ndarray,
+    a_max: float,
+    lag: float,
+    latency: float,
+    standing: float,
+    margin: float = 0.0,
+) -> np.ndarray:
+    """``(n,)`` the speeds whose stopping distance at ``a_max`` at once, ``v^2 / (2 a_max)``, is the distance each
+    vehicle travels until it stands when braked now under latency and lag (:func:`_lagged_stop`, from its realised
+    acceleration ``r`` and the command in flight ``c``; never below its speed). A standing vehicle only creeps while
+    ``max(r, c) > 0``: ``max(r, c, 0) (lag + latency)``. Every rule that reads a stopping distance (committed, waits,
+    the gaps kept) reads these; without lag or latency the shield passes the speeds themselves. ``margin`` [m]
+    lengthens a moving vehicle's stop: the prediction's later states are judged so (``Actuation.margin``), that the
+    next step's view, which may differ by that much, still finds the vehicles that the plan let go able to stop.
+    """
+    out = np.empty(speed.shape[0])
+    for i in range(speed.shape[0]):
+        if speed[i] > standing:
+            d = _lagged_stop(speed[i], realised[i], previous[i], a_max, lag, latency)
+            out[i] = max(math.sqrt(2.0 * a_max * max(d + margin, 0.0)), speed[i])
+        else:
+            out[i] = speed[i] + max(realised[i], previous[i], 0.0) * (lag + latency)
+    return out
+
+
+@numba.njit(cache=True)
+def _actuate(actuation: Actuation, command: np.ndarray, speed: np.ndarray, r: np.ndarray, previous: np.ndarray,
+             acc: np.ndarray) -> None:  # fmt: skip
+    """One period of :class:`envs.simulation.faults.Actuator`: the ``(S, n)`` mean accelerations ``acc`` of each
+    sub-step under ``command`` (after ``previous`` for the latency), from the realised ``r``; ``r`` and
+    ``previous`` move on to the period's end. A vehicle at rest starts from no less than 0 (its brakes hold it)."""
+    old, decay, mean = actuation.old_share, actuation.decay, actuation.mean_share
+    for i in range(command.shape[0]):
+        ri = r[i]
+        if speed[i] <= 0.0:
+            ri = max(ri, 0.0)
+        for k in range(old.shape[0]):
+            c = old[k] * previous[i] + (1.0 - old[k]) * command[i]
+            acc[k, i] = c + (ri - c) * mean
+            ri = c + (ri - c) * decay
+        r[i] = ri
+        previous[i] = command[i]
+
+
+@numba.njit(cache=True)
+def _integrate_substeps(
+    table: EnvelopeTable,
+    route: np.ndarray,
+    acc: np.ndarray,
+    arcs: np.ndarray,
+    speeds: np.ndarray,
+    row: int,
+    substeps: int,
+    h: float,
+    max_speed: float,
+    caps: np.ndarray,
+) -> None:
+    """:func:`_integrate` with one acceleration per sub-step (``acc``: ``(S, n)``), as
+    :func:`envs.simulation.engine.integrate` with a two-dimensional ``acc``."""
+    n = route.shape[0]
+    for i in range(n):
+        caps[i] = _envelope(table, route[i], arcs[row, i])
+    for k in range(substeps):
+        src, dst = row + k, row + k + 1
+        for i in range(n):
+            v0, x0 = speeds[src, i], arcs[src, i]
+            v = min(max(v0 + acc[k, i] * h, 0.0), max_speed)
+            x = x0 + 0.5 * (v0 + v) * h
+            cap_x = _envelope(table, route[i], x)
+            cap = min(caps[i], cap_x)
+            if v > cap:
+                v = cap
+                x = x0 + 0.5 * (v0 + v) * h
+                cap_x = _envelope(table, route[i], x)
+            speeds[dst, i], arcs[dst, i] = v, x
+            caps[i] = cap_x
+
+
+@numba.njit(cache=True)
+def predict_lagged(
+    plan: PlanArrays,
+    table: EnvelopeTable,
+    actuation: Actuation,
+    command: np.ndarray,
+    arcs: np.ndarray,
+    speeds: np.ndarray,
+    steps: int,
+    substeps: int,
+    h: float,
+    max_speed: float,
+    a_max: float,
+    dt: float,
+    proceed: float,
+    gap_margin: float,
+    standing: float,
+    slack: float,
+) -> int:
+    """:func:`predict` under latency and lag (``predict_lagged_numpy``): every period's command, the first one's and
+    the fallback's, is realised through :class:`Actuation` (the fallback's braking too), and the rules of the fallback
+    and of the end read the reach speeds (:func:`reach_speeds`). Arguments as :func:`predict`.
+    """
+    n = plan.route.shape[0]
+    acc = command.copy()
+    r, previous = actuation.realised.copy(), actuation.previous.copy()
+    sub = np.empty((substeps, n))
+    go, hold, caps = np.zeros(n, np.bool_), np.zeros(n, np.bool_), np.empty(n)
+    row = 0
+    for _ in range(steps):
+        _actuate(actuation, acc, speeds[row], r, previous, sub)
+        _integrate_substeps(table, plan.route, sub, arcs, speeds, row, substeps, h, max_speed, caps)
+        row += substeps
+        v = speeds[row]
+        reach = reach_speeds(v, r, previous, a_max, actuation.lag, actuation.latency, standing, actuation.margin)
+        if _all_committed(plan, arcs[row], reach, go, a_max, standing, slack) and _gaps_hold(
+            plan, arcs[row], v, reach, go, a_max, gap_margin, slack
+        ):
+            break
+        _fallback(plan, arcs[row], v, reach, go, hold, acc, a_max, dt, proceed, gap_margin, standing, slack)
     return row + 1
 
 

@@ -75,6 +75,7 @@ bit for bit, the blame (who is overridden for a conflict) included.
 
 from __future__ import annotations
 
+import math
 import weakref
 from dataclasses import dataclass, field, replace
 from functools import partial
@@ -103,6 +104,12 @@ _STOP_SLACK = STOP_SLACK
 LIVE_SPEED = CRAWL_SPEED  # also the human window's crawl speed
 # Planner-error lines a shield keeps per run (the count is complete).
 MAX_ERROR_LINES = 5
+# On a perceived scene (declared bounds): how much a follow gap below its floor may shrink in a prediction, and the
+# room the fallback keeps over its gap margin, for the changes of view from one step to the next [m] (`_view_floors`).
+VIEW_SHRINK = 0.5
+VIEW_KEEP = 1.0
+# ... and how much farther a moving vehicle may be found to stop at the next step than the prediction shows [m].
+VIEW_STOP = 4.0
 # Rounding allowance on the bound of a vehicle's stopping point over a prediction (`Shield._may_commit`) [m].
 _REACH_TOLERANCE = 1e-3
 
@@ -147,6 +154,11 @@ class _Plan:
     # (n,) each vehicle's zone padding [m]: the shield's zone_margin, 0 for a waiting human (it stands)
     pad: np.ndarray = field(default_factory=lambda: np.zeros(0))
     waiting: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))  # (n,) waiting humans (`_hesitating`)
+    # Declared bounds (`Shield._widening`, `Shield._actuation`): (n,) how far each vehicle's true position may lie
+    # from the scene's (0: exact), and the actuation model of the prediction (None: commands realised at once).
+    widen: np.ndarray | None = None
+    follow_keep: np.ndarray | None = None  # (k,) room the fallback keeps to the vehicle ahead over gap_margin [m]
+    actuation: _shield_kernel.Actuation | None = None
 
     def __post_init__(self) -> None:
         # The compiled kernels' view, contiguous and of one dtype per field (one compiled signature);
@@ -164,6 +176,10 @@ class _Plan:
             ahead_arc=f(self.arc[ahead]),
             follow_floor=f(self.follow_floor),
             follow_until=f(self.follow_until),
+            follow_keep=f(np.zeros(len(follower)) if self.follow_keep is None else self.follow_keep),
+            merge_keep=f(
+                np.zeros(len(self.merge)) if self.follow_keep is None else np.full(len(self.merge), VIEW_KEEP)
+            ),
             cross=i(self.cross),
             cross_lo=f(self.cross_lo),
             cross_hi=f(self.cross_hi),
@@ -402,6 +418,8 @@ class Shield(Planner):
         if going.any() or waiting.any():
             self._human_windows(scene, plan, going, waiting)
         fallback = self._fallback(scene, plan, plan.arc, plan.speed)
+        if plan.widen is not None:  # a perceived scene: what its changes of view leave the fallback unable to keep
+            forced = forced | (self._tolerate(scene, plan, np.where(human, acc, fallback)) & ~human)
         acc = np.where(forced, fallback, acc)
         # Liveness: a vehicle past its stop line that the proposal brakes is proposed onwards instead
         # (checked like any proposal: where going on conflicts, the fallback brakes it).
@@ -586,7 +604,7 @@ class Shield(Planner):
         if plan.cross.size:
             a_max = float(scene.a_max)
             go = self._committed_now(plan, a_max)
-            arc, speed = np.ascontiguousarray(plan.arc), np.ascontiguousarray(plan.speed)
+            arc, speed = np.ascontiguousarray(plan.arc), self._reach_now(plan, a_max)
             waits = _shield_kernel.waits(plan.kernel_arrays, arc, speed, go, a_max, _STANDING, _STOP_SLACK)
             awaited[plan.cross[:, ::-1][waits]] = True
         return awaited & (acc < np.minimum(fallback, 0.0) - 1e-9)
@@ -621,6 +639,9 @@ class Shield(Planner):
         # only the pairs that can conflict within the prediction (`_may_commit`, and crossing pairs
         # of which neither has passed the zone). Compiled (`_shield_kernel.pairs`): in NumPy, building
         # and scanning the (n, n) arrays took some 40 calls, a tenth of a shielded step at 100 vehicles.
+        widen = self._widening(scene)
+        if widen is not None:  # what the scene can be wrong about: every zone and hull grows by it
+            hull_start, hull_end, pad = hull_start - widen, hull_end + widen, pad + widen
         candidate = self._may_commit(scene, arc, speed, hull_start) if self._prune else np.ones(len(arc), bool)
         candidate = candidate | waiting  # it stands in the prediction, but keeps windows (`_human_windows`)
         (follow, follow_gap, cross, cross_lo, cross_hi, already, back, stop, merge, merge_lo, merge_exit, merge_sep,
@@ -632,7 +653,16 @@ class Shield(Planner):
             candidate, self._prune, lay.conflicts, _merging_routes(lay), parting_arcs(lay), lay.zone_start,
             lay.zone_end, lay.exit_arc, pad, self.merge_margin, _STANDING, _STOP_SLACK,
         )  # fmt: skip
+        floor = np.minimum(0.5 * self.gap_margin, follow_gap - 1e-6)  # a short gap may not shrink
+        keep = None
+        if widen is not None:  # a gap may be shorter, and a merge closer, by both vehicles' widening
+            follow_gap = follow_gap - widen[follow[:, 0]] - widen[follow[:, 1]]
+            merge_sep = merge_sep + widen[merge[:, 0]] + widen[merge[:, 1]]
+            floor, keep = self._view_floors(follow_gap, widen[follow[:, 0]] + widen[follow[:, 1]])
         return _Plan(
+            widen=widen,
+            follow_keep=keep,
+            actuation=self._actuation(scene),
             human=scene.humans,
             pad=pad,
             waiting=waiting,
@@ -652,7 +682,7 @@ class Shield(Planner):
             merge_sep=merge_sep,
             rank=rank,
             vehicle_id=np.asarray(scene.vehicle_id),
-            follow_floor=np.minimum(0.5 * self.gap_margin, follow_gap - 1e-6),  # a short gap may not shrink
+            follow_floor=floor,
             cross_already=already,
             cross_back=back,
             cross_stop=stop,
@@ -731,15 +761,116 @@ class Shield(Planner):
         """
         a_max, dt = float(scene.a_max), float(scene.dt)
         v1 = speed + a_max * dt
+        lag = self._lag_reach(scene)
+        if lag > 0:  # under latency and lag, braking from a realised acceleration of up to a_max (`reach_speeds`)
+            v1 = v1 + 2 * a_max * lag
         reach = arc + speed * dt + 0.5 * a_max * dt * dt + v1 * v1 / (2 * a_max)
         return reach + _STOP_SLACK + _REACH_TOLERANCE > hull_start
+
+    # ------------------------------------------------------------------ the declared bounds
+    def _widening(self, scene: Scene) -> np.ndarray | None:
+        """``(n,)`` how far each vehicle's true position may lie from a perceived scene's [m], ``None`` for an exact
+        scene (one without ``arc_std``: it costs nothing) or bounds without a position or speed error: the position
+        bound, plus what the speed bound reaches over the age of the state the estimate rests on (``Scene.age``; a
+        tracker's estimate of a held state is driven on by the vehicle's commands, off by at most its speed error)."""
+        bounds = self.bounds
+        if scene.arc_std is None or not (bounds.position > 0 or bounds.speed > 0):
+            return None
+        age = np.zeros(scene.num_vehicles) if scene.age is None else np.asarray(scene.age, float)
+        return bounds.position + bounds.speed * np.minimum(age, bounds.age)
+
+    def _lag_reach(self, scene: Scene) -> float:
+        """Latency plus lag [s] that the prediction models for a scene: the declared ones where the scene carries the
+        realised accelerations (``Scene.acceleration``: the planner side replays its commands through latency and
+        lag), else 0 (every command realised at once, as an exact scene says)."""
+        if scene.acceleration is None:
+            return 0.0
+        return self.bounds.lag + self.bounds.latency
+
+    def _actuation(self, scene: Scene) -> _shield_kernel.Actuation | None:
+        """The prediction's actuation model (:class:`envs.planners._shield_kernel.Actuation`), ``None`` where commands
+        are realised at once (:meth:`_lag_reach` is 0): the realised accelerations and the commands in flight of the
+        scene, the declared latency and lag, at the prediction's sub-steps (as the plant's
+        :class:`envs.simulation.faults.Actuator`)."""
+        if self._lag_reach(scene) <= 0:
+            return None
+        lag, latency = self.bounds.lag, self.bounds.latency
+        substeps = self.substeps(scene)
+        h = float(scene.dt) / substeps
+        decay = math.exp(-h / lag) if lag > 0 else 0.0
+        realised = np.ascontiguousarray(scene.acceleration, dtype=float)
+        previous = realised if scene.command is None else np.ascontiguousarray(scene.command, dtype=float)
+        return _shield_kernel.Actuation(
+            realised=realised,
+            previous=previous,
+            old_share=np.clip((latency - np.arange(substeps) * h) / h, 0.0, 1.0),
+            decay=decay,
+            mean_share=lag / h * (1.0 - decay) if lag > 0 else 0.0,
+            lag=lag,
+            latency=latency,
+            margin=VIEW_STOP,
+        )
+
+    def _view_floors(self, follow_gap: np.ndarray, widen: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The follow pairs' floors and the room their fallback keeps over ``gap_margin`` on a perceived scene (the
+        gaps already shortened by both vehicles' widening, ``widen``). A perceived gap changes from one step to the
+        next by more than the vehicles move (the errors drift): a gap below the floor may shrink by
+        :data:`VIEW_SHRINK` rather than not at all, though never below the floor of the exact world on the
+        perceived gap; and the fallback keeps :data:`VIEW_KEEP` more room, which the next view may take."""
+        floor = np.maximum(np.minimum(0.5 * self.gap_margin, follow_gap - VIEW_SHRINK), 0.5 * self.gap_margin - widen)
+        return np.minimum(floor, follow_gap - 1e-6), np.full(len(follow_gap), VIEW_KEEP)
+
+    def _tolerate(self, scene: Scene, plan: _Plan, fallback: np.ndarray) -> np.ndarray:
+        """Where the fallback itself leaves a follow gap below its floor in the prediction (a perceived scene's view of
+        two braking vehicles changes from step to step by what the bounds allow, and the plan accepted at the last
+        step no longer shows the gap kept), a proposal may not close it further than the fallback does: the floor
+        of such a pair becomes the smallest gap of the fallback's prediction. Without it one such pair, which no
+        command can help, would override every vehicle's proposal with the fallback. The followers of such pairs
+        get the fallback (returned, ``(n,)`` bool): a floor lowered so must not let a proposal close the gap further,
+        step after step.
+        """
+        follower = np.zeros(len(plan.arc), bool)
+        if not (len(plan.follow) or len(plan.merge)):
+            return follower
+        arc, _ = self.predict(scene, plan, fallback)
+        f, ahead = plan.follow[:, 0], plan.follow[:, 1]
+        gap = plan.follow_gap + (arc[1:, ahead] - plan.arc[ahead]) - (arc[1:, f] - plan.arc[f])
+        gap = np.where(arc[1:, ahead] < plan.follow_until, gap, np.inf).min(axis=0)
+        low = gap < plan.follow_floor
+        if low.any():
+            follower[f[low]] = True
+            plan.follow_floor = np.where(low, gap - 1e-6, plan.follow_floor)
+            plan.kernel_arrays = plan.kernel_arrays._replace(follow_floor=np.ascontiguousarray(plan.follow_floor))
+        if len(plan.merge):  # a merging pair: its separation, once both have reached the merge
+            x = arc[1:][:, plan.merge]
+            reached = (x > plan.merge_lo).all(axis=2)
+            e = x - plan.merge_exit
+            distance = np.where(reached, np.abs(e[..., 0] - e[..., 1]), np.inf).min(axis=0)
+            close = distance < plan.merge_sep
+            if close.any():
+                behind = np.where(e[0, :, 0] >= e[0, :, 1], plan.merge[:, 1], plan.merge[:, 0])
+                follower[behind[close]] = True
+                plan.merge_sep = np.where(close, distance - 1e-6, plan.merge_sep)
+                plan.kernel_arrays = plan.kernel_arrays._replace(merge_sep=np.ascontiguousarray(plan.merge_sep))
+        return follower
+
+    def _reach_now(self, plan: _Plan, a_max: float, speed: np.ndarray | None = None) -> np.ndarray:
+        """The speeds now as the rules' stopping distances read them (:func:`envs.planners._shield_kernel.reach_speeds`:
+        raised by what latency and lag add; the speeds themselves without them)."""
+        speed = np.ascontiguousarray(plan.speed if speed is None else speed, dtype=float)
+        act = plan.actuation
+        if act is None:
+            return speed
+        return _shield_kernel.reach_speeds(
+            speed, act.realised, act.previous, float(a_max), act.lag, act.latency, _STANDING
+        )
 
     # ------------------------------------------------------------------ the fallback
     def _committed_now(self, plan: _Plan, a_max: float) -> np.ndarray:
         """:meth:`committed` in the state now, computed once per plan (three rules of a check read it)."""
         go = plan.committed_now
         if go is None:
-            go = plan.committed_now = self.committed(plan, plan.arc, plan.speed, a_max)
+            go = plan.committed_now = self.committed(plan, plan.arc, self._reach_now(plan, a_max), a_max)
         return go
 
     def committed(self, plan: _Plan, arc: np.ndarray, speed: np.ndarray, a_max: float) -> np.ndarray:
@@ -753,10 +884,12 @@ class Shield(Planner):
         Compiled, as the prediction.
         """
         a_max = float(scene.a_max)
+        speed = np.ascontiguousarray(speed, dtype=float)
         return _shield_kernel.fallback(
             plan.kernel_arrays,
             np.ascontiguousarray(arc, dtype=float),
-            np.ascontiguousarray(speed, dtype=float),
+            speed,
+            speed if plan.actuation is None else self._reach_now(plan, a_max, speed),
             a_max,
             float(scene.dt),
             min(self.proceed_acceleration, a_max),
@@ -791,9 +924,13 @@ class Shield(Planner):
         arcs = np.empty((steps * substeps + 1, len(plan.arc)))
         speeds = np.empty_like(arcs)
         arcs[0], speeds[0] = plan.arc, plan.speed
-        rows = _shield_kernel.predict(
+        kernel, head = _shield_kernel.predict, ()
+        if plan.actuation is not None:  # latency and lag (`_actuation`)
+            kernel, head = _shield_kernel.predict_lagged, (plan.actuation,)
+        rows = kernel(
             plan.kernel_arrays,
             envelope_table(scene.layout, self.governor_deceleration),
+            *head,
             np.ascontiguousarray(command, dtype=float),
             arcs,
             speeds,

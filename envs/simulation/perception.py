@@ -147,7 +147,7 @@ class Perception:
             sent=sent, v_seen=speed,
         )  # fmt: skip
         scene = self._scene(plant, arc, speed, arc_std, speed_std, age)
-        return scene if realised is None else dataclasses.replace(scene, acceleration=realised)
+        return scene if realised is None else dataclasses.replace(scene, acceleration=realised, command=sent)
 
     def _commands(self, ids, rows, known, kept, commanded) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         """Each vehicle's last command (in flight for ``latency``), the past period's mean acceleration and that of

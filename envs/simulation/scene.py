@@ -71,6 +71,8 @@ class Scene:
     :param acceleration: ``(n,)`` the acceleration each vehicle realises at the scene's estimate (its commands through
         the actuation latency and lag of the fault model, as the planner side replays them) [m/s^2]; ``None``: each
         command is realised at once
+    :param command: ``(n,)`` the last command each vehicle was sent, still in flight for the fault model's latency
+        (it holds until the next one applies) [m/s^2]; ``None`` where ``acceleration`` is (no latency or lag)
     :param human_intent: ``(n,)`` int8: what a shield has seen each human driver do against the human model
         (:meth:`envs.planners.shield.Shield.act` sets it in the scene it hands its planner): ``1`` it went where the
         model yields (it goes, whatever the model says), ``-1`` it has stood where the model goes (it waits), ``0``
@@ -107,6 +109,7 @@ class Scene:
     speed_std: np.ndarray | None = None
     age: np.ndarray | None = None
     acceleration: np.ndarray | None = None
+    command: np.ndarray | None = None
     human_intent: np.ndarray | None = None
 
     @property
